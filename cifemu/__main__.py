@@ -1,0 +1,5 @@
+import sys
+
+from cifemu.cli import main
+
+sys.exit(main())

@@ -1,0 +1,118 @@
+"""The event channel beside the image [ours] (DPM.md section 5).
+
+A real card raises an interrupt when it writes HostFlags. Here the writer of a
+flag byte rings the other side with a one-byte datagram on a Unix socket in
+Linux's abstract namespace (no file to clean up after a crash). The device
+listens on a name derived from the image path; each host binds an automatic
+name, and the device learns it from the host's rings. A ring is only a hint:
+both sides re-read the flags after every wake-up and also poll, so a lost ring
+(a full queue, a host that writes the image directly) costs at most one poll
+interval, never correctness.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import select
+import socket
+from collections import OrderedDict
+from pathlib import Path
+
+POLL_INTERVAL = 0.001
+"""Seconds between flag polls when no ring arrives (the 1 ms of DPM.md 5)."""
+
+MAX_HOSTS = 64
+"""Hosts the device keeps ringing; the longest silent one is dropped first."""
+
+_RING = b"\x01"
+
+
+def device_address(image_path: Path) -> bytes:
+    """The abstract socket name of the device serving ``image_path``."""
+    digest = hashlib.sha1(str(Path(image_path).resolve()).encode()).hexdigest()[:20]
+    return b"\0cifemu-dpm-" + digest.encode()
+
+
+class _Endpoint:
+    def __init__(self) -> None:
+        self.sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+        self.sock.setblocking(False)
+        self._poll = select.poll()
+        self._poll.register(self.sock.fileno(), select.POLLIN)
+
+    def fileno(self) -> int:
+        return self.sock.fileno()
+
+    def close(self) -> None:
+        self.sock.close()
+
+    def _send(self, address: bytes) -> bool:
+        """Ring ``address``; False when nobody listens there any more."""
+        try:
+            self.sock.sendto(_RING, address)
+        except (ConnectionRefusedError, FileNotFoundError):
+            return False
+        except (BlockingIOError, OSError):
+            return True  # queue full: the peer is awake anyway, or will poll
+        return True
+
+    def _drain(self) -> list[bytes]:
+        senders: list[bytes] = []
+        while True:
+            try:
+                _, address = self.sock.recvfrom(16)
+            except (BlockingIOError, InterruptedError):
+                return senders
+            if address:
+                senders.append(address)
+
+    def wait(self, timeout: float) -> bool:
+        """Block until a ring or ``timeout`` seconds; True when rung."""
+        ready = self._poll.poll(max(0.0, timeout) * 1000.0)
+        if ready:
+            self._on_rings(self._drain())
+            return True
+        return False
+
+    def _on_rings(self, senders: list[bytes]) -> None:
+        del senders
+
+
+class DeviceBell(_Endpoint):
+    """The firmware's side: rung by hosts, rings every host it has heard from."""
+
+    def __init__(self, image_path: Path) -> None:
+        super().__init__()
+        self.address = device_address(image_path)
+        self.sock.bind(self.address)
+        self._hosts: OrderedDict[bytes, None] = OrderedDict()
+
+    def _on_rings(self, senders: list[bytes]) -> None:
+        for address in senders:
+            if address == self.address:
+                continue
+            self._hosts[address] = None
+            self._hosts.move_to_end(address)
+            while len(self._hosts) > MAX_HOSTS:
+                self._hosts.popitem(last=False)
+
+    def ring_self(self) -> None:
+        """Wake the device loop from another thread of the firmware."""
+        self._send(self.address)
+
+    def ring_hosts(self) -> None:
+        for address in list(self._hosts):
+            if not self._send(address):
+                del self._hosts[address]
+
+
+class HostBell(_Endpoint):
+    """A host's side: rings the device after writing DevFlags, waits for rings."""
+
+    def __init__(self, image_path: Path) -> None:
+        super().__init__()
+        self.sock.bind(b"")  # Linux autobind: a unique abstract name
+        self.device = device_address(image_path)
+
+    def ring_device(self) -> None:
+        self._send(self.device)

@@ -1,0 +1,147 @@
+"""MSG_STRUC and the extended telegram header, as pure codecs.
+
+A message in a mailbox is ``rx tx ln nr a f b e`` followed by ``ln`` data
+bytes; readers copy only ``ln + 8`` bytes, never the whole 288-byte slot, so
+stale bytes of an earlier, longer message never leak into a new one.
+"""
+
+from __future__ import annotations
+
+import struct
+from dataclasses import dataclass, field
+from enum import IntEnum
+
+from dpm.layout import MSG_DATA_SIZE, MSG_HEADER_SIZE
+
+MSG_MAX_SIZE = MSG_HEADER_SIZE + MSG_DATA_SIZE
+"""A message is at most 263 bytes (the slot is 288 with its dummy tail)."""
+
+
+class Task(IntEnum):
+    """Values of msg.rx / msg.tx (seed manual 1.1 and 5; RcsDef.h)."""
+
+    RCS = 0
+    PLC = 2
+    CAN = 3
+    USER = 16
+    SYSTEM = 0xFF
+
+
+class Ext(IntEnum):
+    """Bits of msg.e: answer suppression and the sequence of split transfers."""
+
+    NORM = 0
+    NAK = 2
+    """RCS_NAK_MSK: no answer wanted."""
+    FIRST = 4
+    CONT = 8
+    LAST = 0x0C
+    SEQ_MASK = 0x0C
+
+
+class Tfc(IntEnum):
+    """TASK_TFC_*: msg.function of the extended telegram header."""
+
+    READ = 1
+    WRITE = 2
+    QUERY = 3
+
+
+class Tdt(IntEnum):
+    """TASK_TDT_*: msg.data_type of the extended telegram header."""
+
+    UINT8 = 5
+    UINT16 = 6
+    STRING = 10
+    BIT = 14
+
+
+TDT_INTEL = 0x80
+"""Bit of data_type selecting Intel byte order."""
+
+
+class MessageError(ValueError):
+    """A byte string that is not a well-formed message."""
+
+
+@dataclass(slots=True)
+class Message:
+    """One mailbox message; ``ln`` is always ``len(data)``."""
+
+    rx: int
+    tx: int
+    b: int = 0
+    data: bytes = b""
+    nr: int = 0
+    a: int = 0
+    f: int = 0
+    e: int = 0
+
+    @property
+    def ln(self) -> int:
+        return len(self.data)
+
+    def encode(self) -> bytes:
+        """The ``ln + 8`` bytes a sender writes into a mailbox."""
+        if len(self.data) > MSG_DATA_SIZE:
+            raise MessageError(f"message data of {len(self.data)} bytes exceeds 255")
+        for name in ("rx", "tx", "nr", "a", "f", "b", "e"):
+            value = getattr(self, name)
+            if not 0 <= value <= 0xFF:
+                raise MessageError(f"msg.{name} = {value} is not a byte")
+        return (
+            bytes((self.rx, self.tx, len(self.data), self.nr, self.a, self.f, self.b, self.e))
+            + self.data
+        )
+
+    @classmethod
+    def decode(cls, raw: bytes | bytearray | memoryview) -> Message:
+        """Read a message from the start of ``raw`` (a mailbox slot or a copy)."""
+        if len(raw) < MSG_HEADER_SIZE:
+            raise MessageError(f"{len(raw)} bytes is shorter than a message header")
+        rx, tx, ln, nr, a, f, b, e = bytes(raw[:MSG_HEADER_SIZE])
+        if len(raw) < MSG_HEADER_SIZE + ln:
+            raise MessageError(f"msg.ln = {ln} but only {len(raw) - 8} data bytes")
+        data = bytes(raw[MSG_HEADER_SIZE : MSG_HEADER_SIZE + ln])
+        return cls(rx=rx, tx=tx, b=b, data=data, nr=nr, a=a, f=f, e=e)
+
+    def answer(self, f: int = 0, data: bytes = b"", e: int = 0) -> Message:
+        """The answer a task gives to this command: rx/tx swapped, a = b, b = 0."""
+        return Message(rx=self.tx, tx=self.rx, b=0, data=data, nr=self.nr, a=self.b, f=f, e=e)
+
+
+TELEGRAM_HEADER = struct.Struct("<BBHBBBB")
+
+
+@dataclass(slots=True)
+class TelegramHeader:
+    """The extended telegram header: the first 8 data bytes of some messages."""
+
+    device_adr: int = 0
+    data_area: int = 0
+    data_adr: int = 0
+    data_idx: int = 0
+    data_cnt: int = 0
+    data_type: int = 0
+    function: int = 0
+    payload: bytes = field(default=b"", repr=False)
+    """The data bytes after the header (msg.d[] in the seed's tables)."""
+
+    SIZE = TELEGRAM_HEADER.size
+
+    def encode(self) -> bytes:
+        return (
+            TELEGRAM_HEADER.pack(
+                self.device_adr, self.data_area, self.data_adr, self.data_idx,
+                self.data_cnt, self.data_type, self.function,
+            )
+            + self.payload
+        )
+
+    @classmethod
+    def decode(cls, data: bytes) -> TelegramHeader:
+        if len(data) < TELEGRAM_HEADER.size:
+            raise MessageError(f"{len(data)} data bytes are too few for a telegram header")
+        adr, area, data_adr, idx, cnt, data_type, function = TELEGRAM_HEADER.unpack_from(data)
+        return cls(adr, area, data_adr, idx, cnt, data_type, function,
+                   bytes(data[TELEGRAM_HEADER.size :]))

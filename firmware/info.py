@@ -1,0 +1,54 @@
+"""What the card says about itself: VERSIONINFO, FIRMWAREINFO, TASKINFO, RCSINFO, DEVINFO."""
+
+from __future__ import annotations
+
+from typing import Any
+
+FIRMWARE_NAME = b"CANopen Master"  # [ours] (DPM.md 1)
+FIRMWARE_VERSION = b"V1.070 cifemu"
+DEVICE_NUMBER = 1250100
+"""[ours] ulDeviceNo of the emulated card."""
+RCS_VERSION = 0x0100
+DEV_TYPE = 0x32
+DEV_MODEL = 0x05
+TASKS = {1: (b"PLC", 0x0100), 2: (b"CAN", 0x0100)}
+"""TASKINFO entries by index: entry 2 (task 2) "PLC", entry 3 (task 3) "CAN"."""
+
+
+def _bcd(value: int) -> int:
+    out = 0
+    for shift, digit in enumerate(reversed(str(value))):
+        out |= int(digit) << (4 * shift)
+    return out
+
+
+def fill(view: Any, board: int) -> None:
+    """Write the identification areas into the image (at power-on and every start)."""
+    version = view["VersionInfo"]
+    version["ulDate"] = _bcd(20261122)
+    version["ulDeviceNo"] = DEVICE_NUMBER
+    version["ulSerialNo"] = _bcd(board + 1)
+    version["ulReserved"] = 0
+    version["abPcOsName0"] = b"RCS "
+    version["abPcOsName1"] = b"CAN "
+    version["abPcOsName2"] = b"    "
+    version["abOemIdentifier"] = b"    "
+    firmware = view["FirmwareInfo"]
+    firmware["abFirmwareName"] = FIRMWARE_NAME.ljust(16)
+    firmware["abFirmwareVersion"] = FIRMWARE_VERSION.ljust(16)
+    for index in range(7):
+        entry = view["TaskInfo"][index]
+        name, task_version = TASKS.get(index, (b"", 0))
+        entry["abTaskName"] = name.ljust(8)
+        entry["usVersion"] = task_version
+        entry["bCondition"] = 1 if name else 0
+    rcs = view["RcsInfo"]
+    rcs["usRcsVersion"] = RCS_VERSION
+    rcs["bRcsError"] = 0
+    rcs["bSegmentCount"] = 8
+    rcs["bDeviceAdress"] = 0
+    dev = view["DevInfo"]
+    dev["bDpmSize"] = 8
+    dev["bDevType"] = DEV_TYPE
+    dev["bDevModel"] = DEV_MODEL
+    dev["abDevIdentifier"] = b"CIF"

@@ -1,0 +1,67 @@
+"""The process data as the bus sees it, decoupled from the DPM areas.
+
+In the buffered modes the CAN task drives ``outputs`` and fills ``inputs``;
+the PLC task copies between them and the image only at a handshake, under a
+lock, so a host never sees half of one PDO and half of the next. In the
+uncontrolled mode the image itself is the process data.
+"""
+
+from __future__ import annotations
+
+import mmap
+import threading
+
+from dpm.layout import IO_AREA_SIZE, RCV_PD, SND_PD
+
+UNCONTROLLED = 3
+
+
+class ProcessImage:
+    def __init__(self, image: mmap.mmap) -> None:
+        self._mm = image
+        self.lock = threading.RLock()  # re-entered by bit read-modify-write
+        self.outputs = bytearray(IO_AREA_SIZE)
+        self.inputs = bytearray(IO_AREA_SIZE)
+        self.mode = 0
+        self.driving = True
+        """False while the host is not ready or its watchdog expired: outputs read as 0."""
+
+    def clear(self) -> None:
+        with self.lock:
+            self.outputs[:] = bytes(IO_AREA_SIZE)
+            self.inputs[:] = bytes(IO_AREA_SIZE)
+
+    def read_outputs(self, offset: int, size: int) -> bytes:
+        """What the bus should carry for the host outputs at ``offset``."""
+        with self.lock:
+            if not self.driving:
+                return bytes(size)
+            if self.mode == UNCONTROLLED:
+                return self._mm[SND_PD + offset : SND_PD + offset + size]
+            return bytes(self.outputs[offset : offset + size])
+
+    def write_inputs(self, offset: int, data: bytes) -> None:
+        """Store what the bus delivered; visible at once in the uncontrolled mode."""
+        with self.lock:
+            self.inputs[offset : offset + len(data)] = data
+            if self.mode == UNCONTROLLED:
+                self._mm[RCV_PD + offset : RCV_PD + offset + len(data)] = data
+
+    def read_inputs(self, offset: int, size: int) -> bytes:
+        with self.lock:
+            return bytes(self.inputs[offset : offset + size])
+
+    def read_send_area(self, offset: int, size: int) -> bytes:
+        return self._mm[SND_PD + offset : SND_PD + offset + size]
+
+    def write_send_area(self, offset: int, data: bytes) -> None:
+        """A consistent write into the host outputs (COM_Shared_Memory)."""
+        with self.lock:
+            self._mm[SND_PD + offset : SND_PD + offset + len(data)] = data
+            self.outputs[offset : offset + len(data)] = data
+
+    def cycle(self) -> None:
+        """One buffered exchange: take the host's outputs, hand it the inputs."""
+        with self.lock:
+            self.outputs[:] = self._mm[SND_PD : SND_PD + IO_AREA_SIZE]
+            self._mm[RCV_PD : RCV_PD + IO_AREA_SIZE] = self.inputs

@@ -1,0 +1,110 @@
+"""The RCS system task (msg.rx 0): starts, flags, the host watchdog.
+
+It brings the card up at every cold, warm and boot start (DPM.md section 4),
+follows the host's NOTREADY level and supervises the host watchdog. The DBM
+load function (msg.b 6) joins it with the flash store.
+"""
+
+from __future__ import annotations
+
+import logging
+from enum import Enum
+from typing import TYPE_CHECKING
+
+from dpm import errors
+from dpm.flags import DevFlag, HostFlag
+from dpm.layout import DEV_FLAGS, DEV_WATCHDOG, HOST_WATCHDOG, TASK2_PARAMETER, TASK_PARAMETER_SIZE
+from dpm.task2 import ComPlcParameter, GlobalBits
+from firmware.task import Task
+
+if TYPE_CHECKING:
+    from firmware.device import Device
+
+log = logging.getLogger(__name__)
+
+
+class Start(Enum):
+    """The three starts of DevReset; a boot start is a cold start here [ours]."""
+
+    COLD = "cold"
+    WARM = "warm"
+    BOOT = "boot"
+
+    @classmethod
+    def from_flags(cls, dev_flags: int) -> Start:
+        if dev_flags & DevFlag.RESET and dev_flags & DevFlag.INIT:
+            return cls.BOOT
+        return cls.COLD if dev_flags & DevFlag.RESET else cls.WARM
+
+
+class RcsTask(Task):
+    number = 0
+    name = "RCS"
+
+    def __init__(self, device: Device, reset_delay: float = 0.0) -> None:
+        super().__init__(device)
+        self.reset_delay = reset_delay
+        self.watchdog_time = 0
+        self.watchdog_expired = False
+        self._last_dev_watchdog = 0
+        self._watchdog_deadline = 0.0
+        self.host_not_ready = False
+
+    def start(self, kind: Start) -> None:
+        """Run one start: everything down, parameters in, READY (and RUN) up."""
+        dev = self.device
+        log.info("%s start", kind.value)
+        dev.write_host_flags(0)  # READY first, so no host sees stale flags as ready
+        dev.mm[DEV_FLAGS] = 0
+        dev.outbox.clear()
+        dev.clear_state()
+        if self.reset_delay and dev.sleep(self.reset_delay):
+            return
+        cold = kind is not Start.WARM
+        if cold:
+            parameter = ComPlcParameter()
+        else:
+            raw = dev.mm[TASK2_PARAMETER : TASK2_PARAMETER + TASK_PARAMETER_SIZE]
+            parameter = ComPlcParameter.decode(raw)
+        parameter.abConnStatus = b"\xff" * 16  # [ours] every node enabled after a start
+        dev.mm[TASK2_PARAMETER : TASK2_PARAMETER + TASK_PARAMETER_SIZE] = parameter.encode()
+        self.watchdog_time = parameter.usWatchDogTime
+        self.watchdog_expired = False
+        self._last_dev_watchdog = 0
+        dev.mm[HOST_WATCHDOG] = 1
+        dev.mm[DEV_WATCHDOG] = 0
+        self.host_not_ready = False
+        dev.fill_info()
+        for task in dev.tasks.values():
+            task.reset(cold)
+        dev.plc.apply_parameters(parameter)
+        dev.write_host_flags(HostFlag.READY)
+
+    def service(self, dev_flags: int, now: float) -> None:
+        """Follow NOTREADY and the host watchdog; called every loop turn."""
+        not_ready = bool(dev_flags & DevFlag.NOTREADY)
+        if not_ready != self.host_not_ready:
+            self.host_not_ready = not_ready
+            self.device.set_global_bit(GlobalBits.NRDY, not_ready)
+            self.device.update_driving()
+        self._watchdog(now)
+
+    def _watchdog(self, now: float) -> None:
+        mm = self.device.mm
+        trigger = mm[DEV_WATCHDOG]
+        if trigger == 0:
+            self._last_dev_watchdog = 0
+            return
+        if self.watchdog_expired:
+            return
+        if trigger != self._last_dev_watchdog:
+            self._last_dev_watchdog = trigger
+            mm[HOST_WATCHDOG] = trigger % 255 + 1  # trigger + 1, skipping 0
+            self._watchdog_deadline = now + self.watchdog_time / 1000.0
+            return
+        if self.watchdog_time and now > self._watchdog_deadline:
+            log.warning("host watchdog expired after %d ms", self.watchdog_time)
+            self.watchdog_expired = True
+            self.device.set_error(errors.ERR_NODE_DEVICE, errors.ERR_EVENT_HOST_WATCHDOG)
+            self.device.update_driving()
+

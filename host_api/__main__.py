@@ -1,0 +1,5 @@
+import sys
+
+from host_api.status import main
+
+sys.exit(main())

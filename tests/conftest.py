@@ -1,0 +1,106 @@
+"""Shared fixtures: real firmware processes on real image files."""
+
+from __future__ import annotations
+
+import mmap
+import os
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import pytest
+
+from host_api import driver
+
+ROOT = Path(__file__).resolve().parents[1]
+SHARED = ROOT.parent / "shared"
+IMAGE_SIZE = 8192
+HOST_FLAGS = 0x1FFE
+DEV_FLAGS = 0x1FFF
+READY = 0x80
+
+
+def wait_until(condition: Callable[[], object], timeout: float = 5.0, what: str = "") -> None:
+    """Poll ``condition`` until true; fail the test with ``what`` at the deadline."""
+    deadline = time.monotonic() + timeout
+    while not condition():
+        if time.monotonic() > deadline:
+            pytest.fail(f"timed out after {timeout} s waiting for {what or condition}")
+        time.sleep(0.001)
+
+
+@dataclass
+class Card:
+    """A firmware process serving board ``board`` in ``directory``."""
+
+    directory: Path
+    board: int
+    proc: subprocess.Popen[bytes]
+
+    @property
+    def path(self) -> Path:
+        return self.directory / f"board{self.board}.dpm"
+
+    def map(self) -> mmap.mmap:
+        """A raw map of the image, as a program that never imports host_api has."""
+        fd = os.open(self.path, os.O_RDWR)
+        try:
+            return mmap.mmap(fd, IMAGE_SIZE)
+        finally:
+            os.close(fd)
+
+    def freeze(self) -> None:
+        """Stop the firmware process (SIGSTOP): the image stays, nobody answers."""
+        self.proc.send_signal(signal.SIGSTOP)
+
+    def thaw(self) -> None:
+        self.proc.send_signal(signal.SIGCONT)
+
+    def stop(self) -> int:
+        if self.proc.poll() is None:
+            self.thaw()
+            self.proc.terminate()
+        return self.proc.wait(timeout=10)
+
+
+def start_card(directory: Path, board: int = 0, *extra: str) -> Card:
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "firmware", "--board", str(board), "--dpm-dir", str(directory),
+         "--log-level", "WARNING", *extra],
+        stderr=subprocess.PIPE,
+    )
+    card = Card(directory, board, proc)
+    deadline = time.monotonic() + 15
+    while True:
+        if proc.poll() is not None:
+            raise RuntimeError(f"firmware exited: {proc.stderr.read().decode() if proc.stderr else ''}")
+        if card.path.exists() and card.path.stat().st_size == IMAGE_SIZE:
+            with open(card.path, "rb") as f:
+                f.seek(HOST_FLAGS)
+                if f.read(1)[0] & READY:
+                    return card
+        if time.monotonic() > deadline:
+            card.stop()
+            raise RuntimeError("firmware did not become READY")
+        time.sleep(0.005)
+
+
+@pytest.fixture
+def card(tmp_path: Path) -> Iterator[Card]:
+    c = start_card(tmp_path)
+    yield c
+    c.stop()
+
+
+@pytest.fixture
+def board(card: Card) -> Iterator[int]:
+    """Board 0 opened through the driver API against a running card."""
+    assert driver.DevOpenDriver(card.directory) == 0
+    assert driver.DevInitBoard(0) == 0
+    yield 0
+    while driver.DevCloseDriver() == 0:
+        pass
