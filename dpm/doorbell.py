@@ -25,6 +25,8 @@ MAX_HOSTS = 64
 """Hosts the device keeps ringing; the longest silent one is dropped first."""
 
 _RING = b"\x01"
+_RING_WANT_ACK = b"\x02"
+"""A device ring that also says: more answers wait, ring me when you acknowledge."""
 
 
 def device_address(image_path: Path) -> bytes:
@@ -46,25 +48,24 @@ class _Endpoint:
     def close(self) -> None:
         self.sock.close()
 
-    def _send(self, address: bytes) -> bool:
+    def _send(self, address: bytes, payload: bytes = _RING) -> bool:
         """Ring ``address``; False when nobody listens there any more."""
         try:
-            self.sock.sendto(_RING, address)
+            self.sock.sendto(payload, address)
         except (ConnectionRefusedError, FileNotFoundError):
             return False
         except (BlockingIOError, OSError):
             return True  # queue full: the peer is awake anyway, or will poll
         return True
 
-    def _drain(self) -> list[bytes]:
-        senders: list[bytes] = []
+    def _drain(self) -> list[tuple[bytes, bytes]]:
+        rings: list[tuple[bytes, bytes]] = []
         while True:
             try:
-                _, address = self.sock.recvfrom(16)
+                payload, address = self.sock.recvfrom(16)
             except (BlockingIOError, InterruptedError):
-                return senders
-            if address:
-                senders.append(address)
+                return rings
+            rings.append((payload, address))
 
     def wait(self, timeout: float) -> bool:
         """Block until a ring or ``timeout`` seconds; True when rung."""
@@ -74,8 +75,8 @@ class _Endpoint:
             return True
         return False
 
-    def _on_rings(self, senders: list[bytes]) -> None:
-        del senders
+    def _on_rings(self, rings: list[tuple[bytes, bytes]]) -> None:
+        del rings
 
 
 class DeviceBell(_Endpoint):
@@ -87,9 +88,9 @@ class DeviceBell(_Endpoint):
         self.sock.bind(self.address)
         self._hosts: OrderedDict[bytes, None] = OrderedDict()
 
-    def _on_rings(self, senders: list[bytes]) -> None:
-        for address in senders:
-            if address == self.address:
+    def _on_rings(self, rings: list[tuple[bytes, bytes]]) -> None:
+        for _, address in rings:
+            if not address or address == self.address:
                 continue
             self._hosts[address] = None
             self._hosts.move_to_end(address)
@@ -100,9 +101,11 @@ class DeviceBell(_Endpoint):
         """Wake the device loop from another thread of the firmware."""
         self._send(self.address)
 
-    def ring_hosts(self) -> None:
+    def ring_hosts(self, want_ack: bool = False) -> None:
+        """Ring every known host; ``want_ack`` asks them to ring back on HOSTACK."""
+        payload = _RING_WANT_ACK if want_ack else _RING
         for address in list(self._hosts):
-            if not self._send(address):
+            if not self._send(address, payload):
                 del self._hosts[address]
 
 
@@ -113,6 +116,13 @@ class HostBell(_Endpoint):
         super().__init__()
         self.sock.bind(b"")  # Linux autobind: a unique abstract name
         self.device = device_address(image_path)
+        self.device_wants_ack = True
+        """Whether the device's last ring asked for a ring on HOSTACK (it has
+        more answers queued); starts True so nothing waits on a missed hint."""
+
+    def _on_rings(self, rings: list[tuple[bytes, bytes]]) -> None:
+        if rings:
+            self.device_wants_ack = rings[-1][0] == _RING_WANT_ACK
 
     def ring_device(self) -> None:
         self._send(self.device)

@@ -8,31 +8,52 @@ from __future__ import annotations
 
 from enum import IntFlag
 
+# Plain ints for the hot paths: an IntFlag operand sends every ``&`` and
+# ``^`` through the enum machinery, which costs microseconds per flag test.
+# HostFlags, written by the device:
+HOSTCOM = 0x01
+DEVACK = 0x02
+PDACK = 0x04
+STATECOM = 0x08
+SPCACK = 0x10
+COM = 0x20
+RUN = 0x40
+READY = 0x80
+# DevFlags, written by the host:
+HOSTACK = 0x01
+DEVCOM = 0x02
+PDCOM = 0x04
+STATEACK = 0x08
+SPCCOM = 0x10
+NOTREADY = 0x20
+INIT = 0x40
+RESET = 0x80
+
 
 class HostFlag(IntFlag):
-    """Bits of HostFlags at 0x1FFE, written by the device."""
+    """Bits of HostFlags at 0x1FFE, for display and decoding."""
 
-    HOSTCOM = 0x01
-    DEVACK = 0x02
-    PDACK = 0x04
-    STATECOM = 0x08
-    SPCACK = 0x10
-    COM = 0x20
-    RUN = 0x40
-    READY = 0x80
+    HOSTCOM = HOSTCOM
+    DEVACK = DEVACK
+    PDACK = PDACK
+    STATECOM = STATECOM
+    SPCACK = SPCACK
+    COM = COM
+    RUN = RUN
+    READY = READY
 
 
 class DevFlag(IntFlag):
-    """Bits of DevFlags at 0x1FFF, written by the host."""
+    """Bits of DevFlags at 0x1FFF, for display and decoding."""
 
-    HOSTACK = 0x01
-    DEVCOM = 0x02
-    PDCOM = 0x04
-    STATEACK = 0x08
-    SPCCOM = 0x10
-    NOTREADY = 0x20
-    INIT = 0x40
-    RESET = 0x80
+    HOSTACK = HOSTACK
+    DEVCOM = DEVCOM
+    PDCOM = PDCOM
+    STATEACK = STATEACK
+    SPCCOM = SPCCOM
+    NOTREADY = NOTREADY
+    INIT = INIT
+    RESET = RESET
 
 
 # The handshake channels: the bit position both sides toggle.

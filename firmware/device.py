@@ -20,7 +20,6 @@ from typing import Any
 from dpm import flags as fl
 from dpm.doorbell import POLL_INTERVAL, DeviceBell
 from dpm.errors import F_UNKNOWN_TASK
-from dpm.flags import DevFlag, HostFlag
 from dpm.image import ExclusiveLock, create_image, dpm_dir, image_path, lock_path
 from dpm.layout import (
     DEV_FLAGS,
@@ -70,6 +69,7 @@ class Device:
         self._stop = threading.Event()
         self._ring = False
         self._state_sent = b""
+        self._can_state = -1
         self.rcs = RcsTask(self, reset_delay)
         self.plc = PlcTask(self)
         self.can = CanTask(self)
@@ -135,13 +135,14 @@ class Device:
     def _flush(self) -> None:
         if self._ring:
             self._ring = False
-            self.bell.ring_hosts()
+            self.bell.ring_hosts(want_ack=bool(self.outbox))
 
     # --- Task2State ----------------------------------------------------------------------
 
     def clear_state(self) -> None:
         self.mm[TASK2_STATE : TASK2_STATE + TASK_STATE_SIZE] = bytes(TASK_STATE_SIZE)
         self._state_sent = bytes(TASK_STATE_SIZE)
+        self._can_state = CanState.OFFLINE
 
     def set_global_bit(self, bit: int, on: bool) -> None:
         state = self.view["Task2State"]
@@ -175,38 +176,37 @@ class Device:
             self._calls.popleft()()
         mm = self.mm
         dev = mm[DEV_FLAGS]
-        if dev & (DevFlag.RESET | DevFlag.INIT):
+        if dev & (fl.RESET | fl.INIT):
             self.rcs.start(Start.from_flags(dev))
             self._flush()
             return
         self.rcs.service(dev, now)
         self._levels()
-        if fl.pending(mm[HOST_FLAGS], mm[DEV_FLAGS], fl.DEV_MBX) and (
-            len(self.outbox) < OUTBOX_LIMIT
-        ):
+        if (mm[HOST_FLAGS] ^ mm[DEV_FLAGS]) & fl.DEV_MBX and len(self.outbox) < OUTBOX_LIMIT:
             self._receive()
-        if self.outbox and not fl.pending(mm[HOST_FLAGS], mm[DEV_FLAGS], fl.HOST_MBX):
+        if self.outbox and not (mm[HOST_FLAGS] ^ mm[DEV_FLAGS]) & fl.HOST_MBX:
             self._deliver()
         self.plc.service(mm[HOST_FLAGS], mm[DEV_FLAGS])
         self._state_field()
-        self._set_level(HostFlag.SPCACK, bool(mm[DEV_FLAGS] & DevFlag.SPCCOM))
+        self._set_level(fl.SPCACK, bool(mm[DEV_FLAGS] & fl.SPCCOM))
         self._flush()
 
     def _levels(self) -> None:
         """RUN follows the configuration, COM the bus communication."""
         configured = self.can.configured and self.plc.image.mode != 0
-        self._set_level(HostFlag.RUN, configured)
         com = configured and self.can.communicating and self.plc.image.driving
-        self._set_level(HostFlag.COM, com)
-        self.view["Task2State"]["bCAN_State"] = (
-            CanState.OPERATE if com else CanState.STOP if configured else CanState.OFFLINE
-        )
+        self._set_level(fl.RUN, configured)
+        self._set_level(fl.COM, com)
+        state = CanState.OPERATE if com else CanState.STOP if configured else CanState.OFFLINE
+        if state != self._can_state:
+            self._can_state = state
+            self.view["Task2State"]["bCAN_State"] = state
 
     def _receive(self) -> None:
         mm = self.mm
         ln = mm[DEV_MBX + 2]
         raw = mm[DEV_MBX : DEV_MBX + 8 + ln]
-        self.toggle_host_flags(HostFlag.DEVACK)
+        self.toggle_host_flags(fl.DEVACK)
         msg = Message.decode(raw)
         task = self.tasks.get(msg.rx)
         answer = task.handle(msg) if task else msg.answer(f=F_UNKNOWN_TASK)
@@ -216,15 +216,15 @@ class Device:
     def _deliver(self) -> None:
         raw = self.outbox.popleft().encode()
         self.mm[PC_MBX : PC_MBX + len(raw)] = raw
-        self.toggle_host_flags(HostFlag.HOSTCOM)
+        self.toggle_host_flags(fl.HOSTCOM)
 
     def _state_field(self) -> None:
         """Event-driven state field: toggle STATECOM when Task2State changed."""
         mm = self.mm
-        if fl.pending(mm[HOST_FLAGS], mm[DEV_FLAGS], fl.STATE):
+        if (mm[HOST_FLAGS] ^ mm[DEV_FLAGS]) & fl.STATE:
             return
         current = mm[TASK2_STATE : TASK2_STATE + TASK_STATE_SIZE]
         if current != self._state_sent:
             self._state_sent = current
-            self.toggle_host_flags(HostFlag.STATECOM)
+            self.toggle_host_flags(fl.STATECOM)
 

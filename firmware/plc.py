@@ -10,7 +10,7 @@ from __future__ import annotations
 from typing import TYPE_CHECKING
 
 from dpm import errors
-from dpm.flags import PD, HostFlag
+from dpm import flags as fl
 from dpm.layout import IO_AREA_SIZE
 from dpm.message import Message, MessageError, Tdt, TelegramHeader, Tfc
 from dpm.task2 import BMODE_TO_EXCHANGE_MODE, ComPlcParameter, GlobalBits
@@ -67,13 +67,13 @@ class PlcTask(Task):
         mode = self.image.mode
         if mode not in DEVICE_CONTROLLED and mode not in HOST_CONTROLLED:
             return
-        pending = bool((host_flags ^ dev_flags) & PD)
+        pending = bool((host_flags ^ dev_flags) & fl.PD)
         # Device-controlled: equal bits are the device's turn (it produces a
         # cycle, then hands it over). Host-controlled: the host's toggle asks
         # for one.
         if pending == (mode in HOST_CONTROLLED):
             self.image.cycle()
-            self.device.toggle_host_flags(HostFlag.PDACK)
+            self.device.toggle_host_flags(fl.PDACK)
 
     # --- COM_Shared_Memory --------------------------------------------------------
 

@@ -12,7 +12,7 @@ from enum import Enum
 from typing import TYPE_CHECKING
 
 from dpm import errors
-from dpm.flags import DevFlag, HostFlag
+from dpm import flags as fl
 from dpm.layout import DEV_FLAGS, DEV_WATCHDOG, HOST_WATCHDOG, TASK2_PARAMETER, TASK_PARAMETER_SIZE
 from dpm.task2 import ComPlcParameter, GlobalBits
 from firmware.task import Task
@@ -32,9 +32,9 @@ class Start(Enum):
 
     @classmethod
     def from_flags(cls, dev_flags: int) -> Start:
-        if dev_flags & DevFlag.RESET and dev_flags & DevFlag.INIT:
+        if dev_flags & fl.RESET and dev_flags & fl.INIT:
             return cls.BOOT
-        return cls.COLD if dev_flags & DevFlag.RESET else cls.WARM
+        return cls.COLD if dev_flags & fl.RESET else cls.WARM
 
 
 class RcsTask(Task):
@@ -78,11 +78,11 @@ class RcsTask(Task):
         for task in dev.tasks.values():
             task.reset(cold)
         dev.plc.apply_parameters(parameter)
-        dev.write_host_flags(HostFlag.READY)
+        dev.write_host_flags(fl.READY)
 
     def service(self, dev_flags: int, now: float) -> None:
         """Follow NOTREADY and the host watchdog; called every loop turn."""
-        not_ready = bool(dev_flags & DevFlag.NOTREADY)
+        not_ready = bool(dev_flags & fl.NOTREADY)
         if not_ready != self.host_not_ready:
             self.host_not_ready = not_ready
             self.device.set_global_bit(GlobalBits.NRDY, not_ready)

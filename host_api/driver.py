@@ -29,7 +29,6 @@ from pathlib import Path
 from dpm import flags as fl
 from dpm.doorbell import POLL_INTERVAL, HostBell
 from dpm.errors import Drv
-from dpm.flags import DevFlag, HostFlag
 from dpm.image import MAX_DEV_BOARDS, dpm_dir, image_path, lock_path, open_image
 from dpm.layout import (
     DEV_FLAGS,
@@ -153,14 +152,17 @@ class _Board:
         return self.mm[DEV_FLAGS]
 
     def ready(self) -> bool:
-        return bool(self.host() & HostFlag.READY)
+        return bool(self.host() & fl.READY)
 
-    def change_dev_flags(self, set_bits: int = 0, clear_bits: int = 0, toggle: int = 0) -> None:
+    def change_dev_flags(
+        self, set_bits: int = 0, clear_bits: int = 0, toggle: int = 0, ring: bool = True
+    ) -> None:
         """Read-modify-write DevFlags under the flags lock, then ring the device."""
         with self.flags_lock:
             value = self.dev()
             self.mm[DEV_FLAGS] = ((value | set_bits) & ~clear_bits & 0xFF) ^ toggle
-        self.bell.ring_device()
+        if ring:
+            self.bell.ring_device()
 
     def wait_for(self, condition: Callable[[], bool], timeout_ms: int) -> bool:
         """Wait on the bell (polling as a fallback) until ``condition`` or the timeout."""
@@ -302,7 +304,7 @@ def _check_card(mm: mmap.mmap) -> int:
     mm[DEV_IDENTIFIER : DEV_IDENTIFIER + 3] = identifier
     if readback != b"\x55\xaa\x00":
         return Drv.DRV_DEV_DPM_ACCESS_ERROR
-    if not mm[HOST_FLAGS] & HostFlag.READY:
+    if not mm[HOST_FLAGS] & fl.READY:
         error = mm[RCS_ERROR]
         return Drv.DRV_RCS_ERROR_OFFSET + error if 0 < error < 250 else Drv.DRV_DEV_NOT_READY
     if mm[offset_of("DevInfo.bDpmSize")] * 1024 != DPM_SIZE:
@@ -340,7 +342,7 @@ def DevPutMessage(number: int, msg: Message | bytes, timeout: int) -> int:
         if not free:
             return Drv.DRV_DEV_MAILBOX_FULL if timeout <= 0 else Drv.DRV_DEV_PUT_TIMEOUT
         board.mm[DEV_MBX : DEV_MBX + len(raw)] = raw
-        board.change_dev_flags(toggle=DevFlag.DEVCOM)
+        board.change_dev_flags(toggle=fl.DEVCOM)
         board.counters.write += 1
         board.counters.last_function = FKT_WRITE
         return Drv.DRV_NO_ERROR
@@ -371,7 +373,8 @@ def DevGetMessage(number: int, size: int, timeout: int) -> tuple[int, Message | 
         if length > size:
             return Drv.DRV_USR_MSG_BUF_TOO_SHORT, None
         msg = Message.decode(mm[PC_MBX : PC_MBX + length])
-        board.change_dev_flags(toggle=DevFlag.HOSTACK)
+        # The device polls anyway; a ring only speeds up answers it has queued.
+        board.change_dev_flags(toggle=fl.HOSTACK, ring=board.bell.device_wants_ack)
         board.counters.read += 1
         board.counters.last_function = FKT_READ
         return Drv.DRV_NO_ERROR, msg
@@ -430,7 +433,7 @@ def _exchange(
                     mm[SND_PD + send_offset : SND_PD + send_offset + len(send_data)] = send_data
                 if recv_size:
                     received = mm[RCV_PD + recv_offset : RCV_PD + recv_offset + recv_size]
-                board.change_dev_flags(toggle=DevFlag.PDCOM)
+                board.change_dev_flags(toggle=fl.PDCOM)
                 rc = Drv.DRV_NO_ERROR
             else:
                 rc = Drv.DRV_DEV_EXCHANGE_FAILED if timeout <= 0 else Drv.DRV_DEV_EXCHANGE_TIMEOUT
@@ -438,7 +441,7 @@ def _exchange(
             board.io_lock.release()
     board.counters.io += 1
     board.counters.last_function = FKT_IO
-    if not board.host() & HostFlag.COM:
+    if not board.host() & fl.COM:
         rc = Drv.DRV_DEV_NO_COM_FLAG
     return rc, bytes(received)
 
@@ -491,9 +494,9 @@ def DevExchangeIOErr(
         if fl.pending(board.host(), board.dev(), fl.STATE):
             state.abState = raw_state()
             state.usStateFlag = 1
-            board.change_dev_flags(toggle=DevFlag.STATEACK)
+            board.change_dev_flags(toggle=fl.STATEACK)
     elif state_mode == STATE_MODE_3:
-        state.usStateFlag = 1 if board.host() & HostFlag.STATECOM else 0
+        state.usStateFlag = 1 if board.host() & fl.STATECOM else 0
         state.abState = raw_state()
     else:
         state.usStateFlag = STATE_FLAG_UNKNOWN
@@ -507,7 +510,7 @@ def DevReadSendData(number: int, offset: int, size: int) -> tuple[int, bytes]:
         return board, b""
     if offset + size > IO_AREA_SIZE:
         return Drv.DRV_USR_SIZE_TOO_LONG, b""
-    if not board.host() & HostFlag.COM:
+    if not board.host() & fl.COM:
         return Drv.DRV_DEV_NO_COM_FLAG, b""
     return Drv.DRV_NO_ERROR, bytes(board.mm[SND_PD + offset : SND_PD + offset + size])
 
@@ -520,13 +523,13 @@ def DevReset(number: int, mode: int, timeout: int) -> int:
     board = _board(number)
     if not isinstance(board, _Board):
         return board
-    request = {COLDSTART: DevFlag.RESET, WARMSTART: DevFlag.INIT,
-               BOOTSTART: DevFlag.RESET | DevFlag.INIT}.get(mode)
+    request = {COLDSTART: fl.RESET, WARMSTART: fl.INIT,
+               BOOTSTART: fl.RESET | fl.INIT}.get(mode)
     if request is None:
         return Drv.DRV_USR_MODE_INVALID
     board.change_dev_flags(set_bits=request)
     deadline = time.monotonic() + timeout / 1000.0
-    if not board.wait_for(lambda: not board.dev() & (DevFlag.RESET | DevFlag.INIT), timeout):
+    if not board.wait_for(lambda: not board.dev() & (fl.RESET | fl.INIT), timeout):
         return Drv.DRV_DEV_RESET_TIMEOUT
     remaining = max(0, int((deadline - time.monotonic()) * 1000))
     if not board.wait_for(board.ready, remaining):
@@ -540,14 +543,14 @@ def DevSetHostState(number: int, mode: int, timeout: int) -> int:
     if not isinstance(board, _Board):
         return board
     if mode == HOST_READY:
-        board.change_dev_flags(clear_bits=DevFlag.NOTREADY)
+        board.change_dev_flags(clear_bits=fl.NOTREADY)
     elif mode == HOST_NOT_READY:
-        board.change_dev_flags(set_bits=DevFlag.NOTREADY)
+        board.change_dev_flags(set_bits=fl.NOTREADY)
     else:
         return Drv.DRV_USR_MODE_INVALID
     if timeout > 0:
         want = mode == HOST_READY
-        if not board.wait_for(lambda: bool(board.host() & HostFlag.COM) == want, timeout):
+        if not board.wait_for(lambda: bool(board.host() & fl.COM) == want, timeout):
             return Drv.DRV_DEV_NO_COM_FLAG
     return Drv.DRV_NO_ERROR
 
@@ -579,13 +582,13 @@ def DevSpecialControl(number: int, mode: int) -> tuple[int, int]:
     if not isinstance(board, _Board):
         return board, 0
     if mode == SPECIAL_CONTROL_SET:
-        board.change_dev_flags(set_bits=DevFlag.SPCCOM)
+        board.change_dev_flags(set_bits=fl.SPCCOM)
     elif mode == SPECIAL_CONTROL_CLEAR:
-        board.change_dev_flags(clear_bits=DevFlag.SPCCOM)
+        board.change_dev_flags(clear_bits=fl.SPCCOM)
     else:
         return Drv.DRV_USR_MODE_INVALID, 0
-    board.wait_for(lambda: bool(board.host() & HostFlag.SPCACK) == (mode == 1), 100)
-    return Drv.DRV_NO_ERROR, int(bool(board.host() & HostFlag.SPCACK))
+    board.wait_for(lambda: bool(board.host() & fl.SPCACK) == (mode == 1), 100)
+    return Drv.DRV_NO_ERROR, int(bool(board.host() & fl.SPCACK))
 
 
 # --- information and parameters ---------------------------------------------------------------
@@ -605,7 +608,7 @@ def DevGetInfo(number: int, area: int, size: int) -> tuple[int, bytes]:
     if area == GET_DRIVER_INFO:
         data = _driver_info(board)
     elif area == GET_IO_INFO:
-        data = IOINFO.pack(int(bool(board.host() & HostFlag.COM)), _driver_mode(board),
+        data = IOINFO.pack(int(bool(board.host() & fl.COM)), _driver_mode(board),
                            board.counters.io & 0xFFFFFFFF)
     else:
         offset, _ = _INFO_AREAS[area]
@@ -618,10 +621,10 @@ def _driver_info(board: _Board) -> bytes:
     host, dev = board.host(), board.dev()
     return DRIVERINFO.pack(
         c.open, c.close, c.read, c.write, c.irq,
-        int(bool(host & HostFlag.READY)),
+        int(bool(host & fl.READY)),
         int(fl.pending(host, dev, fl.HOST_MBX)),
         int(fl.pending(host, dev, fl.DEV_MBX)),
-        c.last_function, 0, 0, host, dev, int(bool(host & HostFlag.COM)), c.io & 0xFFFFFFFF,
+        c.last_function, 0, 0, host, dev, int(bool(host & fl.COM)), c.io & 0xFFFFFFFF,
     )
 
 
