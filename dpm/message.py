@@ -14,6 +14,7 @@ from enum import IntEnum
 from dpm.layout import MSG_DATA_SIZE, MSG_HEADER_SIZE
 
 MSG_MAX_SIZE = MSG_HEADER_SIZE + MSG_DATA_SIZE
+_HEADER = struct.Struct("8B")
 """A message is at most 263 bytes (the slot is 288 with its dummy tail)."""
 
 
@@ -85,29 +86,26 @@ class Message:
         """The ``ln + 8`` bytes a sender writes into a mailbox."""
         if len(self.data) > MSG_DATA_SIZE:
             raise MessageError(f"message data of {len(self.data)} bytes exceeds 255")
-        for name in ("rx", "tx", "nr", "a", "f", "b", "e"):
-            value = getattr(self, name)
-            if not 0 <= value <= 0xFF:
-                raise MessageError(f"msg.{name} = {value} is not a byte")
-        return (
-            bytes((self.rx, self.tx, len(self.data), self.nr, self.a, self.f, self.b, self.e))
-            + self.data
-        )
+        try:
+            head = _HEADER.pack(self.rx, self.tx, len(self.data), self.nr, self.a, self.f,
+                                self.b, self.e)
+        except struct.error:
+            raise MessageError(f"a header field of {self!r} is not a byte") from None
+        return head + self.data
 
     @classmethod
     def decode(cls, raw: bytes | bytearray | memoryview) -> Message:
         """Read a message from the start of ``raw`` (a mailbox slot or a copy)."""
         if len(raw) < MSG_HEADER_SIZE:
             raise MessageError(f"{len(raw)} bytes is shorter than a message header")
-        rx, tx, ln, nr, a, f, b, e = bytes(raw[:MSG_HEADER_SIZE])
+        rx, tx, ln, nr, a, f, b, e = _HEADER.unpack_from(raw)
         if len(raw) < MSG_HEADER_SIZE + ln:
             raise MessageError(f"msg.ln = {ln} but only {len(raw) - 8} data bytes")
-        data = bytes(raw[MSG_HEADER_SIZE : MSG_HEADER_SIZE + ln])
-        return cls(rx=rx, tx=tx, b=b, data=data, nr=nr, a=a, f=f, e=e)
+        return cls(rx, tx, b, bytes(raw[MSG_HEADER_SIZE : MSG_HEADER_SIZE + ln]), nr, a, f, e)
 
     def answer(self, f: int = 0, data: bytes = b"", e: int = 0) -> Message:
         """The answer a task gives to this command: rx/tx swapped, a = b, b = 0."""
-        return Message(rx=self.tx, tx=self.rx, b=0, data=data, nr=self.nr, a=self.b, f=f, e=e)
+        return Message(self.tx, self.rx, 0, data, self.nr, self.b, f, e)
 
 
 TELEGRAM_HEADER = struct.Struct("<BBHBBBB")

@@ -27,8 +27,8 @@ AREA_RECEIVE = 1
 AREA_SEND = 2
 
 # Per data type: maximum address and count (seed 5.1.1).
-_MAX_ADDRESS = {Tdt.UINT16: 1791, Tdt.UINT8: 3583, Tdt.STRING: 3583, Tdt.BIT: 1791}
-_MAX_COUNT = {Tdt.UINT16: 119, Tdt.UINT8: 239, Tdt.STRING: 239, Tdt.BIT: 255}
+_MAX_ADDRESS: dict[int, int] = {Tdt.UINT16: 1791, Tdt.UINT8: 3583, Tdt.STRING: 3583, Tdt.BIT: 1791}
+_MAX_COUNT: dict[int, int] = {Tdt.UINT16: 119, Tdt.UINT8: 239, Tdt.STRING: 239, Tdt.BIT: 255}
 
 DEVICE_CONTROLLED = (1, 2)
 HOST_CONTROLLED = (4, 5)
@@ -86,7 +86,7 @@ class PlcTask(Task):
         if f:
             return msg.answer(f=f)
         area = head.data_area or (AREA_RECEIVE if head.function == Tfc.READ else AREA_SEND)
-        data_type = Tdt(head.data_type)
+        data_type = head.data_type
         if head.function == Tfc.READ:
             payload = self._read(area, data_type, head)
             head.payload = payload
@@ -109,7 +109,7 @@ class PlcTask(Task):
             return errors.F_UNKNOWN_DATA_TYPE
         if head.data_area not in (AREA_BY_FUNCTION, AREA_RECEIVE, AREA_SEND):
             return errors.F_ILLEGAL_AREA
-        data_type = Tdt(head.data_type)
+        data_type = head.data_type
         if not 1 <= head.data_cnt <= _MAX_COUNT[data_type]:
             return errors.F_ILLEGAL_COUNT
         if data_type == Tdt.BIT:
@@ -136,7 +136,7 @@ class PlcTask(Task):
         else:
             self.image.write_send_area(offset, data)
 
-    def _read(self, area: int, data_type: Tdt, head: TelegramHeader) -> bytes:
+    def _read(self, area: int, data_type: int, head: TelegramHeader) -> bytes:
         if data_type != Tdt.BIT:
             width = 2 if data_type == Tdt.UINT16 else 1
             return self._area_read(area, head.data_adr * width, head.data_cnt * width)
@@ -146,7 +146,7 @@ class PlcTask(Task):
         value &= (1 << head.data_cnt) - 1
         return value.to_bytes((head.data_cnt + 7) // 8, "little")
 
-    def _write(self, area: int, data_type: Tdt, head: TelegramHeader) -> None:
+    def _write(self, area: int, data_type: int, head: TelegramHeader) -> None:
         if data_type != Tdt.BIT:
             width = 2 if data_type == Tdt.UINT16 else 1
             self._area_write(area, head.data_adr * width, head.payload)

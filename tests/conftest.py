@@ -77,7 +77,8 @@ def start_card(directory: Path, board: int = 0, *extra: str) -> Card:
     deadline = time.monotonic() + 15
     while True:
         if proc.poll() is not None:
-            raise RuntimeError(f"firmware exited: {proc.stderr.read().decode() if proc.stderr else ''}")
+            stderr = proc.stderr.read().decode() if proc.stderr else ""
+            raise RuntimeError(f"firmware exited: {stderr}")
         if card.path.exists() and card.path.stat().st_size == IMAGE_SIZE:
             with open(card.path, "rb") as f:
                 f.seek(HOST_FLAGS)

@@ -249,14 +249,20 @@ def test_buffered_cycles_wait_for_the_device(card: Card, board: int, bmode: int)
         rc, seen = d.DevExchangeIO(board, 0, bytes([cycle]), 0, 2, 1000)
         assert rc == 0
     assert seen == b"in"  # inputs reach the image only at a handshake
+    # Host-controlled: the host's turn is while the PD bits are equal (the device
+    # answered); device-controlled: while they differ (the device produced a cycle).
+    image = card.map()
+    device_controlled = bmode == 1
+    wait_until(lambda: bool((image[0x1FFE] ^ image[0x1FFF]) & 0x04) == device_controlled,
+               what="the host's turn")
     card.freeze()
     try:
-        if bmode == 3:  # host-controlled: the call before asked for a cycle nobody answers
-            assert d.DevExchangeIO(board, 0, b"x", 0, 0, 0)[0] == Drv.DRV_DEV_EXCHANGE_FAILED
-            assert d.DevExchangeIO(board, 0, b"x", 0, 0, 30)[0] == Drv.DRV_DEV_EXCHANGE_TIMEOUT
+        assert d.DevExchangeIO(board, 0, b"x", 0, 0, 0)[0] == 0
+        assert d.DevExchangeIO(board, 0, b"y", 0, 0, 0)[0] == Drv.DRV_DEV_EXCHANGE_FAILED
+        assert d.DevExchangeIO(board, 0, b"y", 0, 0, 30)[0] == Drv.DRV_DEV_EXCHANGE_TIMEOUT
     finally:
         card.thaw()
-    assert transact(board, shm(2, bytes([0, 2, 0, 0, 0, 1, 5, 1]))).data[8:] == bytes([49])
+    assert transact(board, shm(2, bytes([0, 2, 0, 0, 0, 1, 5, 1]))).data[8:] == b"x"
 
 
 def test_exchange_ex_reaches_modes_1_and_5(board: int) -> None:

@@ -1,0 +1,43 @@
+"""``python -m bench [NAME ...]``: run benchmarks, print one JSON list of their results.
+
+Without a name every benchmark runs, in the order below. ``--count`` and
+``--warmup`` override each benchmark's own defaults.
+"""
+
+from __future__ import annotations
+
+import argparse
+from collections.abc import Callable
+from typing import Any
+
+from bench import exchange_io, mailbox
+from bench.common import add_size_arguments, emit, progress
+
+Runner = Callable[[int | None, int | None], dict[str, Any]]
+
+BENCHMARKS: dict[str, Runner] = {
+    mailbox.NAME: mailbox.run,
+    exchange_io.NAME: exchange_io.run,
+}
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m bench", description=__doc__)
+    parser.add_argument("names", nargs="*", metavar="NAME",
+                        help=f"benchmarks to run: {', '.join(BENCHMARKS)} (default: all)")
+    add_size_arguments(parser, "default: each benchmark's own", "default: each benchmark's own")
+    args = parser.parse_args(argv)
+    unknown = [name for name in args.names if name not in BENCHMARKS]
+    if unknown:
+        parser.error(f"unknown benchmark {', '.join(unknown)}; choose from {', '.join(BENCHMARKS)}")
+    names = args.names or list(BENCHMARKS)
+    results = []
+    for name in names:
+        progress(f"running {name}")
+        results.append(BENCHMARKS[name](args.count, args.warmup))
+    emit(results)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,354 @@
+"""What every benchmark shares: a card to talk to, a timing loop, statistics, JSON.
+
+A benchmark starts its own firmware process on a fresh image directory
+(``running_card``), opens the driver on it (``host_session``), times a step
+function with ``measure`` and prints one JSON document with ``emit``. Progress
+goes to stderr, so stdout carries nothing but the JSON.
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import math
+import os
+import platform
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from multiprocessing.connection import Connection
+from pathlib import Path
+from typing import Any
+
+from dpm.flags import HostFlag
+from dpm.image import image_path
+from dpm.layout import HOST_FLAGS
+from host_api.driver import DevCloseDriver, DevExitBoard, DevInitBoard, DevOpenDriver
+
+STARTUP_TIMEOUT = 15.0
+"""Seconds a firmware may take to create its image and raise READY."""
+
+STOP_TIMEOUT = 5.0
+"""Seconds a firmware may take to end after SIGTERM before it is killed."""
+
+
+def progress(text: str) -> None:
+    """A progress line for the person watching: stderr, never stdout."""
+    print(f"[bench] {text}", file=sys.stderr, flush=True)
+
+
+# --- the card -----------------------------------------------------------------------------
+
+
+@dataclass(frozen=True, slots=True)
+class Card:
+    """A running firmware process: where its image lives and who serves it."""
+
+    directory: Path
+    board: int
+    pid: int
+
+    @property
+    def image(self) -> Path:
+        return image_path(self.directory, self.board)
+
+
+def _scratch_root() -> str | None:
+    """/dev/shm (where real images live, DPM.md 6) when usable, else the default temp dir."""
+    shm = "/dev/shm"
+    return shm if os.path.isdir(shm) and os.access(shm, os.W_OK) else None
+
+
+def _host_flags(image: Path) -> int | None:
+    """HostFlags of an image file, or None while the file is missing or short."""
+    try:
+        fd = os.open(image, os.O_RDONLY)
+    except FileNotFoundError:
+        return None
+    try:
+        raw = os.pread(fd, 1, HOST_FLAGS)
+    finally:
+        os.close(fd)
+    return raw[0] if raw else None
+
+
+def _wait_ready(proc: subprocess.Popen[bytes], image: Path, timeout: float) -> None:
+    deadline = time.monotonic() + timeout
+    while True:
+        flags = _host_flags(image)
+        if flags is not None and flags & HostFlag.READY:
+            return
+        code = proc.poll()
+        if code is not None:
+            raise RuntimeError(f"firmware exited with code {code} before READY")
+        if time.monotonic() > deadline:
+            raise RuntimeError(f"firmware not READY within {timeout} s ({image})")
+        time.sleep(0.005)
+
+
+def _stop(proc: subprocess.Popen[bytes]) -> None:
+    if proc.poll() is not None:
+        return
+    proc.send_signal(signal.SIGTERM)
+    try:
+        proc.wait(STOP_TIMEOUT)
+    except subprocess.TimeoutExpired:
+        progress(f"firmware {proc.pid} ignored SIGTERM; killing it")
+        proc.kill()
+        proc.wait()
+
+
+@contextmanager
+def running_card(board: int = 0, *, startup_timeout: float = STARTUP_TIMEOUT) -> Iterator[Card]:
+    """A firmware subprocess serving ``board`` in a temporary directory, READY on entry.
+
+    The firmware's stdout is discarded (it must not mix with the JSON); its stderr
+    (log lines at WARNING and above) goes to ours. On exit it gets SIGTERM, and is
+    killed if it has not ended after ``STOP_TIMEOUT`` seconds.
+    """
+    with tempfile.TemporaryDirectory(prefix="cifemu-bench-", dir=_scratch_root()) as tmp:
+        directory = Path(tmp)
+        command = [sys.executable, "-m", "firmware", "--board", str(board),
+                   "--dpm-dir", tmp, "--log-level", "WARNING"]
+        proc = subprocess.Popen(command, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL)
+        try:
+            card = Card(directory, board, proc.pid)
+            _wait_ready(proc, card.image, startup_timeout)
+            progress(f"firmware pid {proc.pid} READY on {card.image}")
+            yield card
+        finally:
+            _stop(proc)
+
+
+@contextmanager
+def host_session(card: Card) -> Iterator[int]:
+    """DevOpenDriver + DevInitBoard on ``card``; yields the board number."""
+    rc = DevOpenDriver(card.directory)
+    if rc != 0:
+        raise RuntimeError(f"DevOpenDriver({card.directory}) returned {rc}")
+    try:
+        rc = DevInitBoard(card.board)
+        if rc != 0:
+            raise RuntimeError(f"DevInitBoard({card.board}) returned {rc}")
+        try:
+            yield card.board
+        finally:
+            DevExitBoard(card.board)
+    finally:
+        DevCloseDriver()
+
+
+# --- timing and statistics ------------------------------------------------------------------
+
+
+Step = Callable[[], int]
+"""One operation under test; returns a status code (the driver's rc, or 0 for success)."""
+
+
+@dataclass(slots=True)
+class Measured:
+    """The figures of one ``measure`` run."""
+
+    count: int
+    latencies_ns: list[int]
+    elapsed_ns: int
+    failures: int
+    warmup_codes: dict[int, int] = field(default_factory=dict)
+
+    @property
+    def per_second(self) -> float:
+        return self.count / (self.elapsed_ns / 1e9) if self.elapsed_ns else math.inf
+
+    def summary(self, rate_name: str) -> dict[str, Any]:
+        """The JSON form: ``rate_name`` per second, latency statistics, failures."""
+        return {
+            rate_name: round(self.per_second, 1),
+            "latency_us": latency_stats(self.latencies_ns),
+            "calls": 2 * self.count,
+            "failures": self.failures,
+            "warmup_return_codes": {str(k): v for k, v in sorted(self.warmup_codes.items())},
+        }
+
+
+def measure(step: Step, count: int, warmup: int, accepted: frozenset[int]) -> Measured:
+    """Run ``step`` ``warmup`` times, then twice ``count`` times.
+
+    The first timed loop reads the clock around every call (latencies); the second
+    reads it only around the whole loop (throughput), so the clock's own cost does
+    not lower the rate. A call whose status is not in ``accepted`` is a failure;
+    the warm-up tallies the statuses it saw.
+    """
+    codes: dict[int, int] = {}
+    for _ in range(warmup):
+        status = step()
+        codes[status] = codes.get(status, 0) + 1
+    clock = time.perf_counter_ns
+    latencies = [0] * count
+    failures = 0
+    for i in range(count):
+        start = clock()
+        status = step()
+        latencies[i] = clock() - start
+        if status not in accepted:
+            failures += 1
+    start = clock()
+    for _ in range(count):
+        if step() not in accepted:
+            failures += 1
+    elapsed = clock() - start
+    return Measured(count, latencies, elapsed, failures, codes)
+
+
+def percentile(sorted_values: list[int] | list[float], q: float) -> float:
+    """The ``q``-th percentile (0..100) of sorted values, linearly interpolated."""
+    if not sorted_values:
+        return math.nan
+    rank = (len(sorted_values) - 1) * q / 100.0
+    low = math.floor(rank)
+    high = min(low + 1, len(sorted_values) - 1)
+    fraction = rank - low
+    return float(sorted_values[low] * (1.0 - fraction) + sorted_values[high] * fraction)
+
+
+def latency_stats(samples_ns: list[int]) -> dict[str, float]:
+    """p50, p90, p99, p99.9, mean, min and max in microseconds."""
+    ordered = sorted(samples_ns)
+    if not ordered:
+        return {}
+
+    def us(value: float) -> float:
+        return round(value / 1000.0, 3)
+
+    return {
+        "p50": us(percentile(ordered, 50)),
+        "p90": us(percentile(ordered, 90)),
+        "p99": us(percentile(ordered, 99)),
+        "p99_9": us(percentile(ordered, 99.9)),
+        "mean": us(sum(ordered) / len(ordered)),
+        "min": us(ordered[0]),
+        "max": us(ordered[-1]),
+    }
+
+
+def ratio(measured: float, baseline: float) -> float | None:
+    """``measured / baseline``, rounded; None when the baseline is zero."""
+    return round(measured / baseline, 3) if baseline else None
+
+
+# --- baseline helper process ------------------------------------------------------------------
+
+
+def pipe_echo(conn: Connection, reply_size: int) -> None:
+    """Answer every message with ``reply_size`` bytes; an empty message or EOF ends it.
+
+    Lives here rather than in ``bench.mailbox`` so a spawned child imports it by a
+    stable module name, however the benchmark was started.
+    """
+    reply = bytes(range(reply_size))
+    try:
+        while True:
+            request = conn.recv_bytes()
+            if not request:
+                return
+            conn.send_bytes(reply)
+    except EOFError:
+        return
+    finally:
+        conn.close()
+
+
+# --- output ----------------------------------------------------------------------------------
+
+
+def _cpu_model() -> str | None:
+    try:
+        with open("/proc/cpuinfo", encoding="utf-8") as cpuinfo:
+            for line in cpuinfo:
+                if line.startswith("model name"):
+                    return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return None
+
+
+def machine_info() -> dict[str, Any]:
+    """What the figures depend on: CPUs, Python, OS, load when the run started."""
+    try:
+        usable: int | None = len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        usable = None
+    try:
+        load: list[float] | None = [round(x, 2) for x in os.getloadavg()]
+    except OSError:
+        load = None
+    return {
+        "cpu_count": os.cpu_count(),
+        "cpus_usable": usable,
+        "cpu_model": _cpu_model(),
+        "python_version": platform.python_version(),
+        "python_implementation": platform.python_implementation(),
+        "platform": platform.platform(),
+        "loadavg": load,
+    }
+
+
+SOURCE_PACKAGES = ("dpm", "firmware", "host_api")
+"""The code under test: its fingerprint says which version produced a figure."""
+
+
+def source_fingerprint() -> dict[str, Any]:
+    """A SHA-256 over the ``.py`` files of the code under test, and their newest mtime.
+
+    Figures only compare between runs of the same fingerprint; the tree may
+    have no commit to name, so the fingerprint stands in for one.
+    """
+    root = Path(__file__).resolve().parent.parent
+    digest = hashlib.sha256()
+    newest = 0.0
+    for package in SOURCE_PACKAGES:
+        for path in sorted((root / package).glob("*.py")):
+            digest.update(path.relative_to(root).as_posix().encode() + b"\0")
+            digest.update(path.read_bytes())
+            newest = max(newest, path.stat().st_mtime)
+    return {
+        "packages": list(SOURCE_PACKAGES),
+        "sha256": digest.hexdigest()[:16],
+        "newest_mtime": time.strftime("%Y-%m-%dT%H:%M:%S", time.localtime(newest)),
+    }
+
+
+def emit(document: Any) -> None:
+    """Print ``document`` as JSON on stdout (the only thing a benchmark prints there)."""
+    json.dump(document, sys.stdout, indent=2)
+    sys.stdout.write("\n")
+    sys.stdout.flush()
+
+
+def add_size_arguments(
+    parser: argparse.ArgumentParser, count_default: str, warmup_default: str
+) -> None:
+    """``--count`` and ``--warmup``; None (the default) leaves the benchmark's own."""
+    parser.add_argument("--count", type=_positive, default=None, metavar="N",
+                        help=f"calls per timed loop ({count_default})")
+    parser.add_argument("--warmup", type=_non_negative, default=None, metavar="N",
+                        help=f"untimed calls first ({warmup_default})")
+
+
+def _positive(text: str) -> int:
+    value = int(text)
+    if value <= 0:
+        raise argparse.ArgumentTypeError(f"{text} is not a positive count")
+    return value
+
+
+def _non_negative(text: str) -> int:
+    value = int(text)
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"{text} is a negative count")
+    return value
