@@ -1,0 +1,393 @@
+"""The network description: one TOML file for the DBM builder and the simulator.
+
+A file describes the bus and its nodes (ARCHITECTURE.md, "The network
+description"). ``cifemu dbm build`` turns it into a DBM; ``--simulate`` turns
+the same file into live simulated nodes. Keys under ``[node.sim]`` are for
+the simulator only; the builder ignores them. The smallest useful file is a
+list of node-IDs, which gives generic CiA 401-style I/O modules::
+
+    [[node]]
+    id = 1
+    [[node]]
+    id = 2
+
+The whole schema, with defaults::
+
+    [bus]
+    bitrate = 500000            # bit/s, one of the card's nine rates
+    sync_cob_id = 0x80
+    sync_period_ms = 0          # SYNC_Timer, 0 = no SYNC
+    auto_clear = false
+    byte_order = "intel"        # or "motorola": word-oriented PDO data
+    master_node_id = 0          # bNodeID of the extended bus parameters, 0 = none
+    heartbeat_ms = 0            # the master's own heartbeat producer time
+    global_start = false        # send one global NMT start after all nodes booted
+    accept_code = 0             # 29-bit acceptance code / mask
+    accept_mask = 0
+    extended_ids = false        # 29-bit receive filter on (bi11Bit29BitSelector)
+
+    [[node]]
+    id = 5                      # 1..127; 255 = an unconfigured LSS slave (needs lss)
+    eds = "io.eds"              # EDS or DCF, relative to this file; none = generic I/O module
+    name = "valve block"
+    active = true
+    error_control = "heartbeat" # "heartbeat", "guarding" or "none"
+    heartbeat_ms = 1000         # consumer time (heartbeat); node's producer time = 1/2 of it
+    guard_time_ms = 0           # guarding: guard time; life_time_factor multiplies it
+    life_time_factor = 3
+    emcy_cob_id = 0x85          # default 0x80 + id
+    guard_cob_id = 0x705        # default 0x700 + id
+    device_type = 0x000F0191    # expected object 1000h; default from the EDS or the generic
+    boot = ["reset", "device", "guard", "sync", "emcy", "sdo", "start", "pdo"]  # steps run
+    lss = { vendor = 0x1234, product = 1, revision = 1, serial = 42 }
+    [[node.sdo]]                # written at boot-up (the SDO list)
+    index = 0x6200
+    subindex = 1
+    value = 0x10
+    size = 1                    # 1..4 bytes
+    [[node.pdo]]                # the PDOs the master maps; none given: from the EDS mapping
+    direction = "output"        # "output" = master -> node (the node's RPDO), "input" = TPDO
+    cob_id = 0x205
+    length = 8
+    transmission = 255
+    inhibit = 0
+    word = false                # MSK_WORD_PDO
+    offset = 16                 # process-image byte offset; omitted: assigned automatically
+    [node.sim]                  # simulation only (faults)
+    silent = false
+    device_type = 0x000F0192    # what the simulated node reports instead
+    sdo_abort = { "6200:1" = 0x06090011 }
+    heartbeat_stop_after_s = 5.0
+    guarding_fail_after_s = 5.0
+    emcy_burst = { after_s = 1.0, count = 5, code = 0x1000, interval_s = 0.01 }
+    boot_delay_s = 0.5
+    leave_operational_after_s = 3.0
+"""
+
+from __future__ import annotations
+
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+BITRATES: dict[int, int] = {
+    1_000_000: 0, 800_000: 1, 500_000: 2, 250_000: 3, 125_000: 4,
+    100_000: 5, 50_000: 6, 20_000: 7, 10_000: 8,
+}
+"""Bit/s -> the card's Baud_rate code (seed 5.2.5.4.1)."""
+
+BOOT_STEPS = ("reset", "device", "guard", "sync", "emcy", "sdo", "start", "pdo")
+"""Boot steps in bitConfigNdState bit order (bit n set = step n skipped)."""
+
+GENERIC_DEVICE_TYPE = 0x000F0191
+"""Device type of the built-in generic I/O module (CiA 401, digital in and out)."""
+
+UNCONFIGURED = 255
+
+
+class NetworkError(ValueError):
+    """A network description that cannot be used; the message names the key."""
+
+
+@dataclass
+class BusDescription:
+    bitrate: int = 500_000
+    sync_cob_id: int = 0x80
+    sync_period_ms: int = 0
+    auto_clear: bool = False
+    byte_order: str = "intel"
+    master_node_id: int = 0
+    heartbeat_ms: int = 0
+    global_start: bool = False
+    accept_code: int = 0
+    accept_mask: int = 0
+    extended_ids: bool = False
+
+    @property
+    def baud_rate_code(self) -> int:
+        return BITRATES[self.bitrate]
+
+
+@dataclass
+class SdoEntry:
+    index: int
+    subindex: int
+    value: int
+    size: int = 4
+
+
+@dataclass
+class PdoDescription:
+    direction: str
+    """"output": master -> node (the node's RPDO); "input": node -> master (TPDO)."""
+    cob_id: int
+    length: int = 8
+    transmission: int = 255
+    inhibit: int = 0
+    word: bool = False
+    offset: int | None = None
+
+
+@dataclass
+class LssAddress:
+    vendor: int
+    product: int
+    revision: int
+    serial: int
+
+
+@dataclass
+class EmcyBurst:
+    after_s: float = 1.0
+    count: int = 1
+    code: int = 0x1000
+    interval_s: float = 0.01
+
+
+@dataclass
+class SimFaults:
+    """Fault injection for a simulated node; all off by default."""
+
+    silent: bool = False
+    device_type: int | None = None
+    sdo_abort: dict[tuple[int, int], int] = field(default_factory=dict)
+    heartbeat_stop_after_s: float | None = None
+    guarding_fail_after_s: float | None = None
+    emcy_burst: EmcyBurst | None = None
+    boot_delay_s: float = 0.0
+    leave_operational_after_s: float | None = None
+
+
+@dataclass
+class NodeDescription:
+    id: int
+    eds: Path | None = None
+    name: str = ""
+    active: bool = True
+    error_control: str = "heartbeat"
+    heartbeat_ms: int = 1000
+    guard_time_ms: int = 0
+    life_time_factor: int = 3
+    emcy_cob_id: int | None = None
+    guard_cob_id: int | None = None
+    device_type: int | None = None
+    boot: tuple[str, ...] = BOOT_STEPS
+    lss: LssAddress | None = None
+    sdo: list[SdoEntry] = field(default_factory=list)
+    pdo: list[PdoDescription] | None = None
+    sim: SimFaults = field(default_factory=SimFaults)
+
+    @property
+    def cob_id_emcy(self) -> int:
+        return self.emcy_cob_id if self.emcy_cob_id is not None else 0x80 + self.id
+
+    @property
+    def cob_id_guard(self) -> int:
+        return self.guard_cob_id if self.guard_cob_id is not None else 0x700 + self.id
+
+    @property
+    def config_nd_state(self) -> int:
+        """bitConfigNdState: a set bit skips that boot step."""
+        return sum(1 << bit for bit, step in enumerate(BOOT_STEPS) if step not in self.boot)
+
+
+@dataclass
+class Network:
+    bus: BusDescription
+    nodes: list[NodeDescription]
+    path: Path | None = None
+
+    def node(self, node_id: int) -> NodeDescription:
+        for node in self.nodes:
+            if node.id == node_id:
+                return node
+        raise KeyError(node_id)
+
+
+# --- reading -------------------------------------------------------------------------
+
+
+Spec = dict[str, type | tuple[type, ...]]
+
+
+def _take(table: dict[str, Any], where: str, spec: Spec) -> dict[str, Any]:
+    """Check a TOML table's keys and value types against ``spec``."""
+    unknown = set(table) - set(spec)
+    if unknown:
+        raise NetworkError(f"{where}: unknown key(s) {', '.join(sorted(unknown))}")
+    for key, value in table.items():
+        kinds = spec[key] if isinstance(spec[key], tuple) else (spec[key],)
+        # TOML booleans are Python ints too; an int field must not take true/false.
+        if isinstance(value, bool) and bool not in kinds:  # type: ignore[operator]
+            raise NetworkError(f"{where}.{key}: expected a number, got a boolean")
+        if not isinstance(value, kinds):
+            names = " or ".join(k.__name__ for k in kinds)  # type: ignore[union-attr]
+            raise NetworkError(f"{where}.{key}: expected {names}, got {type(value).__name__}")
+    return table
+
+
+def _range(where: str, value: int, low: int, high: int) -> int:
+    if not low <= value <= high:
+        raise NetworkError(f"{where} = {value} is outside {low}..{high}")
+    return value
+
+
+def _bus(table: dict[str, Any]) -> BusDescription:
+    _take(table, "bus", {
+        "bitrate": int, "sync_cob_id": int, "sync_period_ms": int, "auto_clear": bool,
+        "byte_order": str, "master_node_id": int, "heartbeat_ms": int, "global_start": bool,
+        "accept_code": int, "accept_mask": int, "extended_ids": bool,
+    })
+    bus = BusDescription(**table)
+    if bus.bitrate not in BITRATES:
+        rates = ", ".join(str(r) for r in BITRATES)
+        raise NetworkError(f"bus.bitrate = {bus.bitrate} is not one of {rates}")
+    if bus.byte_order not in ("intel", "motorola"):
+        raise NetworkError(f"bus.byte_order = {bus.byte_order!r}: use \"intel\" or \"motorola\"")
+    _range("bus.sync_cob_id", bus.sync_cob_id, 1, 0x7FF)
+    _range("bus.sync_period_ms", bus.sync_period_ms, 0, 0xFFFF)
+    _range("bus.master_node_id", bus.master_node_id, 0, 127)
+    _range("bus.heartbeat_ms", bus.heartbeat_ms, 0, 0xFFFF)
+    _range("bus.accept_code", bus.accept_code, 0, 0x1FFFFFFF)
+    _range("bus.accept_mask", bus.accept_mask, 0, 0x1FFFFFFF)
+    return bus
+
+
+def _sdo_key(text: str, where: str) -> tuple[int, int]:
+    try:
+        index, _, sub = text.partition(":")
+        return int(index, 16), int(sub or "0", 0)
+    except ValueError:
+        raise NetworkError(f"{where}: key {text!r} is not \"INDEX:SUB\" (hex index)") from None
+
+
+def _sim(table: dict[str, Any], where: str) -> SimFaults:
+    _take(table, where, {
+        "silent": bool, "device_type": int, "sdo_abort": dict,
+        "heartbeat_stop_after_s": (int, float), "guarding_fail_after_s": (int, float),
+        "emcy_burst": dict, "boot_delay_s": (int, float),
+        "leave_operational_after_s": (int, float),
+    })
+    faults = SimFaults(**{k: v for k, v in table.items() if k not in ("sdo_abort", "emcy_burst")})
+    for key, code in table.get("sdo_abort", {}).items():
+        if not isinstance(code, int):
+            raise NetworkError(f"{where}.sdo_abort.{key}: the abort code must be an integer")
+        faults.sdo_abort[_sdo_key(key, f"{where}.sdo_abort")] = code
+    if "emcy_burst" in table:
+        burst = _take(table["emcy_burst"], f"{where}.emcy_burst", {
+            "after_s": (int, float), "count": int, "code": int, "interval_s": (int, float)})
+        faults.emcy_burst = EmcyBurst(**burst)
+    return faults
+
+
+def _node(table: dict[str, Any], where: str, base: Path) -> NodeDescription:
+    _take(table, where, {
+        "id": int, "eds": str, "name": str, "active": bool, "error_control": str,
+        "heartbeat_ms": int, "guard_time_ms": int, "life_time_factor": int, "emcy_cob_id": int,
+        "guard_cob_id": int, "device_type": int, "boot": list, "lss": dict, "sdo": list,
+        "pdo": list, "sim": dict,
+    })
+    if "id" not in table:
+        raise NetworkError(f"{where}: every node needs an id")
+    values = {k: v for k, v in table.items() if k not in ("eds", "boot", "lss", "sdo", "pdo",
+                                                          "sim")}
+    node = NodeDescription(**values)
+    where = f"node {node.id}"
+    if node.id != UNCONFIGURED:
+        _range(f"{where}: id", node.id, 1, 127)
+    if "eds" in table:
+        node.eds = (base / table["eds"]).resolve()
+        if not node.eds.is_file():
+            raise NetworkError(f"{where}: EDS file {node.eds} not found")
+    if node.error_control not in ("heartbeat", "guarding", "none"):
+        raise NetworkError(f"{where}: error_control = {node.error_control!r}: use "
+                           "\"heartbeat\", \"guarding\" or \"none\"")
+    _range(f"{where}: heartbeat_ms", node.heartbeat_ms, 0, 0xFFFF)
+    _range(f"{where}: guard_time_ms", node.guard_time_ms, 0, 0xFFFF)
+    _range(f"{where}: life_time_factor", node.life_time_factor, 0, 255)
+    if "boot" in table:
+        steps = table["boot"]
+        bad = [s for s in steps if s not in BOOT_STEPS]
+        if bad:
+            raise NetworkError(f"{where}: unknown boot step(s) {bad}; known: {BOOT_STEPS}")
+        node.boot = tuple(steps)
+    if "lss" in table:
+        lss = _take(table["lss"], f"{where}.lss",
+                    {"vendor": int, "product": int, "revision": int, "serial": int})
+        missing = {"vendor", "product", "revision", "serial"} - set(lss)
+        if missing:
+            raise NetworkError(f"{where}.lss: missing {', '.join(sorted(missing))}")
+        node.lss = LssAddress(**lss)
+    elif node.id == UNCONFIGURED:
+        raise NetworkError(f"{where}: an unconfigured node (id 255) needs an lss address")
+    for n, entry in enumerate(table.get("sdo", [])):
+        sdo_where = f"{where}.sdo[{n}]"
+        if not isinstance(entry, dict):
+            raise NetworkError(f"{sdo_where}: expected a table")
+        _take(entry, sdo_where, {"index": int, "subindex": int, "value": int, "size": int})
+        sdo = SdoEntry(**entry)
+        _range(f"{sdo_where}.index", sdo.index, 0, 0xFFFF)
+        _range(f"{sdo_where}.subindex", sdo.subindex, 0, 0xFF)
+        _range(f"{sdo_where}.size", sdo.size, 1, 4)
+        _range(f"{sdo_where}.value", sdo.value, 0, (1 << (8 * sdo.size)) - 1)
+        node.sdo.append(sdo)
+    if "pdo" in table:
+        node.pdo = []
+        for n, entry in enumerate(table["pdo"]):
+            pdo_where = f"{where}.pdo[{n}]"
+            if not isinstance(entry, dict):
+                raise NetworkError(f"{pdo_where}: expected a table")
+            _take(entry, pdo_where, {"direction": str, "cob_id": int, "length": int,
+                                     "transmission": int, "inhibit": int, "word": bool,
+                                     "offset": int})
+            if "direction" not in entry or "cob_id" not in entry:
+                raise NetworkError(f"{pdo_where}: direction and cob_id are required")
+            pdo = PdoDescription(**entry)
+            if pdo.direction not in ("input", "output"):
+                raise NetworkError(f"{pdo_where}.direction = {pdo.direction!r}: use \"input\" "
+                                   "or \"output\"")
+            _range(f"{pdo_where}.cob_id", pdo.cob_id, 1, 0x7FF)
+            _range(f"{pdo_where}.length", pdo.length, 1, 8)
+            _range(f"{pdo_where}.transmission", pdo.transmission, 0, 255)
+            _range(f"{pdo_where}.inhibit", pdo.inhibit, 0, 0xFFFF)
+            if pdo.offset is not None:
+                _range(f"{pdo_where}.offset", pdo.offset, 0, 3583)
+            node.pdo.append(pdo)
+    if "sim" in table:
+        node.sim = _sim(table["sim"], f"{where}.sim")
+    return node
+
+
+def parse_network(text: str, base: Path = Path(".")) -> Network:
+    """Parse a network description; EDS paths are relative to ``base``."""
+    try:
+        doc = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise NetworkError(f"not valid TOML: {exc}") from None
+    _take(doc, "file", {"bus": dict, "node": list})
+    bus = _bus(dict(doc.get("bus", {})))
+    nodes: list[NodeDescription] = []
+    seen: set[int] = set()
+    for n, table in enumerate(doc.get("node", [])):
+        if not isinstance(table, dict):
+            raise NetworkError(f"node[{n}]: expected a table")
+        node = _node(dict(table), f"node[{n}]", base)
+        if node.id in seen and node.id != UNCONFIGURED:
+            raise NetworkError(f"node {node.id} is described twice")
+        if node.id == bus.master_node_id and node.id:
+            raise NetworkError(f"node {node.id} has the master's own node-ID")
+        seen.add(node.id)
+        nodes.append(node)
+    return Network(bus, nodes)
+
+
+def load_network(path: str | Path) -> Network:
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except OSError as exc:
+        raise NetworkError(f"cannot read {path}: {exc.strerror}") from None
+    network = parse_network(text, path.parent)
+    network.path = path
+    return network
