@@ -1,59 +1,414 @@
-"""The CAN task (msg.rx 3): the CANopen master behind the image.
+"""The CAN task (msg.rx 3): every CAN-task message of the seed manual.
 
-So far the task knows one message, the bus parameter download (COM_Download
-with Area_Code 127), which starts the network: the card reaches RUN, and COM
-while the host is ready. Node parameter sets, the node handlers and the other
-CAN-task messages arrive with the CAN-task issue; until then they are
-answered "unknown command, DEVICE needs newer firmware" (f 152).
+Message handlers live here; the CANopen services they drive live in
+``firmware.can`` (the master, one handler per node, the controller). Handlers
+that must wait on the bus (SDO) run in a worker and post their answer later,
+so the device loop never blocks on the network.
 """
 
 from __future__ import annotations
 
+import logging
+import struct
+import time
+from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
-from dbm_tools.parameters import BusParameterSet
-from dbm_tools.validate import check_bus_parameters
-from dpm.errors import F_UNKNOWN_COMMAND
-from dpm.message import Message
+from canopen.sdo.exceptions import SdoAbortedError, SdoCommunicationError
+
+from dbm_tools.parameters import BusParameterSet, ExtendedBusParameterSet, NodeParameterSet
+from dbm_tools.validate import (
+    check_bus_parameters,
+    check_extended_bus_parameters,
+    check_node_parameters,
+)
+from dpm.message import Ext, Message, MessageError, TelegramHeader, Tfc
+from dpm.task2 import CanState, GlobalBits
+from firmware.can.master import BusConfig, Master, SdoChannel
+from firmware.can.node import (
+    NMT_PREOP,
+    NMT_RESET,
+    NMT_RESET_COMM,
+    NMT_START,
+    NMT_STOP,
+    State,
+)
 from firmware.task import Task
 
 if TYPE_CHECKING:
     from firmware.device import Device
 
+log = logging.getLogger(__name__)
+
+COM_SEND_CANMSG_TRANSPARENT = 65
+COM_NODE_DIAG = 66
+COM_START_SEQ = 67
 COM_DOWNLOAD = 68
-AREA_BUS_PARAMETER = 127
+COM_END_SEQ = 69
+COM_SDO_UP_DOWNLOAD = 74
+COM_UPLOAD = 80
+COM_RESET_ERR_EVENT = 81
+COM_CFGRX_LAYER2 = 82
+COM_TX_CAN_LAYER2 = 84
+COM_NMT_MODULE_PROTOCOL = 96
+GET_CONFIGURATION = 15
+
+AREA_BUS = 127
+AREA_EXTENDED = 128
+DOWNLOAD_AREA_SIZE = 1000
+MAX_LEN_DATA_UNIT = 240
+
+# msg.f numbers of the CAN task (seed 5.2)
+F_SDO_ABORT = 3
+F_LOCAL_RESOURCE = 20
+F_PARAMETER_FAULT = 21
+F_TIMEOUT = 48
+F_SDO_BUFFER = 51
+F_AREA_CODE = 52
+F_BUFFER_LENGTH = 53
+F_SDO_FUNCTION = 54
 F_FAULTY_PARAMETER = 55
+F_SEQUENCE = 57
+F_NO_DESCRIPT_RECORD = 58
+F_INCOMPLETE = 59
+F_DOUBLE_ADDRESS = 60
+F_NO_RESPONSE = 17
+F_NODE_BUSY = 19
+F_NODE_DIAG_ADDRESS = 161
+F_NOT_CONFIGURED = 200
+F_NO_DESCRIPT_TABLE = 3
+
+NMT_COMMANDS = (NMT_START, NMT_STOP, NMT_PREOP, NMT_RESET, NMT_RESET_COMM)
+SDO_MAX_DATA = 247
+
+
+@dataclass
+class _Sequence:
+    """A sequenced node download in the 1000-byte download area (COM_Start_Seq)."""
+
+    area: int
+    timeout_ms: int
+    buffer: bytearray
+    last: float
+    length: int = 0
 
 
 class CanTask(Task):
     number = 3
     name = "CAN"
 
-    def __init__(self, device: Device) -> None:
+    def __init__(self, device: Device, config: BusConfig | None = None) -> None:
         super().__init__(device)
-        self.configured = False
-        self.communicating = False
-        self.bus_parameters: BusParameterSet | None = None
-        self.handlers[COM_DOWNLOAD] = self.com_download
+        self.master = Master(device, config or BusConfig())
+        self.node_data: dict[int, bytes] = {}
+        self.bus_data: bytes | None = None
+        self.extended_data: bytes | None = None
+        self._sequence: _Sequence | None = None
+        self.handlers.update({
+            COM_START_SEQ: self.com_start_seq,
+            COM_DOWNLOAD: self.com_download,
+            COM_END_SEQ: self.com_end_seq,
+            COM_UPLOAD: self.com_upload,
+            COM_NODE_DIAG: self.com_node_diag,
+            COM_SDO_UP_DOWNLOAD: self.com_sdo_up_download,
+            COM_NMT_MODULE_PROTOCOL: self.com_nmt_module_protocol,
+            COM_SEND_CANMSG_TRANSPARENT: self.com_send_canmsg_transparent,
+            COM_RESET_ERR_EVENT: self.com_reset_err_event,
+            COM_CFGRX_LAYER2: self.com_cfgrx_layer2,
+            COM_TX_CAN_LAYER2: self.com_tx_can_layer2,
+            GET_CONFIGURATION: self.get_configuration,
+        })
+
+    # --- life cycle ---------------------------------------------------------------------------
+
+    def open(self) -> None:
+        self.master.open()
+
+    def close(self) -> None:
+        self.master.close()
 
     def reset(self, cold: bool) -> None:
         del cold
-        self.configured = False
-        self.communicating = False
-        self.bus_parameters = None
+        self.master.reset()
+        self.node_data.clear()
+        self.bus_data = None
+        self.extended_data = None
+        self._sequence = None
 
-    def com_download(self, msg: Message) -> Message:
-        """COM_Download: d[0] Req_Adr, d[1] Area_Code, d[2..3] Add_Offset, d[4..] data."""
+    @property
+    def configured(self) -> bool:
+        return self.master.running
+
+    def can_state(self) -> CanState:
+        return self.master.can_state()
+
+    def next_indication(self) -> Message | None:
+        return self.master.next_indication()
+
+    # --- the configuration entry points (also used at start-up from flash) ---------------------
+
+    def download_node(self, address: int, data: bytes) -> int:
+        """Check and take one node parameter data set; 0 or the seed's msg.f."""
+        errors = [f for f in check_node_parameters(data, address) if f.severity == "error"]
+        if errors:
+            return errors[0].number
+        if address == self.master.ext.bNodeID and address:
+            return F_DOUBLE_ADDRESS
+        params = NodeParameterSet.decode(data)
+        self.node_data[address] = bytes(data)
+        self.master.configure_node(address, params)
+        return 0
+
+    def download_extended(self, data: bytes) -> int:
+        errors = [f for f in check_extended_bus_parameters(data) if f.severity == "error"]
+        if errors:
+            return errors[0].number
+        ext = ExtendedBusParameterSet.decode(data)
+        if ext.bNodeID and ext.bNodeID in self.node_data:
+            return F_DOUBLE_ADDRESS
+        self.extended_data = bytes(data)
+        self.master.ext = ext
+        return 0
+
+    def download_bus(self, data: bytes) -> int:
+        """The bus parameter data set; a good one starts the network."""
+        nodes = [self.master.nodes[a].params for a in sorted(self.master.nodes)]
+        errors = [f for f in check_bus_parameters(data, nodes) if f.severity == "error"]
+        if errors:
+            return errors[0].number
+        self.bus_data = bytes(data)
+        self.master.start_network(BusParameterSet.decode(data))
+        return 0
+
+    # --- COM_Start_Seq / COM_Download / COM_End_Seq / COM_Upload -----------------------------
+
+    def com_start_seq(self, msg: Message) -> Message:
         if msg.ln < 4:
             return msg.answer(f=F_FAULTY_PARAMETER)
         area = msg.data[1]
-        if area != AREA_BUS_PARAMETER:
-            return msg.answer(f=F_UNKNOWN_COMMAND)
+        if not 1 <= area <= 126:
+            return msg.answer(f=F_AREA_CODE)
+        (timeout,) = struct.unpack_from("<H", msg.data, 2)
+        self._sequence = _Sequence(area, timeout, bytearray(DOWNLOAD_AREA_SIZE), time.monotonic())
+        return msg.answer(data=bytes([MAX_LEN_DATA_UNIT]))
+
+    def com_download(self, msg: Message) -> Message:
+        if msg.ln < 4:
+            return msg.answer(f=F_FAULTY_PARAMETER)
+        area = msg.data[1]
+        (offset,) = struct.unpack_from("<H", msg.data, 2)
         data = msg.data[4:]
-        findings = [f for f in check_bus_parameters(data) if f.severity == "error"]
-        if findings:
-            return msg.answer(f=findings[0].number)
-        self.bus_parameters = BusParameterSet.decode(data)
-        self.configured = True
-        self.communicating = True
+        if area == AREA_BUS:
+            return msg.answer(f=self.download_bus(data))
+        if area == AREA_EXTENDED:
+            return msg.answer(f=self.download_extended(data))
+        if not 1 <= area <= 126:
+            return msg.answer(f=F_AREA_CODE)
+        seq = self._sequence
+        if seq is None:
+            if offset:
+                return msg.answer(f=F_SEQUENCE)  # an offset needs COM_Start_Seq first
+            if len(data) > DOWNLOAD_AREA_SIZE:
+                return msg.answer(f=F_BUFFER_LENGTH)
+            return msg.answer(f=self.download_node(area, data))
+        if area != seq.area:
+            return msg.answer(f=F_SEQUENCE)
+        now = time.monotonic()
+        if seq.timeout_ms and (now - seq.last) * 1000 > seq.timeout_ms:
+            self._sequence = None
+            return msg.answer(f=F_TIMEOUT)
+        if offset + len(data) > DOWNLOAD_AREA_SIZE:
+            return msg.answer(f=F_BUFFER_LENGTH)
+        seq.buffer[offset : offset + len(data)] = data
+        seq.length = max(seq.length, offset + len(data))
+        seq.last = now
         return msg.answer()
+
+    def com_end_seq(self, msg: Message) -> Message:
+        seq, self._sequence = self._sequence, None
+        if seq is None:
+            return msg.answer(f=F_SEQUENCE)
+        if seq.length < 2:
+            return msg.answer(f=F_INCOMPLETE)
+        (total,) = struct.unpack_from("<H", seq.buffer, 0)
+        if total > seq.length or total < 2:
+            return msg.answer(f=F_INCOMPLETE)
+        return msg.answer(f=self.download_node(seq.area, bytes(seq.buffer[:total])))
+
+    def com_upload(self, msg: Message) -> Message:
+        if msg.ln != 5:
+            return msg.answer(f=F_PARAMETER_FAULT)
+        area = msg.data[1]
+        (offset,) = struct.unpack_from("<H", msg.data, 2)
+        length = msg.data[4]
+        if area == AREA_BUS:
+            stored = self.bus_data
+        elif 1 <= area <= 126:
+            stored = self.node_data.get(area)
+        else:
+            return msg.answer(f=F_AREA_CODE)
+        if stored is None:
+            return msg.answer(f=F_LOCAL_RESOURCE)
+        if not 1 <= length <= MAX_LEN_DATA_UNIT:
+            return msg.answer(f=F_PARAMETER_FAULT)
+        if offset > len(stored):
+            return msg.answer(f=F_BUFFER_LENGTH)
+        return msg.answer(data=stored[offset : offset + length])
+
+    # --- diagnosis ------------------------------------------------------------------------------
+
+    def com_node_diag(self, msg: Message) -> Message:
+        try:
+            head = TelegramHeader.decode(msg.data)
+        except MessageError:
+            return msg.answer(f=F_FAULTY_PARAMETER)
+        address = head.device_adr
+        if not 1 <= address <= 127:
+            return msg.answer(f=F_NODE_DIAG_ADDRESS)
+        handler = self.master.nodes.get(address)
+        raw = handler.read_diagnosis() if handler else bytes([0x80]) + bytes(47)
+        self.device.set_node_bit("abNd_diag", address, False)
+        head.data_cnt = len(raw)
+        head.data_type = 5
+        head.function = Tfc.READ
+        head.payload = raw
+        return msg.answer(data=head.encode())
+
+    def com_reset_err_event(self, msg: Message) -> Message:
+        """Clear TOUT, EVE and the four counters (seed 5.2.12); never an error."""
+        self.device.reset_counters()
+        self.device.set_global_bit(GlobalBits.TOUT | GlobalBits.EVE, False)
+        return msg.answer()
+
+    def get_configuration(self, msg: Message) -> Message:
+        """The node's DESCRIPT record without its first byte (DBM.md section 2)."""
+        try:
+            head = TelegramHeader.decode(msg.data)
+        except MessageError:
+            return msg.answer(f=F_FAULTY_PARAMETER)
+        descript = self.device.descript_records()
+        if descript is None:
+            return msg.answer(f=F_NO_DESCRIPT_TABLE)
+        record = descript.get(head.device_adr)
+        if record is None:
+            return msg.answer(f=F_NO_DESCRIPT_RECORD)
+        head.payload = record[1 : 1 + 255 - TelegramHeader.SIZE]
+        head.data_cnt = min(len(head.payload), 255)
+        return msg.answer(data=head.encode())
+
+    # --- SDO -----------------------------------------------------------------------------------
+
+    def com_sdo_up_download(self, msg: Message) -> Message | None:
+        try:
+            head = TelegramHeader.decode(msg.data)
+        except MessageError:
+            return msg.answer(f=F_FAULTY_PARAMETER)
+        address = head.device_adr
+        if not 1 <= address <= 127:
+            return msg.answer(f=F_FAULTY_PARAMETER, data=msg.data[:8])
+        if head.function not in (Tfc.READ, Tfc.WRITE):
+            return msg.answer(f=F_SDO_FUNCTION, data=msg.data[:8])
+        if not self.master.running or self.master.bus is None:
+            return msg.answer(f=F_NOT_CONFIGURED, data=msg.data[:8])
+        if head.function == Tfc.WRITE and len(head.payload) != head.data_cnt:
+            return msg.answer(f=F_SDO_BUFFER, data=msg.data[:8])
+        if msg.e & Ext.SEQ_MASK:
+            return msg.answer(f=F_SEQUENCE, data=msg.data[:8])
+        handler = self.master.nodes.get(address)
+        if handler is not None and handler.state is State.BOOTING:
+            return msg.answer(f=F_NODE_BUSY, data=msg.data[:8])
+        client = self.master.sdo_client(address)
+        if not client.lock.acquire(blocking=False):
+            return msg.answer(f=F_SDO_FUNCTION, data=msg.data[:8])
+        self.master.executor.submit(self._sdo_transfer, msg, head, client)
+        return None
+
+    def _sdo_transfer(self, msg: Message, head: TelegramHeader, client: SdoChannel) -> None:
+        handler = self.master.nodes.get(head.device_adr)
+        if handler is not None:
+            handler.host_sdo = True  # seed 5.2.8: the node's RX-PDOs wait meanwhile
+        answer_head = TelegramHeader(head.device_adr, 0, head.data_adr, head.data_idx, 0, 0,
+                                     head.function)
+        try:
+            if head.function == Tfc.READ:
+                data = client.sdo.upload(head.data_adr, head.data_idx)
+                if len(data) > SDO_MAX_DATA:
+                    answer = msg.answer(f=F_SDO_BUFFER, data=answer_head.encode())
+                else:
+                    answer_head.data_cnt = len(data)
+                    answer_head.payload = data
+                    answer = msg.answer(data=answer_head.encode())
+            else:
+                client.sdo.download(head.data_adr, head.data_idx, head.payload)
+                answer = msg.answer(data=answer_head.encode())
+        except SdoAbortedError as exc:
+            answer = msg.answer(f=F_SDO_ABORT, data=answer_head.encode()[:8]
+                                + struct.pack("<I", exc.code))
+        except SdoCommunicationError:
+            answer = msg.answer(f=F_NO_RESPONSE, data=answer_head.encode())
+        finally:
+            if handler is not None:
+                handler.host_sdo = False
+            client.lock.release()
+        self.device.post(answer)
+
+    # --- NMT, transparent CAN, layer 2 ---------------------------------------------------------
+
+    def com_nmt_module_protocol(self, msg: Message) -> Message:
+        if msg.ln < 2 or msg.data[0] not in NMT_COMMANDS or msg.data[1] > 127:
+            return msg.answer(f=F_FAULTY_PARAMETER)
+        if not self.master.running:
+            return msg.answer(f=F_NOT_CONFIGURED)
+        command, node = msg.data[0], msg.data[1]
+        self.master.host_nmt(command, node)
+        return msg.answer()
+
+    def com_send_canmsg_transparent(self, msg: Message) -> Message:
+        d = msg.data
+        if msg.ln == 10:  # CAN 2.0A: ID.10..3 | ID.2..0 RTR DLC
+            ident, payload, extended = (d[0] << 3) | (d[1] >> 5), d[2:], False
+            rtr, dlc = bool(d[1] & 0x10), d[1] & 0x0F
+        elif msg.ln in (11, 13):  # CAN 2.0B: frame info, then the identifier
+            info = d[0]
+            extended = bool(info & 0x80)
+            if extended != (msg.ln == 13):
+                return msg.answer(f=F_FAULTY_PARAMETER)
+            rtr, dlc = bool(info & 0x40), info & 0x0F
+            if extended:
+                ident, payload = int.from_bytes(d[1:5], "big") >> 3, d[5:]
+            else:
+                ident, payload = (d[1] << 3) | (d[2] >> 5), d[3:]
+        else:
+            return msg.answer(f=F_FAULTY_PARAMETER)
+        if not self.master.bus_send_raw(ident, bytes(payload[: min(dlc, 8)]), rtr, extended, dlc):
+            return msg.answer(f=F_TIMEOUT)
+        return msg.answer()
+
+    def com_cfgrx_layer2(self, msg: Message) -> Message:
+        if msg.ln < 2 or msg.ln % 2:
+            return msg.answer(f=F_FAULTY_PARAMETER)
+        idents = [msg.data[i] | ((msg.data[i + 1] & 0x07) << 8) for i in range(0, msg.ln, 2)]
+        if any(self.master.cob_id_in_use(i) for i in idents):
+            return msg.answer(f=F_FAULTY_PARAMETER)
+        self.master.layer2_filters.update(idents)
+        return msg.answer()
+
+    def com_tx_can_layer2(self, msg: Message) -> Message | None:
+        """Up to 127 frames, each 2 identifier bytes plus DLC data bytes; no answer."""
+        frames: list[tuple[int, bool, int, bytes]] = []
+        at, d = 0, msg.data
+        while at < len(d):
+            if at + 2 > len(d):
+                return msg.answer(f=F_FAULTY_PARAMETER)
+            ident = (d[at] << 3) | (d[at + 1] >> 5)
+            rtr, dlc = bool(d[at + 1] & 0x10), d[at + 1] & 0x0F
+            size = 0 if rtr else min(dlc, 8)
+            if dlc > 8 or at + 2 + size > len(d):
+                return msg.answer(f=F_FAULTY_PARAMETER)
+            frames.append((ident, rtr, dlc, bytes(d[at + 2 : at + 2 + size])))
+            at += 2 + size
+        if not frames:
+            return msg.answer(f=F_FAULTY_PARAMETER)
+        for ident, rtr, dlc, payload in frames:
+            self.master.bus_send_raw(ident, payload, rtr, False, dlc)
+        return None

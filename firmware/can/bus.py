@@ -1,0 +1,122 @@
+"""The card's CAN controller: a python-can bus, its counters, its trace.
+
+Every frame the master sends goes through ``CanBus.send``, so the Task2State
+counters and the optional trace see all of them, including the ones canopen's
+SDO client sends. Received frames are dispatched by identifier to the
+services that subscribed, and fed to canopen's network for its SDO clients.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+from collections import defaultdict
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import can
+import canopen
+
+log = logging.getLogger(__name__)
+
+SEND_TIMEOUT = 0.020
+"""Seed 4.3: each CAN message is supervised to be sent within 20 ms."""
+
+FrameCallback = Callable[[can.Message], None]
+
+
+class _MasterNetwork(canopen.Network):
+    """canopen's network whose sends go through the card's controller."""
+
+    def __init__(self, owner: CanBus) -> None:
+        super().__init__(owner.bus)
+        self._owner = owner
+
+    def send_message(self, can_id: int, data: bytes, remote: bool = False) -> None:
+        self._owner.send(can_id, bytes(data), remote=remote)
+
+
+class CanBus(can.Listener):
+    """One CAN controller on one python-can bus."""
+
+    def __init__(self, interface: str = "virtual", channel: str = "cifemu",
+                 bitrate: int | None = None, trace: Path | None = None,
+                 **config: Any) -> None:
+        kwargs: dict[str, Any] = dict(config)
+        if bitrate is not None and interface != "virtual":
+            kwargs["bitrate"] = bitrate
+        self.bus = can.Bus(interface=interface, channel=channel, **kwargs)
+        self.interface = interface
+        self.channel = channel
+        self.network = _MasterNetwork(self)
+        self._subscribers: dict[int, list[FrameCallback]] = defaultdict(list)
+        self._catch_all: list[FrameCallback] = []
+        self._lock = threading.Lock()
+        self.on_error_frame: Callable[[], None] = lambda: None
+        self.on_send_timeout: Callable[[], None] = lambda: None
+        self._trace: can.Listener | None = can.Logger(str(trace)) if trace else None
+        listeners: list[can.Listener] = [self]
+        if self._trace is not None:
+            listeners.append(self._trace)
+        self._notifier = can.Notifier(self.bus, listeners, timeout=0.1)
+
+    # --- receiving ----------------------------------------------------------------------
+
+    def subscribe(self, can_id: int, callback: FrameCallback) -> None:
+        with self._lock:
+            self._subscribers[can_id].append(callback)
+
+    def unsubscribe(self, can_id: int, callback: FrameCallback) -> None:
+        with self._lock:
+            if callback in self._subscribers.get(can_id, []):
+                self._subscribers[can_id].remove(callback)
+
+    def subscribe_all(self, callback: FrameCallback) -> None:
+        """Every received frame (layer-2 access, transparent reception)."""
+        with self._lock:
+            self._catch_all.append(callback)
+
+    def on_message_received(self, msg: can.Message) -> None:
+        if msg.is_error_frame:
+            self.on_error_frame()
+            return
+        with self._lock:
+            callbacks = list(self._catch_all)
+            if not msg.is_extended_id:
+                callbacks += self._subscribers.get(msg.arbitration_id, [])
+        for callback in callbacks:
+            try:
+                callback(msg)
+            except Exception:
+                log.exception("frame handler failed on 0x%X", msg.arbitration_id)
+        if not msg.is_extended_id and not msg.is_remote_frame:
+            self.network.notify(msg.arbitration_id, msg.data, msg.timestamp)
+
+    # --- sending ---------------------------------------------------------------------------
+
+    def send(self, can_id: int, data: bytes = b"", remote: bool = False,
+             extended: bool | None = None, dlc: int | None = None) -> bool:
+        """Send one frame; False (and Msg_Time_Out counted) when it could not go out."""
+        msg = can.Message(
+            arbitration_id=can_id,
+            is_extended_id=can_id > 0x7FF if extended is None else extended,
+            is_remote_frame=remote,
+            data=b"" if remote else data,
+            dlc=dlc if dlc is not None else len(data),
+        )
+        try:
+            self.bus.send(msg, timeout=SEND_TIMEOUT)
+        except can.CanError as exc:
+            log.warning("frame 0x%X not sent: %s", can_id, exc)
+            self.on_send_timeout()
+            return False
+        if self._trace is not None:
+            self._trace.on_message_received(msg)
+        return True
+
+    def shutdown(self) -> None:
+        self._notifier.stop()
+        if self._trace is not None:
+            self._trace.stop()
+        self.bus.shutdown()

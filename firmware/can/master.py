@@ -1,0 +1,482 @@
+"""The CANopen master: the network as a whole, its threads and its Task2State.
+
+It owns the controller (``CanBus``), the node handlers, the SYNC producer,
+the master's own heartbeat, layer-2 access and the 1-ms tick that evaluates
+the connection-status bits (seed 3) and supervises the nodes.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections import deque
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import can
+from canopen.objectdictionary import ObjectDictionary
+from canopen.sdo.client import SdoClient
+
+from dbm_tools.parameters import (
+    ACLR_ACTIVE,
+    MOTOROLA,
+    BusParameterSet,
+    ExtendedBusParameterSet,
+    ExtendedState,
+    NodeParameterSet,
+)
+from dpm.layout import CONN_STATUS
+from dpm.message import Message
+from dpm.task2 import CanState, GlobalBits
+from firmware.can.bus import CanBus
+from firmware.can.node import (
+    NMT_RESET,
+    NMT_RESET_COMM,
+    NMT_START,
+    NMT_STOP,
+    NODE_STOPPED,
+    NodeHandler,
+    State,
+)
+
+if TYPE_CHECKING:
+    from firmware.device import Device
+
+log = logging.getLogger(__name__)
+
+TICK = 0.001
+"""The connection bits are evaluated at least every millisecond (seed 3)."""
+SUPERVISION_PERIOD = 0.005
+"""[ours] heartbeat and guarding deadlines are checked every 5 ms."""
+QUEUE_LIMIT = 150
+"""Layer-2 frames the card holds for the host (seed 5.3.2.2)."""
+INDICATION_LIMIT = 254
+COM_RECEIVE_TRANSPARENT = 65
+COM_RX_CAN_LAYER2 = 83
+
+
+@dataclass
+class SdoChannel:
+    """A node's SDO channel: one client, taken in turn by boot-up and host transfers."""
+
+    sdo: SdoClient
+    lock: threading.Lock
+
+
+@dataclass
+class BusConfig:
+    """How the card reaches its CAN bus (command line of ``cifemu firmware``)."""
+
+    interface: str = "virtual"
+    channel: str = "cifemu"
+    bitrate: int | None = None
+    trace: Path | None = None
+
+
+class Master:
+    def __init__(self, device: Device, config: BusConfig) -> None:
+        self.device = device
+        self.image = device.plc.image
+        self.config = config
+        self.bus: CanBus | None = None
+        self.nodes: dict[int, NodeHandler] = {}
+        self.bus_params: BusParameterSet | None = None
+        self.ext = ExtendedBusParameterSet()
+        self.executor = ThreadPoolExecutor(max_workers=32, thread_name_prefix="node-boot")
+        self.running = False
+        self.halted = False
+        """Outputs zeroed and PDO traffic stopped: host not ready or watchdog expired."""
+        self.cleared = False
+        """Auto-clear end state: one lost node stopped all."""
+        self._booting: set[int] = set()
+        self._global_start_due = False
+        self._stop = threading.Event()
+        self._tick_thread: threading.Thread | None = None
+        self._sync_thread: threading.Thread | None = None
+        self._sync_wakeup = threading.Event()
+        self.layer2_filters: set[int] = set()
+        self.indications: deque[tuple[int, can.Message]] = deque()
+        self._queue_lock = threading.Lock()
+        self._heartbeat_due = 0.0
+        self._sdo: dict[int, SdoChannel] = {}
+        self._last_conn = b""
+        self._supervise_due = 0.0
+
+    # --- life cycle ---------------------------------------------------------------------
+
+    def open(self) -> None:
+        """Connect the controller to the bus (once, at power-on)."""
+        cfg = self.config
+        self.bus = CanBus(cfg.interface, cfg.channel, cfg.bitrate, cfg.trace)
+        self.bus.on_error_frame = self._on_error_frame
+        self.bus.on_send_timeout = self._on_send_timeout
+        self.bus.subscribe_all(self._on_any_frame)
+        self._tick_thread = threading.Thread(target=self._tick_loop, name="can-tick", daemon=True)
+        self._tick_thread.start()
+        self._sync_thread = threading.Thread(target=self._sync_loop, name="can-sync", daemon=True)
+        self._sync_thread.start()
+
+    def close(self) -> None:
+        self._stop.set()
+        self._sync_wakeup.set()
+        for thread in (self._tick_thread, self._sync_thread):
+            if thread is not None:
+                thread.join(timeout=2)
+        self.executor.shutdown(wait=False, cancel_futures=True)
+        if self.bus is not None:
+            self.bus.shutdown()
+
+    def reset(self) -> None:
+        """A card start: the on-line configuration is gone."""
+        for handler in self.nodes.values():
+            handler.idle()
+            handler.detach()
+        self.nodes.clear()
+        self.bus_params = None
+        self.ext = ExtendedBusParameterSet()
+        self.running = self.halted = self.cleared = False
+        self._booting.clear()
+        self._last_conn = b""
+        self.layer2_filters.clear()
+        with self._queue_lock:
+            self.indications.clear()
+
+    # --- configuration ------------------------------------------------------------------------
+
+    @property
+    def sync_cob_id(self) -> int:
+        return self.bus_params.COB_ID_SYNC if self.bus_params else 0x80
+
+    @property
+    def sync_period(self) -> float:
+        return self.bus_params.SYNC_Timer / 1000.0 if self.bus_params else 0.0
+
+    @property
+    def motorola(self) -> bool:
+        return bool(self.bus_params and self.bus_params.Intel_Motorola == MOTOROLA)
+
+    @property
+    def auto_clear(self) -> bool:
+        return bool(self.bus_params and self.bus_params.Auto_Clear == ACLR_ACTIVE)
+
+    @property
+    def global_start(self) -> bool:
+        return bool(self.ext.bExtendedState & ExtendedState.biNoGobalStartNode)
+
+    def configure_node(self, address: int, params: NodeParameterSet) -> None:
+        old = self.nodes.pop(address, None)
+        if old is not None:
+            old.idle()
+            old.detach()
+        handler = NodeHandler(self, address, params)
+        self.nodes[address] = handler
+        self.device.set_node_bit("abNd_cfg", address, params.active)
+        self.device.set_node_bit("abNd_diag", address, False)
+        if self.running:
+            handler.attach()
+            self._boot(handler)
+
+    def start_network(self, params: BusParameterSet) -> None:
+        """The bus parameter download: (re)start the whole network."""
+        restart = self.running
+        self.bus_params = params
+        self.running = True
+        self.cleared = False
+        self.halted = not self.image.driving
+        self.device.set_global_bit(GlobalBits.ACLR, False)
+        self._sync_wakeup.set()
+        for handler in self.nodes.values():
+            if restart:
+                handler.detach()
+            handler.attach()
+            if not self.halted:
+                self._boot(handler)
+
+    def _boot(self, handler: NodeHandler) -> None:
+        if handler.state is State.INACTIVE:
+            return
+        if not self._conn_bit(handler.address):
+            handler.disconnect()
+            return
+        self._booting.add(handler.address)
+        handler.start_boot()
+
+    # --- state seen by the device ------------------------------------------------------------
+
+    def can_state(self) -> CanState:
+        if not self.running:
+            return CanState.OFFLINE
+        if self.cleared:
+            return CanState.CLEAR
+        if self.halted:
+            return CanState.STOP
+        return CanState.OPERATE
+
+    # --- callbacks from node handlers ----------------------------------------------------------
+
+    def node_booted(self, handler: NodeHandler) -> None:
+        self._booting.discard(handler.address)
+        self.device.clear_error(handler.address)
+        self.set_node_state(handler.address, True)
+        self._update_nexc()
+        if self.global_start and not self._booting:
+            self._global_start_due = True
+
+    def node_failed(self, handler: NodeHandler, event: int) -> None:
+        self._booting.discard(handler.address)
+        self.set_node_state(handler.address, False)
+        self.set_node_diag(handler.address, True)
+        self.device.report_error(handler.address, event)
+        if self.auto_clear and not self.cleared and self.running:
+            self._auto_clear()
+        elif self.global_start and not self._booting:
+            self._global_start_due = True
+
+    def _auto_clear(self) -> None:
+        """One lost node stops all: outputs to zero, every node stopped (seed 4.3 ACLR)."""
+        log.warning("auto-clear: stopping all nodes")
+        self._zero_outputs()
+        self.cleared = True
+        self.nmt(NMT_STOP, 0)
+        for handler in self.nodes.values():
+            if handler.state is State.OPERATING:
+                handler.idle()
+                self.device.report_error(handler.address, NODE_STOPPED)
+        self.device.set_global_bit(GlobalBits.ACLR, True)
+
+    def set_node_state(self, address: int, on: bool) -> None:
+        self.device.set_node_bit("abNd_state", address, on)
+
+    def set_node_diag(self, address: int, on: bool) -> None:
+        self.device.set_node_bit("abNd_diag", address, on)
+
+    def sdo_client(self, address: int) -> SdoChannel:
+        """The SDO channel to ``address`` (created on first use, kept for the card's life)."""
+        channel = self._sdo.get(address)
+        if channel is None:
+            assert self.bus is not None
+            client = SdoClient(  # type: ignore[no-untyped-call]
+                0x600 + address, 0x580 + address, ObjectDictionary()  # type: ignore[no-untyped-call]
+            )
+            client.network = self.bus.network
+            self.bus.network.subscribe(0x580 + address, client.on_response)
+            channel = self._sdo[address] = SdoChannel(client, threading.Lock())
+        return channel
+
+    def host_nmt(self, command: int, node: int) -> None:
+        """COM_NMT_Module_Protocol: the host drives node states by hand."""
+        self.nmt(command, node)
+        targets = list(self.nodes.values()) if node == 0 else (
+            [self.nodes[node]] if node in self.nodes else [])
+        for handler in targets:
+            if command in (NMT_RESET, NMT_RESET_COMM):
+                if handler.state not in (State.INACTIVE, State.DISCONNECTED):
+                    handler.start_boot()
+            else:
+                handler.operational_expected = command == NMT_START
+                if not handler.operational_expected:
+                    self.set_node_state(handler.address, False)
+
+    def cob_id_in_use(self, cob_id: int) -> bool:
+        """Whether the CANopen side already listens to or sends ``cob_id``."""
+        if cob_id in (0, self.sync_cob_id):
+            return True
+        for address, handler in self.nodes.items():
+            params = handler.params
+            used = {0x580 + address, 0x600 + address, 0x700 + address, params.usCobIDEmcy,
+                    params.usCobIDGuard, *(p.usPdoCOBId for p in params.atPdoCfgData)}
+            if cob_id in used:
+                return True
+        return False
+
+    # --- sending -------------------------------------------------------------------------------
+
+    def bus_send_raw(self, ident: int, data: bytes, remote: bool, extended: bool,
+                     dlc: int) -> bool:
+        """A frame exactly as the host described it (transparent and layer-2 access)."""
+        if self.bus is None:
+            return False
+        return self.bus.send(ident, data, remote=remote, extended=extended, dlc=dlc)
+
+    def bus_send(self, can_id: int, data: bytes = b"", remote: bool = False,
+                 dlc: int | None = None) -> bool:
+        if self.bus is None:
+            return False
+        return self.bus.send(can_id, data, remote=remote, dlc=dlc)
+
+    def nmt(self, command: int, node: int) -> None:
+        self.bus_send(0x000, bytes([command, node]))
+
+    def _zero_outputs(self) -> None:
+        """Drive every RX-PDO to zero once (seed 5.2.1.2), then stop PDO traffic."""
+        driving = self.image.driving
+        self.image.driving = False  # read_outputs answers zeros now
+        try:
+            for handler in self.nodes.values():
+                handler.send_outputs(force=True)
+        finally:
+            self.image.driving = driving
+
+    # --- the tick ------------------------------------------------------------------------------
+
+    def _conn_bit(self, address: int) -> bool:
+        return bool(self.device.mm[CONN_STATUS + (address >> 3)] & (1 << (address & 7)))
+
+    def _tick_loop(self) -> None:
+        last_outputs = b""
+        while not self._stop.wait(TICK):
+            try:
+                last_outputs = self._tick(time.monotonic(), last_outputs)
+            except Exception:
+                log.exception("CAN tick failed")
+
+    def _tick(self, now: float, last_outputs: bytes) -> bytes:
+        if not self.running:
+            return last_outputs
+        self._follow_host()
+        if self.halted or self.cleared:
+            return last_outputs
+        if self._global_start_due:
+            self._global_start_due = False
+            self.nmt(0x01, 0)
+        self._follow_connection_bits()
+        if now >= self._supervise_due:
+            self._supervise_due = now + SUPERVISION_PERIOD
+            for handler in list(self.nodes.values()):
+                handler.tick(now)
+            self._update_nexc()
+        outputs = self.image.snapshot_outputs()
+        if outputs != last_outputs:
+            for handler in list(self.nodes.values()):
+                handler.send_outputs()
+        self._heartbeat(now)
+        return outputs
+
+    def _follow_connection_bits(self) -> None:
+        """Seed 3: a cleared bit stops the node, a set bit starts it again at once."""
+        conn = self.device.mm[CONN_STATUS : CONN_STATUS + 16]
+        if conn == self._last_conn:
+            return
+        self._last_conn = conn
+        for address, handler in list(self.nodes.items()):
+            connected = bool(conn[address >> 3] & (1 << (address & 7)))
+            if not connected and handler.state not in (State.DISCONNECTED, State.INACTIVE):
+                handler.disconnect()
+            elif connected and handler.state is State.DISCONNECTED:
+                self._boot(handler)
+
+    def _follow_host(self) -> None:
+        """HOST_NOT_READY or a watchdog expiry stop the bus and zero the outputs."""
+        driving = self.image.driving
+        if not driving and not self.halted:
+            log.info("host stopped: outputs to zero, PDO traffic stopped")
+            self._zero_outputs()
+            self.halted = True
+            self.layer2_filters.clear()  # seed 5.3.2.1: stopping removes the filters
+        elif driving and self.halted and not self.cleared:
+            self.halted = False
+            for handler in self.nodes.values():
+                if handler.state in (State.WAITING, State.FAILED):
+                    self._boot(handler)
+                else:
+                    handler.send_outputs(force=True)
+
+    def _update_nexc(self) -> None:
+        missing = any(h.state is not State.OPERATING for h in self.nodes.values()
+                      if h.params.active and h.state is not State.DISCONNECTED)
+        self.device.set_global_bit(GlobalBits.NEXC, missing)
+
+    def _heartbeat(self, now: float) -> None:
+        period = self.ext.usProducerHeartbeatTime / 1000.0
+        if not period or not self.ext.bNodeID or now < self._heartbeat_due:
+            return
+        self._heartbeat_due = now + period
+        self.bus_send(0x700 + self.ext.bNodeID, b"\x05")
+
+    # --- SYNC ----------------------------------------------------------------------------------
+
+    def _sync_loop(self) -> None:
+        """SYNC producer: sleep most of the period, then watch the clock for the rest."""
+        next_sync = time.perf_counter()
+        while not self._stop.is_set():
+            period = self.sync_period
+            if not (self.running and period) or self.halted or self.cleared:
+                self._sync_wakeup.wait(0.05)
+                self._sync_wakeup.clear()
+                next_sync = time.perf_counter()
+                continue
+            next_sync += period
+            remaining = next_sync - time.perf_counter()
+            if remaining < -period:  # fell behind (the machine stalled): resynchronise
+                next_sync = time.perf_counter()
+            elif remaining > 0.0008:
+                self._stop.wait(remaining - 0.0005)
+            while time.perf_counter() < next_sync:
+                pass
+            self._sync_once()
+
+    def _sync_once(self) -> None:
+        now = time.monotonic()
+        self.bus_send(self.sync_cob_id)
+        for handler in list(self.nodes.values()):
+            handler.on_sync(now)
+
+    # --- bus events, layer 2 and transparent reception -----------------------------------------
+
+    def _on_error_frame(self) -> None:
+        self.device.count("usBus_Error_Cnt")
+        self.device.set_global_bit(GlobalBits.EVE, True)
+
+    def _on_send_timeout(self) -> None:
+        self.device.count("usMsg_Time_Out")
+        self.device.set_global_bit(GlobalBits.TOUT, True)
+
+    def _on_any_frame(self, msg: can.Message) -> None:
+        if msg.is_extended_id:
+            if not self.ext.bExtendedState & ExtendedState.bi11Bit29BitSelector:
+                return
+            mask = self.ext.ulAcceptMask & 0x1FFFFFFF
+            if (msg.arbitration_id & mask) != (self.ext.ulAcceptCode & mask):
+                return
+            self._queue(COM_RECEIVE_TRANSPARENT, msg)
+        elif msg.arbitration_id in self.layer2_filters:
+            self._queue(COM_RX_CAN_LAYER2, msg)
+
+    def _queue(self, kind: int, msg: can.Message) -> None:
+        with self._queue_lock:
+            if len(self.indications) >= QUEUE_LIMIT:
+                self.device.count("usRx_Overflow")
+                return
+            self.indications.append((kind, msg))
+        self.device.bell.ring_self()
+
+    def next_indication(self) -> Message | None:
+        """The next indication for the host mailbox, or None (pulled by the device loop)."""
+        with self._queue_lock:
+            if not self.indications:
+                return None
+            kind, msg = self.indications.popleft()
+            if kind == COM_RECEIVE_TRANSPARENT:
+                info = 0x80 | (0x40 if msg.is_remote_frame else 0) | (msg.dlc & 0x0F)
+                data = bytes([info]) + (msg.arbitration_id << 3).to_bytes(4, "big")
+                data += bytes(msg.data).ljust(8, b"\0")[:8]
+                return Message(rx=16, tx=3, b=COM_RECEIVE_TRANSPARENT, data=data)
+            data = layer2_frame(msg)
+            while self.indications and self.indications[0][0] == COM_RX_CAN_LAYER2:
+                more = layer2_frame(self.indications[0][1])
+                if len(data) + len(more) > INDICATION_LIMIT:
+                    break
+                data += more
+                self.indications.popleft()
+            return Message(rx=16, tx=3, b=COM_RX_CAN_LAYER2, data=data)
+
+
+def layer2_frame(msg: can.Message) -> bytes:
+    """A received frame in the layer-2 indication format (seed 5.3.2.2)."""
+    ident = msg.arbitration_id
+    second = ((ident & 0x7) << 5) | (0x10 if msg.is_remote_frame else 0) | (msg.dlc & 0x0F)
+    payload = b"" if msg.is_remote_frame else bytes(msg.data[: msg.dlc])
+    return bytes([ident >> 3, second]) + payload

@@ -1,0 +1,445 @@
+"""One node handler per configured node: boot-up, supervision, diagnosis, PDOs.
+
+The seed calls them node handlers: "for every node station one state machine
+is implemented" (seed 5.2). The boot sequence runs in a worker thread because
+it waits on SDO answers; supervision, PDO output and the connection bits are
+served from the master's tick; received frames arrive on the bus thread.
+"""
+
+from __future__ import annotations
+
+import enum
+import logging
+import struct
+import threading
+import time
+from collections import deque
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
+
+import can
+from canopen.sdo.client import SdoClient
+from canopen.sdo.exceptions import SdoAbortedError, SdoCommunicationError
+
+from dbm_tools.parameters import MSK_WORD_PDO, ConfigNdState, NdFlag, NodeParameterSet, PdoData
+
+if TYPE_CHECKING:
+    from firmware.can.master import Master
+
+log = logging.getLogger(__name__)
+
+BOOTUP_TIMEOUT = 3.0
+"""[ours] seconds a reset node has to send its boot-up message."""
+RETRY_DELAY = 1.0
+"""[ours] seconds before a lost node is booted again when auto-clear is off."""
+RTR_PERIOD = 0.1
+"""[ours] seconds between remote requests of an RTR-only (253) input PDO without SYNC."""
+EMCY_ENTRIES = 5
+"""COM_Node_Diag's Emcy_Data holds 40 bytes: five 8-byte EMCY messages."""
+
+# Err_Event numbers for nodes (seed 4.3)
+GUARDING_FAILED = 30
+LEFT_OPERATIONAL = 31
+GUARD_SEQUENCE = 32
+NO_RTR_RESPONSE = 33
+NO_RESPONSE = 34
+PROFILE_MISMATCH = 35
+DEVICE_TYPE_MISMATCH = 36
+UNKNOWN_SDO_RESPONSE = 37
+NODE_STOPPED = 39
+
+# Nodestatus_1 bits (seed 5.2.7)
+NO_RESPONSE_BIT = 0x01
+EMCY_OVERFLOW_BIT = 0x02
+PRM_FAULT_BIT = 0x04
+GUARD_ACTIVE_BIT = 0x08
+DEACTIVATED_BIT = 0x80
+
+NMT_START, NMT_STOP, NMT_PREOP, NMT_RESET, NMT_RESET_COMM = 0x01, 0x02, 0x80, 0x81, 0x82
+OPERATIONAL, STOPPED, PRE_OPERATIONAL, BOOT_UP = 5, 4, 127, 0
+
+
+class State(enum.Enum):
+    INACTIVE = "inactive"
+    """bNd_Flag ACTIVE clear: I/O reserved, never booted."""
+    WAITING = "waiting"
+    """Configured; the network is not running (or the host stopped it)."""
+    BOOTING = "booting"
+    OPERATING = "operating"
+    FAILED = "failed"
+    DISCONNECTED = "disconnected"
+    """The host cleared its connection-status bit."""
+
+
+@dataclass
+class OutputPdo:
+    pdo: PdoData
+    offset: int
+    last: bytes | None = None
+    last_time: float = 0.0
+    syncs: int = 0
+
+
+@dataclass
+class InputPdo:
+    pdo: PdoData
+    offset: int
+    requested: float = 0.0
+    """When the last remote request went out, 0 when answered."""
+
+
+@dataclass
+class Diagnosis:
+    """The node's part of COM_Node_Diag (seed 5.2.7)."""
+
+    status: int = 0
+    add_info: int = 0
+    profile: int = 0
+    node_state: int = 0
+    actual_error: int = 0
+    emcy: deque[bytes] = field(default_factory=lambda: deque(maxlen=EMCY_ENTRIES))
+
+    def encode(self) -> bytes:
+        entries = b"".join(self.emcy)
+        return (
+            struct.pack("<BHHBBB", self.status, self.add_info, self.profile, self.node_state,
+                        self.actual_error, len(self.emcy))
+            + entries.ljust(40, b"\0")
+        )
+
+
+def swap_words(data: bytes) -> bytes:
+    """Motorola order for a word-oriented PDO: swap the bytes of each word."""
+    out = bytearray(data)
+    for i in range(0, len(out) - 1, 2):
+        out[i], out[i + 1] = out[i + 1], out[i]
+    return bytes(out)
+
+
+class NodeHandler:
+    def __init__(self, master: Master, address: int, params: NodeParameterSet) -> None:
+        self.master = master
+        self.address = address
+        self.params = params
+        self.heartbeat = bool(params.bNd_Flag & NdFlag.HRTBT)
+        self.state = State.WAITING if params.active else State.INACTIVE
+        self.diag = Diagnosis()
+        if not params.active:
+            self.diag.status |= DEACTIVATED_BIT
+        self.operational_expected = True
+        """False after the host stopped or pre-operated the node with NMT."""
+        self.host_sdo = False
+        """A host SDO transfer runs: the node's RPDOs are suppressed (seed 5.2.8)."""
+        self._bootup = threading.Event()
+        self._last_heartbeat = 0.0
+        self._next_guard = 0.0
+        self._guard_pending = False
+        self._guard_misses = 0
+        self._toggle: int | None = None
+        self._retry_at = 0.0
+        self._generation = 0
+        """Bumped on every (re)boot so a stale boot thread gives up."""
+        self.outputs = [OutputPdo(p, o) for p, o in zip(
+            [p for p in params.atPdoCfgData if not p.is_input], params.ausOutputOffsets,
+            strict=False)]
+        self.inputs = [InputPdo(p, o) for p, o in zip(
+            [p for p in params.atPdoCfgData if p.is_input], params.ausInputOffsets,
+            strict=False)]
+
+    # --- wiring to the bus -----------------------------------------------------------------
+
+    def attach(self) -> None:
+        bus = self.master.bus
+        assert bus is not None
+        bus.subscribe(0x700 + self.address, self._on_error_control)
+        if self.params.usCobIDGuard and self.params.usCobIDGuard != 0x700 + self.address:
+            bus.subscribe(self.params.usCobIDGuard, self._on_error_control)
+        bus.subscribe(self.params.usCobIDEmcy, self._on_emcy)
+        for entry in self.inputs:
+            bus.subscribe(entry.pdo.usPdoCOBId, self._on_input)
+
+    def detach(self) -> None:
+        bus = self.master.bus
+        if bus is None:
+            return
+        bus.unsubscribe(0x700 + self.address, self._on_error_control)
+        bus.unsubscribe(self.params.usCobIDGuard, self._on_error_control)
+        bus.unsubscribe(self.params.usCobIDEmcy, self._on_emcy)
+        for entry in self.inputs:
+            bus.unsubscribe(entry.pdo.usPdoCOBId, self._on_input)
+
+    # --- boot-up ------------------------------------------------------------------------------
+
+    def start_boot(self) -> None:
+        """Begin (or begin again) the boot sequence in a worker thread."""
+        if self.state is State.INACTIVE:
+            return
+        self._generation += 1
+        self.state = State.BOOTING
+        self.operational_expected = True
+        self.master.set_node_state(self.address, False)
+        self.master.executor.submit(self._boot, self._generation)
+
+    def _boot(self, generation: int) -> None:
+        skip = self.params.bitConfigNdState
+        try:
+            channel = self.master.sdo_client(self.address)
+            with channel.lock:
+                self._boot_steps(skip, channel.sdo)
+        except SdoAbortedError as exc:
+            log.info("node %d: configuration aborted 0x%08X", self.address, exc.code)
+            self.diag.status |= PRM_FAULT_BIT
+            self._fail_boot(generation, NO_RESPONSE)
+            return
+        except SdoCommunicationError as exc:
+            message = str(exc)
+            log.info("node %d: no configuration answer: %s", self.address, message)
+            unknown = "Unexpected response" in message or "unexpected" in message.lower()
+            self.diag.status |= 0 if unknown else NO_RESPONSE_BIT
+            self._fail_boot(generation, UNKNOWN_SDO_RESPONSE if unknown else NO_RESPONSE)
+            return
+        except _BootFailure as failure:
+            self._fail_boot(generation, failure.event)
+            return
+        if generation != self._generation or self.state is not State.BOOTING:
+            return
+        self.diag.status &= ~(NO_RESPONSE_BIT | PRM_FAULT_BIT)
+        now = time.monotonic()
+        self._last_heartbeat = now
+        self._next_guard = now
+        self._guard_pending = False
+        self._guard_misses = 0
+        self._toggle = None
+        for output in self.outputs:
+            output.last = None
+        self.state = State.OPERATING
+        if self.supervised:
+            self.diag.status |= GUARD_ACTIVE_BIT
+        self.master.node_booted(self)
+        if not skip & ConfigNdState.TXRXPDO:
+            self.send_outputs(force=True)
+            for entry in self.inputs:
+                if entry.pdo.bTransType in (252, 253):
+                    self._request(entry, now)
+
+    def _boot_steps(self, skip: int, sdo: SdoClient) -> None:
+        params = self.params
+        if not skip & ConfigNdState.RESET:
+            self._bootup.clear()
+            self.master.nmt(NMT_RESET, self.address)
+            if not self._bootup.wait(BOOTUP_TIMEOUT):
+                self.diag.status |= NO_RESPONSE_BIT
+                raise _BootFailure(NO_RESPONSE)
+        if not skip & ConfigNdState.DEVICE:
+            raw = sdo.upload(0x1000, 0)
+            if len(raw) < 4:
+                raise _BootFailure(UNKNOWN_SDO_RESPONSE)
+            device_type = int.from_bytes(raw[:4], "little")
+            self.diag.profile = device_type & 0xFFFF
+            self.diag.add_info = device_type >> 16
+            # [ours] a configured 0 means "any": a host may not know one of the two.
+            if params.usDevProfNum and params.usDevProfNum != self.diag.profile:
+                self.diag.status |= PRM_FAULT_BIT
+                raise _BootFailure(PROFILE_MISMATCH)
+            if params.usAddTypeInfo and params.usAddTypeInfo != self.diag.add_info:
+                self.diag.status |= PRM_FAULT_BIT
+                raise _BootFailure(DEVICE_TYPE_MISMATCH)
+        if not skip & ConfigNdState.GUARD:
+            if self.heartbeat:
+                if params.usGuardTime:
+                    # [ours] the node produces at half the master's consumer time
+                    sdo.download(0x1017, 0, struct.pack("<H", max(1, params.usGuardTime // 2)))
+            else:
+                sdo.download(0x100C, 0, struct.pack("<H", params.usGuardTime))
+                sdo.download(0x100D, 0, struct.pack("<B", params.bLifeTimeFactor))
+        if not skip & ConfigNdState.SYNC:
+            sdo.download(0x1005, 0, struct.pack("<I", self.master.sync_cob_id))
+        if not skip & ConfigNdState.EMCY:
+            sdo.download(0x1014, 0, struct.pack("<I", params.usCobIDEmcy))
+        if not skip & ConfigNdState.SDO:
+            for entry in params.atSdoCfgData:
+                sdo.download(entry.usIndex, entry.bSubindex,
+                                  bytes(entry.abSdoValue[: entry.bLength]))
+        if not skip & ConfigNdState.START and not self.master.global_start:
+            self.master.nmt(NMT_START, self.address)
+
+    def _fail_boot(self, generation: int, event: int) -> None:
+        if generation == self._generation:
+            self.fail(event)
+
+    # --- steady operation ---------------------------------------------------------------------
+
+    @property
+    def supervised(self) -> bool:
+        return self.params.usGuardTime > 0
+
+    def fail(self, event: int) -> None:
+        """The node left data exchange: report it; retry or let auto-clear stop all."""
+        if self.state in (State.INACTIVE, State.DISCONNECTED):
+            return
+        log.info("node %d: error %d", self.address, event)
+        self.state = State.FAILED
+        self.diag.actual_error = event
+        self.diag.status &= ~GUARD_ACTIVE_BIT
+        self._retry_at = time.monotonic() + RETRY_DELAY
+        self.master.node_failed(self, event)
+
+    def disconnect(self) -> None:
+        """The host cleared the node's connection bit: stop it and leave it alone."""
+        if self.state is State.INACTIVE:
+            return
+        self._generation += 1
+        self.state = State.DISCONNECTED
+        self.master.set_node_state(self.address, False)
+        self.master.nmt(NMT_STOP, self.address)
+
+    def idle(self) -> None:
+        """The network stopped (host not ready, watchdog, auto-clear)."""
+        if self.state is not State.INACTIVE:
+            self._generation += 1
+            self.state = State.WAITING
+            self.master.set_node_state(self.address, False)
+
+    def tick(self, now: float) -> None:
+        """Supervision and retries; called from the master's tick."""
+        if self.state is State.FAILED:
+            if not self.master.auto_clear and now >= self._retry_at:
+                self.start_boot()
+            return
+        if self.state is not State.OPERATING:
+            return
+        params = self.params
+        if self.supervised:
+            period = params.usGuardTime / 1000.0
+            if self.heartbeat:
+                if now - self._last_heartbeat > period:
+                    self.fail(GUARDING_FAILED)
+                    return
+            elif now >= self._next_guard:
+                if self._guard_pending:
+                    self._guard_misses += 1
+                    if self._guard_misses >= max(1, params.bLifeTimeFactor):
+                        self.fail(GUARDING_FAILED)
+                        return
+                self._guard_pending = True
+                self._next_guard = now + period
+                self.master.bus_send(params.usCobIDGuard, remote=True, dlc=1)
+        for entry in self.inputs:
+            if entry.pdo.bTransType == 253 or (entry.pdo.bTransType == 252
+                                               and not self.master.sync_period):
+                if entry.requested and now - entry.requested > RTR_PERIOD:
+                    self.fail(NO_RTR_RESPONSE)
+                    return
+                if not entry.requested:
+                    self._request(entry, now)
+
+    def _request(self, entry: InputPdo, now: float) -> None:
+        entry.requested = now
+        self.master.bus_send(entry.pdo.usPdoCOBId, remote=True, dlc=entry.pdo.data_length)
+
+    def on_sync(self, now: float) -> None:
+        """At each SYNC: synchronous outputs, and remote requests of 252 inputs."""
+        if self.state is not State.OPERATING:
+            return
+        self.send_outputs(sync=True)
+        for entry in self.inputs:
+            if entry.pdo.bTransType == 252:
+                if entry.requested and now - entry.requested > 2 * self.master.sync_period:
+                    self.fail(NO_RTR_RESPONSE)
+                    return
+                self._request(entry, now)
+
+    def send_outputs(self, sync: bool = False, force: bool = False) -> None:
+        """Send the RX-PDOs that are due: synchronous ones at SYNC, the rest on change."""
+        if self.state is not State.OPERATING or self.host_sdo or not self.operational_expected:
+            return
+        image = self.master.image
+        now = time.monotonic()
+        for entry in self.outputs:
+            pdo = entry.pdo
+            data = image.read_outputs(entry.offset, pdo.data_length)
+            if pdo.bLength & MSK_WORD_PDO and self.master.motorola:
+                data = swap_words(data)
+            kind = pdo.bTransType
+            if kind <= 240:
+                if not sync and not force:
+                    continue
+                entry.syncs += 1
+                due = force or (data != entry.last if kind == 0 else entry.syncs >= kind)
+                if not due:
+                    continue
+                entry.syncs = 0
+            else:
+                if data == entry.last and not force:
+                    continue
+                inhibit = pdo.usInhibitCycle / 10000.0  # CiA 301: multiples of 100 us
+                if not force and now - entry.last_time < inhibit:
+                    continue
+            if self.master.bus_send(pdo.usPdoCOBId, data):
+                entry.last = data
+                entry.last_time = now
+
+    # --- frames from the node -------------------------------------------------------------------
+
+    def _on_error_control(self, msg: can.Message) -> None:
+        if msg.is_remote_frame or not msg.data:
+            return
+        now = time.monotonic()
+        value = msg.data[0]
+        state = value & 0x7F
+        if state == BOOT_UP and msg.arbitration_id == 0x700 + self.address:
+            self._bootup.set()
+            if self.state is State.OPERATING:
+                log.info("node %d: unexpected boot-up", self.address)
+                self.fail(LEFT_OPERATIONAL)
+            return
+        self.diag.node_state = state
+        if self.state is not State.OPERATING:
+            return
+        if self.heartbeat:
+            self._last_heartbeat = now
+        else:
+            self._guard_pending = False
+            self._guard_misses = 0
+            toggle = value & 0x80
+            if self._toggle is not None and toggle == self._toggle:
+                self.fail(GUARD_SEQUENCE)
+                return
+            self._toggle = toggle
+        operating = state == OPERATIONAL
+        if self.operational_expected and not operating:
+            self.fail(LEFT_OPERATIONAL)
+            return
+        self.master.set_node_state(self.address, operating)
+
+    def _on_emcy(self, msg: can.Message) -> None:
+        if msg.is_remote_frame:
+            return
+        if len(self.diag.emcy) == EMCY_ENTRIES:
+            self.diag.status |= EMCY_OVERFLOW_BIT
+        self.diag.emcy.append(bytes(msg.data).ljust(8, b"\0")[:8])
+        self.master.set_node_diag(self.address, True)
+
+    def _on_input(self, msg: can.Message) -> None:
+        if msg.is_remote_frame or self.state is not State.OPERATING:
+            return
+        for entry in self.inputs:
+            if entry.pdo.usPdoCOBId == msg.arbitration_id:
+                entry.requested = 0.0
+                data = bytes(msg.data[: entry.pdo.data_length])
+                if entry.pdo.bLength & MSK_WORD_PDO and self.master.motorola:
+                    data = swap_words(data)
+                self.master.image.write_inputs(entry.offset, data)
+
+    def read_diagnosis(self) -> bytes:
+        """COM_Node_Diag: the 48-byte structure; reading clears the EMCY buffer."""
+        raw = self.diag.encode()
+        self.diag.emcy.clear()
+        self.diag.status &= ~EMCY_OVERFLOW_BIT
+        return raw
+
+
+class _BootFailure(Exception):
+    def __init__(self, event: int) -> None:
+        super().__init__(event)
+        self.event = event

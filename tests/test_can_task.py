@@ -1,0 +1,358 @@
+"""The CAN task against simulated nodes: a real firmware process, a real bus.
+
+Each test starts ``cifemu firmware --simulate NETWORK.toml``: the card and the
+simulated nodes share one python-can bus inside the firmware process. The
+back-to-back fixture runs the whole file on ``virtual`` and, where the kernel
+has SocketCAN, on ``vcan0``. The host side uses only the driver API and raw
+mailbox messages built from the seed's tables.
+"""
+
+from __future__ import annotations
+
+import struct
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+
+import pytest
+
+from dbm_tools.network import load_network
+from dbm_tools.parameters import NdFlag, NodeParameterSet, PdoData
+from dpm.message import Message
+from dpm.task2 import ComDiagnostics
+from host_api import driver as d
+from host_api.board import Board
+from host_api.online import configure_online
+from tests.buses import SOCKETCAN_CHANNEL, socketcan_missing
+from tests.conftest import Card, start_card, wait_until
+
+GENERIC = "\n".join(f"[[node]]\nid = {n}" for n in (1, 2, 3))
+
+
+@pytest.fixture(params=["virtual", "socketcan"])
+def interface(request: pytest.FixtureRequest) -> str:
+    if request.param == "socketcan":
+        reason = socketcan_missing()
+        if reason is not None:
+            pytest.skip(reason)
+    return str(request.param)
+
+
+class Net:
+    """A card with a simulated network, opened through ``Board``."""
+
+    def __init__(self, card: Card, board: Board, toml: Path) -> None:
+        self.card = card
+        self.board = board
+        self.toml = toml
+
+    def diag(self) -> ComDiagnostics:
+        return self.board.diagnostics()
+
+    def send(self, b: int, data: bytes, rx: int = 3, e: int = 0) -> Message:
+        return self.board.transact(Message(rx=rx, tx=16, b=b, e=e, data=data))
+
+    def configure(self) -> None:
+        configure_online(self.board, load_network(self.toml))
+
+    def wait_operating(self, nodes: list[int], timeout: float = 10) -> None:
+        wait_until(lambda: self.diag().operating() == nodes, timeout,
+                   f"nodes {nodes} in data exchange (now {self.diag().operating()})")
+
+    def sdo(self, node: int, index: int, sub: int, data: bytes | None = None) -> Message:
+        head = struct.pack("<BBHBBBB", node, 0, index, sub, len(data or b""), 0,
+                           2 if data is not None else 1)
+        return self.send(74, head + (data or b""))
+
+
+@pytest.fixture
+def make_net(tmp_path: Path, interface: str) -> Iterator[Callable[..., Net]]:
+    opened: list[Net] = []
+
+    def make(toml: str = GENERIC, *extra: str) -> Net:
+        path = tmp_path / "network.toml"
+        path.write_text(toml)
+        channel = SOCKETCAN_CHANNEL if interface == "socketcan" else "card"
+        card = start_card(tmp_path, 0, "--simulate", str(path), "--interface", interface,
+                          "--channel", channel, *extra)
+        board = Board(0, tmp_path, timeout=5000).open()
+        net = Net(card, board, path)
+        opened.append(net)
+        return net
+
+    yield make
+    for net in opened:
+        net.board.close()
+        net.card.stop()
+
+
+def exchange(net: Net, outputs: bytes, offset: int = 0, size: int = 8) -> bytes:
+    rc, data = d.DevExchangeIO(0, offset, outputs, offset, size, 2000)
+    assert rc == 0
+    return data
+
+
+# --- configuration -----------------------------------------------------------------------
+
+
+def test_online_configuration_brings_up_every_node(make_net: Callable[..., Net]) -> None:
+    net = make_net()
+    net.configure()
+    net.wait_operating([1, 2, 3])
+    diag = net.diag()
+    assert diag.can_state_name == "OPERATE" and diag.configured() == [1, 2, 3]
+    assert diag.bErr_event == 0 and diag.global_bits == 0
+    image = net.card.map()
+    assert image[0x1FFE] & 0xE0 == 0xE0  # READY RUN COM
+
+
+def test_pdo_loop_output_to_node_to_input(make_net: Callable[..., Net]) -> None:
+    net = make_net()
+    net.configure()
+    net.wait_operating([1, 2, 3])
+    pattern = bytes(range(1, 25))  # 8 output bytes for each of nodes 1, 2, 3
+    wait_until(lambda: exchange(net, pattern, 0, 24) == pattern, 5, "the echo of all outputs")
+    wait_until(lambda: exchange(net, b"\xaa" * 8, 8, 8) == b"\xaa" * 8, 5, "node 2's echo")
+
+
+def test_sequenced_download_and_upload(make_net: Callable[..., Net]) -> None:
+    net = make_net("[[node]]\nid = 1\n")
+    params = NodeParameterSet(bNd_Flag=NdFlag.ACTIVE | NdFlag.HRTBT, usAddTypeInfo=0x000F,
+                              usDevProfNum=0x191, usCobIDEmcy=0x81, usCobIDGuard=0x701,
+                              usGuardTime=1000,
+                              atPdoCfgData=[PdoData(0, 8, 0x201, 255), PdoData(1, 8, 0x181, 255)],
+                              ausInputOffsets=[0], ausOutputOffsets=[0])
+    raw = params.encode()
+    assert net.send(67, bytes([0, 1]) + struct.pack("<H", 0)).data == bytes([240])
+    half = len(raw) // 2
+    assert net.send(68, bytes([0, 1]) + struct.pack("<H", 0) + raw[:half]).f == 0
+    assert net.send(68, bytes([0, 1]) + struct.pack("<H", half) + raw[half:]).f == 0
+    assert net.send(69, b"\0").f == 0
+    upload = net.send(80, bytes([0, 1]) + struct.pack("<H", 0) + bytes([240]))
+    assert upload.f == 0 and upload.data == raw
+    assert net.send(80, bytes([0, 127, 0, 0, 240])).f == 20  # no bus parameters yet
+    bus = bytes([2]) + struct.pack("<HH", 0x80, 0) + bytes([0, 0])
+    assert net.send(68, bytes([0, 127, 0, 0]) + bus).f == 0
+    assert net.send(80, bytes([0, 127, 0, 0, 240])).data == bus
+    net.wait_operating([1])
+
+
+@pytest.mark.parametrize(
+    ("messages", "f"),
+    [
+        ([(67, bytes([0, 0, 0, 0]))], 52),  # Area_Code 0
+        ([(68, bytes([0, 129, 0, 0]))], 52),
+        ([(67, bytes([0, 4, 0, 0])), (68, bytes([0, 4]) + struct.pack("<H", 990) + bytes(20))], 53),
+        ([(67, bytes([0, 4, 0, 0])), (68, bytes([0, 5, 0, 0]) + bytes(4))], 57),
+        ([(69, b"\0")], 57),
+        ([(67, bytes([0, 4, 0, 0])), (68, bytes([0, 4, 0, 0]) + b"\x40\x00"), (69, b"\0")], 59),
+        ([(68, bytes([0, 4, 0, 0]) + b"\x05\x00\x80")], 59),
+        ([(68, bytes([0, 127, 0, 0, 9]) + struct.pack("<HH", 0x80, 0) + bytes(2))], 65),
+        ([(68, bytes([0, 127, 0, 0, 2]) + struct.pack("<HH", 0x800, 0) + bytes(2))], 66),
+        ([(80, bytes([0, 200, 0, 0, 10]))], 52),
+        ([(80, bytes([0, 5, 0, 0]))], 21),
+    ],
+)
+def test_download_errors(make_net: Callable[..., Net], messages: list[tuple[int, bytes]],
+                         f: int) -> None:
+    net = make_net("")
+    answers = [net.send(b, data) for b, data in messages]
+    assert answers[-1].f == f
+
+
+def test_download_sequence_timeout(make_net: Callable[..., Net]) -> None:
+    net = make_net("")
+    assert net.send(67, bytes([0, 4]) + struct.pack("<H", 20)).f == 0
+    started = time.monotonic()
+    wait_until(lambda: time.monotonic() - started > 0.05, what="the sequence timeout")
+    assert net.send(68, bytes([0, 4, 0, 0]) + bytes(4)).f == 48
+
+
+# --- SDO and NMT -----------------------------------------------------------------------------
+
+
+def test_sdo_up_and_download(make_net: Callable[..., Net]) -> None:
+    net = make_net()
+    assert net.sdo(1, 0x1018, 1).f == 200  # not configured yet
+    net.configure()
+    net.wait_operating([1, 2, 3])
+    answer = net.sdo(2, 0x1018, 0)
+    assert answer.f == 0 and answer.data[:8] == struct.pack("<BBHBBBB", 2, 0, 0x1018, 0, 1, 0, 1)
+    assert answer.data[8] >= 4
+    vendor = net.sdo(2, 0x1000, 0)
+    assert struct.unpack_from("<I", vendor.data, 8)[0] == 0x000F0191
+    assert net.sdo(2, 0x1017, 0, struct.pack("<H", 300)).f == 0
+    assert struct.unpack_from("<H", net.sdo(2, 0x1017, 0).data, 8)[0] == 300
+    name = net.sdo(2, 0x1008, 0)  # a string longer than 4 bytes: segmented transfer
+    assert name.f == 0 and len(name.data) > 12
+    abort = net.sdo(2, 0x2345, 0)
+    assert abort.f == 3 and struct.unpack_from("<I", abort.data, 8)[0] == 0x06020000
+    assert net.sdo(42, 0x1000, 0).f == 17  # nobody there
+    assert net.sdo(0, 0x1000, 0).f == 55
+    assert net.send(74, struct.pack("<BBHBBBB", 1, 0, 0x1000, 0, 0, 0, 7)).f == 54
+
+
+def test_nmt_stop_and_start(make_net: Callable[..., Net]) -> None:
+    net = make_net()
+    net.configure()
+    net.wait_operating([1, 2, 3])
+    assert net.send(96, bytes([2, 2])).f == 0
+    net.wait_operating([1, 3])
+    assert net.diag().bErr_event == 0  # stopped by the host: no error
+    assert net.send(96, bytes([1, 2])).f == 0
+    net.wait_operating([1, 2, 3])
+    assert net.send(96, bytes([2, 0])).f == 0  # node 0: all
+    net.wait_operating([])
+    assert net.send(96, bytes([1, 0])).f == 0
+    net.wait_operating([1, 2, 3])
+    assert net.send(96, bytes([3, 1])).f == 55
+    assert net.send(96, bytes([129, 3])).f == 0  # reset node: booted again
+    net.wait_operating([1, 2, 3])
+
+
+# --- supervision and diagnosis ----------------------------------------------------------------
+
+
+def test_heartbeat_loss_is_reported_and_retried(make_net: Callable[..., Net]) -> None:
+    net = make_net(GENERIC + "\n[node.sim]\nheartbeat_stop_after_s = 1.0\n")
+    net.configure()
+    net.wait_operating([1, 2, 3])
+    wait_until(lambda: net.diag().bErr_event == 30, 5, "Err_Event 30 (heartbeat lost)")
+    diag = net.diag()
+    assert diag.bErr_rem_adr == 3 and 3 not in diag.operating() and 3 in diag.diagnostic()
+    assert diag.global_bits & 0x04  # NEXC
+    answer = net.send(66, bytes([3, 0, 0, 0, 0, 0, 5, 1]))
+    assert answer.f == 0 and answer.data[5] == 48  # data_cnt
+    assert answer.data[8 + 6] == 30  # Actual_Error
+    assert 3 not in net.diag().diagnostic()  # reading cleared Nd_diag
+
+
+def test_auto_clear_stops_all(make_net: Callable[..., Net]) -> None:
+    toml = "[bus]\nauto_clear = true\n" + GENERIC + "\n[node.sim]\nheartbeat_stop_after_s = 1.0\n"
+    net = make_net(toml)
+    net.configure()
+    net.wait_operating([1, 2, 3])
+    wait_until(lambda: net.diag().can_state_name == "CLEAR", 5, "auto-clear")
+    diag = net.diag()
+    assert diag.global_bits & 0x02 and diag.operating() == []
+    assert (diag.bErr_rem_adr, diag.bErr_event) == (1, 39)  # the lowest address shows
+    assert net.card.map()[0x1FFE] & 0x20 == 0  # COM cleared
+
+
+def test_guarding_failure(make_net: Callable[..., Net]) -> None:
+    toml = ("[[node]]\nid = 4\nerror_control = \"guarding\"\nguard_time_ms = 100\n"
+            "life_time_factor = 2\n[node.sim]\nguarding_fail_after_s = 1.0\n")
+    net = make_net(toml)
+    net.configure()
+    net.wait_operating([4])
+    wait_until(lambda: net.diag().bErr_event == 30, 5, "guarding failed")
+    assert net.diag().bErr_rem_adr == 4
+
+
+def test_emcy_collection_with_overflow(make_net: Callable[..., Net]) -> None:
+    toml = ("[[node]]\nid = 5\n[node.sim]\n"
+            "emcy_burst = { after_s = 0.5, count = 7, code = 0x2310, interval_s = 0.01 }\n")
+    net = make_net(toml)
+    net.configure()
+    net.wait_operating([5])
+    wait_until(lambda: 5 in net.diag().diagnostic(), 5, "Nd_diag of node 5")
+    wait_until(lambda: net.diag().operating() == [5], 5, "node 5 still exchanging data")
+    time_to_settle = time.monotonic() + 0.3
+    wait_until(lambda: time.monotonic() > time_to_settle, what="the whole burst")
+    answer = net.send(66, bytes([5, 0, 0, 0, 0, 0, 5, 1]))
+    diag = answer.data[8:]
+    assert diag[0] & 0x02  # Emcy_Buff_Ovfl
+    assert diag[7] == 5  # Emcy_Entries
+    assert struct.unpack_from("<H", diag, 8)[0] == 0x2310
+    assert 5 not in net.diag().diagnostic()
+    again = net.send(66, bytes([5, 0, 0, 0, 0, 0, 5, 1])).data[8:]
+    assert again[7] == 0 and again[8:] == bytes(40)
+    assert net.send(66, bytes([0, 0, 0, 0, 0, 0, 5, 1])).f == 161
+
+
+@pytest.mark.parametrize(
+    ("sim", "event"),
+    [
+        ("silent = true", 34),
+        ("device_type = 0x000F0192", 35),
+        ("device_type = 0x00010191", 36),
+    ],
+)
+def test_boot_errors(make_net: Callable[..., Net], sim: str, event: int) -> None:
+    net = make_net(f"[[node]]\nid = 6\n[node.sim]\n{sim}\n")
+    net.configure()
+    wait_until(lambda: net.diag().bErr_event == event, 10, f"Err_Event {event}")
+    assert net.diag().bErr_rem_adr == 6 and net.diag().operating() == []
+
+
+def test_connection_bits_stop_and_restart_a_node(make_net: Callable[..., Net]) -> None:
+    net = make_net()
+    net.configure()
+    net.wait_operating([1, 2, 3])
+    conn = bytearray(b"\xff" * 16)
+    conn[0] &= ~(1 << 2)
+    assert d.DevReadWriteDPMRaw(0, 2, 0x2F0, 16, bytes(conn))[0] == 0
+    net.wait_operating([1, 3])
+    assert d.DevReadWriteDPMRaw(0, 2, 0x2F0, 16, b"\xff" * 16)[0] == 0
+    net.wait_operating([1, 2, 3])
+
+
+def test_host_not_ready_zeroes_the_outputs(make_net: Callable[..., Net]) -> None:
+    net = make_net("[[node]]\nid = 1\n")
+    net.configure()
+    net.wait_operating([1])
+    wait_until(lambda: exchange(net, b"\x11" * 8) == b"\x11" * 8, 5, "the echo")
+    assert d.DevSetHostState(0, d.HOST_NOT_READY, 2000) == 0
+    assert net.diag().can_state_name == "STOP"
+    # The node echoed the zeros the card sent before it stopped.
+    wait_until(lambda: d.DevExchangeIO(0, 0, b"", 0, 8, 1000)[1] == bytes(8), 5, "zeros")
+    assert d.DevSetHostState(0, d.HOST_READY, 2000) == 0
+    wait_until(lambda: exchange(net, b"\x22" * 8) == b"\x22" * 8, 5, "the echo again")
+
+
+def test_reset_err_event_clears_counters(make_net: Callable[..., Net]) -> None:
+    net = make_net("")
+    image = net.card.map()
+    image[0x1F44:0x1F4C] = struct.pack("<HHHH", 1, 2, 3, 4)  # as if the bus had counted
+    answer = net.send(81, b"")
+    assert answer.f == 0 and answer.a == 81
+    assert image[0x1F44:0x1F4C] == bytes(8)
+
+
+# --- transparent CAN and layer 2 ---------------------------------------------------------------
+
+
+def test_transparent_and_layer2_frames_reach_the_bus(make_net: Callable[..., Net],
+                                                     tmp_path: Path) -> None:
+    trace = tmp_path / "trace.log"
+    net = make_net("", "--trace", str(trace))
+    ident = 0x123
+    a_form = bytes([ident >> 3, ((ident & 7) << 5) | 2, 0xDE, 0xAD]) + bytes(6)
+    assert net.send(65, a_form).f == 0
+    b_form = bytes([0x02, ident >> 3, (ident & 7) << 5, 0xBE, 0xEF]) + bytes(6)
+    assert net.send(65, b_form).f == 0
+    ext = 0x1ABCDE0
+    x_form = bytes([0x81]) + (ext << 3).to_bytes(4, "big") + b"\x42" + bytes(7)
+    assert net.send(65, x_form).f == 0
+    assert d.DevPutMessage(0, Message(rx=3, tx=16, b=65, e=2, data=a_form), 1000) == 0
+    assert net.send(65, bytes(12)).f == 55  # ln 12 is no form of the seed
+    frames = bytes([0x300 >> 3, 0x01, 0x77, 0x301 >> 3, (0x301 & 7) << 5 | 0x10])
+    assert d.DevPutMessage(0, Message(rx=3, tx=16, b=84, data=frames), 1000) == 0
+    assert d.DevGetMessage(0, 288, 200)[0] == d.Drv.DRV_DEV_GET_TIMEOUT  # no answer to 84
+    net.card.stop()
+    text = trace.read_text()
+    assert "123#DEAD" in text and "123#BEEF" in text and "01ABCDE0#42" in text
+    assert "300#77" in text and "301#R" in text
+
+
+def test_layer2_reception(make_net: Callable[..., Net]) -> None:
+    # Node 9 lives on the bus but is not configured in the card: its heartbeat
+    # identifier is free for layer-2 access.
+    net = make_net("[[node]]\nid = 1\n[[node]]\nid = 9\n")
+    net.send(68, bytes([0, 127, 0, 0, 2]) + struct.pack("<HH", 0x80, 0) + bytes(2))
+    assert net.send(82, bytes([0x09, 0x07])).f == 0  # 0x709
+    assert net.send(82, bytes([0x80, 0x00])).f == 55  # the SYNC identifier is in use
+    rc, indication = d.DevGetMessage(0, 288, 3000)
+    assert rc == 0 and indication is not None and indication.b == 83
+    assert indication.data[0] == 0x709 >> 3 and indication.data[1] >> 5 == 0x709 & 7
+    assert indication.data[1] & 0x0F == 1  # DLC of a heartbeat
