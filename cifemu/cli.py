@@ -1,8 +1,11 @@
 """``cifemu``: one command for the emulated CIF CANopen master card.
 
   cifemu firmware   run one emulated card in the foreground
+  cifemu sim        run a network description's simulated nodes on a CAN bus
   cifemu status     show a card's flags, info areas and Task2State
-  cifemu demo       start a card and watch its status until Ctrl-C
+  cifemu dbm        DBM files (show, check, build, diff) and a card's stored database
+                    (download, upload, delete, dir)
+  cifemu demo       a card, a simulated network, on-line configuration, live status
 """
 
 from __future__ import annotations
@@ -13,29 +16,62 @@ import subprocess
 import sys
 import tempfile
 import time
+from pathlib import Path
 
+from rich.console import Console
+from rich.live import Live
+
+from dbm_tools import cli as dbm_cli
+from dbm_tools.network import load_network
+from dpm.flags import READY
+from dpm.layout import HOST_FLAGS
 from firmware import cli as firmware_cli
+from firmware.sim import cli as sim_cli
+from host_api import driver as d
 from host_api import status as status_cli
+from host_api.board import Board
+from host_api.online import configure_online
+
+
+def _ready(image: bytes | None) -> bool:
+    return image is not None and bool(image[HOST_FLAGS] & READY)
+
+
+EXAMPLE_NETWORK = Path(__file__).with_name("examples") / "demo.toml"
 
 
 def _demo(args: argparse.Namespace) -> int:
-    """A card in a private image directory, its live status on screen."""
+    """A card and a simulated network, configured on line, with its live status."""
     directory = args.dpm_dir or tempfile.mkdtemp(prefix="cifemu-demo-")
+    network = args.network or EXAMPLE_NETWORK
     card = subprocess.Popen(
         [sys.executable, "-m", "firmware", "--board", "0", "--dpm-dir", directory,
-         "--log-level", "WARNING"]
+         "--simulate", str(network), "--log-level", "WARNING"]
     )
+    console = Console()
     try:
-        deadline = time.monotonic() + 10
-        while status_cli.read_image(0, directory) is None:
+        deadline = time.monotonic() + 15
+        while not _ready(status_cli.read_image(0, directory)):
             if card.poll() is not None or time.monotonic() > deadline:
                 print("cifemu demo: the firmware did not start", file=sys.stderr)
                 return 1
             time.sleep(0.05)
-        print(f"card image: {directory}/board0.dpm  (Ctrl-C ends the demo)")
-        watch = argparse.Namespace(board=0, dpm_dir=directory, watch=True, interval=0.5,
-                                   json=False)
-        return status_cli.run(watch)
+        with Board(0, directory) as board:
+            configure_online(board, load_network(network),
+                             lambda step: console.print(f"configuring: {step}"))
+            console.print(f"card image {directory}/board0.dpm; Ctrl-C ends the demo")
+            counter = 0
+            with Live(console=console, auto_refresh=False) as live:
+                while True:
+                    counter = (counter + 1) & 0xFF
+                    d.DevExchangeIO(0, 0, bytes([counter]) * 32, 0, 0, 100)
+                    image = status_cli.read_image(0, directory)
+                    if image is not None:
+                        live.update(status_cli.render(0, status_cli.snapshot(image)),
+                                    refresh=True)
+                    time.sleep(0.2)
+    except KeyboardInterrupt:
+        return 0
     finally:
         card.terminate()
         card.wait(timeout=10)
@@ -50,13 +86,26 @@ def build_parser() -> argparse.ArgumentParser:
                         description=firmware_cli.__doc__)
     firmware_cli.add_arguments(fw)
     fw.set_defaults(func=firmware_cli.run)
+    sim = sub.add_parser("sim", help="run a network description's simulated nodes on a CAN bus",
+                         description=sim_cli.__doc__,
+                         formatter_class=argparse.RawDescriptionHelpFormatter)
+    sim_cli.add_arguments(sim)
+    sim.set_defaults(func=sim_cli.run)
     st = sub.add_parser("status", help="show a card's state", description=status_cli.__doc__)
     status_cli.add_arguments(st)
     st.set_defaults(func=status_cli.run)
-    demo = sub.add_parser("demo", help="start a card and watch its status until Ctrl-C",
+    dbm = sub.add_parser("dbm", help="DBM files: show, check, build, diff, download, upload",
+                         description=dbm_cli.__doc__,
+                         formatter_class=argparse.RawDescriptionHelpFormatter)
+    dbm_cli.add_arguments(dbm)
+    dbm.set_defaults(func=dbm_cli.run)
+    demo = sub.add_parser("demo", help="a card, simulated nodes, live status (Ctrl-C ends)",
                           description=_demo.__doc__)
     demo.add_argument("--dpm-dir", default=os.environ.get("CIFEMU_DEMO_DIR"),
                       help="image directory (default: a fresh temporary one)")
+    demo.add_argument("--network", type=Path, default=None,
+                      help=f"network description to simulate (default: {EXAMPLE_NETWORK.name}, "
+                           "four generic I/O modules)")
     demo.set_defaults(func=_demo)
     return parser
 

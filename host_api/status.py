@@ -77,6 +77,10 @@ def snapshot(image: bytes) -> dict[str, Any]:
             "connection_disabled": [n for n in range(128) if n not in node_bits(
                 param.abConnStatus)],
         },
+        "process_data": {
+            "outputs": bytes(view["SndPd"][:32]).hex(" "),
+            "inputs": bytes(view["RcvPd"][:32]).hex(" "),
+        },
         "task2state": {
             "global_bits": [bit.name for bit in GlobalBits if diag.bGlobalBits & bit],
             "CAN_state": diag.can_state_name,
@@ -122,6 +126,8 @@ def render(board: int, snap: dict[str, Any]) -> Group:
     pp = snap["protocol_parameter"]
     card.add_row("protocol parameter", f"bMode {pp['bMode']}  usWatchDogTime {pp['usWatchDogTime']}"
                  f" ms  stopped nodes {pp['connection_disabled'] or 'none'}")
+    card.add_row("outputs 0..31", snap["process_data"]["outputs"])
+    card.add_row("inputs 0..31", snap["process_data"]["inputs"])
     ts = snap["task2state"]
     diag = Table(title="Task2State (COM_DIAGNOSTICS)", show_header=False)
     diag.add_column(style="bold")

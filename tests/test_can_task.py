@@ -356,3 +356,147 @@ def test_layer2_reception(make_net: Callable[..., Net]) -> None:
     assert rc == 0 and indication is not None and indication.b == 83
     assert indication.data[0] == 0x709 >> 3 and indication.data[1] >> 5 == 0x709 & 7
     assert indication.data[1] & 0x0F == 1  # DLC of a heartbeat
+
+
+# --- PDO transmission types and SYNC -----------------------------------------------------------
+
+
+def candump(trace: Path) -> list[tuple[float, int, str]]:
+    """(time, identifier, data) of every frame in a candump-format trace."""
+    frames = []
+    for line in trace.read_text().splitlines():
+        stamp, _, frame = line.split()[:3]
+        ident, _, data = frame.partition("#")
+        frames.append((float(stamp.strip("()")), int(ident, 16), data))
+    return frames
+
+
+def test_sync_producer_and_synchronous_pdos(make_net: Callable[..., Net], tmp_path: Path) -> None:
+    trace = tmp_path / "sync.log"
+    toml = """[bus]
+sync_period_ms = 10
+[[node]]
+id = 1
+[[node.sdo]]
+index = 0x1800
+subindex = 2
+value = 1
+size = 1
+[[node.pdo]]
+direction = "output"
+cob_id = 0x201
+transmission = 1
+[[node.pdo]]
+direction = "input"
+cob_id = 0x181
+transmission = 1
+"""
+    net = make_net(toml, "--trace", str(trace))
+    net.configure()
+    net.wait_operating([1])
+    wait_until(lambda: exchange(net, b"\x5a" * 8) == b"\x5a" * 8, 5, "the synchronous echo")
+    recorded = time.monotonic() + 0.4
+    wait_until(lambda: time.monotonic() > recorded, what="0.4 s of SYNC traffic")
+    net.card.stop()
+    frames = candump(trace)
+    syncs = [t for t, ident, _ in frames if ident == 0x080]
+    assert len(syncs) > 20
+    periods = sorted(b - a for a, b in zip(syncs, syncs[1:], strict=False))
+    assert 0.008 < periods[len(periods) // 2] < 0.012
+    # A synchronous cyclic RPDO goes out once per SYNC, even without a change.
+    outputs = [t for t, ident, _ in frames if ident == 0x201]
+    assert len(outputs) >= len(syncs) - 5
+
+
+def test_event_driven_output_with_inhibit_time(make_net: Callable[..., Net],
+                                               tmp_path: Path) -> None:
+    trace = tmp_path / "inhibit.log"
+    toml = """[[node]]
+id = 1
+[[node.pdo]]
+direction = "output"
+cob_id = 0x201
+transmission = 255
+inhibit = 1000
+[[node.pdo]]
+direction = "input"
+cob_id = 0x181
+"""
+    net = make_net(toml, "--trace", str(trace))
+    net.configure()
+    net.wait_operating([1])
+    for value in range(1, 21):  # 20 changes within much less than the 100 ms inhibit time
+        exchange(net, bytes([value]) * 8)
+    wait_until(lambda: exchange(net, bytes([20]) * 8) == bytes([20]) * 8, 5,
+               "the last value, sent once the inhibit time passed")
+    net.card.stop()
+    sent = [t for t, ident, _ in candump(trace) if ident == 0x201]
+    gaps = [b - a for a, b in zip(sent, sent[1:], strict=False)]
+    assert gaps and min(gaps) >= 0.095
+
+
+def test_rtr_only_input_pdo(make_net: Callable[..., Net]) -> None:
+    toml = """[[node]]
+id = 1
+[[node.sdo]]
+index = 0x1800
+subindex = 2
+value = 253
+size = 1
+[[node.pdo]]
+direction = "output"
+cob_id = 0x201
+[[node.pdo]]
+direction = "input"
+cob_id = 0x181
+transmission = 253
+"""
+    net = make_net(toml)
+    net.configure()
+    net.wait_operating([1])
+    wait_until(lambda: exchange(net, b"\x33" * 8) == b"\x33" * 8, 5, "the polled echo")
+    assert net.diag().bErr_event == 0
+
+
+def test_no_answer_to_a_remote_frame_pdo(make_net: Callable[..., Net]) -> None:
+    toml = """[[node]]
+id = 1
+[[node.sdo]]
+index = 0x1800
+subindex = 1
+value = 0x40000181
+size = 4
+[[node.pdo]]
+direction = "input"
+cob_id = 0x181
+transmission = 253
+"""
+    net = make_net(toml)
+    net.configure()
+    wait_until(lambda: net.diag().bErr_event == 33, 5, "Err_Event 33")
+    assert net.diag().bErr_rem_adr == 1
+
+
+def test_motorola_word_pdos(make_net: Callable[..., Net], tmp_path: Path) -> None:
+    trace = tmp_path / "words.log"
+    toml = """[bus]
+byte_order = "motorola"
+[[node]]
+id = 1
+[[node.pdo]]
+direction = "output"
+cob_id = 0x201
+word = true
+[[node.pdo]]
+direction = "input"
+cob_id = 0x181
+word = true
+"""
+    net = make_net(toml, "--trace", str(trace))
+    net.configure()
+    net.wait_operating([1])
+    # The host writes Intel words; they go out swapped and come back swapped again.
+    words = bytes(range(1, 9))
+    wait_until(lambda: exchange(net, words) == words, 5, "the echo of the words")
+    net.card.stop()
+    assert any(ident == 0x201 and data == "0201040306050807" for _, ident, data in candump(trace))

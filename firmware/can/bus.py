@@ -10,7 +10,8 @@ from __future__ import annotations
 
 import logging
 import threading
-from collections import defaultdict
+import time
+from collections import defaultdict, deque
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -24,6 +25,9 @@ SEND_TIMEOUT = 0.020
 """Seed 4.3: each CAN message is supervised to be sent within 20 ms."""
 
 FrameCallback = Callable[[can.Message], None]
+
+ECHOING_INTERFACES = ("udp_multicast",)
+"""Transports that hand a sender its own frames back; the controller drops them."""
 
 
 class _MasterNetwork(canopen.Network):
@@ -53,6 +57,8 @@ class CanBus(can.Listener):
         self._subscribers: dict[int, list[FrameCallback]] = defaultdict(list)
         self._catch_all: list[FrameCallback] = []
         self._lock = threading.Lock()
+        self._echoes: deque[tuple[int, bytes, bool]] | None = (
+            deque(maxlen=256) if interface in ECHOING_INTERFACES else None)
         self.on_error_frame: Callable[[], None] = lambda: None
         self.on_send_timeout: Callable[[], None] = lambda: None
         self._trace: can.Listener | None = can.Logger(str(trace)) if trace else None
@@ -81,6 +87,8 @@ class CanBus(can.Listener):
         if msg.is_error_frame:
             self.on_error_frame()
             return
+        if self._echoes is not None and self._is_echo(msg):
+            return
         with self._lock:
             callbacks = list(self._catch_all)
             if not msg.is_extended_id:
@@ -93,18 +101,33 @@ class CanBus(can.Listener):
         if not msg.is_extended_id and not msg.is_remote_frame:
             self.network.notify(msg.arbitration_id, msg.data, msg.timestamp)
 
+    def _is_echo(self, msg: can.Message) -> bool:
+        """A frame this controller sent itself, looped back by the transport."""
+        assert self._echoes is not None
+        key = (msg.arbitration_id, bytes(msg.data), msg.is_remote_frame)
+        with self._lock:
+            if key in self._echoes:
+                self._echoes.remove(key)
+                return True
+        return False
+
     # --- sending ---------------------------------------------------------------------------
 
     def send(self, can_id: int, data: bytes = b"", remote: bool = False,
              extended: bool | None = None, dlc: int | None = None) -> bool:
         """Send one frame; False (and Msg_Time_Out counted) when it could not go out."""
         msg = can.Message(
+            timestamp=time.time(),
+            is_rx=False,
             arbitration_id=can_id,
             is_extended_id=can_id > 0x7FF if extended is None else extended,
             is_remote_frame=remote,
             data=b"" if remote else data,
             dlc=dlc if dlc is not None else len(data),
         )
+        if self._echoes is not None:
+            with self._lock:
+                self._echoes.append((can_id, bytes(msg.data), remote))
         try:
             self.bus.send(msg, timeout=SEND_TIMEOUT)
         except can.CanError as exc:

@@ -104,6 +104,7 @@ class Master:
         self._sdo: dict[int, SdoChannel] = {}
         self._last_conn = b""
         self._supervise_due = 0.0
+        self._outputs_waiting: set[NodeHandler] = set()
 
     # --- life cycle ---------------------------------------------------------------------
 
@@ -349,9 +350,8 @@ class Master:
                 handler.tick(now)
             self._update_nexc()
         outputs = self.image.snapshot_outputs()
-        if outputs != last_outputs:
-            for handler in list(self.nodes.values()):
-                handler.send_outputs()
+        if outputs != last_outputs or self._outputs_waiting:
+            self._outputs_waiting = {h for h in list(self.nodes.values()) if h.send_outputs()}
         self._heartbeat(now)
         return outputs
 

@@ -349,10 +349,17 @@ class NodeHandler:
                     return
                 self._request(entry, now)
 
-    def send_outputs(self, sync: bool = False, force: bool = False) -> None:
-        """Send the RX-PDOs that are due: synchronous ones at SYNC, the rest on change."""
-        if self.state is not State.OPERATING or self.host_sdo or not self.operational_expected:
-            return
+    def send_outputs(self, sync: bool = False, force: bool = False) -> bool:
+        """Send the RX-PDOs that are due: synchronous ones at SYNC, the rest on change.
+
+        Returns True while a changed event-driven PDO waits for its inhibit time
+        (or for a host SDO transfer to end), so the master asks again.
+        """
+        if self.state is not State.OPERATING or not self.operational_expected:
+            return False
+        if self.host_sdo:
+            return True
+        waiting = False
         image = self.master.image
         now = time.monotonic()
         for entry in self.outputs:
@@ -374,10 +381,12 @@ class NodeHandler:
                     continue
                 inhibit = pdo.usInhibitCycle / 10000.0  # CiA 301: multiples of 100 us
                 if not force and now - entry.last_time < inhibit:
+                    waiting = True
                     continue
             if self.master.bus_send(pdo.usPdoCOBId, data):
                 entry.last = data
                 entry.last_time = now
+        return waiting
 
     # --- frames from the node -------------------------------------------------------------------
 
