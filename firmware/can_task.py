@@ -31,6 +31,7 @@ from firmware.can.node import (
     NMT_RESET_COMM,
     NMT_START,
     NMT_STOP,
+    NodeHandler,
     State,
 )
 from firmware.task import Task
@@ -52,6 +53,16 @@ COM_CFGRX_LAYER2 = 82
 COM_TX_CAN_LAYER2 = 84
 COM_NMT_MODULE_PROTOCOL = 96
 GET_CONFIGURATION = 15
+# Our own commands for the CiA 309 gateway (docs/card-commands.md)
+COM_SET_SDO_TIMEOUT = 110
+COM_SET_GUARDING = 111
+COM_SET_HEARTBEAT_CONSUMER = 112
+COM_SET_EMCY_CONSUMER = 113
+COM_SET_HEARTBEAT_PRODUCER = 114
+COM_SET_NODE_ID = 115
+COM_BOOTUP_FORWARDING = 116
+LONG_SDO_LIMIT = 65536
+"""[ours] bytes one long (concatenated) SDO transfer may carry."""
 
 AREA_BUS = 127
 AREA_EXTENDED = 128
@@ -117,7 +128,15 @@ class CanTask(Task):
             COM_CFGRX_LAYER2: self.com_cfgrx_layer2,
             COM_TX_CAN_LAYER2: self.com_tx_can_layer2,
             GET_CONFIGURATION: self.get_configuration,
+            COM_SET_SDO_TIMEOUT: self.com_set_sdo_timeout,
+            COM_SET_GUARDING: self.com_set_guarding,
+            COM_SET_HEARTBEAT_CONSUMER: self.com_set_heartbeat_consumer,
+            COM_SET_EMCY_CONSUMER: self.com_set_emcy_consumer,
+            COM_SET_HEARTBEAT_PRODUCER: self.com_set_heartbeat_producer,
+            COM_SET_NODE_ID: self.com_set_node_id,
+            COM_BOOTUP_FORWARDING: self.com_bootup_forwarding,
         })
+        self._long_download: dict[int, tuple[TelegramHeader, bytearray]] = {}
 
     # --- life cycle ---------------------------------------------------------------------------
 
@@ -134,6 +153,7 @@ class CanTask(Task):
         self.bus_data = None
         self.extended_data = None
         self._sequence = None
+        self._long_download.clear()
 
     @property
     def configured(self) -> bool:
@@ -313,7 +333,12 @@ class CanTask(Task):
         if head.function == Tfc.WRITE and len(head.payload) != head.data_cnt:
             return msg.answer(f=F_SDO_BUFFER, data=msg.data[:8])
         if msg.e & Ext.SEQ_MASK:
-            return msg.answer(f=F_SEQUENCE, data=msg.data[:8])
+            if head.function != Tfc.WRITE:
+                return msg.answer(f=F_SEQUENCE, data=msg.data[:8])
+            gathered = self._gather(msg, head)
+            if isinstance(gathered, Message):
+                return gathered
+            head = gathered
         handler = self.master.nodes.get(address)
         if handler is not None and handler.state is State.BOOTING:
             return msg.answer(f=F_NODE_BUSY, data=msg.data[:8])
@@ -322,6 +347,31 @@ class CanTask(Task):
             return msg.answer(f=F_SDO_FUNCTION, data=msg.data[:8])
         self.master.executor.submit(self._sdo_transfer, msg, head, client)
         return None
+
+    def _gather(self, msg: Message, head: TelegramHeader) -> Message | TelegramHeader:
+        """One part of a long SDO download: an answer now, or the whole request at the end."""
+        sequence = msg.e & Ext.SEQ_MASK
+        address = head.device_adr
+        key = (head.device_adr, head.data_adr, head.data_idx)
+        if sequence == Ext.FIRST:
+            self._long_download[address] = (head, bytearray(head.payload))
+        else:
+            first = self._long_download.get(address)
+            if first is None or (first[0].device_adr, first[0].data_adr, first[0].data_idx) != key:
+                self._long_download.pop(address, None)
+                return msg.answer(f=F_SEQUENCE, data=msg.data[:8])
+            first[1].extend(head.payload)
+        data = self._long_download[address][1]
+        if len(data) > LONG_SDO_LIMIT:
+            self._long_download.pop(address, None)
+            return msg.answer(f=F_BUFFER_LENGTH, data=msg.data[:8])
+        if sequence != Ext.LAST:
+            head.data_cnt = 0
+            head.payload = b""
+            return msg.answer(data=head.encode())
+        del self._long_download[address]
+        return TelegramHeader(head.device_adr, 0, head.data_adr, head.data_idx, 0, 0,
+                              Tfc.WRITE, bytes(data))
 
     def _sdo_transfer(self, msg: Message, head: TelegramHeader, client: SdoChannel) -> None:
         handler = self.master.nodes.get(head.device_adr)
@@ -332,8 +382,11 @@ class CanTask(Task):
         try:
             if head.function == Tfc.READ:
                 data = client.sdo.upload(head.data_adr, head.data_idx)
-                if len(data) > SDO_MAX_DATA:
+                if len(data) > LONG_SDO_LIMIT:
                     answer = msg.answer(f=F_SDO_BUFFER, data=answer_head.encode())
+                elif len(data) > SDO_MAX_DATA:
+                    self._post_long_upload(msg, answer_head, data)
+                    return
                 else:
                     answer_head.data_cnt = len(data)
                     answer_head.payload = data
@@ -351,6 +404,120 @@ class CanTask(Task):
                 handler.host_sdo = False
             client.lock.release()
         self.device.post(answer)
+
+    def _post_long_upload(self, msg: Message, head: TelegramHeader, data: bytes) -> None:
+        """More than one message of upload data: first, continue ..., last (msg.e)."""
+        parts = [data[i : i + SDO_MAX_DATA] for i in range(0, len(data), SDO_MAX_DATA)]
+        for n, part in enumerate(parts):
+            e = Ext.FIRST if n == 0 else Ext.LAST if n == len(parts) - 1 else Ext.CONT
+            head.data_cnt = len(part)
+            head.payload = part
+            self.device.post(msg.answer(data=head.encode(), e=e))
+
+    # --- our own commands for the CiA 309 gateway (docs/card-commands.md) ------------------------
+
+    def _running_node(self, msg: Message) -> Message | NodeHandler:
+        if msg.ln < 2 or not 1 <= msg.data[0] <= 127:
+            return msg.answer(f=F_FAULTY_PARAMETER)
+        if not self.master.running:
+            return msg.answer(f=F_NOT_CONFIGURED)
+        handler = self.master.nodes.get(msg.data[0])
+        if handler is None:
+            return msg.answer(f=F_LOCAL_RESOURCE)
+        return handler
+
+    def com_set_sdo_timeout(self, msg: Message) -> Message:
+        if msg.ln != 3 or msg.data[0] > 127:
+            return msg.answer(f=F_FAULTY_PARAMETER)
+        (timeout,) = struct.unpack_from("<H", msg.data, 1)
+        if timeout == 0:
+            return msg.answer(f=F_FAULTY_PARAMETER)
+        if msg.data[0] and self.master.bus is None:
+            return msg.answer(f=F_NOT_CONFIGURED)
+        self.master.set_sdo_timeout(msg.data[0], timeout / 1000.0)
+        return msg.answer()
+
+    def com_set_guarding(self, msg: Message) -> Message | None:
+        if msg.ln != 5:
+            return msg.answer(f=F_FAULTY_PARAMETER)
+        handler = self._running_node(msg)
+        if isinstance(handler, Message):
+            return handler
+        on = msg.data[1]
+        (guard_time,) = struct.unpack_from("<H", msg.data, 2)
+        factor = msg.data[4]
+        if on not in (0, 1) or (on and not guard_time):
+            return msg.answer(f=F_FAULTY_PARAMETER)
+        guard_time = guard_time if on else 0
+        writes = [(0x100C, struct.pack("<H", guard_time)), (0x100D, bytes([factor]))]
+        if on:
+            writes.insert(0, (0x1017, b"\0\0"))  # CiA 301: guarding only without heartbeat
+        self.master.executor.submit(self._configure_error_control, msg, handler, writes,
+                                    False, guard_time, factor)
+        return None
+
+    def com_set_heartbeat_consumer(self, msg: Message) -> Message:
+        if msg.ln != 4:
+            return msg.answer(f=F_FAULTY_PARAMETER)
+        handler = self._running_node(msg)
+        if isinstance(handler, Message):
+            return handler
+        on = msg.data[1]
+        (consumer_time,) = struct.unpack_from("<H", msg.data, 2)
+        if on not in (0, 1) or (on and not consumer_time):
+            return msg.answer(f=F_FAULTY_PARAMETER)
+        handler.set_supervision(True, consumer_time if on else 0, 0)
+        return msg.answer()
+
+    def _configure_error_control(self, msg: Message, handler: NodeHandler,
+                                 writes: list[tuple[int, bytes]], heartbeat: bool,
+                                 time_ms: int, factor: int) -> None:
+        channel = self.master.sdo_client(handler.address)
+        answer = msg.answer()
+        with channel.lock:
+            try:
+                for index, value in writes:
+                    channel.sdo.download(index, 0, value)
+            except SdoAbortedError as exc:
+                answer = msg.answer(f=F_SDO_ABORT, data=struct.pack("<I", exc.code))
+            except SdoCommunicationError:
+                answer = msg.answer(f=F_NO_RESPONSE)
+        if answer.f == 0:
+            handler.set_supervision(heartbeat, time_ms, factor)
+        self.device.post(answer)
+
+    def com_set_emcy_consumer(self, msg: Message) -> Message:
+        if msg.ln != 4:
+            return msg.answer(f=F_FAULTY_PARAMETER)
+        handler = self._running_node(msg)
+        if isinstance(handler, Message):
+            return handler
+        on = msg.data[1]
+        (cob_id,) = struct.unpack_from("<H", msg.data, 2)
+        if on not in (0, 1) or cob_id > 0x7FF:
+            return msg.answer(f=F_FAULTY_PARAMETER)
+        handler.set_emcy_consumer((cob_id or 0x80 + handler.address) if on else None)
+        return msg.answer()
+
+    def com_set_heartbeat_producer(self, msg: Message) -> Message:
+        if msg.ln != 2:
+            return msg.answer(f=F_FAULTY_PARAMETER)
+        (self.master.ext.usProducerHeartbeatTime,) = struct.unpack_from("<H", msg.data)
+        return msg.answer()
+
+    def com_set_node_id(self, msg: Message) -> Message:
+        if msg.ln != 1 or not 1 <= msg.data[0] <= 127:
+            return msg.answer(f=F_FAULTY_PARAMETER)
+        if msg.data[0] in self.master.nodes:
+            return msg.answer(f=F_DOUBLE_ADDRESS)
+        self.master.ext.bNodeID = msg.data[0]
+        return msg.answer()
+
+    def com_bootup_forwarding(self, msg: Message) -> Message:
+        if msg.ln != 1 or msg.data[0] not in (0, 1):
+            return msg.answer(f=F_FAULTY_PARAMETER)
+        self.master.bootup_forwarding = bool(msg.data[0])
+        return msg.answer()
 
     # --- NMT, transparent CAN, layer 2 ---------------------------------------------------------
 

@@ -9,6 +9,7 @@ mailbox messages built from the seed's tables.
 
 from __future__ import annotations
 
+import itertools
 import struct
 import time
 from collections.abc import Callable, Iterator
@@ -401,7 +402,7 @@ transmission = 1
     frames = candump(trace)
     syncs = [t for t, ident, _ in frames if ident == 0x080]
     assert len(syncs) > 20
-    periods = sorted(b - a for a, b in zip(syncs, syncs[1:], strict=False))
+    periods = sorted(b - a for a, b in itertools.pairwise(syncs))
     assert 0.008 < periods[len(periods) // 2] < 0.012
     # A synchronous cyclic RPDO goes out once per SYNC, even without a change.
     outputs = [t for t, ident, _ in frames if ident == 0x201]
@@ -431,7 +432,7 @@ cob_id = 0x181
                "the last value, sent once the inhibit time passed")
     net.card.stop()
     sent = [t for t, ident, _ in candump(trace) if ident == 0x201]
-    gaps = [b - a for a, b in zip(sent, sent[1:], strict=False)]
+    gaps = [b - a for a, b in itertools.pairwise(sent)]
     assert gaps and min(gaps) >= 0.095
 
 
@@ -500,3 +501,105 @@ word = true
     wait_until(lambda: exchange(net, words) == words, 5, "the echo of the words")
     net.card.stop()
     assert any(ident == 0x201 and data == "0201040306050807" for _, ident, data in candump(trace))
+
+
+# --- bus faults in Task2State ---------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("kind", "counter", "bit"),
+    [("warning", 0x1F44, 0x10), ("bus_off", 0x1F46, 0x10), ("ack", 0x1F48, 0x40)],
+)
+def test_bus_errors_are_counted(make_net: Callable[..., Net], kind: str, counter: int,
+                                bit: int) -> None:
+    net = make_net(f"[[node]]\nid = 1\n[node.sim]\nbus_errors = {{ after_s = 0.2, count = 3, "
+                   f"kind = \"{kind}\" }}\n")
+    image = net.card.map()
+    wait_until(lambda: struct.unpack_from("<H", image, counter)[0] == 3, 5, f"3 {kind} errors")
+    assert image[0x1F40] & bit  # EVE for bus errors, TOUT for unacknowledged frames
+    assert net.send(81, b"").f == 0
+    assert struct.unpack_from("<H", image, counter)[0] == 0 and not image[0x1F40] & bit
+
+
+def test_layer2_queue_overflow_counts_lost_frames(make_net: Callable[..., Net]) -> None:
+    # Node 9's heartbeat every 10 ms fills the 150-frame queue of a host that never reads.
+    net = make_net("[[node]]\nid = 1\n[[node]]\nid = 9\nheartbeat_ms = 20\n")
+    net.send(68, bytes([0, 127, 0, 0, 2]) + struct.pack("<HH", 0x80, 0) + bytes(2))
+    assert net.send(82, bytes([0x09, 0x07])).f == 0
+    image = net.card.map()
+    wait_until(lambda: struct.unpack_from("<H", image, 0x1F4A)[0] > 0, 10, "Rx_Overflow")
+
+
+# --- our own commands for the CiA 309 gateway (docs/card-commands.md) -------------------------
+
+
+def test_gateway_commands_need_a_running_network_and_a_node(make_net: Callable[..., Net]) -> None:
+    net = make_net("[[node]]\nid = 1\n")
+    assert net.send(112, bytes([1, 1, 0xE8, 0x03])).f == 200
+    net.configure()
+    net.wait_operating([1])
+    assert net.send(112, bytes([7, 1, 0xE8, 0x03])).f == 20  # node 7 is not configured
+    assert net.send(112, bytes([1, 2, 0xE8, 0x03])).f == 55
+    assert net.send(111, bytes([1, 1, 0, 0, 3])).f == 55  # guarding on with time 0
+    assert net.send(110, bytes([0, 0, 0])).f == 55
+    assert net.send(115, bytes([1])).f == 60
+    assert net.send(115, bytes([100])).f == 0
+    assert net.send(116, bytes([2])).f == 55
+
+
+def test_switching_error_control_at_run_time(make_net: Callable[..., Net]) -> None:
+    net = make_net("[[node]]\nid = 1\n[node.sim]\nheartbeat_stop_after_s = 1.5\n")
+    net.configure()
+    net.wait_operating([1])
+    assert net.send(112, bytes([1, 0, 0, 0])).f == 0  # heartbeat consumer off
+    assert net.send(111, bytes([1, 1]) + struct.pack("<H", 100) + bytes([3])).f == 0
+    diag = net.send(66, bytes([1, 0, 0, 0, 0, 0, 5, 1])).data[8:]
+    assert diag[0] & 0x08  # Guard_Active
+    assert net.sdo(1, 0x100C, 0).data[8:10] == struct.pack("<H", 100)
+    started = time.monotonic()
+    wait_until(lambda: time.monotonic() - started > 2.0, what="the heartbeat to stop")
+    assert net.diag().operating() == [1] and net.diag().bErr_event == 0  # guarded, not lost
+
+
+def test_emcy_consumer_off_ignores_emergencies(make_net: Callable[..., Net]) -> None:
+    net = make_net("[[node]]\nid = 5\n[node.sim]\n"
+                   "emcy_burst = { after_s = 1.5, count = 2, code = 0x2310 }\n")
+    net.configure()
+    net.wait_operating([5])
+    assert net.send(113, bytes([5, 0, 0, 0])).f == 0
+    started = time.monotonic()
+    wait_until(lambda: time.monotonic() - started > 2.0, what="the EMCY burst")
+    assert 5 not in net.diag().diagnostic()
+    assert net.send(113, bytes([5, 1, 0, 0])).f == 0
+
+
+def test_bootup_forwarding_and_master_heartbeat(make_net: Callable[..., Net],
+                                                tmp_path: Path) -> None:
+    trace = tmp_path / "hb.log"
+    net = make_net("[[node]]\nid = 1\n", "--trace", str(trace))
+    net.configure()
+    net.wait_operating([1])
+    assert net.send(115, bytes([100])).f == 0
+    assert net.send(114, struct.pack("<H", 20)).f == 0
+    assert net.send(116, bytes([1])).f == 0
+    assert net.send(96, bytes([129, 1])).f == 0  # reset node 1: it boots again
+    rc, indication = d.DevGetMessage(0, 288, 5000)
+    assert rc == 0 and indication is not None
+    assert (indication.b, indication.data) == (117, b"\x01")
+    net.wait_operating([1])
+    produced = time.monotonic() + 0.2
+    wait_until(lambda: time.monotonic() > produced, what="0.2 s of the master's heartbeat")
+    net.card.stop()
+    assert sum(ident == 0x764 for _, ident, _ in candump(trace)) >= 5  # 0x700 + 100
+
+
+def test_long_sdo_download_sequence_errors(make_net: Callable[..., Net]) -> None:
+    net = make_net("[[node]]\nid = 1\n")
+    net.configure()
+    net.wait_operating([1])
+    head = struct.pack("<BBHBBBB", 1, 0, 0x2000, 0, 4, 0, 2)
+    assert net.send(74, head + b"abcd", e=8).f == 57  # a continue part without a first
+    first = net.send(74, head + b"abcd", e=4)
+    assert first.f == 0 and first.data[5] == 0
+    other = struct.pack("<BBHBBBB", 1, 0, 0x2001, 0, 4, 0, 2)
+    assert net.send(74, other + b"efgh", e=0x0C).f == 57  # not the transfer it started

@@ -59,7 +59,7 @@ class CanBus(can.Listener):
         self._lock = threading.Lock()
         self._echoes: deque[tuple[int, bytes, bool]] | None = (
             deque(maxlen=256) if interface in ECHOING_INTERFACES else None)
-        self.on_error_frame: Callable[[], None] = lambda: None
+        self.on_error_frame: Callable[[can.Message], None] = lambda msg: None
         self.on_send_timeout: Callable[[], None] = lambda: None
         self._trace: can.Listener | None = can.Logger(str(trace)) if trace else None
         listeners: list[can.Listener] = [self]
@@ -85,7 +85,7 @@ class CanBus(can.Listener):
 
     def on_message_received(self, msg: can.Message) -> None:
         if msg.is_error_frame:
-            self.on_error_frame()
+            self.on_error_frame(msg)
             return
         if self._echoes is not None and self._is_echo(msg):
             return

@@ -54,6 +54,13 @@ SUPERVISION_PERIOD = 0.005
 QUEUE_LIMIT = 150
 """Layer-2 frames the card holds for the host (seed 5.3.2.2)."""
 INDICATION_LIMIT = 254
+DEFAULT_SDO_TIMEOUT = 0.3
+"""Seconds an SDO request waits for its answer (canopen's default) until COM_Set_SDO_Timeout."""
+COM_BOOTUP_INDICATION = 117
+# SocketCAN error classes (linux/can/error.h)
+CAN_ERR_TX_TIMEOUT = 0x001
+CAN_ERR_ACK = 0x020
+CAN_ERR_BUSOFF = 0x040
 COM_RECEIVE_TRANSPARENT = 65
 COM_RX_CAN_LAYER2 = 83
 
@@ -105,6 +112,8 @@ class Master:
         self._last_conn = b""
         self._supervise_due = 0.0
         self._outputs_waiting: set[NodeHandler] = set()
+        self.bootup_forwarding = False
+        self.sdo_timeout = DEFAULT_SDO_TIMEOUT
 
     # --- life cycle ---------------------------------------------------------------------
 
@@ -142,6 +151,8 @@ class Master:
         self._booting.clear()
         self._last_conn = b""
         self.layer2_filters.clear()
+        self.bootup_forwarding = False
+        self.set_sdo_timeout(0, DEFAULT_SDO_TIMEOUT)
         with self._queue_lock:
             self.indications.clear()
 
@@ -263,9 +274,19 @@ class Master:
                 0x600 + address, 0x580 + address, ObjectDictionary()  # type: ignore[no-untyped-call]
             )
             client.network = self.bus.network
+            client.RESPONSE_TIMEOUT = self.sdo_timeout
             self.bus.network.subscribe(0x580 + address, client.on_response)
             channel = self._sdo[address] = SdoChannel(client, threading.Lock())
         return channel
+
+    def set_sdo_timeout(self, node: int, seconds: float) -> None:
+        """COM_Set_SDO_Timeout: one node's channel, or (node 0) every channel and the default."""
+        if node == 0:
+            self.sdo_timeout = seconds
+            for channel in self._sdo.values():
+                channel.sdo.RESPONSE_TIMEOUT = seconds
+        else:
+            self.sdo_client(node).sdo.RESPONSE_TIMEOUT = seconds
 
     def host_nmt(self, command: int, node: int) -> None:
         """COM_NMT_Module_Protocol: the host drives node states by hand."""
@@ -426,8 +447,14 @@ class Master:
 
     # --- bus events, layer 2 and transparent reception -----------------------------------------
 
-    def _on_error_frame(self) -> None:
-        self.device.count("usBus_Error_Cnt")
+    def _on_error_frame(self, msg: can.Message) -> None:
+        """Error frames in SocketCAN's layout: the class bits are in the identifier."""
+        error_class = msg.arbitration_id
+        if error_class & (CAN_ERR_TX_TIMEOUT | CAN_ERR_ACK):
+            self._on_send_timeout()
+            return
+        self.device.count("usBus_Off_Cnt" if error_class & CAN_ERR_BUSOFF
+                          else "usBus_Error_Cnt")
         self.device.set_global_bit(GlobalBits.EVE, True)
 
     def _on_send_timeout(self) -> None:
@@ -435,6 +462,9 @@ class Master:
         self.device.set_global_bit(GlobalBits.TOUT, True)
 
     def _on_any_frame(self, msg: can.Message) -> None:
+        if (self.bootup_forwarding and not msg.is_extended_id and not msg.is_remote_frame
+                and 0x701 <= msg.arbitration_id <= 0x77F and bytes(msg.data) == b"\x00"):
+            self._queue(COM_BOOTUP_INDICATION, msg)
         if msg.is_extended_id:
             if not self.ext.bExtendedState & ExtendedState.bi11Bit29BitSelector:
                 return
@@ -459,6 +489,9 @@ class Master:
             if not self.indications:
                 return None
             kind, msg = self.indications.popleft()
+            if kind == COM_BOOTUP_INDICATION:
+                return Message(rx=16, tx=3, b=COM_BOOTUP_INDICATION,
+                               data=bytes([msg.arbitration_id - 0x700]))
             if kind == COM_RECEIVE_TRANSPARENT:
                 info = 0x80 | (0x40 if msg.is_remote_frame else 0) | (msg.dlc & 0x0F)
                 data = bytes([info]) + (msg.arbitration_id << 3).to_bytes(4, "big")

@@ -122,6 +122,11 @@ class NodeHandler:
         self.address = address
         self.params = params
         self.heartbeat = bool(params.bNd_Flag & NdFlag.HRTBT)
+        self.guard_time = params.usGuardTime
+        """Supervision time in ms (guard time or heartbeat consumer time); 0 = none."""
+        self.life_time_factor = params.bLifeTimeFactor
+        self.emcy_cob_id: int | None = params.usCobIDEmcy
+        """EMCY COB-ID collected for COM_Node_Diag; None while the EMCY consumer is off."""
         self.state = State.WAITING if params.active else State.INACTIVE
         self.diag = Diagnosis()
         if not params.active:
@@ -154,7 +159,8 @@ class NodeHandler:
         bus.subscribe(0x700 + self.address, self._on_error_control)
         if self.params.usCobIDGuard and self.params.usCobIDGuard != 0x700 + self.address:
             bus.subscribe(self.params.usCobIDGuard, self._on_error_control)
-        bus.subscribe(self.params.usCobIDEmcy, self._on_emcy)
+        if self.emcy_cob_id is not None:
+            bus.subscribe(self.emcy_cob_id, self._on_emcy)
         for entry in self.inputs:
             bus.subscribe(entry.pdo.usPdoCOBId, self._on_input)
 
@@ -164,7 +170,8 @@ class NodeHandler:
             return
         bus.unsubscribe(0x700 + self.address, self._on_error_control)
         bus.unsubscribe(self.params.usCobIDGuard, self._on_error_control)
-        bus.unsubscribe(self.params.usCobIDEmcy, self._on_emcy)
+        if self.emcy_cob_id is not None:
+            bus.unsubscribe(self.emcy_cob_id, self._on_emcy)
         for entry in self.inputs:
             bus.unsubscribe(entry.pdo.usPdoCOBId, self._on_input)
 
@@ -271,7 +278,32 @@ class NodeHandler:
 
     @property
     def supervised(self) -> bool:
-        return self.params.usGuardTime > 0
+        return self.guard_time > 0
+
+    def set_emcy_consumer(self, cob_id: int | None) -> None:
+        """COM_Set_Emcy_Consumer: collect EMCY frames of ``cob_id``, or none."""
+        bus = self.master.bus
+        if bus is not None and self.emcy_cob_id is not None:
+            bus.unsubscribe(self.emcy_cob_id, self._on_emcy)
+        self.emcy_cob_id = cob_id
+        if bus is not None and cob_id is not None:
+            bus.subscribe(cob_id, self._on_emcy)
+
+    def set_supervision(self, heartbeat: bool, time_ms: int, life_time_factor: int) -> None:
+        """Switch error control at run time (COM_Set_Guarding, COM_Set_Heartbeat_Consumer)."""
+        self.heartbeat = heartbeat
+        self.guard_time = time_ms
+        self.life_time_factor = life_time_factor
+        now = time.monotonic()
+        self._last_heartbeat = now
+        self._next_guard = now
+        self._guard_pending = False
+        self._guard_misses = 0
+        self._toggle = None
+        if self.supervised:
+            self.diag.status |= GUARD_ACTIVE_BIT
+        else:
+            self.diag.status &= ~GUARD_ACTIVE_BIT
 
     def fail(self, event: int) -> None:
         """The node left data exchange: report it; retry or let auto-clear stop all."""
@@ -310,7 +342,7 @@ class NodeHandler:
             return
         params = self.params
         if self.supervised:
-            period = params.usGuardTime / 1000.0
+            period = self.guard_time / 1000.0
             if self.heartbeat:
                 if now - self._last_heartbeat > period:
                     self.fail(GUARDING_FAILED)
@@ -318,7 +350,7 @@ class NodeHandler:
             elif now >= self._next_guard:
                 if self._guard_pending:
                     self._guard_misses += 1
-                    if self._guard_misses >= max(1, params.bLifeTimeFactor):
+                    if self._guard_misses >= max(1, self.life_time_factor):
                         self.fail(GUARDING_FAILED)
                         return
                 self._guard_pending = True
