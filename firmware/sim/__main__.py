@@ -1,0 +1,5 @@
+import sys
+
+from firmware.sim.cli import main
+
+sys.exit(main())

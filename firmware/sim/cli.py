@@ -1,0 +1,107 @@
+"""``cifemu sim``: the simulated nodes of a network description alone on a CAN bus.
+
+For a bus shared with another process (SocketCAN, vcan, any python-can
+interface that crosses processes). Runs in the foreground until SIGTERM or
+Ctrl-C; prints each node it simulates.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import signal
+import sys
+import threading
+from types import FrameType
+
+import can
+
+from dbm_tools.network import NetworkError, NodeDescription, load_network
+from firmware.sim.network import SimulatedNetwork
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("network", metavar="NETWORK.toml", help="the network description")
+    parser.add_argument("--interface", required=True,
+                        help="python-can interface, e.g. socketcan")
+    parser.add_argument("--channel", required=True, help="python-can channel, e.g. vcan0")
+    parser.add_argument("--bitrate", type=int, default=None, metavar="BPS",
+                        help="bit rate (default: the description's bus.bitrate)")
+    parser.add_argument("--log-level", default="INFO",
+                        choices=["DEBUG", "INFO", "WARNING", "ERROR"])
+
+
+def describe(node: NodeDescription) -> str:
+    """One line per node, as the operator needs it to match the bus against the file."""
+    if node.lss is not None and node.id == 255:
+        lss = node.lss
+        return (f"LSS slave {lss.vendor:#x}/{lss.product:#x}/{lss.revision:#x}/{lss.serial:#x}: "
+                "unconfigured, silent")
+    kind = f"EDS {node.eds.name}" if node.eds else "generic I/O module"
+    name = f" {node.name!r}" if node.name else ""
+    control = node.error_control
+    if control == "heartbeat" and not node.eds:
+        control = f"heartbeat {node.heartbeat_ms // 2} ms"
+    sim = node.sim
+    faults = []
+    if sim.silent:
+        faults.append("silent")
+    if sim.device_type is not None:
+        faults.append(f"device type {sim.device_type:#010x}")
+    if sim.sdo_abort:
+        faults.append(f"SDO aborts on {len(sim.sdo_abort)} object(s)")
+    if sim.heartbeat_stop_after_s is not None:
+        faults.append(f"heartbeat stops after {sim.heartbeat_stop_after_s} s")
+    if sim.guarding_fail_after_s is not None:
+        faults.append(f"guarding fails after {sim.guarding_fail_after_s} s")
+    if sim.emcy_burst is not None:
+        faults.append(f"{sim.emcy_burst.count} EMCY {sim.emcy_burst.code:#06x} "
+                      f"after {sim.emcy_burst.after_s} s")
+    if sim.boot_delay_s:
+        faults.append(f"boot-up after {sim.boot_delay_s} s")
+    if sim.leave_operational_after_s is not None:
+        faults.append(f"leaves OPERATIONAL after {sim.leave_operational_after_s} s")
+    text = f"node {node.id}{name}: {kind}, {control}"
+    return text + (f"; faults: {', '.join(faults)}" if faults else "")
+
+
+def run(args: argparse.Namespace) -> int:
+    logging.basicConfig(level=args.log_level, format="%(asctime)s %(name)s: %(message)s")
+    if args.log_level != "DEBUG":
+        logging.getLogger("canopen").setLevel(logging.WARNING)  # it logs every SDO at INFO
+    try:
+        network = load_network(args.network)
+    except NetworkError as exc:
+        print(f"cifemu sim: {exc}", file=sys.stderr)
+        return 1
+    bitrate = args.bitrate or network.bus.bitrate
+    try:
+        bus = can.Bus(interface=args.interface, channel=args.channel, bitrate=bitrate)
+    except (can.CanError, OSError, ValueError, ImportError) as exc:
+        print(f"cifemu sim: cannot open {args.interface} channel {args.channel}: {exc}",
+              file=sys.stderr)
+        return 1
+    done = threading.Event()
+
+    def on_signal(signum: int, frame: FrameType | None) -> None:
+        del signum, frame
+        done.set()
+
+    signal.signal(signal.SIGTERM, on_signal)
+    signal.signal(signal.SIGINT, on_signal)
+    print(f"simulating {args.network} on {args.interface} {args.channel} at {bitrate} bit/s",
+          flush=True)
+    for node in network.nodes:
+        print(f"  {describe(node)}", flush=True)
+    try:
+        with SimulatedNetwork(network, bus):
+            done.wait()
+    finally:
+        bus.shutdown()
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m firmware.sim", description=__doc__)
+    add_arguments(parser)
+    return run(parser.parse_args(argv))

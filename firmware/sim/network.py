@@ -1,0 +1,172 @@
+"""The simulated nodes of a network description, live on one python-can bus.
+
+One ``canopen.Network`` over the given bus carries every node; its notifier
+thread delivers frames to the nodes, a ``Scheduler`` thread runs their
+timers, and one lock serialises both. The bus belongs to the caller: it is
+neither opened nor shut down here.
+
+A python-can bus object hears only other bus objects, never its own frames,
+and feeds a single ``can.Notifier``. So a master in the same process needs
+its own bus object on the same channel (for ``virtual``, the same channel
+name); it cannot share the one given here.
+
+Every live device is also a CiA 305 LSS slave (``firmware.sim.lss``): a node
+with ``id = 255`` and an ``lss`` address is silent but for LSS until a master
+gives it a node-ID, then boots up as a node of its own (its ``eds``, else the
+generic I/O module); a configured node can be given another node-ID. No key
+of the network description is needed for that.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+from dataclasses import dataclass
+from types import TracebackType
+
+import can
+import canopen
+from canopen.objectdictionary import ObjectDictionary, import_od
+
+from dbm_tools.network import (
+    UNCONFIGURED,
+    BusDescription,
+    LssAddress,
+    Network,
+    NetworkError,
+    NodeDescription,
+)
+from firmware.sim.generic import generic_object_dictionary
+from firmware.sim.lss import LssBus
+from firmware.sim.node import SimulatedNode
+from firmware.sim.scheduler import Scheduler
+
+log = logging.getLogger(__name__)
+
+NOTIFIER_CYCLE_S = 0.1
+"""How long a stopping network waits at most for its receive thread."""
+
+
+def object_dictionary(node: NodeDescription, bus: BusDescription) -> ObjectDictionary:
+    """The node's EDS/DCF when it names one, else the built-in generic I/O module."""
+    if node.eds is None:
+        return generic_object_dictionary(node, bus.sync_cob_id)
+    try:
+        return import_od(str(node.eds), node.id)
+    except Exception as exc:  # canopen's parser lets any error of a bad file through
+        raise NetworkError(f"node {node.id}: cannot load {node.eds}: {exc!r}") from exc
+
+
+@dataclass
+class UnconfiguredSlave:
+    """A node without node-ID (255): present, silent until LSS configures it."""
+
+    description: NodeDescription
+
+    @property
+    def address(self) -> LssAddress:
+        assert self.description.lss is not None  # load_network demands it for id 255
+        return self.description.lss
+
+
+class _RemoteFrames(can.Listener):
+    """canopen drops remote frames before its subscribers; guarding and RTR PDOs need them."""
+
+    def __init__(self, nodes: list[SimulatedNode]) -> None:
+        self._nodes = nodes
+
+    def on_message_received(self, msg: can.Message) -> None:
+        if msg.is_remote_frame:
+            for node in self._nodes:
+                node.on_remote(msg.arbitration_id)
+
+
+class SimulatedNetwork:
+    """Every node of ``network`` as a simulated CiA 301 device on ``bus``.
+
+    ``start`` powers all nodes on (each sends its boot-up after its boot
+    delay), ``stop`` powers them off; also a context manager. Silent nodes
+    exist in ``nodes`` but never touch the bus.
+    """
+
+    def __init__(self, network: Network, bus: can.BusABC) -> None:
+        self.description = network
+        self.bus = bus
+        self.lock = threading.RLock()
+        self.scheduler = Scheduler(self.lock)
+        self.nodes: dict[int, SimulatedNode] = {}
+        unconfigured: list[NodeDescription] = []
+        for node in network.nodes:
+            if node.id == UNCONFIGURED:
+                unconfigured.append(node)
+            else:
+                self.nodes[node.id] = SimulatedNode(
+                    node, object_dictionary(node, network.bus), self.scheduler, self.lock)
+        self.canopen = canopen.Network(bus)
+        self.canopen.NOTIFIER_CYCLE = NOTIFIER_CYCLE_S
+        self._live = [node for node in self.nodes.values() if not node.description.sim.silent]
+        self.lss = LssBus(self, self._live, unconfigured)
+        self.running = False
+
+    @property
+    def unconfigured(self) -> list[UnconfiguredSlave]:
+        """The devices without node-ID now (LSS may have configured some of the file's)."""
+        return [UnconfiguredSlave(node) for node in self.lss.unconfigured()]
+
+    def add_node(self, description: NodeDescription) -> SimulatedNode:
+        """A device that got its node-ID by LSS: created, and powered on if the network runs."""
+        node = SimulatedNode(description, object_dictionary(description, self.description.bus),
+                             self.scheduler, self.lock)
+        self.nodes[node.node_id] = node
+        self._live.append(node)
+        if self.running:
+            self.canopen.add_node(node)
+            node.power_on()
+        return node
+
+    def remove_node(self, node: SimulatedNode) -> None:
+        """A device that leaves its node-ID (LSS): powered off and detached if running."""
+        self._live.remove(node)
+        del self.nodes[node.node_id]
+        if self.running:
+            node.power_off()
+            del self.canopen[node.node_id]
+
+    def start(self) -> None:
+        for node in self._live:
+            self.canopen.add_node(node)
+        try:
+            self.canopen.connect()
+        except ValueError as exc:
+            raise ValueError(f"{exc}: give the simulation its own bus object on the channel, "
+                             "not the master's") from exc
+        assert self.canopen.notifier is not None
+        self.canopen.notifier.add_listener(_RemoteFrames(self._live))
+        self.scheduler.start()
+        with self.lock:
+            for node in self._live:
+                node.power_on()
+        self.running = True
+        log.info("simulating %d node(s) on %s", len(self._live), self.bus.channel_info)
+
+    def stop(self) -> None:
+        if not self.running:
+            return
+        self.running = False
+        self.scheduler.stop()
+        with self.lock:
+            for node in self._live:
+                node.power_off()
+        if self.canopen.notifier is not None:
+            self.canopen.notifier.stop(self.canopen.NOTIFIER_SHUTDOWN_TIMEOUT)
+        for node in self._live:
+            del self.canopen[node.node_id]
+        self.lss.power_cycle()  # the next start is a power-on: stored LSS configuration
+
+    def __enter__(self) -> SimulatedNetwork:
+        self.start()
+        return self
+
+    def __exit__(self, kind: type[BaseException] | None, value: BaseException | None,
+                 traceback: TracebackType | None) -> None:
+        self.stop()

@@ -1,0 +1,98 @@
+"""SDO server of a simulated node: canopen's server plus what a real device does more.
+
+canopen's ``SdoServer`` does expedited and segmented transfers against the
+``LocalNode``'s object dictionary. Added here: no answer at all outside
+PRE-OPERATIONAL and OPERATIONAL (CiA 301 table 41), injected aborts on chosen
+objects, "sub-index does not exist" for array entries the object dictionary
+does not define (canopen invents them from the first entry), abort 05040001h
+for a segment outside a segmented transfer and for block download (canopen
+trips over both and logs them as its own errors), and the node's after-write
+work (PDO reconfiguration, the I/O echo) once a download is stored.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+from canopen.objectdictionary import ODArray
+from canopen.sdo.constants import (
+    ABORT_GENERAL_ERROR,
+    ABORT_INVALID_COMMAND_SPECIFIER,
+    NO_MORE_DATA,
+    SDO_STRUCT,
+)
+from canopen.sdo.exceptions import SdoAbortedError
+from canopen.sdo.server import SdoServer
+
+if TYPE_CHECKING:
+    from firmware.sim.node import SimulatedNode
+
+ABORT_NO_SUBINDEX = 0x06090011
+SDO_FRAME_LENGTH = 8
+
+
+class SimSdoServer(SdoServer):
+    def __init__(self, node: SimulatedNode) -> None:
+        node_id = node.node_id
+        super().__init__(0x600 + node_id, 0x580 + node_id, node)  # type: ignore[no-untyped-call]
+        self._sim = node
+        # canopen's abort() packs these; they stay None until a valid request otherwise.
+        self._index = 0
+        self._subindex = 0
+        self._segmented: str | None = None
+        """"upload" or "download" while a segmented transfer runs."""
+
+    def on_request(self, can_id: int, data: bytearray, timestamp: float) -> None:
+        with self._sim.lock:
+            if not self._sim.serves_sdo or len(data) != SDO_FRAME_LENGTH:
+                return
+            super().on_request(can_id, data, timestamp)  # type: ignore[no-untyped-call]
+            self._sim.after_writes()
+
+    def init_upload(self, request: bytearray) -> None:
+        self._check(request)
+        self._buffer = None
+        super().init_upload(request)  # type: ignore[no-untyped-call]
+        self._segmented = "upload" if self._buffer is not None else None
+
+    def init_download(self, request: bytearray) -> None:
+        self._check(request)
+        self._buffer = None
+        super().init_download(request)  # type: ignore[no-untyped-call]
+        self._segmented = "download" if self._buffer is not None else None
+
+    def segmented_upload(self, command: int) -> None:
+        if self._segmented != "upload":
+            raise SdoAbortedError(ABORT_INVALID_COMMAND_SPECIFIER)
+        super().segmented_upload(command)  # type: ignore[no-untyped-call]
+        if not self._buffer:
+            self._segmented = None
+
+    def segmented_download(self, command: int, request: bytearray) -> None:
+        if self._segmented != "download":
+            raise SdoAbortedError(ABORT_INVALID_COMMAND_SPECIFIER)
+        super().segmented_download(command, request)  # type: ignore[no-untyped-call]
+        if command & NO_MORE_DATA:
+            self._segmented = None
+
+    def block_download(self, data: bytearray) -> None:
+        _, self._index, self._subindex = SDO_STRUCT.unpack_from(data)
+        raise SdoAbortedError(ABORT_INVALID_COMMAND_SPECIFIER)  # not supported
+
+    def request_aborted(self, data: bytearray) -> None:
+        self._segmented = None
+        super().request_aborted(data)  # type: ignore[no-untyped-call]
+
+    def abort(self, abort_code: int = ABORT_GENERAL_ERROR) -> None:
+        self._segmented = None
+        super().abort(abort_code)  # type: ignore[no-untyped-call]
+
+    def _check(self, request: bytearray) -> None:
+        _, index, subindex = SDO_STRUCT.unpack_from(request)
+        self._index, self._subindex = index, subindex
+        code = self._sim.description.sim.sdo_abort.get((index, subindex))
+        if code is not None:
+            raise SdoAbortedError(code)
+        obj = self._sim.object_dictionary.get(index)
+        if isinstance(obj, ODArray) and subindex not in obj.subindices:
+            raise SdoAbortedError(ABORT_NO_SUBINDEX)

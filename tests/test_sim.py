@@ -1,0 +1,702 @@
+"""The simulated CANopen network against a canopen master on the same channel.
+
+Real parts only: the nodes run on one python-can bus object, a
+``canopen.Network`` with ``RemoteNode``s acts as the master on a second bus
+object of the same channel, and every frame is recorded. Absence is shown
+without sleeping: an SDO round trip to the node (a "barrier") is answered
+only after everything the node sent before it, so no frame seen by then
+means no frame was sent.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import random
+import signal
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from itertools import pairwise
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import can
+import canopen
+import pytest
+from canopen.sdo.exceptions import SdoAbortedError, SdoCommunicationError
+
+from cifemu.cli import build_parser
+from dbm_tools.network import GENERIC_DEVICE_TYPE, LssAddress, NetworkError, parse_network
+from firmware.sim import SimulatedNetwork
+from firmware.sim.generic import GENERIC_PRODUCT_CODE, GENERIC_REVISION, GENERIC_VENDOR_ID
+
+if TYPE_CHECKING:
+    from tests.buses import CanChannel
+
+pytest_plugins = ["tests.buses"]
+
+DATA = Path(__file__).parent / "data"
+ROOT = Path(__file__).resolve().parents[1]
+NMT_START, NMT_STOP, NMT_PRE_OPERATIONAL = 0x01, 0x02, 0x80
+NMT_RESET_NODE, NMT_RESET_COMMUNICATION = 0x81, 0x82
+PRE_OPERATIONAL, OPERATIONAL, STOPPED = 0x7F, 0x05, 0x04
+DEADLINE = 3.0
+
+
+class Recorder(can.Listener):
+    """Every frame the master's bus receives, in bus order, with a wait on a condition."""
+
+    def __init__(self) -> None:
+        self.frames: list[can.Message] = []
+        self._changed = threading.Condition()
+
+    def on_message_received(self, msg: can.Message) -> None:
+        with self._changed:
+            self.frames.append(msg)
+            self._changed.notify_all()
+
+    def mark(self) -> int:
+        with self._changed:
+            return len(self.frames)
+
+    def since(self, mark: int, match: Callable[[can.Message], bool]) -> list[can.Message]:
+        with self._changed:
+            return [m for m in self.frames[mark:] if match(m)]
+
+    def wait(self, match: Callable[[can.Message], bool], what: str, since: int = 0,
+             count: int = 1, timeout: float = DEADLINE) -> list[can.Message]:
+        """The first ``count`` matching frames after ``since``; fails at the deadline."""
+        deadline = time.monotonic() + timeout
+        with self._changed:
+            while True:
+                found = [m for m in self.frames[since:] if match(m)]
+                if len(found) >= count:
+                    return found[:count]
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    pytest.fail(f"timed out after {timeout} s waiting for {what}")
+                self._changed.wait(left)
+
+    def wait_quiet(self, match: Callable[[can.Message], bool], quiet: float, what: str,
+                   timeout: float = DEADLINE) -> list[can.Message]:
+        """Waits until no matching frame arrived for ``quiet`` seconds; all matching frames."""
+        deadline = time.monotonic() + timeout
+        with self._changed:
+            while True:
+                found = [m for m in self.frames if match(m)]
+                last = found[-1].timestamp if found else 0.0
+                silent_for = time.time() - last
+                if found and silent_for >= quiet:
+                    return found
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    pytest.fail(f"timed out after {timeout} s waiting for {what}")
+                self._changed.wait(min(left, max(quiet - silent_for, 0.001)))
+
+    def after(self, msg: can.Message) -> int:
+        """The mark just after ``msg``."""
+        with self._changed:
+            return next(n for n, m in enumerate(self.frames) if m is msg) + 1
+
+
+def gaps(frames: list[can.Message]) -> list[float]:
+    return [later.timestamp - earlier.timestamp for earlier, later in pairwise(frames)]
+
+
+def frame(cob_id: int, data: bytes | None = None) -> Callable[[can.Message], bool]:
+    """A matcher: data frames on ``cob_id`` (with exactly ``data`` when given)."""
+    return lambda m: (m.arbitration_id == cob_id and not m.is_remote_frame
+                      and (data is None or bytes(m.data) == data))
+
+
+@dataclass
+class Bench:
+    """Simulated nodes on one bus object, a canopen master on another."""
+
+    sim: SimulatedNetwork
+    master: canopen.Network
+    frames: Recorder
+    started: float
+
+    def node(self, node_id: int) -> canopen.RemoteNode:
+        if node_id not in self.master:
+            self.master.add_node(node_id, canopen.ObjectDictionary())
+        node = self.master[node_id]
+        assert isinstance(node, canopen.RemoteNode)
+        return node
+
+    def read(self, node_id: int, index: int, subindex: int = 0) -> int:
+        return int.from_bytes(self.node(node_id).sdo.upload(index, subindex), "little")
+
+    def write(self, node_id: int, index: int, subindex: int, value: int, size: int) -> None:
+        self.node(node_id).sdo.download(index, subindex, value.to_bytes(size, "little"))
+
+    def barrier(self, node_id: int) -> int:
+        """Returns once everything ``node_id`` sent before now has arrived; a mark after it."""
+        self.read(node_id, 0x1000)
+        return self.frames.mark()
+
+    def nmt(self, command: int, node_id: int) -> None:
+        self.master.send_message(0, bytes([command, node_id]))
+
+    def boot_up(self, node_id: int, since: int = 0) -> can.Message:
+        return self.frames.wait(frame(0x700 + node_id, b"\x00"), f"boot-up of node {node_id}",
+                                since)[0]
+
+    def state(self, node_id: int, state: int, since: int = 0) -> can.Message:
+        """The first heartbeat showing ``state``."""
+        return self.frames.wait(frame(0x700 + node_id, bytes([state])),
+                                f"node {node_id} heartbeat {state:#x}", since)[0]
+
+    def start(self, node_id: int) -> int:
+        mark = self.frames.mark()
+        self.nmt(NMT_START, node_id)
+        self.barrier(node_id)
+        return mark
+
+
+@pytest.fixture
+def bench(can_channel: CanChannel, caplog: pytest.LogCaptureFixture
+          ) -> Iterator[Callable[[str], Bench]]:
+    """Builds a bench from a network description (EDS paths relative to tests/data).
+
+    canopen only logs what its bus callbacks raise, so a test fails on any
+    error logged meanwhile.
+    """
+    benches: list[Bench] = []
+
+    def make(description: str) -> Bench:
+        master = canopen.Network(can_channel.open())
+        master.NOTIFIER_CYCLE = 0.1
+        master.connect()
+        recorder = Recorder()
+        assert master.notifier is not None
+        master.notifier.add_listener(recorder)
+        sim = SimulatedNetwork(parse_network(description, DATA), can_channel.open())
+        started = time.time()
+        sim.start()
+        made = Bench(sim, master, recorder, started)
+        benches.append(made)
+        return made
+
+    yield make
+    for made in benches:
+        made.sim.stop()
+        assert made.master.notifier is not None
+        made.master.notifier.stop()
+    assert [r.getMessage() for r in caplog.records if r.levelno >= logging.ERROR] == []
+
+
+GENERIC = """
+[[node]]
+id = 5
+heartbeat_ms = 100
+"""
+
+
+# --- boot-up, SDO, heartbeat ---------------------------------------------------------
+
+
+def test_boot_up_after_start_then_pre_operational(bench: Callable[[str], Bench]) -> None:
+    b = bench(GENERIC + "[[node]]\nid = 6\n")
+    for node_id in (5, 6):
+        boot = b.boot_up(node_id)
+        b.state(node_id, PRE_OPERATIONAL, b.frames.after(boot))
+    assert b.sim.nodes[5].state == "PRE-OPERATIONAL"
+
+
+def test_sdo_reads_device_type_and_identity(bench: Callable[[str], Bench]) -> None:
+    b = bench(GENERIC + """
+[[node]]
+id = 6
+lss = { vendor = 0x1234, product = 7, revision = 3, serial = 99 }
+""")
+    b.boot_up(5)
+    b.boot_up(6)
+    assert b.read(5, 0x1000) == GENERIC_DEVICE_TYPE
+    assert [b.read(5, 0x1018, sub) for sub in range(5)] == [
+        4, GENERIC_VENDOR_ID, GENERIC_PRODUCT_CODE, GENERIC_REVISION, 5]
+    assert [b.read(6, 0x1018, sub) for sub in range(1, 5)] == [0x1234, 7, 3, 99]
+    assert b.node(5).sdo.upload(0x1008, 0) == b"cifemu generic I/O"  # segmented
+    assert b.read(5, 0x1017) == 50  # half the master's consumer time
+
+
+@pytest.mark.parametrize(("index", "subindex", "code"), [
+    (0x2000, 0, 0x06020000),  # object does not exist
+    (0x6200, 9, 0x06090011),  # sub-index does not exist (canopen would invent it)
+])
+def test_sdo_upload_of_missing_object_aborts(bench: Callable[[str], Bench], index: int,
+                                             subindex: int, code: int) -> None:
+    b = bench(GENERIC)
+    b.boot_up(5)
+    with pytest.raises(SdoAbortedError) as caught:
+        b.node(5).sdo.upload(index, subindex)
+    assert caught.value.code == code
+
+
+def test_sdo_download_checks_access_and_error_history(bench: Callable[[str], Bench]) -> None:
+    b = bench(GENERIC)
+    b.boot_up(5)
+    with pytest.raises(SdoAbortedError) as caught:
+        b.write(5, 0x1000, 0, 1, 4)
+    assert caught.value.code == 0x06010002  # read-only
+    with pytest.raises(SdoAbortedError) as caught:
+        b.write(5, 0x1003, 0, 1, 1)
+    assert caught.value.code == 0x06090030  # only 0 clears the error history
+    b.write(5, 0x6200, 1, 0x5A, 1)
+    assert b.read(5, 0x6000, 1) == 0x5A  # the inputs echo the outputs
+
+
+@pytest.mark.parametrize("request_frame", [
+    bytes([0x60, 0, 0, 0, 0, 0, 0, 0]),  # upload segment, no transfer running
+    bytes([0x00, 0, 0, 0, 0, 0, 0, 0]),  # download segment, no transfer running
+    bytes([0xC2, 0x00, 0x62, 0x01, 4, 0, 0, 0]),  # block download: not supported
+], ids=["upload-segment", "download-segment", "block-download"])
+def test_sdo_protocol_errors_abort(bench: Callable[[str], Bench], request_frame: bytes) -> None:
+    b = bench(GENERIC)
+    b.boot_up(5)
+    mark = b.frames.mark()
+    b.master.send_message(0x605, request_frame)
+    answer = b.frames.wait(frame(0x585), "the abort", mark)[0]
+    assert answer.data[0] == 0x80
+    assert int.from_bytes(answer.data[4:], "little") == 0x05040001
+
+
+def test_heartbeat_at_the_configured_period(bench: Callable[[str], Bench]) -> None:
+    b = bench(GENERIC)  # consumer 100 ms -> producer 50 ms
+    beats = b.frames.wait(frame(0x705, b"\x7f"), "6 heartbeats", count=6)
+    periods = gaps(beats[1:])  # the first beat follows the boot-up at once
+    assert 0.035 <= sum(periods) / len(periods) <= 0.07, periods
+    b.write(5, 0x1017, 0, 20, 2)
+    mark = b.frames.mark()
+    beats = b.frames.wait(frame(0x705, b"\x7f"), "heartbeats at 20 ms", mark, count=6)
+    periods = gaps(beats[1:])
+    assert sum(periods) / len(periods) <= 0.035, periods
+
+
+# --- NMT -----------------------------------------------------------------------------
+
+
+def test_nmt_states_and_what_they_allow(bench: Callable[[str], Bench]) -> None:
+    b = bench(GENERIC + "[[node]]\nid = 6\n")
+    b.boot_up(5)
+    b.boot_up(6)
+    mark = b.frames.mark()
+    b.nmt(NMT_START, 0)  # broadcast
+    b.state(5, OPERATIONAL, mark)
+    b.state(6, OPERATIONAL, mark)
+    mark = b.frames.mark()
+    b.nmt(NMT_STOP, 5)
+    b.state(5, STOPPED, mark)
+    assert b.sim.nodes[6].state == "OPERATIONAL"
+    b.node(5).sdo.RESPONSE_TIMEOUT = 0.2
+    with pytest.raises(SdoCommunicationError):  # STOPPED: no SDO
+        b.read(5, 0x1000)
+    mark = b.frames.mark()
+    b.nmt(NMT_PRE_OPERATIONAL, 5)
+    b.state(5, PRE_OPERATIONAL, mark)
+    assert b.read(5, 0x1000) == GENERIC_DEVICE_TYPE
+
+
+def test_reset_communication_and_reset_node(bench: Callable[[str], Bench]) -> None:
+    b = bench(GENERIC)
+    b.boot_up(5)
+    b.write(5, 0x1017, 0, 500, 2)
+    b.write(5, 0x6200, 1, 0x55, 1)
+    b.nmt(NMT_START, 5)
+    mark = b.frames.mark()
+    b.nmt(NMT_RESET_COMMUNICATION, 5)
+    b.boot_up(5, mark)
+    assert b.sim.nodes[5].state == "PRE-OPERATIONAL"
+    assert b.read(5, 0x1017) == 50  # the communication area is back to power-on values
+    assert b.read(5, 0x6200, 1) == 0x55  # the application area is not
+    mark = b.frames.mark()
+    b.nmt(NMT_RESET_NODE, 5)
+    b.boot_up(5, mark)
+    assert b.read(5, 0x6200, 1) == 0
+
+
+# --- node guarding -------------------------------------------------------------------
+
+GUARDED = """
+[[node]]
+id = 5
+error_control = "guarding"
+guard_time_ms = 0
+"""
+
+
+def guard(b: Bench, node_id: int = 5) -> bytes:
+    mark = b.frames.mark()
+    b.master.send_message(0x700 + node_id, b"", remote=True)
+    return bytes(b.frames.wait(frame(0x700 + node_id), "guarding answer", mark)[0].data)
+
+
+def test_guarding_answer_toggles_and_shows_the_state(bench: Callable[[str], Bench]) -> None:
+    b = bench(GUARDED)
+    b.boot_up(5)
+    assert [guard(b) for _ in range(3)] == [b"\x7f", b"\xff", b"\x7f"]
+    b.start(5)
+    assert [guard(b) for _ in range(2)] == [b"\x85", b"\x05"]
+
+
+def test_no_heartbeat_while_guarding(bench: Callable[[str], Bench]) -> None:
+    b = bench(GUARDED)
+    b.boot_up(5)
+    guard(b)
+    b.barrier(5)
+    heartbeats = b.frames.since(0, frame(0x705))
+    assert [bytes(m.data) for m in heartbeats] == [b"\x00", b"\x7f"]  # boot-up, 1 answer
+
+
+def test_life_guarding_event_and_its_end(bench: Callable[[str], Bench]) -> None:
+    b = bench("""
+[[node]]
+id = 5
+error_control = "guarding"
+guard_time_ms = 50
+life_time_factor = 2
+""")
+    b.boot_up(5)
+    b.start(5)
+    mark = b.frames.mark()
+    guard(b)  # arms life guarding; nothing follows within 100 ms
+    emcy = b.frames.wait(frame(0x85), "life guarding EMCY", mark)[0]
+    assert bytes(emcy.data) == bytes([0x30, 0x81, 0x11, 0, 0, 0, 0, 0])
+    assert guard(b)[0] & 0x7F == PRE_OPERATIONAL  # error behaviour: leave OPERATIONAL
+    b.frames.wait(frame(0x85, bytes(8)), "EMCY error reset", b.frames.after(emcy))
+    assert b.read(5, 0x1003, 0) >= 1  # life guarding is armed again, it may have struck twice
+    assert b.read(5, 0x1003, 1) == 0x8130
+
+
+# --- PDOs ----------------------------------------------------------------------------
+
+ECHO = bytes([1, 2, 3, 4, 5, 6, 7, 8])
+
+
+def test_rpdo1_comes_back_in_tpdo1(bench: Callable[[str], Bench]) -> None:
+    b = bench(GENERIC)
+    b.boot_up(5)
+    mark = b.start(5)
+    b.frames.wait(frame(0x185, bytes(8)), "TPDO1 on entering OPERATIONAL", mark)
+    b.master.send_message(0x205, ECHO)
+    b.frames.wait(frame(0x185, ECHO), "the echo in TPDO1", mark)
+    assert b.read(5, 0x6000, 8) == 8
+    mark = b.frames.mark()
+    b.master.send_message(0x205, ECHO)  # no change: no event
+    b.barrier(5)
+    assert b.frames.since(mark, frame(0x185)) == []
+
+
+def test_rpdo_ignored_outside_operational(bench: Callable[[str], Bench]) -> None:
+    b = bench(GENERIC)
+    b.boot_up(5)
+    b.master.send_message(0x205, ECHO)
+    b.barrier(5)
+    assert b.read(5, 0x6200, 1) == 0
+    assert b.frames.since(0, frame(0x185)) == []
+
+
+def test_short_rpdo_is_dropped_with_emcy(bench: Callable[[str], Bench]) -> None:
+    b = bench(GENERIC)
+    b.boot_up(5)
+    mark = b.start(5)
+    b.master.send_message(0x205, b"\x01\x02")
+    emcy = b.frames.wait(frame(0x85), "EMCY 8210h", mark)[0]
+    assert bytes(emcy.data[:3]) == bytes([0x10, 0x82, 0x11])
+    assert b.read(5, 0x6200, 1) == 0
+
+
+def test_synchronous_tpdo_only_at_sync(bench: Callable[[str], Bench]) -> None:
+    b = bench(GENERIC)
+    b.boot_up(5)
+    b.write(5, 0x1800, 2, 2, 1)  # every second SYNC
+    mark = b.start(5)
+    b.master.send_message(0x205, ECHO)
+    b.barrier(5)
+    assert b.frames.since(mark, frame(0x185)) == []
+    b.master.send_message(0x80, b"")
+    b.barrier(5)
+    assert b.frames.since(mark, frame(0x185)) == []
+    b.master.send_message(0x80, b"")
+    b.frames.wait(frame(0x185, ECHO), "TPDO1 at the second SYNC", mark)
+
+
+def test_synchronous_rpdo_applied_at_sync(bench: Callable[[str], Bench]) -> None:
+    b = bench(GENERIC)
+    b.boot_up(5)
+    b.write(5, 0x1400, 2, 0, 1)
+    b.write(5, 0x1800, 2, 0, 1)  # acyclic synchronous: at SYNC when changed
+    b.start(5)
+    b.master.send_message(0x205, ECHO)
+    assert b.read(5, 0x6200, 1) == 0
+    mark = b.frames.mark()
+    b.master.send_message(0x80, b"")
+    b.frames.wait(frame(0x185, ECHO), "TPDO1 at SYNC", mark)
+    assert b.read(5, 0x6200, 1) == 1
+    b.master.send_message(0x80, b"")
+    b.barrier(5)
+    assert len(b.frames.since(mark, frame(0x185))) == 1  # unchanged: not again
+
+
+def test_rtr_only_tpdo(bench: Callable[[str], Bench]) -> None:
+    b = bench(GENERIC)
+    b.boot_up(5)
+    b.write(5, 0x1800, 2, 253, 1)
+    mark = b.start(5)
+    b.master.send_message(0x205, ECHO)
+    b.barrier(5)
+    assert b.frames.since(mark, frame(0x185)) == []
+    b.master.send_message(0x185, b"", remote=True)
+    b.frames.wait(frame(0x185, ECHO), "TPDO1 on request", mark)
+
+
+def test_rtr_tpdo_sampled_at_sync(bench: Callable[[str], Bench]) -> None:
+    b = bench(GENERIC)
+    b.boot_up(5)
+    b.write(5, 0x1800, 2, 252, 1)
+    mark = b.start(5)
+    b.master.send_message(0x185, b"", remote=True)
+    b.barrier(5)
+    assert b.frames.since(mark, frame(0x185)) == []  # nothing sampled yet
+    b.master.send_message(0x80, b"")
+    b.master.send_message(0x205, ECHO)  # after the sample
+    b.barrier(5)
+    b.master.send_message(0x185, b"", remote=True)
+    b.frames.wait(frame(0x185, bytes(8)), "the data sampled at SYNC", mark)
+
+
+def test_inhibit_time_holds_back_and_sends_the_newest(bench: Callable[[str], Bench]) -> None:
+    b = bench(GENERIC)
+    b.boot_up(5)
+    b.write(5, 0x1800, 3, 3000, 2)  # 300 ms
+    mark = b.start(5)
+    first = b.frames.wait(frame(0x185), "TPDO1 on entering OPERATIONAL", mark)[0]
+    b.master.send_message(0x205, bytes([1] * 8))
+    b.master.send_message(0x205, bytes([2] * 8))
+    second = b.frames.wait(frame(0x185), "TPDO1 after the inhibit time", mark, count=2)[1]
+    assert bytes(second.data) == bytes([2] * 8)
+    assert second.timestamp - first.timestamp >= 0.29
+
+
+def test_event_timer_repeats_unchanged_data(bench: Callable[[str], Bench]) -> None:
+    b = bench(GENERIC)
+    b.boot_up(5)
+    b.write(5, 0x1800, 5, 40, 2)
+    mark = b.start(5)
+    sent = b.frames.wait(frame(0x185, bytes(8)), "TPDO1 by its event timer", mark, count=4)
+    assert all(0.03 <= gap <= 0.1 for gap in gaps(sent)), gaps(sent)
+
+
+# --- faults --------------------------------------------------------------------------
+
+
+def test_silent_node_never_answers(bench: Callable[[str], Bench]) -> None:
+    b = bench(GENERIC + "[[node]]\nid = 6\nsim = { silent = true }\n")
+    b.boot_up(5)
+    b.node(6).sdo.RESPONSE_TIMEOUT = 0.2
+    with pytest.raises(SdoCommunicationError):
+        b.read(6, 0x1000)
+    b.nmt(NMT_START, 6)
+    b.master.send_message(0x706, b"", remote=True)
+    b.barrier(5)
+    assert b.frames.since(0, lambda m: m.arbitration_id & 0x7F == 6) == []
+
+
+def test_wrong_device_type(bench: Callable[[str], Bench]) -> None:
+    b = bench(GENERIC + "sim = { device_type = 0x000F0192 }\n")
+    b.boot_up(5)
+    assert b.read(5, 0x1000) == 0x000F0192
+    mark = b.frames.mark()
+    b.nmt(NMT_RESET_COMMUNICATION, 5)
+    b.boot_up(5, mark)
+    assert b.read(5, 0x1000) == 0x000F0192
+
+
+def test_sdo_abort_on_chosen_objects(bench: Callable[[str], Bench]) -> None:
+    b = bench(GENERIC + """
+[node.sim.sdo_abort]
+"6200:1" = 0x08000021
+"1018:2" = 0x06040047
+""")
+    b.boot_up(5)
+    for action, code in ((lambda: b.read(5, 0x6200, 1), 0x08000021),
+                         (lambda: b.write(5, 0x6200, 1, 1, 1), 0x08000021),
+                         (lambda: b.read(5, 0x1018, 2), 0x06040047)):
+        with pytest.raises(SdoAbortedError) as caught:
+            action()
+        assert caught.value.code == code
+    assert b.read(5, 0x6200, 2) == 0
+
+
+def test_heartbeat_stops_after_n_seconds(bench: Callable[[str], Bench]) -> None:
+    b = bench("[[node]]\nid = 5\nheartbeat_ms = 40\nsim = { heartbeat_stop_after_s = 0.3 }\n")
+    boot = b.boot_up(5)
+    beats = b.frames.wait_quiet(frame(0x705, b"\x7f"), 0.15, "the heartbeat to stop")
+    assert len(beats) >= 5
+    assert 0.25 <= beats[-1].timestamp - boot.timestamp <= 0.4
+    assert b.read(5, 0x1000) == GENERIC_DEVICE_TYPE  # the node itself lives on
+
+
+def test_guarding_fails_after_n_seconds(bench: Callable[[str], Bench]) -> None:
+    b = bench(GUARDED + "sim = { guarding_fail_after_s = 0.3 }\n")
+    boot = b.boot_up(5)
+    deadline = time.monotonic() + DEADLINE
+    while True:  # ask until a request goes unanswered
+        mark = b.frames.mark()
+        b.master.send_message(0x705, b"", remote=True)
+        b.barrier(5)
+        if not b.frames.since(mark, frame(0x705)):
+            break
+        assert time.monotonic() < deadline, "guarding never failed"
+    assert time.time() - boot.timestamp >= 0.25
+
+
+def test_emcy_burst(bench: Callable[[str], Bench]) -> None:
+    b = bench(GENERIC + """emcy_cob_id = 0xC5
+[node.sim]
+emcy_burst = { after_s = 0.1, count = 5, code = 0x4210, interval_s = 0.02 }
+""")
+    boot = b.boot_up(5)
+    burst = b.frames.wait(frame(0xC5), "5 EMCY frames", count=5)
+    assert {bytes(m.data) for m in burst} == {bytes([0x10, 0x42, 0x09, 0, 0, 0, 0, 0])}
+    assert burst[0].timestamp - boot.timestamp >= 0.08
+    assert b.read(5, 0x1001) == 0x09  # generic + temperature
+    assert [b.read(5, 0x1003, sub) for sub in (0, 1, 5)] == [5, 0x4210, 0x4210]
+    b.write(5, 0x1003, 0, 0, 1)
+    assert b.read(5, 0x1003, 0) == 0
+
+
+def test_late_boot_up(bench: Callable[[str], Bench]) -> None:
+    b = bench(GENERIC + "[[node]]\nid = 6\nsim = { boot_delay_s = 0.4 }\n")
+    early = b.boot_up(5)
+    late = b.boot_up(6)
+    assert early.timestamp - b.started < 0.2
+    assert late.timestamp - b.started >= 0.38
+
+
+def test_leaves_operational_by_itself(bench: Callable[[str], Bench]) -> None:
+    b = bench("[[node]]\nid = 5\nheartbeat_ms = 40\n"
+              "sim = { leave_operational_after_s = 0.2 }\n")
+    b.boot_up(5)
+    mark = b.start(5)
+    started = b.state(5, OPERATIONAL, mark)
+    left = b.state(5, PRE_OPERATIONAL, b.frames.after(started))
+    assert 0.15 <= left.timestamp - started.timestamp <= 0.35
+
+
+# --- EDS nodes, LSS slaves -----------------------------------------------------------
+
+
+def test_eds_node(bench: Callable[[str], Bench]) -> None:
+    b = bench('[[node]]\nid = 7\neds = "sim_io.eds"\n')
+    b.boot_up(7)
+    assert b.read(7, 0x1000) == 0x00030191
+    assert [b.read(7, 0x1018, sub) for sub in range(1, 5)] == [
+        0x1234, 0x401, 0x00020001, 0x00C0FFEE]
+    assert b.read(7, 0x1014) == 0x87  # $NODEID+0x80
+    beats = b.frames.wait(frame(0x707, b"\x7f"), "heartbeats per the EDS (100 ms)", count=3)
+    assert 0.07 <= beats[2].timestamp - beats[1].timestamp <= 0.15
+    mark = b.start(7)
+    b.master.send_message(0x207, b"\x12\x34")
+    b.frames.wait(frame(0x187, b"\x12\x34"), "the 2-byte echo", mark)
+
+
+def test_unconfigured_lss_slave_is_silent(bench: Callable[[str], Bench]) -> None:
+    b = bench(GENERIC + """
+[[node]]
+id = 255
+lss = { vendor = 0x1234, product = 2, revision = 3, serial = 4 }
+""")
+    b.boot_up(5)
+    b.barrier(5)
+    assert [slave.address for slave in b.sim.unconfigured] == [LssAddress(0x1234, 2, 3, 4)]
+    assert {m.arbitration_id & 0x7F for m in b.frames.frames} == {5}
+
+
+def test_bus_garbage_never_kills_a_node(bench: Callable[[str], Bench]) -> None:
+    """Random frames on every COB-ID the node listens to, of any length, data or remote."""
+    b = bench(GENERIC)
+    b.boot_up(5)
+    b.start(5)
+    rng = random.Random(5)
+    for _ in range(600):
+        cob_id = rng.choice([0x000, 0x080, 0x205, 0x605, 0x705, 0x185])
+        data = rng.randbytes(rng.randrange(9))
+        if cob_id == 0x605 and len(data) == 8 and rng.random() < 0.5:  # at objects that exist
+            index = rng.choice([0x1003, 0x1005, 0x1008, 0x1017, 0x1400, 0x1800, 0x1A00, 0x6200])
+            data = data[:1] + index.to_bytes(2, "little") + bytes([rng.randrange(10)]) + data[4:]
+        b.master.send_message(cob_id, data, remote=rng.random() < 0.2)
+    mark = b.frames.mark()
+    b.nmt(NMT_RESET_NODE, 5)
+    b.boot_up(5, mark)
+    assert b.read(5, 0x1000) == GENERIC_DEVICE_TYPE
+    mark = b.start(5)
+    b.master.send_message(0x205, ECHO)
+    b.frames.wait(frame(0x185, ECHO), "the echo after the garbage", mark)
+
+
+def test_power_cycle_boots_again(bench: Callable[[str], Bench]) -> None:
+    b = bench(GENERIC)
+    b.boot_up(5)
+    b.write(5, 0x6200, 1, 0x33, 1)
+    b.start(5)
+    b.sim.stop()
+    mark = b.frames.mark()
+    b.sim.start()
+    b.boot_up(5, mark)
+    assert b.read(5, 0x6200, 1) == 0
+    mark = b.start(5)
+    b.master.send_message(0x205, ECHO)
+    b.frames.wait(frame(0x185, ECHO), "the echo after the power cycle", mark)
+
+
+def test_unreadable_eds_is_a_network_error(tmp_path: Path) -> None:
+    eds = tmp_path / "broken.eds"
+    eds.write_text("[DeviceInfo]\n[1000]\nParameterName=Device type\n")  # no DataType
+    network = parse_network('[[node]]\nid = 3\neds = "broken.eds"\n', tmp_path)
+    with (can.Bus(interface="virtual", channel=str(tmp_path)) as bus,
+          pytest.raises(NetworkError, match="node 3: cannot load")):
+        SimulatedNetwork(network, bus)
+
+
+# --- command line --------------------------------------------------------------------
+
+
+def test_cifemu_sim_is_registered() -> None:
+    args = build_parser().parse_args(["sim", "net.toml", "--interface", "virtual",
+                                      "--channel", "x", "--bitrate", "250000"])
+    assert (args.network, args.interface, args.channel, args.bitrate) == (
+        "net.toml", "virtual", "x", 250000)
+
+
+def test_sim_command_runs_until_sigterm(tmp_path: Path) -> None:
+    description = tmp_path / "net.toml"
+    description.write_text(GENERIC + "name = \"valve block\"\nsim = { silent = true }\n")
+    with subprocess.Popen(
+        [sys.executable, "-m", "firmware.sim", str(description), "--interface", "virtual",
+         "--channel", "cli-test", "--log-level", "WARNING"],
+        stdout=subprocess.PIPE, text=True, cwd=ROOT, env={**os.environ, "PYTHONPATH": str(ROOT)},
+    ) as proc:
+        assert proc.stdout is not None
+        header = proc.stdout.readline()
+        line = proc.stdout.readline()
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(timeout=10) == 0
+    assert header.startswith(f"simulating {description} on virtual cli-test at 500000 bit/s")
+    assert line.strip() == ("node 5 'valve block': generic I/O module, heartbeat 50 ms; "
+                            "faults: silent")
+
+
+def test_sim_command_reports_a_bad_description(tmp_path: Path) -> None:
+    description = tmp_path / "net.toml"
+    description.write_text("[[node]]\nid = 300\n")
+    done = subprocess.run(
+        [sys.executable, "-m", "firmware.sim", str(description), "--interface", "virtual",
+         "--channel", "cli-test"], capture_output=True, text=True, cwd=ROOT, timeout=30)
+    assert done.returncode == 1
+    assert done.stderr == "cifemu sim: node 300: id = 300 is outside 1..127\n"
