@@ -115,7 +115,8 @@ def running_card(board: int = 0, *, startup_timeout: float = STARTUP_TIMEOUT) ->
     with tempfile.TemporaryDirectory(prefix="cifemu-bench-", dir=_scratch_root()) as tmp:
         directory = Path(tmp)
         command = [sys.executable, "-m", "firmware", "--board", str(board),
-                   "--dpm-dir", tmp, "--log-level", "WARNING"]
+                   "--dpm-dir", tmp, "--flash", str(directory / "flash"),
+                   "--log-level", "WARNING"]
         proc = subprocess.Popen(command, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL)
         try:
             card = Card(directory, board, proc.pid)

@@ -6,6 +6,7 @@
   cifemu dbm        DBM files (show, check, build, diff) and a card's stored database
                     (download, upload, delete, dir)
   cifemu demo       a card, a simulated network, on-line configuration, live status
+  cifemu 309        the CiA 309-3 ASCII gateway (serve, exec, shell)
 """
 
 from __future__ import annotations
@@ -30,6 +31,7 @@ from firmware.sim import cli as sim_cli
 from host_api import driver as d
 from host_api import status as status_cli
 from host_api.board import Board
+from host_api.cia309 import cli as cia309_cli
 from host_api.online import configure_online
 
 
@@ -99,6 +101,11 @@ def build_parser() -> argparse.ArgumentParser:
                          formatter_class=argparse.RawDescriptionHelpFormatter)
     dbm_cli.add_arguments(dbm)
     dbm.set_defaults(func=dbm_cli.run)
+    cia309 = sub.add_parser("309", help="CiA 309-3 ASCII gateway: serve, exec, shell",
+                            description=cia309_cli.__doc__,
+                            formatter_class=argparse.RawDescriptionHelpFormatter)
+    cia309_cli.add_arguments(cia309)
+    cia309.set_defaults(func=cia309_cli.run)
     demo = sub.add_parser("demo", help="a card, simulated nodes, live status (Ctrl-C ends)",
                           description=_demo.__doc__)
     demo.add_argument("--dpm-dir", default=os.environ.get("CIFEMU_DEMO_DIR"),

@@ -7,14 +7,21 @@ bad strings into DbmError instead of struct.error or UnicodeError.
 
 from __future__ import annotations
 
+import functools
 import struct
 
 from dbm_tools.errors import DbmError
 
 
+@functools.cache
+def _layout(fmt: str) -> struct.Struct:
+    """Compiled once per format: a large database unpacks the same few layouts many times."""
+    return struct.Struct("<" + fmt)
+
+
 def unpack(fmt: str, data: bytes, offset: int, what: str) -> tuple[int, ...]:
     """Read a little-endian struct at `offset`, or fail naming the field."""
-    layout = struct.Struct("<" + fmt)
+    layout = _layout(fmt)
     if offset < 0 or offset + layout.size > len(data):
         raise DbmError(f"data too short for {what}", field=what)
     return tuple(int(v) for v in layout.unpack_from(data, offset))

@@ -25,6 +25,11 @@ The whole schema, with defaults::
     accept_code = 0             # 29-bit acceptance code / mask
     accept_mask = 0
     extended_ids = false        # 29-bit receive filter on (bi11Bit29BitSelector)
+    # Card start-up, stored in the DBM only (GLOBAL and PLC_PARAM):
+    wait_for_host = false       # bSystemStart: the bus starts when the host clears NOTREADY
+    host_watchdog_ms = 1000     # usHostWatchdogValue (SyCon's default), 0 = no supervision
+    handshake = "buffered-host-controlled"  # PLC_PARAM bMode: or "buffered-device-controlled",
+                                            # "uncontrolled"
 
     [[node]]
     id = 5                      # 1..127; 255 = an unconfigured LSS slave (needs lss)
@@ -62,6 +67,7 @@ The whole schema, with defaults::
     emcy_burst = { after_s = 1.0, count = 5, code = 0x1000, interval_s = 0.01 }
     boot_delay_s = 0.5
     leave_operational_after_s = 3.0
+    bus_errors = { after_s = 1.0, count = 3, kind = "warning" }  # or "bus_off", "ack"
 """
 
 from __future__ import annotations
@@ -85,6 +91,11 @@ GENERIC_DEVICE_TYPE = 0x000F0191
 
 UNCONFIGURED = 255
 
+HANDSHAKES: dict[str, int] = {
+    "buffered-device-controlled": 1, "uncontrolled": 2, "buffered-host-controlled": 3,
+}
+"""[bus] handshake -> PLC_PARAM bMode (seed 2.1, CANM_SET_MODE_*)."""
+
 
 class NetworkError(ValueError):
     """A network description that cannot be used; the message names the key."""
@@ -103,10 +114,18 @@ class BusDescription:
     accept_code: int = 0
     accept_mask: int = 0
     extended_ids: bool = False
+    wait_for_host: bool = False
+    host_watchdog_ms: int = 1000
+    handshake: str = "buffered-host-controlled"
 
     @property
     def baud_rate_code(self) -> int:
         return BITRATES[self.bitrate]
+
+    @property
+    def plc_mode(self) -> int:
+        """bMode of PLC_PARAM, the protocol parameter a cold start takes from the DBM."""
+        return HANDSHAKES[self.handshake]
 
 
 @dataclass
@@ -145,6 +164,18 @@ class EmcyBurst:
     interval_s: float = 0.01
 
 
+BUS_ERROR_KINDS = ("warning", "bus_off", "ack")
+"""Error frames a simulated node can put on the bus: the controller's error-warning
+limit, bus-off, and a missing acknowledge (SocketCAN error classes)."""
+
+
+@dataclass
+class BusErrors:
+    after_s: float = 1.0
+    count: int = 1
+    kind: str = "warning"
+
+
 @dataclass
 class SimFaults:
     """Fault injection for a simulated node; all off by default."""
@@ -157,6 +188,7 @@ class SimFaults:
     emcy_burst: EmcyBurst | None = None
     boot_delay_s: float = 0.0
     leave_operational_after_s: float | None = None
+    bus_errors: BusErrors | None = None
 
 
 @dataclass
@@ -237,7 +269,8 @@ def _bus(table: dict[str, Any]) -> BusDescription:
     _take(table, "bus", {
         "bitrate": int, "sync_cob_id": int, "sync_period_ms": int, "auto_clear": bool,
         "byte_order": str, "master_node_id": int, "heartbeat_ms": int, "global_start": bool,
-        "accept_code": int, "accept_mask": int, "extended_ids": bool,
+        "accept_code": int, "accept_mask": int, "extended_ids": bool, "wait_for_host": bool,
+        "host_watchdog_ms": int, "handshake": str,
     })
     bus = BusDescription(**table)
     if bus.bitrate not in BITRATES:
@@ -247,10 +280,14 @@ def _bus(table: dict[str, Any]) -> BusDescription:
         raise NetworkError(f"bus.byte_order = {bus.byte_order!r}: use \"intel\" or \"motorola\"")
     _range("bus.sync_cob_id", bus.sync_cob_id, 1, 0x7FF)
     _range("bus.sync_period_ms", bus.sync_period_ms, 0, 0xFFFF)
-    _range("bus.master_node_id", bus.master_node_id, 0, 127)
+    _range("bus.master_node_id", bus.master_node_id, 0, 126)  # seed 5.2.5.3.1: 0-126
     _range("bus.heartbeat_ms", bus.heartbeat_ms, 0, 0xFFFF)
     _range("bus.accept_code", bus.accept_code, 0, 0x1FFFFFFF)
     _range("bus.accept_mask", bus.accept_mask, 0, 0x1FFFFFFF)
+    _range("bus.host_watchdog_ms", bus.host_watchdog_ms, 0, 0xFFFF)
+    if bus.handshake not in HANDSHAKES:
+        raise NetworkError(f"bus.handshake = {bus.handshake!r}: use one of "
+                           + ", ".join(f'"{name}"' for name in HANDSHAKES))
     return bus
 
 
@@ -267,9 +304,10 @@ def _sim(table: dict[str, Any], where: str) -> SimFaults:
         "silent": bool, "device_type": int, "sdo_abort": dict,
         "heartbeat_stop_after_s": (int, float), "guarding_fail_after_s": (int, float),
         "emcy_burst": dict, "boot_delay_s": (int, float),
-        "leave_operational_after_s": (int, float),
+        "leave_operational_after_s": (int, float), "bus_errors": dict,
     })
-    faults = SimFaults(**{k: v for k, v in table.items() if k not in ("sdo_abort", "emcy_burst")})
+    faults = SimFaults(**{k: v for k, v in table.items()
+                          if k not in ("sdo_abort", "emcy_burst", "bus_errors")})
     for key, code in table.get("sdo_abort", {}).items():
         if not isinstance(code, int):
             raise NetworkError(f"{where}.sdo_abort.{key}: the abort code must be an integer")
@@ -278,6 +316,13 @@ def _sim(table: dict[str, Any], where: str) -> SimFaults:
         burst = _take(table["emcy_burst"], f"{where}.emcy_burst", {
             "after_s": (int, float), "count": int, "code": int, "interval_s": (int, float)})
         faults.emcy_burst = EmcyBurst(**burst)
+    if "bus_errors" in table:
+        errors = _take(table["bus_errors"], f"{where}.bus_errors",
+                       {"after_s": (int, float), "count": int, "kind": str})
+        faults.bus_errors = BusErrors(**errors)
+        if faults.bus_errors.kind not in BUS_ERROR_KINDS:
+            raise NetworkError(f"{where}.bus_errors.kind = {faults.bus_errors.kind!r}: use one "
+                               f"of {', '.join(BUS_ERROR_KINDS)}")
     return faults
 
 

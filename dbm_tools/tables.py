@@ -7,6 +7,7 @@ the node address. The other tables are DBM-only and live here.
 
 from __future__ import annotations
 
+import binascii
 from dataclasses import dataclass, field
 
 from dbm_tools._binary import decode_text, encode_text, fixed, pack, unpack
@@ -95,25 +96,16 @@ def checksum_crc(dbm: DbmFile) -> int:
     payloads of all tables except GLOBAL, in table order.
 
     SyCon's own value is not reproducible, so a mismatch is only ever a warning.
+    binascii's CRC-CCITT (poly 0x1021, unreflected, our initial value 0xFFFF, no final
+    XOR) is that CRC, in C: every start checks the stored database with it.
     """
     crc = 0xFFFF
     for table in dbm.tables:
         if table.name == GLOBAL:
             continue
         for record in table.records:
-            for byte in record:
-                crc = ((crc << 8) & 0xFFFF) ^ _CRC_TABLE[(crc >> 8) ^ byte]
+            crc = binascii.crc_hqx(record, crc)
     return crc
-
-
-def _crc_table_entry(value: int) -> int:
-    crc = value << 8
-    for _ in range(8):
-        crc = ((crc << 1) ^ 0x1021 if crc & 0x8000 else crc << 1) & 0xFFFF
-    return crc
-
-
-_CRC_TABLE = [_crc_table_entry(value) for value in range(256)]
 
 
 @dataclass

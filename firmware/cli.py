@@ -6,10 +6,17 @@ import argparse
 import logging
 import signal
 import sys
+from pathlib import Path
 from types import FrameType
 
+import can
+
+from dbm_tools.network import NetworkError, load_network
 from dpm.image import DEFAULT_DPM_DIR, MAX_DEV_BOARDS, BoardBusyError
+from firmware.can.master import BusConfig
 from firmware.device import Device
+from firmware.flash import FLASH_ENV
+from firmware.sim import SimulatedNetwork
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -18,6 +25,26 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--dpm-dir", default=None,
                         help=f"directory of the image board<N>.dpm "
                              f"(default $CIF_DPM_DIR or {DEFAULT_DPM_DIR})")
+    parser.add_argument("--interface", default="virtual",
+                        help="python-can interface: virtual (default; in this process only), "
+                             "udp_multicast (shared by processes on this machine), socketcan "
+                             "(vcan or real hardware), or any other python-can offers")
+    parser.add_argument("--channel", default=None,
+                        help="python-can channel (default: 'cifemu' for virtual, vcan0 for "
+                             "socketcan, the default group for udp_multicast)")
+    parser.add_argument("--bitrate", type=int, default=None, metavar="BPS",
+                        help="bit rate for interfaces that set one (default: the bus "
+                             "parameters' Baud_rate)")
+    parser.add_argument("--trace", type=Path, default=None, metavar="FILE",
+                        help="log every frame the card sends or receives; the format follows "
+                             "the suffix: .blf, .asc, .log (candump), .csv, .trc ...")
+    parser.add_argument("--simulate", type=Path, default=None, metavar="NETWORK.toml",
+                        help="also run the simulated nodes of a network description on the "
+                             "same bus, in this process")
+    parser.add_argument("--flash", type=Path, default=None, metavar="DIR",
+                        help="the board's flash directory, where a downloaded DBM is kept "
+                             f"(default ${FLASH_ENV}/board<N>, else "
+                             "<user data dir>/cifemu/flash/board<N>)")
     parser.add_argument("--reset-delay", type=float, default=0.0, metavar="SECONDS",
                         help="emulate a real card's slow start (default 0: milliseconds)")
     parser.add_argument("--log-level", default="INFO",
@@ -26,11 +53,28 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     logging.basicConfig(level=args.log_level, format="%(asctime)s %(name)s: %(message)s")
+    if args.log_level != "DEBUG":  # canopen narrates every transfer at INFO
+        logging.getLogger("canopen").setLevel(logging.WARNING)
+    network = None
+    if args.simulate is not None:
+        try:
+            network = load_network(args.simulate)
+        except NetworkError as exc:
+            print(f"cifemu firmware: {args.simulate}: {exc}", file=sys.stderr)
+            return 1
+    bus = BusConfig(args.interface, args.channel or default_channel(args.interface),
+                    args.bitrate, args.trace)
     try:
-        device = Device(args.board, args.dpm_dir, reset_delay=args.reset_delay)
+        device = Device(args.board, args.dpm_dir, reset_delay=args.reset_delay, bus=bus,
+                        flash_dir=args.flash)
     except BoardBusyError as exc:
         print(f"cifemu firmware: board {args.board} refused: {exc}", file=sys.stderr)
         return 1
+    simulation = None
+    if network is not None:
+        sim_bus = can.Bus(interface=bus.interface, channel=bus.channel)
+        simulation = SimulatedNetwork(network, sim_bus)
+        simulation.start()
 
     def on_signal(signum: int, frame: FrameType | None) -> None:
         del signum, frame
@@ -39,8 +83,23 @@ def run(args: argparse.Namespace) -> int:
     signal.signal(signal.SIGTERM, on_signal)
     signal.signal(signal.SIGINT, on_signal)
     logging.getLogger("firmware").info("board %d serving %s", args.board, device.path)
-    device.run()
+    try:
+        device.run()
+    finally:
+        if simulation is not None:
+            simulation.stop()
+            sim_bus.shutdown()
     return 0
+
+
+def default_channel(interface: str) -> str:
+    if interface == "socketcan":
+        return "vcan0"
+    if interface == "udp_multicast":
+        from can.interfaces.udp_multicast import UdpMulticastBus
+
+        return str(UdpMulticastBus.DEFAULT_GROUP_IPv4)
+    return "cifemu"
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -34,7 +34,9 @@ from dpm.layout import (
 from dpm.message import Ext, Message
 from dpm.task2 import CanState
 from firmware import info
+from firmware.can.master import BusConfig
 from firmware.can_task import CanTask
+from firmware.flash import FlashStore, StoredDatabase, default_flash_dir
 from firmware.plc import PlcTask
 from firmware.rcs import RcsTask, Start
 from firmware.task import Task
@@ -54,7 +56,8 @@ class Device:
     """Board N of one emulated card, served from the calling thread by ``run``."""
 
     def __init__(
-        self, board: int = 0, directory: str | Path | None = None, *, reset_delay: float = 0.0
+        self, board: int = 0, directory: str | Path | None = None, *, reset_delay: float = 0.0,
+        bus: BusConfig | None = None, flash_dir: str | Path | None = None,
     ) -> None:
         self.board = board
         self.directory = dpm_dir(directory)
@@ -69,10 +72,16 @@ class Device:
         self._stop = threading.Event()
         self._ring = False
         self._state_sent = b""
-        self._can_state = -1
+        self._shown_can_state = -1
+        self.state_lock = threading.RLock()
+        """Task2State is written by the device loop and the CAN task's threads."""
+        self._errors: dict[int, int] = {}
+        self.flash = FlashStore(Path(flash_dir) if flash_dir else default_flash_dir(board))
+        self.database: StoredDatabase | None = None
+        """What the last start found in flash (``RcsTask.start``)."""
         self.rcs = RcsTask(self, reset_delay)
         self.plc = PlcTask(self)
-        self.can = CanTask(self)
+        self.can = CanTask(self, bus)
         self.tasks: dict[int, Task] = {t.number: t for t in (self.rcs, self.plc, self.can)}
 
     # --- life cycle -----------------------------------------------------------------
@@ -80,6 +89,7 @@ class Device:
     def run(self) -> None:
         """Power on (a cold start), then serve the image until ``stop``."""
         try:
+            self.can.open()
             self.rcs.start(Start.COLD)
             self._flush()
             while not self._stop.is_set():
@@ -98,6 +108,7 @@ class Device:
         return self._stop.wait(seconds)
 
     def _power_off(self) -> None:
+        self.can.close()
         self.write_host_flags(0)
         self._flush()
         self.bell.close()
@@ -140,23 +151,68 @@ class Device:
     # --- Task2State ----------------------------------------------------------------------
 
     def clear_state(self) -> None:
-        self.mm[TASK2_STATE : TASK2_STATE + TASK_STATE_SIZE] = bytes(TASK_STATE_SIZE)
+        with self.state_lock:
+            self.mm[TASK2_STATE : TASK2_STATE + TASK_STATE_SIZE] = bytes(TASK_STATE_SIZE)
+            self._errors.clear()
         self._state_sent = bytes(TASK_STATE_SIZE)
-        self._can_state = CanState.OFFLINE
+        self._shown_can_state = CanState.OFFLINE
 
     def set_global_bit(self, bit: int, on: bool) -> None:
-        state = self.view["Task2State"]
-        value = int(state["bGlobalBits"])
-        state["bGlobalBits"] = value | bit if on else value & ~bit
+        with self.state_lock:
+            state = self.view["Task2State"]
+            value = int(state["bGlobalBits"])
+            new = value | bit if on else value & ~bit
+            if new != value:
+                state["bGlobalBits"] = new
 
-    def set_error(self, node: int, event: int, bits: int = 0) -> None:
-        """Report an error; the lowest faulty address wins (seed manual 4.3)."""
+    def set_node_bit(self, field: str, address: int, on: bool) -> None:
+        """One node's bit in Nd_cfg, Nd_state or Nd_diag (bit n = node n)."""
+        offset = TASK2_STATE + {"abNd_cfg": 16, "abNd_state": 32, "abNd_diag": 48}[field]
+        offset += address >> 3
+        bit = 1 << (address & 7)
+        with self.state_lock:
+            value = self.mm[offset]
+            self.mm[offset] = value | bit if on else value & ~bit
+
+    def report_error(self, node: int, event: int, bits: int = 0) -> None:
+        """Report an error; Err_Node_adr shows the lowest faulty address (seed 4.3)."""
+        with self.state_lock:
+            self._errors[node] = event
+            self._show_error()
+            if bits:
+                self.set_global_bit(bits, True)
+
+    def clear_error(self, node: int) -> None:
+        with self.state_lock:
+            if self._errors.pop(node, None) is not None:
+                self._show_error()
+
+    def _show_error(self) -> None:
         state = self.view["Task2State"]
-        if int(state["bErr_event"]) == 0 or node <= int(state["bErr_rem_adr"]):
+        if self._errors:
+            node = min(self._errors)
             state["bErr_rem_adr"] = node
-            state["bErr_event"] = event
-        if bits:
-            self.set_global_bit(bits, True)
+            state["bErr_event"] = self._errors[node]
+        else:
+            state["bErr_rem_adr"] = 0
+            state["bErr_event"] = 0
+
+    def count(self, counter: str) -> None:
+        """Increment a Task2State counter (usBus_Error_Cnt ...), saturating at 65535."""
+        with self.state_lock:
+            state = self.view["Task2State"]
+            state[counter] = min(0xFFFF, int(state[counter]) + 1)
+
+    def reset_counters(self) -> None:
+        with self.state_lock:
+            state = self.view["Task2State"]
+            for counter in ("usBus_Error_Cnt", "usBus_Off_Cnt", "usMsg_Time_Out",
+                            "usRx_Overflow"):
+                state[counter] = 0
+
+    def descript_records(self) -> dict[int, bytes] | None:
+        """DESCRIPT records of the stored database by station address; None: no table."""
+        return self.database.descript_records() if self.database is not None else None
 
     def set_exchange_mode(self, mode: int) -> None:
         self.mm[DRIVER_TYPE] = (mode << 4) | STATE_MODE_EVENT
@@ -184,23 +240,38 @@ class Device:
         self._levels()
         if (mm[HOST_FLAGS] ^ mm[DEV_FLAGS]) & fl.DEV_MBX and len(self.outbox) < OUTBOX_LIMIT:
             self._receive()
-        if self.outbox and not (mm[HOST_FLAGS] ^ mm[DEV_FLAGS]) & fl.HOST_MBX:
-            self._deliver()
+        if not (mm[HOST_FLAGS] ^ mm[DEV_FLAGS]) & fl.HOST_MBX:
+            if not self.outbox:
+                indication = self.can.next_indication()
+                if indication is not None:
+                    self.outbox.append(indication)
+            if self.outbox:
+                self._deliver()
         self.plc.service(mm[HOST_FLAGS], mm[DEV_FLAGS])
         self._state_field()
         self._set_level(fl.SPCACK, bool(mm[DEV_FLAGS] & fl.SPCCOM))
         self._flush()
 
-    def _levels(self) -> None:
-        """RUN follows the configuration, COM the bus communication."""
+    def _current_can_state(self) -> CanState:
         configured = self.can.configured and self.plc.image.mode != 0
-        com = configured and self.can.communicating and self.plc.image.driving
-        self._set_level(fl.RUN, configured)
-        self._set_level(fl.COM, com)
-        state = CanState.OPERATE if com else CanState.STOP if configured else CanState.OFFLINE
-        if state != self._can_state:
-            self._can_state = state
+        state = self.can.can_state() if configured else CanState.OFFLINE
+        if state == CanState.OPERATE and not self.plc.image.driving:
+            state = CanState.STOP  # the CAN tick follows within a millisecond
+        return state
+
+    def level_flags(self) -> int:
+        """RUN while configured, COM while the bus communication runs; shows CAN_state too."""
+        state = self._current_can_state()
+        if state != self._shown_can_state:
+            self._shown_can_state = state
             self.view["Task2State"]["bCAN_State"] = state
+        return (fl.RUN if state != CanState.OFFLINE else 0) | (
+            fl.COM if state == CanState.OPERATE else 0)
+
+    def _levels(self) -> None:
+        levels = self.level_flags()
+        self._set_level(fl.RUN, bool(levels & fl.RUN))
+        self._set_level(fl.COM, bool(levels & fl.COM))
 
     def _receive(self) -> None:
         mm = self.mm

@@ -54,7 +54,7 @@ class PlcTask(Task):
         self.image.clear()
         self.device.set_exchange_mode(mode)
         if mode == 0:
-            self.device.set_error(
+            self.device.report_error(
                 errors.ERR_NODE_DEVICE, errors.ERR_EVENT_HANDSHAKE_MODE, GlobalBits.CTRL
             )
             return False

@@ -40,6 +40,13 @@ class ProcessImage:
                 return self._mm[SND_PD + offset : SND_PD + offset + size]
             return bytes(self.outputs[offset : offset + size])
 
+    def snapshot_outputs(self) -> bytes:
+        """All outputs at once: the CAN task compares them to find changed PDOs."""
+        with self.lock:
+            if self.mode == UNCONTROLLED:
+                return self._mm[SND_PD : SND_PD + IO_AREA_SIZE]
+            return bytes(self.outputs)
+
     def write_inputs(self, offset: int, data: bytes) -> None:
         """Store what the bus delivered; visible at once in the uncontrolled mode."""
         with self.lock:

@@ -15,6 +15,7 @@ from dpm import errors
 from dpm import flags as fl
 from dpm.layout import DEV_FLAGS, DEV_WATCHDOG, HOST_WATCHDOG, TASK2_PARAMETER, TASK_PARAMETER_SIZE
 from dpm.task2 import ComPlcParameter, GlobalBits
+from firmware.flash import LOAD_FUNCTION, LoadFunction, StoredDatabase
 from firmware.task import Task
 
 if TYPE_CHECKING:
@@ -49,6 +50,12 @@ class RcsTask(Task):
         self._last_dev_watchdog = 0
         self._watchdog_deadline = 0.0
         self.host_not_ready = False
+        self.load_function = LoadFunction(device.flash)
+        self.handlers[LOAD_FUNCTION] = self.load_function.handle
+
+    def reset(self, cold: bool) -> None:
+        del cold
+        self.load_function.abort()
 
     def start(self, kind: Start) -> None:
         """Run one start: everything down, parameters in, READY (and RUN) up."""
@@ -61,8 +68,9 @@ class RcsTask(Task):
         if self.reset_delay and dev.sleep(self.reset_delay):
             return
         cold = kind is not Start.WARM
-        if cold:
-            parameter = ComPlcParameter()
+        database = dev.database = StoredDatabase.load(dev.flash)
+        if cold:  # a warm start keeps the host's parameters: they rank above flash (seed 2)
+            parameter = database.protocol_parameters() if database else ComPlcParameter()
         else:
             raw = dev.mm[TASK2_PARAMETER : TASK2_PARAMETER + TASK_PARAMETER_SIZE]
             parameter = ComPlcParameter.decode(raw)
@@ -78,16 +86,25 @@ class RcsTask(Task):
         for task in dev.tasks.values():
             task.reset(cold)
         dev.plc.apply_parameters(parameter)
-        dev.write_host_flags(fl.READY)
+        if database is not None:
+            if database.waits_for_host:  # [ours] bSystemStart: the host's HOST_READY starts it
+                dev.mm[DEV_FLAGS] = fl.NOTREADY
+                self._follow_not_ready(True)
+            database.configure(dev)
+        # READY, RUN and COM in one write: a host that saw READY also sees RUN.
+        dev.write_host_flags(fl.READY | dev.level_flags())
 
     def service(self, dev_flags: int, now: float) -> None:
         """Follow NOTREADY and the host watchdog; called every loop turn."""
         not_ready = bool(dev_flags & fl.NOTREADY)
         if not_ready != self.host_not_ready:
-            self.host_not_ready = not_ready
-            self.device.set_global_bit(GlobalBits.NRDY, not_ready)
-            self.device.update_driving()
+            self._follow_not_ready(not_ready)
         self._watchdog(now)
+
+    def _follow_not_ready(self, not_ready: bool) -> None:
+        self.host_not_ready = not_ready
+        self.device.set_global_bit(GlobalBits.NRDY, not_ready)
+        self.device.update_driving()
 
     def _watchdog(self, now: float) -> None:
         mm = self.device.mm
@@ -105,6 +122,6 @@ class RcsTask(Task):
         if self.watchdog_time and now > self._watchdog_deadline:
             log.warning("host watchdog expired after %d ms", self.watchdog_time)
             self.watchdog_expired = True
-            self.device.set_error(errors.ERR_NODE_DEVICE, errors.ERR_EVENT_HOST_WATCHDOG)
+            self.device.report_error(errors.ERR_NODE_DEVICE, errors.ERR_EVENT_HOST_WATCHDOG)
             self.device.update_driving()
 

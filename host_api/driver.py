@@ -712,6 +712,11 @@ def DevReadWriteDPMRaw(
     return Drv.DRV_NO_ERROR, b""
 
 
+# Last, because host_api.download uses this module: DevDownload lives there.
+from host_api.download import CONFIGURATION_DOWNLOAD, FIRMWARE_DOWNLOAD  # noqa: E402
+from host_api.download import DevDownload as DevDownload  # noqa: E402
+
 __all__ = [name for name in dir() if name.startswith("Dev")] + [
+    "CONFIGURATION_DOWNLOAD", "FIRMWARE_DOWNLOAD",
     "BOOTSTART", "COLDSTART", "HOST_NOT_READY", "HOST_READY", "WARMSTART", "ComState",
 ]

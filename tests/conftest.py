@@ -90,6 +90,15 @@ def start_card(directory: Path, board: int = 0, *extra: str) -> Card:
         time.sleep(0.005)
 
 
+@pytest.fixture(autouse=True)
+def private_flash(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
+    """Every firmware a test starts keeps its database in the test's own flash root
+    ($CIFEMU_FLASH_DIR), never in the user's data directory."""
+    root = tmp_path / "flash"
+    monkeypatch.setenv("CIFEMU_FLASH_DIR", str(root))
+    return root
+
+
 @pytest.fixture
 def card(tmp_path: Path) -> Iterator[Card]:
     c = start_card(tmp_path)

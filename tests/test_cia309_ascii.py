@@ -384,7 +384,7 @@ def test_framer_reports_an_overlong_line_once_and_resyncs() -> None:
     framer = LineFramer(max_line=12)
     assert framer.feed(b"[1] 12345678\n") == ["[1] 12345678"]  # exactly the limit
     events = framer.feed(b"[7] w 0x2000 0 d AAAA")
-    assert events == [OverlongLine("[7] w 0x2000 0 d AAAA")]
+    assert events == [OverlongLine("[7] w 0x2000 ")]  # the first max_line + 1 bytes
     overlong = events[0]
     assert isinstance(overlong, OverlongLine)
     assert overlong.sequence == 7

@@ -129,6 +129,18 @@ class Master:
         self._sync_thread = threading.Thread(target=self._sync_loop, name="can-sync", daemon=True)
         self._sync_thread.start()
 
+    @property
+    def closing(self) -> bool:
+        return self._stop.is_set()
+
+    def wait_for(self, event: threading.Event, timeout: float) -> bool:
+        """Wait for ``event`` but give up at once when the card powers off."""
+        deadline = time.monotonic() + timeout
+        while not event.wait(min(0.05, max(0.0, deadline - time.monotonic()))):
+            if self._stop.is_set() or time.monotonic() >= deadline:
+                return False
+        return True
+
     def close(self) -> None:
         self._stop.set()
         self._sync_wakeup.set()

@@ -231,10 +231,12 @@ class NodeHandler:
 
     def _boot_steps(self, skip: int, sdo: SdoClient) -> None:
         params = self.params
+        if self.master.closing:
+            raise _BootFailure(NO_RESPONSE)
         if not skip & ConfigNdState.RESET:
             self._bootup.clear()
             self.master.nmt(NMT_RESET, self.address)
-            if not self._bootup.wait(BOOTUP_TIMEOUT):
+            if not self.master.wait_for(self._bootup, BOOTUP_TIMEOUT):
                 self.diag.status |= NO_RESPONSE_BIT
                 raise _BootFailure(NO_RESPONSE)
         if not skip & ConfigNdState.DEVICE:

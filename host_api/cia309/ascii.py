@@ -380,7 +380,10 @@ class LineFramer:
             return
         self._buffer += chunk
         if len(self._buffer) > self.max_line:
-            out.append(OverlongLine(self._buffer[:_OVERLONG_HEAD].decode("latin-1")))
+            # Only the first max_line + 1 bytes are certain to be here whatever the
+            # chunking, so the report is made of no more than those.
+            head = self._buffer[: min(_OVERLONG_HEAD, self.max_line + 1)]
+            out.append(OverlongLine(head.decode("latin-1")))
             self._buffer.clear()
             self._discarding = True
 
