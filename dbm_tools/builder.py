@@ -52,6 +52,9 @@ from dbm_tools.container import DbmFile, DbmTable
 from dbm_tools.eds import EdsDevice, EdsError, read_eds
 from dbm_tools.network import (
     GENERIC_DEVICE_TYPE,
+    GENERIC_PRODUCT,
+    GENERIC_PRODUCT_CODE,
+    GENERIC_VENDOR_ID,
     UNCONFIGURED,
     Network,
     NodeDescription,
@@ -98,10 +101,6 @@ PROJECT_NAME_LENGTH = 40
 PROJECT_VERSION = "1.000"
 DEFAULT_PROJECT = "CANopen network"
 GENERIC_VENDOR = "cifemu"
-GENERIC_VENDOR_ID = 0x00434946
-GENERIC_PRODUCT_CODE = 0x00000191
-GENERIC_PRODUCT = "cifemu generic I/O"
-"""The generic module's identity, as the simulator's node reports it (firmware.sim.generic)."""
 GENERIC_PDO_LENGTH = 8
 
 

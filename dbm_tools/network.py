@@ -88,6 +88,11 @@ BOOT_STEPS = ("reset", "device", "guard", "sync", "emcy", "sdo", "start", "pdo")
 
 GENERIC_DEVICE_TYPE = 0x000F0191
 """Device type of the built-in generic I/O module (CiA 401, digital in and out)."""
+GENERIC_VENDOR_ID = 0x00434946
+"""Vendor-ID of the generic module ("CIF" in ASCII; not a CiA-assigned number)."""
+GENERIC_PRODUCT_CODE = 0x00000191
+GENERIC_PRODUCT = "cifemu generic I/O"
+"""The generic module's identity: the simulator reports it, the builder describes it."""
 
 UNCONFIGURED = 255
 

@@ -16,13 +16,16 @@ from __future__ import annotations
 from canopen import objectdictionary as od
 from canopen.objectdictionary import ObjectDictionary, ODArray, ODRecord, ODVariable
 
-from dbm_tools.network import GENERIC_DEVICE_TYPE, LssAddress, NodeDescription
+from dbm_tools.network import (
+    GENERIC_DEVICE_TYPE,
+    GENERIC_PRODUCT,
+    GENERIC_PRODUCT_CODE,
+    GENERIC_VENDOR_ID,
+    LssAddress,
+    NodeDescription,
+)
 
-GENERIC_VENDOR_ID = 0x00434946
-"""Vendor-ID of the generic module ("CIF" in ASCII; not a CiA-assigned number)."""
-GENERIC_PRODUCT_CODE = 0x00000191
 GENERIC_REVISION = 0x00010000
-DEVICE_NAME = "cifemu generic I/O"
 IO_BYTES = 8
 INPUTS = 0x6000
 """Read input 8-bit (CiA 401): mapped into TPDO1, echoes 6200h."""
@@ -98,7 +101,7 @@ def generic_object_dictionary(node: NodeDescription, sync_cob_id: int = 0x80
         _var("Error register", 0x1001, 0, od.UNSIGNED8, "ro", 0),
         _error_field(),
         _var("COB-ID SYNC", 0x1005, 0, od.UNSIGNED32, "rw", sync_cob_id),
-        _string("Manufacturer device name", 0x1008, DEVICE_NAME),
+        _string("Manufacturer device name", 0x1008, GENERIC_PRODUCT),
         _var("Guard time", 0x100C, 0, od.UNSIGNED16, "rw", node.guard_time_ms if guarding else 0),
         _var("Life time factor", 0x100D, 0, od.UNSIGNED8, "rw",
              node.life_time_factor if guarding else 0),
