@@ -416,15 +416,17 @@ class CanTask(Task):
 
     # --- our own commands for the CiA 309 gateway (docs/card-commands.md) ------------------------
 
-    def _running_node(self, msg: Message) -> Message | NodeHandler:
-        if msg.ln < 2 or not 1 <= msg.data[0] <= 127:
+    def _node_switch(self, msg: Message, ln: int) -> Message | tuple[NodeHandler, int, int]:
+        """Parse d[0] node, d[1] 0 off / 1 on, d[2..3] u16: the node, on, value; or an error."""
+        if msg.ln != ln or not 1 <= msg.data[0] <= 127 or msg.data[1] not in (0, 1):
             return msg.answer(f=F_FAULTY_PARAMETER)
         if not self.master.running:
             return msg.answer(f=F_NOT_CONFIGURED)
         handler = self.master.nodes.get(msg.data[0])
         if handler is None:
             return msg.answer(f=F_LOCAL_RESOURCE)
-        return handler
+        (value,) = struct.unpack_from("<H", msg.data, 2)
+        return handler, msg.data[1], value
 
     def com_set_sdo_timeout(self, msg: Message) -> Message:
         if msg.ln != 3 or msg.data[0] > 127:
@@ -438,15 +440,12 @@ class CanTask(Task):
         return msg.answer()
 
     def com_set_guarding(self, msg: Message) -> Message | None:
-        if msg.ln != 5:
-            return msg.answer(f=F_FAULTY_PARAMETER)
-        handler = self._running_node(msg)
-        if isinstance(handler, Message):
-            return handler
-        on = msg.data[1]
-        (guard_time,) = struct.unpack_from("<H", msg.data, 2)
+        parsed = self._node_switch(msg, 5)
+        if isinstance(parsed, Message):
+            return parsed
+        handler, on, guard_time = parsed
         factor = msg.data[4]
-        if on not in (0, 1) or (on and not guard_time):
+        if on and not guard_time:
             return msg.answer(f=F_FAULTY_PARAMETER)
         guard_time = guard_time if on else 0
         writes = [(0x100C, struct.pack("<H", guard_time)), (0x100D, bytes([factor]))]
@@ -457,14 +456,11 @@ class CanTask(Task):
         return None
 
     def com_set_heartbeat_consumer(self, msg: Message) -> Message:
-        if msg.ln != 4:
-            return msg.answer(f=F_FAULTY_PARAMETER)
-        handler = self._running_node(msg)
-        if isinstance(handler, Message):
-            return handler
-        on = msg.data[1]
-        (consumer_time,) = struct.unpack_from("<H", msg.data, 2)
-        if on not in (0, 1) or (on and not consumer_time):
+        parsed = self._node_switch(msg, 4)
+        if isinstance(parsed, Message):
+            return parsed
+        handler, on, consumer_time = parsed
+        if on and not consumer_time:
             return msg.answer(f=F_FAULTY_PARAMETER)
         handler.set_supervision(True, consumer_time if on else 0, 0)
         return msg.answer()
@@ -487,14 +483,11 @@ class CanTask(Task):
         self.device.post(answer)
 
     def com_set_emcy_consumer(self, msg: Message) -> Message:
-        if msg.ln != 4:
-            return msg.answer(f=F_FAULTY_PARAMETER)
-        handler = self._running_node(msg)
-        if isinstance(handler, Message):
-            return handler
-        on = msg.data[1]
-        (cob_id,) = struct.unpack_from("<H", msg.data, 2)
-        if on not in (0, 1) or cob_id > 0x7FF:
+        parsed = self._node_switch(msg, 4)
+        if isinstance(parsed, Message):
+            return parsed
+        handler, on, cob_id = parsed
+        if cob_id > 0x7FF:
             return msg.answer(f=F_FAULTY_PARAMETER)
         handler.set_emcy_consumer((cob_id or 0x80 + handler.address) if on else None)
         return msg.answer()
