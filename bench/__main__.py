@@ -10,7 +10,7 @@ import argparse
 from collections.abc import Callable
 from typing import Any
 
-from bench import exchange_io, mailbox
+from bench import can, dbm, exchange_io, mailbox
 from bench.common import add_size_arguments, emit, progress
 
 Runner = Callable[[int | None, int | None], dict[str, Any]]
@@ -18,6 +18,8 @@ Runner = Callable[[int | None, int | None], dict[str, Any]]
 BENCHMARKS: dict[str, Runner] = {
     mailbox.NAME: mailbox.run,
     exchange_io.NAME: exchange_io.run,
+    dbm.NAME: dbm.run,
+    can.NAME: can.run,
 }
 
 

@@ -11,7 +11,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from collections import defaultdict, deque
+from collections import deque
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -54,52 +54,60 @@ class CanBus(can.Listener):
         self.interface = interface
         self.channel = channel
         self.network = _MasterNetwork(self)
-        self._subscribers: dict[int, list[FrameCallback]] = defaultdict(list)
-        self._catch_all: list[FrameCallback] = []
+        # Copy-on-write: subscribing replaces a tuple, so the receive thread reads
+        # them without a lock.
+        self._subscribers: dict[int, tuple[FrameCallback, ...]] = {}
+        self._catch_all: tuple[FrameCallback, ...] = ()
         self._lock = threading.Lock()
+        self._trace_lock = threading.Lock()
+        """The trace is written by the receive thread and by every sending thread."""
         self._echoes: deque[tuple[int, bytes, bool]] | None = (
             deque(maxlen=256) if interface in ECHOING_INTERFACES else None)
         self.on_error_frame: Callable[[can.Message], None] = lambda msg: None
         self.on_send_timeout: Callable[[], None] = lambda: None
         self._trace: can.Listener | None = can.Logger(str(trace)) if trace else None
         listeners: list[can.Listener] = [self]
-        if self._trace is not None:
-            listeners.append(self._trace)
         self._notifier = can.Notifier(self.bus, listeners, timeout=0.1)
 
     # --- receiving ----------------------------------------------------------------------
 
     def subscribe(self, can_id: int, callback: FrameCallback) -> None:
         with self._lock:
-            self._subscribers[can_id].append(callback)
+            self._subscribers[can_id] = (*self._subscribers.get(can_id, ()), callback)
 
     def unsubscribe(self, can_id: int, callback: FrameCallback) -> None:
         with self._lock:
-            if callback in self._subscribers.get(can_id, []):
-                self._subscribers[can_id].remove(callback)
+            callbacks = list(self._subscribers.get(can_id, ()))
+            if callback in callbacks:
+                callbacks.remove(callback)
+                self._subscribers[can_id] = tuple(callbacks)
 
     def subscribe_all(self, callback: FrameCallback) -> None:
         """Every received frame (layer-2 access, transparent reception)."""
         with self._lock:
-            self._catch_all.append(callback)
+            self._catch_all = (*self._catch_all, callback)
 
     def on_message_received(self, msg: can.Message) -> None:
+        if self._trace is not None:
+            with self._trace_lock:
+                self._trace.on_message_received(msg)
         if msg.is_error_frame:
             self.on_error_frame(msg)
             return
         if self._echoes is not None and self._is_echo(msg):
             return
-        with self._lock:
-            callbacks = list(self._catch_all)
-            if not msg.is_extended_id:
-                callbacks += self._subscribers.get(msg.arbitration_id, [])
+        ident = msg.arbitration_id
+        callbacks = self._catch_all
+        if not msg.is_extended_id:
+            callbacks += self._subscribers.get(ident, ())
         for callback in callbacks:
             try:
                 callback(msg)
             except Exception:
-                log.exception("frame handler failed on 0x%X", msg.arbitration_id)
-        if not msg.is_extended_id and not msg.is_remote_frame:
-            self.network.notify(msg.arbitration_id, msg.data, msg.timestamp)
+                log.exception("frame handler failed on 0x%X", ident)
+        # canopen's network serves only the SDO clients (answers on 0x581..0x5FF).
+        if 0x580 < ident < 0x600 and not msg.is_extended_id and not msg.is_remote_frame:
+            self.network.notify(ident, msg.data, msg.timestamp)
 
     def _is_echo(self, msg: can.Message) -> bool:
         """A frame this controller sent itself, looped back by the transport."""
@@ -135,7 +143,8 @@ class CanBus(can.Listener):
             self.on_send_timeout()
             return False
         if self._trace is not None:
-            self._trace.on_message_received(msg)
+            with self._trace_lock:
+                self._trace.on_message_received(msg)
         return True
 
     def shutdown(self) -> None:

@@ -54,8 +54,9 @@ SUPERVISION_PERIOD = 0.005
 QUEUE_LIMIT = 150
 """Layer-2 frames the card holds for the host (seed 5.3.2.2)."""
 INDICATION_LIMIT = 254
-DEFAULT_SDO_TIMEOUT = 0.3
-"""Seconds an SDO request waits for its answer (canopen's default) until COM_Set_SDO_Timeout."""
+DEFAULT_SDO_TIMEOUT = 0.5
+"""[ours] seconds an SDO request waits for its answer until COM_Set_SDO_Timeout; canopen's
+0.3 s lets a busy 2-core machine abort boot-ups that would have succeeded."""
 COM_BOOTUP_INDICATION = 117
 # SocketCAN error classes (linux/can/error.h)
 CAN_ERR_TX_TIMEOUT = 0x001
@@ -384,7 +385,9 @@ class Master:
             self._update_nexc()
         outputs = self.image.snapshot_outputs()
         if outputs != last_outputs or self._outputs_waiting:
-            self._outputs_waiting = {h for h in list(self.nodes.values()) if h.send_outputs()}
+            due = [h for h in list(self.nodes.values())
+                   if h in self._outputs_waiting or h.outputs_changed(outputs, last_outputs)]
+            self._outputs_waiting = {h for h in due if h.send_outputs()}
         self._heartbeat(now)
         return outputs
 
@@ -448,7 +451,7 @@ class Master:
             elif remaining > 0.0008:
                 self._stop.wait(remaining - 0.0005)
             while time.perf_counter() < next_sync:
-                pass
+                time.sleep(0)  # let the other threads have the GIL meanwhile
             self._sync_once()
 
     def _sync_once(self) -> None:

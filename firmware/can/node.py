@@ -383,6 +383,14 @@ class NodeHandler:
                     return
                 self._request(entry, now)
 
+    def outputs_changed(self, now: bytes, before: bytes) -> bool:
+        """Whether any of this node's output PDOs reads differently in ``now``."""
+        for entry in self.outputs:
+            end = entry.offset + entry.pdo.data_length
+            if now[entry.offset : end] != before[entry.offset : end]:
+                return True
+        return False
+
     def send_outputs(self, sync: bool = False, force: bool = False) -> bool:
         """Send the RX-PDOs that are due: synchronous ones at SYNC, the rest on change.
 
