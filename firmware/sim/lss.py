@@ -132,6 +132,7 @@ class LssSlave:
         self.state = WAITING
         self.active_node_id = self.pending_node_id = self.stored_node_id = description.id
         self.bitrate = self.pending_bitrate = self.stored_bitrate = bitrate
+        """The rate the device runs at; bookkeeping, since the virtual bus has none."""
         self.silent_until = 0.0
         """End of the switch delays of an activate bit timing: no LSS until then."""
         self._select_next = 0
@@ -163,6 +164,7 @@ class LssSlave:
 
     @property
     def activation_due(self) -> bool:
+        """A node-ID other than the active one is pending (255 included)."""
         return self.pending_node_id != self.active_node_id
 
     def reset_state(self) -> None:
