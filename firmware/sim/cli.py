@@ -36,7 +36,7 @@ def describe(node: NodeDescription) -> str:
     if node.lss is not None and node.id == 255:
         lss = node.lss
         return (f"LSS slave {lss.vendor:#x}/{lss.product:#x}/{lss.revision:#x}/{lss.serial:#x}: "
-                "unconfigured, silent")
+                "unconfigured, waits for an LSS master")
     kind = f"EDS {node.eds.name}" if node.eds else "generic I/O module"
     name = f" {node.name!r}" if node.name else ""
     control = node.error_control
