@@ -23,6 +23,8 @@ from rich.console import Console
 from rich.live import Live
 
 from dbm_tools import cli as dbm_cli
+from dbm_tools.builder import build_dbm
+from dbm_tools.container import write_dbm
 from dbm_tools.network import load_network
 from dpm.flags import READY
 from dpm.layout import HOST_FLAGS
@@ -32,6 +34,8 @@ from host_api import driver as d
 from host_api import status as status_cli
 from host_api.board import Board
 from host_api.cia309 import cli as cia309_cli
+from host_api.download import CONFIGURATION_DOWNLOAD, DevDownload
+from host_api.driver import COLDSTART
 from host_api.online import configure_online
 
 
@@ -48,7 +52,8 @@ def _demo(args: argparse.Namespace) -> int:
     network = args.network or EXAMPLE_NETWORK
     card = subprocess.Popen(
         [sys.executable, "-m", "firmware", "--board", "0", "--dpm-dir", directory,
-         "--simulate", str(network), "--log-level", "WARNING"]
+         "--flash", str(Path(directory) / "flash"), "--simulate", str(network),
+         "--log-level", "WARNING"]
     )
     console = Console()
     try:
@@ -59,17 +64,25 @@ def _demo(args: argparse.Namespace) -> int:
                 return 1
             time.sleep(0.05)
         with Board(0, directory) as board:
-            configure_online(board, load_network(network),
-                             lambda step: console.print(f"configuring: {step}"))
+            if args.from_dbm:
+                database = write_dbm(build_dbm(load_network(network)))
+                console.print(f"downloading a DBM of {len(database)} bytes built from {network}")
+                if DevDownload(0, CONFIGURATION_DOWNLOAD, database) != 0:
+                    print("cifemu demo: the card refused the database", file=sys.stderr)
+                    return 1
+                board.reset(COLDSTART)  # the card starts from its flash
+            else:
+                configure_online(board, load_network(network),
+                                 lambda step: console.print(f"configuring: {step}"))
             console.print(f"card image {directory}/board0.dpm; Ctrl-C ends the demo")
             counter = 0
             with Live(console=console, auto_refresh=False) as live:
                 while True:
                     counter = (counter + 1) & 0xFF
                     d.DevExchangeIO(0, 0, bytes([counter]) * 32, 0, 0, 100)
-                    image = status_cli.read_image(0, directory)
-                    if image is not None:
-                        live.update(status_cli.render(0, status_cli.snapshot(image)),
+                    snapshot = status_cli.read_image(0, directory)
+                    if snapshot is not None:
+                        live.update(status_cli.render(0, status_cli.snapshot(snapshot)),
                                     refresh=True)
                     time.sleep(0.2)
     except KeyboardInterrupt:
@@ -110,6 +123,9 @@ def build_parser() -> argparse.ArgumentParser:
                           description=_demo.__doc__)
     demo.add_argument("--dpm-dir", default=os.environ.get("CIFEMU_DEMO_DIR"),
                       help="image directory (default: a fresh temporary one)")
+    demo.add_argument("--from-dbm", action="store_true",
+                      help="build a DBM from the network, download it into the card's flash and "
+                           "cold-start the card from it, instead of configuring it on line")
     demo.add_argument("--network", type=Path, default=None,
                       help=f"network description to simulate (default: {EXAMPLE_NETWORK.name}, "
                            "four generic I/O modules)")

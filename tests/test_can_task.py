@@ -603,3 +603,33 @@ def test_long_sdo_download_sequence_errors(make_net: Callable[..., Net]) -> None
     assert first.f == 0 and first.data[5] == 0
     other = struct.pack("<BBHBBBB", 1, 0, 0x2001, 0, 4, 0, 2)
     assert net.send(74, other + b"efgh", e=0x0C).f == 57  # not the transfer it started
+
+
+def test_node_leaving_operational_is_reported(make_net: Callable[..., Net]) -> None:
+    net = make_net("[[node]]\nid = 2\n[node.sim]\nleave_operational_after_s = 1.0\n")
+    net.configure()
+    net.wait_operating([2])
+    wait_until(lambda: net.diag().bErr_event == 31, 5, "Err_Event 31")
+    assert net.diag().bErr_rem_adr == 2
+
+
+def test_sdo_while_the_node_boots_is_refused(make_net: Callable[..., Net]) -> None:
+    net = make_net("[[node]]\nid = 2\n[node.sim]\nboot_delay_s = 1.5\n")
+    net.configure()
+    assert net.sdo(2, 0x1000, 0).f == 19  # the card still waits for the boot-up
+    net.wait_operating([2])
+    assert net.sdo(2, 0x1000, 0).f == 0
+
+
+def test_watchdog_expiry_stops_the_bus_and_zeroes_outputs(make_net: Callable[..., Net]) -> None:
+    net = make_net("[[node]]\nid = 1\n")
+    assert d.DevPutTaskParameter(0, 2, struct.pack("<BH", 3, 100)) == 0
+    assert d.DevReset(0, d.WARMSTART, 5000) == 0
+    net.configure()
+    net.wait_operating([1])
+    wait_until(lambda: exchange(net, b"\x44" * 8) == b"\x44" * 8, 5, "the echo")
+    assert d.DevTriggerWatchDog(0, d.WATCHDOG_START)[0] == 0
+    wait_until(lambda: net.diag().bErr_event == 220, 5, "the host watchdog to expire")
+    assert net.diag().can_state_name == "STOP"
+    wait_until(lambda: d.DevExchangeIO(0, 0, b"", 0, 8, 1000)[1] == bytes(8), 5,
+               "the node's echo of the zeroed outputs")
