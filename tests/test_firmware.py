@@ -162,3 +162,22 @@ def test_help_explains_the_commands() -> None:
     fw = subprocess.run([sys.executable, "-m", "cifemu", "firmware", "--help"],
                         capture_output=True, text=True, timeout=30, check=True).stdout
     assert "--dpm-dir" in fw and "CIF_DPM_DIR" in fw
+
+
+@pytest.mark.parametrize("extra", [[], ["--from-dbm"]])
+def test_demo_runs_the_bundled_network_until_ctrl_c(tmp_path: Path, extra: list[str]) -> None:
+    demo = subprocess.Popen(
+        [sys.executable, "-m", "cifemu", "demo", "--dpm-dir", str(tmp_path), *extra],
+        stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, cwd=ROOT,
+    )
+
+    def operating() -> list[int]:
+        out = subprocess.run([sys.executable, "-m", "cifemu", "status", "--json", "--dpm-dir",
+                              str(tmp_path)], capture_output=True, text=True, timeout=30)
+        return json.loads(out.stdout)["task2state"]["Nd_state"] if out.returncode == 0 else []
+
+    try:
+        wait_until(lambda: operating() == [1, 2, 3, 4], 30, "the demo's four nodes")
+    finally:
+        demo.send_signal(signal.SIGINT)
+        assert demo.wait(timeout=20) == 0, demo.stderr.read().decode() if demo.stderr else ""
