@@ -12,6 +12,7 @@ from __future__ import annotations
 import itertools
 import struct
 import time
+import uuid
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
@@ -633,3 +634,35 @@ def test_watchdog_expiry_stops_the_bus_and_zeroes_outputs(make_net: Callable[...
     assert net.diag().can_state_name == "STOP"
     wait_until(lambda: d.DevExchangeIO(0, 0, b"", 0, 8, 1000)[1] == bytes(8), 5,
                "the node's echo of the zeroed outputs")
+
+
+def test_transparent_reception_of_29_bit_frames(tmp_path: Path) -> None:
+    """Another process sends extended frames; the card passes those its filter accepts.
+
+    python-can's virtual bus lives in one process, so this test shares a
+    udp_multicast bus (loopback multicast) with the firmware process instead.
+    """
+    can = pytest.importorskip("can")
+    group = f"239.74.{uuid.uuid4().int % 250 + 1}.{uuid.uuid4().int % 250 + 1}"
+    card = start_card(tmp_path, 0, "--interface", "udp_multicast", "--channel", group)
+    sender = can.Bus(interface="udp_multicast", channel=group)
+    try:
+        with Board(0, tmp_path, timeout=5000) as board:
+            ext = struct.pack("<BIIBHB", 0x01, 0x1ABC0000, 0x1FFF0000, 0, 0, 0) + bytes(28)
+            assert board.transact(Message(rx=3, tx=16, b=68,
+                                          data=bytes([0, 128, 0, 0]) + ext)).f == 0
+            bus = bytes([2]) + struct.pack("<HH", 0x80, 0) + bytes(2)
+            assert board.transact(Message(rx=3, tx=16, b=68,
+                                          data=bytes([0, 127, 0, 0]) + bus)).f == 0
+            for ident, data in ((0x12340000, b"no"), (0x1ABC1234, b"\x01\x02\x03")):
+                sender.send(can.Message(arbitration_id=ident, is_extended_id=True, data=data))
+            rc, indication = d.DevGetMessage(0, 288, 5000)
+            assert rc == 0 and indication is not None
+            assert indication.b == 65 and indication.ln == 13
+            assert indication.data[0] == 0x83  # extended frame, DLC 3
+            assert int.from_bytes(indication.data[1:5], "big") >> 3 == 0x1ABC1234
+            assert indication.data[5:8] == b"\x01\x02\x03"
+            assert d.DevGetMessage(0, 288, 300)[0] == d.Drv.DRV_DEV_GET_TIMEOUT  # 0x1234... not
+    finally:
+        sender.shutdown()
+        card.stop()
