@@ -10,7 +10,7 @@ import argparse
 from collections.abc import Callable
 from typing import Any
 
-from bench import can, dbm, exchange_io, mailbox
+from bench import can, cia309, dbm, exchange_io, lss, mailbox
 from bench.common import add_size_arguments, emit, progress
 
 Runner = Callable[[int | None, int | None], dict[str, Any]]
@@ -20,6 +20,8 @@ BENCHMARKS: dict[str, Runner] = {
     exchange_io.NAME: exchange_io.run,
     dbm.NAME: dbm.run,
     can.NAME: can.run,
+    cia309.NAME: cia309.run,
+    lss.NAME: lss.run,
 }
 
 

@@ -39,8 +39,6 @@ class _Endpoint:
     def __init__(self) -> None:
         self.sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
         self.sock.setblocking(False)
-        self._poll = select.poll()
-        self._poll.register(self.sock.fileno(), select.POLLIN)
 
     def fileno(self) -> int:
         return self.sock.fileno()
@@ -59,15 +57,22 @@ class _Endpoint:
         return True
 
     def _drain(self) -> list[tuple[bytes, bytes]]:
-        # Asking poll is cheaper than ending the loop on a raised BlockingIOError.
+        # Asking select is cheaper than ending the loop on a raised BlockingIOError.
         rings: list[tuple[bytes, bytes]] = []
-        while self._poll.poll(0):
-            rings.append(self.sock.recvfrom(16))
+        while select.select((self.sock,), (), (), 0)[0]:
+            try:
+                rings.append(self.sock.recvfrom(16))
+            except BlockingIOError:  # another thread of this process took it
+                break
         return rings
 
     def wait(self, timeout: float) -> bool:
-        """Block until a ring or ``timeout`` seconds; True when rung."""
-        ready = self._poll.poll(max(0.0, timeout) * 1000.0)
+        """Block until a ring or ``timeout`` seconds; True when rung.
+
+        select, unlike a shared poll object, may be waited on by several threads
+        of one host process at once (one in DevGetMessage, one in DevPutMessage).
+        """
+        ready = select.select((self.sock,), (), (), max(0.0, timeout))[0]
         if ready:
             self._on_rings(self._drain())
             return True

@@ -24,7 +24,7 @@ from dbm_tools.validate import (
 )
 from dpm.message import Ext, Message, MessageError, TelegramHeader, Tfc
 from dpm.task2 import CanState, GlobalBits
-from firmware.can.master import BusConfig, Master, SdoChannel
+from firmware.can.master import BusConfig, Master
 from firmware.can.node import (
     NMT_PREOP,
     NMT_RESET,
@@ -34,6 +34,7 @@ from firmware.can.node import (
     NodeHandler,
     State,
 )
+from firmware.can.sdo import HostSdoTransfer, SdoResult
 from firmware.task import Task
 
 if TYPE_CHECKING:
@@ -345,7 +346,19 @@ class CanTask(Task):
         client = self.master.sdo_client(address)
         if not client.lock.acquire(blocking=False):
             return msg.answer(f=F_SDO_FUNCTION, data=msg.data[:8])
-        self.master.executor.submit(self._sdo_transfer, msg, head, client)
+        if handler is not None:
+            handler.host_sdo = True  # seed 5.2.8: the node's RX-PDOs wait meanwhile
+
+        def done(result: SdoResult) -> None:
+            if handler is not None:
+                handler.host_sdo = False
+            client.lock.release()
+            self._answer_sdo(msg, head, result)
+
+        self.master.start_host_sdo(HostSdoTransfer(
+            self.master.bus, address, head.data_adr, head.data_idx,
+            None if head.function == Tfc.READ else head.payload,
+            client.sdo.RESPONSE_TIMEOUT, done))
         return None
 
     def _gather(self, msg: Message, head: TelegramHeader) -> Message | TelegramHeader:
@@ -373,36 +386,25 @@ class CanTask(Task):
         return TelegramHeader(head.device_adr, 0, head.data_adr, head.data_idx, 0, 0,
                               Tfc.WRITE, bytes(data))
 
-    def _sdo_transfer(self, msg: Message, head: TelegramHeader, client: SdoChannel) -> None:
-        handler = self.master.nodes.get(head.device_adr)
-        if handler is not None:
-            handler.host_sdo = True  # seed 5.2.8: the node's RX-PDOs wait meanwhile
+    def _answer_sdo(self, msg: Message, head: TelegramHeader, result: SdoResult) -> None:
+        """The answer to a finished host transfer (several messages for long uploads)."""
         answer_head = TelegramHeader(head.device_adr, 0, head.data_adr, head.data_idx, 0, 0,
                                      head.function)
-        try:
-            if head.function == Tfc.READ:
-                data = client.sdo.upload(head.data_adr, head.data_idx)
-                if len(data) > LONG_SDO_LIMIT:
-                    answer = msg.answer(f=F_SDO_BUFFER, data=answer_head.encode())
-                elif len(data) > SDO_MAX_DATA:
-                    self._post_long_upload(msg, answer_head, data)
-                    return
-                else:
-                    answer_head.data_cnt = len(data)
-                    answer_head.payload = data
-                    answer = msg.answer(data=answer_head.encode())
-            else:
-                client.sdo.download(head.data_adr, head.data_idx, head.payload)
-                answer = msg.answer(data=answer_head.encode())
-        except SdoAbortedError as exc:
-            answer = msg.answer(f=F_SDO_ABORT, data=answer_head.encode()[:8]
-                                + struct.pack("<I", exc.code))
-        except SdoCommunicationError:
+        if result.timed_out:
             answer = msg.answer(f=F_NO_RESPONSE, data=answer_head.encode())
-        finally:
-            if handler is not None:
-                handler.host_sdo = False
-            client.lock.release()
+        elif result.abort is not None:
+            answer = msg.answer(f=F_SDO_ABORT,
+                                data=answer_head.encode() + struct.pack("<I", result.abort))
+        elif head.function == Tfc.READ and len(result.data) > LONG_SDO_LIMIT:
+            answer = msg.answer(f=F_SDO_BUFFER, data=answer_head.encode())
+        elif head.function == Tfc.READ and len(result.data) > SDO_MAX_DATA:
+            self._post_long_upload(msg, answer_head, result.data)
+            return
+        else:
+            if head.function == Tfc.READ:
+                answer_head.data_cnt = len(result.data)
+                answer_head.payload = result.data
+            answer = msg.answer(data=answer_head.encode())
         self.device.post(answer)
 
     def _post_long_upload(self, msg: Message, head: TelegramHeader, data: bytes) -> None:

@@ -75,7 +75,7 @@ STATE_FLAG_UNKNOWN = 0xFF
 """usStateFlag when the card's state-field mode is neither 3 nor 4."""
 
 MSG_BUFFER_SIZE = 288
-SPIN_SECONDS = 50e-6
+SPIN_SECONDS = 100e-6
 """How long a waiting call watches the flags before it sleeps on the bell."""
 RAW_AREA_LIMIT = 1022
 """DevReadWriteDPMRaw reaches the last kilobyte up to, not including, the flags."""

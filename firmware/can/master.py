@@ -41,6 +41,7 @@ from firmware.can.node import (
     NodeHandler,
     State,
 )
+from firmware.can.sdo import HostSdoTransfer
 
 if TYPE_CHECKING:
     from firmware.device import Device
@@ -115,6 +116,7 @@ class Master:
         self._outputs_waiting: set[NodeHandler] = set()
         self.bootup_forwarding = False
         self.sdo_timeout = DEFAULT_SDO_TIMEOUT
+        self._host_transfers: list[HostSdoTransfer] = []
 
     # --- life cycle ---------------------------------------------------------------------
 
@@ -292,6 +294,11 @@ class Master:
             channel = self._sdo[address] = SdoChannel(client, threading.Lock())
         return channel
 
+    def start_host_sdo(self, transfer: HostSdoTransfer) -> None:
+        """A host SDO transfer; the tick watches its time-out."""
+        self._host_transfers = [t for t in self._host_transfers if not t.finished] + [transfer]
+        transfer.start()
+
     def set_sdo_timeout(self, node: int, seconds: float) -> None:
         """COM_Set_SDO_Timeout: one node's channel, or (node 0) every channel and the default."""
         if node == 0:
@@ -303,17 +310,18 @@ class Master:
 
     def host_nmt(self, command: int, node: int) -> None:
         """COM_NMT_Module_Protocol: the host drives node states by hand."""
-        self.nmt(command, node)
         targets = list(self.nodes.values()) if node == 0 else (
             [self.nodes[node]] if node in self.nodes else [])
+        resetting = command in (NMT_RESET, NMT_RESET_COMM)
         for handler in targets:
-            if command in (NMT_RESET, NMT_RESET_COMM):
+            if resetting:
                 if handler.state not in (State.INACTIVE, State.DISCONNECTED):
-                    handler.start_boot()
+                    handler.start_boot(reset_sent=True)  # armed before the boot-up can come
             else:
                 handler.operational_expected = command == NMT_START
                 if not handler.operational_expected:
                     self.set_node_state(handler.address, False)
+        self.nmt(command, node)
 
     def cob_id_in_use(self, cob_id: int) -> bool:
         """Whether the CANopen side already listens to or sends ``cob_id``."""
@@ -372,6 +380,8 @@ class Master:
         if not self.running:
             return last_outputs
         self._follow_host()
+        for transfer in self._host_transfers:
+            transfer.check(now)
         if self.halted or self.cleared:
             return last_outputs
         if self._global_start_due:

@@ -177,22 +177,28 @@ class NodeHandler:
 
     # --- boot-up ------------------------------------------------------------------------------
 
-    def start_boot(self) -> None:
-        """Begin (or begin again) the boot sequence in a worker thread."""
+    def start_boot(self, reset_sent: bool = False) -> None:
+        """Begin (or begin again) the boot sequence in a worker thread.
+
+        ``reset_sent``: the host resets the node itself (COM_NMT_Module_Protocol);
+        the sequence then waits for that boot-up instead of resetting it twice,
+        which would let the first boot-up answer for the second.
+        """
         if self.state is State.INACTIVE:
             return
         self._generation += 1
+        self._bootup.clear()
         self.state = State.BOOTING
         self.operational_expected = True
         self.master.set_node_state(self.address, False)
-        self.master.executor.submit(self._boot, self._generation)
+        self.master.executor.submit(self._boot, self._generation, reset_sent)
 
-    def _boot(self, generation: int) -> None:
+    def _boot(self, generation: int, reset_sent: bool) -> None:
         skip = self.params.bitConfigNdState
         try:
             channel = self.master.sdo_client(self.address)
             with channel.lock:
-                self._boot_steps(skip, channel.sdo)
+                self._boot_steps(skip, channel.sdo, reset_sent)
         except SdoAbortedError as exc:
             log.info("node %d: configuration aborted 0x%08X", self.address, exc.code)
             self.diag.status |= PRM_FAULT_BIT
@@ -229,13 +235,13 @@ class NodeHandler:
                 if entry.pdo.bTransType in (252, 253):
                     self._request(entry, now)
 
-    def _boot_steps(self, skip: int, sdo: SdoClient) -> None:
+    def _boot_steps(self, skip: int, sdo: SdoClient, reset_sent: bool) -> None:
         params = self.params
         if self.master.closing:
             raise _BootFailure(NO_RESPONSE)
-        if not skip & ConfigNdState.RESET:
-            self._bootup.clear()
-            self.master.nmt(NMT_RESET, self.address)
+        if reset_sent or not skip & ConfigNdState.RESET:
+            if not reset_sent:
+                self.master.nmt(NMT_RESET, self.address)
             if not self.master.wait_for(self._bootup, BOOTUP_TIMEOUT):
                 self.diag.status |= NO_RESPONSE_BIT
                 raise _BootFailure(NO_RESPONSE)

@@ -1,0 +1,150 @@
+"""CiA 309 SDO round trips: the 309-3 TCP server, the Python gateway, and python canopen.
+
+One round trip is an expedited SDO upload of 1000h from a generic simulated node:
+
+1. ``tcp``: a client sends ``[n] 1 read 0x1000 0 u32`` to the 309-3 server (CANopenNode
+   dialect, in this process on its own event-loop thread) and reads the answer line;
+2. ``gateway``: ``Gateway.sdo_upload`` (what the server does for each line);
+3. baseline: python ``canopen``'s SDO client straight to the same simulated node on a
+   virtual bus in this process, with no card between them.
+
+The card is ``cifemu firmware --simulate`` (``bench.can.simulated_card``): the node and
+the card share a virtual bus in the firmware process, and this process reaches the card
+only through its image. Ratios compare each path with the baseline and the TCP server with
+the gateway below it.
+
+    python -m bench.cia309 [--count N] [--warmup N]
+"""
+
+from __future__ import annotations
+
+import argparse
+import socket
+from typing import Any
+
+from bench.can import configure, in_process, network_toml, sdo_client, simulated_card, start_all
+from bench.can import wait_operating as wait_nodes
+from bench.common import (
+    Measured,
+    add_size_arguments,
+    emit,
+    machine_info,
+    measure,
+    progress,
+    ratio,
+    source_fingerprint,
+)
+from dbm_tools.network import parse_network
+from host_api.cia309.gateway import Cia309Error, Gateway
+from host_api.cia309.server import BackgroundServer, ServerConfig
+
+NAME = "cia309"
+DEFAULT_COUNT = 2_000
+DEFAULT_WARMUP = 100
+NODE = 1
+DEVICE_TYPE = (0x000F0191).to_bytes(4, "little")
+ANSWER = b"983441\r\n"
+"""1000h of the generic module as the CANopenNode dialect prints it (after the sequence)."""
+FAILED = 1
+
+
+class _LineClient:
+    """A 309-3 client that sends one request and reads its answer line."""
+
+    def __init__(self, port: int) -> None:
+        self._socket = socket.create_connection(("127.0.0.1", port), timeout=10)
+        self._socket.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        self._sequence = 0
+
+    def read(self) -> int:
+        self._sequence = self._sequence % 1_000_000 + 1
+        self._socket.sendall(f"[{self._sequence}] {NODE} read 0x1000 0 u32\n".encode())
+        answer = b""
+        while not answer.endswith(b"\r\n"):
+            chunk = self._socket.recv(256)
+            if not chunk:
+                return FAILED
+            answer += chunk
+        return 0 if answer == f"[{self._sequence}] ".encode() + ANSWER else FAILED
+
+    def close(self) -> None:
+        self._socket.close()
+
+
+def measure_baseline(count: int, warmup: int) -> Measured:
+    network = parse_network(network_toml([NODE]))
+    with in_process(network) as (sim, client):
+        start_all(sim, client)
+        sdo = sdo_client(client, NODE)
+
+        def upload() -> int:
+            return 0 if sdo.upload(0x1000, 0) == DEVICE_TYPE else FAILED
+
+        return measure(upload, count, warmup, frozenset({0}))
+
+
+def measure_card(count: int, warmup: int) -> tuple[Measured, Measured]:
+    """(gateway, tcp) against one card."""
+    description = network_toml([NODE])
+    with simulated_card(description) as card:
+        configure(card, parse_network(description))
+        wait_nodes(0, 1)
+        with Gateway([0], card.directory) as gateway:
+            gateway.set_default_node_id(NODE)
+
+            def upload() -> int:
+                try:
+                    return 0 if gateway.sdo_upload(0x1000, 0) == DEVICE_TYPE else FAILED
+                except Cia309Error:
+                    return FAILED
+
+            progress("timing the gateway")
+            direct = measure(upload, count, warmup, frozenset({0}))
+            server = BackgroundServer(gateway, ServerConfig(port=0))
+            client = _LineClient(server.port)
+            try:
+                progress("timing the 309-3 TCP server")
+                tcp = measure(client.read, count, warmup, frozenset({0}))
+            finally:
+                client.close()
+                server.close()
+    return direct, tcp
+
+
+def run(count: int | None = None, warmup: int | None = None) -> dict[str, Any]:
+    count = count or DEFAULT_COUNT
+    warmup = DEFAULT_WARMUP if warmup is None else warmup
+    progress("timing python canopen straight on the bus (baseline)")
+    baseline = measure_baseline(count, warmup)
+    direct, tcp = measure_card(count, warmup)
+    rates = {name: m.per_second for name, m in
+             (("tcp", tcp), ("gateway", direct), ("baseline", baseline))}
+    return {
+        "benchmark": NAME,
+        "what": "expedited SDO upload of 1000h from a simulated generic node, round trips",
+        "count": count,
+        "warmup": warmup,
+        "tcp_309_3": tcp.summary("round_trips_per_s"),
+        "gateway": direct.summary("round_trips_per_s"),
+        "baseline_canopen": baseline.summary("round_trips_per_s"),
+        "ratios": {
+            "tcp_to_baseline": ratio(rates["tcp"], rates["baseline"]),
+            "gateway_to_baseline": ratio(rates["gateway"], rates["baseline"]),
+            "tcp_to_gateway": ratio(rates["tcp"], rates["gateway"]),
+        },
+        "machine": machine_info(),
+        "source": source_fingerprint(),
+    }
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m bench.cia309", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    add_size_arguments(parser, f"default {DEFAULT_COUNT}", f"default {DEFAULT_WARMUP}")
+    args = parser.parse_args(argv)
+    emit(run(args.count, args.warmup))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,148 @@
+"""Host SDO transfers driven by frames, not by a waiting thread.
+
+canopen's SdoClient blocks its caller until each answer arrives, so a host
+request would need a worker thread, and the hand-over to it costs more than
+the transfer itself. This client sends a request from the caller and advances
+on each answer in the bus thread, so a host's COM_SDO_Up_Download is answered
+from the frame that completes it. It speaks CiA 301 expedited and segmented
+transfers (the card's boot-up keeps canopen's client; the seed's card has no
+block transfers). Time-outs are checked by the master's tick.
+"""
+
+from __future__ import annotations
+
+import struct
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import can
+
+from firmware.can.bus import CanBus
+
+ABORT_TIMEOUT = 0x05040000
+ABORT_UNKNOWN_COMMAND = 0x05040001
+ABORT_TOGGLE = 0x05030000
+_INITIATE = struct.Struct("<BHB")
+
+
+@dataclass
+class SdoResult:
+    """``data`` after a good transfer, ``abort`` the code of an abort, or ``timed_out``."""
+
+    data: bytes = b""
+    abort: int | None = None
+    timed_out: bool = False
+
+
+class HostSdoTransfer:
+    """One upload (``data`` None) or download to ``node``; ``done`` gets the result once."""
+
+    def __init__(self, bus: CanBus, node: int, index: int, subindex: int, data: bytes | None,
+                 timeout: float, done: Callable[[SdoResult], None]) -> None:
+        self.bus = bus
+        self.node = node
+        self.index = index
+        self.subindex = subindex
+        self.data = data
+        self.timeout = timeout
+        self._done = done
+        self._received = bytearray()
+        self._sent = 0
+        self._toggle = 0
+        self._deadline = 0.0
+        self._finished = False
+
+    def start(self) -> None:
+        self.bus.subscribe(0x580 + self.node, self._on_frame)
+        head = _INITIATE.pack(0, self.index, self.subindex)[1:]
+        if self.data is None:
+            self._send(bytes([0x40]) + head + bytes(4))
+        elif len(self.data) <= 4:
+            command = 0x23 | ((4 - len(self.data)) << 2)
+            self._send(bytes([command]) + head + self.data.ljust(4, b"\0"))
+        else:
+            self._send(bytes([0x21]) + head + struct.pack("<I", len(self.data)))
+
+    def check(self, now: float) -> None:
+        """Called from the master's tick: give up after the SDO time-out."""
+        if not self._finished and now > self._deadline:
+            self._abort(ABORT_TIMEOUT, SdoResult(timed_out=True))
+
+    @property
+    def finished(self) -> bool:
+        return self._finished
+
+    def _send(self, frame: bytes) -> None:
+        self._deadline = time.monotonic() + self.timeout
+        self.bus.send(0x600 + self.node, frame)
+
+    def _finish(self, result: SdoResult) -> None:
+        if self._finished:
+            return
+        self._finished = True
+        self.bus.unsubscribe(0x580 + self.node, self._on_frame)
+        self._done(result)
+
+    def _abort(self, code: int, result: SdoResult) -> None:
+        self.bus.send(0x600 + self.node, bytes([0x80]) + _INITIATE.pack(0, self.index,
+                      self.subindex)[1:] + struct.pack("<I", code))
+        self._finish(result)
+
+    def _on_frame(self, msg: can.Message) -> None:
+        if self._finished or msg.is_remote_frame or len(msg.data) < 8:
+            return
+        frame = bytes(msg.data)
+        command = frame[0]
+        if command == 0x80:
+            self._finish(SdoResult(abort=struct.unpack_from("<I", frame, 4)[0]))
+            return
+        if self.data is None:
+            self._upload(command, frame)
+        else:
+            self._download(command)
+
+    def _upload(self, command: int, frame: bytes) -> None:
+        if self._sent == 0 and command & 0xE0 == 0x40:  # initiate upload response
+            self._sent = 1
+            if command & 0x02:  # expedited
+                size = 4 - ((command >> 2) & 0x03) if command & 0x01 else 4
+                self._finish(SdoResult(data=frame[4 : 4 + size]))
+                return
+            self._send(bytes([0x60 | self._toggle << 4]) + bytes(7))
+            return
+        if self._sent and command & 0xE0 == 0x00:  # upload segment response
+            if (command >> 4) & 1 != self._toggle:
+                self._abort(ABORT_TOGGLE, SdoResult(abort=ABORT_TOGGLE))
+                return
+            self._received += frame[1 : 8 - ((command >> 1) & 0x07)]
+            if command & 0x01:
+                self._finish(SdoResult(data=bytes(self._received)))
+                return
+            self._toggle ^= 1
+            self._send(bytes([0x60 | self._toggle << 4]) + bytes(7))
+            return
+        self._abort(ABORT_UNKNOWN_COMMAND, SdoResult(abort=ABORT_UNKNOWN_COMMAND))
+
+    def _download(self, command: int) -> None:
+        assert self.data is not None
+        initiated = command == 0x60 and self._sent == 0
+        segment_done = command & 0xEF == 0x20 and self._sent > 0
+        if not (initiated or segment_done):
+            self._abort(ABORT_UNKNOWN_COMMAND, SdoResult(abort=ABORT_UNKNOWN_COMMAND))
+            return
+        if segment_done:
+            if (command >> 4) & 1 != self._toggle:
+                self._abort(ABORT_TOGGLE, SdoResult(abort=ABORT_TOGGLE))
+                return
+            self._toggle ^= 1
+        if len(self.data) <= 4 or self._sent >= len(self.data):
+            self._finish(SdoResult())
+            return
+        if initiated:
+            self._sent = 0
+        chunk = self.data[self._sent : self._sent + 7]
+        self._sent += len(chunk)
+        last = 1 if self._sent >= len(self.data) else 0
+        header = (self._toggle << 4) | ((7 - len(chunk)) << 1) | last
+        self._send(bytes([header]) + chunk.ljust(7, b"\0"))

@@ -1,0 +1,572 @@
+"""The CiA 309-3 ASCII gateway on TCP: the codec of ``ascii`` over the services of ``gateway``.
+
+Layers, as pymodbus splits framer, PDU codec and transport (STYLE.md):
+
+* :class:`Dispatcher` turns one request line into one answer text: ``parse_request``,
+  the 309-1 call on a :class:`~host_api.cia309.gateway.Gateway` session, ``format_*``.
+  No socket: the TCP server, ``cifemu 309 exec --direct`` and ``cifemu 309 shell
+  --direct`` share it.
+* :class:`Server` is the asyncio TCP server: one ``Client`` per connection with its own
+  line framer, sequence and gateway session (so its own default network and node-ID,
+  command time-out and command size), requests of one client answered in order, clients
+  served at once, and events fanned out to every client.
+
+Events follow the dialect: Lely's ``coctl`` reads unsolicited lines (``1 5 BOOT_UP``,
+``1 pdo 1 2 0x1 0x2``) between answers, so in that dialect every client gets them as
+they happen; CANopenNode's ``cocomm`` would take such a line for its answer, so there
+they go to the message log that ``log`` prints, as CANopenNode's gateway does. The log
+(the last ``LOG_LINES`` events) is kept in both dialects.
+
+Limits [ours]: 127.0.0.1 unless told otherwise; ``max_clients`` connections (one more
+is answered ``[0] ERROR:600`` and closed); lines longer than the client's command size
+(``--max-line``, raised per client by ``set command_size`` up to
+``MAX_COMMAND_SIZE``) are answered with 600 and dropped, the connection stays; a client
+that lets ``WRITE_BUFFER_LIMIT`` bytes of answers and events pile up is dropped.
+``--read-only`` answers 100 to everything that writes to a node or the card (SDO and
+PDO writes, NMT, configuration, LSS); reads, ``info version``, ``help``, ``log`` and the
+client's own settings (default network and node, command time-out and size) remain.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import threading
+from collections import deque
+from collections.abc import Callable, Iterable
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from datetime import datetime
+from typing import Protocol
+
+from host_api.cia309.ascii import (
+    DEFAULT_MAX_LINE,
+    ConfigureRpdo,
+    ConfigureTpdo,
+    DisableGuarding,
+    DisableHeartbeat,
+    EnableGuarding,
+    EnableHeartbeat,
+    EnterPreoperational,
+    Event,
+    GatewayError,
+    GetVersion,
+    Help,
+    InitGateway,
+    LineFramer,
+    Log,
+    LssActivateBitRate,
+    LssAddress,
+    LssAssignNodeId,
+    LssCompleteConfiguration,
+    LssConfigureBitRate,
+    LssConfigureNodeId,
+    LssFastscan,
+    LssIdentifyFastscan,
+    LssIdentifyNonConfigured,
+    LssIdentifyRemoteSlave,
+    LssInquireAddress,
+    LssInquireNodeId,
+    LssSlowscan,
+    LssStore,
+    LssSwitchGlobal,
+    LssSwitchSelective,
+    OverlongLine,
+    ParseError,
+    ReadPdo,
+    Request,
+    ResetCommunication,
+    ResetNode,
+    RestoreConfiguration,
+    SdoDownload,
+    SdoUpload,
+    SetBootUpForwarding,
+    SetCommandSize,
+    SetCommandTimeout,
+    SetDefaultNetwork,
+    SetDefaultNode,
+    SetHeartbeatProducer,
+    SetNodeId,
+    SetSdoBlock,
+    SetSdoTimeout,
+    StartNode,
+    StopNode,
+    StoreConfiguration,
+    WritePdo,
+    format_abort,
+    format_empty,
+    format_error,
+    format_event,
+    format_help,
+    format_lss_address,
+    format_lss_node_id,
+    format_lss_number,
+    format_ok,
+    format_pdo_read,
+    format_upload,
+    format_version,
+    parse_request,
+)
+from host_api.cia309.datatypes import Dialect
+from host_api.cia309.gateway import Cia309Error, Gateway
+
+log = logging.getLogger(__name__)
+
+DEFAULT_HOST = "127.0.0.1"
+DEFAULT_PORT = 60000
+DEFAULT_MAX_CLIENTS = 8
+LOG_LINES = 1000
+WRITE_BUFFER_LIMIT = 1 << 20
+READ_CHUNK = 65536
+
+READ_ONLY_REQUESTS = (
+    SdoUpload, ReadPdo, GetVersion, Help, Log,
+    SetDefaultNetwork, SetDefaultNode, SetCommandTimeout, SetCommandSize,
+)
+"""What ``--read-only`` still serves: nothing here changes a node or the card."""
+
+
+LssNumbers = tuple[int, int, int, int]
+"""An LSS address as the LSS services take and give it: vendor, product, revision, serial."""
+
+
+class LssServices(Protocol):
+    """The LSS services (309-1 4.8) of one network, as ``host_api.cia309.lss.LssMaster``
+    offers them over the gateway's layer-2 access.
+
+    The dispatcher adapts the 309-3 requests to these calls: a False from an identify or
+    fastscan service and a None from ``fastscan`` are failures with 103 (no slave answered);
+    a ValueError is 101; any other exception whose ``code`` is a 309-3 error number (as
+    ``LssError``'s) fails the request with that number.
+    """
+
+    def switch_state_global(self, mode: int) -> None: ...
+
+    def switch_state_selective(self, vendor: int, product: int, revision: int,
+                               serial: int) -> None: ...
+
+    def configure_node_id(self, node_id: int) -> None: ...
+
+    def configure_bit_timing(self, table: int, index: int) -> None: ...
+
+    def activate_bit_timing(self, switch_delay_ms: int) -> None: ...
+
+    def store_configuration(self) -> None: ...
+
+    def inquire_lss_number(self, lss_sub: int) -> int: ...
+
+    def inquire_node_id(self) -> int: ...
+
+    def identify_remote_slave(self, vendor: int, product: int, revision_low: int,
+                              revision_high: int, serial_low: int, serial_high: int) -> bool: ...
+
+    def identify_non_configured_slave(self) -> bool: ...
+
+    def fastscan_step(self, id_number: int, bit_checked: int, lss_sub: int,
+                      lss_next: int) -> bool: ...
+
+    def fastscan(self, vendor: int | None = None, product: int | None = None,
+                 revision: int | None = None, serial: int | None = None,
+                 timeout: float | None = None) -> LssNumbers | None: ...
+
+    def assign_node_id(self, address: LssNumbers, node_id: int) -> None: ...
+
+    def complete_node_id_configuration(self, start_id: int = 2, store: bool = True,
+                                       exclude: Iterable[int] = (),
+                                       timeout: float | None = None) -> object: ...
+
+
+LssFactory = Callable[[int], LssServices]
+"""The LSS services of a network (by its number)."""
+
+LSS_REQUESTS = (
+    LssSwitchGlobal, LssSwitchSelective, LssConfigureNodeId, LssConfigureBitRate,
+    LssActivateBitRate, LssStore, LssInquireAddress, LssInquireNodeId, LssIdentifyRemoteSlave,
+    LssIdentifyNonConfigured, LssFastscan, LssIdentifyFastscan, LssSlowscan, LssAssignNodeId,
+    LssCompleteConfiguration,
+)
+
+
+@dataclass(eq=False)
+class Client:
+    """One 309-3 client: its gateway session, its line framer, its last sequence number."""
+
+    gateway: Gateway
+    framer: LineFramer
+    last_sequence: int = 0
+
+
+class EventLog:
+    """The last events as text lines (what ``log`` prints), in the dialect's words."""
+
+    def __init__(self, dialect: Dialect, size: int = LOG_LINES) -> None:
+        self.dialect = dialect
+        self._lines: deque[str] = deque(maxlen=size)
+
+    def add(self, event: Event) -> str | None:
+        """Log the event; returns its line, or None when the dialect has none for it."""
+        line = format_event(event, self.dialect, stamp=datetime.now())
+        if line is not None:
+            self._lines.append(line)
+        return line
+
+    def take(self) -> str:
+        """Every logged line, oldest first, as one answer: lines joined by LF and closed by
+        the dialect's line end, as ``help`` is, so ``cocomm`` reads it whole; empty when
+        nothing was logged. The log is empty afterwards (CANopenNode)."""
+        if not self._lines:
+            return ""
+        text = "\n".join(line.rstrip("\r\n") for line in self._lines)
+        self._lines.clear()
+        return text + self.dialect.line_end
+
+
+class Dispatcher:
+    """One request line in, one answer text out (None: no answer), for one client."""
+
+    def __init__(
+        self,
+        dialect: Dialect = Dialect.CANOPENNODE,
+        *,
+        read_only: bool = False,
+        lss: LssFactory | None = None,
+        event_log: EventLog | None = None,
+    ) -> None:
+        self.dialect = dialect
+        self.read_only = read_only
+        self.lss = lss
+        self.event_log = event_log or EventLog(dialect)
+
+    def handle(self, client: Client, line: str | OverlongLine) -> str | None:
+        """The answer to one framed line (blocking: call it from a worker thread)."""
+        dialect = self.dialect
+        if isinstance(line, OverlongLine):
+            error = line.error()
+            sequence = client.last_sequence if error.sequence is None else error.sequence
+            return format_error(sequence, error.error, dialect)
+        try:
+            request = parse_request(line, dialect)
+        except ParseError as exc:
+            sequence = client.last_sequence if exc.sequence is None else exc.sequence
+            return format_error(sequence, exc.error, dialect)
+        if request is None:
+            return format_empty(dialect)
+        client.last_sequence = sequence = request.sequence
+        if self.read_only and not isinstance(request, READ_ONLY_REQUESTS):
+            return format_error(sequence, GatewayError.REQUEST_NOT_SUPPORTED, dialect)
+        try:
+            return self._execute(client, request)
+        except Cia309Error as exc:
+            if exc.abort_code is not None:
+                return format_abort(sequence, exc.abort_code, dialect)
+            assert exc.error is not None
+            return format_error(sequence, exc.error, dialect)
+
+    def _execute(self, client: Client, request: Request) -> str:
+        gateway = client.gateway
+        dialect = self.dialect
+        sequence = request.sequence
+        ok = format_ok(sequence, dialect)
+        if isinstance(request, SdoUpload):
+            data = gateway.sdo_upload(request.index, request.subindex, network=request.net,
+                                      node_id=request.node)
+            return format_upload(sequence, request.dtype, data, dialect)
+        if isinstance(request, SdoDownload):
+            gateway.sdo_download(request.index, request.subindex, request.data,
+                                 network=request.net, node_id=request.node)
+            return ok
+        if isinstance(request, StartNode):
+            gateway.start_node(request.node, network=request.net)
+        elif isinstance(request, StopNode):
+            gateway.stop_node(request.node, network=request.net)
+        elif isinstance(request, EnterPreoperational):
+            gateway.set_node_to_preoperational(request.node, network=request.net)
+        elif isinstance(request, ResetNode):
+            gateway.reset_node(request.node, network=request.net)
+        elif isinstance(request, ResetCommunication):
+            gateway.reset_communication(request.node, network=request.net)
+        elif isinstance(request, EnableGuarding):
+            gateway.enable_node_guarding(request.guard_time, request.lifetime_factor,
+                                         network=request.net, node_id=request.node)
+        elif isinstance(request, DisableGuarding):
+            gateway.disable_node_guarding(network=request.net, node_id=request.node)
+        elif isinstance(request, EnableHeartbeat):
+            gateway.start_heartbeat_consumer(request.consumer_time, network=request.net,
+                                             node_id=request.node)
+        elif isinstance(request, DisableHeartbeat):
+            gateway.disable_heartbeat_consumer(network=request.net, node_id=request.node)
+        elif isinstance(request, SetSdoTimeout):
+            gateway.configure_sdo_timeout(request.timeout_ms, network=request.net)
+        elif isinstance(request, SetSdoBlock):
+            raise Cia309Error(GatewayError.REQUEST_NOT_SUPPORTED,
+                              "the card runs segmented SDO transfers only")
+        elif isinstance(request, ConfigureRpdo):
+            gateway.configure_rpdo(request.number, request.cob_id, request.transmission_type,
+                                   request.mappings, network=request.net)
+        elif isinstance(request, ConfigureTpdo):
+            gateway.configure_tpdo(request.number, request.cob_id, request.transmission_type,
+                                   request.mappings, inhibit_time=request.inhibit_time,
+                                   event_timer=request.event_timer,
+                                   sync_start_value=request.sync_start, network=request.net)
+        elif isinstance(request, ReadPdo):
+            values = gateway.read_pdo_data(request.number, network=request.net)
+            network = gateway.resolve_network(request.net)
+            return format_pdo_read(sequence, network, request.number, values, dialect)
+        elif isinstance(request, WritePdo):
+            gateway.write_pdo_data(request.number, request.values, network=request.net)
+        elif isinstance(request, InitGateway):
+            gateway.initialize_gateway(request.bit_rate_index, network=request.net)
+        elif isinstance(request, StoreConfiguration):
+            gateway.store_configuration(request.specifier, network=request.net)
+        elif isinstance(request, RestoreConfiguration):
+            gateway.restore_configuration(request.specifier, network=request.net)
+        elif isinstance(request, SetHeartbeatProducer):
+            gateway.set_heartbeat_producer(request.producer_time, network=request.net)
+        elif isinstance(request, SetNodeId):
+            gateway.set_node_id(request.node_id, network=request.net)
+        elif isinstance(request, SetBootUpForwarding):
+            gateway.set_bootup_forwarding(request.enabled, network=request.net)
+        elif isinstance(request, SetDefaultNode):
+            gateway.set_default_node_id(request.node_id, network=request.net)
+        elif isinstance(request, SetDefaultNetwork):
+            gateway.set_default_network(request.network)
+        elif isinstance(request, SetCommandTimeout):
+            gateway.set_command_timeout(request.timeout_ms)
+        elif isinstance(request, SetCommandSize):
+            gateway.set_command_size(request.size)
+            client.framer.max_line = request.size
+        elif isinstance(request, GetVersion):
+            return format_version(sequence, gateway.get_version(network=request.net), dialect)
+        elif isinstance(request, Help):
+            return format_help(request.topic, dialect)
+        elif isinstance(request, Log):
+            return self.event_log.take() or format_empty(dialect) or ""
+        elif isinstance(request, LSS_REQUESTS):
+            return self._lss(gateway, request)
+        else:
+            raise Cia309Error(GatewayError.REQUEST_NOT_SUPPORTED, f"{type(request).__name__}")
+        return ok
+
+    def _lss(self, gateway: Gateway, request: Request) -> str:
+        """309-1 4.8: to the network's LSS services, when there are any (else 100)."""
+        if self.lss is None:
+            raise Cia309Error(GatewayError.REQUEST_NOT_SUPPORTED, "no LSS services here")
+        assert isinstance(request, LSS_REQUESTS)
+        lss = self.lss(gateway.resolve_network(request.net))
+        try:
+            return self._lss_call(lss, request)
+        except Cia309Error:
+            raise
+        except ValueError as exc:
+            raise Cia309Error(GatewayError.SYNTAX_ERROR, str(exc)) from exc
+        except Exception as exc:
+            code = getattr(exc, "code", None)
+            if isinstance(code, int) and code in set(GatewayError):
+                raise Cia309Error(GatewayError(code), str(exc)) from exc
+            raise
+
+    def _lss_call(self, lss: LssServices, request: Request) -> str:
+        sequence, dialect = request.sequence, self.dialect
+        answered = True
+        if isinstance(request, LssSwitchGlobal):
+            lss.switch_state_global(int(request.configuration))
+        elif isinstance(request, LssSwitchSelective):
+            lss.switch_state_selective(*_numbers(request.address))
+        elif isinstance(request, LssConfigureNodeId):
+            lss.configure_node_id(request.node_id)
+        elif isinstance(request, LssConfigureBitRate):
+            lss.configure_bit_timing(request.table_selector, request.table_index)
+        elif isinstance(request, LssActivateBitRate):
+            lss.activate_bit_timing(request.switch_delay_ms)
+        elif isinstance(request, LssStore):
+            lss.store_configuration()
+        elif isinstance(request, LssInquireAddress):
+            if request.lss_sub is not None:
+                value = lss.inquire_lss_number(request.lss_sub)
+                return format_lss_number(sequence, value, dialect)
+            numbers = [lss.inquire_lss_number(sub) for sub in range(4)]
+            return format_lss_address(sequence, LssAddress(*numbers), dialect)
+        elif isinstance(request, LssInquireNodeId):
+            return format_lss_node_id(sequence, lss.inquire_node_id(), dialect)
+        elif isinstance(request, LssIdentifyRemoteSlave):
+            selection = request.selection
+            answered = lss.identify_remote_slave(
+                selection.vendor_id, selection.product_code, selection.revision_low,
+                selection.revision_high, selection.serial_low, selection.serial_high)
+        elif isinstance(request, LssIdentifyNonConfigured):
+            answered = lss.identify_non_configured_slave()
+        elif isinstance(request, LssFastscan):
+            answered = lss.fastscan_step(request.id_number, request.bit_checked,
+                                         request.lss_sub, request.lss_next)
+        elif isinstance(request, LssIdentifyFastscan):
+            vendor, product, revision, serial = (
+                value if mask == 0xFFFF_FFFF else None
+                for value, mask in zip(_numbers(request.known), _numbers(request.mask),
+                                       strict=True))
+            timeout = None if request.timeout_ms is None else request.timeout_ms / 1000.0
+            found = lss.fastscan(vendor, product, revision, serial, timeout=timeout)
+            if found is None:
+                raise Cia309Error(GatewayError.TIME_OUT, "no unconfigured LSS slave answered")
+            return format_lss_address(sequence, LssAddress(*found), dialect)
+        elif isinstance(request, LssAssignNodeId):
+            lss.assign_node_id(_numbers(request.address), request.node_id)
+        elif isinstance(request, LssCompleteConfiguration):
+            if any(criterion.scan != 0 for criterion in request.criteria):
+                raise Cia309Error(GatewayError.REQUEST_NOT_SUPPORTED,
+                                  "lss_allnodes scans every LSS number")
+            timeout = None if request.timeout_ms is None else request.timeout_ms / 1000.0
+            lss.complete_node_id_configuration(
+                2 if request.first_node_id is None else request.first_node_id,
+                True if request.store is None else request.store, timeout=timeout)
+        else:
+            raise Cia309Error(GatewayError.REQUEST_NOT_SUPPORTED, type(request).__name__)
+        if not answered:
+            raise Cia309Error(GatewayError.TIME_OUT, "no LSS slave answered")
+        return format_ok(sequence, dialect)
+
+
+def _numbers(address: LssAddress) -> LssNumbers:
+    return (address.vendor_id, address.product_code, address.revision, address.serial)
+
+
+@dataclass(frozen=True)
+class ServerConfig:
+    """What ``cifemu 309 serve`` is told."""
+
+    host: str = DEFAULT_HOST
+    port: int = DEFAULT_PORT
+    dialect: Dialect = Dialect.CANOPENNODE
+    read_only: bool = False
+    max_clients: int = DEFAULT_MAX_CLIENTS
+    max_line: int = DEFAULT_MAX_LINE
+
+
+class Server:
+    """The asyncio TCP server; ``start`` binds, ``serve_forever`` runs, ``close`` ends."""
+
+    def __init__(self, gateway: Gateway, config: ServerConfig,
+                 lss: LssFactory | None = None) -> None:
+        self.gateway = gateway
+        self.config = config
+        self.dispatcher = Dispatcher(config.dialect, read_only=config.read_only, lss=lss)
+        self._clients: dict[Client, asyncio.StreamWriter] = {}
+        self._executor = ThreadPoolExecutor(max_workers=config.max_clients,
+                                            thread_name_prefix="cia309-client")
+        self._server: asyncio.Server | None = None
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._subscription = gateway.subscribe(self._on_event)
+
+    @property
+    def port(self) -> int:
+        """The bound port (useful after binding port 0)."""
+        assert self._server is not None and self._server.sockets
+        return int(self._server.sockets[0].getsockname()[1])
+
+    async def start(self) -> None:
+        self._loop = asyncio.get_running_loop()
+        self._server = await asyncio.start_server(self._serve_client, self.config.host,
+                                                  self.config.port)
+        log.info("CiA 309-3 gateway (%s) on %s:%d", self.config.dialect.value,
+                 self.config.host, self.port)
+
+    async def serve_forever(self) -> None:
+        assert self._server is not None
+        await self._server.serve_forever()
+
+    async def close(self) -> None:
+        self._subscription.cancel()
+        if self._server is not None:
+            self._server.close()
+        for writer in list(self._clients.values()):
+            writer.close()
+        if self._server is not None:
+            await self._server.wait_closed()
+        self._executor.shutdown(wait=False, cancel_futures=True)
+
+    def _on_event(self, event: Event) -> None:
+        """From the gateway's dispatcher thread: over to the event loop."""
+        if self._loop is not None and not self._loop.is_closed():
+            self._loop.call_soon_threadsafe(self._broadcast, event)
+
+    def _broadcast(self, event: Event) -> None:
+        line = self.dispatcher.event_log.add(event)
+        if line is None or self.config.dialect is not Dialect.LELY:
+            return
+        data = line.encode("latin-1")
+        for writer in list(self._clients.values()):
+            self._write(writer, data)
+
+    @staticmethod
+    def _write(writer: asyncio.StreamWriter, data: bytes) -> None:
+        if writer.is_closing():
+            return
+        if writer.transport.get_write_buffer_size() > WRITE_BUFFER_LIMIT:
+            log.warning("dropping a client that does not read")
+            writer.close()
+            return
+        writer.write(data)
+
+    async def _serve_client(self, reader: asyncio.StreamReader,
+                            writer: asyncio.StreamWriter) -> None:
+        if len(self._clients) >= self.config.max_clients:
+            writer.write(format_error(0, GatewayError.OUT_OF_MEMORY,
+                                      self.config.dialect).encode("latin-1"))
+            await _close(writer)
+            return
+        client = Client(self.gateway.session(), LineFramer(self.config.max_line))
+        self._clients[client] = writer
+        loop = asyncio.get_running_loop()
+        try:
+            while data := await reader.read(READ_CHUNK):
+                for line in client.framer.feed(data):
+                    answer = await loop.run_in_executor(self._executor, self.dispatcher.handle,
+                                                        client, line)
+                    if answer:
+                        self._write(writer, answer.encode("latin-1"))
+                        await writer.drain()
+        except ConnectionError:
+            log.debug("a client went away")
+        finally:
+            del self._clients[client]
+            await _close(writer)
+
+
+async def _close(writer: asyncio.StreamWriter) -> None:
+    writer.close()
+    with contextlib.suppress(ConnectionError):
+        await writer.wait_closed()
+
+
+class BackgroundServer:
+    """A server on an event-loop thread of its own, for a program that is not asyncio
+    (an embedding application, the tests, the benchmark); ``close`` ends it."""
+
+    def __init__(self, gateway: Gateway, config: ServerConfig,
+                 lss: LssFactory | None = None) -> None:
+        self._loop = asyncio.new_event_loop()
+        self._thread = threading.Thread(target=self._loop.run_forever, daemon=True,
+                                        name="cia309-server")
+        self._thread.start()
+        self.server = Server(gateway, config, lss)
+        asyncio.run_coroutine_threadsafe(self.server.start(), self._loop).result()
+        self.port = self.server.port
+
+    def close(self) -> None:
+        asyncio.run_coroutine_threadsafe(self.server.close(), self._loop).result()
+        self._loop.call_soon_threadsafe(self._loop.stop)
+        self._thread.join()
+        self._loop.close()
+
+
+async def serve(gateway: Gateway, config: ServerConfig, lss: LssFactory | None = None,
+                ready: Callable[[Server], None] | None = None) -> None:
+    """Run a server until cancelled; ``ready`` is called once it listens."""
+    server = Server(gateway, config, lss)
+    await server.start()
+    if ready is not None:
+        ready(server)
+    try:
+        await server.serve_forever()
+    finally:
+        await server.close()

@@ -1,0 +1,329 @@
+"""The CiA 309-3 TCP server: raw request lines as ``cocomm`` and ``coctl`` send them, answers
+and event lines byte for byte, several clients, read-only mode, limits, malformed input, LSS,
+and the ``cifemu 309`` commands (serve, exec, shell under a pseudo-terminal).
+
+Board 0 runs a simulated network (node 1 generic, node 2 the data-type device of
+``tests/data/cia309_node.eds``, node 9 on the bus but not in the card, and an unconfigured LSS
+slave); in-process servers of both dialects share one gateway on it. Board 1 is a card
+without configuration for the ``cifemu 309 serve`` subprocess.
+"""
+
+from __future__ import annotations
+
+import base64
+import os
+import pty
+import queue
+import re
+import select
+import signal
+import socket
+import subprocess
+import sys
+import threading
+from collections.abc import Callable, Iterator
+from pathlib import Path
+
+import pytest
+
+from host_api.cia309.cli import open_lss
+from host_api.cia309.datatypes import Dialect
+from host_api.cia309.gateway import Gateway
+from host_api.cia309.server import BackgroundServer, ServerConfig
+from tests.conftest import wait_until
+from tests.test_cia309_gateway import EDS, start, wait_operating
+
+NETWORK = f"""[[node]]
+id = 1
+[[node]]
+id = 2
+eds = "{EDS}"
+[[node]]
+id = 9
+[[node]]
+id = 255
+lss = {{ vendor = 0x5678, product = 1, revision = 1, serial = 7 }}
+"""
+VERSION = "4409670 1250100 1.70 1 3 2.0 1.0"
+"""``info version`` of board 0: vendor "CIF", ulDeviceNo, firmware 1.70, serial 1, class 3."""
+
+
+class Client:
+    """A raw TCP client: bytes out, bytes in, nothing interpreted."""
+
+    def __init__(self, port: int) -> None:
+        self.sock = socket.create_connection(("127.0.0.1", port), timeout=10)
+        self.buffer = b""
+        self.events: list[str] = []
+
+    def send(self, data: bytes | str) -> None:
+        self.sock.sendall(data.encode("latin-1") if isinstance(data, str) else data)
+
+    def until(self, end: bytes) -> bytes:
+        """Everything received up to and including ``end``."""
+        while end not in self.buffer:
+            chunk = self.sock.recv(65536)
+            if not chunk:
+                raise ConnectionError(f"closed before {end!r}; got {self.buffer!r}")
+            self.buffer += chunk
+        at = self.buffer.index(end) + len(end)
+        data, self.buffer = self.buffer[:at], self.buffer[at:]
+        return data
+
+    def ask(self, line: str, end: bytes = b"\r\n") -> str:
+        self.send(line)
+        return self.until(end).decode("latin-1")
+
+    def answer(self, line: str) -> str:
+        """Lely's dialect: the answer line to ``line``; event lines before it are kept in
+        ``events``, as coctl prints them between answers."""
+        sequence = line[: line.index("]") + 1]
+        self.send(line)
+        while not (text := self.until(b"\n").decode("latin-1")).startswith(sequence):
+            self.events.append(text)
+        return text
+
+    def close(self) -> None:
+        self.sock.close()
+
+
+@pytest.fixture(scope="module")
+def directory(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return tmp_path_factory.mktemp("cia309-server")
+
+
+@pytest.fixture(scope="module")
+def servers(directory: Path) -> Iterator[dict[str, BackgroundServer]]:
+    """A CANopenNode server (at most 3 clients), a Lely one (without LSS) and a read-only one."""
+    card = start(directory, 0, NETWORK)
+    try:
+        with Gateway([0], directory) as gateway:
+            wait_operating(0, [1, 2])
+            lss = open_lss(gateway)
+            assert lss is not None
+            running = {
+                "canopennode": BackgroundServer(gateway, ServerConfig(port=0, max_clients=3),
+                                                lss),
+                "lely": BackgroundServer(gateway, ServerConfig(port=0, dialect=Dialect.LELY)),
+                "read-only": BackgroundServer(gateway, ServerConfig(port=0, read_only=True), lss),
+            }
+            try:
+                yield running
+            finally:
+                for server in running.values():
+                    server.close()
+    finally:
+        card.stop()
+
+
+Connect = Callable[[str], Client]
+"""A new client of the named server."""
+
+
+@pytest.fixture
+def connect(servers: dict[str, BackgroundServer]) -> Iterator[Connect]:
+    opened: list[Client] = []
+
+    def make(name: str) -> Client:
+        client = Client(servers[name].port)
+        opened.append(client)
+        return client
+
+    yield make
+    for client in opened:
+        client.close()
+
+
+def test_cocomm_requests_unchanged(connect: Connect) -> None:
+    """Lines as CANopenNode's cocomm writes them ('[<n>] ' prepended, LF), answers it reads."""
+    c = connect("canopennode")
+    assert c.ask("[1] 2 write 0x2006 0 u16 1234\n") == "[1] OK\r\n"
+    assert c.ask("[2] 2 read 0x2006 0 u16\n") == "[2] 1234\r\n"
+    assert c.ask("[3] read 0x2006 0 x16\n") == "[3] 0x04D2\r\n"  # node 2 became the default
+    assert c.ask("[4] 2 read 0x2345 0 u16\n") == (
+        "[4] ERROR:0x06020000 #Object does not exist in the object dictionary.\r\n")
+    assert c.ask('[5] 2 w 0x2009 0 vs "a ""quoted"" word"\n') == "[5] OK\r\n"
+    assert c.ask("[6] 2 r 0x2009 0 vs\n") == '[6] "a ""quoted"" word"\r\n'
+    assert c.ask("[7] 2 r 0x2006 0\n") == "[7] D2 04\r\n"  # no type: hex
+    # cocomm -i streams a long value in 1000-byte writes, the line ends with its LF.
+    data = os.urandom(8192)
+    line = f"[8] 2 write 0x2000 0 d {base64.b64encode(data).decode()}\n".encode()
+    for at in range(0, len(line), 1000):
+        c.send(line[at : at + 1000])
+    assert c.until(b"\r\n") == b"[8] OK\r\n"
+    answer = c.ask("[9] 2 read 0x2000 0 d\n")
+    assert answer.startswith("[9] ") and base64.b64decode(answer[4:-2]) == data
+    assert c.ask("\n") == "\r\n"  # cocomm -f waits for the answer to an empty line
+    helped = c.ask("[10] help datatype\n")
+    assert "vs (visible string" in helped and helped.count("\r\n") == 1
+    assert c.ask("[11] 1 stop\n") == "[11] OK\r\n"
+    logged: list[str] = []  # CANopenNode's events go to the log that 'log' prints
+    wait_until(lambda: logged.append(c.ask("[12] log\n")) or '"stopped" (4)' in logged[-1], 5,
+               "node 1's state change in the log")
+    assert re.fullmatch(r'\d{4}-\d\d-\d\d \d\d:\d\d:\d\d: CANopen Remote node ID = 0x01: '
+                        r'NMT state changed to: "stopped" \(4\)\r\n', logged[-1])
+    assert c.ask("[13] 1 start\n") == "[13] OK\r\n"
+
+
+def test_coctl_requests_unchanged(connect: Connect) -> None:
+    """The session of Lely's doc/coctl.md, answers and event lines as coctl reads them."""
+    c = connect("lely")
+    assert c.answer("[1] set network 1\n") == "[1] OK\n"
+    assert c.answer("[2] set node 2\n") == "[2] OK\n"
+    assert c.answer("[3] r 0x1018 0x01 u32\n") == "[3] 0x00001234\n"
+    assert c.answer("[4] 1 2 w 0x2006 0 u16 0x1234\n") == "[4] OK\n"
+    assert c.answer("[5] 1 2 r 0x2006 0 u16\n") == "[5] 0x1234\n"
+    assert c.answer("[6] r 0x2345 0 u8\n") == (
+        "[6] ERROR: 06020000 (Object does not exist in the object dictionary)\n")
+    assert c.answer("[7] info version\n") == f"[7] {VERSION}\n"
+    assert c.answer("[8] boot_up_indication Enable\n") == "[8] OK\n"
+    assert c.answer("[9] 9 reset node\n") == "[9] OK\n"
+    wait_until(lambda: "1 9 BOOT_UP\n" in c.events or c.answer("[10] info version\n") == "",
+               5, "the boot-up event line")
+    # Dummy mappings by type index, as coctl's set rpdo takes them.
+    assert c.answer("[11] set rpdo 1 0x189 event 2 0x0005 0 0x0005 0\n") == "[11] OK\n"
+    dummies = " ".join(["0x0005 0"] * 8)  # node 9's RPDO takes 8 bytes
+    assert c.answer(f"[12] set tpdo 1 0x209 event 8 {dummies}\n") == "[12] OK\n"
+    assert c.answer("[13] 9 start\n") == "[13] OK\n"
+    assert c.answer("[14] w p 1 8 7 9 0 0 0 0 0 0\n") == "[14] OK\n"
+    wait_until(lambda: "1 pdo 1 2 0x7 0x9\n" in c.events or c.answer("[15] info version\n") == "",
+               5, "node 9's echo as an RPDO event line")
+    assert c.answer("[16] r p 1\n") == "[16] 1 pdo 1 2 0x7 0x9\n"
+    assert c.answer("[17] lss_store\n") == (
+        "[17] ERROR: 100 (Request not supported)\n")  # this server has no LSS services
+
+
+def test_several_clients_at_once(connect: Connect) -> None:
+    clients = [connect("canopennode") for _ in range(3)]
+    expected = {1: "[{}] 983441\r\n", 2: "[{}] 0\r\n"}  # 1000h of the generic module, of node 2
+    for node, client in zip((1, 2, 1), clients, strict=True):
+        assert client.ask(f"[1] set node {node}\n") == "[1] OK\r\n"
+    failures: list[str] = []
+
+    def work(client: Client, node: int) -> None:
+        for sequence in range(2, 30):
+            answer = client.ask(f"[{sequence}] read 0x1000 0 u32\n")
+            if answer != expected[node].format(sequence):
+                failures.append(answer)
+
+    threads = [threading.Thread(target=work, args=(client, node))
+               for node, client in zip((1, 2, 1), clients, strict=True)]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join(30)
+    assert not failures
+    refused = connect("canopennode")  # a fourth client: over the limit of 3
+    assert refused.until(b"\r\n") == b"[0] ERROR:600 #Running out of memory.\r\n"
+    assert refused.sock.recv(10) == b""
+
+
+def test_read_only_refuses_writes_and_nmt(connect: Connect) -> None:
+    c = connect("read-only")
+    assert c.ask("[1] 2 read 0x2006 0 u16\n").startswith("[1] ")
+    refused = "[{}] ERROR:100 #Request not supported.\r\n"
+    for sequence, request in enumerate(("2 write 0x2006 0 u16 1", "2 start", "0 stop",
+                                        "2 reset node", "set sdo_timeout 100", "lss_store",
+                                        "set tpdo 1 0x300 event 1 0x6000 1 u8", "init 2"), 2):
+        assert c.ask(f"[{sequence}] {request}\n") == refused.format(sequence)
+    assert c.ask("[20] set node 1\n") == "[20] OK\r\n"
+    assert c.ask("[21] info version\n") == f"[21] {VERSION}\r\n"
+
+
+def test_malformed_lines_keep_the_connection(connect: Connect) -> None:
+    c = connect("canopennode")
+    assert c.ask("hello\n") == "[0] ERROR:101 #Syntax error.\r\n"
+    assert c.ask(b"\xff\xfe\x00garbage\n".decode("latin-1")) == "[0] ERROR:101 #Syntax error.\r\n"
+    assert c.ask("[5] 2 read\n") == "[5] ERROR:101 #Syntax error.\r\n"
+    assert c.ask("[6] 2 frobnicate\n") == "[6] ERROR:100 #Request not supported.\r\n"
+    assert c.ask("[7] 200 read 0x1000 0 u8\n") == "[7] ERROR:107 #Unsupported node.\r\n"
+    assert c.ask("[8] 3 2 read 0x1000 0 u8\n") == "[8] ERROR:106 #Unsupported net.\r\n"
+    assert c.ask("[9] read 0x1000 0 u8\n") == "[9] ERROR:105 #No default node set.\r\n"
+    assert c.ask("[10] 42 read 0x1000 0 u32\n") == "[10] ERROR:103 #Time-out.\r\n"
+    assert c.ask("[11] set sdo_block 1\n") == "[11] ERROR:100 #Request not supported.\r\n"
+    assert c.ask("[12] set command_size 64\n") == "[12] OK\r\n"
+    long_line = f'[13] 2 write 0x2009 0 vs "{"x" * 100}"\n'
+    assert c.ask(long_line) == "[13] ERROR:600 #Running out of memory.\r\n"
+    assert c.ask("[14] 2 read 0x2006 0 u16\n").startswith("[14] ")  # still served
+    assert c.ask("[15] set command_size 200000\n") == "[15] ERROR:600 #Running out of memory.\r\n"
+    assert c.ask("[16] wait\n") == "[16] ERROR:100 #Request not supported.\r\n"
+
+
+def test_lss_requests_reach_the_lss_services(connect: Connect) -> None:
+    c = connect("canopennode")
+    assert c.ask("[1] lss_identity 0x5678 1 0 5 0 100\n") == "[1] OK\r\n"
+    assert c.ask("[2] lss_identity 0x9999 1 0 5 0 100\n") == "[2] ERROR:103 #Time-out.\r\n"
+    assert c.ask("[3] lss_ident_nonconf\n") == "[3] OK\r\n"
+    assert c.ask("[4] lss_switch_sel 0x5678 1 1 7\n") == "[4] OK\r\n"
+    assert c.ask("[5] lss_get_node\n") == "[5] 0xFF\r\n"
+    assert c.ask("[6] lss_inquire_addr 3\n") == "[6] 0x00000007\r\n"
+    assert c.ask("[7] lss_inquire_addr\n") == "[7] 0x00005678 0x00000001 0x00000001 0x00000007\r\n"
+    assert c.ask("[8] lss_conf_bitrate 0 9\n") == "[8] ERROR:503 #LSS bit-rate not supported.\r\n"
+    assert c.ask("[9] lss_switch_glob 0\n") == "[9] OK\r\n"
+
+
+# --- cifemu 309 serve / exec / shell --------------------------------------------------------------
+
+
+def cifemu(*args: str) -> list[str]:
+    return [sys.executable, "-m", "cifemu", "309", *args]
+
+
+def read_until(fd: int, marker: bytes, timeout: float = 10) -> bytes:
+    """Bytes from a pseudo-terminal up to ``marker``."""
+    data = b""
+    while marker not in data:
+        ready, _, _ = select.select([fd], [], [], timeout)
+        if not ready:
+            raise TimeoutError(f"no {marker!r} in {data!r}")
+        data += os.read(fd, 4096)
+    return data
+
+
+def test_cli_serve_exec_and_shell(servers: dict[str, BackgroundServer], directory: Path,
+                                  tmp_path: Path) -> None:
+    card = start(directory, 1, None)
+    serve = subprocess.Popen(
+        cifemu("serve", "--board", "1", "--dpm-dir", str(directory), "--port", "0"),
+        stderr=subprocess.PIPE, text=True)
+    try:
+        assert serve.stderr is not None
+        lines: queue.SimpleQueue[str] = queue.SimpleQueue()
+        threading.Thread(target=lambda: [lines.put(line) for line in serve.stderr],
+                         daemon=True).start()
+        match = re.search(r"listening on 127\.0\.0\.1:(\d+)", lines.get(timeout=20))
+        assert match is not None
+        port = match.group(1)
+        version = VERSION.replace(" 1 3 ", " 2 3 ")  # board 1: serial 2
+        done = subprocess.run(cifemu("exec", "--port", port, "info version"),
+                              capture_output=True, text=True, timeout=30)
+        assert (done.returncode, done.stdout) == (0, f"[1] {version}\n")
+        done = subprocess.run(cifemu("exec", "--port", port, "[7] 1 read 0x1000 0 u32"),
+                              capture_output=True, text=True, timeout=30)
+        assert done.returncode == 1  # the network has no configuration
+        assert done.stdout.startswith("[7] ERROR:102 ")
+        history = tmp_path / "history"
+        master, slave = pty.openpty()
+        shell = subprocess.Popen(cifemu("shell", "--port", port, "--history", str(history)),
+                                 stdin=slave, stdout=slave, stderr=slave,
+                                 env={**os.environ, "TERM": "dumb"})
+        os.close(slave)
+        try:
+            read_until(master, b"309> ")
+            os.write(master, b"info version\r")
+            assert f"[1] {version}".encode() in read_until(master, b"309> ")
+            os.write(master, b"quit\r")
+            assert shell.wait(20) == 0
+        finally:
+            os.close(master)
+        assert "info version" in history.read_text()
+    finally:
+        serve.send_signal(signal.SIGTERM)
+        assert serve.wait(20) == 0
+    try:
+        done = subprocess.run(cifemu("exec", "--direct", "--board", "1", "--dpm-dir",
+                                     str(directory), "info version"),
+                              capture_output=True, text=True, timeout=30)
+        assert (done.returncode, done.stdout) == (0, f"[1] {version}\n")
+    finally:
+        card.stop()
