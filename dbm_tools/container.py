@@ -250,10 +250,13 @@ class _Block:
     words: int
 
 
-def _read_block(data: bytes, at: int, kind: int, parent: int, position: int, table: str) -> _Block:
+def _read_block(data: bytes, at: int, kind: int, parent: int, position: int, table: str,
+                also: int | None = None) -> _Block:
     offset = 2 * at
     btype, zero, bparent, bposition, pad, length = unpack("6H", data, offset, "block header")
     expected = (kind, 0, parent, position)
+    if bposition == also:
+        bposition = position
     if (btype, zero, bparent, bposition) != expected:
         raise DbmError(
             f"block at word {at}: header {(btype, zero, bparent, bposition)} != {expected}",
@@ -278,7 +281,9 @@ def _read_table(data: bytes, number: int, keyed: bool, at: int) -> tuple[DbmTabl
     if keyed:
         if unpack("H", data, 2 * (number + 1), "root slot")[0] != at:
             raise DbmError(f"key index not at word {at}", table=where)
-        block = _read_block(data, at, BLOCK_KEY_INDEX, 0, number + 1, where)
+        # The real file names the key index's own root slot (number + 1); DBM.md
+        # says the table number. A file written by hand from DBM.md must load too.
+        block = _read_block(data, at, BLOCK_KEY_INDEX, 0, number + 1, where, also=number)
         index_words = _as_words(block.payload)
         at += block.words
     root_pointer = unpack("H", data, 2 * number, "root slot")[0]
