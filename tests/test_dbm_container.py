@@ -291,7 +291,8 @@ def patched(raw: bytes, offset: int, value: bytes) -> bytes:
         (2 * 267 + 10, b"\x0a\x00", "bad length"),  # shorter than its header
         (2 * 795 + 12, b"\x01\x00", "key index"),  # KBL's empty key index lists slot 1
         (2 * 1287 + 12, b"\x02\x00\x01\x00", "key index"),  # ST_OV_0 slots 1 and 2 swapped
-        (2 * 1287 + 6, b"\x1e\x00", "block at word"),  # key index points at the wrong slot
+        # key index names neither its table (30, DBM.md) nor its root slot (31, the file)
+        (2 * 1287 + 6, b"\x20\x00", "block at word"),
     ],
 )
 def test_reader_refuses_damaged_fixture(
