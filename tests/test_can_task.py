@@ -666,3 +666,20 @@ def test_transparent_reception_of_29_bit_frames(tmp_path: Path) -> None:
     finally:
         sender.shutdown()
         card.stop()
+
+
+def test_guarding_a_node_that_produced_heartbeats(make_net: Callable[..., Net]) -> None:
+    """A host configures guarding for a generic node by the seed's tables alone."""
+    net = make_net("[[node]]\nid = 3\n")
+    params = NodeParameterSet(bNd_Flag=NdFlag.ACTIVE, usAddTypeInfo=0x000F, usDevProfNum=401,
+                              usCobIDEmcy=0x83, usCobIDGuard=0x703, usGuardTime=100,
+                              bLifeTimeFactor=3,
+                              atPdoCfgData=[PdoData(0, 8, 0x203, 255), PdoData(1, 8, 0x183, 255)],
+                              ausInputOffsets=[0], ausOutputOffsets=[0])
+    assert net.send(68, bytes([0, 3, 0, 0]) + params.encode()).f == 0
+    assert net.send(68, bytes([0, 127, 0, 0, 2]) + struct.pack("<HH", 0x80, 0) + bytes(2)).f == 0
+    net.wait_operating([3])
+    started = time.monotonic()
+    wait_until(lambda: time.monotonic() - started > 1.0, what="ten guard periods")
+    assert net.diag().operating() == [3] and net.diag().bErr_event == 0
+    assert net.send(66, bytes([3, 0, 0, 0, 0, 0, 5, 1])).data[8 + 5] == 5  # Node_State

@@ -8,6 +8,7 @@ served from the master's tick; received frames arrive on the bus thread.
 
 from __future__ import annotations
 
+import contextlib
 import enum
 import logging
 import struct
@@ -265,6 +266,11 @@ class NodeHandler:
                     # [ours] the node produces at half the master's consumer time
                     sdo.download(0x1017, 0, struct.pack("<H", max(1, params.usGuardTime // 2)))
             else:
+                if params.usGuardTime:
+                    # CiA 301: a node that produces heartbeats does not answer guarding;
+                    # switch its producer off (a node without 1017h may refuse: fine).
+                    with contextlib.suppress(SdoAbortedError):
+                        sdo.download(0x1017, 0, b"\0\0")
                 sdo.download(0x100C, 0, struct.pack("<H", params.usGuardTime))
                 sdo.download(0x100D, 0, struct.pack("<B", params.bLifeTimeFactor))
         if not skip & ConfigNdState.SYNC:
