@@ -174,11 +174,15 @@ class _Board:
             return False
         deadline = time.monotonic() + timeout_ms / 1000.0
         # A card answers most requests within tens of microseconds: checking the
-        # flags for that long first saves the sleep and wake-up of the bell.
-        spin_end = time.perf_counter() + SPIN_SECONDS
-        while time.perf_counter() < spin_end:
-            if condition():
-                return True
+        # flags for that long first saves the sleep and wake-up of the bell. Only a
+        # single-threaded host spins: in a host with more threads the spinning one
+        # would hold the interpreter lock the others need (the CiA 309 gateway's
+        # mailbox reader and its callers).
+        if threading.active_count() == 1:
+            spin_end = time.perf_counter() + SPIN_SECONDS
+            while time.perf_counter() < spin_end:
+                if condition():
+                    return True
         while True:
             remaining = deadline - time.monotonic()
             if remaining <= 0:
