@@ -683,3 +683,16 @@ def test_guarding_a_node_that_produced_heartbeats(make_net: Callable[..., Net]) 
     wait_until(lambda: time.monotonic() - started > 1.0, what="ten guard periods")
     assert net.diag().operating() == [3] and net.diag().bErr_event == 0
     assert net.send(66, bytes([3, 0, 0, 0, 0, 0, 5, 1])).data[8 + 5] == 5  # Node_State
+
+
+def test_stopping_communication_removes_layer2_filters(make_net: Callable[..., Net]) -> None:
+    net = make_net("[[node]]\nid = 1\n[[node]]\nid = 9\n")
+    net.send(68, bytes([0, 127, 0, 0, 2]) + struct.pack("<HH", 0x80, 0) + bytes(2))
+    assert net.send(82, bytes([0x09, 0x07])).f == 0  # node 9's heartbeat, 0x709
+    rc, indication = d.DevGetMessage(0, 288, 3000)
+    assert rc == 0 and indication is not None and indication.b == 83
+    assert d.DevSetHostState(0, d.HOST_NOT_READY, 2000) == 0  # seed 5.3.2.1: filters go
+    assert d.DevSetHostState(0, d.HOST_READY, 2000) == 0
+    while d.DevGetMessage(0, 288, 0)[0] == 0:  # what was queued before the stop
+        pass
+    assert d.DevGetMessage(0, 288, 1500)[0] == d.Drv.DRV_DEV_GET_TIMEOUT  # three heartbeats later
