@@ -19,6 +19,11 @@ from firmware.flash import FLASH_ENV
 from firmware.sim import SimulatedNetwork
 
 
+SWITCH_INTERVAL = 0.001
+"""Seconds a thread may hold the interpreter lock while another waits for it (CPython's
+default is 5 ms): the SYNC producer must not wait that long for its turn."""
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--board", type=int, default=0, choices=range(MAX_DEV_BOARDS),
                         metavar="N", help="board number 0..3 (default 0)")
@@ -52,6 +57,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    sys.setswitchinterval(SWITCH_INTERVAL)
     logging.basicConfig(level=args.log_level, format="%(asctime)s %(name)s: %(message)s")
     if args.log_level != "DEBUG":  # canopen narrates every transfer at INFO
         logging.getLogger("canopen").setLevel(logging.WARNING)
