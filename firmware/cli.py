@@ -18,7 +18,6 @@ from firmware.device import Device
 from firmware.flash import FLASH_ENV
 from firmware.sim import SimulatedNetwork
 
-
 SWITCH_INTERVAL = 0.001
 """Seconds a thread may hold the interpreter lock while another waits for it (CPython's
 default is 5 ms): the SYNC producer must not wait that long for its turn."""
