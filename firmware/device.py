@@ -124,11 +124,6 @@ class Device:
         self._calls.append(lambda: self.outbox.append(msg))
         self.bell.ring_self()
 
-    def call_soon(self, fn: Callable[[], None]) -> None:
-        """Run ``fn`` in the device loop (any thread)."""
-        self._calls.append(fn)
-        self.bell.ring_self()
-
     # --- flags -------------------------------------------------------------------------
 
     def write_host_flags(self, value: int) -> None:

@@ -26,6 +26,15 @@ SEND_TIMEOUT = 0.020
 
 FrameCallback = Callable[[can.Message], None]
 
+# SocketCAN error classes (linux/can/error.h): python-can carries them in an error
+# frame's identifier, and the controller-state details in its data byte 1.
+CAN_ERR_TX_TIMEOUT = 0x001
+CAN_ERR_CRTL = 0x004
+CAN_ERR_ACK = 0x020
+CAN_ERR_BUSOFF = 0x040
+CAN_ERR_CRTL_RX_WARNING = 0x04
+CAN_ERR_CRTL_TX_WARNING = 0x08
+
 ECHOING_INTERFACES = ("udp_multicast",)
 """Transports that hand a sender its own frames back; the controller drops them."""
 

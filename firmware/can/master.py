@@ -31,7 +31,7 @@ from dbm_tools.parameters import (
 from dpm.layout import CONN_STATUS
 from dpm.message import Message
 from dpm.task2 import CanState, GlobalBits
-from firmware.can.bus import CanBus
+from firmware.can.bus import CAN_ERR_ACK, CAN_ERR_BUSOFF, CAN_ERR_TX_TIMEOUT, CanBus
 from firmware.can.node import (
     NMT_RESET,
     NMT_RESET_COMM,
@@ -59,10 +59,6 @@ DEFAULT_SDO_TIMEOUT = 0.5
 """[ours] seconds an SDO request waits for its answer until COM_Set_SDO_Timeout; canopen's
 0.3 s lets a busy 2-core machine abort boot-ups that would have succeeded."""
 COM_BOOTUP_INDICATION = 117
-# SocketCAN error classes (linux/can/error.h)
-CAN_ERR_TX_TIMEOUT = 0x001
-CAN_ERR_ACK = 0x020
-CAN_ERR_BUSOFF = 0x040
 COM_RECEIVE_TRANSPARENT = 65
 COM_RX_CAN_LAYER2 = 83
 

@@ -24,6 +24,13 @@ from canopen.objectdictionary.datatypes import UNSIGNED32
 from canopen.sdo.exceptions import SdoAbortedError
 
 from dbm_tools.network import NodeDescription
+from firmware.can.bus import (
+    CAN_ERR_ACK,
+    CAN_ERR_BUSOFF,
+    CAN_ERR_CRTL,
+    CAN_ERR_CRTL_RX_WARNING,
+    CAN_ERR_CRTL_TX_WARNING,
+)
 from firmware.sim.generic import INPUTS, OUTPUTS
 from firmware.sim.nmt import (
     ENTER_PRE_OPERATIONAL,
@@ -53,14 +60,6 @@ PDO_PARAMETERS = range(0x1400, 0x1C00)
 EMCY_INVALID = 1 << 31
 STATE_NAMES = {INITIALISING: "INITIALISING", STOPPED: "STOPPED", OPERATIONAL: "OPERATIONAL",
                PRE_OPERATIONAL: "PRE-OPERATIONAL"}
-
-
-# SocketCAN error classes (linux/can/error.h), as python-can carries them in the id.
-CAN_ERR_CRTL = 0x004
-CAN_ERR_ACK = 0x020
-CAN_ERR_BUSOFF = 0x040
-CAN_ERR_CRTL_RX_WARNING = 0x04
-CAN_ERR_CRTL_TX_WARNING = 0x08
 
 
 def error_frame(kind: str) -> can.Message:
