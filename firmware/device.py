@@ -215,6 +215,10 @@ class Device:
     def update_driving(self) -> None:
         """Outputs reach the bus only while the host is ready and its watchdog alive."""
         self.plc.image.driving = not (self.rcs.host_not_ready or self.rcs.watchdog_expired)
+        if not self.plc.image.driving:
+            # Seed 5.3.2.1: stopping removes the layer-2 filters, at once, so that a
+            # stop and restart quicker than the CAN tick still removes them.
+            self.can.master.layer2_filters.clear()
 
     def fill_info(self) -> None:
         info.fill(self.view, self.board)

@@ -417,7 +417,6 @@ class Master:
             log.info("host stopped: outputs to zero, PDO traffic stopped")
             self._zero_outputs()
             self.halted = True
-            self.layer2_filters.clear()  # seed 5.3.2.1: stopping removes the filters
         elif driving and self.halted and not self.cleared:
             self.halted = False
             for handler in self.nodes.values():
