@@ -2,7 +2,10 @@
 
 Every card figure comes from a firmware process started as ``cifemu firmware
 --simulate NETWORK.toml --interface virtual``: the card and the simulated nodes
-(``firmware.sim``) share one python-can virtual bus inside that process. This
+(``firmware.sim``) share one python-can virtual bus inside that process; phases
+2 and 5 instead run the nodes as ``cifemu sim`` in a process of their own, on a
+fresh ``shm`` channel, so that what is measured is the card and not the
+simulator sharing its interpreter lock. This
 process is the host and reaches the card only through the driver API. Every
 baseline runs here, in this process, in the same run: python ``canopen`` (or
 python-can) talking straight to the same simulated nodes on a virtual bus, with
@@ -36,7 +39,9 @@ no card between them.
 5. ``sync_jitter``: ``[bus] sync_period_ms = 1``, 16 generic nodes: the periods
    between the SYNC frames (0x080) in the card's candump trace, idle and while
    the host drives the PDO loop of phase 2 on all 16 nodes. Baseline: python-can
-   ``send_periodic`` at 1 ms on a virtual bus, logged and measured the same way.
+   ``send_periodic`` at 1 ms on a virtual bus, logged and measured the same way;
+   and the machine's own floor: a process that does nothing but sleep until each
+   millisecond and note the time (no CAN, no threads).
 
 ``--profile`` attaches py-spy (``--gil``: only the thread holding the GIL is
 sampled) to the firmware for an extra window of phase 2 and adds where the
@@ -49,6 +54,7 @@ from __future__ import annotations
 
 import argparse
 import itertools
+import json
 import logging
 import re
 import shutil
@@ -136,6 +142,9 @@ THROUGHPUT_NODES = 126
 THROUGHPUT_ACTIVE = (16, 126)
 """Nodes whose loop the host drives, one timed window each; the others idle."""
 THROUGHPUT_SECONDS = 4.0
+HOST_IDLE_S = 0.0002
+"""The host's pause after a poll that found no echo: a polling host must not take a
+core from the card and the nodes (the machine has two)."""
 STALL_S = 0.5
 """Echoes slower than this are counted apart (late, not lost)."""
 DRAIN_S = 2.0
@@ -194,6 +203,8 @@ class SimCard:
     trace: Path | None
     stderr: Path
     board: Board | None = None
+    sim: subprocess.Popen[bytes] | None = None
+    """``cifemu sim`` when the nodes run in a process of their own."""
 
     @property
     def pid(self) -> int:
@@ -215,26 +226,51 @@ class SimCard:
             self.board.close()
             self.board = None
         _stop(self.proc)
+        if self.sim is not None:
+            _stop(self.sim)
 
 
 @contextmanager
-def simulated_card(description: str, *, trace: bool = False) -> Iterator[SimCard]:
-    """``cifemu firmware --simulate`` on a fresh image directory and flash; board opened."""
+def simulated_card(description: str, *, trace: bool = False,
+                   separate: bool = False) -> Iterator[SimCard]:
+    """``cifemu firmware --simulate`` on a fresh image directory and flash; board opened.
+
+    ``separate`` runs the nodes as ``cifemu sim`` in a process of their own, the
+    two meeting on a fresh ``shm`` channel, so the card's threads do not share
+    an interpreter lock with the simulator (as on a real bus, where the nodes
+    are other machines).
+    """
     with tempfile.TemporaryDirectory(prefix="cifemu-bench-can-", dir=_scratch_root()) as tmp:
         directory = Path(tmp)
         toml = directory / "network.toml"
         toml.write_text(description)
         trace_path = directory / "trace.log" if trace else None
         stderr_path = directory / "firmware.stderr"
+        interface, channel = ("shm", f"bench-{uuid.uuid4().hex[:12]}") if separate else (
+            "virtual", CHANNEL)
         command = [sys.executable, "-m", "firmware", "--board", str(BOARD), "--dpm-dir", tmp,
-                   "--log-level", "WARNING", "--simulate", str(toml), "--interface", "virtual",
-                   "--channel", CHANNEL, "--flash", str(directory / "flash")]
+                   "--log-level", "WARNING", "--interface", interface, "--channel", channel,
+                   "--flash", str(directory / "flash")]
+        if not separate:
+            command += ["--simulate", str(toml)]
         if trace_path is not None:
             command += ["--trace", str(trace_path)]
+        sim = None
+        if separate:
+            sim = subprocess.Popen(
+                [sys.executable, "-m", "firmware.sim", str(toml), "--interface", interface,
+                 "--channel", channel, "--log-level", "WARNING"],
+                stdin=subprocess.DEVNULL, stdout=subprocess.PIPE)
+            assert sim.stdout is not None
+            if not sim.stdout.readline().startswith(b"simulating"):  # its nodes are on the bus
+                _stop(sim)
+                raise RuntimeError("cifemu sim did not start")
+            # The node lines are read by nobody further on: the pipe must not fill.
+            threading.Thread(target=sim.stdout.read, daemon=True).start()
         with stderr_path.open("wb") as stderr:
             proc = subprocess.Popen(command, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
                                     stderr=stderr)
-        card = SimCard(directory, proc, trace_path, stderr_path)
+        card = SimCard(directory, proc, trace_path, stderr_path, sim=sim)
         try:
             _wait_ready(proc, image_path(directory, BOARD), STARTUP_TIMEOUT)
             card.board = Board(BOARD, directory, timeout=5000).open()
@@ -562,7 +598,9 @@ def echo_window(board: int, values: U64, active: int, seconds: float, out_offset
             continue
         done = (np.frombuffer(raw, dtype="<u8") == out) & pending
         echoed = int(np.count_nonzero(done))
-        if echoed:
+        if not echoed:
+            time.sleep(HOST_IDLE_S)
+        else:
             window.verified_total += echoed
             window.echo_s.append(now - sent_at[done])
             if running:
@@ -667,7 +705,7 @@ def card_pdo_throughput(profile: bool) -> dict[str, Any]:
     out_offset, in_offset = io_offsets(network)
     windows: list[EchoWindow] = []
     profiled: dict[str, Any] | None = None
-    with simulated_card(text, trace=True) as card:
+    with simulated_card(text, trace=True, separate=True) as card:
         board = _board(card)
         select_uncontrolled(board)
         progress(f"pdo throughput (card): on-line configuration of {len(nodes)} nodes")
@@ -1258,7 +1296,7 @@ def card_sync() -> dict[str, Any]:
     text = network_toml(nodes, sync_period_ms=SYNC_PERIOD_MS)
     network = parse_network(text)
     out_offset, in_offset = io_offsets(network)
-    with simulated_card(text, trace=True) as card:
+    with simulated_card(text, trace=True, separate=True) as card:
         board = _board(card)
         select_uncontrolled(board)
         configure(card, network)
@@ -1323,7 +1361,33 @@ def baseline_sync() -> dict[str, Any]:
             **sync_stats(syncs, SYNC_PERIOD_MS / 1e3, until - since)}
 
 
+MACHINE_FLOOR_LOOP = """
+import json, sys, time
+period, count = float(sys.argv[1]), int(sys.argv[2])
+stamps, due = [], time.perf_counter()
+for _ in range(count):
+    due += period
+    left = due - time.perf_counter()
+    if left > 0:
+        time.sleep(left)
+    stamps.append(time.perf_counter())
+print(json.dumps(stamps))
+"""
+
+
+def machine_floor_sync() -> dict[str, Any]:
+    """The best a sleeping Python process gets on this machine now: no CAN, no threads."""
+    progress(f"sync (machine floor): a bare 1 ms sleep loop for {SYNC_SECONDS} s")
+    count = round(SYNC_SECONDS / (SYNC_PERIOD_MS / 1e3))
+    out = subprocess.run([sys.executable, "-c", MACHINE_FLOOR_LOOP, str(SYNC_PERIOD_MS / 1e3),
+                          str(count)], check=True, capture_output=True).stdout
+    stamps = np.array(json.loads(out), dtype=np.float64)
+    return {"name": "a process that only sleeps until each 1 ms deadline and notes the time",
+            **sync_stats(stamps, SYNC_PERIOD_MS / 1e3, SYNC_SECONDS)}
+
+
 def sync_jitter() -> dict[str, Any]:
+    floor = machine_floor_sync()
     baseline = baseline_sync()
     card = card_sync()
     card_p99 = card["idle"].get("jitter_us", {}).get("p99")
@@ -1334,6 +1398,7 @@ def sync_jitter() -> dict[str, Any]:
                        "time stamps of the card's candump trace (taken just before the send)",
         "cif": card,
         "baseline": baseline,
+        "machine_floor": floor,
         "ratio_to_baseline": {"definition": "cif idle jitter p99 / baseline jitter p99",
                               "jitter_p99": ratio(card_p99 or 0.0, base_p99 or 0.0)},
     }

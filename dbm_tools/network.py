@@ -67,7 +67,7 @@ The whole schema, with defaults::
     emcy_burst = { after_s = 1.0, count = 5, code = 0x1000, interval_s = 0.01 }
     boot_delay_s = 0.5
     leave_operational_after_s = 3.0
-    bus_errors = { after_s = 1.0, count = 3, kind = "warning" }  # or "bus_off", "ack"
+    bus_errors = { after_s = 1.0, count = 3, kind = "warning" }  # or "bus_off", "ack", "rx_overflow"
 """
 
 from __future__ import annotations
@@ -169,9 +169,10 @@ class EmcyBurst:
     interval_s: float = 0.01
 
 
-BUS_ERROR_KINDS = ("warning", "bus_off", "ack")
+BUS_ERROR_KINDS = ("warning", "bus_off", "ack", "rx_overflow")
 """Error frames a simulated node can put on the bus: the controller's error-warning
-limit, bus-off, and a missing acknowledge (SocketCAN error classes)."""
+limit, bus-off, a missing acknowledge, and a receive FIFO overflow (SocketCAN error
+classes, as the card's CAN controller driver would report them)."""
 
 
 @dataclass

@@ -192,11 +192,11 @@ class Device:
             state["bErr_rem_adr"] = 0
             state["bErr_event"] = 0
 
-    def count(self, counter: str) -> None:
+    def count(self, counter: str, by: int = 1) -> None:
         """Increment a Task2State counter (usBus_Error_Cnt ...), saturating at 65535."""
         with self.state_lock:
             state = self.view["Task2State"]
-            state[counter] = min(0xFFFF, int(state[counter]) + 1)
+            state[counter] = min(0xFFFF, int(state[counter]) + by)
 
     def reset_counters(self) -> None:
         with self.state_lock:

@@ -2,8 +2,10 @@
 
 Each test starts ``cifemu firmware --simulate NETWORK.toml``: the card and the
 simulated nodes share one python-can bus inside the firmware process. The
-back-to-back fixture runs the whole file on ``virtual`` and, where the kernel
-has SocketCAN, on ``vcan0``. The host side uses only the driver API and raw
+back-to-back fixture runs the whole file on ``virtual``, on ``shm`` with the
+nodes in a ``cifemu sim`` process of their own (as on a real bus, the card
+then shares nothing but the bus with them), and, where the kernel has
+SocketCAN, on ``vcan0``. The host side uses only the driver API and raw
 mailbox messages built from the seed's tables.
 """
 
@@ -11,6 +13,9 @@ from __future__ import annotations
 
 import itertools
 import struct
+import subprocess
+import sys
+import threading
 import time
 import uuid
 from collections.abc import Callable, Iterator
@@ -31,8 +36,9 @@ from tests.conftest import Card, start_card, wait_until
 GENERIC = "\n".join(f"[[node]]\nid = {n}" for n in (1, 2, 3))
 
 
-@pytest.fixture(params=["virtual", "socketcan"])
+@pytest.fixture(params=["virtual", "shm", "socketcan"])
 def interface(request: pytest.FixtureRequest) -> str:
+    """The card's interface; on ``shm`` the nodes run as ``cifemu sim`` in another process."""
     if request.param == "socketcan":
         reason = socketcan_missing()
         if reason is not None:
@@ -70,13 +76,20 @@ class Net:
 @pytest.fixture
 def make_net(tmp_path: Path, interface: str) -> Iterator[Callable[..., Net]]:
     opened: list[Net] = []
+    sims: list[subprocess.Popen[bytes]] = []
 
     def make(toml: str = GENERIC, *extra: str) -> Net:
         path = tmp_path / "network.toml"
         path.write_text(toml)
-        channel = SOCKETCAN_CHANNEL if interface == "socketcan" else "card"
-        card = start_card(tmp_path, 0, "--simulate", str(path), "--interface", interface,
-                          "--channel", channel, *extra)
+        if interface == "shm":  # the card first: it must hear the nodes from power-on
+            channel = f"test-{uuid.uuid4().hex}"
+            card = start_card(tmp_path, 0, "--interface", interface, "--channel", channel,
+                              *extra)
+            sims.append(start_sim(path, interface, channel))
+        else:
+            channel = SOCKETCAN_CHANNEL if interface == "socketcan" else "card"
+            card = start_card(tmp_path, 0, "--simulate", str(path), "--interface", interface,
+                              "--channel", channel, *extra)
         board = Board(0, tmp_path, timeout=5000).open()
         net = Net(card, board, path)
         opened.append(net)
@@ -86,6 +99,23 @@ def make_net(tmp_path: Path, interface: str) -> Iterator[Callable[..., Net]]:
     for net in opened:
         net.board.close()
         net.card.stop()
+    for sim in sims:
+        sim.terminate()
+        sim.wait(timeout=10)
+
+
+def start_sim(network: Path, interface: str, channel: str) -> subprocess.Popen[bytes]:
+    """``cifemu sim`` in a process of its own, returned once its nodes are on the bus."""
+    sim = subprocess.Popen([sys.executable, "-m", "firmware.sim", str(network), "--interface",
+                            interface, "--channel", channel, "--log-level", "WARNING"],
+                           stdin=subprocess.DEVNULL, stdout=subprocess.PIPE)
+    assert sim.stdout is not None
+    first = sim.stdout.readline()
+    if not first.startswith(b"simulating"):
+        sim.kill()
+        pytest.fail(f"cifemu sim did not start: {first!r}")
+    threading.Thread(target=sim.stdout.read, daemon=True).start()  # the pipe must not fill
+    return sim
 
 
 def exchange(net: Net, outputs: bytes, offset: int = 0, size: int = 8) -> bytes:
@@ -520,6 +550,16 @@ def test_bus_errors_are_counted(make_net: Callable[..., Net], kind: str, counter
     assert image[0x1F40] & bit  # EVE for bus errors, TOUT for unacknowledged frames
     assert net.send(81, b"").f == 0
     assert struct.unpack_from("<H", image, counter)[0] == 0 and not image[0x1F40] & bit
+
+
+def test_a_controller_receive_overflow_counts_into_rx_overflow(
+        make_net: Callable[..., Net]) -> None:
+    """SocketCAN reports a receive FIFO overflow as a controller error frame (no count)."""
+    net = make_net("[[node]]\nid = 1\n[node.sim]\nbus_errors = { after_s = 0.2, count = 2, "
+                   "kind = \"rx_overflow\" }\n")
+    image = net.card.map()
+    wait_until(lambda: struct.unpack_from("<H", image, 0x1F4A)[0] == 2, 5, "2 overflows")
+    assert struct.unpack_from("<H", image, 0x1F44)[0] == 0  # not a bus error
 
 
 def test_layer2_queue_overflow_counts_lost_frames(make_net: Callable[..., Net]) -> None:

@@ -32,6 +32,7 @@ CAN_ERR_TX_TIMEOUT = 0x001
 CAN_ERR_CRTL = 0x004
 CAN_ERR_ACK = 0x020
 CAN_ERR_BUSOFF = 0x040
+CAN_ERR_CRTL_RX_OVERFLOW = 0x01
 CAN_ERR_CRTL_RX_WARNING = 0x04
 CAN_ERR_CRTL_TX_WARNING = 0x08
 
@@ -72,6 +73,7 @@ class CanBus(can.Listener):
         """The trace is written by the receive thread and by every sending thread."""
         self._echoes: deque[tuple[int, bytes, bool]] | None = (
             deque(maxlen=256) if interface in ECHOING_INTERFACES else None)
+        self._rx_overflows_seen = 0
         self.on_error_frame: Callable[[can.Message], None] = lambda msg: None
         self.on_send_timeout: Callable[[], None] = lambda: None
         self._trace: can.Listener | None = can.Logger(str(trace)) if trace else None
@@ -155,6 +157,16 @@ class CanBus(can.Listener):
             with self._trace_lock:
                 self._trace.on_message_received(msg)
         return True
+
+    def take_rx_overflows(self) -> int:
+        """Frames the interface lost since the last call (at least 1: an overflow was reported).
+
+        SocketCAN reports an overflow without a count; the ``shm`` interface
+        counts in ``rx_overflows``.
+        """
+        total = int(getattr(self.bus, "rx_overflows", 0))
+        lost, self._rx_overflows_seen = total - self._rx_overflows_seen, total
+        return max(1, lost)
 
     def shutdown(self) -> None:
         self._notifier.stop()

@@ -17,6 +17,8 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 import can
+import numpy as np
+import numpy.typing as npt
 from canopen.objectdictionary import ObjectDictionary
 from canopen.sdo.client import SdoClient
 
@@ -28,10 +30,17 @@ from dbm_tools.parameters import (
     ExtendedState,
     NodeParameterSet,
 )
-from dpm.layout import CONN_STATUS
+from dpm.layout import CONN_STATUS, IO_AREA_SIZE
 from dpm.message import Message
 from dpm.task2 import CanState, GlobalBits
-from firmware.can.bus import CAN_ERR_ACK, CAN_ERR_BUSOFF, CAN_ERR_TX_TIMEOUT, CanBus
+from firmware.can.bus import (
+    CAN_ERR_ACK,
+    CAN_ERR_BUSOFF,
+    CAN_ERR_CRTL,
+    CAN_ERR_CRTL_RX_OVERFLOW,
+    CAN_ERR_TX_TIMEOUT,
+    CanBus,
+)
 from firmware.can.node import (
     NMT_RESET,
     NMT_RESET_COMM,
@@ -88,6 +97,8 @@ class Master:
         self.config = config
         self.bus: CanBus | None = None
         self.nodes: dict[int, NodeHandler] = {}
+        self._owners: npt.NDArray[np.uint8] | None = None
+        """Which node's output PDO each output byte belongs to (0: none); see ``_owner_map``."""
         self.bus_params: BusParameterSet | None = None
         self.ext = ExtendedBusParameterSet()
         self.executor = ThreadPoolExecutor(max_workers=32, thread_name_prefix="node-boot")
@@ -156,6 +167,7 @@ class Master:
             handler.idle()
             handler.detach()
         self.nodes.clear()
+        self._owners = None
         self.bus_params = None
         self.ext = ExtendedBusParameterSet()
         self.running = self.halted = self.cleared = False
@@ -196,6 +208,7 @@ class Master:
             old.detach()
         handler = NodeHandler(self, address, params)
         self.nodes[address] = handler
+        self._owners = None
         self.device.set_node_bit("abNd_cfg", address, params.active)
         self.device.set_node_bit("abNd_diag", address, False)
         if self.running:
@@ -390,12 +403,39 @@ class Master:
                 handler.tick(now)
             self._update_nexc()
         outputs = self.image.snapshot_outputs()
-        if outputs != last_outputs or self._outputs_waiting:
-            due = [h for h in list(self.nodes.values())
-                   if h in self._outputs_waiting or h.outputs_changed(outputs, last_outputs)]
-            self._outputs_waiting = {h for h in due if h.send_outputs()}
+        changed = outputs != last_outputs
+        if changed or self._outputs_waiting:
+            due = self._changed_nodes(outputs, last_outputs) if changed else set()
+            due |= self._outputs_waiting
+            self._outputs_waiting = {h for h in sorted(due, key=_address) if h.send_outputs()}
         self._heartbeat(now)
         return outputs
+
+    def _changed_nodes(self, outputs: bytes, before: bytes) -> set[NodeHandler]:
+        """The nodes whose output PDOs read differently in ``outputs`` than in ``before``.
+
+        One vectorised comparison of the whole area instead of every node's
+        slices: at full bus load this runs a thousand times a second.
+        """
+        owners = self._owner_map()
+        if owners is None or len(before) != len(outputs):
+            return {h for h in self.nodes.values() if h.outputs_changed(outputs, before)}
+        diff = np.frombuffer(outputs, np.uint8) != np.frombuffer(before, np.uint8)
+        nodes = self.nodes
+        return {nodes[a] for a in np.unique(owners[diff]).tolist() if a in nodes}
+
+    def _owner_map(self) -> npt.NDArray[np.uint8] | None:
+        """Output byte -> node address; None when two nodes share output bytes."""
+        if self._owners is None:
+            owners = np.zeros(IO_AREA_SIZE, np.uint8)
+            for address, handler in list(self.nodes.items()):
+                for entry in handler.outputs:
+                    span = owners[entry.offset:entry.offset + entry.pdo.data_length]
+                    if np.any((span != 0) & (span != address)):
+                        return None
+                    span[:] = address
+            self._owners = owners
+        return self._owners
 
     def _follow_connection_bits(self) -> None:
         """Seed 3: a cleared bit stops the node, a set bit starts it again at once."""
@@ -427,7 +467,7 @@ class Master:
 
     def _update_nexc(self) -> None:
         missing = any(h.state is not State.OPERATING for h in self.nodes.values()
-                      if h.params.active and h.state is not State.DISCONNECTED)
+                      if h.active and h.state is not State.DISCONNECTED)
         self.device.set_global_bit(GlobalBits.NEXC, missing)
 
     def _heartbeat(self, now: float) -> None:
@@ -472,6 +512,12 @@ class Master:
         error_class = msg.arbitration_id
         if error_class & (CAN_ERR_TX_TIMEOUT | CAN_ERR_ACK):
             self._on_send_timeout()
+            return
+        if (error_class & CAN_ERR_CRTL and len(msg.data) > 1
+                and msg.data[1] & CAN_ERR_CRTL_RX_OVERFLOW):
+            # The controller's receive FIFO overflowed: frames the firmware lost.
+            lost = self.bus.take_rx_overflows() if self.bus is not None else 1
+            self.device.count("usRx_Overflow", lost)
             return
         self.device.count("usBus_Off_Cnt" if error_class & CAN_ERR_BUSOFF
                           else "usBus_Error_Cnt")
@@ -533,3 +579,7 @@ def layer2_frame(msg: can.Message) -> bytes:
     second = ((ident & 0x7) << 5) | (0x10 if msg.is_remote_frame else 0) | (msg.dlc & 0x0F)
     payload = b"" if msg.is_remote_frame else bytes(msg.data[: msg.dlc])
     return bytes([ident >> 3, second]) + payload
+
+
+def _address(handler: NodeHandler) -> int:
+    return handler.address

@@ -35,6 +35,8 @@ RETRY_DELAY = 1.0
 """[ours] seconds before a lost node is booted again when auto-clear is off."""
 RTR_PERIOD = 0.1
 """[ours] seconds between remote requests of an RTR-only (253) input PDO without SYNC."""
+SYNC_RTR = 252
+ASYNC_RTR = 253
 EMCY_ENTRIES = 5
 """COM_Node_Diag's Emcy_Data holds 40 bytes: five 8-byte EMCY messages."""
 
@@ -122,6 +124,8 @@ class NodeHandler:
         self.master = master
         self.address = address
         self.params = params
+        self.active = params.active
+        """Configured to run (the parameters of a handler never change)."""
         self.heartbeat = bool(params.bNd_Flag & NdFlag.HRTBT)
         self.guard_time = params.usGuardTime
         """Supervision time in ms (guard time or heartbeat consumer time); 0 = none."""
@@ -151,6 +155,8 @@ class NodeHandler:
         self.inputs = [InputPdo(p, o) for p, o in zip(
             [p for p in params.atPdoCfgData if p.is_input], params.ausInputOffsets,
             strict=False)]
+        self._polled = [e for e in self.inputs if e.pdo.bTransType in (SYNC_RTR, ASYNC_RTR)]
+        """Inputs that come only when asked by a remote frame (252, 253)."""
 
     # --- wiring to the bus -----------------------------------------------------------------
 
@@ -233,7 +239,7 @@ class NodeHandler:
         if not skip & ConfigNdState.TXRXPDO:
             self.send_outputs(force=True)
             for entry in self.inputs:
-                if entry.pdo.bTransType in (252, 253):
+                if entry.pdo.bTransType in (SYNC_RTR, ASYNC_RTR):
                     self._request(entry, now)
 
     def _boot_steps(self, skip: int, sdo: SdoClient, reset_sent: bool) -> None:
@@ -370,9 +376,8 @@ class NodeHandler:
                 self._guard_pending = True
                 self._next_guard = now + period
                 self.master.bus_send(params.usCobIDGuard, remote=True, dlc=1)
-        for entry in self.inputs:
-            if entry.pdo.bTransType == 253 or (entry.pdo.bTransType == 252
-                                               and not self.master.sync_period):
+        for entry in self._polled:
+            if entry.pdo.bTransType == ASYNC_RTR or not self.master.sync_period:
                 if entry.requested and now - entry.requested > RTR_PERIOD:
                     self.fail(NO_RTR_RESPONSE)
                     return
@@ -389,7 +394,7 @@ class NodeHandler:
             return
         self.send_outputs(sync=True)
         for entry in self.inputs:
-            if entry.pdo.bTransType == 252:
+            if entry.pdo.bTransType == SYNC_RTR:
                 if entry.requested and now - entry.requested > 2 * self.master.sync_period:
                     self.fail(NO_RTR_RESPONSE)
                     return

@@ -1,7 +1,7 @@
 """``cifemu sim``: the simulated nodes of a network description alone on a CAN bus.
 
-For a bus shared with another process (SocketCAN, vcan, any python-can
-interface that crosses processes). Runs in the foreground until SIGTERM or
+For a bus shared with another process (``shm``, SocketCAN, vcan, any
+python-can interface that crosses processes). Runs in the foreground until SIGTERM or
 Ctrl-C; prints each node it simulates.
 """
 
@@ -17,14 +17,17 @@ from types import FrameType
 import can
 
 from dbm_tools.network import NetworkError, NodeDescription, load_network
+from firmware.cli import SWITCH_INTERVAL
 from firmware.sim.network import SimulatedNetwork
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("network", metavar="NETWORK.toml", help="the network description")
     parser.add_argument("--interface", required=True,
-                        help="python-can interface, e.g. socketcan")
-    parser.add_argument("--channel", required=True, help="python-can channel, e.g. vcan0")
+                        help="python-can interface that crosses processes: shm (cifemu's "
+                             "shared-memory bus), socketcan, udp_multicast ...")
+    parser.add_argument("--channel", required=True,
+                        help="python-can channel, e.g. the card's shm channel or vcan0")
     parser.add_argument("--bitrate", type=int, default=None, metavar="BPS",
                         help="bit rate (default: the description's bus.bitrate)")
     parser.add_argument("--log-level", default="INFO",
@@ -66,6 +69,7 @@ def describe(node: NodeDescription) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
+    sys.setswitchinterval(SWITCH_INTERVAL)  # as the firmware: many threads, short turns
     logging.basicConfig(level=args.log_level, format="%(asctime)s %(name)s: %(message)s")
     if args.log_level != "DEBUG":
         logging.getLogger("canopen").setLevel(logging.WARNING)  # it logs every SDO at INFO
@@ -89,12 +93,13 @@ def run(args: argparse.Namespace) -> int:
 
     signal.signal(signal.SIGTERM, on_signal)
     signal.signal(signal.SIGINT, on_signal)
-    print(f"simulating {args.network} on {args.interface} {args.channel} at {bitrate} bit/s",
-          flush=True)
-    for node in network.nodes:
-        print(f"  {describe(node)}", flush=True)
     try:
         with SimulatedNetwork(network, bus):
+            # Printed once the nodes are powered: a script may wait for the first line.
+            print(f"simulating {args.network} on {args.interface} {args.channel} "
+                  f"at {bitrate} bit/s", flush=True)
+            for node in network.nodes:
+                print(f"  {describe(node)}", flush=True)
             done.wait()
     finally:
         bus.shutdown()

@@ -28,6 +28,7 @@ from firmware.can.bus import (
     CAN_ERR_ACK,
     CAN_ERR_BUSOFF,
     CAN_ERR_CRTL,
+    CAN_ERR_CRTL_RX_OVERFLOW,
     CAN_ERR_CRTL_RX_WARNING,
     CAN_ERR_CRTL_TX_WARNING,
 )
@@ -70,9 +71,10 @@ def error_frame(kind: str) -> can.Message:
     if kind == "ack":
         return can.Message(is_error_frame=True, arbitration_id=CAN_ERR_ACK, dlc=8,
                            data=bytes(8))
+    status = (CAN_ERR_CRTL_RX_OVERFLOW if kind == "rx_overflow"
+              else CAN_ERR_CRTL_RX_WARNING | CAN_ERR_CRTL_TX_WARNING)
     return can.Message(is_error_frame=True, arbitration_id=CAN_ERR_CRTL, dlc=8,
-                       data=bytes([0, CAN_ERR_CRTL_RX_WARNING | CAN_ERR_CRTL_TX_WARNING])
-                       + bytes(6))
+                       data=bytes([0, status]) + bytes(6))
 
 
 def error_register_bits(code: int) -> int:
@@ -111,7 +113,12 @@ class SimulatedNode(LocalNode):
         self.sdo = SimSdoServer(self)
         self.guarding = NodeGuarding(self)
         self.pdo_engine = PdoEngine(self)
-        self._written: list[tuple[int, int]] = []
+        inputs = dictionary.get(INPUTS)
+        subs = inputs.subindices if isinstance(inputs, (ODArray, ODRecord)) else {}
+        self._echoed = frozenset(sub for sub in subs if sub)
+        """Subindices of 6000h that echo 6200h's."""
+        self.written: list[tuple[int, int]] = []
+        """Objects written since the last ``after_writes`` (by SDO, RPDO or the byte path)."""
         self._errors: set[int] = set()
         self._power_timers: list[Timer] = []
         self._cycle_timers: list[Timer] = []
@@ -156,11 +163,11 @@ class SimulatedNode(LocalNode):
         del od
         if index == ERROR_FIELD and subindex == 0 and any(data):
             raise SdoAbortedError(ABORT_VALUE_RANGE)  # only 0 (clear the history) is allowed
-        self._written.append((index, subindex))
+        self.written.append((index, subindex))
 
     def after_writes(self) -> None:
         """Act on values stored by an SDO download or an RPDO."""
-        written, self._written = self._written, []
+        written, self.written = self.written, []
         if not written:
             return
         if any(index in PDO_PARAMETERS or index == 0x1005 for index, _ in written):
@@ -173,12 +180,15 @@ class SimulatedNode(LocalNode):
 
     def _echo(self, subs: list[int]) -> None:
         """Inputs echo outputs: a CiA 401 module with 6000h and 6200h reads back what it drives."""
-        inputs = self.object_dictionary.get(INPUTS)
-        if not isinstance(inputs, (ODArray, ODRecord)):
+        echoed = self._echoed
+        if not echoed:
             return
+        outputs = self.data_store.get(OUTPUTS, {})
+        inputs = self.data_store.setdefault(INPUTS, {})
         for sub in subs:
-            if sub and sub in inputs.subindices:
-                self.data_store.setdefault(INPUTS, {})[sub] = self.get_data(OUTPUTS, sub)
+            if sub in echoed:
+                data = outputs.get(sub)
+                inputs[sub] = data if data is not None else self.get_data(OUTPUTS, sub)
 
     # --- power and NMT ---------------------------------------------------------------
 
@@ -236,7 +246,7 @@ class SimulatedNode(LocalNode):
         self.nmt.enter(INITIALISING)
         self.guarding.reset()
         self._errors.clear()
-        self._written.clear()
+        self.written.clear()
         for index in list(self.data_store):
             if application or index in COMMUNICATION_AREA:
                 del self.data_store[index]
