@@ -331,6 +331,17 @@ def emit(document: Any) -> None:
     sys.stdout.flush()
 
 
+def sized_main(prog: str, doc: str | None, run: Callable[[int | None, int | None], Any],
+               defaults: tuple[int, int], argv: list[str] | None) -> int:
+    """The command line of a benchmark that takes only ``--count`` and ``--warmup``."""
+    parser = argparse.ArgumentParser(prog=prog, description=doc,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    add_size_arguments(parser, f"default {defaults[0]}", f"default {defaults[1]}")
+    args = parser.parse_args(argv)
+    emit(run(args.count, args.warmup))
+    return 0
+
+
 def add_size_arguments(
     parser: argparse.ArgumentParser, count_default: str, warmup_default: str
 ) -> None:

@@ -23,7 +23,6 @@ user's.
 
 from __future__ import annotations
 
-import argparse
 import multiprocessing
 import os
 import tempfile
@@ -34,8 +33,6 @@ from typing import Any
 
 from bench.common import (
     Measured,
-    add_size_arguments,
-    emit,
     host_session,
     machine_info,
     measure,
@@ -43,6 +40,7 @@ from bench.common import (
     progress,
     ratio,
     running_card,
+    sized_main,
     source_fingerprint,
 )
 from dbm_tools.builder import build_dbm
@@ -206,12 +204,8 @@ def run(count: int | None = None, warmup: int | None = None) -> dict[str, Any]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m bench.dbm", description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
-    add_size_arguments(parser, f"default {DEFAULT_COUNT}", f"default {DEFAULT_WARMUP}")
-    args = parser.parse_args(argv)
-    emit(run(args.count, args.warmup))
-    return 0
+    return sized_main("python -m bench.dbm", __doc__, run, (DEFAULT_COUNT, DEFAULT_WARMUP),
+                      argv)
 
 
 if __name__ == "__main__":

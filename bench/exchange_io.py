@@ -16,21 +16,19 @@ completed exchange, any other code as a failure.
 
 from __future__ import annotations
 
-import argparse
 import mmap
 from dataclasses import dataclass
 from typing import Any
 
 from bench.common import (
     Measured,
-    add_size_arguments,
-    emit,
     host_session,
     machine_info,
     measure,
     progress,
     ratio,
     running_card,
+    sized_main,
     source_fingerprint,
 )
 from dpm.errors import Drv
@@ -165,12 +163,8 @@ def run(count: int | None = None, warmup: int | None = None) -> dict[str, Any]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m bench.exchange_io", description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
-    add_size_arguments(parser, f"default {DEFAULT_COUNT}", f"default {DEFAULT_WARMUP}")
-    args = parser.parse_args(argv)
-    emit(run(args.count, args.warmup))
-    return 0
+    return sized_main("python -m bench.exchange_io", __doc__, run, (DEFAULT_COUNT, DEFAULT_WARMUP),
+                      argv)
 
 
 if __name__ == "__main__":

@@ -11,14 +11,11 @@ cost of the cheapest Python IPC round trip on this machine.
 
 from __future__ import annotations
 
-import argparse
 import multiprocessing
 from typing import Any
 
 from bench.common import (
     Measured,
-    add_size_arguments,
-    emit,
     host_session,
     machine_info,
     measure,
@@ -26,6 +23,7 @@ from bench.common import (
     progress,
     ratio,
     running_card,
+    sized_main,
     source_fingerprint,
 )
 from dpm.message import Message
@@ -156,12 +154,8 @@ def run(count: int | None = None, warmup: int | None = None) -> dict[str, Any]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m bench.mailbox", description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
-    add_size_arguments(parser, f"default {DEFAULT_COUNT}", f"default {DEFAULT_WARMUP}")
-    args = parser.parse_args(argv)
-    emit(run(args.count, args.warmup))
-    return 0
+    return sized_main("python -m bench.mailbox", __doc__, run, (DEFAULT_COUNT, DEFAULT_WARMUP),
+                      argv)
 
 
 if __name__ == "__main__":

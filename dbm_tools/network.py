@@ -64,10 +64,13 @@ The whole schema, with defaults::
     sdo_abort = { "6200:1" = 0x06090011 }
     heartbeat_stop_after_s = 5.0
     guarding_fail_after_s = 5.0
+    guard_toggle_stuck = false  # true: guarding answers never alternate the toggle bit
+    sdo_response = "unknown"    # every SDO response broken: command byte 0xE0, or "short":
+                                # cut to its first 4 bytes; omitted: correct responses
     emcy_burst = { after_s = 1.0, count = 5, code = 0x1000, interval_s = 0.01 }
     boot_delay_s = 0.5
     leave_operational_after_s = 3.0
-    bus_errors = { after_s = 1.0, count = 3, kind = "warning" }  # or "bus_off", "ack", "rx_overflow"
+    bus_errors = { after_s = 1.0, count = 3, kind = "warning" }  # "bus_off", "ack", "rx_overflow"
 """
 
 from __future__ import annotations
@@ -169,6 +172,10 @@ class EmcyBurst:
     interval_s: float = 0.01
 
 
+SDO_RESPONSE_FAULTS = ("unknown", "short")
+"""Broken SDO responses a simulated node can send instead of every correct one: an
+undefined command specifier (7, command byte 0xE0), or a frame of 4 bytes instead of 8."""
+
 BUS_ERROR_KINDS = ("warning", "bus_off", "ack", "rx_overflow")
 """Error frames a simulated node can put on the bus: the controller's error-warning
 limit, bus-off, a missing acknowledge, and a receive FIFO overflow (SocketCAN error
@@ -191,6 +198,10 @@ class SimFaults:
     sdo_abort: dict[tuple[int, int], int] = field(default_factory=dict)
     heartbeat_stop_after_s: float | None = None
     guarding_fail_after_s: float | None = None
+    guard_toggle_stuck: bool = False
+    """Guarding answers keep the toggle bit of the first one (the card's Err_Event 32)."""
+    sdo_response: str | None = None
+    """One of ``SDO_RESPONSE_FAULTS``: how every SDO response is broken (Err_Event 37, 38)."""
     emcy_burst: EmcyBurst | None = None
     boot_delay_s: float = 0.0
     leave_operational_after_s: float | None = None
@@ -309,8 +320,9 @@ def _sim(table: dict[str, Any], where: str) -> SimFaults:
     _take(table, where, {
         "silent": bool, "device_type": int, "sdo_abort": dict,
         "heartbeat_stop_after_s": (int, float), "guarding_fail_after_s": (int, float),
-        "emcy_burst": dict, "boot_delay_s": (int, float),
-        "leave_operational_after_s": (int, float), "bus_errors": dict,
+        "guard_toggle_stuck": bool, "sdo_response": str, "emcy_burst": dict,
+        "boot_delay_s": (int, float), "leave_operational_after_s": (int, float),
+        "bus_errors": dict,
     })
     faults = SimFaults(**{k: v for k, v in table.items()
                           if k not in ("sdo_abort", "emcy_burst", "bus_errors")})
@@ -329,6 +341,9 @@ def _sim(table: dict[str, Any], where: str) -> SimFaults:
         if faults.bus_errors.kind not in BUS_ERROR_KINDS:
             raise NetworkError(f"{where}.bus_errors.kind = {faults.bus_errors.kind!r}: use one "
                                f"of {', '.join(BUS_ERROR_KINDS)}")
+    if faults.sdo_response is not None and faults.sdo_response not in SDO_RESPONSE_FAULTS:
+        raise NetworkError(f"{where}.sdo_response = {faults.sdo_response!r}: use "
+                           + " or ".join(f'"{name}"' for name in SDO_RESPONSE_FAULTS))
     return faults
 
 

@@ -308,6 +308,8 @@ def test_emcy_collection_with_overflow(make_net: Callable[..., Net]) -> None:
         ("silent = true", 34),
         ("device_type = 0x000F0192", 35),
         ("device_type = 0x00010191", 36),
+        ('sdo_response = "unknown"', 37),
+        ('sdo_response = "short"', 38),
     ],
 )
 def test_boot_errors(make_net: Callable[..., Net], sim: str, event: int) -> None:
@@ -315,6 +317,41 @@ def test_boot_errors(make_net: Callable[..., Net], sim: str, event: int) -> None
     net.configure()
     wait_until(lambda: net.diag().bErr_event == event, 10, f"Err_Event {event}")
     assert net.diag().bErr_rem_adr == 6 and net.diag().operating() == []
+
+
+def test_short_sdo_responses_fail_only_their_node(make_net: Callable[..., Net]) -> None:
+    """Err_Event 38: the 4-byte answers never reach the card's SDO client, the node is
+    reported as answering wrongly (not as silent), and the other node boots as usual."""
+    net = make_net('[[node]]\nid = 1\n[[node]]\nid = 6\n[node.sim]\nsdo_response = "short"\n')
+    net.configure()
+    net.wait_operating([1])
+    wait_until(lambda: net.diag().bErr_event == 38, 10, "Err_Event 38")
+    diag = net.diag()
+    assert diag.bErr_rem_adr == 6 and diag.operating() == [1] and 6 in diag.diagnostic()
+    node_diag = net.send(66, bytes([6, 0, 0, 0, 0, 0, 5, 1])).data[8:]
+    assert node_diag[6] == 38  # Actual_Error
+    assert not node_diag[0] & 0x01  # No_Response: the node did answer
+    assert net.sdo(1, 0x1000, 0).f == 0  # the card's SDO side lives on
+
+
+def test_guarding_sequence_error(make_net: Callable[..., Net]) -> None:
+    """Err_Event 32: a node whose guarding answers never alternate the toggle bit.
+
+    The card boots the node again a second after each failure and clears the
+    event while it runs, so the assertions read the same snapshot that showed 32.
+    """
+    toml = ("[[node]]\nid = 4\nerror_control = \"guarding\"\nguard_time_ms = 100\n"
+            "life_time_factor = 2\n[node.sim]\nguard_toggle_stuck = true\n")
+    net = make_net(toml)
+    net.configure()
+    seen: list[ComDiagnostics] = []
+
+    def sequence_error() -> bool:
+        seen[:] = [net.diag()]
+        return seen[0].bErr_event == 32
+
+    wait_until(sequence_error, 10, "Err_Event 32")
+    assert seen[0].bErr_rem_adr == 4 and 4 not in seen[0].operating()
 
 
 def test_connection_bits_stop_and_restart_a_node(make_net: Callable[..., Net]) -> None:

@@ -32,6 +32,7 @@ from canopen.sdo.exceptions import SdoAbortedError, SdoCommunicationError
 from cifemu.cli import build_parser
 from dbm_tools.network import GENERIC_DEVICE_TYPE, LssAddress, NetworkError, parse_network
 from firmware.sim import SimulatedNetwork
+from firmware.sim.cli import describe
 from firmware.sim.generic import GENERIC_PRODUCT_CODE, GENERIC_REVISION, GENERIC_VENDOR_ID
 
 if TYPE_CHECKING:
@@ -556,6 +557,45 @@ def test_guarding_fails_after_n_seconds(bench: Callable[[str], Bench]) -> None:
     assert time.time() - boot.timestamp >= 0.25
 
 
+def test_guard_toggle_stuck(bench: Callable[[str], Bench]) -> None:
+    """Every answer keeps the first one's toggle bit (0): a master sees a sequence error."""
+    b = bench(GUARDED + "sim = { guard_toggle_stuck = true }\n")
+    b.boot_up(5)
+    assert [guard(b) for _ in range(3)] == [b"\x7f"] * 3
+    b.start(5)
+    assert [guard(b) for _ in range(2)] == [b"\x05"] * 2
+
+
+@pytest.mark.parametrize(
+    ("fault", "index", "expected"),
+    [
+        # an expedited upload of 1000h; the same answer with command specifier 7 ...
+        ("unknown", 0x1000, bytes([0xE0, 0x00, 0x10, 0x00, 0x91, 0x01, 0x0F, 0x00])),
+        # ... an abort (no object 2345h) is broken too ...
+        ("unknown", 0x2345, bytes([0xE0, 0x45, 0x23, 0x00, 0x00, 0x00, 0x02, 0x06])),
+        # ... or the answer cut after the multiplexer: DLC 4
+        ("short", 0x1000, bytes([0x43, 0x00, 0x10, 0x00])),
+        ("short", 0x2345, bytes([0x80, 0x45, 0x23, 0x00])),
+    ],
+)
+def test_broken_sdo_responses(bench: Callable[[str], Bench], fault: str, index: int,
+                              expected: bytes) -> None:
+    b = bench(f'{GENERIC}sim = {{ sdo_response = "{fault}" }}\n')
+    b.boot_up(5)
+    mark = b.frames.mark()
+    b.master.send_message(0x605, bytes([0x40]) + index.to_bytes(2, "little") + bytes(5))
+    answer = b.frames.wait(frame(0x585), "the SDO response", mark)[0]
+    assert (bytes(answer.data), answer.dlc) == (expected, len(expected))
+
+
+def test_canopen_client_rejects_an_unknown_sdo_response(bench: Callable[[str], Bench]) -> None:
+    b = bench(GENERIC + 'sim = { sdo_response = "unknown" }\n')
+    b.boot_up(5)
+    b.node(5).sdo.RESPONSE_TIMEOUT = 0.5
+    with pytest.raises(SdoCommunicationError, match="Unexpected response 0xE0"):
+        b.read(5, 0x1000)
+
+
 def test_emcy_burst(bench: Callable[[str], Bench]) -> None:
     b = bench(GENERIC + """emcy_cob_id = 0xC5
 [node.sim]
@@ -653,6 +693,34 @@ def test_power_cycle_boots_again(bench: Callable[[str], Bench]) -> None:
     mark = b.start(5)
     b.master.send_message(0x205, ECHO)
     b.frames.wait(frame(0x185, ECHO), "the echo after the power cycle", mark)
+
+
+@pytest.mark.parametrize(
+    ("sim", "message"),
+    [
+        ('sdo_response = "long"', r"node 5\.sim\.sdo_response = 'long': use \"unknown\" or "
+                                  r"\"short\""),
+        ("sdo_response = 4", r"node 5\.sim\.sdo_response: expected str, got int"),
+        ("sdo_response = true", r"node 5\.sim\.sdo_response: expected a number, got a boolean"),
+        ("guard_toggle_stuck = 1", r"node 5\.sim\.guard_toggle_stuck: expected bool, got int"),
+        ('guard_toggle_stuck = "yes"',
+         r"node 5\.sim\.guard_toggle_stuck: expected bool, got str"),
+    ],
+)
+def test_bad_fault_values_are_network_errors(sim: str, message: str) -> None:
+    with pytest.raises(NetworkError, match=message):
+        parse_network(f"[[node]]\nid = 5\n[node.sim]\n{sim}\n")
+
+
+def test_new_faults_are_parsed_and_described() -> None:
+    network = parse_network('[[node]]\nid = 5\nerror_control = "guarding"\n'
+                            'sim = { guard_toggle_stuck = true, sdo_response = "short" }\n'
+                            '[[node]]\nid = 6\nsim = { sdo_response = "unknown" }\n')
+    five, six = network.nodes
+    assert (five.sim.guard_toggle_stuck, five.sim.sdo_response) == (True, "short")
+    assert (six.sim.guard_toggle_stuck, six.sim.sdo_response) == (False, "unknown")
+    assert describe(five).endswith("faults: guarding toggle bit stuck, SDO responses of 4 bytes")
+    assert describe(six).endswith("faults: SDO responses with command byte 0xe0")
 
 
 def test_unreadable_eds_is_a_network_error(tmp_path: Path) -> None:

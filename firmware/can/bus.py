@@ -23,6 +23,8 @@ log = logging.getLogger(__name__)
 
 SEND_TIMEOUT = 0.020
 """Seed 4.3: each CAN message is supervised to be sent within 20 ms."""
+SDO_FRAME_LENGTH = 8
+"""CiA 301: every SDO frame has 8 data bytes (seed 4.3, Err_Event 38)."""
 
 FrameCallback = Callable[[can.Message], None]
 
@@ -116,8 +118,12 @@ class CanBus(can.Listener):
                 callback(msg)
             except Exception:
                 log.exception("frame handler failed on 0x%X", ident)
-        # canopen's network serves only the SDO clients (answers on 0x581..0x5FF).
-        if 0x580 < ident < 0x600 and not msg.is_extended_id and not msg.is_remote_frame:
+        # canopen's network serves only the SDO clients (answers on 0x581..0x5FF). A
+        # response of another length never reaches them: canopen unpacks fixed offsets
+        # (struct.error on a short abort) or takes a short one for data. The node
+        # handler, subscribed above, reports it as Err_Event 38 when its boot-up times out.
+        if (0x580 < ident < 0x600 and not msg.is_extended_id and not msg.is_remote_frame
+                and len(msg.data) == SDO_FRAME_LENGTH):
             self.network.notify(ident, msg.data, msg.timestamp)
 
     def _is_echo(self, msg: can.Message) -> bool:

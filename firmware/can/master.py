@@ -265,6 +265,7 @@ class Master:
         self._booting.discard(handler.address)
         self.set_node_state(handler.address, False)
         self.set_node_diag(handler.address, True)
+        self.device.set_global_bit(GlobalBits.NEXC, True)  # with Err_Event, not a tick later
         self.device.report_error(handler.address, event)
         if self.auto_clear and not self.cleared and self.running:
             self._auto_clear()

@@ -23,6 +23,7 @@ from canopen.sdo.client import SdoClient
 from canopen.sdo.exceptions import SdoAbortedError, SdoCommunicationError
 
 from dbm_tools.parameters import MSK_WORD_PDO, ConfigNdState, NdFlag, NodeParameterSet, PdoData
+from firmware.can.bus import SDO_FRAME_LENGTH
 
 if TYPE_CHECKING:
     from firmware.can.master import Master
@@ -34,6 +35,9 @@ BOOTUP_TIMEOUT = 3.0
 RETRY_DELAY = 1.0
 """[ours] seconds before a lost node is booted again when auto-clear is off."""
 RTR_PERIOD = 0.1
+START_GRACE = 0.5
+"""[ours] seconds after the NMT start in which a node may still report its old state: an
+error-control frame it sent before the start can reach the master after it."""
 """[ours] seconds between remote requests of an RTR-only (253) input PDO without SYNC."""
 SYNC_RTR = 252
 ASYNC_RTR = 253
@@ -49,6 +53,7 @@ NO_RESPONSE = 34
 PROFILE_MISMATCH = 35
 DEVICE_TYPE_MISMATCH = 36
 UNKNOWN_SDO_RESPONSE = 37
+SDO_LENGTH = 38
 NODE_STOPPED = 39
 
 # Nodestatus_1 bits (seed 5.2.7)
@@ -146,6 +151,12 @@ class NodeHandler:
         self._guard_pending = False
         self._guard_misses = 0
         self._toggle: int | None = None
+        self._started_at = 0.0
+        self._confirmed = False
+        """The node reported OPERATIONAL since its start."""
+        self._sdo_length_error = False
+        """An SDO response of another length than 8 came since the boot-up began. The
+        controller keeps it from canopen's client, which then times out: Err_Event 38."""
         self._retry_at = 0.0
         self._generation = 0
         """Bumped on every (re)boot so a stale boot thread gives up."""
@@ -164,6 +175,7 @@ class NodeHandler:
         bus = self.master.bus
         assert bus is not None
         bus.subscribe(0x700 + self.address, self._on_error_control)
+        bus.subscribe(0x580 + self.address, self._on_sdo_response)
         if self.params.usCobIDGuard and self.params.usCobIDGuard != 0x700 + self.address:
             bus.subscribe(self.params.usCobIDGuard, self._on_error_control)
         if self.emcy_cob_id is not None:
@@ -176,6 +188,7 @@ class NodeHandler:
         if bus is None:
             return
         bus.unsubscribe(0x700 + self.address, self._on_error_control)
+        bus.unsubscribe(0x580 + self.address, self._on_sdo_response)
         bus.unsubscribe(self.params.usCobIDGuard, self._on_error_control)
         if self.emcy_cob_id is not None:
             bus.unsubscribe(self.emcy_cob_id, self._on_emcy)
@@ -201,10 +214,25 @@ class NodeHandler:
         self.master.executor.submit(self._boot, self._generation, reset_sent)
 
     def _boot(self, generation: int, reset_sent: bool) -> None:
+        """The boot-up in its worker thread, which nobody joins.
+
+        The executor would keep any exception in a future nobody reads, leaving
+        the node in BOOTING for good and the host without an Err_Event; so an
+        unforeseen one fails the node (34, no response during its configuration)
+        and is logged.
+        """
+        try:
+            self._run_boot(generation, reset_sent)
+        except Exception:
+            log.exception("node %d: boot-up failed unexpectedly", self.address)
+            self._fail_boot(generation, NO_RESPONSE)
+
+    def _run_boot(self, generation: int, reset_sent: bool) -> None:
         skip = self.params.bitConfigNdState
         try:
             channel = self.master.sdo_client(self.address)
             with channel.lock:
+                self._sdo_length_error = False
                 self._boot_steps(skip, channel.sdo, reset_sent)
         except SdoAbortedError as exc:
             log.info("node %d: configuration aborted 0x%08X", self.address, exc.code)
@@ -215,6 +243,10 @@ class NodeHandler:
             message = str(exc)
             log.info("node %d: no configuration answer: %s", self.address, message)
             unknown = "Unexpected response" in message or "unexpected" in message.lower()
+            if self._sdo_length_error and not unknown:
+                # The node did answer, with a frame the controller kept from canopen.
+                self._fail_boot(generation, SDO_LENGTH)
+                return
             self.diag.status |= 0 if unknown else NO_RESPONSE_BIT
             self._fail_boot(generation, UNKNOWN_SDO_RESPONSE if unknown else NO_RESPONSE)
             return
@@ -230,6 +262,8 @@ class NodeHandler:
         self._guard_pending = False
         self._guard_misses = 0
         self._toggle = None
+        self._started_at = now
+        self._confirmed = False
         for output in self.outputs:
             output.last = None
         self.state = State.OPERATING
@@ -475,10 +509,19 @@ class NodeHandler:
                 return
             self._toggle = toggle
         operating = state == OPERATIONAL
+        self._confirmed |= operating
         if self.operational_expected and not operating:
+            if not self._confirmed and now - self._started_at < START_GRACE:
+                return  # sent before the start reached it
             self.fail(LEFT_OPERATIONAL)
             return
         self.master.set_node_state(self.address, operating)
+
+    def _on_sdo_response(self, msg: can.Message) -> None:
+        """Notes a response of the wrong length; canopen's client never sees it (``CanBus``)."""
+        if not msg.is_remote_frame and len(msg.data) != SDO_FRAME_LENGTH:
+            log.info("node %d: SDO response of %d bytes", self.address, len(msg.data))
+            self._sdo_length_error = True
 
     def _on_emcy(self, msg: can.Message) -> None:
         if msg.is_remote_frame:

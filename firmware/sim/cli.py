@@ -57,6 +57,12 @@ def describe(node: NodeDescription) -> str:
         faults.append(f"heartbeat stops after {sim.heartbeat_stop_after_s} s")
     if sim.guarding_fail_after_s is not None:
         faults.append(f"guarding fails after {sim.guarding_fail_after_s} s")
+    if sim.guard_toggle_stuck:
+        faults.append("guarding toggle bit stuck")
+    if sim.sdo_response == "unknown":
+        faults.append("SDO responses with command byte 0xe0")
+    elif sim.sdo_response == "short":
+        faults.append("SDO responses of 4 bytes")
     if sim.emcy_burst is not None:
         faults.append(f"{sim.emcy_burst.count} EMCY {sim.emcy_burst.code:#06x} "
                       f"after {sim.emcy_burst.after_s} s")

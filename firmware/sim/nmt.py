@@ -77,7 +77,8 @@ class NodeGuarding:
     life time factor (100Dh) both set, the first remote frame arms life
     guarding: no further one within their product is a life guarding event.
     A node whose heartbeat producer runs (1017h != 0) does not guard: CiA 301
-    lets a device use only one of the two.
+    lets a device use only one of the two. The fault ``guard_toggle_stuck``
+    keeps the toggle bit at 0, so the master sees a guarding sequence error.
     """
 
     def __init__(self, node: SimulatedNode) -> None:
@@ -105,7 +106,8 @@ class NodeGuarding:
             return
         node.network.send_message(node.description.cob_id_guard,
                                   bytes([self.toggle | node.nmt.code]))
-        self.toggle ^= TOGGLE
+        if not node.description.sim.guard_toggle_stuck:
+            self.toggle ^= TOGGLE
         self.cancel()
         life_time_ms = node.value(0x100C, 0, 0) * node.value(0x100D, 0, 0)
         if life_time_ms:

@@ -3,7 +3,9 @@
 canopen's ``SdoServer`` does expedited and segmented transfers against the
 ``LocalNode``'s object dictionary. Added here: no answer at all outside
 PRE-OPERATIONAL and OPERATIONAL (CiA 301 table 41), injected aborts on chosen
-objects, "sub-index does not exist" for array entries the object dictionary
+objects, broken responses (fault ``sdo_response``: an undefined command
+specifier, or a frame shorter than 8 bytes, as a non-conforming device sends
+them), "sub-index does not exist" for array entries the object dictionary
 does not define (canopen invents them from the first entry), abort 05040001h
 for a segment outside a segmented transfer and for block download (canopen
 trips over both and logs them as its own errors), and the node's after-write
@@ -29,6 +31,9 @@ if TYPE_CHECKING:
 
 ABORT_NO_SUBINDEX = 0x06090011
 SDO_FRAME_LENGTH = 8
+UNKNOWN_COMMAND = 0xE0
+"""Command byte of server command specifier 7, which CiA 301 leaves undefined."""
+SHORT_LENGTH = 4
 
 
 class SimSdoServer(SdoServer):
@@ -86,6 +91,15 @@ class SimSdoServer(SdoServer):
     def abort(self, abort_code: int = ABORT_GENERAL_ERROR) -> None:
         self._segmented = None
         super().abort(abort_code)  # type: ignore[no-untyped-call]
+
+    def send_response(self, response: bytes | bytearray) -> None:
+        """Every response, aborts included, leaves here: the one place to break them."""
+        fault = self._sim.description.sim.sdo_response
+        if fault == "unknown":
+            response = bytes([UNKNOWN_COMMAND]) + bytes(response[1:SDO_FRAME_LENGTH])
+        elif fault == "short":
+            response = bytes(response[:SHORT_LENGTH])
+        super().send_response(response)  # type: ignore[no-untyped-call]
 
     def _check(self, request: bytearray) -> None:
         _, index, subindex = SDO_STRUCT.unpack_from(request)
