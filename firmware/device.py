@@ -69,6 +69,8 @@ class Device:
         self.bell = DeviceBell(self.path)
         self.outbox: deque[Message] = deque()
         self._calls: deque[Callable[[], None]] = deque()
+        self._turn = threading.Lock()
+        """Held by the device loop for each turn; ``post`` takes it to answer at once."""
         self._stop = threading.Event()
         self._ring = False
         self._state_sent = b""
@@ -94,7 +96,8 @@ class Device:
             self._flush()
             while not self._stop.is_set():
                 self.bell.wait(POLL_INTERVAL)
-                self.service(time.monotonic())
+                with self._turn:
+                    self.service(time.monotonic())
         finally:
             self._power_off()
 
@@ -120,7 +123,24 @@ class Device:
     # --- cross-thread entry points ---------------------------------------------------
 
     def post(self, msg: Message) -> None:
-        """Queue an answer or indication for the host (any thread)."""
+        """Give the host an answer or indication (any thread).
+
+        When the loop is between turns, nothing is queued before it and the
+        host's mailbox is free, the calling thread hands ``msg`` over itself:
+        waking the loop for it costs a thread switch, a third of an expedited
+        SDO transfer here. Otherwise the loop's next turn delivers it.
+        """
+        if self._turn.acquire(blocking=False):
+            try:
+                mm = self.mm
+                if (not self._stop.is_set() and not self._calls and not self.outbox
+                        and not (mm[HOST_FLAGS] ^ mm[DEV_FLAGS]) & fl.HOST_MBX):
+                    self.outbox.append(msg)
+                    self._deliver()
+                    self._flush()
+                    return
+            finally:
+                self._turn.release()
         self._calls.append(lambda: self.outbox.append(msg))
         self.bell.ring_self()
 
