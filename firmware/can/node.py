@@ -146,6 +146,8 @@ class NodeHandler:
         self.host_sdo = False
         """A host SDO transfer runs: the node's RPDOs are suppressed (seed 5.2.8)."""
         self._bootup = threading.Event()
+        self._reset_at = 0.0
+        """Wall-clock time (as frames are stamped) of the last NMT reset the card sent it."""
         self._last_heartbeat = 0.0
         self._next_guard = 0.0
         self._guard_pending = False
@@ -282,6 +284,8 @@ class NodeHandler:
             raise _BootFailure(NO_RESPONSE)
         if reset_sent or not skip & ConfigNdState.RESET:
             if not reset_sent:
+                self._bootup.clear()
+                self._reset_at = time.time()
                 self.master.nmt(NMT_RESET, self.address)
             if not self.master.wait_for(self._bootup, BOOTUP_TIMEOUT):
                 self.diag.status |= NO_RESPONSE_BIT
@@ -490,7 +494,10 @@ class NodeHandler:
         value = msg.data[0]
         state = value & 0x7F
         if state == BOOT_UP and msg.arbitration_id == 0x700 + self.address:
-            self._bootup.set()
+            # One sent before our reset (at power-on, say) must not pass for its answer:
+            # the node would still be resetting when the first SDO request comes.
+            if not msg.timestamp or msg.timestamp >= self._reset_at:
+                self._bootup.set()
             if self.state is State.OPERATING:
                 log.info("node %d: unexpected boot-up", self.address)
                 self.fail(LEFT_OPERATIONAL)

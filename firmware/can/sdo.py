@@ -50,7 +50,9 @@ class HostSdoTransfer:
         self._received = bytearray()
         self._sent = 0
         self._toggle = 0
-        self._deadline = 0.0
+        self._deadline = time.monotonic() + timeout
+        """Refreshed by every request; set here already because the master's tick may
+        check the transfer between its registration and its first request."""
         self._finished = False
 
     def start(self) -> None:
