@@ -59,6 +59,10 @@ class ExtendedState(IntFlag):
 
 MSK_LENGTH = 0x7F
 MSK_WORD_PDO = 0x80
+SYNC_RTR = 252
+"""CiA 301 transmission type: sampled at SYNC, sent only on a remote frame."""
+ASYNC_RTR = 253
+"""CiA 301 transmission type: sent only on a remote frame."""
 
 BAUD_RATES_KBIT = {0: 1000, 1: 800, 2: 500, 3: 250, 4: 125, 5: 100, 6: 50, 7: 20, 8: 10}
 """Baud_rate codes (COM_BAUD_1000 = 0 ... COM_BAUD_10 = 8) and their bit rates."""

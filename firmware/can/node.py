@@ -22,7 +22,15 @@ import can
 from canopen.sdo.client import SdoClient
 from canopen.sdo.exceptions import SdoAbortedError, SdoCommunicationError
 
-from dbm_tools.parameters import MSK_WORD_PDO, ConfigNdState, NdFlag, NodeParameterSet, PdoData
+from dbm_tools.parameters import (
+    ASYNC_RTR,
+    MSK_WORD_PDO,
+    SYNC_RTR,
+    ConfigNdState,
+    NdFlag,
+    NodeParameterSet,
+    PdoData,
+)
 from firmware.can.bus import SDO_FRAME_LENGTH
 
 if TYPE_CHECKING:
@@ -35,12 +43,10 @@ BOOTUP_TIMEOUT = 3.0
 RETRY_DELAY = 1.0
 """[ours] seconds before a lost node is booted again when auto-clear is off."""
 RTR_PERIOD = 0.1
+"""[ours] seconds between remote requests of an RTR-only (253) input PDO without SYNC."""
 START_GRACE = 0.5
 """[ours] seconds after the NMT start in which a node may still report its old state: an
 error-control frame it sent before the start can reach the master after it."""
-"""[ours] seconds between remote requests of an RTR-only (253) input PDO without SYNC."""
-SYNC_RTR = 252
-ASYNC_RTR = 253
 EMCY_ENTRIES = 5
 """COM_Node_Diag's Emcy_Data holds 40 bytes: five 8-byte EMCY messages."""
 
@@ -274,9 +280,8 @@ class NodeHandler:
         self.master.node_booted(self)
         if not skip & ConfigNdState.TXRXPDO:
             self.send_outputs(force=True)
-            for entry in self.inputs:
-                if entry.pdo.bTransType in (SYNC_RTR, ASYNC_RTR):
-                    self._request(entry, now)
+            for entry in self._polled:
+                self._request(entry, now)
 
     def _boot_steps(self, skip: int, sdo: SdoClient, reset_sent: bool) -> None:
         params = self.params
@@ -431,7 +436,7 @@ class NodeHandler:
         if self.state is not State.OPERATING:
             return
         self.send_outputs(sync=True)
-        for entry in self.inputs:
+        for entry in self._polled:
             if entry.pdo.bTransType == SYNC_RTR:
                 if entry.requested and now - entry.requested > 2 * self.master.sync_period:
                     self.fail(NO_RTR_RESPONSE)

@@ -190,9 +190,7 @@ class ShmBus(can.BusABC):
             opened = time.monotonic_ns()
             self._bell.bind(self._bell_name(index, opened))
             # The ring's counter runs on from its last owner: readers' positions stay valid.
-            _STATION.pack_into(self._map, _STATIONS_AT + index * _STATION.size, 1, os.getpid(),
-                               opened)
-            self._map[_WAITING_AT + index] = 0
+            self._set_station(index, 1, os.getpid(), opened)
             return index
         finally:
             fcntl.flock(self._fd, fcntl.LOCK_UN)
@@ -202,8 +200,12 @@ class ShmBus(can.BusABC):
         for index in range(MAX_STATIONS):
             in_use, pid, _ = self._station(index)
             if in_use and not _alive(pid):
-                _STATION.pack_into(self._map, _STATIONS_AT + index * _STATION.size, 0, 0, 0)
-                self._map[_WAITING_AT + index] = 0
+                self._set_station(index, 0, 0, 0)
+
+    def _set_station(self, index: int, in_use: int, pid: int, opened: int) -> None:
+        """Write a station's entry, not waiting (under the exclusive lock)."""
+        _STATION.pack_into(self._map, _STATIONS_AT + index * _STATION.size, in_use, pid, opened)
+        self._map[_WAITING_AT + index] = 0
 
     # --- sending -----------------------------------------------------------------------------
 
@@ -329,8 +331,7 @@ class ShmBus(can.BusABC):
             self._closed = True
             fcntl.flock(self._fd, fcntl.LOCK_EX)
             try:
-                _STATION.pack_into(self._map, _STATIONS_AT + self._index * _STATION.size, 0, 0, 0)
-                self._map[_WAITING_AT + self._index] = 0
+                self._set_station(self._index, 0, 0, 0)
                 self._reclaim_dead()
                 if not any(self._station(index)[0] for index in range(MAX_STATIONS)):
                     self._path.unlink(missing_ok=True)

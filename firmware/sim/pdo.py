@@ -35,6 +35,7 @@ from typing import TYPE_CHECKING
 from canopen.network import Callback
 from canopen.pdo import PdoMap, PdoMaps
 
+from dbm_tools.parameters import SYNC_RTR
 from firmware.sim.nmt import OPERATIONAL
 from firmware.sim.scheduler import Timer
 
@@ -44,8 +45,6 @@ if TYPE_CHECKING:
 PDO_LENGTH_ERROR = 0x8210
 """EMCY code: PDO not processed due to length error (CiA 301 table 21)."""
 SYNC_LAST = 240
-SYNC_RTR = 252
-ASYNC_RTR = 253
 EVENT_TYPES = (254, 255)
 INHIBIT_UNIT_S = 100e-6
 APPLICATION_AREA = 0x2000

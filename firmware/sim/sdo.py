@@ -26,11 +26,12 @@ from canopen.sdo.constants import (
 from canopen.sdo.exceptions import SdoAbortedError
 from canopen.sdo.server import SdoServer
 
+from firmware.can.bus import SDO_FRAME_LENGTH
+
 if TYPE_CHECKING:
     from firmware.sim.node import SimulatedNode
 
 ABORT_NO_SUBINDEX = 0x06090011
-SDO_FRAME_LENGTH = 8
 UNKNOWN_COMMAND = 0xE0
 """Command byte of server command specifier 7, which CiA 301 leaves undefined."""
 SHORT_LENGTH = 4

@@ -47,7 +47,13 @@ from types import TracebackType
 
 from dbm_tools.container import DbmFile, DbmTable, read_data_area, write_dbm
 from dbm_tools.errors import DbmError
-from dbm_tools.parameters import ExtendedBusParameterSet, NdFlag, NodeParameterSet
+from dbm_tools.parameters import (
+    ASYNC_RTR,
+    SYNC_RTR,
+    ExtendedBusParameterSet,
+    NdFlag,
+    NodeParameterSet,
+)
 from dbm_tools.tables import (
     BUS_CAN,
     BUS_CAN_EXT,
@@ -565,7 +571,7 @@ class _Pdo:
 
     @property
     def rtr(self) -> bool:
-        return self.transmission_type in (252, 253)
+        return self.transmission_type in (SYNC_RTR, ASYNC_RTR)
 
     def unpack(self, data: bytes) -> tuple[int, ...]:
         values = []
