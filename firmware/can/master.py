@@ -98,6 +98,7 @@ class Master:
         self.bus: CanBus | None = None
         self.nodes: dict[int, NodeHandler] = {}
         self._owners: npt.NDArray[np.uint8] | None = None
+        self._nexc_lock = threading.Lock()
         """Which node's output PDO each output byte belongs to (0: none); see ``_owner_map``."""
         self.bus_params: BusParameterSet | None = None
         self.ext = ExtendedBusParameterSet()
@@ -256,8 +257,8 @@ class Master:
     def node_booted(self, handler: NodeHandler) -> None:
         self._booting.discard(handler.address)
         self.device.clear_error(handler.address)
+        self._update_nexc()  # before Nd_state: a host that sees all nodes up sees NEXC clear
         self.set_node_state(handler.address, True)
-        self._update_nexc()
         if self.global_start and not self._booting:
             self._global_start_due = True
 
@@ -265,7 +266,7 @@ class Master:
         self._booting.discard(handler.address)
         self.set_node_state(handler.address, False)
         self.set_node_diag(handler.address, True)
-        self.device.set_global_bit(GlobalBits.NEXC, True)  # with Err_Event, not a tick later
+        self._update_nexc()  # with Err_Event, not a supervision tick later
         self.device.report_error(handler.address, event)
         if self.auto_clear and not self.cleared and self.running:
             self._auto_clear()
@@ -467,9 +468,15 @@ class Master:
                     handler.send_outputs(force=True)
 
     def _update_nexc(self) -> None:
-        missing = any(h.state is not State.OPERATING for h in self.nodes.values()
-                      if h.active and h.state is not State.DISCONNECTED)
-        self.device.set_global_bit(GlobalBits.NEXC, missing)
+        """NEXC from every node's state; called by boot threads, the bus thread and the tick.
+
+        Under a lock: two boot threads finishing together could otherwise write
+        their answers in the wrong order, the stale one last.
+        """
+        with self._nexc_lock:
+            missing = any(h.state is not State.OPERATING for h in list(self.nodes.values())
+                          if h.active and h.state is not State.DISCONNECTED)
+            self.device.set_global_bit(GlobalBits.NEXC, missing)
 
     def _heartbeat(self, now: float) -> None:
         period = self.ext.usProducerHeartbeatTime / 1000.0
