@@ -11,6 +11,7 @@ mailbox messages built from the seed's tables.
 
 from __future__ import annotations
 
+import contextlib
 import itertools
 import struct
 import subprocess
@@ -475,6 +476,56 @@ transmission = 1
     # A synchronous cyclic RPDO goes out once per SYNC, even without a change.
     outputs = [t for t, ident, _ in frames if ident == 0x201]
     assert len(outputs) >= len(syncs) - 5
+
+
+def sync_timers(card: Card) -> list[int]:
+    """The card's timer processes on ``shm`` (``firmware.can.shm_cyclic`` children): the
+    one sending SYNC, if any, and the spare that the controller keeps started ahead."""
+    children = []  # each thread's children are listed under that thread
+    for task in Path(f"/proc/{card.proc.pid}/task").iterdir():
+        with contextlib.suppress(FileNotFoundError):
+            children += (task / "children").read_text().split()
+    timers = []
+    for child in children:
+        with contextlib.suppress(FileNotFoundError):
+            if b"firmware.can.shm_cyclic" in Path(f"/proc/{child}/cmdline").read_bytes():
+                timers.append(int(child))
+    return timers
+
+
+def test_sync_stops_while_the_host_is_not_ready(make_net: Callable[..., Net], tmp_path: Path,
+                                                interface: str) -> None:
+    """HOST_NOT_READY stops the bus: no SYNC either, until the host is ready again. On
+    ``shm`` the SYNC comes from a timer process of the card (outside its interpreter,
+    README "The CAN task"), which goes with it."""
+    trace = tmp_path / "sync.log"
+    toml = """[bus]
+sync_period_ms = 5
+[[node]]
+id = 1
+[[node.pdo]]
+direction = "output"
+cob_id = 0x201
+transmission = 1
+"""
+    net = make_net(toml, "--trace", str(trace))
+    net.configure()
+    net.wait_operating([1])
+    if interface == "shm":
+        wait_until(lambda: len(sync_timers(net.card)) == 2, 5, "the SYNC timer and a spare")
+    assert d.DevSetHostState(0, d.HOST_NOT_READY, 2000) == 0
+    if interface == "shm":
+        wait_until(lambda: len(sync_timers(net.card)) == 1, 5, "only the spare")
+    quiet_from = time.time() + 0.2  # the frames already on their way
+    wait_until(lambda: time.time() > quiet_from + 0.3, what="0.3 s of a stopped bus")
+    quiet_to = time.time()
+    assert d.DevSetHostState(0, d.HOST_READY, 2000) == 0
+    resumed = time.time()
+    wait_until(lambda: time.time() > resumed + 1.0, what="SYNC again")
+    net.card.stop()
+    syncs = [t for t, ident, _ in candump(trace) if ident == 0x080]
+    assert not [t for t in syncs if quiet_from <= t <= quiet_to]
+    assert len([t for t in syncs if t > resumed]) > 20
 
 
 def test_event_driven_output_with_inhibit_time(make_net: Callable[..., Net],

@@ -16,6 +16,8 @@ Every test uses a fresh channel name and shuts every bus down.
 
 from __future__ import annotations
 
+import contextlib
+import itertools
 import os
 import select
 import signal
@@ -43,6 +45,7 @@ from firmware.can.shm import (
     ShmBus,
     channel_path,
 )
+from firmware.can.shm_cyclic import ShmCyclicSendTask
 
 ROOT = Path(__file__).resolve().parents[1]
 CAN_ERR_CRTL = 0x004
@@ -523,3 +526,136 @@ def test_python_can_filters_apply(channel: str, open_bus: Opener) -> None:
                                 data=struct.pack("<H", ident)))
     got = recv_n(receiver, 5, timeout=0.2)
     assert [msg.arbitration_id for msg in got] == [0x123, 0x123]
+
+
+# --- cyclic sending from a timer process -----------------------------------------------------
+
+PERIODIC_PARENT_SCRIPT = """
+import sys, time
+import can
+bus = can.Bus(interface="shm", channel=sys.argv[1], timer_process=True)
+task = bus.send_periodic(can.Message(arbitration_id=0x80, is_extended_id=False), 0.005)
+print("timer", task.pid, flush=True)
+time.sleep(60)
+"""
+
+
+def child_pids(pid: int) -> set[int]:
+    """The processes whose parent is ``pid`` (Linux /proc lists them by the forking thread)."""
+    pids: set[int] = set()
+    for task in Path(f"/proc/{pid}/task").iterdir():
+        with contextlib.suppress(FileNotFoundError):
+            pids |= {int(x) for x in (task / "children").read_text().split()}
+    return pids
+
+
+def alive(pid: int) -> bool:
+    status = Path(f"/proc/{pid}/status")
+    try:
+        return "State:\tZ" not in status.read_text()
+    except FileNotFoundError:
+        return False
+
+
+def test_send_periodic_with_timer_process_sends_from_another_process(channel: str,
+                                                                     open_bus: Opener) -> None:
+    """The card's SYNC must not wait for this interpreter's lock: the frames come from a
+    child process at the period, evenly while this process keeps the GIL in a busy loop
+    (python-can's thread would get a turn per switch interval, 5 ms, and then send the
+    missed ones in a burst), and stop with the task."""
+    receiver = open_bus(channel)
+    sender = open_bus(channel, timer_process=True)
+    task = sender.send_periodic(can.Message(arbitration_id=0x80, is_extended_id=False), 0.002)
+    try:
+        assert isinstance(task, ShmCyclicSendTask)
+        timer = task.pid
+        assert timer is not None and timer in child_pids(os.getpid())
+        busy_until = time.monotonic() + 0.2
+        while time.monotonic() < busy_until:  # no sleep: a thread here would not get a turn
+            pass
+        frames = recv_n(receiver, 1000, timeout=0.1)
+    finally:
+        task.stop()
+    assert len(frames) >= 60, f"{len(frames)} frames in 0.3 s at 2 ms"
+    assert all(f.arbitration_id == 0x80 and f.dlc == 0 for f in frames)
+    stamps = [f.timestamp for f in frames]
+    bursts = sum(1 for a, b in itertools.pairwise(stamps) if b - a < 0.0005)
+    assert bursts < len(frames) // 5, f"{bursts} of {len(frames)} frames came in bursts"
+    assert not alive(timer)
+    quiet = recv_n(receiver, 1000, timeout=0.1)  # frames already in the ring may trail in
+    assert recv_n(receiver, 1, timeout=0.1) == [], f"still sending after stop ({len(quiet)})"
+
+
+def test_timer_process_sends_several_frames_in_turn_and_takes_new_data(channel: str,
+                                                                       open_bus: Opener) -> None:
+    receiver = open_bus(channel)
+    sender = open_bus(channel, timer_process=True)
+    first = [can.Message(arbitration_id=0x181, is_extended_id=False, data=bytes([i]))
+             for i in (1, 2, 3)]
+    task = sender.send_periodic(first, 0.002)
+    try:
+        frames = recv_n(receiver, 9)
+        assert [f.data[0] for f in frames] == [1, 2, 3] * 3
+        assert isinstance(task, can.ModifiableCyclicTaskABC)
+        task.modify_data([can.Message(arbitration_id=0x181, is_extended_id=False,
+                                      data=bytes([i])) for i in (7, 8, 9)])
+        seen = [f.data[0] for f in recv_n(receiver, 40)]
+    finally:
+        task.stop()
+    assert seen[-3:] != [1, 2, 3] and set(seen[-30:]) == {7, 8, 9}
+    with pytest.raises(ValueError):
+        task.modify_data(can.Message(arbitration_id=0x182, is_extended_id=False))
+
+
+def test_timer_process_ends_after_its_duration(channel: str, open_bus: Opener) -> None:
+    receiver = open_bus(channel)
+    sender = open_bus(channel, timer_process=True)
+    task = sender.send_periodic(can.Message(arbitration_id=0x80, is_extended_id=False), 0.01,
+                                duration=0.2)
+    assert isinstance(task, ShmCyclicSendTask) and task.pid is not None
+    timer = task.pid
+    frames = recv_n(receiver, 100, timeout=2.0)
+    deadline = time.monotonic() + 5
+    while alive(timer) and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert not alive(timer)
+    task.stop()
+    assert 5 <= len(frames) <= 25, f"{len(frames)} frames in a 0.2 s duration at 10 ms"
+
+
+def test_timer_process_ends_when_its_parent_is_killed(channel: str, open_bus: Opener) -> None:
+    """A SIGKILLed firmware must not leave a SYNC producer on the bus."""
+    receiver = open_bus(channel)
+    parent = spawn(PERIODIC_PARENT_SCRIPT, channel)
+    try:
+        assert parent.stdout is not None
+        line = parent.stdout.readline().split()
+        assert line[:1] == ["timer"], line
+        timer = int(line[1])
+        assert recv_n(receiver, 5, timeout=5.0)
+        parent.send_signal(signal.SIGKILL)
+        parent.wait(timeout=10)
+    finally:
+        stop(parent)
+    deadline = time.monotonic() + 5
+    while alive(timer) and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert not alive(timer), "the timer process outlived its parent"
+    recv_n(receiver, 10000, timeout=0.1)
+    assert recv_n(receiver, 1, timeout=0.1) == []
+
+
+def test_send_periodic_stays_a_thread_without_timer_process(channel: str,
+                                                            open_bus: Opener) -> None:
+    """canopen calls send_periodic for every heartbeat producer: a process each would be
+    too dear, so only a bus opened with ``timer_process`` starts one."""
+    receiver = open_bus(channel)
+    sender = open_bus(channel)
+    before = child_pids(os.getpid())
+    task = sender.send_periodic(can.Message(arbitration_id=0x701, is_extended_id=False,
+                                            data=b"\x05"), 0.005)
+    try:
+        assert child_pids(os.getpid()) == before
+        assert len(recv_n(receiver, 3)) == 3
+    finally:
+        task.stop()

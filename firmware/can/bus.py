@@ -38,6 +38,9 @@ CAN_ERR_CRTL_RX_OVERFLOW = 0x01
 CAN_ERR_CRTL_RX_WARNING = 0x04
 CAN_ERR_CRTL_TX_WARNING = 0x08
 
+PERIODIC_OUTSIDE_INTERFACES = ("socketcan", "shm")
+"""Interfaces whose ``send_periodic`` keeps time outside this interpreter: SocketCAN's
+broadcast manager in the kernel, ``shm``'s timer process. Elsewhere it is a thread."""
 ECHOING_INTERFACES = ("udp_multicast",)
 """Transports that hand a sender its own frames back; the controller drops them."""
 
@@ -62,6 +65,8 @@ class CanBus(can.Listener):
         kwargs: dict[str, Any] = dict(config)
         if bitrate is not None and interface != "virtual":
             kwargs["bitrate"] = bitrate
+        if interface == "shm":
+            kwargs.setdefault("timer_process", True)  # see send_periodic
         self.bus = can.Bus(interface=interface, channel=channel, **kwargs)
         self.interface = interface
         self.channel = channel
@@ -163,6 +168,19 @@ class CanBus(can.Listener):
             with self._trace_lock:
                 self._trace.on_message_received(msg)
         return True
+
+    def send_periodic(self, can_id: int, period: float) -> can.broadcastmanager.CyclicSendTaskABC:
+        """An empty frame every ``period`` from a timer outside this interpreter.
+
+        Only for ``PERIODIC_OUTSIDE_INTERFACES``: a thread here would wait for the
+        interpreter lock as the caller's own would. The frames do not pass
+        ``send``; they come back through the receive path (and so into the trace)
+        as a frame from another sender does.
+        """
+        if self.interface not in PERIODIC_OUTSIDE_INTERFACES:
+            raise ValueError(f"{self.interface} has no cyclic sending outside the interpreter")
+        msg = can.Message(arbitration_id=can_id, is_extended_id=False, data=b"")
+        return self.bus.send_periodic(msg, period)
 
     def take_rx_overflows(self) -> int:
         """Frames the interface lost since the last call (at least 1: an overflow was reported).

@@ -19,6 +19,7 @@ from typing import TYPE_CHECKING
 import can
 import numpy as np
 import numpy.typing as npt
+from can.broadcastmanager import CyclicSendTaskABC
 from canopen.objectdictionary import ObjectDictionary
 from canopen.sdo.client import SdoClient
 
@@ -39,6 +40,7 @@ from firmware.can.bus import (
     CAN_ERR_CRTL,
     CAN_ERR_CRTL_RX_OVERFLOW,
     CAN_ERR_TX_TIMEOUT,
+    PERIODIC_OUTSIDE_INTERFACES,
     CanBus,
 )
 from firmware.can.node import (
@@ -114,6 +116,8 @@ class Master:
         self._tick_thread: threading.Thread | None = None
         self._sync_thread: threading.Thread | None = None
         self._sync_wakeup = threading.Event()
+        self._sync_timer: tuple[tuple[int, float], CyclicSendTaskABC] | None = None
+        """The outside SYNC timer, with the (COB-ID, period) it runs for."""
         self.layer2_filters: set[int] = set()
         self.indications: deque[tuple[int, can.Message]] = deque()
         self._queue_lock = threading.Lock()
@@ -172,6 +176,7 @@ class Master:
         self.bus_params = None
         self.ext = ExtendedBusParameterSet()
         self.running = self.halted = self.cleared = False
+        self._sync_wakeup.set()
         self._booting.clear()
         self._last_conn = b""
         self.layer2_filters.clear()
@@ -278,6 +283,7 @@ class Master:
         log.warning("auto-clear: stopping all nodes")
         self._zero_outputs()
         self.cleared = True
+        self._sync_wakeup.set()  # an outside SYNC timer stops now, not at the next look
         self.nmt(NMT_STOP, 0)
         for handler in self.nodes.values():
             if handler.state is State.OPERATING:
@@ -459,8 +465,10 @@ class Master:
             log.info("host stopped: outputs to zero, PDO traffic stopped")
             self._zero_outputs()
             self.halted = True
+            self._sync_wakeup.set()
         elif driving and self.halted and not self.cleared:
             self.halted = False
+            self._sync_wakeup.set()
             for handler in self.nodes.values():
                 if handler.state in (State.WAITING, State.FAILED):
                     self._boot(handler)
@@ -488,14 +496,28 @@ class Master:
     # --- SYNC ----------------------------------------------------------------------------------
 
     def _sync_loop(self) -> None:
-        """SYNC producer: sleep most of the period, then watch the clock for the rest."""
+        """SYNC producer: a timer outside the interpreter where the bus has one, else this thread.
+
+        The thread sleeps most of the period, then watches the clock for the
+        rest; under PDO load it still waits for the interpreter lock behind the
+        receive and tick threads (milliseconds, see README "Benchmarks"). With an
+        outside timer, the synchronous PDOs follow the SYNC frame as it comes back
+        from the bus, as on a real bus they follow it on the wire.
+        """
+        outside = self.bus is not None and self.bus.interface in PERIODIC_OUTSIDE_INTERFACES
         next_sync = time.perf_counter()
         while not self._stop.is_set():
             period = self.sync_period
             if not (self.running and period) or self.halted or self.cleared:
+                self._stop_sync_timer()
                 self._sync_wakeup.wait(0.05)
                 self._sync_wakeup.clear()
                 next_sync = time.perf_counter()
+                continue
+            if outside:
+                self._run_sync_timer(self.sync_cob_id, period)
+                self._sync_wakeup.wait(0.05)
+                self._sync_wakeup.clear()
                 continue
             next_sync += period
             remaining = next_sync - time.perf_counter()
@@ -505,11 +527,44 @@ class Master:
                 self._stop.wait(remaining - 0.0005)
             while time.perf_counter() < next_sync:
                 time.sleep(0)  # let the other threads have the GIL meanwhile
-            self._sync_once()
+            self.bus_send(self.sync_cob_id)
+            self._on_sync()
+        self._stop_sync_timer()
 
-    def _sync_once(self) -> None:
+    def _run_sync_timer(self, cob_id: int, period: float) -> None:
+        """(Re)start the outside SYNC timer when it is not running as configured."""
+        if self._sync_timer is not None:
+            if self._sync_timer[0] == (cob_id, period):
+                return
+            self._stop_sync_timer()
+        assert self.bus is not None
+        self.bus.subscribe(cob_id, self._on_sync_frame)
+        try:
+            task = self.bus.send_periodic(cob_id, period)
+        except can.CanError:
+            log.exception("SYNC timer did not start; retrying")
+            self.bus.unsubscribe(cob_id, self._on_sync_frame)
+            return
+        self._sync_timer = ((cob_id, period), task)
+        if getattr(task, "realtime", True) is False:
+            log.warning("the SYNC timer process runs without SCHED_FIFO (no CAP_SYS_NICE): "
+                        "its jitter is the machine's")
+
+    def _stop_sync_timer(self) -> None:
+        if self._sync_timer is None:
+            return
+        (cob_id, _), task = self._sync_timer
+        self._sync_timer = None
+        task.stop()
+        if self.bus is not None:
+            self.bus.unsubscribe(cob_id, self._on_sync_frame)
+
+    def _on_sync_frame(self, msg: can.Message) -> None:
+        if self._sync_timer is not None and not msg.data:
+            self._on_sync()
+
+    def _on_sync(self) -> None:
         now = time.monotonic()
-        self.bus_send(self.sync_cob_id)
         for handler in list(self.nodes.values()):
             handler.on_sync(now)
 
@@ -532,6 +587,8 @@ class Master:
         self.device.set_global_bit(GlobalBits.EVE, True)
 
     def _on_send_timeout(self) -> None:
+        if self.closing:
+            return  # a boot thread's last request as the card powers off: the image is gone
         self.device.count("usMsg_Time_Out")
         self.device.set_global_bit(GlobalBits.TOUT, True)
 

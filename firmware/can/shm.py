@@ -59,14 +59,18 @@ import tempfile
 import threading
 import time
 from collections import deque
+from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import can
 import numpy as np
 import numpy.typing as npt
 
 from firmware.can.bus import CAN_ERR_CRTL, CAN_ERR_CRTL_RX_OVERFLOW
+
+if TYPE_CHECKING:
+    from firmware.can.shm_cyclic import SpareTimer
 
 MAGIC = b"CIFCANS2"
 MAX_STATIONS = 64
@@ -109,8 +113,21 @@ class ShmBus(can.BusABC):
     """One station on a shared-memory CAN channel."""
 
     def __init__(self, channel: Any = "cifemu", receive_own_messages: bool = False,
-                 preserve_timestamps: bool = False, **kwargs: Any) -> None:
+                 preserve_timestamps: bool = False, timer_process: bool = False,
+                 **kwargs: Any) -> None:
+        """``timer_process``: ``send_periodic`` hands its frames to a timer process.
+
+        See ``shm_cyclic``; the bus keeps one started ahead from here on. Off by
+        default, because libraries call ``send_periodic`` freely (canopen for
+        every heartbeat producer) and a process each is too dear; the card's
+        controller turns it on for its SYNC producer.
+        """
         self.channel = "cifemu" if channel is None else str(channel)
+        self._timers: SpareTimer | None = None
+        if timer_process:
+            from firmware.can.shm_cyclic import SpareTimer  # it imports this module
+
+            self._timers = SpareTimer()
         self.channel_info = f"shared-memory channel {self.channel!r}"
         self.receive_own_messages = receive_own_messages
         self.preserve_timestamps = preserve_timestamps
@@ -235,6 +252,23 @@ class ShmBus(can.BusABC):
                 self._ring(self._bell_name(station, self._station(station)[2]))
                 sleeper = mapped.find(b"\x01", sleeper + 1, _WAITING_AT + MAX_STATIONS)
 
+    def _send_periodic_internal(
+        self, msgs: Sequence[can.Message] | can.Message, period: float,
+        duration: float | None = None, autostart: bool = True,
+        modifier_callback: Callable[[can.Message], None] | None = None,
+    ) -> can.broadcastmanager.CyclicSendTaskABC:
+        """Cyclic frames from a timer process (see ``shm_cyclic``), as SocketCAN's BCM would.
+
+        Without ``timer_process``, or with a ``modifier_callback`` (it must run
+        in this process), python-can's thread sends them.
+        """
+        if self._timers is None or modifier_callback is not None:
+            return super()._send_periodic_internal(msgs, period, duration, autostart,
+                                                   modifier_callback)
+        from firmware.can.shm_cyclic import ShmCyclicSendTask  # it imports this module
+
+        return ShmCyclicSendTask(self._timers, self._path, msgs, period, duration, autostart)
+
     def _ring(self, bell: bytes) -> None:
         # OSError: gone (reclaimed when a station opens next), or its queue is full: awake.
         with contextlib.suppress(OSError):
@@ -341,7 +375,9 @@ class ShmBus(can.BusABC):
             self._ringer.sendto(b"\x01", self._bell.getsockname())
         del self._cursors
         self._release()
-        super().shutdown()
+        super().shutdown()  # stops the cyclic tasks
+        if self._timers is not None:
+            self._timers.close()
 
     def _release(self) -> None:
         del self._seqs  # a numpy view pins the mapping
