@@ -44,7 +44,8 @@ no card between them.
    and the machine's own floor: a process that does nothing but sleep until each
    millisecond and note the time (no CAN, no threads), once as a normal process
    and once under SCHED_FIFO as the card's SYNC timer process runs on ``shm``
-   (where the machine allows it).
+   (where the machine allows it); the SCHED_FIFO loop also runs beside the card
+   in both of its windows, since this VM's wake-up latency changes by the minute.
 
 ``--profile`` attaches py-spy (``--gil``: only the thread holding the GIL is
 sampled) to the firmware for an extra window of phase 2 and adds where the
@@ -1310,11 +1311,17 @@ def card_sync() -> dict[str, Any]:
         wait_operating(board.number, len(nodes))
         time.sleep(SYNC_SETTLE_S)
         progress(f"sync (card): {SYNC_SECONDS} s idle, then {SYNC_SECONDS} s with the PDO loop")
+        # The machine's floor in the same windows: this VM's wake-up latency changes
+        # from one minute to the next, and a separate measurement may miss that.
+        floor_loop = start_floor_loop(realtime=True)
         idle = (time.time(), time.time() + SYNC_SECONDS)
         time.sleep(SYNC_SECONDS)
+        idle_floor = floor_result(floor_loop, realtime=True)
         values: U64 = np.arange(1, len(nodes) + 1, dtype=np.uint64) << np.uint64(40)
+        floor_loop = start_floor_loop(realtime=True)
         window = echo_window(board.number, values, len(nodes), SYNC_SECONDS, out_offset,
                              in_offset)
+        loaded_floor = floor_result(floor_loop, realtime=True)
         card.stop()
         if card.trace is None:
             raise RuntimeError("the card ran without a trace")
@@ -1327,12 +1334,16 @@ def card_sync() -> dict[str, Any]:
         "trace_damage": {"lines": trace.lines, "damaged_lines": trace.damaged_lines,
                          "duplicate_records": trace.duplicates},
         "firmware_log": firmware_log,
-        "idle": sync_stats(syncs[(syncs >= idle[0]) & (syncs <= idle[1])], SYNC_PERIOD_MS / 1e3,
-                           idle[1] - idle[0]),
+        "idle": {
+            **sync_stats(syncs[(syncs >= idle[0]) & (syncs <= idle[1])], SYNC_PERIOD_MS / 1e3,
+                         idle[1] - idle[0]),
+            "machine_floor_realtime_same_window": idle_floor,
+        },
         "with_pdo_loop": {
             "verified_echoes_per_s": round(window.echoes_per_s, 1),
             **sync_stats(syncs[(syncs >= loaded[0]) & (syncs <= loaded[1])],
                          SYNC_PERIOD_MS / 1e3, loaded[1] - loaded[0]),
+            "machine_floor_realtime_same_window": loaded_floor,
         },
     }
 
@@ -1384,24 +1395,35 @@ print(json.dumps(stamps))
 """
 
 
-def machine_floor_sync(realtime: bool = False) -> dict[str, Any]:
-    """The best a sleeping Python process gets on this machine now: no CAN, no threads.
-
-    ``realtime``: under SCHED_FIFO, as the card's SYNC timer process on ``shm``;
-    None when the machine does not allow it.
-    """
-    kind = "SCHED_FIFO " if realtime else ""
-    progress(f"sync (machine floor): a bare {kind}1 ms sleep loop for {SYNC_SECONDS} s")
+def start_floor_loop(realtime: bool) -> subprocess.Popen[bytes]:
+    """A bare 1 ms sleep loop for ``SYNC_SECONDS`` in a process of its own, started now."""
     count = round(SYNC_SECONDS / (SYNC_PERIOD_MS / 1e3))
     script = MACHINE_FLOOR_LOOP.replace("REALTIME_PRIORITY", str(REALTIME_PRIORITY))
-    done = subprocess.run([sys.executable, "-c", script, str(SYNC_PERIOD_MS / 1e3), str(count),
-                           "1" if realtime else "0"], capture_output=True)
-    if done.returncode:
-        return {"name": f"a {kind}sleep loop", "skipped": done.stderr.decode().strip()[-200:]}
-    stamps = np.array(json.loads(done.stdout), dtype=np.float64)
+    return subprocess.Popen([sys.executable, "-c", script, str(SYNC_PERIOD_MS / 1e3), str(count),
+                             "1" if realtime else "0"], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE)
+
+
+def floor_result(loop: subprocess.Popen[bytes], realtime: bool) -> dict[str, Any]:
+    """The statistics of a ``start_floor_loop`` process (skipped where SCHED_FIFO is denied)."""
+    out, err = loop.communicate()
+    kind = "SCHED_FIFO " if realtime else ""
+    if loop.returncode:
+        return {"name": f"a {kind}sleep loop", "skipped": err.decode().strip()[-200:]}
+    stamps = np.array(json.loads(out), dtype=np.float64)
     return {"name": f"a {kind}process that only sleeps until each 1 ms deadline and notes "
                     "the time",
             **sync_stats(stamps, SYNC_PERIOD_MS / 1e3, SYNC_SECONDS)}
+
+
+def machine_floor_sync(realtime: bool = False) -> dict[str, Any]:
+    """The best a sleeping Python process gets on this machine now: no CAN, no threads.
+
+    ``realtime``: under SCHED_FIFO, as the card's SYNC timer process on ``shm``.
+    """
+    kind = "SCHED_FIFO " if realtime else ""
+    progress(f"sync (machine floor): a bare {kind}1 ms sleep loop for {SYNC_SECONDS} s")
+    return floor_result(start_floor_loop(realtime), realtime)
 
 
 def sync_jitter() -> dict[str, Any]:
