@@ -16,6 +16,10 @@ import pytest
 
 from host_api import driver
 
+# test_sim.py loads tests.buses as a plugin, but test_can_task.py imports it first:
+# registered here, it is rewritten on that first import, as its plugin use expects.
+pytest.register_assert_rewrite("tests.buses")
+
 ROOT = Path(__file__).resolve().parents[1]
 SHARED = ROOT.parent / "shared"
 IMAGE_SIZE = 8192
