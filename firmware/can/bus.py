@@ -81,6 +81,8 @@ class CanBus(can.Listener):
         self._echoes: deque[tuple[int, bytes, bool]] | None = (
             deque(maxlen=256) if interface in ECHOING_INTERFACES else None)
         self._rx_overflows_seen = 0
+        self._held: frozenset[int] = frozenset()
+        """SDO response identifiers kept from canopen's network (see ``hold_from_canopen``)."""
         self.on_error_frame: Callable[[can.Message], None] = lambda msg: None
         self.on_send_timeout: Callable[[], None] = lambda: None
         self._trace: can.Listener | None = can.Logger(str(trace)) if trace else None
@@ -100,6 +102,16 @@ class CanBus(can.Listener):
                 callbacks.remove(callback)
                 self._subscribers[can_id] = tuple(callbacks)
 
+    def hold_from_canopen(self, can_id: int, held: bool) -> None:
+        """Keep ``can_id``'s frames from canopen's network while another client owns it.
+
+        A host SDO transfer answers from its own subscription; canopen's client
+        for that node is idle meanwhile (the channel lock) and would only queue
+        every response, without bound, until its next request.
+        """
+        with self._lock:
+            self._held = self._held | {can_id} if held else self._held - {can_id}
+
     def subscribe_all(self, callback: FrameCallback) -> None:
         """Every received frame (layer-2 access, transparent reception)."""
         with self._lock:
@@ -115,6 +127,7 @@ class CanBus(can.Listener):
         if self._echoes is not None and self._is_echo(msg):
             return
         ident = msg.arbitration_id
+        held = ident in self._held  # before the callbacks: the last answer ends the hold
         callbacks = self._catch_all
         if not msg.is_extended_id:
             callbacks += self._subscribers.get(ident, ())
@@ -128,7 +141,7 @@ class CanBus(can.Listener):
         # (struct.error on a short abort) or takes a short one for data. The node
         # handler, subscribed above, reports it as Err_Event 38 when its boot-up times out.
         if (0x580 < ident < 0x600 and not msg.is_extended_id and not msg.is_remote_frame
-                and len(msg.data) == SDO_FRAME_LENGTH):
+                and len(msg.data) == SDO_FRAME_LENGTH and not held):
             self.network.notify(ident, msg.data, msg.timestamp)
 
     def _is_echo(self, msg: can.Message) -> bool:

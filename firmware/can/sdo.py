@@ -57,6 +57,7 @@ class HostSdoTransfer:
 
     def start(self) -> None:
         self.bus.subscribe(0x580 + self.node, self._on_frame)
+        self.bus.hold_from_canopen(0x580 + self.node, True)
         head = _INITIATE.pack(0, self.index, self.subindex)[1:]
         if self.data is None:
             self._send(bytes([0x40]) + head + bytes(4))
@@ -84,6 +85,7 @@ class HostSdoTransfer:
             return
         self._finished = True
         self.bus.unsubscribe(0x580 + self.node, self._on_frame)
+        self.bus.hold_from_canopen(0x580 + self.node, False)
         self._done(result)
 
     def _abort(self, code: int, result: SdoResult) -> None:

@@ -1,0 +1,69 @@
+"""The card's CAN controller (``CanBus``) and its host SDO client, in one process.
+
+Why in process: what is checked here is internal to the firmware (which frames
+canopen's network is fed), and no image or mailbox shows it directly. The parts
+are still real: a python-can virtual bus, a simulated generic node on its own
+bus object, canopen's SdoClient wired exactly as the master wires it.
+"""
+
+from __future__ import annotations
+
+import threading
+import uuid
+from collections.abc import Iterator
+
+import can
+import pytest
+from canopen.objectdictionary import ObjectDictionary
+from canopen.sdo.client import SdoClient
+
+from dbm_tools.network import GENERIC_DEVICE_TYPE, parse_network
+from firmware.can.bus import CanBus
+from firmware.can.sdo import HostSdoTransfer, SdoResult
+from firmware.sim import SimulatedNetwork
+
+
+@pytest.fixture
+def controller() -> Iterator[tuple[CanBus, SdoClient]]:
+    """A controller and canopen's client to node 1, beside a simulated generic node 1."""
+    channel = f"test-can-bus-{uuid.uuid4().hex}"
+    node_bus = can.Bus(interface="virtual", channel=channel)
+    sim = SimulatedNetwork(parse_network("[[node]]\nid = 1\n"), node_bus)
+    sim.start()
+    bus = CanBus("virtual", channel)
+    client = SdoClient(0x601, 0x581, ObjectDictionary())  # type: ignore[no-untyped-call]
+    client.network = bus.network
+    bus.network.subscribe(0x581, client.on_response)
+    try:
+        yield bus, client
+    finally:
+        bus.shutdown()
+        sim.stop()
+        node_bus.shutdown()
+
+
+def host_upload(bus: CanBus, index: int) -> SdoResult:
+    finished = threading.Event()
+    results: list[SdoResult] = []
+
+    def done(result: SdoResult) -> None:
+        results.append(result)
+        finished.set()
+
+    HostSdoTransfer(bus, 1, index, 0, None, 1.0, done).start()
+    assert finished.wait(5), "the host transfer did not finish"
+    return results[0]
+
+
+def test_host_transfers_do_not_pile_up_in_canopens_client(
+        controller: tuple[CanBus, SdoClient]) -> None:
+    """A host polling a node by SDO for days must not grow canopen's response queue (it
+    is emptied only by that client's next request, at the node's next boot-up)."""
+    bus, client = controller
+    for _ in range(50):
+        result = host_upload(bus, 0x1000)
+        assert result.abort is None and not result.timed_out
+        assert int.from_bytes(result.data, "little") == GENERIC_DEVICE_TYPE
+    assert client.responses.qsize() == 0
+    # canopen's client still gets its own answers once the host transfers are over.
+    assert int.from_bytes(client.upload(0x1000, 0), "little") == GENERIC_DEVICE_TYPE
