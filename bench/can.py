@@ -1444,7 +1444,19 @@ def sync_jitter() -> dict[str, Any]:
         "machine_floor_realtime": floor_realtime,
         "ratio_to_baseline": {"definition": "cif idle jitter p99 / baseline jitter p99",
                               "jitter_p99": ratio(card_p99 or 0.0, base_p99 or 0.0)},
+        "card_over_machine_floor_us": {
+            "definition": "cif jitter p99 - the SCHED_FIFO sleep loop's p99 in the same window: "
+                          "what the card adds to what this machine allows at that moment",
+            "idle": _excess(card["idle"]),
+            "with_pdo_loop": _excess(card["with_pdo_loop"]),
+        },
     }
+
+
+def _excess(window: dict[str, Any]) -> float | None:
+    card = window.get("jitter_us", {}).get("p99")
+    floor = window["machine_floor_realtime_same_window"].get("jitter_us", {}).get("p99")
+    return None if card is None or floor is None else round(card - floor, 1)
 
 
 # --- the document -------------------------------------------------------------------------------
