@@ -206,6 +206,9 @@ class _Driver:
         self.open_count = 0
         self.directory: Path | None = None
         self.boards: dict[int, _Board] = {}
+        self.counters: dict[int, _Counters] = {}
+        """DRIVERINFO per board number: kept from DevExitBoard to the next DevInitBoard, as
+        the real driver keeps them while it is loaded (here: while this process has it open)."""
 
 
 _driver = _Driver()
@@ -254,6 +257,7 @@ def DevCloseDriver() -> int:
         if _driver.open_count == 0:
             for number in list(_driver.boards):
                 _driver.boards.pop(number).close()
+            _driver.counters.clear()
         return Drv.DRV_NO_ERROR
 
 
@@ -298,7 +302,8 @@ def DevInitBoard(number: int) -> int:
             return ChannelLock(lock_path(_driver.directory, number, what))
 
         board = _Board(number, path, mm, HostBell(path), lock("put"), lock("get"), lock("io"),
-                       lock("flags"), lock("transaction"))
+                       lock("flags"), lock("transaction"),
+                       _driver.counters.setdefault(number, _Counters()))
         board.counters.open += 1
         board.counters.last_function = FKT_OPEN
         board.bell.ring_device()  # introduces this host to the device
@@ -329,6 +334,8 @@ def DevExitBoard(number: int) -> int:
         board = _board(number)
         if not isinstance(board, _Board):
             return board
+        board.counters.close += 1
+        board.counters.last_function = FKT_CLOSE
         _driver.boards.pop(number).close()
         return Drv.DRV_NO_ERROR
 

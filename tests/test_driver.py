@@ -399,6 +399,25 @@ def test_get_info_contents(board: int) -> None:
     assert info[2:4] == (1, 1)  # ReadCnt, WriteCnt
 
 
+def test_driver_info_counts_board_opens_and_closes(card: Card, board: int) -> None:
+    """OpenCnt and CloseCnt count DevInitBoard and DevExitBoard for the board while the
+    driver stays open; DevCloseDriver (the driver unloaded) starts them over."""
+
+    def counts() -> tuple[int, int, int]:
+        info = d.DRIVERINFO.unpack(d.DevGetInfo(board, d.GET_DRIVER_INFO, 33)[1])
+        return info[0], info[1], info[8]  # OpenCnt, CloseCnt, bLastFunction
+
+    assert counts() == (1, 0, d.FKT_OPEN)
+    assert d.DevExitBoard(board) == 0
+    assert d.DevGetInfo(board, d.GET_DRIVER_INFO, 33)[0] == Drv.DRV_USR_NOT_INITIALIZED
+    assert d.DevInitBoard(board) == 0
+    assert counts() == (2, 1, d.FKT_OPEN)
+    assert d.DevCloseDriver() == 0
+    assert d.DevOpenDriver(card.directory) == 0
+    assert d.DevInitBoard(board) == 0
+    assert counts() == (1, 0, d.FKT_OPEN)
+
+
 def test_task_state_and_parameters(board: int) -> None:
     assert d.DevGetTaskState(board, 3, 64)[0] == Drv.DRV_USR_NUMBER_INVALID
     assert d.DevGetTaskState(board, 2, 0)[0] == Drv.DRV_USR_SIZE_ZERO
