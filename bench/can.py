@@ -1384,6 +1384,7 @@ import json, os, sys, time
 period, count, realtime = float(sys.argv[1]), int(sys.argv[2]), sys.argv[3] == "1"
 if realtime:
     os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(REALTIME_PRIORITY))
+print("started", flush=True)
 stamps, due = [], time.perf_counter()
 for _ in range(count):
     due += period
@@ -1396,12 +1397,16 @@ print(json.dumps(stamps))
 
 
 def start_floor_loop(realtime: bool) -> subprocess.Popen[bytes]:
-    """A bare 1 ms sleep loop for ``SYNC_SECONDS`` in a process of its own, started now."""
+    """A bare 1 ms sleep loop for ``SYNC_SECONDS`` in a process of its own, returned once
+    its interpreter has started (so that start-up falls outside the window it measures)."""
     count = round(SYNC_SECONDS / (SYNC_PERIOD_MS / 1e3))
     script = MACHINE_FLOOR_LOOP.replace("REALTIME_PRIORITY", str(REALTIME_PRIORITY))
-    return subprocess.Popen([sys.executable, "-c", script, str(SYNC_PERIOD_MS / 1e3), str(count),
+    loop = subprocess.Popen([sys.executable, "-c", script, str(SYNC_PERIOD_MS / 1e3), str(count),
                              "1" if realtime else "0"], stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE)
+    assert loop.stdout is not None
+    loop.stdout.readline()  # "started", or "" when it failed (floor_result reports that)
+    return loop
 
 
 def floor_result(loop: subprocess.Popen[bytes], realtime: bool) -> dict[str, Any]:

@@ -13,6 +13,8 @@ from __future__ import annotations
 
 import contextlib
 import itertools
+import os
+import signal
 import struct
 import subprocess
 import sys
@@ -22,6 +24,7 @@ import uuid
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
+import can
 import pytest
 
 from dbm_tools.network import load_network
@@ -50,10 +53,11 @@ def interface(request: pytest.FixtureRequest) -> str:
 class Net:
     """A card with a simulated network, opened through ``Board``."""
 
-    def __init__(self, card: Card, board: Board, toml: Path) -> None:
+    def __init__(self, card: Card, board: Board, toml: Path, channel: str) -> None:
         self.card = card
         self.board = board
         self.toml = toml
+        self.channel = channel
 
     def diag(self) -> ComDiagnostics:
         return self.board.diagnostics()
@@ -92,7 +96,7 @@ def make_net(tmp_path: Path, interface: str) -> Iterator[Callable[..., Net]]:
             card = start_card(tmp_path, 0, "--simulate", str(path), "--interface", interface,
                               "--channel", channel, *extra)
         board = Board(0, tmp_path, timeout=5000).open()
-        net = Net(card, board, path)
+        net = Net(card, board, path, channel)
         opened.append(net)
         return net
 
@@ -526,6 +530,83 @@ transmission = 1
     syncs = [t for t, ident, _ in candump(trace) if ident == 0x080]
     assert not [t for t in syncs if quiet_from <= t <= quiet_to]
     assert len([t for t in syncs if t > resumed]) > 20
+
+
+@pytest.mark.parametrize("interface", ["shm"], indirect=True)
+def test_killed_sync_timer_process_is_started_again(make_net: Callable[..., Net],
+                                                    tmp_path: Path) -> None:
+    """A SYNC timer process that dies (OOM killer, a user's kill) must not leave the
+    network without SYNC until the next configuration."""
+    trace = tmp_path / "sync.log"
+    toml = """[bus]
+sync_period_ms = 5
+[[node]]
+id = 1
+[[node.pdo]]
+direction = "output"
+cob_id = 0x201
+transmission = 1
+"""
+    net = make_net(toml, "--trace", str(trace))
+    net.configure()
+    net.wait_operating([1])
+    wait_until(lambda: len(sync_timers(net.card)) == 2, 5, "the SYNC timer and a spare")
+    killed = sync_timers(net.card)
+    for pid in killed:  # the spare too: the card must start a fresh one
+        os.kill(pid, signal.SIGKILL)
+    gone = time.time() + 0.1  # frames already in the ring may still be read
+
+    def syncs_since_kill() -> int:
+        """SYNCs in what the card's trace has written so far (whole lines only)."""
+        written = trace.read_text()
+        whole = written[: written.rfind("\n") + 1]
+        return sum(1 for line in whole.splitlines()
+                   if " 080#" in line and float(line.split()[0].strip("()")) > gone)
+
+    wait_until(lambda: syncs_since_kill() > 100, 15, "SYNC again from a new timer process")
+    assert not set(killed) & set(sync_timers(net.card))
+
+
+@pytest.mark.parametrize("interface", ["shm"], indirect=True)
+def test_sync_timer_that_cannot_start_is_tried_again(make_net: Callable[..., Net]) -> None:
+    """Every station of the channel taken: the SYNC timer process cannot open one. The
+    card keeps serving its nodes and tries again, less and less often, until it can."""
+    net = make_net("""[bus]
+sync_period_ms = 5
+[[node]]
+id = 1
+[[node.pdo]]
+direction = "output"
+cob_id = 0x201
+transmission = 1
+""")
+    stations: list[can.BusABC] = []
+    try:
+        while True:  # all but the card's and the simulator's (a spare timer has none yet)
+            try:
+                stations.append(can.Bus(interface="shm", channel=net.channel))
+            except can.CanInitializationError:
+                break
+        watcher = stations[0]
+        net.configure()
+        net.wait_operating([1])
+        deadline = time.monotonic() + 1.0
+        while time.monotonic() < deadline:
+            msg = watcher.recv(0.05)
+            assert msg is None or msg.arbitration_id != 0x080, "a SYNC without a station?"
+        for station in stations[1:]:
+            station.shutdown()
+        del stations[1:]
+        first_sync = time.monotonic() + 15  # the back-off reaches 5 s at most
+        while True:
+            msg = watcher.recv(0.1)
+            if msg is not None and msg.arbitration_id == 0x080:
+                break
+            assert time.monotonic() < first_sync, "no SYNC once stations were free"
+        assert net.diag().operating() == [1]
+    finally:
+        for station in stations:
+            station.shutdown()
 
 
 def test_event_driven_output_with_inhibit_time(make_net: Callable[..., Net],

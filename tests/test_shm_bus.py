@@ -616,11 +616,20 @@ def test_timer_process_ends_after_its_duration(channel: str, open_bus: Opener) -
     timer = task.pid
     frames = recv_n(receiver, 100, timeout=2.0)
     deadline = time.monotonic() + 5
-    while alive(timer) and time.monotonic() < deadline:
+    while task.alive and time.monotonic() < deadline:
         time.sleep(0.01)
+    assert not task.alive and task.pid is None
     assert not alive(timer)
     task.stop()
     assert 5 <= len(frames) <= 25, f"{len(frames)} frames in a 0.2 s duration at 10 ms"
+
+
+def test_timer_process_refuses_a_period_it_could_not_sleep_in(channel: str,
+                                                               open_bus: Opener) -> None:
+    """A period of 0 would have a SCHED_FIFO process send without pause."""
+    sender = open_bus(channel, timer_process=True)
+    with pytest.raises(ValueError, match="period"):
+        sender.send_periodic(can.Message(arbitration_id=0x80, is_extended_id=False), 0)
 
 
 def test_timer_process_ends_when_its_parent_is_killed(channel: str, open_bus: Opener) -> None:

@@ -2,8 +2,11 @@
 
 Every frame the master sends goes through ``CanBus.send``, so the Task2State
 counters and the optional trace see all of them, including the ones canopen's
-SDO client sends. Received frames are dispatched by identifier to the
-services that subscribed, and fed to canopen's network for its SDO clients.
+SDO client sends. The exception is a SYNC from a timer outside the interpreter
+(``send_periodic``): it comes back through the receive path into the trace,
+and a controller that fails to send it reports that in error frames. Received
+frames are dispatched by identifier to the services that subscribed, and fed to
+canopen's network for its SDO clients.
 """
 
 from __future__ import annotations

@@ -63,6 +63,8 @@ TICK = 0.001
 """The connection bits are evaluated at least every millisecond (seed 3)."""
 SUPERVISION_PERIOD = 0.005
 """[ours] heartbeat and guarding deadlines are checked every 5 ms."""
+SYNC_RETRY_MAX_S = 5.0
+"""[ours] the longest pause between tries to start an outside SYNC timer that fails."""
 QUEUE_LIMIT = 150
 """Layer-2 frames the card holds for the host (seed 5.3.2.2)."""
 INDICATION_LIMIT = 254
@@ -118,6 +120,10 @@ class Master:
         self._sync_wakeup = threading.Event()
         self._sync_timer: tuple[tuple[int, float], CyclicSendTaskABC] | None = None
         """The outside SYNC timer, with the (COB-ID, period) it runs for."""
+        self._sync_on = False
+        """Whether SYNC frames coming back drive the synchronous PDOs (outside timer)."""
+        self._sync_retry_at = 0.0
+        self._sync_retry_s = 0.0
         self.layer2_filters: set[int] = set()
         self.indications: deque[tuple[int, can.Message]] = deque()
         self._queue_lock = threading.Lock()
@@ -229,6 +235,7 @@ class Master:
         self.cleared = False
         self.halted = not self.image.driving
         self.device.set_global_bit(GlobalBits.ACLR, False)
+        self._sync_retry_at = 0.0  # a new configuration tries the SYNC timer at once
         self._sync_wakeup.set()
         for handler in self.nodes.values():
             if restart:
@@ -532,19 +539,38 @@ class Master:
         self._stop_sync_timer()
 
     def _run_sync_timer(self, cob_id: int, period: float) -> None:
-        """(Re)start the outside SYNC timer when it is not running as configured."""
-        if self._sync_timer is not None:
-            if self._sync_timer[0] == (cob_id, period):
-                return
+        """(Re)start the outside SYNC timer when it is not running as configured.
+
+        A timer that ended (its process was killed) starts again; one that
+        will not start is tried again after a pause that doubles up to
+        ``SYNC_RETRY_MAX_S``, since each try may cost an interpreter start.
+        """
+        timer = self._sync_timer
+        if timer is not None:
+            if timer[0] == (cob_id, period):
+                if getattr(timer[1], "alive", True):
+                    return
+                log.warning("the SYNC timer ended unasked; starting it again")
             self._stop_sync_timer()
+        now = time.monotonic()
+        if now < self._sync_retry_at:
+            return
         assert self.bus is not None
+        self._sync_on = True  # before the first frame can come back
         self.bus.subscribe(cob_id, self._on_sync_frame)
         try:
             task = self.bus.send_periodic(cob_id, period)
-        except can.CanError:
-            log.exception("SYNC timer did not start; retrying")
+        except (can.CanError, OSError) as exc:
+            self._sync_on = False
             self.bus.unsubscribe(cob_id, self._on_sync_frame)
+            if self._sync_retry_s:
+                log.warning("SYNC timer did not start again: %s", exc)
+            else:
+                log.exception("SYNC timer did not start; trying again")
+            self._sync_retry_s = min(SYNC_RETRY_MAX_S, max(0.1, 2 * self._sync_retry_s))
+            self._sync_retry_at = now + self._sync_retry_s
             return
+        self._sync_retry_s = 0.0
         self._sync_timer = ((cob_id, period), task)
         if getattr(task, "realtime", True) is False:
             log.warning("the SYNC timer process runs without SCHED_FIFO (no CAP_SYS_NICE): "
@@ -555,12 +581,16 @@ class Master:
             return
         (cob_id, _), task = self._sync_timer
         self._sync_timer = None
+        self._sync_on = False
         task.stop()
         if self.bus is not None:
             self.bus.unsubscribe(cob_id, self._on_sync_frame)
 
     def _on_sync_frame(self, msg: can.Message) -> None:
-        if self._sync_timer is not None and not msg.data:
+        """The outside timer's SYNC as it comes back; not after a halt the timer has yet
+        to hear of (the sync thread stops it within its next look)."""
+        if (self._sync_on and not msg.data and self.running and not self.halted
+                and not self.cleared):
             self._on_sync()
 
     def _on_sync(self) -> None:

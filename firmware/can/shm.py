@@ -123,11 +123,6 @@ class ShmBus(can.BusABC):
         controller turns it on for its SYNC producer.
         """
         self.channel = "cifemu" if channel is None else str(channel)
-        self._timers: SpareTimer | None = None
-        if timer_process:
-            from firmware.can.shm_cyclic import SpareTimer  # it imports this module
-
-            self._timers = SpareTimer()
         self.channel_info = f"shared-memory channel {self.channel!r}"
         self.receive_own_messages = receive_own_messages
         self.preserve_timestamps = preserve_timestamps
@@ -158,6 +153,11 @@ class ShmBus(can.BusABC):
         self._ring_at = _RINGS_AT + self._index * _RING_BYTES
         self._cursors = self._seqs.copy()
         """Per station: the records this station has taken."""
+        self._timers: SpareTimer | None = None
+        if timer_process:  # only once the station is open: a failed open leaves no spare
+            from firmware.can.shm_cyclic import SpareTimer  # it imports this module
+
+            self._timers = SpareTimer()
         super().__init__(channel=channel, **kwargs)
 
     # --- the file and the station table ----------------------------------------------------

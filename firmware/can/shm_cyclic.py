@@ -120,6 +120,8 @@ class ShmCyclicSendTask(LimitedDurationCyclicSendTaskABC, ModifiableCyclicTaskAB
     def __init__(self, timers: SpareTimer, path: Path,
                  messages: Sequence[can.Message] | can.Message, period: float,
                  duration: float | None = None, autostart: bool = True) -> None:
+        if period <= 0:  # the timer process would send without pause, at real-time priority
+            raise ValueError(f"period must be positive, not {period}")
         super().__init__(messages, period, duration)
         self._timers = timers
         self._path = path
@@ -135,11 +137,19 @@ class ShmCyclicSendTask(LimitedDurationCyclicSendTaskABC, ModifiableCyclicTaskAB
             if self._process.poll() is None:
                 return
             self.stop()  # its duration ran out: collect it before a new one
-        process = self._timers.take()
-        assert process.stdin is not None
         job = {"path": str(self._path), "period": self.period, "duration": self.duration or 0.0}
-        process.stdin.write(json.dumps(job) + "\n" + _frames(self.messages))
-        process.stdin.flush()
+        try:
+            process = self._timers.take()  # OSError: no process to be had (fork failed)
+        except OSError as exc:
+            raise can.CanOperationError(f"shm timer process did not start: {exc}") from exc
+        try:
+            assert process.stdin is not None
+            process.stdin.write(json.dumps(job) + "\n" + _frames(self.messages))
+            process.stdin.flush()
+        except OSError as exc:  # it died before its job came (a broken pipe)
+            process.kill()
+            _reap(process)
+            raise can.CanOperationError(f"shm timer process did not start: {exc}") from exc
         ready = _read_line(process, START_TIMEOUT_S)
         if not ready.startswith("ready "):
             process.kill()
@@ -149,9 +159,14 @@ class ShmCyclicSendTask(LimitedDurationCyclicSendTaskABC, ModifiableCyclicTaskAB
         self._process = process
 
     @property
+    def alive(self) -> bool:
+        """Whether the timer process runs (not after ``stop``, its duration, or a kill)."""
+        return self._process is not None and self._process.poll() is None
+
+    @property
     def pid(self) -> int | None:
-        """The sending timer process (None while stopped): to watch or renice it."""
-        return self._process.pid if self._process is not None else None
+        """The sending timer process (None when not ``alive``): to watch or renice it."""
+        return self._process.pid if self._process is not None and self.alive else None
 
     def modify_data(self, messages: Sequence[can.Message] | can.Message) -> None:
         """New data for the same frames, from the next period on."""
@@ -161,8 +176,9 @@ class ShmCyclicSendTask(LimitedDurationCyclicSendTaskABC, ModifiableCyclicTaskAB
         process = self._process
         if process is not None and process.poll() is None:
             assert process.stdin is not None
-            process.stdin.write(_frames(messages))
-            process.stdin.flush()
+            with contextlib.suppress(BrokenPipeError):  # it ended meanwhile: start() sends all
+                process.stdin.write(_frames(messages))
+                process.stdin.flush()
 
     def stop(self) -> None:
         process, self._process = self._process, None
@@ -214,7 +230,11 @@ def main() -> None:
             frames = _messages(line)
         done.set()
 
-    bus = ShmBus(channel=path)
+    try:
+        bus = ShmBus(channel=path)
+    except (can.CanError, OSError) as exc:  # e.g. every station taken: the parent says why
+        print("failed", exc, flush=True)
+        return
     try:
         threading.Thread(target=follow_input, daemon=True).start()
         print("ready", "realtime" if realtime else "normal", flush=True)
