@@ -227,11 +227,14 @@ class NodeHandler:
         The executor would keep any exception in a future nobody reads, leaving
         the node in BOOTING for good and the host without an Err_Event; so an
         unforeseen one fails the node (34, no response during its configuration)
-        and is logged.
+        and is logged. Not while the card powers off: a boot-up cut short then
+        (its bus shut, its image gone) is no error of the node.
         """
         try:
             self._run_boot(generation, reset_sent)
         except Exception:
+            if self.master.closing:
+                return
             log.exception("node %d: boot-up failed unexpectedly", self.address)
             self._fail_boot(generation, NO_RESPONSE)
 
