@@ -23,7 +23,7 @@ import struct
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 from dpm import flags as fl
@@ -145,7 +145,8 @@ class _Board:
     io_lock: ChannelLock
     flags_lock: ChannelLock
     transaction_lock: ChannelLock
-    counters: _Counters = field(default_factory=_Counters)
+    counters: _Counters
+    """The driver's for this board number (``_Driver.counters``), kept past DevExitBoard."""
 
     def host(self) -> int:
         return self.mm[HOST_FLAGS]

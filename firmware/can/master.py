@@ -102,8 +102,8 @@ class Master:
         self.bus: CanBus | None = None
         self.nodes: dict[int, NodeHandler] = {}
         self._owners: npt.NDArray[np.uint8] | None = None
-        self._nexc_lock = threading.Lock()
         """Which node's output PDO each output byte belongs to (0: none); see ``_owner_map``."""
+        self._nexc_lock = threading.Lock()
         self.bus_params: BusParameterSet | None = None
         self.ext = ExtendedBusParameterSet()
         self.executor = ThreadPoolExecutor(max_workers=32, thread_name_prefix="node-boot")
@@ -517,14 +517,12 @@ class Master:
             period = self.sync_period
             if not (self.running and period) or self.halted or self.cleared:
                 self._stop_sync_timer()
-                self._sync_wakeup.wait(0.05)
-                self._sync_wakeup.clear()
+                self._await_sync_change()
                 next_sync = time.perf_counter()
                 continue
             if outside:
                 self._run_sync_timer(self.sync_cob_id, period)
-                self._sync_wakeup.wait(0.05)
-                self._sync_wakeup.clear()
+                self._await_sync_change()
                 continue
             next_sync += period
             remaining = next_sync - time.perf_counter()
@@ -537,6 +535,11 @@ class Master:
             self.bus_send(self.sync_cob_id)
             self._on_sync()
         self._stop_sync_timer()
+
+    def _await_sync_change(self) -> None:
+        """Until a start, halt or reset rings, or 50 ms pass (a timer may have died)."""
+        self._sync_wakeup.wait(0.05)
+        self._sync_wakeup.clear()
 
     def _run_sync_timer(self, cob_id: int, period: float) -> None:
         """(Re)start the outside SYNC timer when it is not running as configured.
@@ -617,8 +620,6 @@ class Master:
         self.device.set_global_bit(GlobalBits.EVE, True)
 
     def _on_send_timeout(self) -> None:
-        if self.closing:
-            return  # a boot thread's last request as the card powers off: the image is gone
         self.device.count("usMsg_Time_Out")
         self.device.set_global_bit(GlobalBits.TOUT, True)
 
