@@ -457,9 +457,13 @@ def test_layer2_reception(make_net: Callable[..., Net]) -> None:
 
 
 def candump(trace: Path) -> list[tuple[float, int, str]]:
-    """(time, identifier, data) of every frame in a candump-format trace."""
+    """(time, identifier, data) of every frame in a candump-format trace.
+
+    Whole lines only: a running card's trace may end in one half written.
+    """
     frames = []
-    for line in trace.read_text().splitlines():
+    written = trace.read_text()
+    for line in written[: written.rfind("\n") + 1].splitlines():
         stamp, _, frame = line.split()[:3]
         ident, _, data = frame.partition("#")
         frames.append((float(stamp.strip("()")), int(ident, 16), data))
@@ -503,6 +507,18 @@ transmission = 1
     assert len(outputs) >= len(syncs) - 5
 
 
+SYNC_5MS = """[bus]
+sync_period_ms = 5
+[[node]]
+id = 1
+[[node.pdo]]
+direction = "output"
+cob_id = 0x201
+transmission = 1
+"""
+"""One node with a synchronous output PDO, SYNC every 5 ms."""
+
+
 def sync_timers(card: Card) -> list[int]:
     """The card's timer processes on ``shm`` (``firmware.can.shm_cyclic`` children): the
     one sending SYNC, if any, and the spare that the controller keeps started ahead."""
@@ -524,16 +540,7 @@ def test_sync_stops_while_the_host_is_not_ready(make_net: Callable[..., Net], tm
     ``shm`` the SYNC comes from a timer process of the card (outside its interpreter,
     README "The CAN task"), which goes with it."""
     trace = tmp_path / "sync.log"
-    toml = """[bus]
-sync_period_ms = 5
-[[node]]
-id = 1
-[[node.pdo]]
-direction = "output"
-cob_id = 0x201
-transmission = 1
-"""
-    net = make_net(toml, "--trace", str(trace))
+    net = make_net(SYNC_5MS, "--trace", str(trace))
     net.configure()
     net.wait_operating([1])
     if interface == "shm":
@@ -559,16 +566,7 @@ def test_killed_sync_timer_process_is_started_again(make_net: Callable[..., Net]
     """A SYNC timer process that dies (OOM killer, a user's kill) must not leave the
     network without SYNC until the next configuration."""
     trace = tmp_path / "sync.log"
-    toml = """[bus]
-sync_period_ms = 5
-[[node]]
-id = 1
-[[node.pdo]]
-direction = "output"
-cob_id = 0x201
-transmission = 1
-"""
-    net = make_net(toml, "--trace", str(trace))
+    net = make_net(SYNC_5MS, "--trace", str(trace))
     net.configure()
     net.wait_operating([1])
     wait_until(lambda: len(sync_timers(net.card)) == 2, 5, "the SYNC timer and a spare")
@@ -578,11 +576,8 @@ transmission = 1
     gone = time.time() + 0.1  # frames already in the ring may still be read
 
     def syncs_since_kill() -> int:
-        """SYNCs in what the card's trace has written so far (whole lines only)."""
-        written = trace.read_text()
-        whole = written[: written.rfind("\n") + 1]
-        return sum(1 for line in whole.splitlines()
-                   if " 080#" in line and float(line.split()[0].strip("()")) > gone)
+        """SYNCs in what the card's trace has written so far."""
+        return sum(1 for t, ident, _ in candump(trace) if ident == 0x080 and t > gone)
 
     wait_until(lambda: syncs_since_kill() > 100, 15, "SYNC again from a new timer process")
     assert not set(killed) & set(sync_timers(net.card))
@@ -592,15 +587,7 @@ transmission = 1
 def test_sync_timer_that_cannot_start_is_tried_again(make_net: Callable[..., Net]) -> None:
     """Every station of the channel taken: the SYNC timer process cannot open one. The
     card keeps serving its nodes and tries again, less and less often, until it can."""
-    net = make_net("""[bus]
-sync_period_ms = 5
-[[node]]
-id = 1
-[[node.pdo]]
-direction = "output"
-cob_id = 0x201
-transmission = 1
-""")
+    net = make_net(SYNC_5MS)
     stations: list[can.BusABC] = []
     try:
         while True:  # all but the card's and the simulator's (a spare timer has none yet)
