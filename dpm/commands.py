@@ -1,0 +1,100 @@
+"""Command codes (msg.b / msg.a) of the card's three tasks, and the numbers their messages carry.
+
+This module and its siblings in ``dpm`` are the card's header: every other package imports
+the numbers from here and defines none of its own, so the firmware, the host side, the
+benchmarks and libcif's C header (checked against this module by a test) cannot drift apart.
+Names follow the seed manual (``COM_SDO_Up_Download`` is ``Com.SDO_UP_DOWNLOAD``);
+``docs/card-commands.md`` describes every message.
+"""
+
+from __future__ import annotations
+
+from enum import IntEnum
+
+
+class Rcs(IntEnum):
+    """Commands of the RCS task (msg.rx 0)."""
+
+    LOAD_FUNCTION = 6
+    """Download, upload, delete and directory of the flash database (seed 6.4)."""
+
+
+class LoadMode(IntEnum):
+    """Mode byte (d[0]) of an RCS load-function message."""
+
+    UPLOAD = 2
+    DOWNLOAD = 3
+    DELETE = 4
+    DIRECTORY = 5
+
+
+LOAD_SEGMENT = 8
+"""Start segment of the CANopen database in a load-function message."""
+LOAD_CHUNK = 240
+"""Data bytes per load-function message after the first."""
+LOAD_FIRST_LENGTH = 51
+"""Length of the first download message: mode, segment, header and root bytes."""
+LOAD_ROOT_BYTES = 16
+
+
+class Plc(IntEnum):
+    """Commands of the PLC task (msg.rx 2)."""
+
+    COM_SHARED_MEMORY = 17
+
+
+class Com(IntEnum):
+    """Commands of the CAN task (msg.rx 3), seed chapter 5.2; 110-117 are ours [ours]."""
+
+    GET_CONFIGURATION = 15
+    SEND_CANMSG_TRANSPARENT = 65
+    RECEIVE_TRANSPARENT = 65
+    """An unsolicited indication to the host carries the same code as the send command."""
+    NODE_DIAG = 66
+    START_SEQ = 67
+    DOWNLOAD = 68
+    END_SEQ = 69
+    SDO_UP_DOWNLOAD = 74
+    UPLOAD = 80
+    RESET_ERR_EVENT = 81
+    CFGRX_LAYER2 = 82
+    RX_CAN_LAYER2 = 83
+    TX_CAN_LAYER2 = 84
+    NMT_MODULE_PROTOCOL = 96
+    SET_SDO_TIMEOUT = 110
+    SET_GUARDING = 111
+    SET_HEARTBEAT_CONSUMER = 112
+    SET_EMCY_CONSUMER = 113
+    SET_HEARTBEAT_PRODUCER = 114
+    SET_NODE_ID = 115
+    BOOTUP_FORWARDING = 116
+    BOOTUP_INDICATION = 117
+
+
+class Nmt(IntEnum):
+    """NMT command specifiers (CiA 301), as COM_NMT_Module_Protocol and the bus carry them."""
+
+    START = 0x01
+    STOP = 0x02
+    PREOPERATIONAL = 0x80
+    RESET_NODE = 0x81
+    RESET_COMMUNICATION = 0x82
+
+
+NMT_COMMANDS = frozenset(Nmt)
+
+# Areas and sizes of CAN-task messages (seed 5.2)
+AREA_BUS = 127
+"""COM_Download / COM_Upload area code of the bus parameters."""
+AREA_EXTENDED = 128
+"""... of the extended bus parameters."""
+DOWNLOAD_AREA_SIZE = 1000
+"""Bytes of the download area that one COM_Start_Seq sequence may fill."""
+MAX_LEN_DATA_UNIT = 240
+"""Bytes of a node data set per COM_Download (COM_Start_Seq's Max_Len_Data_Unit)."""
+SDO_MAX_DATA = 247
+"""Data bytes in one COM_SDO_Up_Download message: 255 minus the telegram header."""
+LONG_SDO_LIMIT = 65536
+"""[ours] bytes one long (concatenated) SDO transfer may carry (docs/card-commands.md)."""
+NODE_DIAG_SIZE = 48
+"""Bytes of a COM_Node_Diag answer."""
