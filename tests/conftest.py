@@ -21,7 +21,6 @@ from host_api import driver
 pytest.register_assert_rewrite("tests.buses")
 
 ROOT = Path(__file__).resolve().parents[1]
-SHARED = ROOT.parent / "shared"
 IMAGE_SIZE = 8192
 HOST_FLAGS = 0x1FFE
 DEV_FLAGS = 0x1FFF

@@ -16,8 +16,9 @@ from dbm_tools.network import parse_network
 from dbm_tools.parameters import BusParameterSet
 from dbm_tools.tables import BUS_CAN, GLOBAL, GlobalSet
 from tests.conftest import ROOT, Card
+from tests.fixtures import REAL_DBM as FIXTURE
+from tests.fixtures import needs_real_dbm
 
-FIXTURE = ROOT.parent / "shared" / "fixtures" / "CIF50-profibus-real.dbm"
 NETWORK = """[bus]
 bitrate = 250000
 [[node]]
@@ -83,12 +84,16 @@ def test_build_reports_a_bad_description(tmp_path: Path) -> None:
     assert not (tmp_path / "bad.dbm").exists()
 
 
-def test_show_decodes_canopen_tables_and_dumps_the_others(built: Path) -> None:
+@needs_real_dbm
+def test_show_dumps_the_tables_it_does_not_know() -> None:
     result = cli("show", FIXTURE)
     assert result.returncode == 0, result.stderr
     assert "PB_COMBI" in result.stdout and "PROFIBUS new network" in result.stdout
     assert "BUS_DP record 1 (67 bytes)" in result.stdout
     assert "0000  43 00 00 06 2c 01 0b 00" in result.stdout
+
+
+def test_show_decodes_canopen_tables(built: Path) -> None:
     result = cli("show", built)
     assert result.returncode == 0, result.stderr
     for text in ("NODES: node 7", "0x00070191: usDevProfNum 401", "HRTBT ACTIVE",
@@ -107,12 +112,17 @@ def test_show_json_has_every_record(built: Path) -> None:
     assert node["Node_Address"] == 7
     assert [p["usPdoCOBId"] for p in node["Node_Data_set"]["atPdoCfgData"]] == [
         0x187, 0x287, 0x207]
+
+
+@needs_real_dbm
+def test_show_json_gives_unknown_records_in_hex() -> None:
     fixture = {t["name"]: t for t in json.loads(cli("show", "--json", FIXTURE).stdout)["tables"]}
     assert "decoded" not in fixture["BUS_DP"]["records"][0]
     assert fixture["BUS_DP"]["records"][0]["hex"].startswith("43000006")
 
 
-def test_check_exit_codes_and_findings(tmp_path: Path, built: Path) -> None:
+@needs_real_dbm
+def test_check_of_a_foreign_database() -> None:
     result = cli("check", FIXTURE, module="cifemu")
     assert result.returncode == 1
     assert ("error 20 (database not valid for this device) in table GLOBAL, record 1, field "
@@ -121,6 +131,8 @@ def test_check_exit_codes_and_findings(tmp_path: Path, built: Path) -> None:
     assert "warning in table GLOBAL, record 1, field usChecksumCRC" in result.stdout
     assert "2 error(s), 1 warning(s)" in result.stdout
 
+
+def test_check_exit_codes_and_findings(tmp_path: Path, built: Path) -> None:
     assert cli("check", built).returncode == 0
     dbm = read_dbm(built.read_bytes())
     dbm.tables[0].records[0] = GlobalSet(usChecksumCRC=0x1234).encode()
@@ -158,6 +170,10 @@ def test_diff_names_table_record_and_field(tmp_path: Path, built: Path) -> None:
     assert result.returncode == 1
     assert "BUS_CAN record 1 Baud_rate: 3 -> 2" in result.stdout
     assert "DESCRIPT station 7 szDescription: valve block -> pump" in result.stdout
+
+
+@needs_real_dbm
+def test_diff_names_a_table_only_one_side_has(built: Path) -> None:
     result = cli("diff", "--json", built, FIXTURE)
     assert result.returncode == 1
     found = json.loads(result.stdout)
@@ -170,12 +186,6 @@ def test_card_commands(card: Card, tmp_path: Path, built: Path) -> None:
     where = ("--dpm-dir", card.directory)
     result = cli("upload", "-o", tmp_path / "none.dbm", *where, module="cifemu")
     assert result.returncode == 1 and "1200" in result.stderr
-    result = cli("download", FIXTURE, *where)
-    assert result.returncode == 1
-    assert "warning" in result.stdout  # it fails the checks, and the card says so too:
-    assert "DRV_RCS_ERROR_OFFSET+20 (1020)" in result.stderr
-    assert "database not valid for this device" in result.stderr
-
     result = cli("download", built, "--reset", *where, module="cifemu")
     assert result.returncode == 0, result.stderr
     assert "stored in board 0's flash" in result.stdout
@@ -193,6 +203,15 @@ def test_card_commands(card: Card, tmp_path: Path, built: Path) -> None:
     assert result.returncode == 0 and "database deleted" in result.stdout
     result = cli("dir", "--json", *where)
     assert result.returncode == 0 and json.loads(result.stdout) == []
+
+
+@needs_real_dbm
+def test_card_refuses_a_foreign_database(card: Card) -> None:
+    result = cli("download", FIXTURE, "--dpm-dir", card.directory)
+    assert result.returncode == 1
+    assert "warning" in result.stdout  # it fails the checks, and the card says so too:
+    assert "DRV_RCS_ERROR_OFFSET+20 (1020)" in result.stderr
+    assert "database not valid for this device" in result.stderr
 
 
 def test_card_commands_without_a_card_say_what_to_do(tmp_path: Path) -> None:

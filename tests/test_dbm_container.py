@@ -22,9 +22,7 @@ from dbm_tools.container import (
     write_dbm,
 )
 from dbm_tools.errors import DbmError
-
-FIXTURE = Path(__file__).resolve().parents[1].parent / "shared" / "fixtures"
-REAL_DBM = FIXTURE / "CIF50-profibus-real.dbm"
+from tests.fixtures import REAL_DBM, real_dbm_bytes
 
 REAL_TABLES = [
     "GLOBAL",
@@ -54,7 +52,7 @@ def reseal(area: bytes) -> bytes:
 
 @pytest.fixture(scope="module")
 def real() -> bytes:
-    return REAL_DBM.read_bytes()
+    return real_dbm_bytes()
 
 
 def sample_file() -> DbmFile:
@@ -291,7 +289,7 @@ def patched(raw: bytes, offset: int, value: bytes) -> bytes:
         (2 * 267 + 10, b"\x0a\x00", "bad length"),  # shorter than its header
         (2 * 795 + 12, b"\x01\x00", "key index"),  # KBL's empty key index lists slot 1
         (2 * 1287 + 12, b"\x02\x00\x01\x00", "key index"),  # ST_OV_0 slots 1 and 2 swapped
-        # key index names neither its table (30, DBM.md) nor its root slot (31, the file)
+        # key index names neither its table (30, docs/dbm.md) nor its root slot (31, the file)
         (2 * 1287 + 6, b"\x20\x00", "block at word"),
     ],
 )

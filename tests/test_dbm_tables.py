@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import pytest
 
 from dbm_tools.container import DbmFile, DbmTable, read_dbm, write_dbm
@@ -35,9 +33,7 @@ from dbm_tools.tables import (
     ProjektRecord,
     checksum_crc,
 )
-
-FIXTURES = Path(__file__).resolve().parents[1].parent / "shared" / "fixtures"
-REAL_DBM = FIXTURES / "CIF50-profibus-real.dbm"
+from tests.fixtures import real_dbm_bytes
 
 # The seed's SDO example (5.2.5.1.1): object 0x6200 sub 5, 4 bytes 0x10010108.
 SDO_EXAMPLE = SdoCfgData(0x6200, 0x05, 4, (0x10010108).to_bytes(4, "little"))
@@ -80,7 +76,7 @@ NODE_4_BYTES = bytes.fromhex(
 
 @pytest.fixture(scope="module")
 def real() -> DbmFile:
-    return read_dbm(REAL_DBM.read_bytes())
+    return read_dbm(real_dbm_bytes())
 
 
 def only_record(dbm: DbmFile, name: str) -> bytes:

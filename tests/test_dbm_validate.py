@@ -43,10 +43,9 @@ from dbm_tools.validate import (
     check_node_addresses,
     check_node_parameters,
 )
+from tests.fixtures import real_dbm_bytes
 
-SHARED = Path(__file__).resolve().parents[1].parent / "shared"
-REAL_DBM = SHARED / "fixtures" / "CIF50-profibus-real.dbm"
-SEED = SHARED / "seeds" / "hilscher-canopen-master-protocol-interface.txt"
+DBM_DOC = Path(__file__).resolve().parents[1] / "docs" / "dbm.md"
 
 DATA_SET_NUMBERS = {53, 55, 59, 60, 61, 62, 63, 64, 65, 66, 67, 68, 69, 70, 71, 72, 73, 74, 75, 76}
 
@@ -248,12 +247,12 @@ def test_double_address_findings_point_at_the_record() -> None:
     assert (finding.number, finding.record, finding.field) == (60, 3, "Node_Address")
 
 
-def test_error_texts_are_the_seeds() -> None:
-    """The COM_Download table of seed 5.2.5, letter for letter."""
-    text = SEED.read_text(encoding="utf-8")
-    section = text[text.index("5.2.5 COM_Download\n\ncommand") :]
-    table = section[: section.index("5.2.5.1 Download")]
-    rows = dict(re.findall(r"^(\d+)\t(.+)$", table, flags=re.MULTILINE))
+def test_error_texts_are_the_documented_ones() -> None:
+    """The COM_Download table of docs/dbm.md (the seed's 5.2.5, letter for letter)."""
+    text = DBM_DOC.read_text(encoding="utf-8")
+    section = text[text.index("### Data checks (the numbers of COM_Download)") :]
+    table = section[: section.index("\n## ")]
+    rows = dict(re.findall(r"^\| (\d+) \| (.+) \|$", table, flags=re.MULTILINE))
     assert len(rows) == 24
     for number, wording in rows.items():
         assert ERROR_TEXTS[int(number)] == wording
@@ -327,7 +326,7 @@ def test_foreign_crc_is_only_a_warning() -> None:
 
 
 def test_real_profibus_file() -> None:
-    findings = check_dbm(read_dbm(REAL_DBM.read_bytes()))
+    findings = check_dbm(read_dbm(real_dbm_bytes()))
     errors = {(f.number, f.table) for f in findings if f.severity == "error"}
     assert errors == {(20, GLOBAL), (212, BUS_CAN)}
     assert [f.field for f in findings if f.severity == "warning"] == ["usChecksumCRC"]

@@ -35,8 +35,9 @@ from host_api.download import (
     upload_database,
 )
 from tests.conftest import ROOT, Card, start_card, wait_until
+from tests.fixtures import REAL_DBM as FIXTURE
+from tests.fixtures import needs_real_dbm
 
-FIXTURE = ROOT.parent / "shared" / "fixtures" / "CIF50-profibus-real.dbm"
 QUICK = 'boot = ["start", "pdo"]\n'
 """Boot steps that wait for no answer: no node answers on the test bus, and the CAN task's
 boot timeouts would only make every card's shutdown seconds slower."""
@@ -154,6 +155,7 @@ def test_a_database_needing_the_host_waits_for_host_ready(board: int, tmp_path: 
 # --- every refusal of the card ---------------------------------------------------------------
 
 
+@needs_real_dbm
 def test_the_real_profibus_file_is_not_a_canopen_database(board: int) -> None:
     assert d.DevDownload(board, CONFIGURATION_DOWNLOAD, FIXTURE) == 1020
     assert d.DevDownload(board, CONFIGURATION_DOWNLOAD, FIXTURE.read_bytes()) == 1020

@@ -1,57 +1,66 @@
-"""The image layout against DPM.md's table, and the codecs against the seed's bytes."""
+"""The image layout against docs/dpm.md's table, and the codecs against the seed's bytes."""
 
 from __future__ import annotations
 
 import re
+from pathlib import Path
+from typing import Any
 
 import pytest
 
 from dpm import layout
 from dpm.message import Message, MessageError, TelegramHeader
 from dpm.task2 import ComDiagnostics, ComPlcParameter
-from tests.conftest import SHARED
 
-# DPM.md names its regions in prose; these are our field names for them.
-DPM_MD_NAMES = {
-    "send process data": "SndPd",
-    "receive process data": "RcvPd",
-    "device mailbox": "DevMbx",
-    "VERSIONINFO": "VersionInfo",
-    "host mailbox": "PcMbx",
-    "FIRMWAREINFO": "FirmwareInfo",
-    "Task 1 parameter": "Task1Parameter",
-    "Task 2 parameter": "Task2Parameter",
-    "Task 1 state": "Task1State",
-    "Task 2 state": "Task2State",
-    "TASKINFO": "TaskInfo",
-    "RCSINFO": "RcsInfo",
-    "DEVINFO": "DevInfo",
-    "HostFlags": "HostFlags",
-    "DevFlags": "DevFlags",
-}
+DPM_DOC = Path(__file__).resolve().parents[1] / "docs" / "dpm.md"
 
 
-def dpm_md_rows() -> list[tuple[int, int, str]]:
-    text = (SHARED / "design" / "DPM.md").read_text()
-    rows = re.findall(r"^\| (0x[0-9A-F]{4}) \| (\d+) \| ([^|]+)\|", text, re.M)
-    assert len(rows) == 15, "DPM.md's region table changed shape"
-    return [(int(off, 16), int(size), name.strip()) for off, size, name in rows]
+def documented_rows(heading: str) -> list[tuple[str, int, int]]:
+    """(field, offset, size) of the table that follows ``heading`` in docs/dpm.md."""
+    text = DPM_DOC.read_text(encoding="utf-8")
+    section = text[text.index(heading) :]
+    table = section[: section.index("\n\n", section.index("\n|"))]
+    rows = re.findall(r"^\| `([\w.]+)` \| (0x[0-9A-F]{4}|\d+) \| (\d+) \|", table, re.M)
+    return [(name, int(offset, 0), int(size)) for name, offset, size in rows]
 
 
-@pytest.mark.parametrize(("offset", "size", "name"), dpm_md_rows())
-def test_every_region_sits_where_dpm_md_says(offset: int, size: int, name: str) -> None:
-    field = next(ours for theirs, ours in DPM_MD_NAMES.items() if name.startswith(theirs))
-    assert layout.offset_of(field) == offset
-    assert layout.size_of(field) == size
+def layout_fields(dtype: Any = layout.DPM_LAYOUT, prefix: str = "") -> list[str]:
+    """Every named field of the image, sub-structures included (arrays of them excepted)."""
+    names = []
+    for name, (sub, *_) in dtype.fields.items():
+        names.append(prefix + name)
+        if sub.names is not None:
+            names += layout_fields(sub, f"{prefix}{name}.")
+    return names
+
+
+IMAGE_ROWS = documented_rows("## 1. Layout")
+
+
+@pytest.mark.parametrize(("name", "offset", "size"), IMAGE_ROWS)
+def test_every_field_sits_where_the_docs_say(name: str, offset: int, size: int) -> None:
+    assert layout.offset_of(name) == offset
+    assert layout.size_of(name) == size
+
+
+def test_the_docs_list_every_field_of_the_layout() -> None:
+    assert [name for name, _, _ in IMAGE_ROWS] == layout_fields()
 
 
 def test_the_regions_tile_the_whole_image() -> None:
-    rows = sorted(dpm_md_rows())
     end = 0
-    for offset, size, _ in rows:
-        assert offset == end
-        end = offset + size
+    for name, offset, size in IMAGE_ROWS:
+        if "." not in name:
+            assert offset == end, name
+            end = offset + size
     assert end == layout.DPM_SIZE == 8192
+
+
+def test_taskinfo_entry_is_as_documented() -> None:
+    rows = documented_rows("**TASKINFO entry**")
+    fields: Any = layout.TASKINFO_ENTRY.fields
+    assert [(name, at, sub.itemsize) for name, (sub, at, *_) in fields.items()] == rows
+    assert layout.size_of("TaskInfo") == 7 * layout.TASKINFO_ENTRY.itemsize
 
 
 def test_seed_addresses_of_the_canopen_fields() -> None:
