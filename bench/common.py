@@ -60,7 +60,7 @@ class Card:
 
 
 def _scratch_root() -> str | None:
-    """/dev/shm (where real images live, DPM.md 6) when usable, else the default temp dir."""
+    """/dev/shm (where real images live, docs/dpm.md 3) when usable, else the default temp dir."""
     shm = "/dev/shm"
     return shm if os.path.isdir(shm) and os.access(shm, os.W_OK) else None
 

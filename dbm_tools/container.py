@@ -1,4 +1,4 @@
-"""The DBM container: file header, root block, and the per-table blocks (DBM.md section 1).
+"""The DBM container: file header, root block, and the per-table blocks (docs/dbm.md section 1).
 
 The writer derives every pointer, length, pad, count, key index and the root
 checksum w0 from the tables, so a from-scratch `DbmFile([...])` and a file read
@@ -281,8 +281,8 @@ def _read_table(data: bytes, number: int, keyed: bool, at: int) -> tuple[DbmTabl
     if keyed:
         if unpack("H", data, 2 * (number + 1), "root slot")[0] != at:
             raise DbmError(f"key index not at word {at}", table=where)
-        # The real file names the key index's own root slot (number + 1); DBM.md
-        # says the table number. A file written by hand from DBM.md must load too.
+        # The real file names the key index's own root slot (number + 1); a file written
+        # by hand may name the table number, which docs/dbm.md allows: both load.
         block = _read_block(data, at, BLOCK_KEY_INDEX, 0, number + 1, where, also=number)
         index_words = _as_words(block.payload)
         at += block.words

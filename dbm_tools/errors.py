@@ -40,7 +40,7 @@ ERROR_TEXTS: dict[int, str] = {
 
 48..76 are the COM_Download table of seed 5.2.5 verbatim, so that a user can
 find the text in the manual; 212 is the seed's Err_Event text; 20 is worded
-as in DBM.md section 3, because the seed uses 20 only for COM_Upload
+as in docs/dbm.md section 3, because the seed uses 20 only for COM_Upload
 (CON_LR), where it means something else.
 """
 

@@ -1,4 +1,4 @@
-"""Record codecs of the CANopen master's DBM tables (seed chapter 6, DBM.md section 2).
+"""Record codecs of the CANopen master's DBM tables (seed chapter 6, docs/dbm.md section 2).
 
 BUS_CAN and BUS_CAN_EXT records are the download data sets themselves (use
 dbm_tools.parameters); NODES records prefix a node parameter data set with
@@ -45,7 +45,7 @@ class GlobalSet:
     """DBM_SET_GLOBAL, the one record of GLOBAL: it tells a card whose database this is.
 
     The seed's struct names two fields abReservedB; the second is abReservedC
-    here, as in DBM.md. Defaults mirror SyCon's sample except the segment name.
+    here, as in docs/dbm.md. Defaults mirror SyCon's sample except the segment name.
     """
 
     szSegmentName: str = SEGMENT_NAME_CANOPEN

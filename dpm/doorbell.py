@@ -1,4 +1,4 @@
-"""The event channel beside the image [ours] (DPM.md section 5).
+"""The event channel beside the image [ours] (docs/dpm.md section 2).
 
 A real card raises an interrupt when it writes HostFlags. Here the writer of a
 flag byte rings the other side with a one-byte datagram on a Unix socket in
@@ -19,7 +19,7 @@ from collections import OrderedDict
 from pathlib import Path
 
 POLL_INTERVAL = 0.001
-"""Seconds between flag polls when no ring arrives (the 1 ms of DPM.md 5)."""
+"""Seconds between flag polls when no ring arrives (the 1 ms of docs/dpm.md 2)."""
 
 MAX_HOSTS = 64
 """Hosts the device keeps ringing; the longest silent one is dropped first."""

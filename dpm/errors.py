@@ -154,7 +154,7 @@ F_ILLEGAL_COUNT = 165
 F_UNKNOWN_DATA_TYPE = 166
 F_UNKNOWN_FUNCTION = 167
 
-# RCS task, load function (DBM.md section 3)
+# RCS task, load function (docs/dbm.md section 3)
 F_DB_NOT_VALID = 20
 F_WRONG_MESSAGE_NUMBER = 22
 F_WRONG_SIZE = 23

@@ -1,7 +1,7 @@
 """Flag bits of HostFlags (device writes) and DevFlags (host writes).
 
 Each COM/ACK pair shares one bit position, so the state of a channel is
-``HostFlags XOR DevFlags`` at that bit (DPM.md section 2).
+``HostFlags XOR DevFlags`` at that bit (docs/dpm.md section 2).
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Where board N's image lives and how each side maps it [ours] (DPM.md 6).
+"""Where board N's image lives and how each side maps it [ours] (docs/dpm.md 3).
 
 The firmware creates ``<dir>/board<N>.dpm`` (8192 bytes, mode 0660) and holds
 an exclusive lock on ``<dir>/board<N>.lock`` for its whole life, so a second

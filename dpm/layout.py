@@ -2,7 +2,7 @@
 
 This module is the single source of truth for every offset in the image: the
 firmware, the driver API and the status tool all take their offsets from the
-dtypes below (``offset_of``), and a test compares them with DPM.md's table.
+dtypes below (``offset_of``), and a test compares them with docs/dpm.md's table.
 All integers are little-endian and all structures packed, as on the card.
 """
 

@@ -302,7 +302,7 @@ class CanTask(Task):
         return msg.answer()
 
     def get_configuration(self, msg: Message) -> Message:
-        """The node's DESCRIPT record without its first byte (DBM.md section 2)."""
+        """The node's DESCRIPT record without its first byte (docs/dbm.md section 2)."""
         try:
             head = TelegramHeader.decode(msg.data)
         except MessageError:

@@ -8,7 +8,7 @@ one file, ``database.bin``: the DBM data area exactly as the host sent it (no
 written to a temporary file, fsync'ed and renamed over the old one, so a card
 killed at any moment keeps either the old database or the new one, whole.
 
-The load function (DBM.md section 3; answers rx/tx swapped, a = 6, same nr),
+The load function (docs/dbm.md section 3; answers rx/tx swapped, a = 6, same nr),
 selected by d[0] of a message whose msg.e has no continuation bits:
 
 - 3 download: first message e = 4, ln = 51: d[1..16] the data area's root

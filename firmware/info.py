@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import Any
 
-FIRMWARE_NAME = b"CANopen Master"  # [ours] (DPM.md 1)
+FIRMWARE_NAME = b"CANopen Master"  # [ours] (docs/dpm.md 1)
 FIRMWARE_VERSION = b"V1.070 cifemu"
 DEVICE_NUMBER = 1250100
 """[ours] ulDeviceNo of the emulated card."""

@@ -1,6 +1,6 @@
 """The RCS system task (msg.rx 0): starts, flags, the host watchdog.
 
-It brings the card up at every cold, warm and boot start (DPM.md section 4),
+It brings the card up at every cold, warm and boot start (docs/dpm.md section 3),
 follows the host's NOTREADY level and supervises the host watchdog. The DBM
 load function (msg.b 6) joins it with the flash store.
 """

@@ -1,13 +1,13 @@
 """DevDownload and the other services of the RCS load function (msg.b 6), host side.
 
 ``DevDownload(board, CONFIGURATION_DOWNLOAD, "net.dbm")`` puts a DBM into the
-card's flash by the driver's procedure (DBM.md section 3): a first message
+card's flash by the driver's procedure (docs/dbm.md section 3): a first message
 (e = 4, nr = 1, ln = 51: mode 3, the root words w0..w7, the 34-byte GLOBAL
 record), then the whole data area in 240-byte messages (e = 8, the last
 e = 0x0C), each answered by the card. The file header is never sent. The
 database takes effect at the card's next start.
 
-Return codes, as the C driver's (DPM.md section 3):
+Return codes, as the C driver's (docs/dpm.md section 4):
 
 - 0 stored; 1000 + f when the card answers f != 0 (1020 not a CANopen
   database, 1022 wrong message number, 1023 wrong size, 1024 wrong

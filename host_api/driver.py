@@ -1,7 +1,7 @@
 """The classic CIF device driver API over an emulated card's image.
 
 Each ``Dev*`` function keeps the C driver's name, argument order and return
-codes (DPM.md section 3), so a legacy host program ports line by line. Output
+codes (docs/dpm.md section 4), so a legacy host program ports line by line. Output
 parameters come back in a tuple after the return code::
 
     rc, msg = DevGetMessage(0, 288, 500)

@@ -771,7 +771,7 @@ def test_help_is_one_answer() -> None:
 
 
 def test_error_tables() -> None:
-    """Every number of CIA309.md has its text; the Lely gateway words two of them shorter."""
+    """Every number of docs/cia309.md has its text; the Lely gateway words two of them shorter."""
     numbers = [100, 101, 102, 103, 104, 105, 106, 107, 200, 201, 202, 203, 204, 205,
                300, 301, 303, 304, 305, 400, 401, 501, 502, 503, 504, 505, 600]
     assert sorted(int(code) for code in GatewayError) == numbers

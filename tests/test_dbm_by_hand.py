@@ -1,6 +1,6 @@
-"""A CANopen DBM written by hand from DBM.md alone, as a user without SyCon would.
+"""A CANopen DBM written by hand from docs/dbm.md alone, as a user without SyCon would.
 
-Nothing from dbm_tools builds it: only struct and the words of DBM.md section 1
+Nothing from dbm_tools builds it: only struct and the words of docs/dbm.md section 1
 and the seed's data sets. The card must take the download and run from it.
 """
 
@@ -30,7 +30,7 @@ def table(number: int, name: str, records: list[bytes], at: int,
     if key_length:
         order = sorted(range(len(records)), key=lambda i: records[i][:key_length])
         index = struct.pack("<31H", *([i + 1 for i in order] + [0] * (31 - len(records))))
-        # DBM.md: "table number for directory/index blocks"
+        # the table number, which docs/dbm.md says the reader accepts for a key index
         out += block(2, 0, number, index)
     directory_at = at + len(out) // 2
     descriptor_at = directory_at + (12 + 62) // 2

@@ -57,7 +57,7 @@ KNOWN_TASKS = (0, 2, 3)  # RCS, PLC, CAN (seed manual 1.1 and 5)
 USER, PLC = 16, 2
 COM_SHARED_MEMORY = 17
 
-# --- the image (DPM.md section 1) --------------------------------------------------------
+# --- the image (docs/dpm.md section 1) ---------------------------------------------------
 IMAGE_SIZE = 8192
 SND_PD, RCV_PD, IO_SIZE = 0x0000, 0x0E00, 3584
 IGNORED = ((0x1C00, 0x1D20), (0x1D40, 0x1E60), (0x1FFE, 0x2000))

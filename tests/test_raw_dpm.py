@@ -1,7 +1,7 @@
-"""The foundation issue's acceptance program: a host that knows only DPM.md's numbers.
+"""The foundation issue's acceptance program: a host that knows only docs/dpm.md's numbers.
 
 Everything here goes through ``mmap`` and ``struct`` with the offsets and flag bits of
-DPM.md, like a legacy C program poking the card's memory: no ``dpm``, ``host_api`` or
+docs/dpm.md, like a legacy C program poking the card's memory: no ``dpm``, ``host_api`` or
 ``firmware`` import, and no doorbell (the device polls the flags at least every ms).
 """
 
@@ -17,7 +17,7 @@ import pytest
 
 from tests.conftest import Card, wait_until
 
-# --- DPM.md section 1: the 8 KiB image ---------------------------------------------------
+# --- docs/dpm.md section 1: the 8 KiB image ----------------------------------------------
 SND_PD = 0x0000  # send process data (host outputs)
 RCV_PD = 0x0E00  # receive process data (host inputs)
 IO_SIZE = 3584
@@ -32,7 +32,7 @@ DRIVER_TYPE = 0x1FF7  # RCSINFO.bDriverType: high nibble = exchange mode
 HOST_FLAGS = 0x1FFE  # written by the device
 DEV_FLAGS = 0x1FFF  # written by the host
 
-# --- DPM.md section 2: flag bits --------------------------------------------------------
+# --- docs/dpm.md section 2: flag bits ---------------------------------------------------
 HOST_MBX = 0x01  # HOSTCOM / HOSTACK
 DEV_MBX_BIT = 0x02  # DEVACK / DEVCOM
 PD = 0x04  # PDACK / PDCOM

@@ -154,7 +154,7 @@ _U32 = 0xFFFF_FFFF
 
 
 class GatewayError(IntEnum):
-    """The CiA 309-3 error numbers (CIA309.md); ``text`` is the standard's wording."""
+    """The CiA 309-3 error numbers (docs/cia309.md); ``text`` is the standard's wording."""
 
     REQUEST_NOT_SUPPORTED = 100
     SYNTAX_ERROR = 101

@@ -4,7 +4,7 @@
 transfers of clause 5, with the arguments the 309-1 tables name; a failure raises
 :class:`Cia309Error` carrying the 309 reason (an SDO abort code or a 309-3 error number,
 and the card's ``msg.f`` where the card said no). Networks 1..4 are boards 0..3
-(CIA309.md). Events (RPDO received, error control, emergency, boot-up, progress of long
+(docs/cia309.md). Events (RPDO received, error control, emergency, boot-up, progress of long
 SDO transfers) reach subscribers::
 
     with Gateway(boards=[0], directory=tmp) as gateway:
