@@ -11,7 +11,7 @@ from collections.abc import Callable
 from typing import Any
 
 from bench import can, cia309, dbm, exchange_io, lss, mailbox
-from bench.common import add_size_arguments, emit, progress
+from bench.common import add_size_arguments, emit, help_text, progress
 
 Runner = Callable[[int | None, int | None], dict[str, Any]]
 
@@ -26,7 +26,7 @@ BENCHMARKS: dict[str, Runner] = {
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m bench", description=__doc__)
+    parser = argparse.ArgumentParser(prog="python -m bench", description=help_text(__doc__))
     parser.add_argument("names", nargs="*", metavar="NAME",
                         help=f"benchmarks to run: {', '.join(BENCHMARKS)} (default: all)")
     add_size_arguments(parser, "default: each benchmark's own", "default: each benchmark's own")

@@ -93,6 +93,7 @@ from bench.common import (
     _wait_ready,
     add_size_arguments,
     emit,
+    help_text,
     latency_stats,
     machine_info,
     percentile,
@@ -1534,7 +1535,7 @@ def run(count: int | None = None, warmup: int | None = None, *,
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m bench.can", description=__doc__,
+    parser = argparse.ArgumentParser(prog="python -m bench.can", description=help_text(__doc__),
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     add_size_arguments(parser, f"PDO loop round trips, default {DEFAULT_COUNT}",
                        f"default {DEFAULT_WARMUP}")

@@ -28,6 +28,7 @@ from bench.common import (
     Measured,
     add_size_arguments,
     emit,
+    help_text,
     machine_info,
     measure,
     progress,
@@ -138,7 +139,7 @@ def run(count: int | None = None, warmup: int | None = None) -> dict[str, Any]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m bench.cia309", description=__doc__,
+    parser = argparse.ArgumentParser(prog="python -m bench.cia309", description=help_text(__doc__),
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     add_size_arguments(parser, f"default {DEFAULT_COUNT}", f"default {DEFAULT_WARMUP}")
     args = parser.parse_args(argv)

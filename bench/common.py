@@ -331,10 +331,15 @@ def emit(document: Any) -> None:
     sys.stdout.flush()
 
 
+def help_text(doc: str | None) -> str:
+    """A module docstring as ``--help`` prints it: plain text, without reST's literal marks."""
+    return (doc or "").replace("``", "")
+
+
 def sized_main(prog: str, doc: str | None, run: Callable[[int | None, int | None], Any],
                defaults: tuple[int, int], argv: list[str] | None) -> int:
     """The command line of a benchmark that takes only ``--count`` and ``--warmup``."""
-    parser = argparse.ArgumentParser(prog=prog, description=doc,
+    parser = argparse.ArgumentParser(prog=prog, description=help_text(doc),
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     add_size_arguments(parser, f"default {defaults[0]}", f"default {defaults[1]}")
     args = parser.parse_args(argv)

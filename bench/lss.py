@@ -47,6 +47,7 @@ from bench.common import (
     _wait_ready,
     add_size_arguments,
     emit,
+    help_text,
     machine_info,
     progress,
     ratio,
@@ -220,7 +221,7 @@ def run(count: int | None = None, warmup: int | None = None) -> dict[str, Any]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m bench.lss", description=__doc__,
+    parser = argparse.ArgumentParser(prog="python -m bench.lss", description=help_text(__doc__),
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     add_size_arguments(parser, f"rounds, default {DEFAULT_ROUNDS}", "not used")
     args = parser.parse_args(argv)

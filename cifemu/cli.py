@@ -1,4 +1,4 @@
-"""``cifemu``: one command for the emulated CIF CANopen master card.
+"""cifemu: one command for the emulated CIF CANopen master card.
 
   cifemu firmware   run one emulated card in the foreground
   cifemu sim        run a network description's simulated nodes on a CAN bus

@@ -1,4 +1,4 @@
-"""``cifemu dbm``: read, check, build and compare DBM files, and put them into a card.
+"""cifemu dbm: read, check, build and compare DBM files, and put them into a card.
 
 File commands (no card needed; FILE is a DBM file or a bare data area such as
 a card's flash file database.bin):
@@ -13,7 +13,7 @@ a card's flash file database.bin):
   build NET.toml -o OUT.dbm   a DBM from a network description and EDS files
   diff A B [--json]           table, record and field differences; exit 1 if any
 
-Card commands (a running ``cifemu firmware``; --board N, --dpm-dir DIR):
+Card commands (a running cifemu firmware; --board N, --dpm-dir DIR):
 
   download FILE [--reset]     DevDownload into the card's flash (driver codes
                               and 1000 + msg.f on failure, e.g. 1020: not a

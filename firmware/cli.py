@@ -1,4 +1,4 @@
-"""``cifemu firmware``: run one emulated card in the foreground."""
+"""cifemu firmware: run one emulated card in the foreground."""
 
 from __future__ import annotations
 

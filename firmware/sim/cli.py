@@ -1,6 +1,6 @@
-"""``cifemu sim``: the simulated nodes of a network description alone on a CAN bus.
+"""cifemu sim: the simulated nodes of a network description alone on a CAN bus.
 
-For a bus shared with another process (``shm``, SocketCAN, vcan, any
+For a bus shared with another process (shm, SocketCAN, vcan, any
 python-can interface that crosses processes). Runs in the foreground until SIGTERM or
 Ctrl-C; prints each node it simulates.
 """

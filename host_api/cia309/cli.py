@@ -1,4 +1,4 @@
-"""``cifemu 309``: the CiA 309-3 ASCII gateway on the card's networks (network N = board N-1).
+"""cifemu 309: the CiA 309-3 ASCII gateway on the card's networks (network N = board N-1).
 
   cifemu 309 serve [--host 127.0.0.1] [--port 60000] [--board N | --network N ...]
                    [--dialect canopennode|lely] [--read-only] [--max-clients N] [--max-line N]
@@ -6,9 +6,9 @@
   cifemu 309 exec --direct '4 read 0x1017 0 u16'  ... or to a gateway in this process
   cifemu 309 shell [--direct]                    interactive, with history
 
-A request without ``[<sequence>]`` gets one. ``exec`` prints the answer and exits 1 when
-it is an ERROR. Requests are as CANopenNode's ``cocomm`` and Lely's ``coctl`` write them
-(``help`` lists them); answers and event lines follow ``--dialect``.
+A request without [<sequence>] gets one. "exec" prints the answer and exits 1 when
+it is an ERROR. Requests are as CANopenNode's cocomm and Lely's coctl write them
+("help" lists them); answers and event lines follow --dialect.
 """
 
 from __future__ import annotations
