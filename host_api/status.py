@@ -159,16 +159,16 @@ def read_image(board: int, directory: str | None) -> bytes | None:
 
 
 GUIDE = """\
-How to read the screen (the card's names, as its manual and C driver spell them):
+How to read the screen (the card's names, spelt as in its manual and driver):
 
 HostFlags, DevFlags
   The image's last two bytes. HostFlags are written by the card for the host,
   DevFlags by the host for the card. A flag in CAPITALS is set, in lower case
   it is clear.
-  READY     the card's firmware is alive (clear while it starts or when it is down)
+  READY     the card's firmware is alive (clear while it starts or is down)
   RUN       the card holds a configuration (from its flash or sent on line)
   COM       the card communicates on the bus: the network runs
-  NOTREADY  (host) the host is not ready: the card stops the bus and zeroes outputs
+  NOTREADY  (host) the host is not ready: the card halts the bus, zeroes outputs
   INIT      (host) warm start requested; RESET: cold start requested
   HOSTCOM/HOSTACK   card-to-host mailbox: a message waits while the two differ
   DEVCOM/DEVACK     host-to-card mailbox: full while the two differ
@@ -176,9 +176,10 @@ HostFlags, DevFlags
   SPCCOM/SPCACK     special control, a level the card mirrors
 
 Task2State, the card's view of the network (one bit per node-ID in Nd_*)
-  CAN_state  OFFLINE: not configured, no bus traffic. STOP: configured but the
-             network is halted (host not ready, host watchdog). CLEAR: auto-clear
-             stopped every node after one was lost. OPERATE: the network runs.
+  CAN_state  OFFLINE: not configured, no bus traffic. STOP: configured, but
+             the network is halted (host not ready, host watchdog). CLEAR:
+             auto-clear stopped every node after one was lost. OPERATE: the
+             network runs.
   Nd_cfg     nodes configured in the master (listed by node-ID)
   Nd_state   nodes in data exchange (OPERATIONAL, PDOs flowing) whose guarding
              or heartbeat reports no error; valid only in OPERATE
@@ -192,7 +193,7 @@ Task2State, the card's view of the network (one bit per node-ID in Nd_*)
              exchange, FAT fatal, EVE bus errors, NRDY host not ready, TOUT a
              frame could not be sent
 
-Common msg.f numbers (the error number of a mailbox answer; DevDownload: 1000 + f)
+Common msg.f numbers (the error in a mailbox answer; DevDownload: 1000 + f)
   0 no error            3 SDO abort by the node     17 node does not answer
   19 node still booting 20 no such node configured  21 parameter fault
   54 busy (one SDO per node at a time)              55 faulty parameter
