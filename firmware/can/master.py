@@ -101,6 +101,8 @@ class Master:
         self.config = config
         self.bus: CanBus | None = None
         self.nodes: dict[int, NodeHandler] = {}
+        self._sync_used = False
+        """Whether a configured node has a SYNC controlled PDO (see ``sync_period``)."""
         self._owners: npt.NDArray[np.uint8] | None = None
         """Which node's output PDO each output byte belongs to (0: none); see ``_owner_map``."""
         self._nexc_lock = threading.Lock()
@@ -178,6 +180,7 @@ class Master:
             handler.idle()
             handler.detach()
         self.nodes.clear()
+        self._sync_used = False
         self._owners = None
         self.bus_params = None
         self.ext = ExtendedBusParameterSet()
@@ -199,7 +202,14 @@ class Master:
 
     @property
     def sync_period(self) -> float:
-        return self.bus_params.SYNC_Timer / 1000.0 if self.bus_params else 0.0
+        """SYNC_Timer in seconds; 0 (no SYNC) while no node has a SYNC controlled PDO.
+
+        Seed 4.2 (node parameters, bTransType): "The SYNC mechanism will be activated only if
+        at least one node uses SYNC controlled transmission types."
+        """
+        if not self.bus_params or not self._sync_used:
+            return 0.0
+        return self.bus_params.SYNC_Timer / 1000.0
 
     @property
     def motorola(self) -> bool:
@@ -221,6 +231,10 @@ class Master:
         handler = NodeHandler(self, address, params)
         self.nodes[address] = handler
         self._owners = None
+        self._sync_used = any(
+            h.params.active and any(pdo.sync_controlled for pdo in h.params.atPdoCfgData)
+            for h in self.nodes.values())
+        self._sync_wakeup.set()
         self.device.set_node_bit("abNd_cfg", address, params.active)
         self.device.set_node_bit("abNd_diag", address, False)
         if self.running:

@@ -1,0 +1,69 @@
+"""Behaviour a host written for the real card notices: each test provokes one item of the seed
+manual through the mailbox or the image and asserts what the host sees (msg.f, Task2State
+fields, frames on the bus). The card runs as a real firmware process with simulated nodes, on
+every bus of ``tests/test_can_task.py``'s back-to-back fixture.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+from tests import test_can_task
+from tests.conftest import wait_until
+from tests.test_can_task import Net, candump, exchange
+
+interface = test_can_task.interface
+make_net = test_can_task.make_net
+"""The back-to-back fixtures: this module's tests run on every bus that file's run on."""
+
+SYNC_ID = 0x080
+
+
+def record(net: Net, seconds: float) -> None:
+    """Let ``seconds`` of traffic reach the card's trace, then end the card (flushing it)."""
+    until = time.monotonic() + seconds
+    wait_until(lambda: time.monotonic() > until, seconds + 1, f"{seconds} s of traffic")
+    net.card.stop()
+
+
+def test_no_sync_without_a_sync_controlled_pdo(make_net: Callable[..., Net],
+                                               tmp_path: Path) -> None:
+    """Seed 4.2: SYNC is activated only if a node uses a SYNC controlled transmission type.
+
+    The generic nodes' PDOs are event-driven (255): with SYNC_Timer 5 ms the card still sends
+    no SYNC.
+    """
+    trace = tmp_path / "trace.log"
+    net = make_net("[bus]\nsync_period_ms = 5\n[[node]]\nid = 1\n[[node]]\nid = 2\n",
+                   "--trace", str(trace))
+    net.configure()
+    net.wait_operating([1, 2])
+    wait_until(lambda: exchange(net, b"\x11" * 8) == b"\x11" * 8, 5, "node 1's echo")
+    record(net, 0.5)
+    frames = candump(trace)
+    assert [ident for _, ident, _ in frames if ident == 0x201], "the outputs went out"
+    assert not [t for t, ident, _ in frames if ident == SYNC_ID]
+
+
+def test_sync_starts_with_the_first_sync_controlled_pdo(make_net: Callable[..., Net],
+                                                        tmp_path: Path) -> None:
+    """A node with one synchronous RPDO (type 1) beside an event-driven one turns SYNC on."""
+    trace = tmp_path / "trace.log"
+    net = make_net("""[bus]
+sync_period_ms = 5
+[[node]]
+id = 1
+[[node]]
+id = 2
+[[node.pdo]]
+direction = "output"
+cob_id = 0x202
+transmission = 1
+""", "--trace", str(trace))
+    net.configure()
+    net.wait_operating([1, 2])
+    record(net, 0.5)
+    syncs = [t for t, ident, _ in candump(trace) if ident == SYNC_ID]
+    assert len(syncs) > 40
