@@ -249,6 +249,8 @@ class CanTask(Task):
         seq, self._sequence = self._sequence, None
         if seq is None:
             return msg.answer(f=F_SEQUENCE)
+        if seq.timeout_ms and (time.monotonic() - seq.last) * 1000 > seq.timeout_ms:
+            return msg.answer(f=F_TIMEOUT)  # it expires with no message at all, too
         if seq.length < 2:
             return msg.answer(f=F_INCOMPLETE)
         (total,) = struct.unpack_from("<H", seq.buffer, 0)

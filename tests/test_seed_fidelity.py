@@ -6,10 +6,12 @@ every bus of ``tests/test_can_task.py``'s back-to-back fixture.
 
 from __future__ import annotations
 
+import struct
 import time
 from collections.abc import Callable
 from pathlib import Path
 
+from dbm_tools.parameters import NdFlag, NodeParameterSet, PdoData
 from tests import test_can_task
 from tests.conftest import wait_until
 from tests.test_can_task import Net, candump, exchange
@@ -67,3 +69,28 @@ transmission = 1
     record(net, 0.5)
     syncs = [t for t, ident, _ in candump(trace) if ident == SYNC_ID]
     assert len(syncs) > 40
+
+
+def node_set(address: int) -> bytes:
+    """A generic node's data set, as COM_Download carries it."""
+    return NodeParameterSet(
+        bNd_Flag=NdFlag.ACTIVE | NdFlag.HRTBT, usAddTypeInfo=0x000F, usDevProfNum=0x191,
+        usCobIDEmcy=0x80 + address, usCobIDGuard=0x700 + address, usGuardTime=1000,
+        atPdoCfgData=[PdoData(0, 8, 0x200 + address, 255), PdoData(1, 8, 0x180 + address, 255)],
+        ausInputOffsets=[0], ausOutputOffsets=[0]).encode()
+
+
+def test_start_seq_time_out_expires_without_a_message(make_net: Callable[..., Net]) -> None:
+    """Seed 5.2.3: Start_Seq's time-out ends the sequence even when no message follows it.
+
+    The whole data set arrives in time, but End_Seq comes after the time-out: f 48, and the
+    node is not configured.
+    """
+    net = make_net("")
+    assert net.send(67, bytes([0, 4]) + struct.pack("<H", 30)).f == 0
+    assert net.send(68, bytes([0, 4, 0, 0]) + node_set(4)).f == 0
+    sent = time.monotonic()
+    wait_until(lambda: time.monotonic() - sent > 0.1, what="the sequence time-out")
+    assert net.send(69, b"\0").f == 48
+    assert not net.diag().configured()
+    assert net.send(69, b"\0").f == 57  # the sequence is gone
