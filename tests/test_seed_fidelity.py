@@ -94,3 +94,60 @@ def test_start_seq_time_out_expires_without_a_message(make_net: Callable[..., Ne
     assert net.send(69, b"\0").f == 48
     assert not net.diag().configured()
     assert net.send(69, b"\0").f == 57  # the sequence is gone
+
+
+def test_global_start_waits_for_a_late_node_without_faults(make_net: Callable[..., Net],
+                                                           tmp_path: Path) -> None:
+    """Seed 4.3 (biNoGobalStartNode): nodes waiting for the global Start_Node are no faults.
+
+    Node 3 boots 1.5 s after the others; with auto-clear on, one fault would stop the card.
+    All three come up, no Err_Event, and one global start goes out after the last boot-up.
+    """
+    trace = tmp_path / "trace.log"
+    net = make_net("""[bus]
+global_start = true
+auto_clear = true
+[[node]]
+id = 1
+[[node]]
+id = 2
+[[node]]
+id = 3
+[node.sim]
+boot_delay_s = 1.5
+""", "--trace", str(trace))
+    net.configure()
+    net.wait_operating([1, 2, 3], timeout=15)
+    operating_since = time.monotonic()
+    wait_until(lambda: time.monotonic() - operating_since > 1.0, 2, "a second of operation")
+    diag = net.diag()
+    assert diag.operating() == [1, 2, 3] and diag.bErr_event == 0
+    assert diag.can_state_name == "OPERATE" and diag.global_bits == 0
+    net.card.stop()
+    starts = [data for _, ident, data in candump(trace) if ident == 0 and data.startswith("01")]
+    assert starts and all(data == "0100" for data in starts)  # global: node-ID 0 only
+
+
+def test_start_bit_leaves_the_node_as_it_is(make_net: Callable[..., Net],
+                                            tmp_path: Path) -> None:
+    """bitConfigNdState START set: the card sends no Start_Node and supervises the node in
+    PRE-OPERATIONAL: no Err_Event 31, no reboot, Nd_state 0 until the host starts it."""
+    trace = tmp_path / "trace.log"
+    net = make_net("""[[node]]
+id = 1
+boot = ["reset", "device", "guard", "sync", "emcy", "sdo", "pdo"]
+[[node]]
+id = 2
+""", "--trace", str(trace))
+    net.configure()
+    net.wait_operating([2])
+    since = time.monotonic()
+    wait_until(lambda: time.monotonic() - since > 2.5, 3, "2.5 s of supervision")
+    diag = net.diag()
+    assert diag.operating() == [2] and diag.bErr_event == 0
+    assert net.send(96, bytes([0x01, 1])).f == 0  # COM_NMT_Module_Protocol: start node 1
+    net.wait_operating([1, 2])
+    net.card.stop()
+    frames = candump(trace)
+    assert not [d for _, ident, d in frames if ident == 0 and d == "0101"][:-1]  # host's only
+    assert len([d for _, ident, d in frames if ident == 0 and d.startswith("81")]) == 2

@@ -284,7 +284,7 @@ class Master:
         self._booting.discard(handler.address)
         self.device.clear_error(handler.address)
         self._update_nexc()  # before Nd_state: a host that sees all nodes up sees NEXC clear
-        self.set_node_state(handler.address, True)
+        self.set_node_state(handler.address, not handler.awaiting_start)
         if self.global_start and not self._booting:
             self._global_start_due = True
 
@@ -360,6 +360,10 @@ class Master:
                 if not handler.operational_expected:
                     self.set_node_state(handler.address, False)
         self.nmt(command, node)
+        if command == NMT_START:
+            now = time.monotonic()
+            for handler in targets:
+                handler.start_sent(now, by_host=True)
 
     def cob_id_in_use(self, cob_id: int) -> bool:
         """Whether the CANopen side already listens to or sends ``cob_id``."""
@@ -424,7 +428,9 @@ class Master:
             return last_outputs
         if self._global_start_due:
             self._global_start_due = False
-            self.nmt(0x01, 0)
+            self.nmt(NMT_START, 0)
+            for handler in list(self.nodes.values()):
+                handler.start_sent(now, by_host=False)
         self._follow_connection_bits()
         if now >= self._supervise_due:
             self._supervise_due = now + SUPERVISION_PERIOD
