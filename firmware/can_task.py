@@ -335,7 +335,11 @@ class CanTask(Task):
             return msg.answer(f=F_NOT_CONFIGURED, data=msg.data[:8])
         if head.function == Tfc.WRITE and len(head.payload) != head.data_cnt:
             return msg.answer(f=F_SDO_BUFFER, data=msg.data[:8])
-        if msg.e & Ext.SEQ_MASK:
+        # [ours] Only e 4, 8 and 0x0C mark a long transfer (docs/card-commands.md), and an
+        # upload gets several answers only when asked with e 4: a request as the seed writes
+        # it (e 0) gets the seed's single answer, and other bits in e change nothing.
+        long_upload = head.function == Tfc.READ and msg.e == Ext.FIRST
+        if msg.e in (Ext.FIRST, Ext.CONT, Ext.LAST) and not long_upload:
             if head.function != Tfc.WRITE:
                 return msg.answer(f=F_SEQUENCE, data=msg.data[:8])
             gathered = self._gather(msg, head)
@@ -355,7 +359,7 @@ class CanTask(Task):
             if handler is not None:
                 handler.host_sdo = False
             client.lock.release()
-            self._answer_sdo(msg, head, result)
+            self._answer_sdo(msg, head, result, long_upload)
 
         self.master.start_host_sdo(HostSdoTransfer(
             self.master.bus, address, head.data_adr, head.data_idx,
@@ -388,8 +392,9 @@ class CanTask(Task):
         return TelegramHeader(head.device_adr, 0, head.data_adr, head.data_idx, 0, 0,
                               Tfc.WRITE, bytes(data))
 
-    def _answer_sdo(self, msg: Message, head: TelegramHeader, result: SdoResult) -> None:
-        """The answer to a finished host transfer (several messages for long uploads)."""
+    def _answer_sdo(self, msg: Message, head: TelegramHeader, result: SdoResult,
+                    long_upload: bool) -> None:
+        """The answer to a finished host transfer (several messages for a long upload)."""
         answer_head = TelegramHeader(head.device_adr, 0, head.data_adr, head.data_idx, 0, 0,
                                      head.function)
         if result.timed_out:
@@ -400,8 +405,11 @@ class CanTask(Task):
         elif head.function == Tfc.READ and len(result.data) > LONG_SDO_LIMIT:
             answer = msg.answer(f=F_SDO_BUFFER, data=answer_head.encode())
         elif head.function == Tfc.READ and len(result.data) > SDO_MAX_DATA:
-            self._post_long_upload(msg, answer_head, result.data)
-            return
+            if not long_upload:  # seed 5.2.8: one answer of at most 247 bytes, else f 51
+                answer = msg.answer(f=F_SDO_BUFFER, data=answer_head.encode())
+            else:
+                self._post_long_upload(msg, answer_head, result.data)
+                return
         else:
             if head.function == Tfc.READ:
                 answer_head.data_cnt = len(result.data)

@@ -12,6 +12,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 from dbm_tools.parameters import NdFlag, NodeParameterSet, PdoData
+from host_api import driver as d
 from tests import test_can_task
 from tests.conftest import wait_until
 from tests.test_can_task import Net, candump, exchange
@@ -151,3 +152,48 @@ id = 2
     frames = candump(trace)
     assert not [d for _, ident, d in frames if ident == 0 and d == "0101"][:-1]  # host's only
     assert len([d for _, ident, d in frames if ident == 0 and d.startswith("81")]) == 2
+
+
+EDS = Path(__file__).parent / "data" / "cia309_node.eds"
+DOMAIN = 0x2000
+
+
+def sdo_request(node: int, index: int, write: bytes | None = None) -> bytes:
+    """A COM_SDO_Up_Download telegram (seed 5.2.8): header, then the data of a write."""
+    data = write or b""
+    return struct.pack("<BBHBBBB", node, 0, index, 0, len(data), 0,
+                       2 if write is not None else 1) + data
+
+
+def test_sdo_upload_longer_than_247_bytes(make_net: Callable[..., Net]) -> None:
+    """Seed 5.2.8: one answer of at most 247 data bytes, else f 51. The several answers of a
+    long upload (docs/card-commands.md) come only when the host asks with msg.e 4."""
+    net = make_net(f'[[node]]\nid = 3\neds = "{EDS}"\n')
+    net.configure()
+    net.wait_operating([3])
+    value = bytes(range(256)) + bytes(44)  # 300 bytes: one part of 247 and one of 53
+    assert net.send(74, sdo_request(3, DOMAIN, value[:247]), e=4).f == 0
+    assert net.send(74, sdo_request(3, DOMAIN, value[247:]), e=0x0C).f == 0
+
+    plain = net.send(74, sdo_request(3, DOMAIN))
+    assert plain.f == 51 and plain.e == 0
+    rc, stray = d.DevGetMessage(0, 288, 300)
+    assert rc == d.Drv.DRV_DEV_GET_TIMEOUT and stray is None  # and nothing follows it
+
+    first = net.send(74, sdo_request(3, DOMAIN), e=4)
+    rc, last = d.DevGetMessage(0, 288, 2000)
+    assert rc == 0 and last is not None
+    assert (first.f, first.e, last.f, last.e) == (0, 4, 0, 0x0C)
+    assert first.data[8:] + last.data[8:] == value
+
+
+def test_stray_msg_e_bits_leave_an_sdo_download_plain(make_net: Callable[..., Net]) -> None:
+    """Bits of msg.e other than the sequence markings do not start a long download: the
+    write happens at once, with its one answer."""
+    net = make_net(f'[[node]]\nid = 3\neds = "{EDS}"\n')
+    net.configure()
+    net.wait_operating([3])
+    answer = net.send(74, sdo_request(3, DOMAIN, b"abcd"), e=0x14)  # 4 among other bits
+    assert answer.f == 0
+    upload = net.send(74, sdo_request(3, DOMAIN))
+    assert upload.f == 0 and upload.data[8:] == b"abcd"
