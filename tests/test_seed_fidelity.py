@@ -197,3 +197,21 @@ def test_stray_msg_e_bits_leave_an_sdo_download_plain(make_net: Callable[..., Ne
     assert answer.f == 0
     upload = net.send(74, sdo_request(3, DOMAIN))
     assert upload.f == 0 and upload.data[8:] == b"abcd"
+
+
+def test_sdo_download_of_zero_bytes(make_net: Callable[..., Net], tmp_path: Path) -> None:
+    """data_cnt 0 (seed 5.2.8 allows 0-247) empties a DOMAIN: a segmented download of size 0
+    (CiA 301 initiate 0x21 with size 0, then one segment without data), never a 4-byte
+    expedited write of zeros."""
+    trace = tmp_path / "trace.log"
+    net = make_net(f'[[node]]\nid = 3\neds = "{EDS}"\n', "--trace", str(trace))
+    net.configure()
+    net.wait_operating([3])
+    assert net.send(74, sdo_request(3, DOMAIN, b"abcd")).f == 0
+    assert net.send(74, sdo_request(3, DOMAIN, b"")).f == 0
+    upload = net.send(74, sdo_request(3, DOMAIN))  # the node has no data left to give
+    assert upload.f == 3 and struct.unpack_from("<I", upload.data, 8)[0] == 0x08000024
+    net.card.stop()
+    requests = [data for _, ident, data in candump(trace) if ident == 0x603]
+    assert "2100200000000000" in requests and "0F00000000000000" in requests
+    assert not [data for data in requests if data.startswith("33")]
