@@ -88,6 +88,9 @@ F_NO_RESPONSE = 17
 F_NODE_BUSY = 19
 F_NODE_DIAG_ADDRESS = 161
 F_NOT_CONFIGURED = 200
+F_FLASH_DATABASE_RUNS = 201
+"""[ours] COM_Start_Seq, COM_Download, COM_End_Seq while a database from flash runs: the seed
+(5.2.2) says the on-line download cannot be used then, but gives no number."""
 F_NO_DESCRIPT_TABLE = 3
 
 NMT_COMMANDS = (NMT_START, NMT_STOP, NMT_PREOP, NMT_RESET, NMT_RESET_COMM)
@@ -114,6 +117,8 @@ class CanTask(Task):
         self.master = Master(device, config or BusConfig())
         self.node_data: dict[int, bytes] = {}
         self.bus_data: bytes | None = None
+        self.from_flash = False
+        """The running configuration came from the database in flash (``StoredDatabase``)."""
         self.extended_data: bytes | None = None
         self._sequence: _Sequence | None = None
         self.handlers.update({
@@ -153,6 +158,7 @@ class CanTask(Task):
         self.node_data.clear()
         self.bus_data = None
         self.extended_data = None
+        self.from_flash = False
         self._sequence = None
         self._long_download.clear()
 
@@ -173,8 +179,8 @@ class CanTask(Task):
         errors = [f for f in check_node_parameters(data, address) if f.severity == "error"]
         if errors:
             return errors[0].number
-        if address == self.master.ext.bNodeID and address:
-            return F_DOUBLE_ADDRESS
+        if address in self.node_data or (address == self.master.ext.bNodeID and address):
+            return F_DOUBLE_ADDRESS  # a second data set never replaces the first unseen
         params = NodeParameterSet.decode(data)
         self.node_data[address] = bytes(data)
         self.master.configure_node(address, params)
@@ -204,6 +210,8 @@ class CanTask(Task):
     # --- COM_Start_Seq / COM_Download / COM_End_Seq / COM_Upload -----------------------------
 
     def com_start_seq(self, msg: Message) -> Message:
+        if self.from_flash:
+            return msg.answer(f=F_FLASH_DATABASE_RUNS)
         if msg.ln < 4:
             return msg.answer(f=F_FAULTY_PARAMETER)
         area = msg.data[1]
@@ -214,6 +222,8 @@ class CanTask(Task):
         return msg.answer(data=bytes([MAX_LEN_DATA_UNIT]))
 
     def com_download(self, msg: Message) -> Message:
+        if self.from_flash:
+            return msg.answer(f=F_FLASH_DATABASE_RUNS)
         if msg.ln < 4:
             return msg.answer(f=F_FAULTY_PARAMETER)
         area = msg.data[1]
@@ -246,6 +256,8 @@ class CanTask(Task):
         return msg.answer()
 
     def com_end_seq(self, msg: Message) -> Message:
+        if self.from_flash:
+            return msg.answer(f=F_FLASH_DATABASE_RUNS)
         seq, self._sequence = self._sequence, None
         if seq is None:
             return msg.answer(f=F_SEQUENCE)

@@ -11,8 +11,12 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
+from dbm_tools.builder import build_dbm
+from dbm_tools.container import save_dbm
+from dbm_tools.network import load_network
 from dbm_tools.parameters import NdFlag, NodeParameterSet, PdoData
 from host_api import driver as d
+from host_api.download import delete_database
 from tests import test_can_task
 from tests.conftest import wait_until
 from tests.test_can_task import Net, candump, exchange
@@ -215,3 +219,38 @@ def test_sdo_download_of_zero_bytes(make_net: Callable[..., Net], tmp_path: Path
     requests = [data for _, ident, data in candump(trace) if ident == 0x603]
     assert "2100200000000000" in requests and "0F00000000000000" in requests
     assert not [data for data in requests if data.startswith("33")]
+
+
+def test_online_download_is_refused_while_a_flash_database_runs(
+        make_net: Callable[..., Net], tmp_path: Path) -> None:
+    """Seed 5.2.2: with a database from flash running, the on-line download cannot be used
+    (flash ranks above it). [ours] COM_Start_Seq, COM_Download and COM_End_Seq get f 201,
+    and the running configuration stays; after the database is deleted and the card started
+    again, the on-line download works."""
+    net = make_net("[[node]]\nid = 1\n[[node]]\nid = 2\n")
+    dbm = tmp_path / "plant.dbm"
+    save_dbm(dbm, build_dbm(load_network(net.toml)))
+    assert d.DevDownload(0, d.CONFIGURATION_DOWNLOAD, dbm) == 0
+    assert d.DevReset(0, d.COLDSTART, 5000) == 0
+    net.wait_operating([1, 2])
+    assert net.send(67, bytes([0, 5]) + struct.pack("<H", 1000)).f == 201
+    assert net.send(68, bytes([0, 5, 0, 0]) + node_set(5)).f == 201
+    assert net.send(68, bytes([0, 127, 0, 0, 2]) + bytes(6)).f == 201  # bus parameters too
+    assert net.send(69, b"\0").f == 201
+    assert net.diag().configured() == [1, 2] and net.diag().operating() == [1, 2]
+    assert delete_database(0) == 0
+    assert d.DevReset(0, d.COLDSTART, 5000) == 0
+    assert net.send(68, bytes([0, 5, 0, 0]) + node_set(5)).f == 0
+    assert net.diag().configured() == [5]
+
+
+def test_a_node_address_downloaded_twice_is_refused(make_net: Callable[..., Net]) -> None:
+    """A second data set for a configured address is f 60 (double node address), not a silent
+    replacement of the first; the node keeps running on its first data set."""
+    net = make_net("[[node]]\nid = 1\n")
+    net.configure()
+    net.wait_operating([1])
+    first = net.send(80, bytes([0, 1, 0, 0, 240]))
+    assert net.send(68, bytes([0, 1, 0, 0]) + node_set(1)).f == 60
+    assert net.send(80, bytes([0, 1, 0, 0, 240])).data == first.data
+    assert net.diag().operating() == [1]
