@@ -254,3 +254,74 @@ def test_a_node_address_downloaded_twice_is_refused(make_net: Callable[..., Net]
     assert net.send(68, bytes([0, 1, 0, 0]) + node_set(1)).f == 60
     assert net.send(80, bytes([0, 1, 0, 0, 240])).data == first.data
     assert net.diag().operating() == [1]
+
+
+def actual_error(net: Net, node: int) -> int:
+    """Octet 7 of the node's COM_Node_Diag answer (seed 5.2.7): its error now."""
+    answer = net.send(66, struct.pack("<BBHBBBB", node, 0, 0, 0, 0, 0, 1))
+    assert answer.f == 0
+    return answer.data[8 + 6]
+
+
+def test_actual_error_is_cleared_when_the_node_recovers(make_net: Callable[..., Net]) -> None:
+    """Node 1 leaves OPERATIONAL after a second (31), is booted again and operates: its
+    Actual_Error goes back to 0 with Err_Event."""
+    net = make_net("[[node]]\nid = 1\n[node.sim]\nleave_operational_after_s = 1.5\n"
+                   "[[node]]\nid = 2\n")
+    net.configure()
+    net.wait_operating([1, 2])
+    wait_until(lambda: net.diag().bErr_event == 31, 5, "Err_Event 31 of node 1")
+    assert actual_error(net, 1) == 31
+    net.wait_operating([1, 2], timeout=5)
+    assert net.diag().bErr_event == 0
+    assert actual_error(net, 1) == 0
+
+
+def test_host_not_ready_stops_the_nodes_with_err_event_39(make_net: Callable[..., Net],
+                                                          tmp_path: Path) -> None:
+    """Seed 4.3: HOST_NOT_READY stops the nodes: NMT Stop on the bus, Nd_state cleared,
+    Err_Event 39 ("node not handled, node in stop") in Task2State and in each node's
+    Actual_Error. HOST_READY boots them again, without an error."""
+    trace = tmp_path / "trace.log"
+    net = make_net("[[node]]\nid = 1\n[[node]]\nid = 2\n", "--trace", str(trace))
+    net.configure()
+    net.wait_operating([1, 2])
+    assert d.DevSetHostState(0, d.HOST_NOT_READY, 1000) == 0
+    wait_until(lambda: net.diag().bErr_event == 39, 5, "Err_Event 39")
+    diag = net.diag()
+    assert diag.operating() == [] and diag.bErr_rem_adr == 1
+    assert diag.can_state_name == "STOP"
+    assert actual_error(net, 1) == actual_error(net, 2) == 39
+    assert d.DevSetHostState(0, d.HOST_READY, 1000) == 0
+    net.wait_operating([1, 2], timeout=10)
+    assert net.diag().bErr_event == 0
+    net.card.stop()
+    assert "0200" in [data for _, ident, data in candump(trace) if ident == 0]
+
+
+def test_a_node_booting_after_auto_clear_never_shows_as_operating(
+        make_net: Callable[..., Net]) -> None:
+    """Node 1's heartbeat stops (30) and auto-clear stops all; node 2 finishes its boot-up
+    later. It never shows in Nd_state, and it gets Err_Event 39 like the others."""
+    net = make_net("""[bus]
+auto_clear = true
+[[node]]
+id = 1
+heartbeat_ms = 200
+[node.sim]
+heartbeat_stop_after_s = 0.3
+[[node]]
+id = 2
+[node.sim]
+boot_delay_s = 2.0
+""")
+    net.configure()
+    seen: set[int] = set()
+
+    def node_2_booted() -> bool:
+        diag = net.diag()
+        seen.update(diag.operating())
+        return diag.can_state_name == "CLEAR" and actual_error(net, 2) == 39
+
+    wait_until(node_2_booted, 8, "node 2 stopped by auto-clear after its boot-up")
+    assert 2 not in seen

@@ -282,6 +282,12 @@ class Master:
 
     def node_booted(self, handler: NodeHandler) -> None:
         self._booting.discard(handler.address)
+        if self.cleared or (self.halted and self.device.rcs.host_not_ready):
+            # auto-clear or HOST_NOT_READY came first: they stop this node too (seed 4.3)
+            self._stop_node(handler)
+            self._update_nexc()
+            return
+        handler.diag.actual_error = 0  # Actual_Error is the node's error now: it has none
         self.device.clear_error(handler.address)
         self._update_nexc()  # before Nd_state: a host that sees all nodes up sees NEXC clear
         self.set_node_state(handler.address, not handler.awaiting_start)
@@ -305,12 +311,21 @@ class Master:
         self._zero_outputs()
         self.cleared = True
         self._sync_wakeup.set()  # an outside SYNC timer stops now, not at the next look
-        self.nmt(NMT_STOP, 0)
-        for handler in self.nodes.values():
-            if handler.state is State.OPERATING:
-                handler.idle()
-                self.device.report_error(handler.address, NODE_STOPPED)
+        self._stop_nodes()
         self.device.set_global_bit(GlobalBits.ACLR, True)
+
+    def _stop_nodes(self) -> None:
+        """Every node to STOPPED, with Err_Event 39 (seed 4.3: "node not handled, node in
+        stop", after auto-clear or when the host is not ready)."""
+        self.nmt(NMT_STOP, 0)
+        for handler in list(self.nodes.values()):
+            if handler.state is State.OPERATING:
+                self._stop_node(handler)
+
+    def _stop_node(self, handler: NodeHandler) -> None:
+        handler.idle()
+        handler.diag.actual_error = NODE_STOPPED
+        self.device.report_error(handler.address, NODE_STOPPED)
 
     def set_node_state(self, address: int, on: bool) -> None:
         self.device.set_node_bit("abNd_state", address, on)
@@ -493,6 +508,8 @@ class Master:
             self._zero_outputs()
             self.halted = True
             self._sync_wakeup.set()
+            if self.device.rcs.host_not_ready:  # HOST_NOT_READY, not the watchdog's 220
+                self._stop_nodes()
         elif driving and self.halted and not self.cleared:
             self.halted = False
             self._sync_wakeup.set()
