@@ -59,6 +59,8 @@ class ExtendedState(IntFlag):
 
 MSK_LENGTH = 0x7F
 MSK_WORD_PDO = 0x80
+SYNC_TYPES_MAX = 240
+"""CiA 301 transmission types 0 (acyclic) to 240 (every 240th SYNC) are synchronous."""
 SYNC_RTR = 252
 """CiA 301 transmission type: sampled at SYNC, sent only on a remote frame."""
 ASYNC_RTR = 253
@@ -127,6 +129,11 @@ class PdoData:
     def is_input(self) -> bool:
         """A TXPDO of the node (bTypeOfPdo != 0) fills the master's input area."""
         return self.bTypeOfPdo != 0
+
+    @property
+    def sync_controlled(self) -> bool:
+        """Transmission types 0-240 and 252 follow the SYNC; only these make the card send it."""
+        return self.bTransType <= SYNC_TYPES_MAX or self.bTransType == SYNC_RTR
 
     @property
     def data_length(self) -> int:

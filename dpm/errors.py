@@ -243,6 +243,11 @@ ERR_EVENT_HANDSHAKE_MODE = 52
 ERR_EVENT_NO_DATABASE = 210
 ERR_EVENT_FAULTY_DATABASE = 212
 ERR_EVENT_HOST_WATCHDOG = 220
+ERR_EVENT_BAUD_RATE = 56
+ERR_EVENT_DOUBLE_ADDRESS = 60
+ERR_EVENT_OF_DATA_CHECK: dict[int, int] = {65: ERR_EVENT_BAUD_RATE, 60: ERR_EVENT_DOUBLE_ADDRESS}
+"""A database in flash that fails these data checks (f 65 unknown baud rate, f 60 double
+node address) shows the device's own Err_Event at address 255 (seed 4.3), not 212."""
 
 
 def err_event_text(err_node_adr: int, err_event: int) -> str:

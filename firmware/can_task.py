@@ -88,6 +88,9 @@ F_NO_RESPONSE = 17
 F_NODE_BUSY = 19
 F_NODE_DIAG_ADDRESS = 161
 F_NOT_CONFIGURED = 200
+F_FLASH_DATABASE_RUNS = 201
+"""[ours] COM_Start_Seq, COM_Download, COM_End_Seq while a database from flash runs: the seed
+(5.2.2) says the on-line download cannot be used then, but gives no number."""
 F_NO_DESCRIPT_TABLE = 3
 
 NMT_COMMANDS = (NMT_START, NMT_STOP, NMT_PREOP, NMT_RESET, NMT_RESET_COMM)
@@ -114,6 +117,8 @@ class CanTask(Task):
         self.master = Master(device, config or BusConfig())
         self.node_data: dict[int, bytes] = {}
         self.bus_data: bytes | None = None
+        self.from_flash = False
+        """The running configuration came from the database in flash (``StoredDatabase``)."""
         self.extended_data: bytes | None = None
         self._sequence: _Sequence | None = None
         self.handlers.update({
@@ -153,6 +158,7 @@ class CanTask(Task):
         self.node_data.clear()
         self.bus_data = None
         self.extended_data = None
+        self.from_flash = False
         self._sequence = None
         self._long_download.clear()
 
@@ -173,8 +179,8 @@ class CanTask(Task):
         errors = [f for f in check_node_parameters(data, address) if f.severity == "error"]
         if errors:
             return errors[0].number
-        if address == self.master.ext.bNodeID and address:
-            return F_DOUBLE_ADDRESS
+        if address in self.node_data or (address == self.master.ext.bNodeID and address):
+            return F_DOUBLE_ADDRESS  # a second data set never replaces the first unseen
         params = NodeParameterSet.decode(data)
         self.node_data[address] = bytes(data)
         self.master.configure_node(address, params)
@@ -204,6 +210,8 @@ class CanTask(Task):
     # --- COM_Start_Seq / COM_Download / COM_End_Seq / COM_Upload -----------------------------
 
     def com_start_seq(self, msg: Message) -> Message:
+        if self.from_flash:
+            return msg.answer(f=F_FLASH_DATABASE_RUNS)
         if msg.ln < 4:
             return msg.answer(f=F_FAULTY_PARAMETER)
         area = msg.data[1]
@@ -214,6 +222,8 @@ class CanTask(Task):
         return msg.answer(data=bytes([MAX_LEN_DATA_UNIT]))
 
     def com_download(self, msg: Message) -> Message:
+        if self.from_flash:
+            return msg.answer(f=F_FLASH_DATABASE_RUNS)
         if msg.ln < 4:
             return msg.answer(f=F_FAULTY_PARAMETER)
         area = msg.data[1]
@@ -246,9 +256,13 @@ class CanTask(Task):
         return msg.answer()
 
     def com_end_seq(self, msg: Message) -> Message:
+        if self.from_flash:
+            return msg.answer(f=F_FLASH_DATABASE_RUNS)
         seq, self._sequence = self._sequence, None
         if seq is None:
             return msg.answer(f=F_SEQUENCE)
+        if seq.timeout_ms and (time.monotonic() - seq.last) * 1000 > seq.timeout_ms:
+            return msg.answer(f=F_TIMEOUT)  # it expires with no message at all, too
         if seq.length < 2:
             return msg.answer(f=F_INCOMPLETE)
         (total,) = struct.unpack_from("<H", seq.buffer, 0)
@@ -333,7 +347,11 @@ class CanTask(Task):
             return msg.answer(f=F_NOT_CONFIGURED, data=msg.data[:8])
         if head.function == Tfc.WRITE and len(head.payload) != head.data_cnt:
             return msg.answer(f=F_SDO_BUFFER, data=msg.data[:8])
-        if msg.e & Ext.SEQ_MASK:
+        # [ours] Only e 4, 8 and 0x0C mark a long transfer (docs/card-commands.md), and an
+        # upload gets several answers only when asked with e 4: a request as the seed writes
+        # it (e 0) gets the seed's single answer, and other bits in e change nothing.
+        long_upload = head.function == Tfc.READ and msg.e == Ext.FIRST
+        if msg.e in (Ext.FIRST, Ext.CONT, Ext.LAST) and not long_upload:
             if head.function != Tfc.WRITE:
                 return msg.answer(f=F_SEQUENCE, data=msg.data[:8])
             gathered = self._gather(msg, head)
@@ -353,7 +371,7 @@ class CanTask(Task):
             if handler is not None:
                 handler.host_sdo = False
             client.lock.release()
-            self._answer_sdo(msg, head, result)
+            self._answer_sdo(msg, head, result, long_upload)
 
         self.master.start_host_sdo(HostSdoTransfer(
             self.master.bus, address, head.data_adr, head.data_idx,
@@ -386,8 +404,9 @@ class CanTask(Task):
         return TelegramHeader(head.device_adr, 0, head.data_adr, head.data_idx, 0, 0,
                               Tfc.WRITE, bytes(data))
 
-    def _answer_sdo(self, msg: Message, head: TelegramHeader, result: SdoResult) -> None:
-        """The answer to a finished host transfer (several messages for long uploads)."""
+    def _answer_sdo(self, msg: Message, head: TelegramHeader, result: SdoResult,
+                    long_upload: bool) -> None:
+        """The answer to a finished host transfer (several messages for a long upload)."""
         answer_head = TelegramHeader(head.device_adr, 0, head.data_adr, head.data_idx, 0, 0,
                                      head.function)
         if result.timed_out:
@@ -398,8 +417,11 @@ class CanTask(Task):
         elif head.function == Tfc.READ and len(result.data) > LONG_SDO_LIMIT:
             answer = msg.answer(f=F_SDO_BUFFER, data=answer_head.encode())
         elif head.function == Tfc.READ and len(result.data) > SDO_MAX_DATA:
-            self._post_long_upload(msg, answer_head, result.data)
-            return
+            if not long_upload:  # seed 5.2.8: one answer of at most 247 bytes, else f 51
+                answer = msg.answer(f=F_SDO_BUFFER, data=answer_head.encode())
+            else:
+                self._post_long_upload(msg, answer_head, result.data)
+                return
         else:
             if head.function == Tfc.READ:
                 answer_head.data_cnt = len(result.data)

@@ -338,12 +338,13 @@ class LoadFunction:
 class StoredDatabase:
     """The database found in flash at a start, with the checks' verdict.
 
-    ``faults`` pairs the Err_Node_adr each failed check reports (255, or the
-    node of a NODES record) with what failed; a faulty database is not used.
+    ``faults`` holds the Err_Node_adr and Err_Event each failed check reports (255 with 56
+    or 60 for a bad baud rate or a double address, else 212 at 255 or at the node of a NODES
+    record) with what failed; a faulty database is not used.
     """
 
     dbm: DbmFile | None
-    faults: list[tuple[int, str]]
+    faults: list[tuple[int, int, str]]
 
     @classmethod
     def load(cls, store: FlashStore) -> StoredDatabase | None:
@@ -354,16 +355,20 @@ class StoredDatabase:
         try:
             dbm = read_data_area(raw)
         except DbmError as exc:
-            return cls(None, [(errors.ERR_NODE_DEVICE, f"unreadable: {exc}")])
+            return cls(None, [(errors.ERR_NODE_DEVICE, errors.ERR_EVENT_FAULTY_DATABASE,
+                               f"unreadable: {exc}")])
         nodes = dbm.table(NODES)
         faults = []
         for finding in check_dbm(dbm):
             if finding.severity != "error":
                 continue
             node = errors.ERR_NODE_DEVICE
-            if finding.table == NODES and nodes is not None and finding.record is not None:
-                node = nodes.records[finding.record - 1][0]
-            faults.append((node, f"{finding.number} {finding.text}: {finding.table} record "
+            event = errors.ERR_EVENT_OF_DATA_CHECK.get(finding.number)
+            if event is None:
+                event = errors.ERR_EVENT_FAULTY_DATABASE
+                if finding.table == NODES and nodes is not None and finding.record is not None:
+                    node = nodes.records[finding.record - 1][0]
+            faults.append((node, event, f"{finding.number} {finding.text}: {finding.table} record "
                                  f"{finding.record} {finding.field}: {finding.detail}"))
         return cls(dbm, faults)
 
@@ -410,9 +415,9 @@ class StoredDatabase:
 
     def configure(self, device: Device) -> None:
         """Hand the data sets to the CAN task, or report why the database is not used."""
-        for node, what in self.faults:
+        for node, event, what in self.faults:
             log.warning("stored database not used: %s", what)
-            device.report_error(node, errors.ERR_EVENT_FAULTY_DATABASE, GlobalBits.CTRL)
+            device.report_error(node, event, GlobalBits.CTRL)
         if not self.usable:
             return
         can = device.can
@@ -426,7 +431,8 @@ class StoredDatabase:
                 return
         bus = self._record(BUS_CAN)
         assert bus is not None  # check_dbm insists on it
-        self._refused(device, errors.ERR_NODE_DEVICE, BUS_CAN, can.download_bus(bus))
+        if not self._refused(device, errors.ERR_NODE_DEVICE, BUS_CAN, can.download_bus(bus)):
+            can.from_flash = True  # flash ranks above the on-line download (seed 5.2.2)
 
     @staticmethod
     def _refused(device: Device, node: int, table: str, f: int) -> bool:

@@ -392,17 +392,23 @@ def test_connection_bits_stop_and_restart_a_node(make_net: Callable[..., Net]) -
     net.wait_operating([1, 2, 3])
 
 
-def test_host_not_ready_zeroes_the_outputs(make_net: Callable[..., Net]) -> None:
-    net = make_net("[[node]]\nid = 1\n")
+def test_host_not_ready_zeroes_the_outputs(make_net: Callable[..., Net],
+                                           tmp_path: Path) -> None:
+    trace = tmp_path / "trace.log"
+    net = make_net("[[node]]\nid = 1\n", "--trace", str(trace))
     net.configure()
     net.wait_operating([1])
     wait_until(lambda: exchange(net, b"\x11" * 8) == b"\x11" * 8, 5, "the echo")
     assert d.DevSetHostState(0, d.HOST_NOT_READY, 2000) == 0
     assert net.diag().can_state_name == "STOP"
-    # The node echoed the zeros the card sent before it stopped.
-    wait_until(lambda: d.DevExchangeIO(0, 0, b"", 0, 8, 1000)[1] == bytes(8), 5, "zeros")
+    wait_until(lambda: net.diag().bErr_event == 39, 5, "the node stopped")
     assert d.DevSetHostState(0, d.HOST_READY, 2000) == 0
     wait_until(lambda: exchange(net, b"\x22" * 8) == b"\x22" * 8, 5, "the echo again")
+    net.card.stop()
+    # The card sent zeros to the node before it stopped it (NMT Stop, seed 4.3: 39).
+    frames = [(ident, data) for _, ident, data in candump(trace) if ident in (0, 0x201)]
+    stop = frames.index((0, "0200"))
+    assert frames[stop - 1] == (0x201, "0" * 16)
 
 
 def test_reset_err_event_clears_counters(make_net: Callable[..., Net]) -> None:

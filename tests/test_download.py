@@ -316,15 +316,28 @@ def faulty_node(area: bytes, address: int) -> bytes:
     return data_area(dbm)
 
 
-@pytest.mark.parametrize(("damage", "where"), [
-    (faulty_bus, 255),
-    (lambda area: faulty_node(area, 4), 4),
-    (lambda area: area[:300], 255),
-    (lambda area: b"\x01\x02", 255),
-], ids=["bus", "node", "truncated", "garbage"])
-def test_a_faulty_database_in_flash_gives_err_event_212(
-    tmp_path: Path, private_flash: Path, damage: object, where: int
+def double_node(area: bytes) -> bytes:
+    """The same database with its first NODES record twice (60)."""
+    dbm = read_data_area(area)
+    table = dbm.table(NODES)
+    assert table is not None
+    table.records.append(table.records[0])
+    return data_area(dbm)
+
+
+@pytest.mark.parametrize(("damage", "where", "event", "text"), [
+    (faulty_bus, 255, 56, "baudrate out of range"),
+    (double_node, 255, 60, "double node address was configured"),
+    (lambda area: faulty_node(area, 4), 4, 212, None),
+    (lambda area: area[:300], 255, 212, "faulty reading of a data base"),
+    (lambda area: b"\x01\x02", 255, 212, "faulty reading of a data base"),
+], ids=["bus", "double", "node", "truncated", "garbage"])
+def test_a_faulty_database_in_flash_gives_the_seeds_err_event(
+    tmp_path: Path, private_flash: Path, damage: object, where: int, event: int,
+    text: str | None
 ) -> None:
+    """Seed 4.3: a bad baud rate is 56 and a double node address 60, both at address 255;
+    any other fault is 212, at the node whose record failed or at 255."""
     area = make_dbm(tmp_path).read_bytes()[44:]
     flash = private_flash / "board0"
     flash.mkdir(parents=True)
@@ -334,9 +347,9 @@ def test_a_faulty_database_in_flash_gives_err_event_212(
         assert d.DevOpenDriver(tmp_path) == 0 and d.DevInitBoard(0) == 0
         assert host_flags(0) & (READY | RUN) == READY
         diag = diagnostics(0)
-        assert (diag.bErr_rem_adr, diag.bErr_event) == (where, 212)
+        assert (diag.bErr_rem_adr, diag.bErr_event) == (where, event)
         assert GlobalBits.CTRL in diag.global_bits
-        assert diag.err_text == "faulty reading of a data base" or where != 255
+        assert text is None or diag.err_text == text
         assert diag.configured() == []
     finally:
         while d.DevCloseDriver() == 0:

@@ -101,6 +101,8 @@ class Master:
         self.config = config
         self.bus: CanBus | None = None
         self.nodes: dict[int, NodeHandler] = {}
+        self._sync_used = False
+        """Whether a configured node has a SYNC controlled PDO (see ``sync_period``)."""
         self._owners: npt.NDArray[np.uint8] | None = None
         """Which node's output PDO each output byte belongs to (0: none); see ``_owner_map``."""
         self._nexc_lock = threading.Lock()
@@ -178,6 +180,7 @@ class Master:
             handler.idle()
             handler.detach()
         self.nodes.clear()
+        self._sync_used = False
         self._owners = None
         self.bus_params = None
         self.ext = ExtendedBusParameterSet()
@@ -199,7 +202,14 @@ class Master:
 
     @property
     def sync_period(self) -> float:
-        return self.bus_params.SYNC_Timer / 1000.0 if self.bus_params else 0.0
+        """SYNC_Timer in seconds; 0 (no SYNC) while no node has a SYNC controlled PDO.
+
+        Seed 4.2 (node parameters, bTransType): "The SYNC mechanism will be activated only if
+        at least one node uses SYNC controlled transmission types."
+        """
+        if not self.bus_params or not self._sync_used:
+            return 0.0
+        return self.bus_params.SYNC_Timer / 1000.0
 
     @property
     def motorola(self) -> bool:
@@ -221,6 +231,10 @@ class Master:
         handler = NodeHandler(self, address, params)
         self.nodes[address] = handler
         self._owners = None
+        self._sync_used = any(
+            h.params.active and any(pdo.sync_controlled for pdo in h.params.atPdoCfgData)
+            for h in self.nodes.values())
+        self._sync_wakeup.set()
         self.device.set_node_bit("abNd_cfg", address, params.active)
         self.device.set_node_bit("abNd_diag", address, False)
         if self.running:
@@ -268,9 +282,15 @@ class Master:
 
     def node_booted(self, handler: NodeHandler) -> None:
         self._booting.discard(handler.address)
+        if self.cleared or (self.halted and self.device.rcs.host_not_ready):
+            # auto-clear or HOST_NOT_READY came first: they stop this node too (seed 4.3)
+            self._stop_node(handler)
+            self._update_nexc()
+            return
+        handler.diag.actual_error = 0  # Actual_Error is the node's error now: it has none
         self.device.clear_error(handler.address)
         self._update_nexc()  # before Nd_state: a host that sees all nodes up sees NEXC clear
-        self.set_node_state(handler.address, True)
+        self.set_node_state(handler.address, not handler.awaiting_start)
         if self.global_start and not self._booting:
             self._global_start_due = True
 
@@ -291,12 +311,21 @@ class Master:
         self._zero_outputs()
         self.cleared = True
         self._sync_wakeup.set()  # an outside SYNC timer stops now, not at the next look
-        self.nmt(NMT_STOP, 0)
-        for handler in self.nodes.values():
-            if handler.state is State.OPERATING:
-                handler.idle()
-                self.device.report_error(handler.address, NODE_STOPPED)
+        self._stop_nodes()
         self.device.set_global_bit(GlobalBits.ACLR, True)
+
+    def _stop_nodes(self) -> None:
+        """Every node to STOPPED, with Err_Event 39 (seed 4.3: "node not handled, node in
+        stop", after auto-clear or when the host is not ready)."""
+        self.nmt(NMT_STOP, 0)
+        for handler in list(self.nodes.values()):
+            if handler.state is State.OPERATING:
+                self._stop_node(handler)
+
+    def _stop_node(self, handler: NodeHandler) -> None:
+        handler.idle()
+        handler.diag.actual_error = NODE_STOPPED
+        self.device.report_error(handler.address, NODE_STOPPED)
 
     def set_node_state(self, address: int, on: bool) -> None:
         self.device.set_node_bit("abNd_state", address, on)
@@ -346,6 +375,10 @@ class Master:
                 if not handler.operational_expected:
                     self.set_node_state(handler.address, False)
         self.nmt(command, node)
+        if command == NMT_START:
+            now = time.monotonic()
+            for handler in targets:
+                handler.start_sent(now, by_host=True)
 
     def cob_id_in_use(self, cob_id: int) -> bool:
         """Whether the CANopen side already listens to or sends ``cob_id``."""
@@ -410,7 +443,9 @@ class Master:
             return last_outputs
         if self._global_start_due:
             self._global_start_due = False
-            self.nmt(0x01, 0)
+            self.nmt(NMT_START, 0)
+            for handler in list(self.nodes.values()):
+                handler.start_sent(now, by_host=False)
         self._follow_connection_bits()
         if now >= self._supervise_due:
             self._supervise_due = now + SUPERVISION_PERIOD
@@ -473,6 +508,8 @@ class Master:
             self._zero_outputs()
             self.halted = True
             self._sync_wakeup.set()
+            if self.device.rcs.host_not_ready:  # HOST_NOT_READY, not the watchdog's 220
+                self._stop_nodes()
         elif driving and self.halted and not self.cleared:
             self.halted = False
             self._sync_wakeup.set()

@@ -149,6 +149,10 @@ class NodeHandler:
             self.diag.status |= DEACTIVATED_BIT
         self.operational_expected = True
         """False after the host stopped or pre-operated the node with NMT."""
+        self.awaiting_start = False
+        """The card has not asked the node to go OPERATIONAL: START is set in its
+        bitConfigNdState, or the global Start_Node has not gone out yet. The node is supervised
+        in the state it is in, and Nd_state shows whether it operates (seed 4.2, 4.3)."""
         self.host_sdo = False
         """A host SDO transfer runs: the node's RPDOs are suppressed (seed 5.2.8)."""
         self._bootup = threading.Event()
@@ -275,6 +279,7 @@ class NodeHandler:
         self._toggle = None
         self._started_at = now
         self._confirmed = False
+        self.awaiting_start = bool(skip & ConfigNdState.START) or self.master.global_start
         for output in self.outputs:
             output.last = None
         self.state = State.OPERATING
@@ -335,6 +340,20 @@ class NodeHandler:
                                   bytes(entry.abSdoValue[: entry.bLength]))
         if not skip & ConfigNdState.START and not self.master.global_start:
             self.master.nmt(NMT_START, self.address)
+
+    def start_sent(self, now: float, by_host: bool) -> None:
+        """A Start_Node went to the node (the global one, or the host's): from now on it must
+        be OPERATIONAL, after the usual grace for the command to arrive. A node with START set
+        in bitConfigNdState waits only for the host's."""
+        if self.state is not State.OPERATING or not self.awaiting_start:
+            return
+        if not by_host and self.params.bitConfigNdState & ConfigNdState.START:
+            return
+        self.awaiting_start = False
+        self._started_at = now
+        self._confirmed = False
+        if not self.params.bitConfigNdState & ConfigNdState.TXRXPDO:
+            self.send_outputs(force=True)  # the first RX-PDO, now that the node takes it
 
     def _fail_boot(self, generation: int, event: int) -> None:
         if generation == self._generation:
@@ -525,7 +544,7 @@ class NodeHandler:
             self._toggle = toggle
         operating = state == OPERATIONAL
         self._confirmed |= operating
-        if self.operational_expected and not operating:
+        if self.operational_expected and not self.awaiting_start and not operating:
             if not self._confirmed and now - self._started_at < START_GRACE:
                 return  # sent before the start reached it
             self.fail(LEFT_OPERATIONAL)

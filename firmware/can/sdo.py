@@ -50,6 +50,10 @@ class HostSdoTransfer:
         self._received = bytearray()
         self._sent = 0
         self._toggle = 0
+        self._expedited = data is not None and 0 < len(data) <= 4
+        """Up to four bytes go in the initiate request. An empty value cannot (CiA 301's
+        expedited sizes are 1-4), so it goes as a segmented download of size 0 [ours]."""
+        self._initiated = False
         self._deadline = time.monotonic() + timeout
         """Refreshed by every request; set here already because the master's tick may
         check the transfer between its registration and its first request."""
@@ -61,7 +65,7 @@ class HostSdoTransfer:
         head = _INITIATE.pack(0, self.index, self.subindex)[1:]
         if self.data is None:
             self._send(bytes([0x40]) + head + bytes(4))
-        elif len(self.data) <= 4:
+        elif self._expedited:
             command = 0x23 | ((4 - len(self.data)) << 2)
             self._send(bytes([command]) + head + self.data.ljust(4, b"\0"))
         else:
@@ -130,8 +134,8 @@ class HostSdoTransfer:
 
     def _download(self, command: int) -> None:
         assert self.data is not None
-        initiated = command == 0x60 and self._sent == 0
-        segment_done = command & 0xEF == 0x20 and self._sent > 0
+        initiated = command == 0x60 and not self._initiated
+        segment_done = command & 0xEF == 0x20 and self._initiated
         if not (initiated or segment_done):
             self._abort(ABORT_UNKNOWN_COMMAND, SdoResult(abort=ABORT_UNKNOWN_COMMAND))
             return
@@ -140,11 +144,13 @@ class HostSdoTransfer:
                 self._abort(ABORT_TOGGLE, SdoResult(abort=ABORT_TOGGLE))
                 return
             self._toggle ^= 1
-        if len(self.data) <= 4 or self._sent >= len(self.data):
+            if self._sent >= len(self.data):
+                self._finish(SdoResult())
+                return
+        elif self._expedited:
             self._finish(SdoResult())
             return
-        if initiated:
-            self._sent = 0
+        self._initiated = True
         chunk = self.data[self._sent : self._sent + 7]
         self._sent += len(chunk)
         last = 1 if self._sent >= len(self.data) else 0

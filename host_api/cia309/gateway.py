@@ -1444,7 +1444,7 @@ class Gateway:
 
         with link.sdo_channel(node, self._timeout()):
             answers = link.request(COM_SDO_UP_DOWNLOAD, head, self._timeout(), multipart=True,
-                                   on_part=progress)
+                                   e=Ext.FIRST, on_part=progress)  # e 4: the long form
         _check_sdo(answers[-1], f"SDO upload {index:04X}:{subindex} from node {node}")
         return b"".join(answer.data[TelegramHeader.SIZE :] for answer in answers)
 

@@ -1,0 +1,327 @@
+"""Behaviour a host written for the real card notices: each test provokes one item of the seed
+manual through the mailbox or the image and asserts what the host sees (msg.f, Task2State
+fields, frames on the bus). The card runs as a real firmware process with simulated nodes, on
+every bus of ``tests/test_can_task.py``'s back-to-back fixture.
+"""
+
+from __future__ import annotations
+
+import struct
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+from dbm_tools.builder import build_dbm
+from dbm_tools.container import save_dbm
+from dbm_tools.network import load_network
+from dbm_tools.parameters import NdFlag, NodeParameterSet, PdoData
+from host_api import driver as d
+from host_api.download import delete_database
+from tests import test_can_task
+from tests.conftest import wait_until
+from tests.test_can_task import Net, candump, exchange
+
+interface = test_can_task.interface
+make_net = test_can_task.make_net
+"""The back-to-back fixtures: this module's tests run on every bus that file's run on."""
+
+SYNC_ID = 0x080
+
+
+def record(net: Net, seconds: float) -> None:
+    """Let ``seconds`` of traffic reach the card's trace, then end the card (flushing it)."""
+    until = time.monotonic() + seconds
+    wait_until(lambda: time.monotonic() > until, seconds + 1, f"{seconds} s of traffic")
+    net.card.stop()
+
+
+def test_no_sync_without_a_sync_controlled_pdo(make_net: Callable[..., Net],
+                                               tmp_path: Path) -> None:
+    """Seed 4.2: SYNC is activated only if a node uses a SYNC controlled transmission type.
+
+    The generic nodes' PDOs are event-driven (255): with SYNC_Timer 5 ms the card still sends
+    no SYNC.
+    """
+    trace = tmp_path / "trace.log"
+    net = make_net("[bus]\nsync_period_ms = 5\n[[node]]\nid = 1\n[[node]]\nid = 2\n",
+                   "--trace", str(trace))
+    net.configure()
+    net.wait_operating([1, 2])
+    wait_until(lambda: exchange(net, b"\x11" * 8) == b"\x11" * 8, 5, "node 1's echo")
+    record(net, 0.5)
+    frames = candump(trace)
+    assert [ident for _, ident, _ in frames if ident == 0x201], "the outputs went out"
+    assert not [t for t, ident, _ in frames if ident == SYNC_ID]
+
+
+def test_sync_starts_with_the_first_sync_controlled_pdo(make_net: Callable[..., Net],
+                                                        tmp_path: Path) -> None:
+    """A node with one synchronous RPDO (type 1) beside an event-driven one turns SYNC on."""
+    trace = tmp_path / "trace.log"
+    net = make_net("""[bus]
+sync_period_ms = 5
+[[node]]
+id = 1
+[[node]]
+id = 2
+[[node.pdo]]
+direction = "output"
+cob_id = 0x202
+transmission = 1
+""", "--trace", str(trace))
+    net.configure()
+    net.wait_operating([1, 2])
+    record(net, 0.5)
+    syncs = [t for t, ident, _ in candump(trace) if ident == SYNC_ID]
+    assert len(syncs) > 40
+
+
+def node_set(address: int) -> bytes:
+    """A generic node's data set, as COM_Download carries it."""
+    return NodeParameterSet(
+        bNd_Flag=NdFlag.ACTIVE | NdFlag.HRTBT, usAddTypeInfo=0x000F, usDevProfNum=0x191,
+        usCobIDEmcy=0x80 + address, usCobIDGuard=0x700 + address, usGuardTime=1000,
+        atPdoCfgData=[PdoData(0, 8, 0x200 + address, 255), PdoData(1, 8, 0x180 + address, 255)],
+        ausInputOffsets=[0], ausOutputOffsets=[0]).encode()
+
+
+def test_start_seq_time_out_expires_without_a_message(make_net: Callable[..., Net]) -> None:
+    """Seed 5.2.3: Start_Seq's time-out ends the sequence even when no message follows it.
+
+    The whole data set arrives in time, but End_Seq comes after the time-out: f 48, and the
+    node is not configured.
+    """
+    net = make_net("")
+    assert net.send(67, bytes([0, 4]) + struct.pack("<H", 30)).f == 0
+    assert net.send(68, bytes([0, 4, 0, 0]) + node_set(4)).f == 0
+    sent = time.monotonic()
+    wait_until(lambda: time.monotonic() - sent > 0.1, what="the sequence time-out")
+    assert net.send(69, b"\0").f == 48
+    assert not net.diag().configured()
+    assert net.send(69, b"\0").f == 57  # the sequence is gone
+
+
+def test_global_start_waits_for_a_late_node_without_faults(make_net: Callable[..., Net],
+                                                           tmp_path: Path) -> None:
+    """Seed 4.3 (biNoGobalStartNode): nodes waiting for the global Start_Node are no faults.
+
+    Node 3 boots 1.5 s after the others; with auto-clear on, one fault would stop the card.
+    All three come up, no Err_Event, and one global start goes out after the last boot-up.
+    """
+    trace = tmp_path / "trace.log"
+    net = make_net("""[bus]
+global_start = true
+auto_clear = true
+[[node]]
+id = 1
+[[node]]
+id = 2
+[[node]]
+id = 3
+[node.sim]
+boot_delay_s = 1.5
+""", "--trace", str(trace))
+    net.configure()
+    net.wait_operating([1, 2, 3], timeout=15)
+    operating_since = time.monotonic()
+    wait_until(lambda: time.monotonic() - operating_since > 1.0, 2, "a second of operation")
+    diag = net.diag()
+    assert diag.operating() == [1, 2, 3] and diag.bErr_event == 0
+    assert diag.can_state_name == "OPERATE" and diag.global_bits == 0
+    net.card.stop()
+    starts = [data for _, ident, data in candump(trace) if ident == 0 and data.startswith("01")]
+    assert starts and all(data == "0100" for data in starts)  # global: node-ID 0 only
+
+
+def test_start_bit_leaves_the_node_as_it_is(make_net: Callable[..., Net],
+                                            tmp_path: Path) -> None:
+    """bitConfigNdState START set: the card sends no Start_Node and supervises the node in
+    PRE-OPERATIONAL: no Err_Event 31, no reboot, Nd_state 0 until the host starts it."""
+    trace = tmp_path / "trace.log"
+    net = make_net("""[[node]]
+id = 1
+boot = ["reset", "device", "guard", "sync", "emcy", "sdo", "pdo"]
+[[node]]
+id = 2
+""", "--trace", str(trace))
+    net.configure()
+    net.wait_operating([2])
+    since = time.monotonic()
+    wait_until(lambda: time.monotonic() - since > 2.5, 3, "2.5 s of supervision")
+    diag = net.diag()
+    assert diag.operating() == [2] and diag.bErr_event == 0
+    assert net.send(96, bytes([0x01, 1])).f == 0  # COM_NMT_Module_Protocol: start node 1
+    net.wait_operating([1, 2])
+    net.card.stop()
+    frames = candump(trace)
+    assert not [d for _, ident, d in frames if ident == 0 and d == "0101"][:-1]  # host's only
+    assert len([d for _, ident, d in frames if ident == 0 and d.startswith("81")]) == 2
+
+
+EDS = Path(__file__).parent / "data" / "cia309_node.eds"
+DOMAIN = 0x2000
+
+
+def sdo_request(node: int, index: int, write: bytes | None = None) -> bytes:
+    """A COM_SDO_Up_Download telegram (seed 5.2.8): header, then the data of a write."""
+    data = write or b""
+    return struct.pack("<BBHBBBB", node, 0, index, 0, len(data), 0,
+                       2 if write is not None else 1) + data
+
+
+def test_sdo_upload_longer_than_247_bytes(make_net: Callable[..., Net]) -> None:
+    """Seed 5.2.8: one answer of at most 247 data bytes, else f 51. The several answers of a
+    long upload (docs/card-commands.md) come only when the host asks with msg.e 4."""
+    net = make_net(f'[[node]]\nid = 3\neds = "{EDS}"\n')
+    net.configure()
+    net.wait_operating([3])
+    value = bytes(range(256)) + bytes(44)  # 300 bytes: one part of 247 and one of 53
+    assert net.send(74, sdo_request(3, DOMAIN, value[:247]), e=4).f == 0
+    assert net.send(74, sdo_request(3, DOMAIN, value[247:]), e=0x0C).f == 0
+
+    plain = net.send(74, sdo_request(3, DOMAIN))
+    assert plain.f == 51 and plain.e == 0
+    rc, stray = d.DevGetMessage(0, 288, 300)
+    assert rc == d.Drv.DRV_DEV_GET_TIMEOUT and stray is None  # and nothing follows it
+
+    first = net.send(74, sdo_request(3, DOMAIN), e=4)
+    rc, last = d.DevGetMessage(0, 288, 2000)
+    assert rc == 0 and last is not None
+    assert (first.f, first.e, last.f, last.e) == (0, 4, 0, 0x0C)
+    assert first.data[8:] + last.data[8:] == value
+
+
+def test_stray_msg_e_bits_leave_an_sdo_download_plain(make_net: Callable[..., Net]) -> None:
+    """Bits of msg.e other than the sequence markings do not start a long download: the
+    write happens at once, with its one answer."""
+    net = make_net(f'[[node]]\nid = 3\neds = "{EDS}"\n')
+    net.configure()
+    net.wait_operating([3])
+    answer = net.send(74, sdo_request(3, DOMAIN, b"abcd"), e=0x14)  # 4 among other bits
+    assert answer.f == 0
+    upload = net.send(74, sdo_request(3, DOMAIN))
+    assert upload.f == 0 and upload.data[8:] == b"abcd"
+
+
+def test_sdo_download_of_zero_bytes(make_net: Callable[..., Net], tmp_path: Path) -> None:
+    """data_cnt 0 (seed 5.2.8 allows 0-247) empties a DOMAIN: a segmented download of size 0
+    (CiA 301 initiate 0x21 with size 0, then one segment without data), never a 4-byte
+    expedited write of zeros."""
+    trace = tmp_path / "trace.log"
+    net = make_net(f'[[node]]\nid = 3\neds = "{EDS}"\n', "--trace", str(trace))
+    net.configure()
+    net.wait_operating([3])
+    assert net.send(74, sdo_request(3, DOMAIN, b"abcd")).f == 0
+    assert net.send(74, sdo_request(3, DOMAIN, b"")).f == 0
+    upload = net.send(74, sdo_request(3, DOMAIN))  # the node has no data left to give
+    assert upload.f == 3 and struct.unpack_from("<I", upload.data, 8)[0] == 0x08000024
+    net.card.stop()
+    requests = [data for _, ident, data in candump(trace) if ident == 0x603]
+    assert "2100200000000000" in requests and "0F00000000000000" in requests
+    assert not [data for data in requests if data.startswith("33")]
+
+
+def test_online_download_is_refused_while_a_flash_database_runs(
+        make_net: Callable[..., Net], tmp_path: Path) -> None:
+    """Seed 5.2.2: with a database from flash running, the on-line download cannot be used
+    (flash ranks above it). [ours] COM_Start_Seq, COM_Download and COM_End_Seq get f 201,
+    and the running configuration stays; after the database is deleted and the card started
+    again, the on-line download works."""
+    net = make_net("[[node]]\nid = 1\n[[node]]\nid = 2\n")
+    dbm = tmp_path / "plant.dbm"
+    save_dbm(dbm, build_dbm(load_network(net.toml)))
+    assert d.DevDownload(0, d.CONFIGURATION_DOWNLOAD, dbm) == 0
+    assert d.DevReset(0, d.COLDSTART, 5000) == 0
+    net.wait_operating([1, 2])
+    assert net.send(67, bytes([0, 5]) + struct.pack("<H", 1000)).f == 201
+    assert net.send(68, bytes([0, 5, 0, 0]) + node_set(5)).f == 201
+    assert net.send(68, bytes([0, 127, 0, 0, 2]) + bytes(6)).f == 201  # bus parameters too
+    assert net.send(69, b"\0").f == 201
+    assert net.diag().configured() == [1, 2] and net.diag().operating() == [1, 2]
+    assert delete_database(0) == 0
+    assert d.DevReset(0, d.COLDSTART, 5000) == 0
+    assert net.send(68, bytes([0, 5, 0, 0]) + node_set(5)).f == 0
+    assert net.diag().configured() == [5]
+
+
+def test_a_node_address_downloaded_twice_is_refused(make_net: Callable[..., Net]) -> None:
+    """A second data set for a configured address is f 60 (double node address), not a silent
+    replacement of the first; the node keeps running on its first data set."""
+    net = make_net("[[node]]\nid = 1\n")
+    net.configure()
+    net.wait_operating([1])
+    first = net.send(80, bytes([0, 1, 0, 0, 240]))
+    assert net.send(68, bytes([0, 1, 0, 0]) + node_set(1)).f == 60
+    assert net.send(80, bytes([0, 1, 0, 0, 240])).data == first.data
+    assert net.diag().operating() == [1]
+
+
+def actual_error(net: Net, node: int) -> int:
+    """Octet 7 of the node's COM_Node_Diag answer (seed 5.2.7): its error now."""
+    answer = net.send(66, struct.pack("<BBHBBBB", node, 0, 0, 0, 0, 0, 1))
+    assert answer.f == 0
+    return answer.data[8 + 6]
+
+
+def test_actual_error_is_cleared_when_the_node_recovers(make_net: Callable[..., Net]) -> None:
+    """Node 1 leaves OPERATIONAL after a second (31), is booted again and operates: its
+    Actual_Error goes back to 0 with Err_Event."""
+    net = make_net("[[node]]\nid = 1\n[node.sim]\nleave_operational_after_s = 1.5\n"
+                   "[[node]]\nid = 2\n")
+    net.configure()
+    net.wait_operating([1, 2])
+    wait_until(lambda: net.diag().bErr_event == 31, 5, "Err_Event 31 of node 1")
+    assert actual_error(net, 1) == 31
+    net.wait_operating([1, 2], timeout=5)
+    assert net.diag().bErr_event == 0
+    assert actual_error(net, 1) == 0
+
+
+def test_host_not_ready_stops_the_nodes_with_err_event_39(make_net: Callable[..., Net],
+                                                          tmp_path: Path) -> None:
+    """Seed 4.3: HOST_NOT_READY stops the nodes: NMT Stop on the bus, Nd_state cleared,
+    Err_Event 39 ("node not handled, node in stop") in Task2State and in each node's
+    Actual_Error. HOST_READY boots them again, without an error."""
+    trace = tmp_path / "trace.log"
+    net = make_net("[[node]]\nid = 1\n[[node]]\nid = 2\n", "--trace", str(trace))
+    net.configure()
+    net.wait_operating([1, 2])
+    assert d.DevSetHostState(0, d.HOST_NOT_READY, 1000) == 0
+    wait_until(lambda: net.diag().bErr_event == 39, 5, "Err_Event 39")
+    diag = net.diag()
+    assert diag.operating() == [] and diag.bErr_rem_adr == 1
+    assert diag.can_state_name == "STOP"
+    assert actual_error(net, 1) == actual_error(net, 2) == 39
+    assert d.DevSetHostState(0, d.HOST_READY, 1000) == 0
+    net.wait_operating([1, 2], timeout=10)
+    assert net.diag().bErr_event == 0
+    net.card.stop()
+    assert "0200" in [data for _, ident, data in candump(trace) if ident == 0]
+
+
+def test_a_node_booting_after_auto_clear_never_shows_as_operating(
+        make_net: Callable[..., Net]) -> None:
+    """Node 1's heartbeat stops (30) and auto-clear stops all; node 2 finishes its boot-up
+    later. It never shows in Nd_state, and it gets Err_Event 39 like the others."""
+    net = make_net("""[bus]
+auto_clear = true
+[[node]]
+id = 1
+heartbeat_ms = 200
+[node.sim]
+heartbeat_stop_after_s = 0.3
+[[node]]
+id = 2
+[node.sim]
+boot_delay_s = 2.0
+""")
+    net.configure()
+    seen: set[int] = set()
+
+    def node_2_booted() -> bool:
+        diag = net.diag()
+        seen.update(diag.operating())
+        return diag.can_state_name == "CLEAR" and actual_error(net, 2) == 39
+
+    wait_until(node_2_booted, 8, "node 2 stopped by auto-clear after its boot-up")
+    assert 2 not in seen
