@@ -325,3 +325,28 @@ boot_delay_s = 2.0
 
     wait_until(node_2_booted, 8, "node 2 stopped by auto-clear after its boot-up")
     assert 2 not in seen
+
+
+def test_a_non_default_guarding_cob_id_is_written_and_used(make_net: Callable[..., Net],
+                                                           tmp_path: Path) -> None:
+    """Seed 4.2: usCobIDGuard is written into the node's object directory at start-up (100Eh),
+    and guarding runs on it: the node, which starts at 700h + node-ID, answers on 77Fh."""
+    trace = tmp_path / "trace.log"
+    net = make_net("""[[node]]
+id = 1
+error_control = "guarding"
+guard_time_ms = 100
+life_time_factor = 3
+guard_cob_id = 0x77F
+""", "--trace", str(trace))
+    net.configure()
+    net.wait_operating([1])
+    since = time.monotonic()
+    wait_until(lambda: time.monotonic() - since > 1.0, 2, "a second of guarding")
+    diag = net.diag()
+    assert diag.operating() == [1] and diag.bErr_event == 0
+    net.card.stop()
+    frames = candump(trace)
+    assert "230E10007F070000" in [data for _, ident, data in frames if ident == 0x601]
+    assert len([data for _, ident, data in frames if ident == 0x77F and data != "R"]) >= 5
+    assert {data for _, ident, data in frames if ident == 0x701} == {"00"}  # boot-ups only

@@ -330,6 +330,7 @@ class NodeHandler:
                         sdo.download(0x1017, 0, b"\0\0")
                 sdo.download(0x100C, 0, struct.pack("<H", params.usGuardTime))
                 sdo.download(0x100D, 0, struct.pack("<B", params.bLifeTimeFactor))
+                self._write_guard_cob_id(sdo)
         if not skip & ConfigNdState.SYNC:
             sdo.download(0x1005, 0, struct.pack("<I", self.master.sync_cob_id))
         if not skip & ConfigNdState.EMCY:
@@ -354,6 +355,17 @@ class NodeHandler:
         self._confirmed = False
         if not self.params.bitConfigNdState & ConfigNdState.TXRXPDO:
             self.send_outputs(force=True)  # the first RX-PDO, now that the node takes it
+
+    def _write_guard_cob_id(self, sdo: SdoClient) -> None:
+        """usCobIDGuard into the node's COB-ID guarding object 100Eh (seed 4.2: written into
+        the node's object directory during its start-up; CiA 301 before 4.0 defines 100Eh).
+        [ours] A node without 100Eh may refuse the default 700h + node-ID, which it uses
+        anyway; it must take any other value, or its configuration fails (34, Prm_Fault)."""
+        try:
+            sdo.download(0x100E, 0, struct.pack("<I", self.params.usCobIDGuard))
+        except SdoAbortedError:
+            if self.params.usCobIDGuard != 0x700 + self.address:
+                raise
 
     def _fail_boot(self, generation: int, event: int) -> None:
         if generation == self._generation:

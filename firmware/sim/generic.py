@@ -105,6 +105,9 @@ def generic_object_dictionary(node: NodeDescription, sync_cob_id: int = 0x80
         _var("Guard time", 0x100C, 0, od.UNSIGNED16, "rw", node.guard_time_ms if guarding else 0),
         _var("Life time factor", 0x100D, 0, od.UNSIGNED8, "rw",
              node.life_time_factor if guarding else 0),
+        # 100Eh starts at the default: a card that configures another guarding COB-ID
+        # must write it here, as the seed's card does at start-up.
+        _var("COB-ID guarding", 0x100E, 0, od.UNSIGNED32, "rw", 0x700 + node.id),
         _var("COB-ID EMCY", 0x1014, 0, od.UNSIGNED32, "rw", node.cob_id_emcy),
         _var("Producer heartbeat time", 0x1017, 0, od.UNSIGNED16, "rw", heartbeat),
         _record("Identity object", 0x1018, [

@@ -104,7 +104,7 @@ class NodeGuarding:
         node = self._node
         if node.nmt.code == INITIALISING or self.failed or node.value(0x1017, 0, 0):
             return
-        node.network.send_message(node.description.cob_id_guard,
+        node.network.send_message(node.guard_cob_id,
                                   bytes([self.toggle | node.nmt.code]))
         if not node.description.sim.guard_toggle_stuck:
             self.toggle ^= TOGGLE

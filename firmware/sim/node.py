@@ -145,6 +145,11 @@ class SimulatedNode(LocalNode):
     def serves_sdo(self) -> bool:
         return self.nmt.code in (PRE_OPERATIONAL, OPERATIONAL)
 
+    @property
+    def guard_cob_id(self) -> int:
+        """Where guarding requests come and answers go: 100Eh where the node has it."""
+        return self.value(0x100E, 0, self.description.cob_id_guard) & 0x7FF
+
     def value(self, index: int, subindex: int, default: int) -> int:
         """An unsigned object's current value; ``default`` where the dictionary has none."""
         try:
@@ -301,7 +306,7 @@ class SimulatedNode(LocalNode):
     def on_remote(self, cob_id: int) -> None:
         """A remote frame from the bus: a guarding request or a TPDO request."""
         with self.lock:
-            if cob_id == self.description.cob_id_guard:
+            if cob_id == self.guard_cob_id:
                 self.guarding.on_request()
             else:
                 self.pdo_engine.on_remote(cob_id)
