@@ -70,7 +70,8 @@ The whole schema, with defaults::
     emcy_burst = { after_s = 1.0, count = 5, code = 0x1000, interval_s = 0.01 }
     boot_delay_s = 0.5
     leave_operational_after_s = 3.0
-    bus_errors = { after_s = 1.0, count = 3, kind = "warning" }  # "bus_off", "ack", "rx_overflow"
+    bus_errors = { after_s = 1.0, count = 3, kind = "warning" }  # or "bus_off", "ack",
+                                # "rx_overflow", "protocol"
 """
 
 from __future__ import annotations
@@ -176,7 +177,7 @@ SDO_RESPONSE_FAULTS = ("unknown", "short")
 """Broken SDO responses a simulated node can send instead of every correct one: an
 undefined command specifier (7, command byte 0xE0), or a frame of 4 bytes instead of 8."""
 
-BUS_ERROR_KINDS = ("warning", "bus_off", "ack", "rx_overflow")
+BUS_ERROR_KINDS = ("warning", "bus_off", "ack", "rx_overflow", "protocol")
 """Error frames a simulated node can put on the bus: the controller's error-warning
 limit, bus-off, a missing acknowledge, and a receive FIFO overflow (SocketCAN error
 classes, as the card's CAN controller driver would report them)."""

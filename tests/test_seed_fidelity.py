@@ -350,3 +350,20 @@ guard_cob_id = 0x77F
     assert "230E10007F070000" in [data for _, ident, data in frames if ident == 0x601]
     assert len([data for _, ident, data in frames if ident == 0x77F and data != "R"]) >= 5
     assert {data for _, ident, data in frames if ident == 0x701} == {"00"}  # boot-ups only
+
+
+def test_bus_error_cnt_counts_warning_limit_crossings_only(
+        make_net: Callable[..., Net]) -> None:
+    """Seed 4.3: Bus_Error_Cnt counts the times the controller's error counter reached the
+    warning limit. Three protocol errors (a form error each, the counters below the limit)
+    are no event: the counter stays 0 and EVE clear; two warning-limit crossings count 2."""
+    net = make_net("[[node]]\nid = 1\n[node.sim]\n"
+                   "bus_errors = { after_s = 0.1, count = 3, kind = \"protocol\" }\n"
+                   "[[node]]\nid = 2\n[node.sim]\n"
+                   "bus_errors = { after_s = 0.6, count = 2, kind = \"warning\" }\n")
+    image = net.card.map()
+    wait_until(lambda: struct.unpack_from("<H", image, 0x1F44)[0] == 2, 5, "2 crossings")
+    after = time.monotonic()
+    wait_until(lambda: time.monotonic() - after > 0.2, 1, "no more counts")
+    assert struct.unpack_from("<H", image, 0x1F44)[0] == 2
+    assert struct.unpack_from("<H", image, 0x1F46)[0] == 0  # no bus-off either

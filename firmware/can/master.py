@@ -38,6 +38,7 @@ from firmware.can.bus import (
     CAN_ERR_ACK,
     CAN_ERR_BUSOFF,
     CAN_ERR_CRTL,
+    CAN_ERR_CRTL_LIMITS,
     CAN_ERR_CRTL_RX_OVERFLOW,
     CAN_ERR_TX_TIMEOUT,
     PERIODIC_OUTSIDE_INTERFACES,
@@ -652,8 +653,15 @@ class Master:
             lost = self.bus.take_rx_overflows() if self.bus is not None else 1
             self.device.count("usRx_Overflow", lost)
             return
-        self.device.count("usBus_Off_Cnt" if error_class & CAN_ERR_BUSOFF
-                          else "usBus_Error_Cnt")
+        if error_class & CAN_ERR_BUSOFF:
+            self.device.count("usBus_Off_Cnt")
+        elif (error_class & CAN_ERR_CRTL and len(msg.data) > 1
+              and msg.data[1] & CAN_ERR_CRTL_LIMITS):
+            # Seed 4.3: Bus_Error_Cnt counts the times the controller's error counter reached
+            # the warning limit, not each error frame (a protocol error alone is no event).
+            self.device.count("usBus_Error_Cnt")
+        else:
+            return
         self.device.set_global_bit(GlobalBits.EVE, True)
 
     def _on_send_timeout(self) -> None:

@@ -31,6 +31,7 @@ from firmware.can.bus import (
     CAN_ERR_CRTL_RX_OVERFLOW,
     CAN_ERR_CRTL_RX_WARNING,
     CAN_ERR_CRTL_TX_WARNING,
+    CAN_ERR_PROT,
 )
 from firmware.sim.generic import INPUTS, OUTPUTS
 from firmware.sim.nmt import (
@@ -71,6 +72,9 @@ def error_frame(kind: str) -> can.Message:
     if kind == "ack":
         return can.Message(is_error_frame=True, arbitration_id=CAN_ERR_ACK, dlc=8,
                            data=bytes(8))
+    if kind == "protocol":  # a form error in a frame: the error counters only move
+        return can.Message(is_error_frame=True, arbitration_id=CAN_ERR_PROT, dlc=8,
+                           data=bytes([0, 0, 0x02]) + bytes(5))
     status = (CAN_ERR_CRTL_RX_OVERFLOW if kind == "rx_overflow"
               else CAN_ERR_CRTL_RX_WARNING | CAN_ERR_CRTL_TX_WARNING)
     return can.Message(is_error_frame=True, arbitration_id=CAN_ERR_CRTL, dlc=8,
