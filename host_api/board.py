@@ -20,6 +20,7 @@ from dpm.errors import Drv, drv_name, drv_text
 from dpm.message import Message
 from dpm.task2 import ComDiagnostics, ComPlcParameter
 from host_api import driver as d
+from host_api.registry import transaction_lock
 
 
 class CifError(Exception):
@@ -91,11 +92,11 @@ class Board:
         """
         if msg.nr == 0:
             msg.nr = next(self._nr) % 255 + 1
-        board = d._driver.boards.get(self.number)
-        if board is None:
+        lock = transaction_lock(self.number)
+        if lock is None:
             raise CifError(Drv.DRV_USR_NOT_INITIALIZED, "transact")
         wait = self._timeout(timeout)
-        if not board.transaction_lock.acquire(wait / 1000.0):
+        if not lock.acquire(wait / 1000.0):
             raise CifError(Drv.DRV_CMD_ACTIVE, "transact")
         try:
             self.put_message(msg, wait)
@@ -104,7 +105,7 @@ class Board:
                 if answer.nr == msg.nr and answer.a == msg.b:
                     return answer
         finally:
-            board.transaction_lock.release()
+            lock.release()
 
     # --- process data ------------------------------------------------------------------------
 
