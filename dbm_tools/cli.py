@@ -78,7 +78,7 @@ DECODERS: dict[str, Callable[[bytes], Any]] = {
 """The CANopen tables with a codec; any other table is shown and compared as bytes."""
 
 
-class UsageError(Exception):
+class UsageError(DbmError):
     """A command that cannot run (unreadable file, no card); the text is for the user."""
 
 

@@ -5,7 +5,7 @@
   ``host_api.download`` (``DevDownload``, ``upload_database``, ``delete_database``,
   ``flash_directory``);
 - ``Board`` and ``CifError`` (``host_api.board``): the same calls, raising instead of
-  returning codes;
+  returning codes; ``HostApiError`` (``host_api.errors``), the root of what host_api raises;
 - ``host_api.registry``: the boards this process has initialised;
 - ``host_api.online``, ``host_api.cia309``, ``host_api.status``: the on-line
   configuration, the CiA 309 gateway and ``cifemu status``, imported by their own names.
@@ -69,6 +69,7 @@ from host_api.driver import (
     DevSpecialControl,
     DevTriggerWatchDog,
 )
+from host_api.errors import HostApiError
 
 __version__ = version("cifemu")
 
@@ -121,6 +122,7 @@ __all__ = [
     "DevSpecialControl",
     "DevTriggerWatchDog",
     "FlashEntry",
+    "HostApiError",
     "__version__",
     "delete_database",
     "flash_directory",

@@ -20,10 +20,11 @@ from dpm.errors import Drv, drv_name, drv_text
 from dpm.message import Message
 from dpm.task2 import ComDiagnostics, ComPlcParameter
 from host_api import driver as d
+from host_api.errors import HostApiError
 from host_api.registry import transaction_lock
 
 
-class CifError(Exception):
+class CifError(HostApiError):
     """A driver call failed: ``code``, ``name`` (e.g. DRV_DEV_NOT_READY) and ``text``."""
 
     def __init__(self, code: int, call: str = "") -> None:
@@ -40,7 +41,11 @@ def _check(code: int, call: str) -> None:
 
 
 class Board:
-    """One board of the emulated card, opened on enter and closed on exit."""
+    """One board of the emulated card, opened on enter and closed on exit.
+
+    Every method that calls the driver raises ``CifError`` with the driver's code when
+    the call does not return DRV_NO_ERROR; ``close`` never raises.
+    """
 
     def __init__(self, number: int = 0, directory: str | Path | None = None,
                  timeout: int = 1000) -> None:

@@ -6,7 +6,9 @@ parameters come back in a tuple after the return code::
 
     rc, msg = DevGetMessage(0, 288, 500)
 
-Timeouts are milliseconds; 0 means try once and never wait.
+Timeouts are milliseconds; 0 means try once and never wait. No function raises for a
+failure the driver reports: every one is a return code (``host_api.board.Board`` turns
+them into ``CifError``).
 
 Concurrency [ours]: DevPutMessage, DevGetMessage and the process-data
 exchange are each atomic across threads and processes. A call waits for its
