@@ -19,7 +19,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
-import sys
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
@@ -365,17 +364,21 @@ def build(network_path: Path, output: Path, name: str | None, console: Console) 
 # --- diff ----------------------------------------------------------------------------------
 
 
-def _records_by_key(dbm: DbmFile, name: str) -> dict[str, bytes]:
-    """Records by their key ("node 5"; DESCRIPT: "station 5") or their slot ("record 3")."""
+RecordKey = tuple[str, int]
+"""How a record is found again in the other file: ("node", 5), ("station", 5) by its key,
+("record", 3) by its slot."""
+
+
+def _records_by_key(dbm: DbmFile, name: str) -> dict[RecordKey, bytes]:
+    """Records by their key (NODES: node address; DESCRIPT: station) or their slot."""
     table = dbm.table(name)
     assert table is not None
     if name == DESCRIPT and all(table.records):
-        return {f"station {r[0]}": r for r in table.records}
+        return {("station", r[0]): r for r in table.records}
     if not table.keyed:
-        return {f"record {n}": r for n, r in enumerate(table.records, start=1)}
+        return {("record", n): r for n, r in enumerate(table.records, start=1)}
     label = "node" if name == NODES else "key"
-    return {f"{label} {int.from_bytes(r[: table.key_length], 'little')}": r
-            for r in table.records}
+    return {(label, int.from_bytes(r[: table.key_length], "little")): r for r in table.records}
 
 
 def _record_differences(name: str, a: bytes, b: bytes) -> list[tuple[str, Any, Any]]:
@@ -395,11 +398,17 @@ def _record_differences(name: str, a: bytes, b: bytes) -> list[tuple[str, Any, A
 
 
 def differences(a: DbmFile, b: DbmFile) -> list[dict[str, Any]]:
-    """Every difference as {table, record, field, a, b}; record/field None at table level."""
+    """Every difference as {table, record, record_kind, field, a, b}.
+
+    ``record`` is the record's number (node address, station, key or slot) and
+    ``record_kind`` says which; both, like ``field``, are None at table level.
+    """
     out: list[dict[str, Any]] = []
 
-    def add(table: str, record: str | None, field: str | None, left: Any, right: Any) -> None:
-        out.append({"table": table, "record": record, "field": field,
+    def add(table: str, record: RecordKey | None, field: str | None, left: Any,
+            right: Any) -> None:
+        kind, number = record if record is not None else (None, None)
+        out.append({"table": table, "record": number, "record_kind": kind, "field": field,
                     "a": plain(left), "b": plain(right)})
 
     names_a, names_b = [t.name for t in a.tables], [t.name for t in b.tables]
@@ -429,7 +438,8 @@ def diff(path_a: Path, path_b: Path, as_json: bool, console: Console) -> int:
         print(json.dumps(found, indent=2))
         return 1 if found else 0
     for d in found:
-        where = " ".join(str(p) for p in (d["table"], d["record"], d["field"]) if p is not None)
+        where = " ".join(str(p) for p in (d["table"], d["record_kind"], d["record"], d["field"])
+                         if p is not None)
         console.print(f"{where}: [red]{d['a']}[/] -> [green]{d['b']}[/]", highlight=False)
     console.print(f"{len(found)} difference(s)" if found else "no differences")
     return 1 if found else 0
@@ -477,18 +487,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> argparse._SubParsersAction
     return sub
 
 
-def run(args: argparse.Namespace) -> int:
-    console = Console()
+def dispatch(args: argparse.Namespace, console: Console) -> int:
+    """Run one file command: its exit status, or UsageError for the caller to report."""
     command = args.dbm_command
-    try:
-        if command == "show":
-            return show(args.file, args.json, console)
-        if command == "check":
-            return check(args.file, args.json, console)
-        if command == "build":
-            return build(args.network, args.output, args.name, console)
-        return diff(args.a, args.b, args.json, console)
-    except UsageError as exc:
-        print(f"{PROG} {command}: {exc}", file=sys.stderr)
-        return 1
+    if command == "show":
+        return show(args.file, args.json, console)
+    if command == "check":
+        return check(args.file, args.json, console)
+    if command == "build":
+        return build(args.network, args.output, args.name, console)
+    return diff(args.a, args.b, args.json, console)
 

@@ -9,7 +9,6 @@ dbm_tools stays a codec layer that never imports host_api. ``cifemu dbm`` and
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from pathlib import Path
@@ -25,6 +24,7 @@ from dbm_tools.validate import check_dbm
 from dpm.errors import drv_name, drv_text
 from dpm.flags import COM, READY, RUN
 from dpm.image import DEFAULT_DPM_DIR, MAX_DEV_BOARDS
+from host_api.cli_output import fail, print_json, quiet_broken_pipe
 from host_api.download import (
     CONFIGURATION_DOWNLOAD,
     DevDownload,
@@ -189,7 +189,7 @@ def directory_listing(board: int, directory: str | None, as_json: bool,
     if rc != 0:
         raise UsageError(f"flash directory failed: {describe(rc)}")
     if as_json:
-        print(json.dumps([plain(e) for e in entries], indent=2))
+        print_json([plain(e) for e in entries])
         return 0
     if not entries:
         console.print(f"board {board}: no database stored")
@@ -251,14 +251,22 @@ def _run_card_command(args: argparse.Namespace, console: Console) -> int:
 
 
 def run(args: argparse.Namespace) -> int:
-    """One command of ``cifemu dbm``; exit 1 with a one-line message for a user's mistake."""
-    if args.dbm_command not in CARD_COMMANDS:
-        return file_commands.run(args)
+    """One command of ``cifemu dbm``, reported by the commands' JSON convention
+    (``host_api.cli_output``): a user's mistake is one line on stderr, or with ``--json``
+    an error object on stdout, and exit status 1; a reader that leaves early
+    (``--json | head``) ends the command without a traceback."""
+    console = Console()
     try:
-        return _run_card_command(args, Console())
+        if args.dbm_command in CARD_COMMANDS:
+            result = _run_card_command(args, console)
+        else:
+            result = file_commands.dispatch(args, console)
+        sys.stdout.flush()  # inside the guard: a closed pipe shows at the flush
     except UsageError as exc:
-        print(f"{PROG} {args.dbm_command}: {exc}", file=sys.stderr)
-        return 1
+        return fail(f"dbm {args.dbm_command}", str(exc), getattr(args, "json", False))
+    except BrokenPipeError:
+        return quiet_broken_pipe()
+    return result
 
 
 def main(argv: list[str] | None = None) -> int:
