@@ -1,4 +1,4 @@
-"""The file commands of ``cifemu dbm``: read, check, build and compare DBM files.
+"""The file commands of cifemu dbm: read, check, build and compare DBM files.
 
 File commands (no card needed; FILE is a DBM file or a bare data area such as
 a card's flash file database.bin):

@@ -50,7 +50,7 @@ RESET_TIMEOUT_MS = 10_000
 
 CARD_COMMANDS = ("download", "upload", "delete", "dir")
 CARD_HELP = """
-Card commands (a running ``cifemu firmware``; --board N, --dpm-dir DIR):
+Card commands (a running cifemu firmware; --board N, --dpm-dir DIR):
 
   download FILE [--reset]     DevDownload into the card's flash (driver codes
                               and 1000 + msg.f on failure, e.g. 1020: not a

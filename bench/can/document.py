@@ -3,13 +3,13 @@
 CANopen services of the card against simulated nodes, each next to python canopen or
 python-can talking straight to the same simulated nodes in this process:
 
-  latency     PDO loop round trip, 1 node (``bench.can.pdo_loop``)
-  throughput  PDO frames/s, 126 nodes, one value in flight each (``bench.can.throughput``)
-  sdo         COM_SDO_Up_Download, expedited and a 247-byte DOMAIN (``bench.can.sdo``)
-  boot        127 nodes from a stored database to Nd_state (``bench.can.boot``)
-  sync        jitter of a 1 ms SYNC, idle and under PDO load (``bench.can.sync``)
+  latency     PDO loop round trip, 1 node (bench.can.pdo_loop)
+  throughput  PDO frames/s, 126 nodes, one value in flight each (bench.can.throughput)
+  sdo         COM_SDO_Up_Download, expedited and a 247-byte DOMAIN (bench.can.sdo)
+  boot        127 nodes from a stored database to Nd_state (bench.can.boot)
+  sync        jitter of a 1 ms SYNC, idle and under PDO load (bench.can.sync)
 
-``--profile`` adds a py-spy profile of the firmware during an extra throughput window.
+--profile adds a py-spy profile of the firmware during an extra throughput window.
 
     python -m bench.can [--count N] [--warmup N] [--only NAME ...] [--profile]
 """
