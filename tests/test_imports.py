@@ -11,7 +11,9 @@ the submodule ``package.name`` when there is one, else to the package itself, wh
 from __future__ import annotations
 
 import ast
+import importlib
 from collections.abc import Iterator
+from importlib.metadata import version
 from pathlib import Path
 
 from tests.conftest import ROOT
@@ -140,3 +142,15 @@ def test_a_cycle_is_found_and_type_checking_imports_are_not_edges(tmp_path: Path
     assert graph["pkg"] == {"pkg.a"}
     assert graph["pkg.c"] == set() and graph["pkg.d"] == {"pkg.c"}
     assert cycles(graph) == [["pkg.a", "pkg.b"]]
+
+
+def test_each_package_facade_gives_what_it_lists_and_the_distributions_version() -> None:
+    """``from PACKAGE import NAME`` works for every NAME in ``__all__`` (firmware's load on
+    first use), and ``__version__`` is the installed distribution's."""
+    expected = version("cifemu")
+    for name in ("dpm", "firmware", "host_api", "dbm_tools", "cifemu"):
+        package = importlib.import_module(name)
+        assert package.__all__, name
+        missing = [item for item in package.__all__ if getattr(package, item, None) is None]
+        assert not missing, f"{name} lists {missing} but has no such names"
+        assert package.__version__ == expected, name
