@@ -126,8 +126,8 @@ class ComState:
 
 
 _driver = registry
-"""[ours] host_api.cia309.gateway still reads the transaction lock through this name; its
-public form is ``host_api.registry.transaction_lock``."""
+"""This module's name for the registry. host_api.cia309.gateway still reads a board's
+transaction lock through it; the public way is ``host_api.registry.transaction_lock``."""
 
 
 # --- driver and board ------------------------------------------------------------------
