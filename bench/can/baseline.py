@@ -20,8 +20,6 @@ from dpm.commands import NMT_START
 from firmware.sim import SimulatedNetwork
 from firmware.sim.nmt import INITIALISING, OPERATIONAL
 
-# --- the baseline side: simulated nodes and a canopen network in this process --------------------
-
 
 @contextmanager
 def in_process(network: Network) -> Iterator[tuple[SimulatedNetwork, canopen.Network]]:

@@ -50,9 +50,6 @@ BOOT_WORKERS = 32
 BOOTUP_TIMEOUT_S = 3.0
 
 
-# --- 4. boot-up --------------------------------------------------------------------------------
-
-
 def card_boot() -> dict[str, Any]:
     nodes = list(range(1, BOOT_NODES + 1))
     text = network_toml(nodes)

@@ -61,8 +61,6 @@ DEVICE_TYPE_BYTES = GENERIC_DEVICE_TYPE.to_bytes(4, "little")
 SDO_TIMEOUT_TEXT = "0x05040000"
 """canopen's SDO client logs its timeout abort with this code."""
 
-# --- the card under test --------------------------------------------------------------------
-
 
 @dataclass(slots=True)
 class SimCard:

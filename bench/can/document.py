@@ -54,9 +54,6 @@ TARGET_BOOT_S = 2.0
 TARGET_SYNC_P99_US = 200.0
 
 
-# --- the document -------------------------------------------------------------------------------
-
-
 def run(count: int | None = None, warmup: int | None = None, *,
         only: Sequence[str] | None = None, profile: bool = False) -> dict[str, Any]:
     """The CAN benchmark's JSON document; ``only`` picks phases of ``PHASES``."""

@@ -25,9 +25,6 @@ PROFILE_SECONDS = 4.0
 PROFILE_RATE = 100
 
 
-# --- profiling the firmware (optional) ------------------------------------------------------------
-
-
 ROLES = {
     "card: CAN tick (output scan, RPDO send, supervision)": ("can-tick",),
     "card: SYNC producer": ("can-sync",),

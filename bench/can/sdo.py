@@ -55,8 +55,6 @@ MAILBOX_SECONDS = 1.0
 NODE_DIAG_REQUEST = TelegramHeader(device_adr=1, data_type=Tdt.UINT8, function=Tfc.READ).encode()
 """COM_Node_Diag of node 1."""
 
-# --- 3. SDO through the mailbox -------------------------------------------------------------------
-
 
 def write_bench_eds(directory: Path) -> Path:
     """The generic node's object dictionary plus a read-write DOMAIN 2000h, as an EDS."""

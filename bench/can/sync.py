@@ -55,9 +55,6 @@ SYNC_SETTLE_S = 1.0
 card and ``cifemu sim`` starting theirs."""
 
 
-# --- 5. SYNC jitter ----------------------------------------------------------------------------
-
-
 def sync_stats(stamps: npt.NDArray[np.float64], period_s: float,
                seconds: float) -> dict[str, Any]:
     """Period and jitter (|period - nominal|) statistics of successive SYNC time stamps."""
