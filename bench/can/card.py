@@ -210,6 +210,17 @@ def configure(card: SimCard, network: Network) -> float:
     return marks[-1]
 
 
+def start_uncontrolled(card: SimCard, network: Network) -> tuple[Board, float, float]:
+    """The PDO phases' card: uncontrolled handshake, configured on line, every node in
+    Nd_state. Returns the board and the perf_counter() marks of the bus parameter download
+    and of the last node entering Nd_state."""
+    board = board_of(card)
+    select_uncontrolled(board)
+    bus_download = configure(card, network)
+    operating = wait_operating(board.number, len(network.nodes))
+    return board, bus_download, operating
+
+
 def io_offsets(network: Network) -> tuple[int, int]:
     """Output and input offset of the first node; the nodes' 8 bytes must follow each other."""
     dbm = build_dbm(network)

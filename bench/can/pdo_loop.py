@@ -20,13 +20,10 @@ import canopen
 from bench.can.baseline import in_process, start_all
 from bench.can.card import (
     TIMEOUT_MS,
-    board_of,
-    configure,
     io_offsets,
     network_toml,
-    select_uncontrolled,
     simulated_card,
-    wait_operating,
+    start_uncontrolled,
 )
 from bench.common import (
     Measured,
@@ -66,10 +63,7 @@ def _summary(measured: Measured, firmware_log: dict[str, Any] | None = None) -> 
 def card_pdo_latency(count: int, warmup: int) -> dict[str, Any]:
     network = parse_network(network_toml([1]))
     with simulated_card(network_toml([1])) as card:
-        board = board_of(card)
-        select_uncontrolled(board)
-        configure(card, network)
-        wait_operating(board.number, 1)
+        board, _, _ = start_uncontrolled(card, network)
         out_offset, in_offset = io_offsets(network)
         number, exchange, clock = board.number, DevExchangeIO, time.perf_counter_ns
         values = itertools.cycle(VALUES)

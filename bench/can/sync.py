@@ -28,13 +28,10 @@ import numpy.typing as npt
 
 from bench.can.card import (
     SYNC_COB_ID,
-    board_of,
-    configure,
     io_offsets,
     network_toml,
-    select_uncontrolled,
     simulated_card,
-    wait_operating,
+    start_uncontrolled,
 )
 from bench.can.echo import U64, echo_window
 from bench.can.trace import read_trace
@@ -87,10 +84,7 @@ def card_sync() -> dict[str, Any]:
     network = parse_network(text)
     out_offset, in_offset = io_offsets(network)
     with simulated_card(text, trace=True, separate=True) as card:
-        board = board_of(card)
-        select_uncontrolled(board)
-        configure(card, network)
-        wait_operating(board.number, len(nodes))
+        board, _, _ = start_uncontrolled(card, network)
         time.sleep(SYNC_SETTLE_S)
         progress(f"sync (card): {SYNC_SECONDS} s idle, then {SYNC_SECONDS} s with the PDO loop")
         # The machine's floor in the same windows: this VM's wake-up latency changes

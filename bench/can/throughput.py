@@ -24,13 +24,10 @@ from bench.can.baseline import in_process, start_all
 from bench.can.card import (
     RPDO1,
     TPDO1,
-    board_of,
-    configure,
     io_offsets,
     network_toml,
-    select_uncontrolled,
     simulated_card,
-    wait_operating,
+    start_uncontrolled,
 )
 from bench.can.echo import DRAIN_S, U64, EchoWindow, echo_window
 from bench.can.profile import PROFILE_SECONDS, profile_window
@@ -79,11 +76,8 @@ def card_pdo_throughput(profile: bool) -> dict[str, Any]:
     windows: list[EchoWindow] = []
     profiled: dict[str, Any] | None = None
     with simulated_card(text, trace=True, separate=True) as card:
-        board = board_of(card)
-        select_uncontrolled(board)
         progress(f"pdo throughput (card): on-line configuration of {len(nodes)} nodes")
-        bus_download = configure(card, network)
-        operating = wait_operating(board.number, len(nodes))
+        board, bus_download, operating = start_uncontrolled(card, network)
         online_boot_s = operating - bus_download
         values: U64 = np.arange(1, len(nodes) + 1, dtype=np.uint64) << np.uint64(40)
         for active in THROUGHPUT_ACTIVE:
