@@ -170,6 +170,9 @@ def test_diff_names_table_record_and_field(tmp_path: Path, built: Path) -> None:
     assert result.returncode == 1
     assert "BUS_CAN record 1 Baud_rate: 3 -> 2" in result.stdout
     assert "DESCRIPT station 7 szDescription: valve block -> pump" in result.stdout
+    found = json.loads(cli("diff", "--json", built, other).stdout)
+    assert {"table": "DESCRIPT", "record": 7, "record_kind": "station",
+            "field": "szDescription", "a": "valve block", "b": "pump"} in found
 
 
 @needs_real_dbm
@@ -180,9 +183,6 @@ def test_diff_names_a_table_only_one_side_has(built: Path) -> None:
     assert {"table": "BUS_DP", "record": None, "record_kind": None, "field": None,
             "a": "absent", "b": "present"} in found
     assert any(d["table"] == "GLOBAL" and d["field"] == "szSegmentName" for d in found)
-    found = json.loads(cli("diff", "--json", built, other).stdout)
-    assert {"table": "DESCRIPT", "record": 7, "record_kind": "station",
-            "field": "szDescription", "a": "valve block", "b": "pump"} in found
 
 
 def test_json_errors_are_objects_and_a_closed_pipe_ends_quietly(tmp_path: Path,
