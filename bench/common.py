@@ -59,7 +59,7 @@ class Card:
         return image_path(self.directory, self.board)
 
 
-def _scratch_root() -> str | None:
+def scratch_root() -> str | None:
     """/dev/shm (where real images live, docs/dpm.md 3) when usable, else the default temp dir."""
     shm = "/dev/shm"
     return shm if os.path.isdir(shm) and os.access(shm, os.W_OK) else None
@@ -78,7 +78,8 @@ def _host_flags(image: Path) -> int | None:
     return raw[0] if raw else None
 
 
-def _wait_ready(proc: subprocess.Popen[bytes], image: Path, timeout: float) -> None:
+def wait_ready(proc: subprocess.Popen[bytes], image: Path, timeout: float) -> None:
+    """Until ``image`` shows READY; RuntimeError when the firmware ends or ``timeout`` passes."""
     deadline = time.monotonic() + timeout
     while True:
         flags = _host_flags(image)
@@ -92,7 +93,8 @@ def _wait_ready(proc: subprocess.Popen[bytes], image: Path, timeout: float) -> N
         time.sleep(0.005)
 
 
-def _stop(proc: subprocess.Popen[bytes]) -> None:
+def stop_process(proc: subprocess.Popen[bytes]) -> None:
+    """SIGTERM, and SIGKILL when the process has not ended ``STOP_TIMEOUT`` seconds later."""
     if proc.poll() is not None:
         return
     proc.send_signal(signal.SIGTERM)
@@ -112,7 +114,7 @@ def running_card(board: int = 0, *, startup_timeout: float = STARTUP_TIMEOUT) ->
     (log lines at WARNING and above) goes to ours. On exit it gets SIGTERM, and is
     killed if it has not ended after ``STOP_TIMEOUT`` seconds.
     """
-    with tempfile.TemporaryDirectory(prefix="cifemu-bench-", dir=_scratch_root()) as tmp:
+    with tempfile.TemporaryDirectory(prefix="cifemu-bench-", dir=scratch_root()) as tmp:
         directory = Path(tmp)
         command = [sys.executable, "-m", "firmware", "--board", str(board),
                    "--dpm-dir", tmp, "--flash", str(directory / "flash"),
@@ -120,11 +122,11 @@ def running_card(board: int = 0, *, startup_timeout: float = STARTUP_TIMEOUT) ->
         proc = subprocess.Popen(command, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL)
         try:
             card = Card(directory, board, proc.pid)
-            _wait_ready(proc, card.image, startup_timeout)
+            wait_ready(proc, card.image, startup_timeout)
             progress(f"firmware pid {proc.pid} READY on {card.image}")
             yield card
         finally:
-            _stop(proc)
+            stop_process(proc)
 
 
 @contextmanager
@@ -204,6 +206,46 @@ def measure(step: Step, count: int, warmup: int, accepted: frozenset[int]) -> Me
             failures += 1
     elapsed = clock() - start
     return Measured(count, latencies, elapsed, failures, codes)
+
+
+@dataclass(slots=True)
+class Rate:
+    """The figures of one ``timed`` run: transfers, failures, seconds, payload bytes."""
+
+    transfers: int = 0
+    failures: int = 0
+    elapsed_s: float = 0.0
+    payload_bytes: int = 0
+
+    def per_s(self) -> float:
+        return self.transfers / self.elapsed_s if self.elapsed_s else 0.0
+
+    def kib_per_s(self) -> float:
+        return self.payload_bytes / 1024 / self.elapsed_s if self.elapsed_s else 0.0
+
+
+def timed(step: Callable[[], bool], warmup: int, seconds: float, payload: int) -> Rate:
+    """Run ``step`` (True = success) ``warmup`` times, then for ``seconds``.
+
+    The time-boxed sibling of ``measure``, for steps too slow to count in advance (a
+    whole SDO transfer): ``payload`` bytes count towards ``Rate.kib_per_s`` per success.
+    """
+    for _ in range(warmup):
+        step()
+    rate = Rate()
+    clock = time.perf_counter
+    start = clock()
+    end = start + seconds
+    while True:
+        if step():
+            rate.transfers += 1
+            rate.payload_bytes += payload
+        else:
+            rate.failures += 1
+        now = clock()
+        if now >= end:
+            rate.elapsed_s = now - start
+            return rate
 
 
 def percentile(sorted_values: list[int] | list[float], q: float) -> float:

@@ -47,6 +47,8 @@ from dbm_tools.builder import build_dbm
 from dbm_tools.container import read_dbm, save_dbm
 from dbm_tools.network import parse_network
 from dbm_tools.validate import check_dbm
+from dpm.commands import LOAD_FIRST_LENGTH
+from dpm.layout import MSG_HEADER_SIZE
 from firmware.flash import FLASH_ENV
 from host_api.download import CHUNK, CONFIGURATION_DOWNLOAD, DevDownload
 
@@ -56,8 +58,8 @@ DEFAULT_COUNT = 100
 DEFAULT_WARMUP = 10
 DOWNLOAD_SHARE = 5
 """Downloads take longer than a parse: they run count / DOWNLOAD_SHARE times."""
-FIRST_MESSAGE_BYTES = 8 + 51
-ANSWER_BYTES = 8
+FIRST_MESSAGE_BYTES = MSG_HEADER_SIZE + LOAD_FIRST_LENGTH
+ANSWER_BYTES = MSG_HEADER_SIZE
 TARGET_PARSE_CHECK_P50_MS = 20.0
 
 FAILED = 1

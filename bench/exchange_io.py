@@ -33,6 +33,7 @@ from bench.common import (
 )
 from dpm.errors import Drv
 from dpm.layout import DPM_SIZE, RCV_PD, SND_PD
+from dpm.task2 import BMODE_TO_EXCHANGE_MODE, PlcMode
 from host_api.driver import (
     GET_IO_INFO,
     WARMSTART,
@@ -64,10 +65,13 @@ class Mode:
     target_calls_per_s: float | None
 
 
-MODES = (
-    Mode(3, 2, "uncontrolled", 100_000.0),
-    Mode(4, 3, "buffered_host_controlled", 5_000.0),
-    Mode(2, 1, "buffered_device_controlled", None),
+MODES = tuple(
+    Mode(BMODE_TO_EXCHANGE_MODE[b_mode], b_mode, name, target)
+    for b_mode, name, target in (
+        (PlcMode.UNCONTROLLED, "uncontrolled", 100_000.0),
+        (PlcMode.BUFFERED_HOST_CONTROLLED, "buffered_host_controlled", 5_000.0),
+        (PlcMode.BUFFERED_DEVICE_CONTROLLED, "buffered_device_controlled", None),
+    )
 )
 
 

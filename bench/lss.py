@@ -42,16 +42,16 @@ import canopen
 
 from bench.common import (
     STARTUP_TIMEOUT,
-    _scratch_root,
-    _stop,
-    _wait_ready,
     add_size_arguments,
     emit,
     help_text,
     machine_info,
     progress,
     ratio,
+    scratch_root,
     source_fingerprint,
+    stop_process,
+    wait_ready,
 )
 from dbm_tools.network import parse_network
 from dpm.image import image_path
@@ -95,7 +95,7 @@ def one_bits(address: LssAddress) -> int:
 @contextmanager
 def simulated_card(description: str) -> Iterator[Board]:
     """``cifemu firmware --simulate`` on a fresh image directory; yields the opened board."""
-    with tempfile.TemporaryDirectory(prefix="cifemu-bench-lss-", dir=_scratch_root()) as tmp:
+    with tempfile.TemporaryDirectory(prefix="cifemu-bench-lss-", dir=scratch_root()) as tmp:
         toml = Path(tmp) / "network.toml"
         toml.write_text(description)
         command = [sys.executable, "-m", "firmware", "--board", str(BOARD), "--dpm-dir", tmp,
@@ -103,7 +103,7 @@ def simulated_card(description: str) -> Iterator[Board]:
                    "--flash", str(Path(tmp) / "flash")]
         proc = subprocess.Popen(command, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL)
         try:
-            _wait_ready(proc, image_path(Path(tmp), BOARD), STARTUP_TIMEOUT)
+            wait_ready(proc, image_path(Path(tmp), BOARD), STARTUP_TIMEOUT)
             progress(f"firmware pid {proc.pid} READY with {NODES} unconfigured LSS slaves")
             board = Board(BOARD, tmp, timeout=5000).open()
             try:
@@ -111,7 +111,7 @@ def simulated_card(description: str) -> Iterator[Board]:
             finally:
                 board.close()
         finally:
-            _stop(proc)
+            stop_process(proc)
 
 
 def scan_card(addresses: list[LssAddress], known: bool) -> dict[str, Any]:

@@ -26,7 +26,8 @@ from bench.common import (
     sized_main,
     source_fingerprint,
 )
-from dpm.message import Message
+from dpm.commands import COM_SHARED_MEMORY
+from dpm.message import Message, Task, Tdt, TelegramHeader, Tfc
 from host_api.driver import MSG_BUFFER_SIZE, DevGetMessage, DevPutMessage
 
 NAME = "mailbox"
@@ -37,9 +38,9 @@ TIMEOUT_MS = 1000
 TARGET_P50_US = 100.0
 TARGET_ROUND_TRIPS_PER_S = 10_000.0
 
-COM_SHARED_MEMORY = 17
-PLC_TASK, USER_TASK = 2, 16
-READ_TELEGRAM = bytes([0, 1, 0, 0, 0, 8, 5, 1])
+PLC_TASK, USER_TASK = Task.PLC, Task.USER
+READ_TELEGRAM = TelegramHeader(data_area=1, data_cnt=8, data_type=Tdt.UINT8,
+                               function=Tfc.READ).encode()
 """device_adr 0, data_area 1 (receive), data_adr 0, data_idx 0, data_cnt 8, uint8, read."""
 REQUEST_BYTES = 8 + len(READ_TELEGRAM)
 ANSWER_BYTES = 8 + len(READ_TELEGRAM) + 8

@@ -22,7 +22,6 @@ from pathlib import Path
 from rich.console import Console
 from rich.live import Live
 
-from dbm_tools import cli as dbm_cli
 from dbm_tools.builder import build_dbm
 from dbm_tools.container import write_dbm
 from dbm_tools.network import load_network
@@ -30,6 +29,7 @@ from dpm.flags import READY
 from dpm.layout import HOST_FLAGS
 from firmware import cli as firmware_cli
 from firmware.sim import cli as sim_cli
+from host_api import dbm_commands as dbm_cli
 from host_api import driver as d
 from host_api import status as status_cli
 from host_api.board import Board
@@ -110,7 +110,7 @@ def build_parser() -> argparse.ArgumentParser:
     status_cli.add_arguments(st)
     st.set_defaults(func=status_cli.run)
     dbm = sub.add_parser("dbm", help="DBM files: show, check, build, diff, download, upload",
-                         description=dbm_cli.__doc__,
+                         description=dbm_cli.DESCRIPTION,
                          formatter_class=argparse.RawDescriptionHelpFormatter)
     dbm_cli.add_arguments(dbm)
     dbm.set_defaults(func=dbm_cli.run)

@@ -1,8 +1,55 @@
 """DBM configuration databases and the CAN task's data sets, as pure byte codecs.
 
-- errors: DbmError and the msg.f texts of the data checks;
+- errors: DbmError, the root of every exception of this package, and the msg.f texts of
+  the data checks;
 - container: the DBM file / data-area container (read, write, build);
 - parameters: node, bus and extended bus parameter data sets (shared with the firmware);
 - tables: the other CANopen table records (GLOBAL, PLC_PARAM, PROJEKT, DESCRIPT, NODES);
-- validate: the COM_Download data checks and the whole-database check.
+- validate: the COM_Download data checks and the whole-database check;
+- network, eds, builder: the network description, EDS files and the DBM builder;
+- cli: the file commands of ``cifemu dbm`` (the card commands are host_api's).
+
+Nothing here talks to a card: the package never imports host_api or firmware.
 """
+
+from importlib.metadata import version
+
+from dbm_tools.builder import BuildError, build_dbm
+from dbm_tools.container import (
+    DbmFile,
+    DbmTable,
+    data_area,
+    load_dbm,
+    read_data_area,
+    read_dbm,
+    save_dbm,
+    write_dbm,
+)
+from dbm_tools.eds import EdsError
+from dbm_tools.errors import DbmError
+from dbm_tools.network import Network, NetworkError, load_network, parse_network
+from dbm_tools.validate import Finding, check_dbm
+
+__version__ = version("cifemu")
+
+__all__ = [
+    "BuildError",
+    "DbmError",
+    "DbmFile",
+    "DbmTable",
+    "EdsError",
+    "Finding",
+    "Network",
+    "NetworkError",
+    "__version__",
+    "build_dbm",
+    "check_dbm",
+    "data_area",
+    "load_dbm",
+    "load_network",
+    "parse_network",
+    "read_data_area",
+    "read_dbm",
+    "save_dbm",
+    "write_dbm",
+]

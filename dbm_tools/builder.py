@@ -50,6 +50,7 @@ from dataclasses import dataclass
 
 from dbm_tools.container import DbmFile, DbmTable
 from dbm_tools.eds import EdsDevice, EdsError, read_eds
+from dbm_tools.errors import DbmError
 from dbm_tools.network import (
     GENERIC_DEVICE_TYPE,
     GENERIC_PRODUCT,
@@ -104,7 +105,7 @@ GENERIC_VENDOR = "cifemu"
 GENERIC_PDO_LENGTH = 8
 
 
-class BuildError(ValueError):
+class BuildError(DbmError, ValueError):
     """A network description that gives no usable database; the message says why."""
 
 
@@ -287,7 +288,11 @@ def _descript(node: _Node, master_node_id: int) -> DescriptRecord:
 def build_dbm(
     network: Network, *, project: str | None = None, date: datetime.date | None = None
 ) -> DbmFile:
-    """The DBM of ``network``; ``project`` names it in PROJEKT, ``date`` dates it (today)."""
+    """The DBM of ``network``; ``project`` names it in PROJEKT, ``date`` dates it (today).
+
+    Raises BuildError (with the EDS's or the card's findings) when the description gives
+    no database the card would accept.
+    """
     bus = network.bus
     nodes = [_read_node(node) for node in sorted(network.nodes, key=lambda n: n.id)]
     _assign_offsets(nodes)

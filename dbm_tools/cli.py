@@ -1,4 +1,4 @@
-"""cifemu dbm: read, check, build and compare DBM files, and put them into a card.
+"""The file commands of cifemu dbm: read, check, build and compare DBM files.
 
 File commands (no card needed; FILE is a DBM file or a bare data area such as
 a card's flash file database.bin):
@@ -12,17 +12,6 @@ a card's flash file database.bin):
                               (number 0) are shown but exit 0
   build NET.toml -o OUT.dbm   a DBM from a network description and EDS files
   diff A B [--json]           table, record and field differences; exit 1 if any
-
-Card commands (a running cifemu firmware; --board N, --dpm-dir DIR):
-
-  download FILE [--reset]     DevDownload into the card's flash (driver codes
-                              and 1000 + msg.f on failure, e.g. 1020: not a
-                              CANopen database)
-  upload -o FILE              the card's stored database, as a DBM file
-  delete                      erase the stored database (seed 5.2.2)
-  dir                         the card's flash directory
-
-A stored database takes effect at the card's next start.
 """
 
 from __future__ import annotations
@@ -30,7 +19,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
-import sys
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
@@ -76,8 +64,6 @@ from dbm_tools.tables import (
 from dbm_tools.validate import Finding, check_dbm
 
 PROG = "cifemu dbm"
-SETTLE_SECONDS = 1.0
-"""How long ``download --reset`` waits for RUN after READY before it reports the flags."""
 
 DECODERS: dict[str, Callable[[bytes], Any]] = {
     GLOBAL: GlobalSet.decode,
@@ -91,7 +77,7 @@ DECODERS: dict[str, Callable[[bytes], Any]] = {
 """The CANopen tables with a codec; any other table is shown and compared as bytes."""
 
 
-class UsageError(Exception):
+class UsageError(DbmError):
     """A command that cannot run (unreadable file, no card); the text is for the user."""
 
 
@@ -378,17 +364,21 @@ def build(network_path: Path, output: Path, name: str | None, console: Console) 
 # --- diff ----------------------------------------------------------------------------------
 
 
-def _records_by_key(dbm: DbmFile, name: str) -> dict[str, bytes]:
-    """Records by their key ("node 5"; DESCRIPT: "station 5") or their slot ("record 3")."""
+RecordKey = tuple[str, int]
+"""How a record is found again in the other file: ("node", 5), ("station", 5) by its key,
+("record", 3) by its slot."""
+
+
+def _records_by_key(dbm: DbmFile, name: str) -> dict[RecordKey, bytes]:
+    """Records by their key (NODES: node address; DESCRIPT: station) or their slot."""
     table = dbm.table(name)
     assert table is not None
     if name == DESCRIPT and all(table.records):
-        return {f"station {r[0]}": r for r in table.records}
+        return {("station", r[0]): r for r in table.records}
     if not table.keyed:
-        return {f"record {n}": r for n, r in enumerate(table.records, start=1)}
+        return {("record", n): r for n, r in enumerate(table.records, start=1)}
     label = "node" if name == NODES else "key"
-    return {f"{label} {int.from_bytes(r[: table.key_length], 'little')}": r
-            for r in table.records}
+    return {(label, int.from_bytes(r[: table.key_length], "little")): r for r in table.records}
 
 
 def _record_differences(name: str, a: bytes, b: bytes) -> list[tuple[str, Any, Any]]:
@@ -408,11 +398,17 @@ def _record_differences(name: str, a: bytes, b: bytes) -> list[tuple[str, Any, A
 
 
 def differences(a: DbmFile, b: DbmFile) -> list[dict[str, Any]]:
-    """Every difference as {table, record, field, a, b}; record/field None at table level."""
+    """Every difference as {table, record, record_kind, field, a, b}.
+
+    ``record`` is the record's number (node address, station, key or slot) and
+    ``record_kind`` says which; both, like ``field``, are None at table level.
+    """
     out: list[dict[str, Any]] = []
 
-    def add(table: str, record: str | None, field: str | None, left: Any, right: Any) -> None:
-        out.append({"table": table, "record": record, "field": field,
+    def add(table: str, record: RecordKey | None, field: str | None, left: Any,
+            right: Any) -> None:
+        kind, number = record if record is not None else (None, None)
+        out.append({"table": table, "record": number, "record_kind": kind, "field": field,
                     "a": plain(left), "b": plain(right)})
 
     names_a, names_b = [t.name for t in a.tables], [t.name for t in b.tables]
@@ -442,179 +438,19 @@ def diff(path_a: Path, path_b: Path, as_json: bool, console: Console) -> int:
         print(json.dumps(found, indent=2))
         return 1 if found else 0
     for d in found:
-        where = " ".join(str(p) for p in (d["table"], d["record"], d["field"]) if p is not None)
+        where = " ".join(str(p) for p in (d["table"], d["record_kind"], d["record"], d["field"])
+                         if p is not None)
         console.print(f"{where}: [red]{d['a']}[/] -> [green]{d['b']}[/]", highlight=False)
     console.print(f"{len(found)} difference(s)" if found else "no differences")
     return 1 if found else 0
 
 
-# --- the card --------------------------------------------------------------------------------
-# The card commands need the driver; host_api is imported only here, so that the file tools
-# (and the firmware, which loads them) never pull it in.
-
-
-class _Card:
-    """DevOpenDriver + DevInitBoard for one command, with the driver's error texts."""
-
-    def __init__(self, board: int, directory: str | None) -> None:
-        from host_api import driver
-
-        self.driver = driver
-        self.board = board
-        rc = driver.DevOpenDriver(directory)
-        if rc != 0:
-            raise UsageError(f"cannot open the image directory: {self.describe(rc)}")
-        rc = driver.DevInitBoard(board)
-        if rc != 0:
-            driver.DevCloseDriver()
-            raise UsageError(f"board {board}: {self.describe(rc)} (is `cifemu firmware "
-                             f"--board {board}` running?)")
-
-    @staticmethod
-    def describe(rc: int) -> str:
-        from dpm.errors import drv_name, drv_text
-
-        return f"{drv_name(rc)} ({rc}): {drv_text(rc)}"
-
-    def host_flags(self) -> int:
-        rc, info = self.driver.DevGetInfo(self.board, self.driver.GET_DRIVER_INFO, 33)
-        return int(self.driver.DRIVERINFO.unpack(info)[11]) if rc == 0 else 0  # bHostFlags
-
-    def cold_start(self) -> int:
-        """DevReset(COLDSTART), then HostFlags once RUN shows (a configured card) or soon."""
-        import time
-
-        rc = self.driver.DevReset(self.board, self.driver.COLDSTART, 10_000)
-        if rc != 0:
-            raise UsageError(f"cold start failed: {self.describe(rc)}")
-        deadline = time.monotonic() + SETTLE_SECONDS  # RUN and COM follow READY
-        while not self.host_flags() & 0x40 and time.monotonic() < deadline:
-            time.sleep(0.01)
-        time.sleep(0.01)
-        return self.host_flags()
-
-    def close(self) -> None:
-        self.driver.DevExitBoard(self.board)
-        self.driver.DevCloseDriver()
-
-
-def _progress(console: Console, what: str) -> Any:
-    from rich.progress import BarColumn, DownloadColumn, Progress, TextColumn, TransferSpeedColumn
-
-    return Progress(TextColumn(what), BarColumn(), DownloadColumn(), TransferSpeedColumn(),
-                    console=console, transient=True)
-
-
-def download(path: Path, board: int, directory: str | None, reset: bool,
-             console: Console) -> int:
-    from host_api.download import CONFIGURATION_DOWNLOAD, DevDownload
-
-    try:
-        errors = [f for f in check_dbm(load_any(path)) if f.severity == "error"]
-    except UsageError:
-        errors = []  # DevDownload judges what it cannot send
-    if errors:
-        console.print(f"[yellow]warning[/]: {path} fails {len(errors)} data check(s) "
-                      f"(`{PROG} check`); the card will report Err_Event 212 at its next start")
-    card = _Card(board, directory)
-    try:
-        with _progress(console, f"download {path.name}") as bar:
-            task = bar.add_task("download", total=None)
-            rc = DevDownload(board, CONFIGURATION_DOWNLOAD, path,
-                             lambda done, total: bar.update(task, completed=done, total=total))
-        if rc != 0:
-            raise UsageError(f"download refused: {card.describe(rc)}")
-        console.print(f"{path} stored in board {board}'s flash; it takes effect at the next start")
-        if reset:
-            flags = card.cold_start()
-            state = [name for name, bit in (("READY", 0x80), ("RUN", 0x40), ("COM", 0x20))
-                     if flags & bit]
-            console.print(f"cold start done: {' '.join(state)}")
-    finally:
-        card.close()
-    return 0
-
-
-def upload(output: Path, board: int, directory: str | None, console: Console) -> int:
-    from host_api.download import upload_database
-
-    card = _Card(board, directory)
-    try:
-        with _progress(console, "upload") as bar:
-            task = bar.add_task("upload", total=None)
-            rc, area = upload_database(
-                board, lambda done, total: bar.update(task, completed=done, total=total))
-    finally:
-        card.close()
-    if rc != 0:
-        raise UsageError(f"upload failed: {card.describe(rc)}")
-    try:
-        content = write_dbm(read_data_area(area))
-    except DbmError as exc:
-        console.print(f"[yellow]warning[/]: the stored database is not readable ({exc}); "
-                      "writing the bare data area")
-        content = area
-    try:
-        output.write_bytes(content)
-    except OSError as exc:
-        raise UsageError(f"cannot write {output}: {exc.strerror}") from None
-    console.print(f"{output}: the database of board {board} ({len(area)} bytes of data area)")
-    return 0
-
-
-def delete(board: int, directory: str | None, console: Console) -> int:
-    from host_api.download import delete_database
-
-    card = _Card(board, directory)
-    try:
-        rc = delete_database(board)
-    finally:
-        card.close()
-    if rc != 0:
-        raise UsageError(f"delete failed: {card.describe(rc)}")
-    console.print(f"board {board}: database deleted; from the next start the card waits "
-                  "for an on-line configuration")
-    return 0
-
-
-def directory_listing(board: int, directory: str | None, as_json: bool,
-                      console: Console) -> int:
-    import time
-
-    from host_api.download import flash_directory
-
-    card = _Card(board, directory)
-    try:
-        rc, entries = flash_directory(board)
-    finally:
-        card.close()
-    if rc != 0:
-        raise UsageError(f"flash directory failed: {card.describe(rc)}")
-    if as_json:
-        print(json.dumps([plain(e) for e in entries], indent=2))
-        return 0
-    if not entries:
-        console.print(f"board {board}: no database stored")
-    for e in entries:
-        when = time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(e.stored))
-        console.print(f"board {board}: segment {e.segment} {e.name!r}, {e.length} bytes, "
-                      f"w0 {e.checksum:#06x}, stored {when}", highlight=False)
-    return 0
-
-
 # --- command line ----------------------------------------------------------------------------
 
 
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from dpm.image import DEFAULT_DPM_DIR, MAX_DEV_BOARDS
-
+def add_arguments(parser: argparse.ArgumentParser) -> argparse._SubParsersAction[Any]:
+    """The file commands; returns the subcommands, to which host_api adds the card's."""
     sub = parser.add_subparsers(dest="dbm_command", required=True, metavar="COMMAND")
-
-    def card_options(p: argparse.ArgumentParser) -> None:
-        p.add_argument("--board", type=int, default=0, choices=range(MAX_DEV_BOARDS),
-                       metavar="N", help="board number 0..3 (default 0)")
-        p.add_argument("--dpm-dir", default=None,
-                       help=f"image directory (default $CIF_DPM_DIR or {DEFAULT_DPM_DIR})")
 
     p = sub.add_parser("show", help="show every table, decoded where a codec exists",
                        description="Show a DBM file's tables. GLOBAL, BUS_CAN, BUS_CAN_EXT, "
@@ -648,58 +484,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     p.add_argument("a", type=Path, metavar="A", help="a DBM file or a bare data area")
     p.add_argument("b", type=Path, metavar="B", help="the one to compare it with")
     p.add_argument("--json", action="store_true", help="print the differences as JSON")
-    p = sub.add_parser("download", help="put a DBM into a card's flash (DevDownload)",
-                       description="Download a DBM into a running card's flash with "
-                       "DevDownload. Failures show the driver's code: -100..-105 for file "
-                       "problems, 1000+f for the card's refusal (1020 not a CANopen database, "
-                       "1022 wrong message number, 1023 wrong size, 1024 wrong sequence, "
-                       "1025 checksum). The database takes effect at the next start.")
-    p.add_argument("file", type=Path, metavar="FILE", help="the DBM file (*.dbm)")
-    card_options(p)
-    p.add_argument("--reset", action="store_true", help="cold-start the card afterwards")
-    p = sub.add_parser("upload", help="read a card's stored database into a DBM file",
-                       description="Upload the database stored in a running card's flash.")
-    p.add_argument("-o", "--output", type=Path, required=True, metavar="FILE",
-                   help="the DBM file to write")
-    card_options(p)
-    p = sub.add_parser("delete", help="erase a card's stored database",
-                       description="Delete the database in a running card's flash (seed "
-                       "5.2.2). From its next start the card comes up READY without RUN and "
-                       "takes an on-line configuration.")
-    card_options(p)
-    p = sub.add_parser("dir", help="list a card's flash directory",
-                       description="What a running card's flash holds: segment, segment "
-                       "name, size, checksum and when it was stored.")
-    card_options(p)
-    p.add_argument("--json", action="store_true", help="print the entries as JSON")
+    return sub
 
 
-def run(args: argparse.Namespace) -> int:
-    console = Console()
+def dispatch(args: argparse.Namespace, console: Console) -> int:
+    """Run one file command: its exit status, or UsageError for the caller to report."""
     command = args.dbm_command
-    try:
-        if command == "show":
-            return show(args.file, args.json, console)
-        if command == "check":
-            return check(args.file, args.json, console)
-        if command == "build":
-            return build(args.network, args.output, args.name, console)
-        if command == "diff":
-            return diff(args.a, args.b, args.json, console)
-        if command == "download":
-            return download(args.file, args.board, args.dpm_dir, args.reset, console)
-        if command == "upload":
-            return upload(args.output, args.board, args.dpm_dir, console)
-        if command == "delete":
-            return delete(args.board, args.dpm_dir, console)
-        return directory_listing(args.board, args.dpm_dir, args.json, console)
-    except UsageError as exc:
-        print(f"{PROG} {command}: {exc}", file=sys.stderr)
-        return 1
+    if command == "show":
+        return show(args.file, args.json, console)
+    if command == "check":
+        return check(args.file, args.json, console)
+    if command == "build":
+        return build(args.network, args.output, args.name, console)
+    return diff(args.a, args.b, args.json, console)
 
-
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m dbm_tools", description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
-    add_arguments(parser)
-    return run(parser.parse_args(argv))

@@ -155,7 +155,10 @@ def _check_table(table: DbmTable, names: set[str]) -> None:
 
 
 def data_area(dbm: DbmFile) -> bytes:
-    """The bytes a card stores and receives: root block and table blocks, no file header."""
+    """The bytes a card stores and receives: root block and table blocks, no file header.
+
+    Raises DbmError for tables the container cannot hold (names, keys, sizes).
+    """
     if len(dbm.tables) > MAX_TABLES:
         raise DbmError(f"more than {MAX_TABLES} tables")
     names: set[str] = set()
@@ -216,7 +219,8 @@ def data_area(dbm: DbmFile) -> bytes:
 
 
 def write_dbm(dbm: DbmFile) -> bytes:
-    """A complete DBM file: the 44-byte file header followed by the data area."""
+    """A complete DBM file: the 44-byte file header followed by the data area (DbmError as
+    ``data_area``)."""
     area = data_area(dbm)
     header = (
         FILE_MAGIC
@@ -236,7 +240,7 @@ def write_dbm(dbm: DbmFile) -> bytes:
 
 
 def save_dbm(path: Path, dbm: DbmFile) -> None:
-    """Write a DBM file to disk."""
+    """Write a DBM file to disk; DbmError as ``write_dbm``, OSError from the file."""
     path.write_bytes(write_dbm(dbm))
 
 
@@ -335,7 +339,7 @@ def read_data_area(data: bytes) -> DbmFile:
     """Read a bare data area, as a card stores it and answers an upload with.
 
     The result has the default file-header fields, since the data area does
-    not carry them.
+    not carry them. Raises DbmError for anything that is no data area.
     """
     data = bytes(data)
     if len(data) < 2 * ROOT_WORDS or len(data) % 2 or len(data) > MAX_DATA_AREA:
@@ -365,7 +369,7 @@ def read_data_area(data: bytes) -> DbmFile:
 
 
 def read_dbm(file: bytes) -> DbmFile:
-    """Read a complete DBM file (file header + data area)."""
+    """Read a complete DBM file (file header + data area); DbmError for anything else."""
     file = bytes(file)
     if len(file) < FILE_HEADER_SIZE or not file.startswith(FILE_MAGIC):
         raise DbmError("not a DBM file (magic)")
@@ -387,5 +391,5 @@ def read_dbm(file: bytes) -> DbmFile:
 
 
 def load_dbm(path: Path) -> DbmFile:
-    """Read a DBM file from disk."""
+    """Read a DBM file from disk; DbmError as ``read_dbm``, OSError from the file."""
     return read_dbm(path.read_bytes())

@@ -26,6 +26,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from dbm_tools.errors import DbmError
+
 RPDO_COMMUNICATION = 0x1400
 RPDO_MAPPING = 0x1600
 TPDO_COMMUNICATION = 0x1800
@@ -42,7 +44,7 @@ MAX_PDO_BYTES = 8
 DEFAULT_TRANSMISSION = 255
 
 
-class EdsError(ValueError):
+class EdsError(DbmError, ValueError):
     """An EDS/DCF file the builder cannot use; the message names the file and the object."""
 
 
@@ -126,7 +128,10 @@ def _pdos(od: Any, where: Path) -> list[EdsPdo]:
 
 
 def read_eds(path: Path, node_id: int) -> EdsDevice:
-    """Read an EDS/DCF file for node ``node_id`` ($NODEID resolves to it)."""
+    """Read an EDS/DCF file for node ``node_id`` ($NODEID resolves to it).
+
+    Raises EdsError for a file that cannot be read or that the card cannot map.
+    """
     import canopen  # a quarter of a second: only ``build`` pays it, not show/check/diff
 
     try:

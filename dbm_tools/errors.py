@@ -1,9 +1,12 @@
-"""The one exception of dbm_tools and the error texts of the CAN task's data checks.
+"""The root exception of dbm_tools and the error texts of the CAN task's data checks.
 
 Everything that reads or writes a DBM file or a data set ends in `DbmError`, so
 a caller (the firmware loading its flash, a host tool reading a user's file)
 needs a single ``except`` and never sees a bare IndexError or struct.error
-from a truncated or hostile file.
+from a truncated or hostile file. The package's other exceptions derive from it:
+``NetworkError`` (a network description), ``EdsError`` (an EDS/DCF file),
+``BuildError`` (a description that gives no usable database) and the file
+commands' ``UsageError``.
 """
 
 from __future__ import annotations
@@ -72,7 +75,8 @@ FAULTY_DATABASE = 212
 
 
 class DbmError(Exception):
-    """A DBM file, table record or data set that cannot be read or written.
+    """A DBM file, table record or data set that cannot be read or written; the root of
+    every exception dbm_tools raises.
 
     `number` is set when the defect is one the CAN task reports with a seed
     msg.f number (a data set's length fields), so the firmware can answer a

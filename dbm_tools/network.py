@@ -81,6 +81,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from dbm_tools.errors import DbmError
+
 BITRATES: dict[int, int] = {
     1_000_000: 0, 800_000: 1, 500_000: 2, 250_000: 3, 125_000: 4,
     100_000: 5, 50_000: 6, 20_000: 7, 10_000: 8,
@@ -106,7 +108,7 @@ HANDSHAKES: dict[str, int] = {
 """[bus] handshake -> PLC_PARAM bMode (seed 2.1, CANM_SET_MODE_*)."""
 
 
-class NetworkError(ValueError):
+class NetworkError(DbmError, ValueError):
     """A network description that cannot be used; the message names the key."""
 
 
@@ -427,7 +429,10 @@ def _node(table: dict[str, Any], where: str, base: Path) -> NodeDescription:
 
 
 def parse_network(text: str, base: Path = Path(".")) -> Network:
-    """Parse a network description; EDS paths are relative to ``base``."""
+    """Parse a network description; EDS paths are relative to ``base``.
+
+    Raises NetworkError naming the key of anything the description gets wrong.
+    """
     try:
         doc = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
@@ -450,6 +455,8 @@ def parse_network(text: str, base: Path = Path(".")) -> Network:
 
 
 def load_network(path: str | Path) -> Network:
+    """Read and parse a network description file; NetworkError when it cannot be read or
+    used."""
     path = Path(path)
     try:
         text = path.read_text()

@@ -3,6 +3,9 @@
 BUS_CAN and BUS_CAN_EXT records are the download data sets themselves (use
 dbm_tools.parameters); NODES records prefix a node parameter data set with
 the node address. The other tables are DBM-only and live here.
+
+Every ``decode`` raises DbmError for bytes its record cannot be, every ``encode`` for
+values that do not fit the record's fields.
 """
 
 from __future__ import annotations

@@ -20,9 +20,11 @@ from dpm.errors import Drv, drv_name, drv_text
 from dpm.message import Message
 from dpm.task2 import ComDiagnostics, ComPlcParameter
 from host_api import driver as d
+from host_api.errors import HostApiError
+from host_api.registry import transaction_lock
 
 
-class CifError(Exception):
+class CifError(HostApiError):
     """A driver call failed: ``code``, ``name`` (e.g. DRV_DEV_NOT_READY) and ``text``."""
 
     def __init__(self, code: int, call: str = "") -> None:
@@ -39,7 +41,11 @@ def _check(code: int, call: str) -> None:
 
 
 class Board:
-    """One board of the emulated card, opened on enter and closed on exit."""
+    """One board of the emulated card, opened on enter and closed on exit.
+
+    Every method that calls the driver raises ``CifError`` with the driver's code when
+    the call does not return DRV_NO_ERROR; ``close`` never raises.
+    """
 
     def __init__(self, number: int = 0, directory: str | Path | None = None,
                  timeout: int = 1000) -> None:
@@ -91,11 +97,11 @@ class Board:
         """
         if msg.nr == 0:
             msg.nr = next(self._nr) % 255 + 1
-        board = d._driver.boards.get(self.number)
-        if board is None:
+        lock = transaction_lock(self.number)
+        if lock is None:
             raise CifError(Drv.DRV_USR_NOT_INITIALIZED, "transact")
         wait = self._timeout(timeout)
-        if not board.transaction_lock.acquire(wait / 1000.0):
+        if not lock.acquire(wait / 1000.0):
             raise CifError(Drv.DRV_CMD_ACTIVE, "transact")
         try:
             self.put_message(msg, wait)
@@ -104,7 +110,7 @@ class Board:
                 if answer.nr == msg.nr and answer.a == msg.b:
                     return answer
         finally:
-            board.transaction_lock.release()
+            lock.release()
 
     # --- process data ------------------------------------------------------------------------
 

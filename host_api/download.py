@@ -47,7 +47,9 @@ from pathlib import Path
 from dbm_tools.container import FILE_HEADER_SIZE, FILE_MAGIC, MAX_DATA_AREA
 from dpm.errors import Drv
 from dpm.message import Ext, Message, Task
+from host_api.driver import MSG_BUFFER_SIZE, DevGetMessage, DevPutMessage
 from host_api.locks import ChannelLock
+from host_api.registry import MappedBoard, ready_board
 
 FIRMWARE_DOWNLOAD = 1
 CONFIGURATION_DOWNLOAD = 2
@@ -141,8 +143,8 @@ class _Session:
         self.lock: ChannelLock | None = None
 
     def __enter__(self) -> int:
-        board = d._ready_board(self.number)
-        if not isinstance(board, d._Board):
+        board = ready_board(self.number)
+        if not isinstance(board, MappedBoard):
             return int(board)
         if not board.transaction_lock.acquire(LOCK_WAIT_MS / 1000.0):
             return Drv.DRV_CMD_ACTIVE
@@ -157,11 +159,11 @@ class _Session:
         """One request and its answer; rc is 1000 + f when the card refused."""
         self.nr = (self.nr + 1) & 0xFF
         msg = Message(rx=Task.RCS, tx=Task.USER, b=LOAD_FUNCTION, data=data, nr=self.nr, e=e)
-        rc = d.DevPutMessage(self.number, msg, MESSAGE_TIMEOUT_MS)
+        rc = DevPutMessage(self.number, msg, MESSAGE_TIMEOUT_MS)
         if rc != Drv.DRV_NO_ERROR:
             return int(rc), None
         while True:
-            rc, answer = d.DevGetMessage(self.number, d.MSG_BUFFER_SIZE, MESSAGE_TIMEOUT_MS)
+            rc, answer = DevGetMessage(self.number, MSG_BUFFER_SIZE, MESSAGE_TIMEOUT_MS)
             if rc != Drv.DRV_NO_ERROR or answer is None:
                 return int(rc), None
             if answer.nr == msg.nr and answer.a == LOAD_FUNCTION:
@@ -261,6 +263,3 @@ def flash_directory(number: int) -> tuple[int, list[FlashEntry]]:
                                   checksum, stored))
     return Drv.DRV_NO_ERROR, entries
 
-
-# Imported last: driver.py re-exports DevDownload, so either module may be imported first.
-from host_api import driver as d  # noqa: E402

@@ -6,7 +6,9 @@ parameters come back in a tuple after the return code::
 
     rc, msg = DevGetMessage(0, 288, 500)
 
-Timeouts are milliseconds; 0 means try once and never wait.
+Timeouts are milliseconds; 0 means try once and never wait. No function raises for a
+failure the driver reports: every one is a return code (``host_api.board.Board`` turns
+them into ``CifError``).
 
 Concurrency [ours]: DevPutMessage, DevGetMessage and the process-data
 exchange are each atomic across threads and processes. A call waits for its
@@ -20,18 +22,16 @@ from __future__ import annotations
 
 import mmap
 import struct
-import threading
 import time
-from collections.abc import Callable
 from dataclasses import dataclass
+from importlib.metadata import version
 from pathlib import Path
 
 from dpm import flags as fl
-from dpm.doorbell import POLL_INTERVAL, HostBell
+from dpm.doorbell import HostBell
 from dpm.errors import Drv
 from dpm.image import MAX_DEV_BOARDS, dpm_dir, image_path, lock_path, open_image
 from dpm.layout import (
-    DEV_FLAGS,
     DEV_IDENTIFIER,
     DEV_INFO,
     DEV_MBX,
@@ -59,8 +59,14 @@ from dpm.layout import (
 )
 from dpm.message import Message, MessageError
 from host_api.locks import ChannelLock
+from host_api.registry import Counters as _Counters
+from host_api.registry import MappedBoard as _Board
+from host_api.registry import lookup as _board
+from host_api.registry import ready_board as _ready_board
+from host_api.registry import registry
 
-DRIVER_VERSION = b"cifemu V0.1.0"
+DRIVER_VERSION = f"cifemu V{version('cifemu')}".encode()[:16]
+"""BOARD_INFO.abDriverVersion (16 bytes): the installed distribution's version."""
 
 # Mode and function constants of CIFUSER.H
 COLDSTART, WARMSTART, BOOTSTART = 2, 3, 4
@@ -75,8 +81,6 @@ STATE_FLAG_UNKNOWN = 0xFF
 """usStateFlag when the card's state-field mode is neither 3 nor 4."""
 
 MSG_BUFFER_SIZE = 288
-SPIN_SECONDS = 100e-6
-"""How long a waiting call watches the flags before it sleeps on the bell."""
 RAW_AREA_LIMIT = 1022
 """DevReadWriteDPMRaw reaches the last kilobyte up to, not including, the flags."""
 
@@ -121,117 +125,9 @@ class ComState:
         return COMSTATE.pack(self.usMode, self.usStateFlag, self.abState)
 
 
-@dataclass
-class _Counters:
-    open: int = 0
-    close: int = 0
-    read: int = 0
-    write: int = 0
-    irq: int = 0
-    last_function: int = 0
-    io: int = 0
-
-
-@dataclass
-class _Board:
-    """One initialised board: its map, its bell, its channel locks."""
-
-    number: int
-    path: Path
-    mm: mmap.mmap
-    bell: HostBell
-    put_lock: ChannelLock
-    get_lock: ChannelLock
-    io_lock: ChannelLock
-    flags_lock: ChannelLock
-    transaction_lock: ChannelLock
-    counters: _Counters
-    """The driver's for this board number (``_Driver.counters``), kept past DevExitBoard."""
-
-    def host(self) -> int:
-        return self.mm[HOST_FLAGS]
-
-    def dev(self) -> int:
-        return self.mm[DEV_FLAGS]
-
-    def ready(self) -> bool:
-        return bool(self.host() & fl.READY)
-
-    def change_dev_flags(
-        self, set_bits: int = 0, clear_bits: int = 0, toggle: int = 0, ring: bool = True
-    ) -> None:
-        """Read-modify-write DevFlags under the flags lock, then ring the device."""
-        with self.flags_lock:
-            value = self.dev()
-            self.mm[DEV_FLAGS] = ((value | set_bits) & ~clear_bits & 0xFF) ^ toggle
-        if ring:
-            self.bell.ring_device()
-
-    def wait_for(self, condition: Callable[[], bool], timeout_ms: int) -> bool:
-        """Wait on the bell (polling as a fallback) until ``condition`` or the timeout."""
-        if condition():
-            return True
-        if timeout_ms <= 0:
-            return False
-        deadline = time.monotonic() + timeout_ms / 1000.0
-        # A card answers most requests within tens of microseconds: checking the
-        # flags for that long first saves the sleep and wake-up of the bell. Only a
-        # single-threaded host spins: in a host with more threads the spinning one
-        # would hold the interpreter lock the others need (the CiA 309 gateway's
-        # mailbox reader and its callers).
-        if threading.active_count() == 1:
-            spin_end = time.perf_counter() + SPIN_SECONDS
-            while time.perf_counter() < spin_end:
-                if condition():
-                    return True
-        while True:
-            remaining = deadline - time.monotonic()
-            if remaining <= 0:
-                return condition()
-            if self.bell.wait(min(remaining, POLL_INTERVAL)):
-                self.counters.irq += 1
-            if condition():
-                return True
-
-    def close(self) -> None:
-        self.bell.close()
-        for lock in (self.put_lock, self.get_lock, self.io_lock, self.flags_lock,
-                     self.transaction_lock):
-            lock.close()
-        self.mm.close()
-
-
-class _Driver:
-    def __init__(self) -> None:
-        self.lock = threading.RLock()
-        self.open_count = 0
-        self.directory: Path | None = None
-        self.boards: dict[int, _Board] = {}
-        self.counters: dict[int, _Counters] = {}
-        """DRIVERINFO per board number: kept from DevExitBoard to the next DevInitBoard, as
-        the real driver keeps them while it is loaded (here: while this process has it open)."""
-
-
-_driver = _Driver()
-
-
-def _board(number: int) -> _Board | int:
-    """The initialised board, or the return code that says why not."""
-    if not 0 <= number < MAX_DEV_BOARDS:
-        return Drv.DRV_USR_DEV_NUMBER_INVALID
-    if _driver.open_count == 0:
-        return Drv.DRV_USR_NOT_INITIALIZED
-    board = _driver.boards.get(number)
-    if board is None:
-        return Drv.DRV_USR_NOT_INITIALIZED
-    return board
-
-
-def _ready_board(number: int) -> _Board | int:
-    board = _board(number)
-    if isinstance(board, _Board) and not board.ready():
-        return Drv.DRV_DEV_NOT_READY
-    return board
+_driver = registry
+"""This module's name for the registry. host_api.cia309.gateway still reads a board's
+transaction lock through it; the public way is ``host_api.registry.transaction_lock``."""
 
 
 # --- driver and board ------------------------------------------------------------------
@@ -724,11 +620,6 @@ def DevReadWriteDPMRaw(
     return Drv.DRV_NO_ERROR, b""
 
 
-# Last, because host_api.download uses this module: DevDownload lives there.
-from host_api.download import CONFIGURATION_DOWNLOAD, FIRMWARE_DOWNLOAD  # noqa: E402
-from host_api.download import DevDownload as DevDownload  # noqa: E402
-
 __all__ = [name for name in dir() if name.startswith("Dev")] + [
-    "CONFIGURATION_DOWNLOAD", "FIRMWARE_DOWNLOAD",
     "BOOTSTART", "COLDSTART", "HOST_NOT_READY", "HOST_READY", "WARMSTART", "ComState",
 ]

@@ -170,6 +170,9 @@ def test_diff_names_table_record_and_field(tmp_path: Path, built: Path) -> None:
     assert result.returncode == 1
     assert "BUS_CAN record 1 Baud_rate: 3 -> 2" in result.stdout
     assert "DESCRIPT station 7 szDescription: valve block -> pump" in result.stdout
+    found = json.loads(cli("diff", "--json", built, other).stdout)
+    assert {"table": "DESCRIPT", "record": 7, "record_kind": "station",
+            "field": "szDescription", "a": "valve block", "b": "pump"} in found
 
 
 @needs_real_dbm
@@ -177,9 +180,32 @@ def test_diff_names_a_table_only_one_side_has(built: Path) -> None:
     result = cli("diff", "--json", built, FIXTURE)
     assert result.returncode == 1
     found = json.loads(result.stdout)
-    assert {"table": "BUS_DP", "record": None, "field": None, "a": "absent",
-            "b": "present"} in found
+    assert {"table": "BUS_DP", "record": None, "record_kind": None, "field": None,
+            "a": "absent", "b": "present"} in found
     assert any(d["table"] == "GLOBAL" and d["field"] == "szSegmentName" for d in found)
+
+
+def test_json_errors_are_objects_and_a_closed_pipe_ends_quietly(tmp_path: Path,
+                                                                built: Path) -> None:
+    missing = tmp_path / "missing.dbm"
+    result = cli("check", "--json", missing, module="cifemu")
+    assert (result.returncode, result.stderr) == (1, "")
+    assert json.loads(result.stdout) == {"error": {
+        "command": "dbm check", "message": f"cannot read {missing}: No such file or directory"}}
+    result = cli("dir", "--json", "--dpm-dir", tmp_path, "--board", "1")
+    error = json.loads(result.stdout)["error"]
+    assert result.returncode == 1 and error["command"] == "dbm dir"
+    assert "is `cifemu firmware --board 1` running?" in error["message"]
+    for module in ("dbm_tools", "cifemu"):  # the reader is gone before the first line
+        command = [sys.executable, "-m", module, *(["dbm"] if module == "cifemu" else []),
+                   "show", "--json", str(built)]
+        reader = subprocess.Popen(command, cwd=ROOT, stdout=subprocess.PIPE,
+                                  stderr=subprocess.PIPE, text=True)
+        assert reader.stdout is not None and reader.stderr is not None
+        reader.stdout.close()
+        errors = reader.stderr.read()
+        assert reader.wait(60) == 1
+        assert errors == "", errors
 
 
 def test_card_commands(card: Card, tmp_path: Path, built: Path) -> None:

@@ -15,6 +15,7 @@ from pathlib import Path
 
 import pytest
 
+import host_api as d
 from dbm_tools.builder import build_dbm
 from dbm_tools.container import data_area, read_data_area, save_dbm, write_dbm
 from dbm_tools.network import parse_network
@@ -26,7 +27,6 @@ from dpm.message import Message
 from dpm.task2 import CanState, ComDiagnostics, ComPlcParameter, GlobalBits
 from firmware.device import Device
 from firmware.flash import DATABASE_FILE
-from host_api import driver as d
 from host_api.download import (
     CONFIGURATION_DOWNLOAD,
     FIRMWARE_DOWNLOAD,
@@ -34,6 +34,7 @@ from host_api.download import (
     flash_directory,
     upload_database,
 )
+from host_api.registry import registry
 from tests.conftest import ROOT, Card, start_card, wait_until
 from tests.fixtures import REAL_DBM as FIXTURE
 from tests.fixtures import needs_real_dbm
@@ -56,7 +57,7 @@ def make_dbm(directory: Path, text: str = TWO_NODES, name: str = "net.dbm") -> P
 
 
 def host_flags(board: int) -> int:
-    return d._driver.boards[board].host()
+    return registry.boards[board].host()
 
 
 def diagnostics(board: int) -> ComDiagnostics:
@@ -136,7 +137,7 @@ def test_a_database_needing_the_host_waits_for_host_ready(board: int, tmp_path: 
     cold_start(board)
     wait_until(lambda: host_flags(board) & RUN, what="RUN: the card is configured")
     assert host_flags(board) & COM == 0
-    assert d._driver.boards[board].dev() & NOTREADY
+    assert registry.boards[board].dev() & NOTREADY
     diag = diagnostics(board)
     assert diag.bCAN_State == CanState.STOP and GlobalBits.NRDY in diag.global_bits
     # bMode 2 (uncontrolled: exchange mode 3) and GLOBAL's supervision time

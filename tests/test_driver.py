@@ -14,6 +14,7 @@ from dpm.layout import offset_of
 from dpm.message import Message
 from dpm.task2 import ComDiagnostics
 from host_api import driver as d
+from host_api.registry import registry
 from tests.conftest import Card, start_card, wait_until
 
 SHM_READ_RECEIVE = bytes([0, 1, 0, 0, 0, 4, 5, 1])  # COM_Shared_Memory: 4 bytes at 0, read
@@ -190,7 +191,7 @@ def test_a_second_caller_on_a_busy_mailbox_gets_cmd_active(card: Card, board: in
         waiter = threading.Thread(
             target=lambda: results.append(d.DevPutMessage(board, shm(2, SHM_READ_RECEIVE), 400)))
         waiter.start()
-        wait_until(lambda: not d._driver.boards[board].put_lock.acquire(0), what="waiter")
+        wait_until(lambda: not registry.boards[board].put_lock.acquire(0), what="waiter")
         assert d.DevPutMessage(board, shm(3, SHM_READ_RECEIVE), 0) == Drv.DRV_CMD_ACTIVE
         waiter.join()
     finally:

@@ -45,7 +45,7 @@ from firmware.can.shm import (
     ShmBus,
     channel_path,
 )
-from firmware.can.shm_cyclic import ShmCyclicSendTask
+from firmware.can.shm_tasks import ShmCyclicSendTask
 
 ROOT = Path(__file__).resolve().parents[1]
 CAN_ERR_CRTL = 0x004

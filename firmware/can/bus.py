@@ -22,6 +22,8 @@ from typing import Any
 import can
 import canopen
 
+from firmware.errors import BusSetupError
+
 log = logging.getLogger(__name__)
 
 SEND_TIMEOUT = 0.020
@@ -197,10 +199,11 @@ class CanBus(can.Listener):
         Only for ``PERIODIC_OUTSIDE_INTERFACES``: a thread here would wait for the
         interpreter lock as the caller's own would. The frames do not pass
         ``send``; they come back through the receive path (and so into the trace)
-        as a frame from another sender does.
+        as a frame from another sender does. Raises ``BusSetupError`` on any other
+        interface.
         """
         if self.interface not in PERIODIC_OUTSIDE_INTERFACES:
-            raise ValueError(f"{self.interface} has no cyclic sending outside the interpreter")
+            raise BusSetupError(f"{self.interface} has no cyclic sending outside the interpreter")
         msg = can.Message(arbitration_id=can_id, is_extended_id=False, data=b"")
         return self.bus.send_periodic(msg, period)
 

@@ -70,7 +70,7 @@ import numpy.typing as npt
 from firmware.can.bus import CAN_ERR_CRTL, CAN_ERR_CRTL_RX_OVERFLOW
 
 if TYPE_CHECKING:
-    from firmware.can.shm_cyclic import SpareTimer
+    from firmware.can.shm_tasks import SpareTimer
 
 MAGIC = b"CIFCANS2"
 MAX_STATIONS = 64
@@ -155,7 +155,7 @@ class ShmBus(can.BusABC):
         """Per station: the records this station has taken."""
         self._timers: SpareTimer | None = None
         if timer_process:  # only once the station is open: a failed open leaves no spare
-            from firmware.can.shm_cyclic import SpareTimer  # it imports this module
+            from firmware.can.shm_tasks import SpareTimer  # only a bus that asks pays for it
 
             self._timers = SpareTimer()
         super().__init__(channel=channel, **kwargs)
@@ -265,7 +265,7 @@ class ShmBus(can.BusABC):
         if self._timers is None or modifier_callback is not None:
             return super()._send_periodic_internal(msgs, period, duration, autostart,
                                                    modifier_callback)
-        from firmware.can.shm_cyclic import ShmCyclicSendTask  # it imports this module
+        from firmware.can.shm_tasks import ShmCyclicSendTask
 
         return ShmCyclicSendTask(self._timers, self._path, msgs, period, duration, autostart)
 

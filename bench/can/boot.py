@@ -1,0 +1,151 @@
+"""Phase 4, ``boot``: 127 nodes from a stored database, against canopen's boot sequence.
+
+127 generic nodes from a stored database (DevDownload, then a cold
+start): the time from DevReset until all 127 are in Nd_state. Node 127 cannot
+be configured on line: area code 127 of COM_Download is the bus parameter
+set, so the on-line figure (taken from phase 2) has 126 nodes, timed from the
+bus parameter download. Baseline: canopen runs the card's boot sequence
+(NMT reset node, boot-up, upload 1000h, download 1017h, 1005h, 1014h, NMT
+start) for the same 127 simulated nodes, 32 nodes in parallel as the card.
+"""
+
+from __future__ import annotations
+
+import struct
+import threading
+import time
+from concurrent.futures import ThreadPoolExecutor
+from typing import Any
+
+from bench.can.baseline import in_process, sdo_client
+from bench.can.card import (
+    DEVICE_TYPE_BYTES,
+    NMT_ID,
+    RESET_TIMEOUT_MS,
+    SYNC_COB_ID,
+    board_of,
+    network_toml,
+    simulated_card,
+    wait_operating,
+)
+from bench.common import (
+    percentile,
+    progress,
+    ratio,
+)
+from dbm_tools.builder import build_dbm
+from dbm_tools.container import write_dbm
+from dbm_tools.network import parse_network
+from dpm.commands import NMT_RESET_NODE, NMT_START
+from host_api.download import CONFIGURATION_DOWNLOAD, DevDownload
+from host_api.driver import (
+    COLDSTART,
+    DevReset,
+)
+
+BOOT_NODES = 127
+BOOT_REPEATS = 3
+BOOT_WORKERS = 32
+"""The card's node-boot thread pool (firmware.can.master.Master.executor)."""
+BOOTUP_TIMEOUT_S = 3.0
+
+
+def card_boot() -> dict[str, Any]:
+    nodes = list(range(1, BOOT_NODES + 1))
+    text = network_toml(nodes)
+    database = write_dbm(build_dbm(parse_network(text)))
+    runs: list[dict[str, float]] = []
+    with simulated_card(text, separate=True) as card:
+        board = board_of(card)
+        rc = DevDownload(board.number, CONFIGURATION_DOWNLOAD, database)
+        if rc != 0:
+            raise RuntimeError(f"DevDownload returned {rc}")
+        for attempt in range(BOOT_REPEATS):
+            progress(f"boot (card): cold start {attempt + 1}/{BOOT_REPEATS} with {len(nodes)} "
+                     "nodes in the stored database")
+            start = time.perf_counter()
+            rc = DevReset(board.number, COLDSTART, RESET_TIMEOUT_MS)
+            if rc != 0:
+                raise RuntimeError(f"DevReset(COLDSTART) returned {rc}")
+            ready = time.perf_counter()
+            operating = wait_operating(board.number, len(nodes))
+            runs.append({"all_operating_s": round(operating - start, 3),
+                         "ready_s": round(ready - start, 3)})
+        firmware_log = card.log()
+    return {"nodes": len(nodes), "runs": runs,
+            "median_s": round(_median([r["all_operating_s"] for r in runs]), 3),
+            "firmware_log": firmware_log}
+
+
+def _median(values: list[float]) -> float:
+    return percentile(sorted(values), 50)
+
+
+def baseline_boot() -> dict[str, Any]:
+    nodes = list(range(1, BOOT_NODES + 1))
+    network = parse_network(network_toml(nodes))
+    runs: list[float] = []
+    with in_process(network) as (_, client):
+        bootups = {node: threading.Event() for node in nodes}
+
+        def on_error_control(can_id: int, data: bytearray, timestamp: float) -> None:
+            del timestamp
+            if data and data[0] == 0:
+                bootups[can_id - 0x700].set()
+
+        for node in nodes:
+            client.subscribe(0x700 + node, on_error_control)
+        clients = {node: sdo_client(client, node) for node in nodes}
+
+        def boot_node(node: int) -> None:
+            """The card's boot steps (firmware.can.node.NodeHandler._boot_steps)."""
+            sdo = clients[node]
+            bootups[node].clear()
+            client.send_message(NMT_ID, bytes([NMT_RESET_NODE, node]))
+            if not bootups[node].wait(BOOTUP_TIMEOUT_S):
+                raise RuntimeError(f"node {node}: no boot-up")
+            if bytes(sdo.upload(0x1000, 0)) != DEVICE_TYPE_BYTES:
+                raise RuntimeError(f"node {node}: wrong device type")
+            sdo.download(0x1017, 0, struct.pack("<H", 500))
+            sdo.download(0x1005, 0, struct.pack("<I", SYNC_COB_ID))
+            sdo.download(0x1014, 0, struct.pack("<I", 0x80 + node))
+            client.send_message(NMT_ID, bytes([NMT_START, node]))
+
+        time.sleep(0.1)  # the nodes' power-on boot-ups
+        with ThreadPoolExecutor(max_workers=BOOT_WORKERS) as pool:
+            for attempt in range(BOOT_REPEATS):
+                progress(f"boot (baseline): run {attempt + 1}/{BOOT_REPEATS}, {len(nodes)} nodes")
+                start = time.perf_counter()
+                list(pool.map(boot_node, nodes))
+                runs.append(time.perf_counter() - start)
+    return {
+        "name": f"canopen runs the card's boot sequence for the same {len(nodes)} simulated "
+                "nodes in this process: NMT reset node, wait for the boot-up, upload 1000h, "
+                "download 1017h, 1005h, 1014h, NMT start; "
+                f"{BOOT_WORKERS} nodes in parallel (the card's boot pool)",
+        "nodes": len(nodes),
+        "runs_s": [round(r, 3) for r in runs],
+        "median_s": round(_median(runs), 3),
+    }
+
+
+def boot(online_126_s: float | None) -> dict[str, Any]:
+    baseline = baseline_boot()
+    card = card_boot()
+    if online_126_s is not None:
+        card["online_126_nodes_s"] = online_126_s
+        card["online_note"] = ("on-line configuration (configure_online), 126 nodes, timed from "
+                               "the bus parameter download; node 127 cannot be configured on "
+                               "line because area code 127 of COM_Download is the bus "
+                               "parameter set (taken from the pdo_throughput phase)")
+    return {
+        "description": f"{BOOT_NODES} generic nodes stored in the card's flash (DevDownload), "
+                       "then DevReset(COLDSTART): seconds from the reset call until all "
+                       "nodes are in Nd_state (the start downloads nodes, then the bus "
+                       "parameters, which start the network)",
+        "cif": card,
+        "baseline": baseline,
+        "ratio_to_baseline": {"definition": "cif median / baseline median",
+                              "median": ratio(card["median_s"], baseline["median_s"])},
+    }
+

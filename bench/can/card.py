@@ -1,0 +1,238 @@
+"""The card under test: a firmware process with simulated nodes, and the host's board on it.
+
+Shared by every phase: the card is started as ``cifemu firmware --simulate`` (or beside
+``cifemu sim`` on a fresh ``shm`` channel), configured on line, and reached only through
+the driver API.
+"""
+
+from __future__ import annotations
+
+import itertools
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+import uuid
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from bench.common import (
+    STARTUP_TIMEOUT,
+    progress,
+    scratch_root,
+    stop_process,
+    wait_ready,
+)
+from dbm_tools.builder import build_dbm
+from dbm_tools.network import GENERIC_DEVICE_TYPE, Network
+from dbm_tools.parameters import NodeParameterSet
+from dbm_tools.tables import NODES
+from dpm.image import image_path
+from dpm.task2 import BMODE_TO_EXCHANGE_MODE, ComDiagnostics, ComPlcParameter, PlcMode
+from host_api.board import Board
+from host_api.driver import (
+    GET_IO_INFO,
+    DevGetInfo,
+    DevGetTaskState,
+)
+from host_api.online import configure_online
+
+BOARD = 0
+CHANNEL = "cifemu-bench"
+TIMEOUT_MS = 1000
+RESET_TIMEOUT_MS = 10_000
+BOOT_TIMEOUT_S = 20.0
+
+UNCONTROLLED_BMODE = PlcMode.UNCONTROLLED
+"""Task2Parameter bMode that selects the uncontrolled handshake at a warm start."""
+UNCONTROLLED_EXCHANGE_MODE = BMODE_TO_EXCHANGE_MODE[UNCONTROLLED_BMODE]
+
+RPDO1, TPDO1, NMT_ID = 0x200, 0x180, 0x000
+"""CiA 301 identifiers: RPDO1 and TPDO1 bases (plus the node-ID), the NMT command."""
+SYNC_COB_ID = 0x080
+"""CiA 301's SYNC identifier, as the network descriptions of the phases leave it."""
+DEVICE_TYPE_BYTES = GENERIC_DEVICE_TYPE.to_bytes(4, "little")
+"""Object 1000h of the generic node, as an SDO upload returns it."""
+
+SDO_TIMEOUT_TEXT = "0x05040000"
+"""canopen's SDO client logs its timeout abort with this code."""
+
+
+@dataclass(slots=True)
+class SimCard:
+    """A firmware process with its simulated network, and the host's board on it."""
+
+    directory: Path
+    proc: subprocess.Popen[bytes]
+    trace: Path | None
+    stderr: Path
+    board: Board | None = None
+    sim: subprocess.Popen[bytes] | None = None
+    """``cifemu sim`` when the nodes run in a process of their own."""
+
+    @property
+    def pid(self) -> int:
+        return self.proc.pid
+
+    def log(self) -> dict[str, Any]:
+        """What the firmware logged so far (WARNING and above): lines, SDO timeouts, examples."""
+        try:
+            lines = self.stderr.read_text(errors="replace").splitlines()
+        except FileNotFoundError:
+            lines = []
+        return {"lines": len(lines),
+                "sdo_timeouts": sum(SDO_TIMEOUT_TEXT in line for line in lines),
+                "first_lines": [line[:200] for line in lines[:3]]}
+
+    def stop(self) -> None:
+        """End the firmware (idempotent): the trace is complete afterwards."""
+        if self.board is not None:
+            self.board.close()
+            self.board = None
+        stop_process(self.proc)
+        if self.sim is not None:
+            stop_process(self.sim)
+
+
+@contextmanager
+def simulated_card(description: str, *, trace: bool = False,
+                   separate: bool = False) -> Iterator[SimCard]:
+    """``cifemu firmware --simulate`` on a fresh image directory and flash; board opened.
+
+    ``separate`` runs the nodes as ``cifemu sim`` in a process of their own, the
+    two meeting on a fresh ``shm`` channel, so the card's threads do not share
+    an interpreter lock with the simulator (as on a real bus, where the nodes
+    are other machines).
+    """
+    with tempfile.TemporaryDirectory(prefix="cifemu-bench-can-", dir=scratch_root()) as tmp:
+        directory = Path(tmp)
+        toml = directory / "network.toml"
+        toml.write_text(description)
+        trace_path = directory / "trace.log" if trace else None
+        stderr_path = directory / "firmware.stderr"
+        interface, channel = ("shm", f"bench-{uuid.uuid4().hex[:12]}") if separate else (
+            "virtual", CHANNEL)
+        command = [sys.executable, "-m", "firmware", "--board", str(BOARD), "--dpm-dir", tmp,
+                   "--log-level", "WARNING", "--interface", interface, "--channel", channel,
+                   "--flash", str(directory / "flash")]
+        if not separate:
+            command += ["--simulate", str(toml)]
+        if trace_path is not None:
+            command += ["--trace", str(trace_path)]
+        sim = None
+        if separate:
+            sim = subprocess.Popen(
+                [sys.executable, "-m", "firmware.sim", str(toml), "--interface", interface,
+                 "--channel", channel, "--log-level", "WARNING"],
+                stdin=subprocess.DEVNULL, stdout=subprocess.PIPE)
+            assert sim.stdout is not None
+            if not sim.stdout.readline().startswith(b"simulating"):  # its nodes are on the bus
+                stop_process(sim)
+                raise RuntimeError("cifemu sim did not start")
+            # The node lines are read by nobody further on: the pipe must not fill.
+            threading.Thread(target=sim.stdout.read, daemon=True).start()
+        with stderr_path.open("wb") as stderr:
+            proc = subprocess.Popen(command, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
+                                    stderr=stderr)
+        card = SimCard(directory, proc, trace_path, stderr_path, sim=sim)
+        try:
+            wait_ready(proc, image_path(directory, BOARD), STARTUP_TIMEOUT)
+            card.board = Board(BOARD, directory, timeout=5000).open()
+            yield card
+        finally:
+            card.stop()
+            logged = card.log()
+            if logged["lines"]:
+                progress(f"the firmware logged {logged['lines']} line(s), e.g. "
+                         f"{logged['first_lines'][0]}")
+
+
+def board_of(card: SimCard) -> Board:
+    if card.board is None:
+        raise RuntimeError("the card's board is closed")
+    return card.board
+
+
+def network_toml(nodes: Sequence[int], *, sync_period_ms: int = 0, eds: Path | None = None,
+                 handshake: str = "uncontrolled") -> str:
+    """A network description of generic nodes (or nodes of ``eds``)."""
+    lines = ["[bus]", f"sync_period_ms = {sync_period_ms}", "host_watchdog_ms = 0",
+             f'handshake = "{handshake}"']
+    for node in nodes:
+        lines += ["[[node]]", f"id = {node}"]
+        if eds is not None:
+            lines.append(f'eds = "{eds}"')
+    return "\n".join(lines) + "\n"
+
+
+def select_uncontrolled(board: Board) -> None:
+    """bMode 2 by DevPutTaskParameter + WARMSTART; check the card reports exchange mode 3."""
+    board.warm_start(ComPlcParameter(bMode=UNCONTROLLED_BMODE))
+    rc, io_info = DevGetInfo(board.number, GET_IO_INFO, 6)
+    if rc != 0 or len(io_info) < 2 or io_info[1] != UNCONTROLLED_EXCHANGE_MODE:
+        raise RuntimeError(f"card not in the uncontrolled mode (rc {rc}, io info {io_info.hex()})")
+
+
+def operating_count(board: int) -> int:
+    rc, raw = DevGetTaskState(board, 2, 64)
+    if rc != 0:
+        raise RuntimeError(f"DevGetTaskState returned {rc}")
+    return len(ComDiagnostics.decode(raw).operating())
+
+
+def wait_operating(board: int, nodes: int, timeout: float = BOOT_TIMEOUT_S) -> float:
+    """perf_counter() when ``nodes`` nodes are in Nd_state (polled every 0.5 ms)."""
+    deadline = time.perf_counter() + timeout
+    while True:
+        if operating_count(board) >= nodes:
+            return time.perf_counter()
+        if time.perf_counter() > deadline:
+            raise RuntimeError(f"only {operating_count(board)} of {nodes} nodes operating "
+                               f"after {timeout} s")
+        time.sleep(0.0005)
+
+
+def configure(card: SimCard, network: Network) -> float:
+    """The on-line configuration; returns perf_counter() just before the bus parameter download."""
+    marks: list[float] = []
+
+    def mark(text: str) -> None:
+        if text.startswith("bus parameters"):
+            marks.append(time.perf_counter())
+
+    configure_online(board_of(card), network, progress=mark)
+    if not marks:
+        raise RuntimeError("configure_online never reached the bus parameters")
+    return marks[-1]
+
+
+def start_uncontrolled(card: SimCard, network: Network) -> tuple[Board, float, float]:
+    """The PDO phases' card: uncontrolled handshake, configured on line, every node in
+    Nd_state. Returns the board and the perf_counter() marks of the bus parameter download
+    and of the last node entering Nd_state."""
+    board = board_of(card)
+    select_uncontrolled(board)
+    bus_download = configure(card, network)
+    operating = wait_operating(board.number, len(network.nodes))
+    return board, bus_download, operating
+
+
+def io_offsets(network: Network) -> tuple[int, int]:
+    """Output and input offset of the first node; the nodes' 8 bytes must follow each other."""
+    dbm = build_dbm(network)
+    table = dbm.table(NODES)
+    if table is None:
+        raise RuntimeError("the network has no nodes")
+    sets = [NodeParameterSet.decode(record[1:]) for record in table.records]
+    outputs = [s.ausOutputOffsets[0] for s in sets]
+    inputs = [s.ausInputOffsets[0] for s in sets]
+    contiguous = all(b - a == 8 for a, b in itertools.pairwise(outputs)) and all(
+        b - a == 8 for a, b in itertools.pairwise(inputs))
+    if not contiguous:
+        raise RuntimeError("the nodes' process data is not contiguous")
+    return outputs[0], inputs[0]
+

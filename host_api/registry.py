@@ -1,0 +1,158 @@
+"""The boards this process has initialised: the driver's one piece of state.
+
+The C driver keeps a table of the boards it has opened; so does this module, and every
+part of host_api that needs an open board asks it: the ``Dev*`` functions
+(``host_api.driver``), ``Board.transact``, the load-function services
+(``host_api.download``) and the CiA 309 gateway. Its public face is small:
+
+- ``registry``: the table (``boards``, ``counters``, the image directory, the open count
+  and the lock that guards them), written by DevOpenDriver, DevInitBoard,
+  DevExitBoard and DevCloseDriver only;
+- ``lookup(number)`` / ``ready_board(number)``: the ``MappedBoard`` of an initialised
+  board, or the driver's return code that says why there is none;
+- ``transaction_lock(number)``: the lock that makes a request and its answer one
+  transaction across threads and processes.
+"""
+
+from __future__ import annotations
+
+import mmap
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+from dpm import flags as fl
+from dpm.doorbell import POLL_INTERVAL, HostBell
+from dpm.errors import Drv
+from dpm.image import MAX_DEV_BOARDS
+from dpm.layout import DEV_FLAGS, HOST_FLAGS
+from host_api.locks import ChannelLock
+
+SPIN_SECONDS = 100e-6
+"""How long a waiting call watches the flags before it sleeps on the bell."""
+
+
+@dataclass
+class Counters:
+    """DRIVERINFO's counters of one board number (DevGetInfo GET_DRIVER_INFO)."""
+
+    open: int = 0
+    close: int = 0
+    read: int = 0
+    write: int = 0
+    irq: int = 0
+    last_function: int = 0
+    io: int = 0
+
+
+@dataclass
+class MappedBoard:
+    """One initialised board: its map, its bell, its channel locks."""
+
+    number: int
+    path: Path
+    mm: mmap.mmap
+    bell: HostBell
+    put_lock: ChannelLock
+    get_lock: ChannelLock
+    io_lock: ChannelLock
+    flags_lock: ChannelLock
+    transaction_lock: ChannelLock
+    counters: Counters
+    """The registry's for this board number (``Registry.counters``), kept past DevExitBoard."""
+
+    def host(self) -> int:
+        return self.mm[HOST_FLAGS]
+
+    def dev(self) -> int:
+        return self.mm[DEV_FLAGS]
+
+    def ready(self) -> bool:
+        return bool(self.host() & fl.READY)
+
+    def change_dev_flags(
+        self, set_bits: int = 0, clear_bits: int = 0, toggle: int = 0, ring: bool = True
+    ) -> None:
+        """Read-modify-write DevFlags under the flags lock, then ring the device."""
+        with self.flags_lock:
+            value = self.dev()
+            self.mm[DEV_FLAGS] = ((value | set_bits) & ~clear_bits & 0xFF) ^ toggle
+        if ring:
+            self.bell.ring_device()
+
+    def wait_for(self, condition: Callable[[], bool], timeout_ms: int) -> bool:
+        """Wait on the bell (polling as a fallback) until ``condition`` or the timeout."""
+        if condition():
+            return True
+        if timeout_ms <= 0:
+            return False
+        deadline = time.monotonic() + timeout_ms / 1000.0
+        # A card answers most requests within tens of microseconds: checking the
+        # flags for that long first saves the sleep and wake-up of the bell. Only a
+        # single-threaded host spins: in a host with more threads the spinning one
+        # would hold the interpreter lock the others need (the CiA 309 gateway's
+        # mailbox reader and its callers).
+        if threading.active_count() == 1:
+            spin_end = time.perf_counter() + SPIN_SECONDS
+            while time.perf_counter() < spin_end:
+                if condition():
+                    return True
+        while True:
+            remaining = deadline - time.monotonic()
+            if remaining <= 0:
+                return condition()
+            if self.bell.wait(min(remaining, POLL_INTERVAL)):
+                self.counters.irq += 1
+            if condition():
+                return True
+
+    def close(self) -> None:
+        self.bell.close()
+        for lock in (self.put_lock, self.get_lock, self.io_lock, self.flags_lock,
+                     self.transaction_lock):
+            lock.close()
+        self.mm.close()
+
+
+class Registry:
+    """The driver's state in this process; ``lock`` guards every change to it."""
+
+    def __init__(self) -> None:
+        self.lock = threading.RLock()
+        self.open_count = 0
+        self.directory: Path | None = None
+        self.boards: dict[int, MappedBoard] = {}
+        self.counters: dict[int, Counters] = {}
+        """DRIVERINFO per board number: kept from DevExitBoard to the next DevInitBoard, as
+        the real driver keeps them while it is loaded (here: while this process has it open)."""
+
+
+registry = Registry()
+
+
+def lookup(number: int) -> MappedBoard | int:
+    """The initialised board, or the return code that says why not (-1 ... -34)."""
+    if not 0 <= number < MAX_DEV_BOARDS:
+        return Drv.DRV_USR_DEV_NUMBER_INVALID
+    if registry.open_count == 0:
+        return Drv.DRV_USR_NOT_INITIALIZED
+    board = registry.boards.get(number)
+    if board is None:
+        return Drv.DRV_USR_NOT_INITIALIZED
+    return board
+
+
+def ready_board(number: int) -> MappedBoard | int:
+    """``lookup``, and DRV_DEV_NOT_READY (-11) while the card has not set READY."""
+    board = lookup(number)
+    if isinstance(board, MappedBoard) and not board.ready():
+        return Drv.DRV_DEV_NOT_READY
+    return board
+
+
+def transaction_lock(number: int) -> ChannelLock | None:
+    """The board's transaction lock (request + answer as one), None when not initialised."""
+    board = registry.boards.get(number)
+    return None if board is None else board.transaction_lock
