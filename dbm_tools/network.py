@@ -69,6 +69,7 @@ The whole schema, with defaults::
                                 # cut to its first 4 bytes; omitted: correct responses
     emcy_burst = { after_s = 1.0, count = 5, code = 0x1000, interval_s = 0.01 }
     boot_delay_s = 0.5
+    no_bootup = false           # sends no boot-up message (a CiA 301 node before 4.0)
     leave_operational_after_s = 3.0
     bus_errors = { after_s = 1.0, count = 3, kind = "warning" }  # or "bus_off", "ack",
                                 # "rx_overflow", "protocol"
@@ -207,6 +208,8 @@ class SimFaults:
     """One of ``SDO_RESPONSE_FAULTS``: how every SDO response is broken (Err_Event 37, 38)."""
     emcy_burst: EmcyBurst | None = None
     boot_delay_s: float = 0.0
+    no_bootup: bool = False
+    """The node sends no boot-up message after a reset, as nodes before CiA 301 4.0 did."""
     leave_operational_after_s: float | None = None
     bus_errors: BusErrors | None = None
 
@@ -324,8 +327,8 @@ def _sim(table: dict[str, Any], where: str) -> SimFaults:
         "silent": bool, "device_type": int, "sdo_abort": dict,
         "heartbeat_stop_after_s": (int, float), "guarding_fail_after_s": (int, float),
         "guard_toggle_stuck": bool, "sdo_response": str, "emcy_burst": dict,
-        "boot_delay_s": (int, float), "leave_operational_after_s": (int, float),
-        "bus_errors": dict,
+        "boot_delay_s": (int, float), "no_bootup": bool,
+        "leave_operational_after_s": (int, float), "bus_errors": dict,
     })
     faults = SimFaults(**{k: v for k, v in table.items()
                           if k not in ("sdo_abort", "emcy_burst", "bus_errors")})

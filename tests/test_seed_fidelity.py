@@ -16,7 +16,7 @@ from dbm_tools.container import save_dbm
 from dbm_tools.network import load_network
 from dbm_tools.parameters import NdFlag, NodeParameterSet, PdoData
 from host_api import driver as d
-from host_api.download import delete_database
+from host_api.download import CONFIGURATION_DOWNLOAD, DevDownload, delete_database
 from tests import test_can_task
 from tests.conftest import wait_until
 from tests.test_can_task import Net, candump, exchange
@@ -230,7 +230,7 @@ def test_online_download_is_refused_while_a_flash_database_runs(
     net = make_net("[[node]]\nid = 1\n[[node]]\nid = 2\n")
     dbm = tmp_path / "plant.dbm"
     save_dbm(dbm, build_dbm(load_network(net.toml)))
-    assert d.DevDownload(0, d.CONFIGURATION_DOWNLOAD, dbm) == 0
+    assert DevDownload(0, CONFIGURATION_DOWNLOAD, dbm) == 0
     assert d.DevReset(0, d.COLDSTART, 5000) == 0
     net.wait_operating([1, 2])
     assert net.send(67, bytes([0, 5]) + struct.pack("<H", 1000)).f == 201
@@ -367,3 +367,20 @@ def test_bus_error_cnt_counts_warning_limit_crossings_only(
     wait_until(lambda: time.monotonic() - after > 0.2, 1, "no more counts")
     assert struct.unpack_from("<H", image, 0x1F44)[0] == 2
     assert struct.unpack_from("<H", image, 0x1F46)[0] == 0  # no bus-off either
+
+
+def test_a_node_without_a_boot_up_message_boots(make_net: Callable[..., Net],
+                                                tmp_path: Path) -> None:
+    """Seed appendix: "no reaction on Bootup Events"; the boot-up reads object 1000h. Node 2
+    (CiA 301 before 4.0) sends no boot-up message after its reset: the card identifies it by
+    reading 1000h and brings it up like node 1, without an Err_Event."""
+    trace = tmp_path / "trace.log"
+    net = make_net("[[node]]\nid = 1\n[[node]]\nid = 2\n[node.sim]\nno_bootup = true\n",
+                   "--trace", str(trace))
+    net.configure()
+    net.wait_operating([1, 2], timeout=8)
+    assert net.diag().bErr_event == 0
+    net.card.stop()
+    frames = candump(trace)
+    assert not [data for _, ident, data in frames if ident == 0x702 and data == "00"]
+    assert "4000100000000000" in [data for _, ident, data in frames if ident == 0x602]

@@ -39,7 +39,9 @@ if TYPE_CHECKING:
 log = logging.getLogger(__name__)
 
 BOOTUP_TIMEOUT = 3.0
-"""[ours] seconds a reset node has to send its boot-up message."""
+"""[ours] seconds a reset node has to answer: its boot-up message, or 1000h read."""
+RESET_GRACE = 1.0
+"""[ours] seconds the card waits after a reset for a boot-up message before it reads 1000h."""
 RETRY_DELAY = 1.0
 """[ours] seconds before a lost node is booted again when auto-clear is off."""
 RTR_PERIOD = 0.1
@@ -300,9 +302,9 @@ class NodeHandler:
                 self._bootup.clear()
                 self._reset_at = time.time()
                 self.master.nmt(NMT_RESET, self.address)
-            if not self.master.wait_for(self._bootup, BOOTUP_TIMEOUT):
-                self.diag.status |= NO_RESPONSE_BIT
-                raise _BootFailure(NO_RESPONSE)
+            deadline = time.monotonic() + BOOTUP_TIMEOUT
+            if not self.master.wait_for(self._bootup, RESET_GRACE):
+                self._identify(sdo, deadline)
         if not skip & ConfigNdState.DEVICE:
             raw = sdo.upload(0x1000, 0)
             if len(raw) < 4:
@@ -355,6 +357,25 @@ class NodeHandler:
         self._confirmed = False
         if not self.params.bitConfigNdState & ConfigNdState.TXRXPDO:
             self.send_outputs(force=True)  # the first RX-PDO, now that the node takes it
+
+    def _identify(self, sdo: SdoClient, deadline: float) -> None:
+        """A reset node that sent no boot-up message: read 1000h until it answers.
+
+        The seed's card does not react to boot-up events (appendix: "Bootup Protocol, no
+        reaction on Bootup Events of a Node"); its boot-up is "simple, reading object 1000H".
+        So a node of CiA 301 before 4.0, which sends none, boots as well; a boot-up message
+        only spares the wait. No answer within ``BOOTUP_TIMEOUT`` of the reset: 34.
+        """
+        while True:
+            if self.master.closing:
+                raise _BootFailure(NO_RESPONSE)
+            try:
+                sdo.upload(0x1000, 0)
+                return
+            except SdoCommunicationError:
+                if time.monotonic() >= deadline:
+                    self.diag.status |= NO_RESPONSE_BIT
+                    raise _BootFailure(NO_RESPONSE) from None
 
     def _write_guard_cob_id(self, sdo: SdoClient) -> None:
         """usCobIDGuard into the node's COB-ID guarding object 100Eh (seed 4.2: written into

@@ -68,6 +68,8 @@ def describe(node: NodeDescription) -> str:
                       f"after {sim.emcy_burst.after_s} s")
     if sim.boot_delay_s:
         faults.append(f"boot-up after {sim.boot_delay_s} s")
+    if sim.no_bootup:
+        faults.append("no boot-up message")
     if sim.leave_operational_after_s is not None:
         faults.append(f"leaves OPERATIONAL after {sim.leave_operational_after_s} s")
     text = f"node {node.id}{name}: {kind}, {control}"

@@ -270,7 +270,8 @@ class SimulatedNode(LocalNode):
 
     def _boot(self) -> None:
         sim = self.description.sim
-        self.network.send_message(0x700 + self.node_id, b"\x00")
+        if not sim.no_bootup:
+            self.network.send_message(0x700 + self.node_id, b"\x00")
         self.nmt.enter(PRE_OPERATIONAL)
         log.info("node %d: boot-up, PRE-OPERATIONAL", self.node_id)
         self.pdo_engine.configure()
