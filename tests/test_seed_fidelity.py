@@ -11,6 +11,8 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
+import pytest
+
 from dbm_tools.builder import build_dbm
 from dbm_tools.container import save_dbm
 from dbm_tools.network import load_network
@@ -384,3 +386,22 @@ def test_a_node_without_a_boot_up_message_boots(make_net: Callable[..., Net],
     frames = candump(trace)
     assert not [data for _, ident, data in frames if ident == 0x702 and data == "00"]
     assert "4000100000000000" in [data for _, ident, data in frames if ident == 0x602]
+
+
+@pytest.mark.parametrize("mode", [0, 4])
+def test_bmode_0_and_4(make_net: Callable[..., Net], mode: int) -> None:
+    """Seed 2.2 lists bMode 0-4, 2.3 only 1-3; the card keeps 2.3 (docs/dpm.md). What a host
+    that writes 0 or 4 sees after the warm start, and how a valid bMode brings it back."""
+    net = make_net("[[node]]\nid = 1\n")
+    assert d.DevPutTaskParameter(0, 2, struct.pack("<BH", mode, 0)) == 0
+    assert d.DevReset(0, d.WARMSTART, 5000) == 0
+    diag = net.diag()
+    assert (diag.bErr_rem_adr, diag.bErr_event) == (255, 52)
+    rc, _ = d.DevExchangeIO(0, 0, b"\0", 0, 1, 100)
+    assert rc == d.Drv.DRV_DEV_COM_MODE_UNKNOWN  # -24: no exchange mode
+    assert d.DevPutTaskParameter(0, 2, struct.pack("<BH", 3, 0)) == 0
+    assert d.DevReset(0, d.WARMSTART, 5000) == 0
+    assert net.diag().bErr_event == 0
+    net.configure()
+    net.wait_operating([1])
+    wait_until(lambda: exchange(net, b"\x33" * 8) == b"\x33" * 8, 5, "the echo")
