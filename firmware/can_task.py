@@ -22,6 +22,7 @@ from dbm_tools.validate import (
     check_extended_bus_parameters,
     check_node_parameters,
 )
+from dpm.errors import CanF
 from dpm.message import Ext, Message, MessageError, TelegramHeader, Tfc
 from dpm.task2 import CanState, GlobalBits
 from firmware.can.master import BusConfig, Master
@@ -69,26 +70,6 @@ AREA_BUS = 127
 AREA_EXTENDED = 128
 DOWNLOAD_AREA_SIZE = 1000
 MAX_LEN_DATA_UNIT = 240
-
-# msg.f numbers of the CAN task (seed 5.2)
-F_SDO_ABORT = 3
-F_LOCAL_RESOURCE = 20
-F_PARAMETER_FAULT = 21
-F_TIMEOUT = 48
-F_SDO_BUFFER = 51
-F_AREA_CODE = 52
-F_BUFFER_LENGTH = 53
-F_SDO_FUNCTION = 54
-F_FAULTY_PARAMETER = 55
-F_SEQUENCE = 57
-F_NO_DESCRIPT_RECORD = 58
-F_INCOMPLETE = 59
-F_DOUBLE_ADDRESS = 60
-F_NO_RESPONSE = 17
-F_NODE_BUSY = 19
-F_NODE_DIAG_ADDRESS = 161
-F_NOT_CONFIGURED = 200
-F_NO_DESCRIPT_TABLE = 3
 
 NMT_COMMANDS = (NMT_START, NMT_STOP, NMT_PREOP, NMT_RESET, NMT_RESET_COMM)
 SDO_MAX_DATA = 247
@@ -174,7 +155,7 @@ class CanTask(Task):
         if errors:
             return errors[0].number
         if address == self.master.ext.bNodeID and address:
-            return F_DOUBLE_ADDRESS
+            return CanF.DOUBLE_ADDRESS
         params = NodeParameterSet.decode(data)
         self.node_data[address] = bytes(data)
         self.master.configure_node(address, params)
@@ -186,7 +167,7 @@ class CanTask(Task):
             return errors[0].number
         ext = ExtendedBusParameterSet.decode(data)
         if ext.bNodeID and ext.bNodeID in self.node_data:
-            return F_DOUBLE_ADDRESS
+            return CanF.DOUBLE_ADDRESS
         self.extended_data = bytes(data)
         self.master.ext = ext
         return 0
@@ -205,17 +186,17 @@ class CanTask(Task):
 
     def com_start_seq(self, msg: Message) -> Message:
         if msg.ln < 4:
-            return msg.answer(f=F_FAULTY_PARAMETER)
+            return msg.answer(f=CanF.FAULTY_PARAMETER)
         area = msg.data[1]
         if not 1 <= area <= 126:
-            return msg.answer(f=F_AREA_CODE)
+            return msg.answer(f=CanF.AREA_CODE)
         (timeout,) = struct.unpack_from("<H", msg.data, 2)
         self._sequence = _Sequence(area, timeout, bytearray(DOWNLOAD_AREA_SIZE), time.monotonic())
         return msg.answer(data=bytes([MAX_LEN_DATA_UNIT]))
 
     def com_download(self, msg: Message) -> Message:
         if msg.ln < 4:
-            return msg.answer(f=F_FAULTY_PARAMETER)
+            return msg.answer(f=CanF.FAULTY_PARAMETER)
         area = msg.data[1]
         (offset,) = struct.unpack_from("<H", msg.data, 2)
         data = msg.data[4:]
@@ -224,22 +205,22 @@ class CanTask(Task):
         if area == AREA_EXTENDED:
             return msg.answer(f=self.download_extended(data))
         if not 1 <= area <= 126:
-            return msg.answer(f=F_AREA_CODE)
+            return msg.answer(f=CanF.AREA_CODE)
         seq = self._sequence
         if seq is None:
             if offset:
-                return msg.answer(f=F_SEQUENCE)  # an offset needs COM_Start_Seq first
+                return msg.answer(f=CanF.SEQUENCE)  # an offset needs COM_Start_Seq first
             if len(data) > DOWNLOAD_AREA_SIZE:
-                return msg.answer(f=F_BUFFER_LENGTH)
+                return msg.answer(f=CanF.BUFFER_LENGTH)
             return msg.answer(f=self.download_node(area, data))
         if area != seq.area:
-            return msg.answer(f=F_SEQUENCE)
+            return msg.answer(f=CanF.SEQUENCE)
         now = time.monotonic()
         if seq.timeout_ms and (now - seq.last) * 1000 > seq.timeout_ms:
             self._sequence = None
-            return msg.answer(f=F_TIMEOUT)
+            return msg.answer(f=CanF.TIMEOUT)
         if offset + len(data) > DOWNLOAD_AREA_SIZE:
-            return msg.answer(f=F_BUFFER_LENGTH)
+            return msg.answer(f=CanF.BUFFER_LENGTH)
         seq.buffer[offset : offset + len(data)] = data
         seq.length = max(seq.length, offset + len(data))
         seq.last = now
@@ -248,17 +229,17 @@ class CanTask(Task):
     def com_end_seq(self, msg: Message) -> Message:
         seq, self._sequence = self._sequence, None
         if seq is None:
-            return msg.answer(f=F_SEQUENCE)
+            return msg.answer(f=CanF.SEQUENCE)
         if seq.length < 2:
-            return msg.answer(f=F_INCOMPLETE)
+            return msg.answer(f=CanF.INCOMPLETE)
         (total,) = struct.unpack_from("<H", seq.buffer, 0)
         if total > seq.length or total < 2:
-            return msg.answer(f=F_INCOMPLETE)
+            return msg.answer(f=CanF.INCOMPLETE)
         return msg.answer(f=self.download_node(seq.area, bytes(seq.buffer[:total])))
 
     def com_upload(self, msg: Message) -> Message:
         if msg.ln != 5:
-            return msg.answer(f=F_PARAMETER_FAULT)
+            return msg.answer(f=CanF.PARAMETER_FAULT)
         area = msg.data[1]
         (offset,) = struct.unpack_from("<H", msg.data, 2)
         length = msg.data[4]
@@ -267,13 +248,13 @@ class CanTask(Task):
         elif 1 <= area <= 126:
             stored = self.node_data.get(area)
         else:
-            return msg.answer(f=F_AREA_CODE)
+            return msg.answer(f=CanF.AREA_CODE)
         if stored is None:
-            return msg.answer(f=F_LOCAL_RESOURCE)
+            return msg.answer(f=CanF.LOCAL_RESOURCE)
         if not 1 <= length <= MAX_LEN_DATA_UNIT:
-            return msg.answer(f=F_PARAMETER_FAULT)
+            return msg.answer(f=CanF.PARAMETER_FAULT)
         if offset > len(stored):
-            return msg.answer(f=F_BUFFER_LENGTH)
+            return msg.answer(f=CanF.BUFFER_LENGTH)
         return msg.answer(data=stored[offset : offset + length])
 
     # --- diagnosis ------------------------------------------------------------------------------
@@ -282,10 +263,10 @@ class CanTask(Task):
         try:
             head = TelegramHeader.decode(msg.data)
         except MessageError:
-            return msg.answer(f=F_FAULTY_PARAMETER)
+            return msg.answer(f=CanF.FAULTY_PARAMETER)
         address = head.device_adr
         if not 1 <= address <= 127:
-            return msg.answer(f=F_NODE_DIAG_ADDRESS)
+            return msg.answer(f=CanF.NODE_DIAG_ADDRESS)
         handler = self.master.nodes.get(address)
         raw = handler.read_diagnosis() if handler else bytes([0x80]) + bytes(47)
         self.device.set_node_bit("abNd_diag", address, False)
@@ -306,13 +287,13 @@ class CanTask(Task):
         try:
             head = TelegramHeader.decode(msg.data)
         except MessageError:
-            return msg.answer(f=F_FAULTY_PARAMETER)
+            return msg.answer(f=CanF.FAULTY_PARAMETER)
         descript = self.device.descript_records()
         if descript is None:
-            return msg.answer(f=F_NO_DESCRIPT_TABLE)
+            return msg.answer(f=CanF.NO_DESCRIPT_TABLE)
         record = descript.get(head.device_adr)
         if record is None:
-            return msg.answer(f=F_NO_DESCRIPT_RECORD)
+            return msg.answer(f=CanF.NO_DESCRIPT_RECORD)
         head.payload = record[1 : 1 + 255 - TelegramHeader.SIZE]
         head.data_cnt = min(len(head.payload), 255)
         return msg.answer(data=head.encode())
@@ -323,29 +304,29 @@ class CanTask(Task):
         try:
             head = TelegramHeader.decode(msg.data)
         except MessageError:
-            return msg.answer(f=F_FAULTY_PARAMETER)
+            return msg.answer(f=CanF.FAULTY_PARAMETER)
         address = head.device_adr
         if not 1 <= address <= 127:
-            return msg.answer(f=F_FAULTY_PARAMETER, data=msg.data[:8])
+            return msg.answer(f=CanF.FAULTY_PARAMETER, data=msg.data[:8])
         if head.function not in (Tfc.READ, Tfc.WRITE):
-            return msg.answer(f=F_SDO_FUNCTION, data=msg.data[:8])
+            return msg.answer(f=CanF.SDO_FUNCTION, data=msg.data[:8])
         if not self.master.running or self.master.bus is None:
-            return msg.answer(f=F_NOT_CONFIGURED, data=msg.data[:8])
+            return msg.answer(f=CanF.NOT_CONFIGURED, data=msg.data[:8])
         if head.function == Tfc.WRITE and len(head.payload) != head.data_cnt:
-            return msg.answer(f=F_SDO_BUFFER, data=msg.data[:8])
+            return msg.answer(f=CanF.SDO_BUFFER, data=msg.data[:8])
         if msg.e & Ext.SEQ_MASK:
             if head.function != Tfc.WRITE:
-                return msg.answer(f=F_SEQUENCE, data=msg.data[:8])
+                return msg.answer(f=CanF.SEQUENCE, data=msg.data[:8])
             gathered = self._gather(msg, head)
             if isinstance(gathered, Message):
                 return gathered
             head = gathered
         handler = self.master.nodes.get(address)
         if handler is not None and handler.state is State.BOOTING:
-            return msg.answer(f=F_NODE_BUSY, data=msg.data[:8])
+            return msg.answer(f=CanF.NODE_BUSY, data=msg.data[:8])
         client = self.master.sdo_client(address)
         if not client.lock.acquire(blocking=False):
-            return msg.answer(f=F_SDO_FUNCTION, data=msg.data[:8])
+            return msg.answer(f=CanF.SDO_FUNCTION, data=msg.data[:8])
         if handler is not None:
             handler.host_sdo = True  # seed 5.2.8: the node's RX-PDOs wait meanwhile
 
@@ -372,12 +353,12 @@ class CanTask(Task):
             first = self._long_download.get(address)
             if first is None or (first[0].device_adr, first[0].data_adr, first[0].data_idx) != key:
                 self._long_download.pop(address, None)
-                return msg.answer(f=F_SEQUENCE, data=msg.data[:8])
+                return msg.answer(f=CanF.SEQUENCE, data=msg.data[:8])
             first[1].extend(head.payload)
         data = self._long_download[address][1]
         if len(data) > LONG_SDO_LIMIT:
             self._long_download.pop(address, None)
-            return msg.answer(f=F_BUFFER_LENGTH, data=msg.data[:8])
+            return msg.answer(f=CanF.BUFFER_LENGTH, data=msg.data[:8])
         if sequence != Ext.LAST:
             head.data_cnt = 0
             head.payload = b""
@@ -391,12 +372,12 @@ class CanTask(Task):
         answer_head = TelegramHeader(head.device_adr, 0, head.data_adr, head.data_idx, 0, 0,
                                      head.function)
         if result.timed_out:
-            answer = msg.answer(f=F_NO_RESPONSE, data=answer_head.encode())
+            answer = msg.answer(f=CanF.NO_RESPONSE, data=answer_head.encode())
         elif result.abort is not None:
-            answer = msg.answer(f=F_SDO_ABORT,
+            answer = msg.answer(f=CanF.SDO_ABORT,
                                 data=answer_head.encode() + struct.pack("<I", result.abort))
         elif head.function == Tfc.READ and len(result.data) > LONG_SDO_LIMIT:
-            answer = msg.answer(f=F_SDO_BUFFER, data=answer_head.encode())
+            answer = msg.answer(f=CanF.SDO_BUFFER, data=answer_head.encode())
         elif head.function == Tfc.READ and len(result.data) > SDO_MAX_DATA:
             self._post_long_upload(msg, answer_head, result.data)
             return
@@ -421,23 +402,23 @@ class CanTask(Task):
     def _node_switch(self, msg: Message, ln: int) -> Message | tuple[NodeHandler, int, int]:
         """Parse d[0] node, d[1] 0 off / 1 on, d[2..3] u16: the node, on, value; or an error."""
         if msg.ln != ln or not 1 <= msg.data[0] <= 127 or msg.data[1] not in (0, 1):
-            return msg.answer(f=F_FAULTY_PARAMETER)
+            return msg.answer(f=CanF.FAULTY_PARAMETER)
         if not self.master.running:
-            return msg.answer(f=F_NOT_CONFIGURED)
+            return msg.answer(f=CanF.NOT_CONFIGURED)
         handler = self.master.nodes.get(msg.data[0])
         if handler is None:
-            return msg.answer(f=F_LOCAL_RESOURCE)
+            return msg.answer(f=CanF.LOCAL_RESOURCE)
         (value,) = struct.unpack_from("<H", msg.data, 2)
         return handler, msg.data[1], value
 
     def com_set_sdo_timeout(self, msg: Message) -> Message:
         if msg.ln != 3 or msg.data[0] > 127:
-            return msg.answer(f=F_FAULTY_PARAMETER)
+            return msg.answer(f=CanF.FAULTY_PARAMETER)
         (timeout,) = struct.unpack_from("<H", msg.data, 1)
         if timeout == 0:
-            return msg.answer(f=F_FAULTY_PARAMETER)
+            return msg.answer(f=CanF.FAULTY_PARAMETER)
         if msg.data[0] and self.master.bus is None:
-            return msg.answer(f=F_NOT_CONFIGURED)
+            return msg.answer(f=CanF.NOT_CONFIGURED)
         self.master.set_sdo_timeout(msg.data[0], timeout / 1000.0)
         return msg.answer()
 
@@ -448,7 +429,7 @@ class CanTask(Task):
         handler, on, guard_time = parsed
         factor = msg.data[4]
         if on and not guard_time:
-            return msg.answer(f=F_FAULTY_PARAMETER)
+            return msg.answer(f=CanF.FAULTY_PARAMETER)
         guard_time = guard_time if on else 0
         writes = [(0x100C, struct.pack("<H", guard_time)), (0x100D, bytes([factor]))]
         if on:
@@ -463,7 +444,7 @@ class CanTask(Task):
             return parsed
         handler, on, consumer_time = parsed
         if on and not consumer_time:
-            return msg.answer(f=F_FAULTY_PARAMETER)
+            return msg.answer(f=CanF.FAULTY_PARAMETER)
         handler.set_supervision(True, consumer_time if on else 0, 0)
         return msg.answer()
 
@@ -477,9 +458,9 @@ class CanTask(Task):
                 for index, value in writes:
                     channel.sdo.download(index, 0, value)
             except SdoAbortedError as exc:
-                answer = msg.answer(f=F_SDO_ABORT, data=struct.pack("<I", exc.code))
+                answer = msg.answer(f=CanF.SDO_ABORT, data=struct.pack("<I", exc.code))
             except SdoCommunicationError:
-                answer = msg.answer(f=F_NO_RESPONSE)
+                answer = msg.answer(f=CanF.NO_RESPONSE)
         if answer.f == 0:
             handler.set_supervision(heartbeat, time_ms, factor)
         self.device.post(answer)
@@ -490,27 +471,27 @@ class CanTask(Task):
             return parsed
         handler, on, cob_id = parsed
         if cob_id > 0x7FF:
-            return msg.answer(f=F_FAULTY_PARAMETER)
+            return msg.answer(f=CanF.FAULTY_PARAMETER)
         handler.set_emcy_consumer((cob_id or 0x80 + handler.address) if on else None)
         return msg.answer()
 
     def com_set_heartbeat_producer(self, msg: Message) -> Message:
         if msg.ln != 2:
-            return msg.answer(f=F_FAULTY_PARAMETER)
+            return msg.answer(f=CanF.FAULTY_PARAMETER)
         (self.master.ext.usProducerHeartbeatTime,) = struct.unpack_from("<H", msg.data)
         return msg.answer()
 
     def com_set_node_id(self, msg: Message) -> Message:
         if msg.ln != 1 or not 1 <= msg.data[0] <= 127:
-            return msg.answer(f=F_FAULTY_PARAMETER)
+            return msg.answer(f=CanF.FAULTY_PARAMETER)
         if msg.data[0] in self.master.nodes:
-            return msg.answer(f=F_DOUBLE_ADDRESS)
+            return msg.answer(f=CanF.DOUBLE_ADDRESS)
         self.master.ext.bNodeID = msg.data[0]
         return msg.answer()
 
     def com_bootup_forwarding(self, msg: Message) -> Message:
         if msg.ln != 1 or msg.data[0] not in (0, 1):
-            return msg.answer(f=F_FAULTY_PARAMETER)
+            return msg.answer(f=CanF.FAULTY_PARAMETER)
         self.master.bootup_forwarding = bool(msg.data[0])
         return msg.answer()
 
@@ -518,9 +499,9 @@ class CanTask(Task):
 
     def com_nmt_module_protocol(self, msg: Message) -> Message:
         if msg.ln < 2 or msg.data[0] not in NMT_COMMANDS or msg.data[1] > 127:
-            return msg.answer(f=F_FAULTY_PARAMETER)
+            return msg.answer(f=CanF.FAULTY_PARAMETER)
         if not self.master.running:
-            return msg.answer(f=F_NOT_CONFIGURED)
+            return msg.answer(f=CanF.NOT_CONFIGURED)
         command, node = msg.data[0], msg.data[1]
         self.master.host_nmt(command, node)
         return msg.answer()
@@ -534,24 +515,24 @@ class CanTask(Task):
             info = d[0]
             extended = bool(info & 0x80)
             if extended != (msg.ln == 13):
-                return msg.answer(f=F_FAULTY_PARAMETER)
+                return msg.answer(f=CanF.FAULTY_PARAMETER)
             rtr, dlc = bool(info & 0x40), info & 0x0F
             if extended:
                 ident, payload = int.from_bytes(d[1:5], "big") >> 3, d[5:]
             else:
                 ident, payload = (d[1] << 3) | (d[2] >> 5), d[3:]
         else:
-            return msg.answer(f=F_FAULTY_PARAMETER)
+            return msg.answer(f=CanF.FAULTY_PARAMETER)
         if not self.master.bus_send_raw(ident, bytes(payload[: min(dlc, 8)]), rtr, extended, dlc):
-            return msg.answer(f=F_TIMEOUT)
+            return msg.answer(f=CanF.TIMEOUT)
         return msg.answer()
 
     def com_cfgrx_layer2(self, msg: Message) -> Message:
         if msg.ln < 2 or msg.ln % 2:
-            return msg.answer(f=F_FAULTY_PARAMETER)
+            return msg.answer(f=CanF.FAULTY_PARAMETER)
         idents = [msg.data[i] | ((msg.data[i + 1] & 0x07) << 8) for i in range(0, msg.ln, 2)]
         if any(self.master.cob_id_in_use(i) for i in idents):
-            return msg.answer(f=F_FAULTY_PARAMETER)
+            return msg.answer(f=CanF.FAULTY_PARAMETER)
         self.master.layer2_filters.update(idents)
         return msg.answer()
 
@@ -561,16 +542,16 @@ class CanTask(Task):
         at, d = 0, msg.data
         while at < len(d):
             if at + 2 > len(d):
-                return msg.answer(f=F_FAULTY_PARAMETER)
+                return msg.answer(f=CanF.FAULTY_PARAMETER)
             ident = (d[at] << 3) | (d[at + 1] >> 5)
             rtr, dlc = bool(d[at + 1] & 0x10), d[at + 1] & 0x0F
             size = 0 if rtr else min(dlc, 8)
             if dlc > 8 or at + 2 + size > len(d):
-                return msg.answer(f=F_FAULTY_PARAMETER)
+                return msg.answer(f=CanF.FAULTY_PARAMETER)
             frames.append((ident, rtr, dlc, bytes(d[at + 2 : at + 2 + size])))
             at += 2 + size
         if not frames:
-            return msg.answer(f=F_FAULTY_PARAMETER)
+            return msg.answer(f=CanF.FAULTY_PARAMETER)
         for ident, rtr, dlc, payload in frames:
             self.master.bus_send_raw(ident, payload, rtr, False, dlc)
         return None

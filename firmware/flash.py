@@ -73,7 +73,7 @@ from dbm_tools.tables import (
     PlcParam,
 )
 from dbm_tools.validate import check_dbm
-from dpm import errors
+from dpm.errors import ERR_NODE_DEVICE, DeviceEvent, RcsF
 from dpm.message import Ext, Message
 from dpm.task2 import ComPlcParameter, GlobalBits
 
@@ -96,11 +96,6 @@ SEGMENT = 8
 CHUNK = 240
 FIRST_LENGTH = 51
 ROOT_BYTES = 16
-
-F_PARAMETER_FAULT = 21
-"""[ours] an unknown load-function mode or a short message ("parameter fault in request")."""
-F_NO_DATABASE = 200
-"""[ours] an upload with nothing stored ("DEVICE is not configured")."""
 
 DIRECTORY_ENTRY = struct.Struct("<B9sHHI")
 
@@ -217,13 +212,13 @@ class LoadFunction:
                 return self._continue_download(msg, sequence == Ext.LAST)
             if self._upload is not None:
                 return self._continue_upload(msg)
-            return msg.answer(f=errors.F_WRONG_SEQUENCE)
+            return msg.answer(f=RcsF.WRONG_SEQUENCE)
         self.abort()
         if not msg.data:
-            return msg.answer(f=F_PARAMETER_FAULT)
+            return msg.answer(f=RcsF.PARAMETER_FAULT)
         mode = msg.data[0]
         if mode in (MODE_DOWNLOAD, MODE_UPLOAD) and sequence != Ext.FIRST:
-            return msg.answer(f=errors.F_WRONG_SEQUENCE)
+            return msg.answer(f=RcsF.WRONG_SEQUENCE)
         if mode == MODE_DOWNLOAD:
             return self._first_download(msg)
         if mode == MODE_UPLOAD:
@@ -232,13 +227,13 @@ class LoadFunction:
             return self._delete(msg)
         if mode == MODE_DIRECTORY:
             return self._directory(msg)
-        return msg.answer(f=F_PARAMETER_FAULT)
+        return msg.answer(f=RcsF.PARAMETER_FAULT)
 
     # download
 
     def _first_download(self, msg: Message) -> Message:
         if msg.ln != FIRST_LENGTH:
-            return msg.answer(f=errors.F_WRONG_SIZE)
+            return msg.answer(f=RcsF.WRONG_SIZE)
         root = msg.data[1 : 1 + ROOT_BYTES]
         try:
             name = GlobalSet.decode(msg.data[1 + ROOT_BYTES :]).szSegmentName
@@ -246,11 +241,11 @@ class LoadFunction:
             name = None
         if name != SEGMENT_NAME_CANOPEN:
             log.info("download refused: segment name %r is not %r", name, SEGMENT_NAME_CANOPEN)
-            return msg.answer(f=errors.F_DB_NOT_VALID)
+            return msg.answer(f=RcsF.DB_NOT_VALID)
         words = struct.unpack("<8H", root)
         length = 2 * words[5]
         if words[5] != words[6] or not 2 * ROOT_WORDS <= length <= MAX_DATA_AREA:
-            return msg.answer(f=errors.F_WRONG_SIZE)
+            return msg.answer(f=RcsF.WRONG_SIZE)
         self._download = _Download(length, root, (msg.nr + 1) & 0xFF)
         return msg.answer()
 
@@ -259,12 +254,12 @@ class LoadFunction:
         assert download is not None
         if msg.nr != download.next_nr:
             self.abort()
-            return msg.answer(f=errors.F_WRONG_MESSAGE_NUMBER)
+            return msg.answer(f=RcsF.WRONG_MESSAGE_NUMBER)
         remaining = download.length - len(download.data)
         fits = msg.ln == remaining if last else msg.ln == CHUNK and remaining > CHUNK
         if not fits:
             self.abort()
-            return msg.answer(f=errors.F_WRONG_SIZE)
+            return msg.answer(f=RcsF.WRONG_SIZE)
         download.data += msg.data
         download.next_nr = (msg.nr + 1) & 0xFF
         if not last:
@@ -274,11 +269,11 @@ class LoadFunction:
         words = struct.unpack(f"<{len(area) // 2}H", area)
         (first_w0,) = struct.unpack_from("<H", download.root)
         if words[0] != first_w0 or sum(words[1:]) & 0xFFFF != first_w0:
-            return msg.answer(f=errors.F_CHECKSUM)
+            return msg.answer(f=RcsF.CHECKSUM)
         if area[2:ROOT_BYTES] != download.root[2:]:
-            return msg.answer(f=errors.F_WRONG_SIZE)
+            return msg.answer(f=RcsF.WRONG_SIZE)
         if _segment_name(area) != SEGMENT_NAME_CANOPEN:
-            return msg.answer(f=errors.F_DB_NOT_VALID)
+            return msg.answer(f=RcsF.DB_NOT_VALID)
         self.store.store(area)
         log.info("database of %d bytes stored in %s", len(area), self.store.path)
         return msg.answer()
@@ -288,7 +283,7 @@ class LoadFunction:
     def _first_upload(self, msg: Message) -> Message:
         data = self.store.read()
         if data is None:
-            return msg.answer(f=F_NO_DATABASE)
+            return msg.answer(f=RcsF.NO_DATABASE)
         self._upload = _Upload(data, msg.nr)
         return self._next_piece(msg, first=True)
 
@@ -297,7 +292,7 @@ class LoadFunction:
         assert upload is not None
         if msg.nr != upload.next_nr:
             self.abort()
-            return msg.answer(f=errors.F_WRONG_MESSAGE_NUMBER)
+            return msg.answer(f=RcsF.WRONG_MESSAGE_NUMBER)
         return self._next_piece(msg, first=False)
 
     def _next_piece(self, msg: Message, first: bool) -> Message:
@@ -315,7 +310,7 @@ class LoadFunction:
 
     def _delete(self, msg: Message) -> Message:
         if msg.ln < 2 or msg.data[1] != SEGMENT:
-            return msg.answer(f=F_PARAMETER_FAULT)
+            return msg.answer(f=RcsF.PARAMETER_FAULT)
         self.store.erase()
         log.info("database deleted from %s", self.store.path)
         return msg.answer(data=bytes([MODE_DELETE]))
@@ -354,13 +349,13 @@ class StoredDatabase:
         try:
             dbm = read_data_area(raw)
         except DbmError as exc:
-            return cls(None, [(errors.ERR_NODE_DEVICE, f"unreadable: {exc}")])
+            return cls(None, [(ERR_NODE_DEVICE, f"unreadable: {exc}")])
         nodes = dbm.table(NODES)
         faults = []
         for finding in check_dbm(dbm):
             if finding.severity != "error":
                 continue
-            node = errors.ERR_NODE_DEVICE
+            node = ERR_NODE_DEVICE
             if finding.table == NODES and nodes is not None and finding.record is not None:
                 node = nodes.records[finding.record - 1][0]
             faults.append((node, f"{finding.number} {finding.text}: {finding.table} record "
@@ -412,12 +407,12 @@ class StoredDatabase:
         """Hand the data sets to the CAN task, or report why the database is not used."""
         for node, what in self.faults:
             log.warning("stored database not used: %s", what)
-            device.report_error(node, errors.ERR_EVENT_FAULTY_DATABASE, GlobalBits.CTRL)
+            device.report_error(node, DeviceEvent.FAULTY_DATABASE, GlobalBits.CTRL)
         if not self.usable:
             return
         can = device.can
         ext = self._record(BUS_CAN_EXT)
-        if ext is not None and self._refused(device, errors.ERR_NODE_DEVICE, BUS_CAN_EXT,
+        if ext is not None and self._refused(device, ERR_NODE_DEVICE, BUS_CAN_EXT,
                                              can.download_extended(ext)):
             return
         nodes = self.dbm.table(NODES) if self.dbm is not None else None
@@ -426,7 +421,7 @@ class StoredDatabase:
                 return
         bus = self._record(BUS_CAN)
         assert bus is not None  # check_dbm insists on it
-        self._refused(device, errors.ERR_NODE_DEVICE, BUS_CAN, can.download_bus(bus))
+        self._refused(device, ERR_NODE_DEVICE, BUS_CAN, can.download_bus(bus))
 
     @staticmethod
     def _refused(device: Device, node: int, table: str, f: int) -> bool:
@@ -434,6 +429,6 @@ class StoredDatabase:
             return False
         log.warning("stored database not used: the CAN task refused %s (node %d) with f %d",
                     table, node, f)
-        device.report_error(node, errors.ERR_EVENT_FAULTY_DATABASE, GlobalBits.CTRL)
+        device.report_error(node, DeviceEvent.FAULTY_DATABASE, GlobalBits.CTRL)
         return True
 

@@ -29,6 +29,7 @@ import pytest
 from hypothesis import HealthCheck, event, given, settings
 from hypothesis import strategies as st
 
+from dpm.errors import F_INTERNAL_ERROR, F_UNKNOWN_COMMAND, F_UNKNOWN_TASK
 from dpm.message import Message
 from host_api.driver import (
     DevCloseDriver,
@@ -49,9 +50,6 @@ MSG_SIZE = 288
 ANSWER_TIMEOUT_MS = 5000
 EXTRA_ANSWER_WAIT_MS = 2
 """How long to watch for a second answer after the first (the device answers in < 1 ms)."""
-F_INTERNAL_ERROR = 254
-F_UNKNOWN_COMMAND = 152
-F_UNKNOWN_TASK = 153
 NAK = 0x02  # RCS_NAK_MSK in msg.e
 KNOWN_TASKS = (0, 2, 3)  # RCS, PLC, CAN (seed manual 1.1 and 5)
 USER, PLC = 16, 2
