@@ -62,10 +62,12 @@ from dbm_tools.tables import (
     ProjektRecord,
     checksum_crc,
 )
+from dpm.commands import DOWNLOAD_AREA_SIZE
 from dpm.errors import CanF, DeviceEvent, RcsF
+from dpm.layout import IO_AREA_SIZE
 
-DOWNLOAD_AREA_SIZE = 1000
-PROCESS_IMAGE_SIZE = 3584
+PROCESS_IMAGE_SIZE = IO_AREA_SIZE
+"""Bytes of the process image each way (the card's send and receive areas)."""
 NODE_ADDRESSES = range(1, 128)
 MASTER_NODE_IDS = range(127)
 COB_IDS = range(1, 2048)

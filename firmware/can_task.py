@@ -22,19 +22,39 @@ from dbm_tools.validate import (
     check_extended_bus_parameters,
     check_node_parameters,
 )
+from dpm.commands import (
+    AREA_BUS,
+    AREA_EXTENDED,
+    COM_BOOTUP_FORWARDING,
+    COM_CFGRX_LAYER2,
+    COM_DOWNLOAD,
+    COM_END_SEQ,
+    COM_NMT_MODULE_PROTOCOL,
+    COM_NODE_DIAG,
+    COM_RESET_ERR_EVENT,
+    COM_SDO_UP_DOWNLOAD,
+    COM_SEND_CANMSG_TRANSPARENT,
+    COM_SET_EMCY_CONSUMER,
+    COM_SET_GUARDING,
+    COM_SET_HEARTBEAT_CONSUMER,
+    COM_SET_HEARTBEAT_PRODUCER,
+    COM_SET_NODE_ID,
+    COM_SET_SDO_TIMEOUT,
+    COM_START_SEQ,
+    COM_TX_CAN_LAYER2,
+    COM_UPLOAD,
+    DOWNLOAD_AREA_SIZE,
+    GET_CONFIGURATION,
+    LONG_SDO_LIMIT,
+    MAX_LEN_DATA_UNIT,
+    NMT_COMMANDS,
+    SDO_MAX_DATA,
+)
 from dpm.errors import CanF
 from dpm.message import Ext, Message, MessageError, TelegramHeader, Tfc
 from dpm.task2 import CanState, GlobalBits
 from firmware.can.master import BusConfig, Master
-from firmware.can.node import (
-    NMT_PREOP,
-    NMT_RESET,
-    NMT_RESET_COMM,
-    NMT_START,
-    NMT_STOP,
-    NodeHandler,
-    State,
-)
+from firmware.can.node import NodeHandler, State
 from firmware.can.sdo import HostSdoTransfer, SdoResult
 from firmware.task import Task
 
@@ -42,37 +62,6 @@ if TYPE_CHECKING:
     from firmware.device import Device
 
 log = logging.getLogger(__name__)
-
-COM_SEND_CANMSG_TRANSPARENT = 65
-COM_NODE_DIAG = 66
-COM_START_SEQ = 67
-COM_DOWNLOAD = 68
-COM_END_SEQ = 69
-COM_SDO_UP_DOWNLOAD = 74
-COM_UPLOAD = 80
-COM_RESET_ERR_EVENT = 81
-COM_CFGRX_LAYER2 = 82
-COM_TX_CAN_LAYER2 = 84
-COM_NMT_MODULE_PROTOCOL = 96
-GET_CONFIGURATION = 15
-# Our own commands for the CiA 309 gateway (docs/card-commands.md)
-COM_SET_SDO_TIMEOUT = 110
-COM_SET_GUARDING = 111
-COM_SET_HEARTBEAT_CONSUMER = 112
-COM_SET_EMCY_CONSUMER = 113
-COM_SET_HEARTBEAT_PRODUCER = 114
-COM_SET_NODE_ID = 115
-COM_BOOTUP_FORWARDING = 116
-LONG_SDO_LIMIT = 65536
-"""[ours] bytes one long (concatenated) SDO transfer may carry."""
-
-AREA_BUS = 127
-AREA_EXTENDED = 128
-DOWNLOAD_AREA_SIZE = 1000
-MAX_LEN_DATA_UNIT = 240
-
-NMT_COMMANDS = (NMT_START, NMT_STOP, NMT_PREOP, NMT_RESET, NMT_RESET_COMM)
-SDO_MAX_DATA = 247
 
 
 @dataclass

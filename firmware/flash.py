@@ -73,6 +73,17 @@ from dbm_tools.tables import (
     PlcParam,
 )
 from dbm_tools.validate import check_dbm
+from dpm.commands import (
+    DIRECTORY_ENTRY,
+    LOAD_CHUNK,
+    LOAD_FIRST_LENGTH,
+    LOAD_ROOT_BYTES,
+    LOAD_SEGMENT,
+    MODE_DELETE,
+    MODE_DIRECTORY,
+    MODE_DOWNLOAD,
+    MODE_UPLOAD,
+)
 from dpm.errors import ERR_NODE_DEVICE, DeviceEvent, RcsF
 from dpm.message import Ext, Message
 from dpm.task2 import ComPlcParameter, GlobalBits
@@ -85,19 +96,6 @@ log = logging.getLogger(__name__)
 FLASH_ENV = "CIFEMU_FLASH_DIR"
 DATABASE_FILE = "database.bin"
 _TEMP_SUFFIX = ".tmp"
-
-LOAD_FUNCTION = 6
-MODE_UPLOAD = 2
-MODE_DOWNLOAD = 3
-MODE_DELETE = 4
-MODE_DIRECTORY = 5
-SEGMENT = 8
-"""The start segment of the database (seed 5.2.2's delete message)."""
-CHUNK = 240
-FIRST_LENGTH = 51
-ROOT_BYTES = 16
-
-DIRECTORY_ENTRY = struct.Struct("<B9sHHI")
 
 
 def default_flash_dir(board: int) -> Path:
@@ -232,11 +230,11 @@ class LoadFunction:
     # download
 
     def _first_download(self, msg: Message) -> Message:
-        if msg.ln != FIRST_LENGTH:
+        if msg.ln != LOAD_FIRST_LENGTH:
             return msg.answer(f=RcsF.WRONG_SIZE)
-        root = msg.data[1 : 1 + ROOT_BYTES]
+        root = msg.data[1 : 1 + LOAD_ROOT_BYTES]
         try:
-            name = GlobalSet.decode(msg.data[1 + ROOT_BYTES :]).szSegmentName
+            name = GlobalSet.decode(msg.data[1 + LOAD_ROOT_BYTES :]).szSegmentName
         except DbmError:
             name = None
         if name != SEGMENT_NAME_CANOPEN:
@@ -256,7 +254,7 @@ class LoadFunction:
             self.abort()
             return msg.answer(f=RcsF.WRONG_MESSAGE_NUMBER)
         remaining = download.length - len(download.data)
-        fits = msg.ln == remaining if last else msg.ln == CHUNK and remaining > CHUNK
+        fits = msg.ln == remaining if last else msg.ln == LOAD_CHUNK and remaining > LOAD_CHUNK
         if not fits:
             self.abort()
             return msg.answer(f=RcsF.WRONG_SIZE)
@@ -270,7 +268,7 @@ class LoadFunction:
         (first_w0,) = struct.unpack_from("<H", download.root)
         if words[0] != first_w0 or sum(words[1:]) & 0xFFFF != first_w0:
             return msg.answer(f=RcsF.CHECKSUM)
-        if area[2:ROOT_BYTES] != download.root[2:]:
+        if area[2:LOAD_ROOT_BYTES] != download.root[2:]:
             return msg.answer(f=RcsF.WRONG_SIZE)
         if _segment_name(area) != SEGMENT_NAME_CANOPEN:
             return msg.answer(f=RcsF.DB_NOT_VALID)
@@ -298,7 +296,7 @@ class LoadFunction:
     def _next_piece(self, msg: Message, first: bool) -> Message:
         upload = self._upload
         assert upload is not None
-        piece = upload.data[upload.position : upload.position + CHUNK]
+        piece = upload.data[upload.position : upload.position + LOAD_CHUNK]
         upload.position += len(piece)
         upload.next_nr = (msg.nr + 1) & 0xFF
         if upload.position >= len(upload.data):
@@ -309,7 +307,7 @@ class LoadFunction:
     # delete, directory
 
     def _delete(self, msg: Message) -> Message:
-        if msg.ln < 2 or msg.data[1] != SEGMENT:
+        if msg.ln < 2 or msg.data[1] != LOAD_SEGMENT:
             return msg.answer(f=RcsF.PARAMETER_FAULT)
         self.store.erase()
         log.info("database deleted from %s", self.store.path)
@@ -322,7 +320,7 @@ class LoadFunction:
             return msg.answer(data=bytes([MODE_DIRECTORY, 0]))
         name = (_segment_name(data) or "").encode("latin-1")
         (w0,) = struct.unpack_from("<H", data) if len(data) >= 2 else (0,)
-        entry = DIRECTORY_ENTRY.pack(SEGMENT, name, len(data) & 0xFFFF, w0, int(stored))
+        entry = DIRECTORY_ENTRY.pack(LOAD_SEGMENT, name, len(data) & 0xFFFF, w0, int(stored))
         return msg.answer(data=bytes([MODE_DIRECTORY, 1]) + entry)
 
 

@@ -10,6 +10,7 @@ from __future__ import annotations
 from typing import TYPE_CHECKING
 
 from dpm import flags as fl
+from dpm.commands import AREA_BY_FUNCTION, AREA_RECEIVE, AREA_SEND, COM_SHARED_MEMORY
 from dpm.errors import ERR_NODE_DEVICE, DeviceEvent, PlcF
 from dpm.layout import IO_AREA_SIZE
 from dpm.message import Message, MessageError, Tdt, TelegramHeader, Tfc
@@ -19,12 +20,6 @@ from firmware.task import Task
 
 if TYPE_CHECKING:
     from firmware.device import Device
-
-COM_SHARED_MEMORY = 17
-
-AREA_BY_FUNCTION = 0
-AREA_RECEIVE = 1
-AREA_SEND = 2
 
 # Per data type: maximum address and count (seed 5.1.1).
 _MAX_ADDRESS: dict[int, int] = {Tdt.UINT16: 1791, Tdt.UINT8: 3583, Tdt.STRING: 3583, Tdt.BIT: 1791}

@@ -15,12 +15,9 @@ from collections.abc import Callable
 from dbm_tools.builder import build_dbm
 from dbm_tools.network import Network
 from dbm_tools.tables import BUS_CAN, BUS_CAN_EXT, NODES
-from dpm.message import Message
+from dpm.commands import AREA_BUS, AREA_EXTENDED, COM_DOWNLOAD, COM_END_SEQ, COM_START_SEQ
+from dpm.message import Message, Task
 from host_api.board import Board
-
-COM_START_SEQ, COM_DOWNLOAD, COM_END_SEQ = 67, 68, 69
-AREA_BUS, AREA_EXTENDED = 127, 128
-CAN_TASK, USER = 3, 16
 
 
 class ConfigurationError(RuntimeError):
@@ -35,23 +32,23 @@ def _download(board: Board, area: int, data: bytes, what: str) -> None:
     """One data set: a single COM_Download when it fits, else a sequence."""
     unit = 240
     if len(data) <= unit:
-        answer = board.transact(Message(rx=CAN_TASK, tx=USER, b=COM_DOWNLOAD,
+        answer = board.transact(Message(rx=Task.CAN, tx=Task.USER, b=COM_DOWNLOAD,
                                         data=bytes([0, area, 0, 0]) + data))
         if answer.f:
             raise ConfigurationError(what, answer.f)
         return
-    answer = board.transact(Message(rx=CAN_TASK, tx=USER, b=COM_START_SEQ,
+    answer = board.transact(Message(rx=Task.CAN, tx=Task.USER, b=COM_START_SEQ,
                                     data=bytes([0, area]) + struct.pack("<H", 1000)))
     if answer.f:
         raise ConfigurationError(what, answer.f)
     unit = answer.data[0] if answer.data else unit
     for offset in range(0, len(data), unit):
         chunk = data[offset : offset + unit]
-        answer = board.transact(Message(rx=CAN_TASK, tx=USER, b=COM_DOWNLOAD,
+        answer = board.transact(Message(rx=Task.CAN, tx=Task.USER, b=COM_DOWNLOAD,
                                         data=bytes([0, area]) + struct.pack("<H", offset) + chunk))
         if answer.f:
             raise ConfigurationError(what, answer.f)
-    answer = board.transact(Message(rx=CAN_TASK, tx=USER, b=COM_END_SEQ, data=b"\0"))
+    answer = board.transact(Message(rx=Task.CAN, tx=Task.USER, b=COM_END_SEQ, data=b"\0"))
     if answer.f:
         raise ConfigurationError(what, answer.f)
 

@@ -31,6 +31,15 @@ from dbm_tools.parameters import (
     ExtendedState,
     NodeParameterSet,
 )
+from dpm.commands import (
+    COM_BOOTUP_INDICATION,
+    COM_RECEIVE_TRANSPARENT,
+    COM_RX_CAN_LAYER2,
+    NMT_RESET_COMM,
+    NMT_START,
+    NMT_STOP,
+)
+from dpm.commands import NMT_RESET_NODE as NMT_RESET
 from dpm.layout import CONN_STATUS, IO_AREA_SIZE
 from dpm.message import Message
 from dpm.task2 import CanState, GlobalBits
@@ -43,15 +52,7 @@ from firmware.can.bus import (
     PERIODIC_OUTSIDE_INTERFACES,
     CanBus,
 )
-from firmware.can.node import (
-    NMT_RESET,
-    NMT_RESET_COMM,
-    NMT_START,
-    NMT_STOP,
-    NODE_STOPPED,
-    NodeHandler,
-    State,
-)
+from firmware.can.node import NODE_STOPPED, NodeHandler, State
 from firmware.can.sdo import HostSdoTransfer
 
 if TYPE_CHECKING:
@@ -71,9 +72,6 @@ INDICATION_LIMIT = 254
 DEFAULT_SDO_TIMEOUT = 0.5
 """[ours] seconds an SDO request waits for its answer until COM_Set_SDO_Timeout; canopen's
 0.3 s lets a busy 2-core machine abort boot-ups that would have succeeded."""
-COM_BOOTUP_INDICATION = 117
-COM_RECEIVE_TRANSPARENT = 65
-COM_RX_CAN_LAYER2 = 83
 
 
 @dataclass

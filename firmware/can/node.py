@@ -31,6 +31,8 @@ from dbm_tools.parameters import (
     NodeParameterSet,
     PdoData,
 )
+from dpm.commands import NMT_RESET_NODE as NMT_RESET
+from dpm.commands import NMT_START, NMT_STOP
 from dpm.errors import NodeEvent
 from firmware.can.bus import SDO_FRAME_LENGTH
 
@@ -70,7 +72,6 @@ PRM_FAULT_BIT = 0x04
 GUARD_ACTIVE_BIT = 0x08
 DEACTIVATED_BIT = 0x80
 
-NMT_START, NMT_STOP, NMT_PREOP, NMT_RESET, NMT_RESET_COMM = 0x01, 0x02, 0x80, 0x81, 0x82
 OPERATIONAL, STOPPED, PRE_OPERATIONAL, BOOT_UP = 5, 4, 127, 0
 
 
