@@ -22,6 +22,24 @@ from dbm_tools.validate import (
     check_extended_bus_parameters,
     check_node_parameters,
 )
+from dpm.com import (
+    DownloadRequest,
+    NmtRequest,
+    NodeDiagnosis,
+    NodeStatus,
+    NodeSwitch,
+    SdoTimeoutRequest,
+    StartSeqRequest,
+    UploadRequest,
+    configuration_answer,
+    decode_layer2_frames,
+    decode_rx_filters,
+    decode_transparent,
+    decode_word,
+    encode_sdo_abort,
+    encode_start_seq_confirm,
+    node_diag_answer,
+)
 from dpm.commands import (
     AREA_BUS,
     AREA_EXTENDED,
@@ -174,21 +192,23 @@ class CanTask(Task):
     # --- COM_Start_Seq / COM_Download / COM_End_Seq / COM_Upload -----------------------------
 
     def com_start_seq(self, msg: Message) -> Message:
-        if msg.ln < 4:
+        try:
+            request = StartSeqRequest.decode(msg.data)
+        except MessageError:
             return msg.answer(f=CanF.FAULTY_PARAMETER)
-        area = msg.data[1]
+        area = request.area
         if not 1 <= area <= 126:
             return msg.answer(f=CanF.AREA_CODE)
-        (timeout,) = struct.unpack_from("<H", msg.data, 2)
-        self._sequence = _Sequence(area, timeout, bytearray(DOWNLOAD_AREA_SIZE), time.monotonic())
-        return msg.answer(data=bytes([MAX_LEN_DATA_UNIT]))
+        self._sequence = _Sequence(area, request.timeout_ms, bytearray(DOWNLOAD_AREA_SIZE),
+                                   time.monotonic())
+        return msg.answer(data=encode_start_seq_confirm(MAX_LEN_DATA_UNIT))
 
     def com_download(self, msg: Message) -> Message:
-        if msg.ln < 4:
+        try:
+            request = DownloadRequest.decode(msg.data)
+        except MessageError:
             return msg.answer(f=CanF.FAULTY_PARAMETER)
-        area = msg.data[1]
-        (offset,) = struct.unpack_from("<H", msg.data, 2)
-        data = msg.data[4:]
+        area, offset, data = request.area, request.offset, request.data
         if area == AREA_BUS:
             return msg.answer(f=self.download_bus(data))
         if area == AREA_EXTENDED:
@@ -227,11 +247,11 @@ class CanTask(Task):
         return msg.answer(f=self.download_node(seq.area, bytes(seq.buffer[:total])))
 
     def com_upload(self, msg: Message) -> Message:
-        if msg.ln != 5:
+        try:
+            request = UploadRequest.decode(msg.data)
+        except MessageError:
             return msg.answer(f=CanF.PARAMETER_FAULT)
-        area = msg.data[1]
-        (offset,) = struct.unpack_from("<H", msg.data, 2)
-        length = msg.data[4]
+        area, offset, length = request.area, request.offset, request.length
         if area == AREA_BUS:
             stored = self.bus_data
         elif 1 <= area <= 126:
@@ -257,13 +277,10 @@ class CanTask(Task):
         if not 1 <= address <= 127:
             return msg.answer(f=CanF.NODE_DIAG_ADDRESS)
         handler = self.master.nodes.get(address)
-        raw = handler.read_diagnosis() if handler else bytes([0x80]) + bytes(47)
+        raw = (handler.read_diagnosis() if handler
+               else NodeDiagnosis(status=NodeStatus.DEACTIVATED).encode())
         self.device.set_node_bit("abNd_diag", address, False)
-        head.data_cnt = len(raw)
-        head.data_type = 5
-        head.function = Tfc.READ
-        head.payload = raw
-        return msg.answer(data=head.encode())
+        return msg.answer(data=node_diag_answer(head, raw))
 
     def com_reset_err_event(self, msg: Message) -> Message:
         """Clear TOUT, EVE and the four counters (seed 5.2.12); never an error."""
@@ -283,9 +300,7 @@ class CanTask(Task):
         record = descript.get(head.device_adr)
         if record is None:
             return msg.answer(f=CanF.NO_DESCRIPT_RECORD)
-        head.payload = record[1 : 1 + 255 - TelegramHeader.SIZE]
-        head.data_cnt = min(len(head.payload), 255)
-        return msg.answer(data=head.encode())
+        return msg.answer(data=configuration_answer(head, record))
 
     # --- SDO -----------------------------------------------------------------------------------
 
@@ -363,8 +378,7 @@ class CanTask(Task):
         if result.timed_out:
             answer = msg.answer(f=CanF.NO_RESPONSE, data=answer_head.encode())
         elif result.abort is not None:
-            answer = msg.answer(f=CanF.SDO_ABORT,
-                                data=answer_head.encode() + struct.pack("<I", result.abort))
+            answer = msg.answer(f=CanF.SDO_ABORT, data=encode_sdo_abort(answer_head, result.abort))
         elif head.function == Tfc.READ and len(result.data) > LONG_SDO_LIMIT:
             answer = msg.answer(f=CanF.SDO_BUFFER, data=answer_head.encode())
         elif head.function == Tfc.READ and len(result.data) > SDO_MAX_DATA:
@@ -390,25 +404,29 @@ class CanTask(Task):
 
     def _node_switch(self, msg: Message, ln: int) -> Message | tuple[NodeHandler, int, int]:
         """Parse d[0] node, d[1] 0 off / 1 on, d[2..3] u16: the node, on, value; or an error."""
-        if msg.ln != ln or not 1 <= msg.data[0] <= 127 or msg.data[1] not in (0, 1):
+        try:
+            request = NodeSwitch.decode(msg.data, guarding=ln == 5)
+        except MessageError:
+            return msg.answer(f=CanF.FAULTY_PARAMETER)
+        if not 1 <= request.node <= 127:
             return msg.answer(f=CanF.FAULTY_PARAMETER)
         if not self.master.running:
             return msg.answer(f=CanF.NOT_CONFIGURED)
-        handler = self.master.nodes.get(msg.data[0])
+        handler = self.master.nodes.get(request.node)
         if handler is None:
             return msg.answer(f=CanF.LOCAL_RESOURCE)
-        (value,) = struct.unpack_from("<H", msg.data, 2)
-        return handler, msg.data[1], value
+        return handler, int(request.on), request.value
 
     def com_set_sdo_timeout(self, msg: Message) -> Message:
-        if msg.ln != 3 or msg.data[0] > 127:
+        try:
+            request = SdoTimeoutRequest.decode(msg.data)
+        except MessageError:
             return msg.answer(f=CanF.FAULTY_PARAMETER)
-        (timeout,) = struct.unpack_from("<H", msg.data, 1)
-        if timeout == 0:
+        if request.node > 127 or request.timeout_ms == 0:
             return msg.answer(f=CanF.FAULTY_PARAMETER)
-        if msg.data[0] and self.master.bus is None:
+        if request.node and self.master.bus is None:
             return msg.answer(f=CanF.NOT_CONFIGURED)
-        self.master.set_sdo_timeout(msg.data[0], timeout / 1000.0)
+        self.master.set_sdo_timeout(request.node, request.timeout_ms / 1000.0)
         return msg.answer()
 
     def com_set_guarding(self, msg: Message) -> Message | None:
@@ -465,9 +483,10 @@ class CanTask(Task):
         return msg.answer()
 
     def com_set_heartbeat_producer(self, msg: Message) -> Message:
-        if msg.ln != 2:
+        try:
+            self.master.ext.usProducerHeartbeatTime = decode_word(msg.data)
+        except MessageError:
             return msg.answer(f=CanF.FAULTY_PARAMETER)
-        (self.master.ext.usProducerHeartbeatTime,) = struct.unpack_from("<H", msg.data)
         return msg.answer()
 
     def com_set_node_id(self, msg: Message) -> Message:
@@ -487,39 +506,33 @@ class CanTask(Task):
     # --- NMT, transparent CAN, layer 2 ---------------------------------------------------------
 
     def com_nmt_module_protocol(self, msg: Message) -> Message:
-        if msg.ln < 2 or msg.data[0] not in NMT_COMMANDS or msg.data[1] > 127:
+        try:
+            request = NmtRequest.decode(msg.data)
+        except MessageError:
+            return msg.answer(f=CanF.FAULTY_PARAMETER)
+        if request.command not in NMT_COMMANDS or request.node > 127:
             return msg.answer(f=CanF.FAULTY_PARAMETER)
         if not self.master.running:
             return msg.answer(f=CanF.NOT_CONFIGURED)
-        command, node = msg.data[0], msg.data[1]
-        self.master.host_nmt(command, node)
+        self.master.host_nmt(request.command, request.node)
         return msg.answer()
 
     def com_send_canmsg_transparent(self, msg: Message) -> Message:
-        d = msg.data
-        if msg.ln == 10:  # CAN 2.0A: ID.10..3 | ID.2..0 RTR DLC
-            ident, payload, extended = (d[0] << 3) | (d[1] >> 5), d[2:], False
-            rtr, dlc = bool(d[1] & 0x10), d[1] & 0x0F
-        elif msg.ln in (11, 13):  # CAN 2.0B: frame info, then the identifier
-            info = d[0]
-            extended = bool(info & 0x80)
-            if extended != (msg.ln == 13):
-                return msg.answer(f=CanF.FAULTY_PARAMETER)
-            rtr, dlc = bool(info & 0x40), info & 0x0F
-            if extended:
-                ident, payload = int.from_bytes(d[1:5], "big") >> 3, d[5:]
-            else:
-                ident, payload = (d[1] << 3) | (d[2] >> 5), d[3:]
-        else:
+        try:
+            frame = decode_transparent(msg.data)
+        except MessageError:
             return msg.answer(f=CanF.FAULTY_PARAMETER)
-        if not self.master.bus_send_raw(ident, bytes(payload[: min(dlc, 8)]), rtr, extended, dlc):
+        dlc = frame.length_code  # a remote frame carries the data bytes as given, as before
+        if not self.master.bus_send_raw(frame.ident, frame.data[: min(dlc, 8)], frame.rtr,
+                                        frame.extended, dlc):
             return msg.answer(f=CanF.TIMEOUT)
         return msg.answer()
 
     def com_cfgrx_layer2(self, msg: Message) -> Message:
-        if msg.ln < 2 or msg.ln % 2:
+        try:
+            idents = decode_rx_filters(msg.data)
+        except MessageError:
             return msg.answer(f=CanF.FAULTY_PARAMETER)
-        idents = [msg.data[i] | ((msg.data[i + 1] & 0x07) << 8) for i in range(0, msg.ln, 2)]
         if any(self.master.cob_id_in_use(i) for i in idents):
             return msg.answer(f=CanF.FAULTY_PARAMETER)
         self.master.layer2_filters.update(idents)
@@ -527,20 +540,11 @@ class CanTask(Task):
 
     def com_tx_can_layer2(self, msg: Message) -> Message | None:
         """Up to 127 frames, each 2 identifier bytes plus DLC data bytes; no answer."""
-        frames: list[tuple[int, bool, int, bytes]] = []
-        at, d = 0, msg.data
-        while at < len(d):
-            if at + 2 > len(d):
-                return msg.answer(f=CanF.FAULTY_PARAMETER)
-            ident = (d[at] << 3) | (d[at + 1] >> 5)
-            rtr, dlc = bool(d[at + 1] & 0x10), d[at + 1] & 0x0F
-            size = 0 if rtr else min(dlc, 8)
-            if dlc > 8 or at + 2 + size > len(d):
-                return msg.answer(f=CanF.FAULTY_PARAMETER)
-            frames.append((ident, rtr, dlc, bytes(d[at + 2 : at + 2 + size])))
-            at += 2 + size
-        if not frames:
+        try:
+            frames = decode_layer2_frames(msg.data)
+        except MessageError:
             return msg.answer(f=CanF.FAULTY_PARAMETER)
-        for ident, rtr, dlc, payload in frames:
-            self.master.bus_send_raw(ident, payload, rtr, False, dlc)
+        for frame in frames:
+            self.master.bus_send_raw(frame.ident, frame.payload, frame.rtr, False,
+                                     frame.length_code)
         return None

@@ -31,6 +31,7 @@ from dbm_tools.parameters import (
     NodeParameterSet,
     PdoData,
 )
+from dpm.com import EMCY_ENTRIES, NodeDiagnosis, NodeStatus
 from dpm.commands import NMT_RESET_NODE as NMT_RESET
 from dpm.commands import NMT_START, NMT_STOP
 from dpm.errors import NodeEvent
@@ -50,8 +51,6 @@ RTR_PERIOD = 0.1
 START_GRACE = 0.5
 """[ours] seconds after the NMT start in which a node may still report its old state: an
 error-control frame it sent before the start can reach the master after it."""
-EMCY_ENTRIES = 5
-"""COM_Node_Diag's Emcy_Data holds 40 bytes: five 8-byte EMCY messages."""
 
 # Err_Event numbers for nodes (seed 4.3)
 GUARDING_FAILED = NodeEvent.GUARDING_FAILED
@@ -66,11 +65,11 @@ SDO_LENGTH = NodeEvent.SDO_LENGTH
 NODE_STOPPED = NodeEvent.NODE_STOPPED
 
 # Nodestatus_1 bits (seed 5.2.7)
-NO_RESPONSE_BIT = 0x01
-EMCY_OVERFLOW_BIT = 0x02
-PRM_FAULT_BIT = 0x04
-GUARD_ACTIVE_BIT = 0x08
-DEACTIVATED_BIT = 0x80
+NO_RESPONSE_BIT = NodeStatus.NO_RESPONSE
+EMCY_OVERFLOW_BIT = NodeStatus.EMCY_BUFFER_OVERFLOW
+PRM_FAULT_BIT = NodeStatus.PRM_FAULT
+GUARD_ACTIVE_BIT = NodeStatus.GUARD_ACTIVE
+DEACTIVATED_BIT = NodeStatus.DEACTIVATED
 
 OPERATIONAL, STOPPED, PRE_OPERATIONAL, BOOT_UP = 5, 4, 127, 0
 
@@ -116,12 +115,8 @@ class Diagnosis:
     emcy: deque[bytes] = field(default_factory=lambda: deque(maxlen=EMCY_ENTRIES))
 
     def encode(self) -> bytes:
-        entries = b"".join(self.emcy)
-        return (
-            struct.pack("<BHHBBB", self.status, self.add_info, self.profile, self.node_state,
-                        self.actual_error, len(self.emcy))
-            + entries.ljust(40, b"\0")
-        )
+        return NodeDiagnosis(self.status, self.add_info, self.profile, self.node_state,
+                             self.actual_error, list(self.emcy)).encode()
 
 
 def swap_words(data: bytes) -> bytes:
