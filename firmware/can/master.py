@@ -49,17 +49,16 @@ from dpm.commands import NMT_RESET_NODE as NMT_RESET
 from dpm.layout import CONN_STATUS, IO_AREA_SIZE
 from dpm.message import Message, Task
 from dpm.task2 import CanState, GlobalBits
-from firmware.can.bus import (
+from firmware.can.bus import PERIODIC_OUTSIDE_INTERFACES, CanBus
+from firmware.can.node import NODE_STOPPED, NodeHandler, State
+from firmware.can.sdo import HostSdoTransfer
+from firmware.frames import (
     CAN_ERR_ACK,
     CAN_ERR_BUSOFF,
     CAN_ERR_CRTL,
     CAN_ERR_CRTL_RX_OVERFLOW,
     CAN_ERR_TX_TIMEOUT,
-    PERIODIC_OUTSIDE_INTERFACES,
-    CanBus,
 )
-from firmware.can.node import NODE_STOPPED, NodeHandler, State
-from firmware.can.sdo import HostSdoTransfer
 
 if TYPE_CHECKING:
     from firmware.device import Device

@@ -35,7 +35,7 @@ from dpm.com import EMCY_ENTRIES, NodeDiagnosis, NodeStatus
 from dpm.commands import NMT_RESET_NODE as NMT_RESET
 from dpm.commands import NMT_START, NMT_STOP
 from dpm.errors import NodeEvent
-from firmware.can.bus import SDO_FRAME_LENGTH
+from firmware.frames import SDO_FRAME_LENGTH
 
 if TYPE_CHECKING:
     from firmware.can.master import Master
