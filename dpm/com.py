@@ -11,6 +11,7 @@ table; the task answers that with the msg.f its command documents.
 from __future__ import annotations
 
 import struct
+from collections import deque
 from dataclasses import dataclass, field
 from enum import IntFlag
 
@@ -136,7 +137,11 @@ def node_diag_request(node: int) -> bytes:
 
 @dataclass(slots=True)
 class NodeDiagnosis:
-    """COM_ND_DIAGNOSTICS: the 48 bytes after the answer's telegram header."""
+    """COM_ND_DIAGNOSTICS: the 48 bytes after the answer's telegram header.
+
+    The card's node handlers keep one per node and update it in place (``emcy`` drops the
+    oldest message when a sixth arrives; the handler sets ``EMCY_BUFFER_OVERFLOW``).
+    """
 
     status: int = 0
     """Nodestatus_1 (``NodeStatus`` bits)."""
@@ -145,14 +150,14 @@ class NodeDiagnosis:
     node_state: int = 0
     actual_error: int = 0
     """The node's current Err_Event."""
-    emcy: list[bytes] = field(default_factory=list)
-    """The stored EMCY messages, 8 bytes each, at most five."""
+    emcy: deque[bytes] = field(default_factory=lambda: deque(maxlen=EMCY_ENTRIES))
+    """The stored EMCY messages, 8 bytes each: the newest five, as the card keeps them."""
 
     def encode(self) -> bytes:
-        entries = b"".join(e.ljust(EMCY_ENTRY_SIZE, b"\0")[:EMCY_ENTRY_SIZE]
-                           for e in self.emcy[:EMCY_ENTRIES])
+        kept = list(self.emcy)[-EMCY_ENTRIES:]
+        entries = b"".join(e.ljust(EMCY_ENTRY_SIZE, b"\0")[:EMCY_ENTRY_SIZE] for e in kept)
         head = _NODE_DIAG_HEAD.pack(self.status, self.add_info, self.profile, self.node_state,
-                                    self.actual_error, min(len(self.emcy), EMCY_ENTRIES))
+                                    self.actual_error, len(kept))
         return (head + entries).ljust(NODE_DIAG_SIZE, b"\0")
 
     @classmethod
@@ -164,7 +169,7 @@ class NodeDiagnosis:
         at = _NODE_DIAG_HEAD.size
         emcy = [bytes(data[at + i * EMCY_ENTRY_SIZE : at + (i + 1) * EMCY_ENTRY_SIZE])
                 for i in range(count)]
-        return cls(status, add_info, profile, state, error, emcy)
+        return cls(status, add_info, profile, state, error, deque(emcy, maxlen=EMCY_ENTRIES))
 
 
 def node_diag_answer(request: TelegramHeader, diagnosis: bytes) -> bytes:

@@ -22,6 +22,7 @@ from dbm_tools.validate import (
     check_extended_bus_parameters,
     check_node_parameters,
 )
+from dpm import message
 from dpm.com import (
     DownloadRequest,
     NmtRequest,
@@ -94,7 +95,7 @@ class _Sequence:
 
 
 class CanTask(Task):
-    number = 3
+    number = message.Task.CAN
     name = "CAN"
 
     def __init__(self, device: Device, config: BusConfig | None = None) -> None:

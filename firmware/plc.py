@@ -10,6 +10,7 @@ from __future__ import annotations
 from typing import TYPE_CHECKING
 
 from dpm import flags as fl
+from dpm import message
 from dpm.commands import AREA_BY_FUNCTION, AREA_RECEIVE, AREA_SEND, COM_SHARED_MEMORY
 from dpm.errors import ERR_NODE_DEVICE, DeviceEvent, PlcF
 from dpm.layout import IO_AREA_SIZE
@@ -30,7 +31,7 @@ HOST_CONTROLLED = (4, 5)
 
 
 class PlcTask(Task):
-    number = 2
+    number = message.Task.PLC
     name = "PLC"
 
     def __init__(self, device: Device) -> None:

@@ -6,6 +6,8 @@ Each vector is written by hand from the ``msg.d[]`` table of its message in the 
 
 from __future__ import annotations
 
+from collections import deque
+
 import pytest
 
 from dbm_tools.parameters import BusParameterSet
@@ -115,7 +117,7 @@ def test_node_diag_answer() -> None:
                   0x01]) + emcy   # Emcy_Entries 1, then Emcy_Data
     diag = diag.ljust(NODE_DIAG_SIZE, b"\0")
     decoded = NodeDiagnosis.decode(diag)
-    assert decoded == NodeDiagnosis(NodeStatus.GUARD_ACTIVE, 2, 401, 5, 0, [emcy])
+    assert decoded == NodeDiagnosis(NodeStatus.GUARD_ACTIVE, 2, 401, 5, 0, deque([emcy], 5))
     assert decoded.encode() == diag
     answer = node_diag_answer(TelegramHeader.decode(node_diag_request(3)), diag)
     assert answer[:8] == bytes([0x03, 0x00, 0x00, 0x00, 0x00, 48, 0x05, 0x01])
@@ -128,6 +130,15 @@ def test_node_diag_answer() -> None:
 
 def test_an_unconfigured_node_reads_deactivated() -> None:
     assert NodeDiagnosis(status=NodeStatus.DEACTIVATED).encode() == bytes([0x80]) + bytes(47)
+
+
+def test_the_newest_five_emcy_messages_are_kept() -> None:
+    diag = NodeDiagnosis()
+    for n in range(7):
+        diag.emcy.append(bytes([n]) * 8)
+    raw = diag.encode()
+    assert raw[7] == 5
+    assert raw[8:48] == b"".join(bytes([n]) * 8 for n in range(2, 7))
 
 
 # --- COM_SDO_Up_Download --------------------------------------------------------------------

@@ -14,8 +14,7 @@ import logging
 import struct
 import threading
 import time
-from collections import deque
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import can
@@ -31,7 +30,8 @@ from dbm_tools.parameters import (
     NodeParameterSet,
     PdoData,
 )
-from dpm.com import EMCY_ENTRIES, NodeDiagnosis, NodeStatus
+from dpm.com import EMCY_ENTRIES, NodeStatus
+from dpm.com import NodeDiagnosis as Diagnosis
 from dpm.commands import NMT_RESET_NODE as NMT_RESET
 from dpm.commands import NMT_START, NMT_STOP
 from dpm.errors import NodeEvent
@@ -101,22 +101,6 @@ class InputPdo:
     offset: int
     requested: float = 0.0
     """When the last remote request went out, 0 when answered."""
-
-
-@dataclass
-class Diagnosis:
-    """The node's part of COM_Node_Diag (seed 5.2.7)."""
-
-    status: int = 0
-    add_info: int = 0
-    profile: int = 0
-    node_state: int = 0
-    actual_error: int = 0
-    emcy: deque[bytes] = field(default_factory=lambda: deque(maxlen=EMCY_ENTRIES))
-
-    def encode(self) -> bytes:
-        return NodeDiagnosis(self.status, self.add_info, self.profile, self.node_state,
-                             self.actual_error, list(self.emcy)).encode()
 
 
 def swap_words(data: bytes) -> bytes:
