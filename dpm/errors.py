@@ -214,7 +214,8 @@ class CanF(MsgF):
     NO_ERROR = 0, "no error"
     SDO_ABORT = 3, "service was rejected by the node with Abort SDO service"
     NO_DESCRIPT_TABLE = 3, "service was rejected by the node with Abort SDO service"
-    """[ours] GET_CONFIGURATION without a DESCRIPT table (docs/card-commands.md)."""
+    """[ours] GET_CONFIGURATION without a DESCRIPT table; the same number as SDO_ABORT (an
+    enum alias), so it reads with SDO_ABORT's text."""
     NO_RESPONSE = 17, "no response from the node, node is not present"
     NODE_BUSY = 19, "node is not in operational state, access denied"
     LOCAL_RESOURCE = 20, "local resource not available"
