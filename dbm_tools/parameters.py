@@ -17,15 +17,8 @@ from dataclasses import dataclass, field
 from enum import IntFlag
 
 from dbm_tools._binary import fixed, pack, unpack
-from dbm_tools.errors import (
-    ADD_TAB_LENGTH,
-    ADD_TAB_TOO_LARGE,
-    DATA_INCOMPLETE,
-    PDO_DATA_TOO_LARGE,
-    SDO_DATA_TOO_LARGE,
-    WHOLE_LENGTH,
-    DbmError,
-)
+from dbm_tools.errors import DbmError
+from dpm.errors import CanF
 
 
 class NdFlag(IntFlag):
@@ -165,11 +158,11 @@ class PdoData:
 def _list_length(data: bytes, at: int, end: int, entry: int, faulty_size: int, what: str) -> int:
     """Read a list's length word; it counts itself and must hold whole entries up to `end`."""
     if at + LIST_LENGTH_SIZE > end:
-        raise DbmError(f"no room for {what}", field=what, number=WHOLE_LENGTH)
+        raise DbmError(f"no room for {what}", field=what, number=CanF.WHOLE_LENGTH)
     (length,) = unpack("H", data, at, what)
     if length < LIST_LENGTH_SIZE or (length - LIST_LENGTH_SIZE) % entry:
         raise DbmError(
-            f"{what} {length} is not 2 + n * {entry}", field=what, number=DATA_INCOMPLETE
+            f"{what} {length} is not 2 + n * {entry}", field=what, number=CanF.INCOMPLETE
         )
     if at + length > end:
         raise DbmError(f"{what} {length} runs past usNodeParaLen", field=what, number=faulty_size)
@@ -209,26 +202,26 @@ class NodeParameterSet:
         """Decode a whole set; `data` must be exactly usNodeParaLen bytes."""
         data = bytes(data)
         if len(data) < LIST_LENGTH_SIZE:
-            raise DbmError("no usNodeParaLen", field="usNodeParaLen", number=DATA_INCOMPLETE)
+            raise DbmError("no usNodeParaLen", field="usNodeParaLen", number=CanF.INCOMPLETE)
         (total,) = unpack("H", data, 0, "usNodeParaLen")
         if total > len(data):
             raise DbmError(
                 f"usNodeParaLen {total} but only {len(data)} bytes",
                 field="usNodeParaLen",
-                number=DATA_INCOMPLETE,
+                number=CanF.INCOMPLETE,
             )
         if total < len(data) or total < ND_PRM_HEADER_SIZE:
             raise DbmError(
                 f"usNodeParaLen {total} but {len(data)} bytes",
                 field="usNodeParaLen",
-                number=WHOLE_LENGTH,
+                number=CanF.WHOLE_LENGTH,
             )
         _, flag, add_type, profile, emcy, guard, guard_time, life, config = unpack(
             _HEADER_FORMAT, data, 0, "COM_ND_PRM_HEADER"
         )
         at = ND_PRM_HEADER_SIZE
         sdo_length = _list_length(
-            data, at, total, SDO_CFG_DATA_SIZE, SDO_DATA_TOO_LARGE, "usSdoCfgDataLen"
+            data, at, total, SDO_CFG_DATA_SIZE, CanF.SDO_DATA_TOO_LARGE, "usSdoCfgDataLen"
         )
         sdos = [
             SdoCfgData.decode(data[i : i + SDO_CFG_DATA_SIZE])
@@ -236,7 +229,7 @@ class NodeParameterSet:
         ]
         at += sdo_length
         pdo_length = _list_length(
-            data, at, total, PDO_DATA_SIZE, PDO_DATA_TOO_LARGE, "usPdoCfgDataLen"
+            data, at, total, PDO_DATA_SIZE, CanF.PDO_DATA_TOO_LARGE, "usPdoCfgDataLen"
         )
         pdos = [
             PdoData.decode(data[i : i + PDO_DATA_SIZE])
@@ -244,19 +237,19 @@ class NodeParameterSet:
         ]
         at += pdo_length
         if at + ADD_TAB_HEADER_SIZE > total:
-            raise DbmError("no room for the ADD-tab", field="usAddTabLen", number=WHOLE_LENGTH)
+            raise DbmError("no room for the ADD-tab", field="usAddTabLen", number=CanF.WHOLE_LENGTH)
         add_length, inputs, outputs = unpack("HBB", data, at, "COM_ND_PRM_ADD_TAB")
         if at + add_length > total:
             raise DbmError(
                 f"usAddTabLen {add_length} runs past usNodeParaLen",
                 field="usAddTabLen",
-                number=ADD_TAB_TOO_LARGE,
+                number=CanF.ADD_TAB_TOO_LARGE,
             )
         if add_length != ADD_TAB_HEADER_SIZE + 2 * (inputs + outputs):
             raise DbmError(
                 f"usAddTabLen {add_length} for {inputs} inputs and {outputs} outputs",
                 field="usAddTabLen",
-                number=ADD_TAB_LENGTH,
+                number=CanF.ADD_TAB_LENGTH,
             )
         offsets = list(
             unpack(f"{inputs + outputs}H", data, at + ADD_TAB_HEADER_SIZE, "ausIOOffsets")
@@ -266,7 +259,7 @@ class NodeParameterSet:
             raise DbmError(
                 f"data set ends at {at}, usNodeParaLen is {total}",
                 field="usNodeParaLen",
-                number=WHOLE_LENGTH,
+                number=CanF.WHOLE_LENGTH,
             )
         return cls(
             flag,
@@ -335,7 +328,7 @@ class BusParameterSet:
             raise DbmError(
                 f"bus parameter data set must be {BUS_CAN_SIZE} bytes, got {len(data)}",
                 field="BUS_CAN",
-                number=DATA_INCOMPLETE,
+                number=CanF.INCOMPLETE,
             )
         return cls(*unpack(_BUS_CAN_FORMAT, data, 0, "BUS_CAN"))
 
@@ -374,7 +367,7 @@ class ExtendedBusParameterSet:
                 f"extended bus parameter data set must be {BUS_CAN_EXT_SIZE} bytes,"
                 f" got {len(data)}",
                 field="BUS_CAN_EXT",
-                number=DATA_INCOMPLETE,
+                number=CanF.INCOMPLETE,
             )
         state, code, mask, node_id, heartbeat, reserved, *longs = unpack(
             _BUS_CAN_EXT_FORMAT, data, 0, "BUS_CAN_EXT"

@@ -34,29 +34,7 @@ from dataclasses import dataclass, replace
 from typing import Literal
 
 from dbm_tools.container import FIRST_TABLE, DbmFile, DbmTable
-from dbm_tools.errors import (
-    BAUD_RATE,
-    BUFFER_OVERSTEP,
-    DATA_INCOMPLETE,
-    DATABASE_NOT_VALID,
-    DOUBLE_NODE_ADDRESS,
-    EMCY_COB_ID,
-    ERROR_TEXTS,
-    FAULTY_DATABASE,
-    FAULTY_PARAMETER,
-    GUARD_COB_ID,
-    INPUT_OFFSET,
-    NO_ERROR,
-    NODE_PARAMETERS_TOO_LARGE,
-    OUTPUT_OFFSET,
-    PDO_ADD_TAB,
-    PDO_LENGTH,
-    SDO_DATA_TOO_LARGE,
-    SYNC_COB_ID,
-    SYNC_TIMER,
-    TRANSMISSION_TYPE,
-    DbmError,
-)
+from dbm_tools.errors import DbmError
 from dbm_tools.parameters import (
     ACLR_ACTIVE,
     ACLR_INACTIVE,
@@ -84,9 +62,12 @@ from dbm_tools.tables import (
     ProjektRecord,
     checksum_crc,
 )
+from dpm.commands import DOWNLOAD_AREA_SIZE
+from dpm.errors import CanF, DeviceEvent, RcsF
+from dpm.layout import IO_AREA_SIZE
 
-DOWNLOAD_AREA_SIZE = 1000
-PROCESS_IMAGE_SIZE = 3584
+PROCESS_IMAGE_SIZE = IO_AREA_SIZE
+"""Bytes of the process image each way (the card's send and receive areas)."""
 NODE_ADDRESSES = range(1, 128)
 MASTER_NODE_IDS = range(127)
 COB_IDS = range(1, 2048)
@@ -114,11 +95,15 @@ class Finding:
 
     @property
     def text(self) -> str:
-        return ERROR_TEXTS[self.number]
+        if self.number == DeviceEvent.FAULTY_DATABASE:
+            return DeviceEvent.FAULTY_DATABASE.text  # a stored database, seen at start-up
+        if self.number == RcsF.DB_NOT_VALID:
+            return RcsF.DB_NOT_VALID.text  # the load function's verdict on a whole DBM
+        return CanF.text_of(self.number)
 
 
 def _warning(detail: str, table: str, record: int, field: str | None = None) -> Finding:
-    return Finding(NO_ERROR, detail, table, record, field, severity="warning")
+    return Finding(CanF.NO_ERROR, detail, table, record, field, severity="warning")
 
 
 def _from_error(error: DbmError, default: int) -> Finding:
@@ -128,7 +113,8 @@ def _from_error(error: DbmError, default: int) -> Finding:
 def _size_findings(data: bytes) -> list[Finding]:
     if len(data) > DOWNLOAD_AREA_SIZE:
         return [
-            Finding(BUFFER_OVERSTEP, f"{len(data)} bytes exceed the {DOWNLOAD_AREA_SIZE}-byte area")
+            Finding(CanF.BUFFER_LENGTH,
+                    f"{len(data)} bytes exceed the {DOWNLOAD_AREA_SIZE}-byte area")
         ]
     return []
 
@@ -142,15 +128,15 @@ def _check_pdo_areas(node_set: NodeParameterSet) -> list[Finding]:
     ):
         findings.append(
             Finding(
-                PDO_ADD_TAB,
+                CanF.PDO_ADD_TAB,
                 f"{len(inputs)} input and {len(outputs)} output PDOs, ADD-tab has "
                 f"{len(node_set.ausInputOffsets)} and {len(node_set.ausOutputOffsets)} offsets",
                 field="bInputCount",
             )
         )
     for number, pdos, offsets, what in (
-        (INPUT_OFFSET, inputs, node_set.ausInputOffsets, "input"),
-        (OUTPUT_OFFSET, outputs, node_set.ausOutputOffsets, "output"),
+        (CanF.INPUT_OFFSET, inputs, node_set.ausInputOffsets, "input"),
+        (CanF.OUTPUT_OFFSET, outputs, node_set.ausOutputOffsets, "output"),
     ):
         for pdo, offset in zip(pdos, offsets, strict=False):
             if offset + pdo.data_length > PROCESS_IMAGE_SIZE:
@@ -168,27 +154,29 @@ def _check_pdo_areas(node_set: NodeParameterSet) -> list[Finding]:
 def _check_node_values(node_set: NodeParameterSet) -> list[Finding]:
     findings = []
     for number, value, what in (
-        (EMCY_COB_ID, node_set.usCobIDEmcy, "usCobIDEmcy"),
-        (GUARD_COB_ID, node_set.usCobIDGuard, "usCobIDGuard"),
+        (CanF.EMCY_COB_ID, node_set.usCobIDEmcy, "usCobIDEmcy"),
+        (CanF.GUARD_COB_ID, node_set.usCobIDGuard, "usCobIDGuard"),
     ):
         if value not in COB_IDS:
             findings.append(Finding(number, f"{what} {value} not in 1..2047", field=what))
     for index, sdo in enumerate(node_set.atSdoCfgData, start=1):
         if sdo.bLength > SDO_LENGTH_MAX:
             findings.append(
-                Finding(SDO_DATA_TOO_LARGE, f"SDO {index}: bLength {sdo.bLength}", field="bLength")
+                Finding(CanF.SDO_DATA_TOO_LARGE, f"SDO {index}: bLength {sdo.bLength}",
+                        field="bLength")
             )
         elif sdo.bLength == 0:
-            findings.append(Finding(FAULTY_PARAMETER, f"SDO {index}: bLength 0", field="bLength"))
+            findings.append(Finding(CanF.FAULTY_PARAMETER, f"SDO {index}: bLength 0",
+                                    field="bLength"))
     for index, pdo in enumerate(node_set.atPdoCfgData, start=1):
         if pdo.data_length not in PDO_LENGTHS:
             findings.append(
-                Finding(PDO_LENGTH, f"PDO {index}: length {pdo.data_length}", field="bLength")
+                Finding(CanF.PDO_LENGTH, f"PDO {index}: length {pdo.data_length}", field="bLength")
             )
         if pdo.bTransType not in TRANSMISSION_TYPES:
             findings.append(
                 Finding(
-                    TRANSMISSION_TYPE,
+                    CanF.TRANSMISSION_TYPE,
                     f"PDO {index}: bTransType {pdo.bTransType}",
                     field="bTransType",
                 )
@@ -196,7 +184,7 @@ def _check_node_values(node_set: NodeParameterSet) -> list[Finding]:
         if pdo.usPdoCOBId not in COB_IDS:
             findings.append(
                 Finding(
-                    FAULTY_PARAMETER,
+                    CanF.FAULTY_PARAMETER,
                     f"PDO {index}: usPdoCOBId {pdo.usPdoCOBId} not in 1..2047",
                     field="usPdoCOBId",
                 )
@@ -209,13 +197,14 @@ def check_node_parameters(data: bytes, node: int) -> list[Finding]:
     findings = _size_findings(data)
     if node not in NODE_ADDRESSES:
         findings.append(
-            Finding(FAULTY_PARAMETER, f"node address {node} not in 1..127", field="Node_Address")
+            Finding(CanF.FAULTY_PARAMETER, f"node address {node} not in 1..127",
+                    field="Node_Address")
         )
     declared = int.from_bytes(data[:2], "little")
     if declared > DOWNLOAD_AREA_SIZE:
         findings.append(
             Finding(
-                NODE_PARAMETERS_TOO_LARGE,
+                CanF.NODE_PARAMETERS_TOO_LARGE,
                 f"usNodeParaLen {declared} exceeds {DOWNLOAD_AREA_SIZE}",
                 field="usNodeParaLen",
             )
@@ -223,7 +212,7 @@ def check_node_parameters(data: bytes, node: int) -> list[Finding]:
     try:
         node_set = NodeParameterSet.decode(data)
     except DbmError as error:
-        return [*findings, _from_error(error, DATA_INCOMPLETE)]
+        return [*findings, _from_error(error, CanF.INCOMPLETE)]
     return findings + _check_node_values(node_set)
 
 
@@ -233,13 +222,14 @@ def check_bus_parameters(data: bytes, nodes: Sequence[NodeParameterSet] = ()) ->
     try:
         bus = BusParameterSet.decode(data)
     except DbmError as error:
-        return [*findings, _from_error(error, DATA_INCOMPLETE)]
+        return [*findings, _from_error(error, CanF.INCOMPLETE)]
     if bus.Baud_rate not in BAUD_RATES_KBIT:
-        findings.append(Finding(BAUD_RATE, f"Baud_rate {bus.Baud_rate}", field="Baud_rate"))
+        findings.append(Finding(CanF.BAUD_RATE, f"Baud_rate {bus.Baud_rate}", field="Baud_rate"))
     if bus.COB_ID_SYNC not in COB_IDS:
         findings.append(
             Finding(
-                SYNC_COB_ID, f"COB_ID_SYNC {bus.COB_ID_SYNC} not in 1..2047", field="COB_ID_SYNC"
+                CanF.SYNC_COB_ID, f"COB_ID_SYNC {bus.COB_ID_SYNC} not in 1..2047",
+                field="COB_ID_SYNC"
             )
         )
     synchronous = any(
@@ -251,7 +241,7 @@ def check_bus_parameters(data: bytes, nodes: Sequence[NodeParameterSet] = ()) ->
     if bus.SYNC_Timer == 0 and synchronous:
         findings.append(
             Finding(
-                SYNC_TIMER,
+                CanF.SYNC_TIMER,
                 "SYNC_Timer 0 but an active node has a synchronous PDO",
                 field="SYNC_Timer",
             )
@@ -261,7 +251,8 @@ def check_bus_parameters(data: bytes, nodes: Sequence[NodeParameterSet] = ()) ->
         (bus.Intel_Motorola, (INTEL, MOTOROLA), "Intel_Motorola"),
     ):
         if value not in allowed:
-            findings.append(Finding(FAULTY_PARAMETER, f"{what} {value} not 0 or 1", field=what))
+            findings.append(Finding(CanF.FAULTY_PARAMETER, f"{what} {value} not 0 or 1",
+                                    field=what))
     return findings
 
 
@@ -275,19 +266,19 @@ def check_extended_bus_parameters(data: bytes) -> list[Finding]:
     try:
         ext = ExtendedBusParameterSet.decode(data)
     except DbmError as error:
-        return [*findings, _from_error(error, DATA_INCOMPLETE)]
+        return [*findings, _from_error(error, CanF.INCOMPLETE)]
     known = int(ExtendedState.bi11Bit29BitSelector | ExtendedState.biNoGobalStartNode)
     if ext.bExtendedState & ~known:
         findings.append(
             Finding(
-                FAULTY_PARAMETER,
+                CanF.FAULTY_PARAMETER,
                 f"bExtendedState {ext.bExtendedState:#04x} sets reserved bits",
                 field="bExtendedState",
             )
         )
     if ext.bNodeID not in MASTER_NODE_IDS:
         findings.append(
-            Finding(FAULTY_PARAMETER, f"bNodeID {ext.bNodeID} not in 0..126", field="bNodeID")
+            Finding(CanF.FAULTY_PARAMETER, f"bNodeID {ext.bNodeID} not in 0..126", field="bNodeID")
         )
     return findings
 
@@ -303,7 +294,7 @@ def check_node_addresses(addresses: Sequence[int], master_node_id: int = 0) -> l
         if address in seen:
             findings.append(
                 Finding(
-                    DOUBLE_NODE_ADDRESS,
+                    CanF.DOUBLE_ADDRESS,
                     f"node {address} configured twice",
                     record=record,
                     field="Node_Address",
@@ -312,7 +303,7 @@ def check_node_addresses(addresses: Sequence[int], master_node_id: int = 0) -> l
         elif master_node_id and address == master_node_id:
             findings.append(
                 Finding(
-                    DOUBLE_NODE_ADDRESS,
+                    CanF.DOUBLE_ADDRESS,
                     f"node {address} is the master's bNodeID",
                     record=record,
                     field="Node_Address",
@@ -332,11 +323,12 @@ def _single_record(dbm: DbmFile, name: str, required: bool) -> tuple[bytes | Non
     """The one record of a one-record table, or the 212 findings why there is none."""
     table = dbm.table(name)
     if table is None:
-        missing = Finding(FAULTY_DATABASE, f"no {name} table", table=name)
+        missing = Finding(DeviceEvent.FAULTY_DATABASE, f"no {name} table", table=name)
         return None, [missing] if required else []
     if len(table.records) != 1:
         return None, [
-            Finding(FAULTY_DATABASE, f"{len(table.records)} records, expected 1", table=name)
+            Finding(DeviceEvent.FAULTY_DATABASE, f"{len(table.records)} records, expected 1",
+                    table=name)
         ]
     return table.records[0], []
 
@@ -344,19 +336,19 @@ def _single_record(dbm: DbmFile, name: str, required: bool) -> tuple[bytes | Non
 def _check_global(dbm: DbmFile) -> list[Finding]:
     record, findings = _single_record(dbm, GLOBAL, required=True)
     if record is None:
-        return [replace(f, number=DATABASE_NOT_VALID) for f in findings]
+        return [replace(f, number=RcsF.DB_NOT_VALID) for f in findings]
     if dbm.table_number(GLOBAL) != FIRST_TABLE:
         findings.append(
-            Finding(DATABASE_NOT_VALID, f"GLOBAL is not table {FIRST_TABLE}", table=GLOBAL)
+            Finding(RcsF.DB_NOT_VALID, f"GLOBAL is not table {FIRST_TABLE}", table=GLOBAL)
         )
     try:
         global_set = GlobalSet.decode(record)
     except DbmError as error:
-        return [*findings, Finding(DATABASE_NOT_VALID, error.reason, GLOBAL, 1, error.field)]
+        return [*findings, Finding(RcsF.DB_NOT_VALID, error.reason, GLOBAL, 1, error.field)]
     if global_set.szSegmentName != SEGMENT_NAME_CANOPEN:
         findings.append(
             Finding(
-                DATABASE_NOT_VALID,
+                RcsF.DB_NOT_VALID,
                 f"segment name {global_set.szSegmentName!r}, expected {SEGMENT_NAME_CANOPEN!r}",
                 GLOBAL,
                 1,
@@ -384,7 +376,8 @@ def _check_nodes(
         return [], []
     if table.key_length != NODES_KEY_LENGTH or not all(table.records):
         return [
-            Finding(FAULTY_DATABASE, "NODES must be keyed on its 1-byte address", table=NODES)
+            Finding(DeviceEvent.FAULTY_DATABASE, "NODES must be keyed on its 1-byte address",
+                    table=NODES)
         ], []
     findings = []
     node_sets = []
@@ -427,7 +420,8 @@ def check_dbm(dbm: DbmFile) -> list[Finding]:
         try:
             PlcParam.decode(plc)
         except DbmError as error:
-            findings.append(Finding(FAULTY_DATABASE, error.reason, PLC_PARAM, 1, error.field))
+            findings.append(Finding(DeviceEvent.FAULTY_DATABASE, error.reason, PLC_PARAM, 1,
+                                    error.field))
     findings += _check_unread_tables(dbm)
     return findings
 

@@ -9,6 +9,7 @@ Names follow the seed manual (``COM_SDO_Up_Download`` is ``Com.SDO_UP_DOWNLOAD``
 
 from __future__ import annotations
 
+import struct
 from enum import IntEnum
 
 
@@ -35,12 +36,23 @@ LOAD_CHUNK = 240
 LOAD_FIRST_LENGTH = 51
 """Length of the first download message: mode, segment, header and root bytes."""
 LOAD_ROOT_BYTES = 16
+"""The data area's root words w0..w7 in the first download message."""
+DIRECTORY_ENTRY = struct.Struct("<B9sHHI")
+"""[ours] one entry of the flash directory (mode 5): bSegment, szSegmentName[9], usLength,
+usChecksum, ulStored (Unix time of the store)."""
 
 
 class Plc(IntEnum):
     """Commands of the PLC task (msg.rx 2)."""
 
     COM_SHARED_MEMORY = 17
+
+
+# data_area of a COM_Shared_Memory message (seed 5.1.1)
+AREA_BY_FUNCTION = 0
+"""The area follows the function: read the receive area, write the send area."""
+AREA_RECEIVE = 1
+AREA_SEND = 2
 
 
 class Com(IntEnum):
@@ -102,6 +114,10 @@ NODE_DIAG_SIZE = 48
 # The seed's spellings as plain names, so a module reads like the manual's tables:
 # ``from dpm.commands import COM_NODE_DIAG``. Each is the enum member above, never a new number.
 LOAD_FUNCTION = Rcs.LOAD_FUNCTION
+MODE_UPLOAD = LoadMode.UPLOAD
+MODE_DOWNLOAD = LoadMode.DOWNLOAD
+MODE_DELETE = LoadMode.DELETE
+MODE_DIRECTORY = LoadMode.DIRECTORY
 COM_SHARED_MEMORY = Plc.COM_SHARED_MEMORY
 GET_CONFIGURATION = Com.GET_CONFIGURATION
 COM_SEND_CANMSG_TRANSPARENT = Com.SEND_CANMSG_TRANSPARENT

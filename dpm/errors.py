@@ -1,8 +1,10 @@
 """Error numbers of the driver, the tasks' ``msg.f`` answers and ``Err_Event``.
 
 The driver codes are those of the CIF device driver's CIFUSER.H; the ``msg.f``
-and ``Err_Event`` texts are worded as in the seed manual so that a user can
-look a number up in either place. Numbers marked [ours] are this project's.
+numbers come as one enum per task (names and texts together), the ``Err_Event``
+numbers as one enum per kind of address. Texts are worded as in the seed manual
+so that a user can look a number up in either place. Numbers marked [ours] are
+this project's.
 """
 
 from __future__ import annotations
@@ -134,123 +136,194 @@ def drv_text(code: int) -> str:
     """Human-readable meaning of a return code, with the task's msg.f text for 1000+f."""
     if code >= Drv.DRV_RCS_ERROR_OFFSET:
         f = code - Drv.DRV_RCS_ERROR_OFFSET
-        return f"(RCS) error {f}: {MSG_F_TEXT.get(f, 'unknown error number')}"
+        return f"(RCS) error {f}: {msg_f_text(f)}"
     return DRV_TEXT.get(code, "unknown driver error")
 
 
 # --- msg.f of the tasks' answers -------------------------------------------------
 
-F_OK = 0
-F_UNKNOWN_COMMAND = 152
-"""COM_Upload's "unknown command, DEVICE needs newer firmware"; [ours] every task
-answers an unknown msg.b with it."""
-F_UNKNOWN_TASK = 153
-"""[ours] the RCS answers a message whose msg.rx names no task with it."""
 
-# PLC task, COM_Shared_Memory (seed 5.1.1)
-F_ILLEGAL_AREA = 162
-F_BUFFER_OVERFLOW = 163
-F_ILLEGAL_COUNT = 165
-F_UNKNOWN_DATA_TYPE = 166
-F_UNKNOWN_FUNCTION = 167
+class MsgF(IntEnum):
+    """A task's msg.f number and the seed's text for it; each task has its own table.
 
-# RCS task, load function (docs/dbm.md section 3)
-F_DB_NOT_VALID = 20
-F_WRONG_MESSAGE_NUMBER = 22
-F_WRONG_SIZE = 23
-F_WRONG_SEQUENCE = 24
-F_CHECKSUM = 25
+    The seed words a number per command, and a few numbers mean different things in
+    different tasks (20 is the RCS's "database not valid" and the CAN task's "local
+    resource"), so each task gets one enum, its members carrying ``text``.
+    """
 
-MSG_F_TEXT: dict[int, str] = {
-    0: "no error, command executed",
-    3: "service was rejected by the node with Abort SDO service",
-    17: "no response from the node, node is not present",
-    19: "node is not in operational state, access denied",
-    20: "database not valid for this device",
-    21: "parameter fault in request",
-    22: "wrong message number",
-    23: "wrong size",
-    24: "wrong sequence",
-    25: "checksum error",
-    48: "timeout",
-    51: "maximum receive data buffer overstepped",
-    52: "area_code unknown",
-    53: "overstep of the buffer length",
-    54: "unknown 'function' in HOST message or previous service still active",
-    55: "faulty parameter detected",
-    57: "sequence error",
-    58: "no configuration record for this node",
-    59: "data incomplete or faulty",
-    60: "data check: double node address parameterized",
-    61: "data check: Add-Tab size is too large",
-    62: "data check: node parameter size is too large",
-    63: "data check: unknown PDO transmission type",
-    64: "data check: PDO data size is too large",
-    65: "data check: unknown baud rate",
-    66: "data check: COB-ID for SYNC messages out of range",
-    67: "data check: SYNC message timer reload value out of range",
-    68: "data check: input offset plus length too large",
-    69: "data check: output offset plus length too large",
-    70: "data check: PDO-cfg inconsistent to ADD-tab table",
-    71: "data check: length of ADD-Tab inconsistent",
-    72: "data check: length of whole data set inconsistent",
-    73: "data check: COB-ID for EMCY message out of range",
-    74: "data check: COB-ID for ND_GUARD message out of range",
-    75: "data check: Length indicator of one PDO out of range",
-    76: "data check: SDO data size is too large",
-    152: "unknown command, DEVICE needs newer firmware",
-    153: "unknown receiver task [ours]",
-    161: "remote address out of range",
-    162: "illegal address area",
-    163: "data address together with the data count results an overflow in the buffer length",
-    165: "illegal data count",
-    166: "unknown data type",
-    167: "unknown function",
-    200: "DEVICE is not configured",
-}
+    text: str
+
+    def __new__(cls, value: int, text: str) -> MsgF:
+        member = int.__new__(cls, value)
+        member._value_ = value
+        member.text = text
+        return member
+
+    @classmethod
+    def text_of(cls, number: int, default: str = "unknown error number") -> str:
+        """The text of ``number`` in this table, or ``default`` for a number it lacks."""
+        member = cls._value2member_map_.get(number)
+        return member.text if isinstance(member, MsgF) else default
+
+
+class RcsF(MsgF):
+    """msg.f of the RCS task (msg.rx 0): the load function (seed 6.4, docs/dbm.md section 3)."""
+
+    NO_ERROR = 0, "no error, command executed"
+    DB_NOT_VALID = 20, "database not valid for this device"
+    PARAMETER_FAULT = 21, "parameter fault in request"
+    """[ours] an unknown load-function mode or a short message."""
+    WRONG_MESSAGE_NUMBER = 22, "wrong message number"
+    WRONG_SIZE = 23, "wrong size"
+    WRONG_SEQUENCE = 24, "wrong sequence"
+    CHECKSUM = 25, "checksum error"
+    UNKNOWN_COMMAND = 152, "unknown command, DEVICE needs newer firmware"
+    """COM_Upload's text; [ours] every task answers an unknown msg.b with it."""
+    UNKNOWN_TASK = 153, "unknown receiver task [ours]"
+    """[ours] the RCS answers a message whose msg.rx names no task with it."""
+    NO_DATABASE = 200, "DEVICE is not configured"
+    """[ours] an upload with nothing stored."""
+    INTERNAL_ERROR = 254, "internal error of the firmware [ours]"
+    """[ours] a handler failed unexpectedly; the firmware stays up and says so."""
+
+
+class PlcF(MsgF):
+    """msg.f of the PLC task (msg.rx 2): COM_Shared_Memory (seed 5.1.1)."""
+
+    NO_ERROR = 0, "no error, command executed"
+    UNKNOWN_COMMAND = 152, "unknown command, DEVICE needs newer firmware"
+    REMOTE_ADDRESS = 161, "remote address out of range"
+    ILLEGAL_AREA = 162, "illegal address area"
+    BUFFER_OVERFLOW = (
+        163, "data address together with the data count results an overflow in the buffer length"
+    )
+    ILLEGAL_COUNT = 165, "illegal data count"
+    UNKNOWN_DATA_TYPE = 166, "unknown data type"
+    UNKNOWN_FUNCTION = 167, "unknown function"
+    INTERNAL_ERROR = 254, "internal error of the firmware [ours]"
+
+
+class CanF(MsgF):
+    """msg.f of the CAN task (msg.rx 3), seed 5.2.
+
+    The data-check texts (48..76) are the COM_Download table of seed 5.2.5 letter for
+    letter, typos included, so that a user finds them in the manual; where the seed words
+    a number differently per command, the text is the most general one.
+    """
+
+    NO_ERROR = 0, "no error"
+    SDO_ABORT = 3, "service was rejected by the node with Abort SDO service"
+    NO_DESCRIPT_TABLE = 3, "service was rejected by the node with Abort SDO service"
+    """[ours] GET_CONFIGURATION without a DESCRIPT table; the same number as SDO_ABORT (an
+    enum alias), so it reads with SDO_ABORT's text."""
+    NO_RESPONSE = 17, "no response from the node, node is not present"
+    NODE_BUSY = 19, "node is not in operational state, access denied"
+    LOCAL_RESOURCE = 20, "local resource not available"
+    PARAMETER_FAULT = 21, "parameter fault in request"
+    TIMEOUT = 48, "timeout"
+    SDO_BUFFER = 51, "maximum receive data buffer overstepped"
+    AREA_CODE = 52, "area_code unknown"
+    BUFFER_LENGTH = 53, "overstep of the buffer length"
+    SDO_FUNCTION = (
+        54, "unknown 'function' in HOST message or previous service still active"
+    )
+    FAULTY_PARAMETER = 55, "faulty parameter detected"
+    SEQUENCE = 57, "sequence error"
+    NO_DESCRIPT_RECORD = 58, "no configuration record for this node"
+    """[ours] GET_CONFIGURATION for a node the DESCRIPT table does not hold."""
+    INCOMPLETE = 59, "data incomplete or faulty"
+    DOUBLE_ADDRESS = 60, "data check: double node address parameterized"
+    ADD_TAB_TOO_LARGE = 61, "data check: Add-Tab size is too large"
+    NODE_PARAMETERS_TOO_LARGE = 62, "data check: node parameter size is too large"
+    TRANSMISSION_TYPE = 63, "data check: unknown PDO transmsstion type"
+    PDO_DATA_TOO_LARGE = 64, "data check: PDO data size is to olarge"
+    BAUD_RATE = 65, "data check: unknown baud rate"
+    SYNC_COB_ID = 66, "data check:COB-ID for SYNC messages out of range"
+    SYNC_TIMER = 67, "data check:SYNC message timer reload value out of range"
+    INPUT_OFFSET = 68, "data check: input offset plus length too large"
+    OUTPUT_OFFSET = 69, "data check: output offset plus length too large"
+    PDO_ADD_TAB = 70, "data check:PDO-cfg inconsistent to ADD-tab table"
+    ADD_TAB_LENGTH = 71, "data check: length of ADD-Tab inconsistent"
+    WHOLE_LENGTH = 72, "data check: length of whole data set inconsistent"
+    EMCY_COB_ID = 73, "data check: COB-ID for EMCY message out of range"
+    GUARD_COB_ID = 74, "data check: COB-ID for ND_GUARD message out of range"
+    PDO_LENGTH = 75, "data check: Length indicator of one PDO out of range"
+    SDO_DATA_TOO_LARGE = 76, "data check: SDO data size is too large"
+    UNKNOWN_COMMAND = 152, "unknown command, DEVICE needs newer firmware"
+    NODE_DIAG_ADDRESS = 161, "remote address out of range"
+    NOT_CONFIGURED = 200, "DEVICE is not configured"
+    FLASH_DATABASE_RUNS = 201, "a database from flash runs: no on-line download [ours]"
+    """[ours] COM_Start_Seq, COM_Download, COM_End_Seq while a database from flash runs: the
+    seed (5.2.2) says the on-line download cannot be used then, but gives no number."""
+    INTERNAL_ERROR = 254, "internal error of the firmware [ours]"
+
+
+def msg_f_text(f: int) -> str:
+    """The text of an msg.f whose task is unknown (a driver code 1000 + f).
+
+    The driver returns 1000 + f mostly for the RCS's load function (DevDownload), so the
+    RCS's table is asked first, then the CAN task's and the PLC task's.
+    """
+    table = next((t for t in (RcsF, CanF, PlcF) if f in t._value2member_map_), RcsF)
+    return table.text_of(f)
+
+
+# The names the firmware's device loop and tasks share, as plain names.
+F_UNKNOWN_COMMAND = RcsF.UNKNOWN_COMMAND
+F_UNKNOWN_TASK = RcsF.UNKNOWN_TASK
+F_INTERNAL_ERROR = RcsF.INTERNAL_ERROR
 
 
 # --- Err_Event of Task2State (seed manual 4.3) ---------------------------------------
 
-ERR_EVENT_DEVICE_TEXT: dict[int, str] = {
-    0: "no error",
-    52: "unknown handshake mode was configured",
-    56: "baudrate out of range",
-    60: "double node address was configured",
-    210: "no database",
-    212: "faulty reading of a data base",
-    220: "HOST-watchdog error",
-}
-"""Err_Event numbers valid when Err_Node_adr is 255 (the device itself)."""
-
-ERR_EVENT_NODE_TEXT: dict[int, str] = {
-    0: "no error",
-    30: "guarding failed",
-    31: "node has change his state and is not longer operational",
-    32: "sequence error in guarding protocol",
-    33: "no response to a configured remote frame PDO",
-    34: "no response of the node during its configuration",
-    35: "the master configured node profile number is different from the node profile number",
-    36: "the master configured node device type is different from the node device type",
-    37: "unknown SDO response received",
-    38: "length indicator of received SDO message unequal 8",
-    39: "node not handled, node in stop",
-}
-"""Err_Event numbers valid when Err_Node_adr names a node."""
-
 ERR_NODE_DEVICE = 255
-ERR_EVENT_HANDSHAKE_MODE = 52
-ERR_EVENT_NO_DATABASE = 210
-ERR_EVENT_FAULTY_DATABASE = 212
-ERR_EVENT_HOST_WATCHDOG = 220
-ERR_EVENT_BAUD_RATE = 56
-ERR_EVENT_DOUBLE_ADDRESS = 60
-ERR_EVENT_OF_DATA_CHECK: dict[int, int] = {65: ERR_EVENT_BAUD_RATE, 60: ERR_EVENT_DOUBLE_ADDRESS}
+"""Err_Node_adr of an event of the device itself."""
+
+
+class DeviceEvent(MsgF):
+    """Err_Event numbers valid when Err_Node_adr is 255 (the device itself)."""
+
+    NO_ERROR = 0, "no error"
+    HANDSHAKE_MODE = 52, "unknown handshake mode was configured"
+    BAUD_RATE = 56, "baudrate out of range"
+    DOUBLE_ADDRESS = 60, "double node address was configured"
+    NO_DATABASE = 210, "no database"
+    FAULTY_DATABASE = 212, "faulty reading of a data base"
+    HOST_WATCHDOG = 220, "HOST-watchdog error"
+
+
+class NodeEvent(MsgF):
+    """Err_Event numbers valid when Err_Node_adr names a node."""
+
+    NO_ERROR = 0, "no error"
+    GUARDING_FAILED = 30, "guarding failed"
+    LEFT_OPERATIONAL = 31, "node has change his state and is not longer operational"
+    GUARD_SEQUENCE = 32, "sequence error in guarding protocol"
+    NO_RTR_RESPONSE = 33, "no response to a configured remote frame PDO"
+    NO_RESPONSE = 34, "no response of the node during its configuration"
+    PROFILE_MISMATCH = (
+        35,
+        "the master configured node profile number is different from the node profile number",
+    )
+    DEVICE_TYPE_MISMATCH = (
+        36, "the master configured node device type is different from the node device type"
+    )
+    UNKNOWN_SDO_RESPONSE = 37, "unknown SDO response received"
+    SDO_LENGTH = 38, "length indicator of received SDO message unequal 8"
+    NODE_STOPPED = 39, "node not handled, node in stop"
+
+
+ERR_EVENT_HANDSHAKE_MODE = DeviceEvent.HANDSHAKE_MODE
+ERR_EVENT_NO_DATABASE = DeviceEvent.NO_DATABASE
+ERR_EVENT_FAULTY_DATABASE = DeviceEvent.FAULTY_DATABASE
+ERR_EVENT_HOST_WATCHDOG = DeviceEvent.HOST_WATCHDOG
+ERR_EVENT_OF_DATA_CHECK: dict[int, DeviceEvent] = {
+    CanF.BAUD_RATE: DeviceEvent.BAUD_RATE, CanF.DOUBLE_ADDRESS: DeviceEvent.DOUBLE_ADDRESS}
 """A database in flash that fails these data checks (f 65 unknown baud rate, f 60 double
 node address) shows the device's own Err_Event at address 255 (seed 4.3), not 212."""
 
 
 def err_event_text(err_node_adr: int, err_event: int) -> str:
     """The seed's text for an Err_Event, looked up in the table its address selects."""
-    table = ERR_EVENT_DEVICE_TEXT if err_node_adr == ERR_NODE_DEVICE else ERR_EVENT_NODE_TEXT
-    return table.get(err_event, "unknown error event")
+    table: type[MsgF] = DeviceEvent if err_node_adr == ERR_NODE_DEVICE else NodeEvent
+    return table.text_of(err_event, "unknown error event")

@@ -59,6 +59,16 @@ class PlcMode(IntEnum):
 BMODE_TO_EXCHANGE_MODE: dict[int, int] = {1: 2, 2: 3, 3: 4}
 """[ours] bMode -> process-data exchange mode (high nibble of bDriverType)."""
 
+EXCHANGE_MODE_TEXT: dict[int, str] = {
+    0: "none (unconfigured)",
+    1: "1 bus-synchronous, device-controlled",
+    2: "2 buffered, device-controlled",
+    3: "3 uncontrolled",
+    4: "4 buffered, host-controlled",
+    5: "5 bus-synchronous, host-controlled",
+}
+"""The process-data exchange modes (high nibble of bDriverType), as a person reads them."""
+
 PLC_PARAMETER = struct.Struct("<BH5s8s")
 
 

@@ -22,18 +22,58 @@ from dbm_tools.validate import (
     check_extended_bus_parameters,
     check_node_parameters,
 )
+from dpm import message
+from dpm.com import (
+    DownloadRequest,
+    NmtRequest,
+    NodeDiagnosis,
+    NodeStatus,
+    NodeSwitch,
+    SdoTimeoutRequest,
+    StartSeqRequest,
+    UploadRequest,
+    configuration_answer,
+    decode_layer2_frames,
+    decode_rx_filters,
+    decode_transparent,
+    decode_word,
+    encode_sdo_abort,
+    encode_start_seq_confirm,
+    node_diag_answer,
+)
+from dpm.commands import (
+    AREA_BUS,
+    AREA_EXTENDED,
+    COM_BOOTUP_FORWARDING,
+    COM_CFGRX_LAYER2,
+    COM_DOWNLOAD,
+    COM_END_SEQ,
+    COM_NMT_MODULE_PROTOCOL,
+    COM_NODE_DIAG,
+    COM_RESET_ERR_EVENT,
+    COM_SDO_UP_DOWNLOAD,
+    COM_SEND_CANMSG_TRANSPARENT,
+    COM_SET_EMCY_CONSUMER,
+    COM_SET_GUARDING,
+    COM_SET_HEARTBEAT_CONSUMER,
+    COM_SET_HEARTBEAT_PRODUCER,
+    COM_SET_NODE_ID,
+    COM_SET_SDO_TIMEOUT,
+    COM_START_SEQ,
+    COM_TX_CAN_LAYER2,
+    COM_UPLOAD,
+    DOWNLOAD_AREA_SIZE,
+    GET_CONFIGURATION,
+    LONG_SDO_LIMIT,
+    MAX_LEN_DATA_UNIT,
+    NMT_COMMANDS,
+    SDO_MAX_DATA,
+)
+from dpm.errors import CanF
 from dpm.message import Ext, Message, MessageError, TelegramHeader, Tfc
 from dpm.task2 import CanState, GlobalBits
 from firmware.can.master import BusConfig, Master
-from firmware.can.node import (
-    NMT_PREOP,
-    NMT_RESET,
-    NMT_RESET_COMM,
-    NMT_START,
-    NMT_STOP,
-    NodeHandler,
-    State,
-)
+from firmware.can.node import NodeHandler, State
 from firmware.can.sdo import HostSdoTransfer, SdoResult
 from firmware.task import Task
 
@@ -41,60 +81,6 @@ if TYPE_CHECKING:
     from firmware.device import Device
 
 log = logging.getLogger(__name__)
-
-COM_SEND_CANMSG_TRANSPARENT = 65
-COM_NODE_DIAG = 66
-COM_START_SEQ = 67
-COM_DOWNLOAD = 68
-COM_END_SEQ = 69
-COM_SDO_UP_DOWNLOAD = 74
-COM_UPLOAD = 80
-COM_RESET_ERR_EVENT = 81
-COM_CFGRX_LAYER2 = 82
-COM_TX_CAN_LAYER2 = 84
-COM_NMT_MODULE_PROTOCOL = 96
-GET_CONFIGURATION = 15
-# Our own commands for the CiA 309 gateway (docs/card-commands.md)
-COM_SET_SDO_TIMEOUT = 110
-COM_SET_GUARDING = 111
-COM_SET_HEARTBEAT_CONSUMER = 112
-COM_SET_EMCY_CONSUMER = 113
-COM_SET_HEARTBEAT_PRODUCER = 114
-COM_SET_NODE_ID = 115
-COM_BOOTUP_FORWARDING = 116
-LONG_SDO_LIMIT = 65536
-"""[ours] bytes one long (concatenated) SDO transfer may carry."""
-
-AREA_BUS = 127
-AREA_EXTENDED = 128
-DOWNLOAD_AREA_SIZE = 1000
-MAX_LEN_DATA_UNIT = 240
-
-# msg.f numbers of the CAN task (seed 5.2)
-F_SDO_ABORT = 3
-F_LOCAL_RESOURCE = 20
-F_PARAMETER_FAULT = 21
-F_TIMEOUT = 48
-F_SDO_BUFFER = 51
-F_AREA_CODE = 52
-F_BUFFER_LENGTH = 53
-F_SDO_FUNCTION = 54
-F_FAULTY_PARAMETER = 55
-F_SEQUENCE = 57
-F_NO_DESCRIPT_RECORD = 58
-F_INCOMPLETE = 59
-F_DOUBLE_ADDRESS = 60
-F_NO_RESPONSE = 17
-F_NODE_BUSY = 19
-F_NODE_DIAG_ADDRESS = 161
-F_NOT_CONFIGURED = 200
-F_FLASH_DATABASE_RUNS = 201
-"""[ours] COM_Start_Seq, COM_Download, COM_End_Seq while a database from flash runs: the seed
-(5.2.2) says the on-line download cannot be used then, but gives no number."""
-F_NO_DESCRIPT_TABLE = 3
-
-NMT_COMMANDS = (NMT_START, NMT_STOP, NMT_PREOP, NMT_RESET, NMT_RESET_COMM)
-SDO_MAX_DATA = 247
 
 
 @dataclass
@@ -109,7 +95,7 @@ class _Sequence:
 
 
 class CanTask(Task):
-    number = 3
+    number = message.Task.CAN
     name = "CAN"
 
     def __init__(self, device: Device, config: BusConfig | None = None) -> None:
@@ -180,7 +166,7 @@ class CanTask(Task):
         if errors:
             return errors[0].number
         if address in self.node_data or (address == self.master.ext.bNodeID and address):
-            return F_DOUBLE_ADDRESS  # a second data set never replaces the first unseen
+            return CanF.DOUBLE_ADDRESS  # a second data set never replaces the first unseen
         params = NodeParameterSet.decode(data)
         self.node_data[address] = bytes(data)
         self.master.configure_node(address, params)
@@ -192,7 +178,7 @@ class CanTask(Task):
             return errors[0].number
         ext = ExtendedBusParameterSet.decode(data)
         if ext.bNodeID and ext.bNodeID in self.node_data:
-            return F_DOUBLE_ADDRESS
+            return CanF.DOUBLE_ADDRESS
         self.extended_data = bytes(data)
         self.master.ext = ext
         return 0
@@ -211,45 +197,47 @@ class CanTask(Task):
 
     def com_start_seq(self, msg: Message) -> Message:
         if self.from_flash:
-            return msg.answer(f=F_FLASH_DATABASE_RUNS)
-        if msg.ln < 4:
-            return msg.answer(f=F_FAULTY_PARAMETER)
-        area = msg.data[1]
+            return msg.answer(f=CanF.FLASH_DATABASE_RUNS)
+        try:
+            request = StartSeqRequest.decode(msg.data)
+        except MessageError:
+            return msg.answer(f=CanF.FAULTY_PARAMETER)
+        area = request.area
         if not 1 <= area <= 126:
-            return msg.answer(f=F_AREA_CODE)
-        (timeout,) = struct.unpack_from("<H", msg.data, 2)
-        self._sequence = _Sequence(area, timeout, bytearray(DOWNLOAD_AREA_SIZE), time.monotonic())
-        return msg.answer(data=bytes([MAX_LEN_DATA_UNIT]))
+            return msg.answer(f=CanF.AREA_CODE)
+        self._sequence = _Sequence(area, request.timeout_ms, bytearray(DOWNLOAD_AREA_SIZE),
+                                   time.monotonic())
+        return msg.answer(data=encode_start_seq_confirm(MAX_LEN_DATA_UNIT))
 
     def com_download(self, msg: Message) -> Message:
         if self.from_flash:
-            return msg.answer(f=F_FLASH_DATABASE_RUNS)
-        if msg.ln < 4:
-            return msg.answer(f=F_FAULTY_PARAMETER)
-        area = msg.data[1]
-        (offset,) = struct.unpack_from("<H", msg.data, 2)
-        data = msg.data[4:]
+            return msg.answer(f=CanF.FLASH_DATABASE_RUNS)
+        try:
+            request = DownloadRequest.decode(msg.data)
+        except MessageError:
+            return msg.answer(f=CanF.FAULTY_PARAMETER)
+        area, offset, data = request.area, request.offset, request.data
         if area == AREA_BUS:
             return msg.answer(f=self.download_bus(data))
         if area == AREA_EXTENDED:
             return msg.answer(f=self.download_extended(data))
         if not 1 <= area <= 126:
-            return msg.answer(f=F_AREA_CODE)
+            return msg.answer(f=CanF.AREA_CODE)
         seq = self._sequence
         if seq is None:
             if offset:
-                return msg.answer(f=F_SEQUENCE)  # an offset needs COM_Start_Seq first
+                return msg.answer(f=CanF.SEQUENCE)  # an offset needs COM_Start_Seq first
             if len(data) > DOWNLOAD_AREA_SIZE:
-                return msg.answer(f=F_BUFFER_LENGTH)
+                return msg.answer(f=CanF.BUFFER_LENGTH)
             return msg.answer(f=self.download_node(area, data))
         if area != seq.area:
-            return msg.answer(f=F_SEQUENCE)
+            return msg.answer(f=CanF.SEQUENCE)
         now = time.monotonic()
         if seq.timeout_ms and (now - seq.last) * 1000 > seq.timeout_ms:
             self._sequence = None
-            return msg.answer(f=F_TIMEOUT)
+            return msg.answer(f=CanF.TIMEOUT)
         if offset + len(data) > DOWNLOAD_AREA_SIZE:
-            return msg.answer(f=F_BUFFER_LENGTH)
+            return msg.answer(f=CanF.BUFFER_LENGTH)
         seq.buffer[offset : offset + len(data)] = data
         seq.length = max(seq.length, offset + len(data))
         seq.last = now
@@ -257,37 +245,37 @@ class CanTask(Task):
 
     def com_end_seq(self, msg: Message) -> Message:
         if self.from_flash:
-            return msg.answer(f=F_FLASH_DATABASE_RUNS)
+            return msg.answer(f=CanF.FLASH_DATABASE_RUNS)
         seq, self._sequence = self._sequence, None
         if seq is None:
-            return msg.answer(f=F_SEQUENCE)
+            return msg.answer(f=CanF.SEQUENCE)
         if seq.timeout_ms and (time.monotonic() - seq.last) * 1000 > seq.timeout_ms:
-            return msg.answer(f=F_TIMEOUT)  # it expires with no message at all, too
+            return msg.answer(f=CanF.TIMEOUT)  # it expires with no message at all, too
         if seq.length < 2:
-            return msg.answer(f=F_INCOMPLETE)
+            return msg.answer(f=CanF.INCOMPLETE)
         (total,) = struct.unpack_from("<H", seq.buffer, 0)
         if total > seq.length or total < 2:
-            return msg.answer(f=F_INCOMPLETE)
+            return msg.answer(f=CanF.INCOMPLETE)
         return msg.answer(f=self.download_node(seq.area, bytes(seq.buffer[:total])))
 
     def com_upload(self, msg: Message) -> Message:
-        if msg.ln != 5:
-            return msg.answer(f=F_PARAMETER_FAULT)
-        area = msg.data[1]
-        (offset,) = struct.unpack_from("<H", msg.data, 2)
-        length = msg.data[4]
+        try:
+            request = UploadRequest.decode(msg.data)
+        except MessageError:
+            return msg.answer(f=CanF.PARAMETER_FAULT)
+        area, offset, length = request.area, request.offset, request.length
         if area == AREA_BUS:
             stored = self.bus_data
         elif 1 <= area <= 126:
             stored = self.node_data.get(area)
         else:
-            return msg.answer(f=F_AREA_CODE)
+            return msg.answer(f=CanF.AREA_CODE)
         if stored is None:
-            return msg.answer(f=F_LOCAL_RESOURCE)
+            return msg.answer(f=CanF.LOCAL_RESOURCE)
         if not 1 <= length <= MAX_LEN_DATA_UNIT:
-            return msg.answer(f=F_PARAMETER_FAULT)
+            return msg.answer(f=CanF.PARAMETER_FAULT)
         if offset > len(stored):
-            return msg.answer(f=F_BUFFER_LENGTH)
+            return msg.answer(f=CanF.BUFFER_LENGTH)
         return msg.answer(data=stored[offset : offset + length])
 
     # --- diagnosis ------------------------------------------------------------------------------
@@ -296,18 +284,15 @@ class CanTask(Task):
         try:
             head = TelegramHeader.decode(msg.data)
         except MessageError:
-            return msg.answer(f=F_FAULTY_PARAMETER)
+            return msg.answer(f=CanF.FAULTY_PARAMETER)
         address = head.device_adr
         if not 1 <= address <= 127:
-            return msg.answer(f=F_NODE_DIAG_ADDRESS)
+            return msg.answer(f=CanF.NODE_DIAG_ADDRESS)
         handler = self.master.nodes.get(address)
-        raw = handler.read_diagnosis() if handler else bytes([0x80]) + bytes(47)
+        raw = (handler.read_diagnosis() if handler
+               else NodeDiagnosis(status=NodeStatus.DEACTIVATED).encode())
         self.device.set_node_bit("abNd_diag", address, False)
-        head.data_cnt = len(raw)
-        head.data_type = 5
-        head.function = Tfc.READ
-        head.payload = raw
-        return msg.answer(data=head.encode())
+        return msg.answer(data=node_diag_answer(head, raw))
 
     def com_reset_err_event(self, msg: Message) -> Message:
         """Clear TOUT, EVE and the four counters (seed 5.2.12); never an error."""
@@ -320,16 +305,14 @@ class CanTask(Task):
         try:
             head = TelegramHeader.decode(msg.data)
         except MessageError:
-            return msg.answer(f=F_FAULTY_PARAMETER)
+            return msg.answer(f=CanF.FAULTY_PARAMETER)
         descript = self.device.descript_records()
         if descript is None:
-            return msg.answer(f=F_NO_DESCRIPT_TABLE)
+            return msg.answer(f=CanF.NO_DESCRIPT_TABLE)
         record = descript.get(head.device_adr)
         if record is None:
-            return msg.answer(f=F_NO_DESCRIPT_RECORD)
-        head.payload = record[1 : 1 + 255 - TelegramHeader.SIZE]
-        head.data_cnt = min(len(head.payload), 255)
-        return msg.answer(data=head.encode())
+            return msg.answer(f=CanF.NO_DESCRIPT_RECORD)
+        return msg.answer(data=configuration_answer(head, record))
 
     # --- SDO -----------------------------------------------------------------------------------
 
@@ -337,33 +320,33 @@ class CanTask(Task):
         try:
             head = TelegramHeader.decode(msg.data)
         except MessageError:
-            return msg.answer(f=F_FAULTY_PARAMETER)
+            return msg.answer(f=CanF.FAULTY_PARAMETER)
         address = head.device_adr
         if not 1 <= address <= 127:
-            return msg.answer(f=F_FAULTY_PARAMETER, data=msg.data[:8])
+            return msg.answer(f=CanF.FAULTY_PARAMETER, data=msg.data[:8])
         if head.function not in (Tfc.READ, Tfc.WRITE):
-            return msg.answer(f=F_SDO_FUNCTION, data=msg.data[:8])
+            return msg.answer(f=CanF.SDO_FUNCTION, data=msg.data[:8])
         if not self.master.running or self.master.bus is None:
-            return msg.answer(f=F_NOT_CONFIGURED, data=msg.data[:8])
+            return msg.answer(f=CanF.NOT_CONFIGURED, data=msg.data[:8])
         if head.function == Tfc.WRITE and len(head.payload) != head.data_cnt:
-            return msg.answer(f=F_SDO_BUFFER, data=msg.data[:8])
+            return msg.answer(f=CanF.SDO_BUFFER, data=msg.data[:8])
         # [ours] Only e 4, 8 and 0x0C mark a long transfer (docs/card-commands.md), and an
         # upload gets several answers only when asked with e 4: a request as the seed writes
         # it (e 0) gets the seed's single answer, and other bits in e change nothing.
         long_upload = head.function == Tfc.READ and msg.e == Ext.FIRST
         if msg.e in (Ext.FIRST, Ext.CONT, Ext.LAST) and not long_upload:
             if head.function != Tfc.WRITE:
-                return msg.answer(f=F_SEQUENCE, data=msg.data[:8])
+                return msg.answer(f=CanF.SEQUENCE, data=msg.data[:8])
             gathered = self._gather(msg, head)
             if isinstance(gathered, Message):
                 return gathered
             head = gathered
         handler = self.master.nodes.get(address)
         if handler is not None and handler.state is State.BOOTING:
-            return msg.answer(f=F_NODE_BUSY, data=msg.data[:8])
+            return msg.answer(f=CanF.NODE_BUSY, data=msg.data[:8])
         client = self.master.sdo_client(address)
         if not client.lock.acquire(blocking=False):
-            return msg.answer(f=F_SDO_FUNCTION, data=msg.data[:8])
+            return msg.answer(f=CanF.SDO_FUNCTION, data=msg.data[:8])
         if handler is not None:
             handler.host_sdo = True  # seed 5.2.8: the node's RX-PDOs wait meanwhile
 
@@ -390,12 +373,12 @@ class CanTask(Task):
             first = self._long_download.get(address)
             if first is None or (first[0].device_adr, first[0].data_adr, first[0].data_idx) != key:
                 self._long_download.pop(address, None)
-                return msg.answer(f=F_SEQUENCE, data=msg.data[:8])
+                return msg.answer(f=CanF.SEQUENCE, data=msg.data[:8])
             first[1].extend(head.payload)
         data = self._long_download[address][1]
         if len(data) > LONG_SDO_LIMIT:
             self._long_download.pop(address, None)
-            return msg.answer(f=F_BUFFER_LENGTH, data=msg.data[:8])
+            return msg.answer(f=CanF.BUFFER_LENGTH, data=msg.data[:8])
         if sequence != Ext.LAST:
             head.data_cnt = 0
             head.payload = b""
@@ -410,15 +393,14 @@ class CanTask(Task):
         answer_head = TelegramHeader(head.device_adr, 0, head.data_adr, head.data_idx, 0, 0,
                                      head.function)
         if result.timed_out:
-            answer = msg.answer(f=F_NO_RESPONSE, data=answer_head.encode())
+            answer = msg.answer(f=CanF.NO_RESPONSE, data=answer_head.encode())
         elif result.abort is not None:
-            answer = msg.answer(f=F_SDO_ABORT,
-                                data=answer_head.encode() + struct.pack("<I", result.abort))
+            answer = msg.answer(f=CanF.SDO_ABORT, data=encode_sdo_abort(answer_head, result.abort))
         elif head.function == Tfc.READ and len(result.data) > LONG_SDO_LIMIT:
-            answer = msg.answer(f=F_SDO_BUFFER, data=answer_head.encode())
+            answer = msg.answer(f=CanF.SDO_BUFFER, data=answer_head.encode())
         elif head.function == Tfc.READ and len(result.data) > SDO_MAX_DATA:
             if not long_upload:  # seed 5.2.8: one answer of at most 247 bytes, else f 51
-                answer = msg.answer(f=F_SDO_BUFFER, data=answer_head.encode())
+                answer = msg.answer(f=CanF.SDO_BUFFER, data=answer_head.encode())
             else:
                 self._post_long_upload(msg, answer_head, result.data)
                 return
@@ -442,25 +424,29 @@ class CanTask(Task):
 
     def _node_switch(self, msg: Message, ln: int) -> Message | tuple[NodeHandler, int, int]:
         """Parse d[0] node, d[1] 0 off / 1 on, d[2..3] u16: the node, on, value; or an error."""
-        if msg.ln != ln or not 1 <= msg.data[0] <= 127 or msg.data[1] not in (0, 1):
-            return msg.answer(f=F_FAULTY_PARAMETER)
+        try:
+            request = NodeSwitch.decode(msg.data, guarding=ln == 5)
+        except MessageError:
+            return msg.answer(f=CanF.FAULTY_PARAMETER)
+        if not 1 <= request.node <= 127:
+            return msg.answer(f=CanF.FAULTY_PARAMETER)
         if not self.master.running:
-            return msg.answer(f=F_NOT_CONFIGURED)
-        handler = self.master.nodes.get(msg.data[0])
+            return msg.answer(f=CanF.NOT_CONFIGURED)
+        handler = self.master.nodes.get(request.node)
         if handler is None:
-            return msg.answer(f=F_LOCAL_RESOURCE)
-        (value,) = struct.unpack_from("<H", msg.data, 2)
-        return handler, msg.data[1], value
+            return msg.answer(f=CanF.LOCAL_RESOURCE)
+        return handler, int(request.on), request.value
 
     def com_set_sdo_timeout(self, msg: Message) -> Message:
-        if msg.ln != 3 or msg.data[0] > 127:
-            return msg.answer(f=F_FAULTY_PARAMETER)
-        (timeout,) = struct.unpack_from("<H", msg.data, 1)
-        if timeout == 0:
-            return msg.answer(f=F_FAULTY_PARAMETER)
-        if msg.data[0] and self.master.bus is None:
-            return msg.answer(f=F_NOT_CONFIGURED)
-        self.master.set_sdo_timeout(msg.data[0], timeout / 1000.0)
+        try:
+            request = SdoTimeoutRequest.decode(msg.data)
+        except MessageError:
+            return msg.answer(f=CanF.FAULTY_PARAMETER)
+        if request.node > 127 or request.timeout_ms == 0:
+            return msg.answer(f=CanF.FAULTY_PARAMETER)
+        if request.node and self.master.bus is None:
+            return msg.answer(f=CanF.NOT_CONFIGURED)
+        self.master.set_sdo_timeout(request.node, request.timeout_ms / 1000.0)
         return msg.answer()
 
     def com_set_guarding(self, msg: Message) -> Message | None:
@@ -470,7 +456,7 @@ class CanTask(Task):
         handler, on, guard_time = parsed
         factor = msg.data[4]
         if on and not guard_time:
-            return msg.answer(f=F_FAULTY_PARAMETER)
+            return msg.answer(f=CanF.FAULTY_PARAMETER)
         guard_time = guard_time if on else 0
         writes = [(0x100C, struct.pack("<H", guard_time)), (0x100D, bytes([factor]))]
         if on:
@@ -485,7 +471,7 @@ class CanTask(Task):
             return parsed
         handler, on, consumer_time = parsed
         if on and not consumer_time:
-            return msg.answer(f=F_FAULTY_PARAMETER)
+            return msg.answer(f=CanF.FAULTY_PARAMETER)
         handler.set_supervision(True, consumer_time if on else 0, 0)
         return msg.answer()
 
@@ -499,9 +485,9 @@ class CanTask(Task):
                 for index, value in writes:
                     channel.sdo.download(index, 0, value)
             except SdoAbortedError as exc:
-                answer = msg.answer(f=F_SDO_ABORT, data=struct.pack("<I", exc.code))
+                answer = msg.answer(f=CanF.SDO_ABORT, data=struct.pack("<I", exc.code))
             except SdoCommunicationError:
-                answer = msg.answer(f=F_NO_RESPONSE)
+                answer = msg.answer(f=CanF.NO_RESPONSE)
         if answer.f == 0:
             handler.set_supervision(heartbeat, time_ms, factor)
         self.device.post(answer)
@@ -512,87 +498,73 @@ class CanTask(Task):
             return parsed
         handler, on, cob_id = parsed
         if cob_id > 0x7FF:
-            return msg.answer(f=F_FAULTY_PARAMETER)
+            return msg.answer(f=CanF.FAULTY_PARAMETER)
         handler.set_emcy_consumer((cob_id or 0x80 + handler.address) if on else None)
         return msg.answer()
 
     def com_set_heartbeat_producer(self, msg: Message) -> Message:
-        if msg.ln != 2:
-            return msg.answer(f=F_FAULTY_PARAMETER)
-        (self.master.ext.usProducerHeartbeatTime,) = struct.unpack_from("<H", msg.data)
+        try:
+            self.master.ext.usProducerHeartbeatTime = decode_word(msg.data)
+        except MessageError:
+            return msg.answer(f=CanF.FAULTY_PARAMETER)
         return msg.answer()
 
     def com_set_node_id(self, msg: Message) -> Message:
         if msg.ln != 1 or not 1 <= msg.data[0] <= 127:
-            return msg.answer(f=F_FAULTY_PARAMETER)
+            return msg.answer(f=CanF.FAULTY_PARAMETER)
         if msg.data[0] in self.master.nodes:
-            return msg.answer(f=F_DOUBLE_ADDRESS)
+            return msg.answer(f=CanF.DOUBLE_ADDRESS)
         self.master.ext.bNodeID = msg.data[0]
         return msg.answer()
 
     def com_bootup_forwarding(self, msg: Message) -> Message:
         if msg.ln != 1 or msg.data[0] not in (0, 1):
-            return msg.answer(f=F_FAULTY_PARAMETER)
+            return msg.answer(f=CanF.FAULTY_PARAMETER)
         self.master.bootup_forwarding = bool(msg.data[0])
         return msg.answer()
 
     # --- NMT, transparent CAN, layer 2 ---------------------------------------------------------
 
     def com_nmt_module_protocol(self, msg: Message) -> Message:
-        if msg.ln < 2 or msg.data[0] not in NMT_COMMANDS or msg.data[1] > 127:
-            return msg.answer(f=F_FAULTY_PARAMETER)
+        try:
+            request = NmtRequest.decode(msg.data)
+        except MessageError:
+            return msg.answer(f=CanF.FAULTY_PARAMETER)
+        if request.command not in NMT_COMMANDS or request.node > 127:
+            return msg.answer(f=CanF.FAULTY_PARAMETER)
         if not self.master.running:
-            return msg.answer(f=F_NOT_CONFIGURED)
-        command, node = msg.data[0], msg.data[1]
-        self.master.host_nmt(command, node)
+            return msg.answer(f=CanF.NOT_CONFIGURED)
+        self.master.host_nmt(request.command, request.node)
         return msg.answer()
 
     def com_send_canmsg_transparent(self, msg: Message) -> Message:
-        d = msg.data
-        if msg.ln == 10:  # CAN 2.0A: ID.10..3 | ID.2..0 RTR DLC
-            ident, payload, extended = (d[0] << 3) | (d[1] >> 5), d[2:], False
-            rtr, dlc = bool(d[1] & 0x10), d[1] & 0x0F
-        elif msg.ln in (11, 13):  # CAN 2.0B: frame info, then the identifier
-            info = d[0]
-            extended = bool(info & 0x80)
-            if extended != (msg.ln == 13):
-                return msg.answer(f=F_FAULTY_PARAMETER)
-            rtr, dlc = bool(info & 0x40), info & 0x0F
-            if extended:
-                ident, payload = int.from_bytes(d[1:5], "big") >> 3, d[5:]
-            else:
-                ident, payload = (d[1] << 3) | (d[2] >> 5), d[3:]
-        else:
-            return msg.answer(f=F_FAULTY_PARAMETER)
-        if not self.master.bus_send_raw(ident, bytes(payload[: min(dlc, 8)]), rtr, extended, dlc):
-            return msg.answer(f=F_TIMEOUT)
+        try:
+            frame = decode_transparent(msg.data)
+        except MessageError:
+            return msg.answer(f=CanF.FAULTY_PARAMETER)
+        dlc = frame.length_code  # a remote frame carries the data bytes as given, as before
+        if not self.master.bus_send_raw(frame.ident, frame.data[: min(dlc, 8)], frame.rtr,
+                                        frame.extended, dlc):
+            return msg.answer(f=CanF.TIMEOUT)
         return msg.answer()
 
     def com_cfgrx_layer2(self, msg: Message) -> Message:
-        if msg.ln < 2 or msg.ln % 2:
-            return msg.answer(f=F_FAULTY_PARAMETER)
-        idents = [msg.data[i] | ((msg.data[i + 1] & 0x07) << 8) for i in range(0, msg.ln, 2)]
+        try:
+            idents = decode_rx_filters(msg.data)
+        except MessageError:
+            return msg.answer(f=CanF.FAULTY_PARAMETER)
         if any(self.master.cob_id_in_use(i) for i in idents):
-            return msg.answer(f=F_FAULTY_PARAMETER)
+            return msg.answer(f=CanF.FAULTY_PARAMETER)
         self.master.layer2_filters.update(idents)
         return msg.answer()
 
     def com_tx_can_layer2(self, msg: Message) -> Message | None:
         """Up to 127 frames, each 2 identifier bytes plus DLC data bytes; no answer."""
-        frames: list[tuple[int, bool, int, bytes]] = []
-        at, d = 0, msg.data
-        while at < len(d):
-            if at + 2 > len(d):
-                return msg.answer(f=F_FAULTY_PARAMETER)
-            ident = (d[at] << 3) | (d[at + 1] >> 5)
-            rtr, dlc = bool(d[at + 1] & 0x10), d[at + 1] & 0x0F
-            size = 0 if rtr else min(dlc, 8)
-            if dlc > 8 or at + 2 + size > len(d):
-                return msg.answer(f=F_FAULTY_PARAMETER)
-            frames.append((ident, rtr, dlc, bytes(d[at + 2 : at + 2 + size])))
-            at += 2 + size
-        if not frames:
-            return msg.answer(f=F_FAULTY_PARAMETER)
-        for ident, rtr, dlc, payload in frames:
-            self.master.bus_send_raw(ident, payload, rtr, False, dlc)
+        try:
+            frames = decode_layer2_frames(msg.data)
+        except MessageError:
+            return msg.answer(f=CanF.FAULTY_PARAMETER)
+        for frame in frames:
+            self.master.bus_send_raw(frame.ident, frame.payload, frame.rtr, False,
+                                     frame.length_code)
         return None

@@ -16,14 +16,8 @@ from dpm.image import DEFAULT_DPM_DIR, MAX_DEV_BOARDS, BoardBusyError
 from firmware.can.master import BusConfig
 from firmware.device import Device
 from firmware.flash import FLASH_ENV
+from firmware.interpreter import SWITCH_INTERVAL
 from firmware.sim import SimulatedNetwork
-
-SWITCH_INTERVAL = 0.0002
-"""Seconds a thread may hold the interpreter lock while another waits for it (CPython's
-default is 5 ms). The SYNC producer must not wait that long for its turn, and at full
-PDO load the receive thread, the CAN tick and the device loop hand the lock around
-thousands of times a second: ``python -m bench.can --only throughput`` measured
-11,400 PDO frames/s at 5 ms, 12,500 at 0.5 ms, 15,000-21,000 at 0.2 ms, 19,000 at 0.1 ms."""
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

@@ -73,7 +73,18 @@ from dbm_tools.tables import (
     PlcParam,
 )
 from dbm_tools.validate import check_dbm
-from dpm import errors
+from dpm.commands import (
+    DIRECTORY_ENTRY,
+    LOAD_CHUNK,
+    LOAD_FIRST_LENGTH,
+    LOAD_ROOT_BYTES,
+    LOAD_SEGMENT,
+    MODE_DELETE,
+    MODE_DIRECTORY,
+    MODE_DOWNLOAD,
+    MODE_UPLOAD,
+)
+from dpm.errors import ERR_EVENT_OF_DATA_CHECK, ERR_NODE_DEVICE, DeviceEvent, RcsF
 from dpm.message import Ext, Message
 from dpm.task2 import ComPlcParameter, GlobalBits
 
@@ -85,24 +96,6 @@ log = logging.getLogger(__name__)
 FLASH_ENV = "CIFEMU_FLASH_DIR"
 DATABASE_FILE = "database.bin"
 _TEMP_SUFFIX = ".tmp"
-
-LOAD_FUNCTION = 6
-MODE_UPLOAD = 2
-MODE_DOWNLOAD = 3
-MODE_DELETE = 4
-MODE_DIRECTORY = 5
-SEGMENT = 8
-"""The start segment of the database (seed 5.2.2's delete message)."""
-CHUNK = 240
-FIRST_LENGTH = 51
-ROOT_BYTES = 16
-
-F_PARAMETER_FAULT = 21
-"""[ours] an unknown load-function mode or a short message ("parameter fault in request")."""
-F_NO_DATABASE = 200
-"""[ours] an upload with nothing stored ("DEVICE is not configured")."""
-
-DIRECTORY_ENTRY = struct.Struct("<B9sHHI")
 
 
 def default_flash_dir(board: int) -> Path:
@@ -217,13 +210,13 @@ class LoadFunction:
                 return self._continue_download(msg, sequence == Ext.LAST)
             if self._upload is not None:
                 return self._continue_upload(msg)
-            return msg.answer(f=errors.F_WRONG_SEQUENCE)
+            return msg.answer(f=RcsF.WRONG_SEQUENCE)
         self.abort()
         if not msg.data:
-            return msg.answer(f=F_PARAMETER_FAULT)
+            return msg.answer(f=RcsF.PARAMETER_FAULT)
         mode = msg.data[0]
         if mode in (MODE_DOWNLOAD, MODE_UPLOAD) and sequence != Ext.FIRST:
-            return msg.answer(f=errors.F_WRONG_SEQUENCE)
+            return msg.answer(f=RcsF.WRONG_SEQUENCE)
         if mode == MODE_DOWNLOAD:
             return self._first_download(msg)
         if mode == MODE_UPLOAD:
@@ -232,25 +225,25 @@ class LoadFunction:
             return self._delete(msg)
         if mode == MODE_DIRECTORY:
             return self._directory(msg)
-        return msg.answer(f=F_PARAMETER_FAULT)
+        return msg.answer(f=RcsF.PARAMETER_FAULT)
 
     # download
 
     def _first_download(self, msg: Message) -> Message:
-        if msg.ln != FIRST_LENGTH:
-            return msg.answer(f=errors.F_WRONG_SIZE)
-        root = msg.data[1 : 1 + ROOT_BYTES]
+        if msg.ln != LOAD_FIRST_LENGTH:
+            return msg.answer(f=RcsF.WRONG_SIZE)
+        root = msg.data[1 : 1 + LOAD_ROOT_BYTES]
         try:
-            name = GlobalSet.decode(msg.data[1 + ROOT_BYTES :]).szSegmentName
+            name = GlobalSet.decode(msg.data[1 + LOAD_ROOT_BYTES :]).szSegmentName
         except DbmError:
             name = None
         if name != SEGMENT_NAME_CANOPEN:
             log.info("download refused: segment name %r is not %r", name, SEGMENT_NAME_CANOPEN)
-            return msg.answer(f=errors.F_DB_NOT_VALID)
+            return msg.answer(f=RcsF.DB_NOT_VALID)
         words = struct.unpack("<8H", root)
         length = 2 * words[5]
         if words[5] != words[6] or not 2 * ROOT_WORDS <= length <= MAX_DATA_AREA:
-            return msg.answer(f=errors.F_WRONG_SIZE)
+            return msg.answer(f=RcsF.WRONG_SIZE)
         self._download = _Download(length, root, (msg.nr + 1) & 0xFF)
         return msg.answer()
 
@@ -259,12 +252,12 @@ class LoadFunction:
         assert download is not None
         if msg.nr != download.next_nr:
             self.abort()
-            return msg.answer(f=errors.F_WRONG_MESSAGE_NUMBER)
+            return msg.answer(f=RcsF.WRONG_MESSAGE_NUMBER)
         remaining = download.length - len(download.data)
-        fits = msg.ln == remaining if last else msg.ln == CHUNK and remaining > CHUNK
+        fits = msg.ln == remaining if last else msg.ln == LOAD_CHUNK and remaining > LOAD_CHUNK
         if not fits:
             self.abort()
-            return msg.answer(f=errors.F_WRONG_SIZE)
+            return msg.answer(f=RcsF.WRONG_SIZE)
         download.data += msg.data
         download.next_nr = (msg.nr + 1) & 0xFF
         if not last:
@@ -274,11 +267,11 @@ class LoadFunction:
         words = struct.unpack(f"<{len(area) // 2}H", area)
         (first_w0,) = struct.unpack_from("<H", download.root)
         if words[0] != first_w0 or sum(words[1:]) & 0xFFFF != first_w0:
-            return msg.answer(f=errors.F_CHECKSUM)
-        if area[2:ROOT_BYTES] != download.root[2:]:
-            return msg.answer(f=errors.F_WRONG_SIZE)
+            return msg.answer(f=RcsF.CHECKSUM)
+        if area[2:LOAD_ROOT_BYTES] != download.root[2:]:
+            return msg.answer(f=RcsF.WRONG_SIZE)
         if _segment_name(area) != SEGMENT_NAME_CANOPEN:
-            return msg.answer(f=errors.F_DB_NOT_VALID)
+            return msg.answer(f=RcsF.DB_NOT_VALID)
         self.store.store(area)
         log.info("database of %d bytes stored in %s", len(area), self.store.path)
         return msg.answer()
@@ -288,7 +281,7 @@ class LoadFunction:
     def _first_upload(self, msg: Message) -> Message:
         data = self.store.read()
         if data is None:
-            return msg.answer(f=F_NO_DATABASE)
+            return msg.answer(f=RcsF.NO_DATABASE)
         self._upload = _Upload(data, msg.nr)
         return self._next_piece(msg, first=True)
 
@@ -297,13 +290,13 @@ class LoadFunction:
         assert upload is not None
         if msg.nr != upload.next_nr:
             self.abort()
-            return msg.answer(f=errors.F_WRONG_MESSAGE_NUMBER)
+            return msg.answer(f=RcsF.WRONG_MESSAGE_NUMBER)
         return self._next_piece(msg, first=False)
 
     def _next_piece(self, msg: Message, first: bool) -> Message:
         upload = self._upload
         assert upload is not None
-        piece = upload.data[upload.position : upload.position + CHUNK]
+        piece = upload.data[upload.position : upload.position + LOAD_CHUNK]
         upload.position += len(piece)
         upload.next_nr = (msg.nr + 1) & 0xFF
         if upload.position >= len(upload.data):
@@ -314,8 +307,8 @@ class LoadFunction:
     # delete, directory
 
     def _delete(self, msg: Message) -> Message:
-        if msg.ln < 2 or msg.data[1] != SEGMENT:
-            return msg.answer(f=F_PARAMETER_FAULT)
+        if msg.ln < 2 or msg.data[1] != LOAD_SEGMENT:
+            return msg.answer(f=RcsF.PARAMETER_FAULT)
         self.store.erase()
         log.info("database deleted from %s", self.store.path)
         return msg.answer(data=bytes([MODE_DELETE]))
@@ -327,7 +320,7 @@ class LoadFunction:
             return msg.answer(data=bytes([MODE_DIRECTORY, 0]))
         name = (_segment_name(data) or "").encode("latin-1")
         (w0,) = struct.unpack_from("<H", data) if len(data) >= 2 else (0,)
-        entry = DIRECTORY_ENTRY.pack(SEGMENT, name, len(data) & 0xFFFF, w0, int(stored))
+        entry = DIRECTORY_ENTRY.pack(LOAD_SEGMENT, name, len(data) & 0xFFFF, w0, int(stored))
         return msg.answer(data=bytes([MODE_DIRECTORY, 1]) + entry)
 
 
@@ -355,17 +348,17 @@ class StoredDatabase:
         try:
             dbm = read_data_area(raw)
         except DbmError as exc:
-            return cls(None, [(errors.ERR_NODE_DEVICE, errors.ERR_EVENT_FAULTY_DATABASE,
+            return cls(None, [(ERR_NODE_DEVICE, DeviceEvent.FAULTY_DATABASE,
                                f"unreadable: {exc}")])
         nodes = dbm.table(NODES)
-        faults = []
+        faults: list[tuple[int, int, str]] = []
         for finding in check_dbm(dbm):
             if finding.severity != "error":
                 continue
-            node = errors.ERR_NODE_DEVICE
-            event = errors.ERR_EVENT_OF_DATA_CHECK.get(finding.number)
+            node = ERR_NODE_DEVICE
+            event = ERR_EVENT_OF_DATA_CHECK.get(finding.number)
             if event is None:
-                event = errors.ERR_EVENT_FAULTY_DATABASE
+                event = DeviceEvent.FAULTY_DATABASE
                 if finding.table == NODES and nodes is not None and finding.record is not None:
                     node = nodes.records[finding.record - 1][0]
             faults.append((node, event, f"{finding.number} {finding.text}: {finding.table} record "
@@ -422,7 +415,7 @@ class StoredDatabase:
             return
         can = device.can
         ext = self._record(BUS_CAN_EXT)
-        if ext is not None and self._refused(device, errors.ERR_NODE_DEVICE, BUS_CAN_EXT,
+        if ext is not None and self._refused(device, ERR_NODE_DEVICE, BUS_CAN_EXT,
                                              can.download_extended(ext)):
             return
         nodes = self.dbm.table(NODES) if self.dbm is not None else None
@@ -431,7 +424,7 @@ class StoredDatabase:
                 return
         bus = self._record(BUS_CAN)
         assert bus is not None  # check_dbm insists on it
-        if not self._refused(device, errors.ERR_NODE_DEVICE, BUS_CAN, can.download_bus(bus)):
+        if not self._refused(device, ERR_NODE_DEVICE, BUS_CAN, can.download_bus(bus)):
             can.from_flash = True  # flash ranks above the on-line download (seed 5.2.2)
 
     @staticmethod
@@ -440,6 +433,6 @@ class StoredDatabase:
             return False
         log.warning("stored database not used: the CAN task refused %s (node %d) with f %d",
                     table, node, f)
-        device.report_error(node, errors.ERR_EVENT_FAULTY_DATABASE, GlobalBits.CTRL)
+        device.report_error(node, DeviceEvent.FAULTY_DATABASE, GlobalBits.CTRL)
         return True
 

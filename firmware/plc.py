@@ -9,8 +9,10 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING
 
-from dpm import errors
 from dpm import flags as fl
+from dpm import message
+from dpm.commands import AREA_BY_FUNCTION, AREA_RECEIVE, AREA_SEND, COM_SHARED_MEMORY
+from dpm.errors import ERR_NODE_DEVICE, DeviceEvent, PlcF
 from dpm.layout import IO_AREA_SIZE
 from dpm.message import Message, MessageError, Tdt, TelegramHeader, Tfc
 from dpm.task2 import BMODE_TO_EXCHANGE_MODE, ComPlcParameter, GlobalBits
@@ -19,12 +21,6 @@ from firmware.task import Task
 
 if TYPE_CHECKING:
     from firmware.device import Device
-
-COM_SHARED_MEMORY = 17
-
-AREA_BY_FUNCTION = 0
-AREA_RECEIVE = 1
-AREA_SEND = 2
 
 # Per data type: maximum address and count (seed 5.1.1).
 _MAX_ADDRESS: dict[int, int] = {Tdt.UINT16: 1791, Tdt.UINT8: 3583, Tdt.STRING: 3583, Tdt.BIT: 1791}
@@ -35,7 +31,7 @@ HOST_CONTROLLED = (4, 5)
 
 
 class PlcTask(Task):
-    number = 2
+    number = message.Task.PLC
     name = "PLC"
 
     def __init__(self, device: Device) -> None:
@@ -55,7 +51,7 @@ class PlcTask(Task):
         self.device.set_exchange_mode(mode)
         if mode == 0:
             self.device.report_error(
-                errors.ERR_NODE_DEVICE, errors.ERR_EVENT_HANDSHAKE_MODE, GlobalBits.CTRL
+                ERR_NODE_DEVICE, DeviceEvent.HANDSHAKE_MODE, GlobalBits.CTRL
             )
             return False
         return True
@@ -81,7 +77,7 @@ class PlcTask(Task):
         try:
             head = TelegramHeader.decode(msg.data)
         except MessageError:
-            return msg.answer(f=errors.F_ILLEGAL_COUNT)
+            return msg.answer(f=PlcF.ILLEGAL_COUNT)
         f = self._check(head)
         if f:
             return msg.answer(f=f)
@@ -96,7 +92,7 @@ class PlcTask(Task):
         else:
             expected = head.data_cnt * (2 if data_type == Tdt.UINT16 else 1)
         if len(head.payload) != expected:
-            return msg.answer(f=errors.F_ILLEGAL_COUNT)
+            return msg.answer(f=PlcF.ILLEGAL_COUNT)
         self._write(area, data_type, head)
         head.payload = b""
         return msg.answer(data=head.encode())
@@ -104,25 +100,25 @@ class PlcTask(Task):
     @staticmethod
     def _check(head: TelegramHeader) -> int:
         if head.function not in (Tfc.READ, Tfc.WRITE):
-            return errors.F_UNKNOWN_FUNCTION
+            return PlcF.UNKNOWN_FUNCTION
         if head.data_type not in _MAX_COUNT:
-            return errors.F_UNKNOWN_DATA_TYPE
+            return PlcF.UNKNOWN_DATA_TYPE
         if head.data_area not in (AREA_BY_FUNCTION, AREA_RECEIVE, AREA_SEND):
-            return errors.F_ILLEGAL_AREA
+            return PlcF.ILLEGAL_AREA
         data_type = head.data_type
         if not 1 <= head.data_cnt <= _MAX_COUNT[data_type]:
-            return errors.F_ILLEGAL_COUNT
+            return PlcF.ILLEGAL_COUNT
         if data_type == Tdt.BIT:
             if head.data_idx > 15:
-                return errors.F_BUFFER_OVERFLOW
+                return PlcF.BUFFER_OVERFLOW
             end_bit = head.data_adr * 16 + head.data_idx + head.data_cnt
             if head.data_adr > _MAX_ADDRESS[data_type] or end_bit > IO_AREA_SIZE * 8:
-                return errors.F_BUFFER_OVERFLOW
+                return PlcF.BUFFER_OVERFLOW
             return 0
         width = 2 if data_type == Tdt.UINT16 else 1
         start = head.data_adr * width
         if head.data_adr > _MAX_ADDRESS[data_type] or start + head.data_cnt * width > IO_AREA_SIZE:
-            return errors.F_BUFFER_OVERFLOW
+            return PlcF.BUFFER_OVERFLOW
         return 0
 
     def _area_read(self, area: int, offset: int, size: int) -> bytes:

@@ -13,9 +13,10 @@ from typing import TYPE_CHECKING
 
 from dpm import errors
 from dpm import flags as fl
+from dpm.commands import LOAD_FUNCTION
 from dpm.layout import DEV_FLAGS, DEV_WATCHDOG, HOST_WATCHDOG, TASK2_PARAMETER, TASK_PARAMETER_SIZE
 from dpm.task2 import ComPlcParameter, GlobalBits
-from firmware.flash import LOAD_FUNCTION, LoadFunction, StoredDatabase
+from firmware.flash import LoadFunction, StoredDatabase
 from firmware.task import Task
 
 if TYPE_CHECKING:

@@ -11,7 +11,7 @@ import logging
 from collections.abc import Callable
 from typing import TYPE_CHECKING
 
-from dpm.errors import F_UNKNOWN_COMMAND
+from dpm.errors import F_INTERNAL_ERROR, F_UNKNOWN_COMMAND
 from dpm.message import Message
 
 if TYPE_CHECKING:
@@ -22,10 +22,6 @@ log = logging.getLogger(__name__)
 Handler = Callable[[Message], Message | None]
 """A command handler returns the answer, or None when the answer comes later
 (posted with ``Device.post``) or when the command has no answer at all."""
-
-F_INTERNAL_ERROR = 254
-"""[ours] a handler failed unexpectedly; the firmware stays up and says so."""
-
 
 class Task:
     """One task of the card, addressed by ``msg.rx == number``."""

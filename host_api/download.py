@@ -44,7 +44,21 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
+from dbm_tools.container import BLOCK_HEADER_SIZE as BLOCK_HEADER
 from dbm_tools.container import FILE_HEADER_SIZE, FILE_MAGIC, MAX_DATA_AREA
+from dbm_tools.container import FIRST_TABLE as GLOBAL_SLOT
+from dbm_tools.tables import DBM_SET_GLOBAL_SIZE as GLOBAL_SIZE
+from dpm.commands import (
+    DIRECTORY_ENTRY,
+    LOAD_FUNCTION,
+    MODE_DELETE,
+    MODE_DIRECTORY,
+    MODE_DOWNLOAD,
+    MODE_UPLOAD,
+)
+from dpm.commands import LOAD_CHUNK as CHUNK
+from dpm.commands import LOAD_ROOT_BYTES as ROOT_BYTES
+from dpm.commands import LOAD_SEGMENT as SEGMENT
 from dpm.errors import Drv
 from dpm.message import Ext, Message, Task
 from host_api.driver import MSG_BUFFER_SIZE, DevGetMessage, DevPutMessage
@@ -53,19 +67,6 @@ from host_api.registry import MappedBoard, ready_board
 
 FIRMWARE_DOWNLOAD = 1
 CONFIGURATION_DOWNLOAD = 2
-
-LOAD_FUNCTION = 6
-MODE_UPLOAD = 2
-MODE_DOWNLOAD = 3
-MODE_DELETE = 4
-MODE_DIRECTORY = 5
-SEGMENT = 8
-CHUNK = 240
-ROOT_BYTES = 16
-GLOBAL_SIZE = 34
-GLOBAL_SLOT = 8
-BLOCK_HEADER = 12
-DIRECTORY_ENTRY = struct.Struct("<B9sHHI")
 
 MESSAGE_TIMEOUT_MS = 5000
 """Per answer; a real card takes up to 3 s to erase its flash (seed 5.2.2)."""

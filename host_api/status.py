@@ -21,16 +21,14 @@ from dpm.errors import ERR_NODE_DEVICE
 from dpm.flags import DevFlag, HostFlag
 from dpm.image import DEFAULT_DPM_DIR, MAX_DEV_BOARDS, dpm_dir, image_path, open_image
 from dpm.layout import image_view
-from dpm.task2 import GLOBAL_BIT_TEXT, ComDiagnostics, ComPlcParameter, GlobalBits, node_bits
-
-EXCHANGE_MODE_TEXT = {
-    0: "none (unconfigured)",
-    1: "1 bus-synchronous, device-controlled",
-    2: "2 buffered, device-controlled",
-    3: "3 uncontrolled",
-    4: "4 buffered, host-controlled",
-    5: "5 bus-synchronous, host-controlled",
-}
+from dpm.task2 import (
+    EXCHANGE_MODE_TEXT,
+    GLOBAL_BIT_TEXT,
+    ComDiagnostics,
+    ComPlcParameter,
+    GlobalBits,
+    node_bits,
+)
 
 
 def _text(raw: Any) -> str:

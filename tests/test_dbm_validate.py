@@ -11,7 +11,6 @@ from typing import Any
 import pytest
 
 from dbm_tools.container import DbmFile, DbmTable, read_dbm, write_dbm
-from dbm_tools.errors import ERROR_TEXTS
 from dbm_tools.parameters import (
     BusParameterSet,
     ExtendedBusParameterSet,
@@ -43,6 +42,7 @@ from dbm_tools.validate import (
     check_node_addresses,
     check_node_parameters,
 )
+from dpm.errors import CanF, DeviceEvent
 from tests.fixtures import real_dbm_bytes
 
 DBM_DOC = Path(__file__).resolve().parents[1] / "docs" / "dbm.md"
@@ -201,7 +201,7 @@ def test_provoked(number: int, check: Callable[[], list[Finding]]) -> None:
     findings = check()
     assert number in numbers(findings)
     for finding in findings:
-        assert finding.text == ERROR_TEXTS[finding.number]
+        assert finding.text == CanF.text_of(finding.number)
         assert finding.severity == "error"
         assert finding.detail
 
@@ -255,8 +255,8 @@ def test_error_texts_are_the_documented_ones() -> None:
     rows = dict(re.findall(r"^\| (\d+) \| (.+) \|$", table, flags=re.MULTILINE))
     assert len(rows) == 24
     for number, wording in rows.items():
-        assert ERROR_TEXTS[int(number)] == wording
-    assert ERROR_TEXTS[212] == "faulty reading of a data base"
+        assert CanF.text_of(int(number)) == wording
+    assert DeviceEvent.FAULTY_DATABASE.text == "faulty reading of a data base"
 
 
 # --- whole databases -----------------------------------------------------------------------

@@ -26,10 +26,13 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import pytest
-from hypothesis import HealthCheck, event, given, settings
+from hypothesis import HealthCheck, currently_in_test_context, event, example, given, settings
 from hypothesis import strategies as st
 
-from dpm.message import Message
+from dpm.com import decode_layer2_frames
+from dpm.commands import COM_TX_CAN_LAYER2
+from dpm.errors import F_INTERNAL_ERROR, F_UNKNOWN_COMMAND, F_UNKNOWN_TASK
+from dpm.message import Message, MessageError, Task
 from host_api.driver import (
     DevCloseDriver,
     DevGetMessage,
@@ -49,13 +52,12 @@ MSG_SIZE = 288
 ANSWER_TIMEOUT_MS = 5000
 EXTRA_ANSWER_WAIT_MS = 2
 """How long to watch for a second answer after the first (the device answers in < 1 ms)."""
-F_INTERNAL_ERROR = 254
-F_UNKNOWN_COMMAND = 152
-F_UNKNOWN_TASK = 153
 NAK = 0x02  # RCS_NAK_MSK in msg.e
 KNOWN_TASKS = (0, 2, 3)  # RCS, PLC, CAN (seed manual 1.1 and 5)
 USER, PLC = 16, 2
 COM_SHARED_MEMORY = 17
+UNKNOWN_PLC_COMMAND = 99
+"""A msg.b the PLC task does not know: answered at once with F_UNKNOWN_COMMAND."""
 
 # --- the image (docs/dpm.md section 1) ---------------------------------------------------
 IMAGE_SIZE = 8192
@@ -193,17 +195,55 @@ def masked(image: bytes, extra: tuple[int, int] | None) -> bytearray:
     return copy
 
 
-def exchange(h: Harness, msg: Message) -> Message:
-    """Send ``msg``, take its one answer, and check every property of the module."""
+def note(text: str) -> None:
+    """Hypothesis's statistics event, when a property runs (plain tests call exchange too)."""
+    if currently_in_test_context():
+        event(text)
+
+
+def answered(msg: Message) -> bool:
+    """Whether the card answers ``msg``: a well-formed COM_Tx_CAN_Layer2 has no answer
+    (seed 5.3.1), every other message has exactly one."""
+    if msg.rx != Task.CAN or msg.b != COM_TX_CAN_LAYER2:
+        return True
+    try:
+        decode_layer2_frames(msg.data)
+    except MessageError:
+        return True
+    return False
+
+
+def expect_no_answer(msg: Message) -> None:
+    """The mailbox keeps order, so a command sent after ``msg`` whose answer comes first
+    proves ``msg`` was not answered, without waiting for a time-out."""
+    probe = Message(rx=PLC, tx=USER, b=UNKNOWN_PLC_COMMAND, nr=(msg.nr + 1) % 256)
+    assert DevPutMessage(BOARD, probe, ANSWER_TIMEOUT_MS) == 0
+    rc, answer = DevGetMessage(BOARD, MSG_SIZE, ANSWER_TIMEOUT_MS)
+    assert rc == 0 and answer is not None, f"no answer to the probe after {msg} (rc {rc})"
+    assert (answer.nr, answer.a, answer.f) == (probe.nr, probe.b, F_UNKNOWN_COMMAND), (
+        f"an answer {answer} to {msg}, which has none")
+
+
+def exchange(h: Harness, msg: Message) -> Message | None:
+    """Send ``msg``, take its one answer (or make sure it has none), check every property."""
     mm = h.mm
     before = bytes(mm[:IMAGE_SIZE])
     assert DevPutMessage(BOARD, msg, ANSWER_TIMEOUT_MS) == 0
-    rc, answer = DevGetMessage(BOARD, MSG_SIZE, ANSWER_TIMEOUT_MS)
-    assert rc == 0 and answer is not None, f"no answer to {msg} (rc {rc})"
+    answer: Message | None = None
+    if answered(msg):
+        rc, answer = DevGetMessage(BOARD, MSG_SIZE, ANSWER_TIMEOUT_MS)
+        assert rc == 0 and answer is not None, f"no answer to {msg} (rc {rc})"
+    else:
+        expect_no_answer(msg)
+        note("no answer: a well-formed COM_Tx_CAN_Layer2")
     rc, extra = DevGetMessage(BOARD, MSG_SIZE, EXTRA_ANSWER_WAIT_MS)
     assert rc == -18, f"a second answer {extra} to {msg} (rc {rc})"
     after = bytes(mm[:IMAGE_SIZE])
     assert h.card.proc.poll() is None, "the firmware process died"
+    if answer is None:
+        expected, got = masked(before, None), masked(after, None)
+        assert expected == got, f"{msg} changed the image"
+        return None
 
     assert (answer.rx, answer.tx, answer.a, answer.b, answer.nr) == (
         msg.tx, msg.rx, msg.b, 0, msg.nr), f"answer {answer} to {msg}"
@@ -213,7 +253,7 @@ def exchange(h: Harness, msg: Message) -> Message:
     elif msg.rx == PLC and msg.b != COM_SHARED_MEMORY:
         assert answer.f == F_UNKNOWN_COMMAND
 
-    event(f"rx {msg.rx if msg.rx in KNOWN_TASKS else 'other'}: f = {answer.f}")
+    note(f"rx {msg.rx if msg.rx in KNOWN_TASKS else 'other'}: f = {answer.f}")
     changed: tuple[int, int] | None = None
     if msg.rx == PLC and msg.b == COM_SHARED_MEMORY:
         changed = check_shared_memory(h, msg, answer, before, after)
@@ -236,7 +276,7 @@ def check_shared_memory(
     assert answer.f == 0, f"f {answer.f} for the valid {msg}"
     assert answer.data[: TELEGRAM.size] == access.header, "the telegram header is echoed"
     base = SND_PD if access.area == AREA_SEND else RCV_PD
-    event(f"valid {('', 'read', 'write')[access.function]} of area {access.area}")
+    note(f"valid {('', 'read', 'write')[access.function]} of area {access.area}")
     if access.function == READ:
         area = before[SND_PD : SND_PD + IO_SIZE] if access.area == AREA_SEND else h.inputs
         assert answer.data[TELEGRAM.size :] == get_bits(area, access.first_bit, access.bits)
@@ -348,8 +388,24 @@ def test_shared_memory_messages(fuzz: Harness, msg: Message) -> None:
 
 @fuzz_settings(TASK_EXAMPLES)
 @given(msg=task_messages)
+@example(msg=Message(rx=Task.CAN, tx=USER, b=COM_TX_CAN_LAYER2, data=bytes([0x30, 0x22, 1, 2])))
 def test_rcs_and_can_task_messages(fuzz: Harness, msg: Message) -> None:
     exchange(fuzz, msg)
+
+
+@pytest.mark.parametrize(("data", "has_answer"), [
+    (bytes([0x30, 0x22, 0x01, 0x02, 0xE0, 0x31]), False),  # two frames: no answer (seed 5.3.1)
+    (bytes([0x30, 0x22, 0x01]), True),                      # a frame cut short: f 55
+    (b"", True),                                            # no frame at all: f 55
+])
+def test_layer2_transmission_is_answered_only_when_malformed(
+        fuzz: Harness, data: bytes, has_answer: bool) -> None:
+    msg = Message(rx=Task.CAN, tx=USER, b=COM_TX_CAN_LAYER2, data=data, nr=0x5C)
+    assert answered(msg) == has_answer
+    answer = exchange(fuzz, msg)
+    assert (answer is not None) == has_answer
+    if answer is not None:
+        assert answer.f == 55
 
 
 def shm(nr: int, area: int, adr: int, function: int, payload: bytes = b"", e: int = 0) -> Message:

@@ -23,31 +23,13 @@ import can
 import canopen
 
 from firmware.errors import BusSetupError
+from firmware.frames import SDO_FRAME_LENGTH
 
 log = logging.getLogger(__name__)
 
 SEND_TIMEOUT = 0.020
 """Seed 4.3: each CAN message is supervised to be sent within 20 ms."""
-SDO_FRAME_LENGTH = 8
-"""CiA 301: every SDO frame has 8 data bytes (seed 4.3, Err_Event 38)."""
-
 FrameCallback = Callable[[can.Message], None]
-
-# SocketCAN error classes (linux/can/error.h): python-can carries them in an error
-# frame's identifier, and the controller-state details in its data byte 1.
-CAN_ERR_TX_TIMEOUT = 0x001
-CAN_ERR_CRTL = 0x004
-CAN_ERR_PROT = 0x008
-CAN_ERR_ACK = 0x020
-CAN_ERR_BUSOFF = 0x040
-CAN_ERR_CRTL_RX_OVERFLOW = 0x01
-CAN_ERR_CRTL_RX_WARNING = 0x04
-CAN_ERR_CRTL_TX_WARNING = 0x08
-CAN_ERR_CRTL_RX_PASSIVE = 0x10
-CAN_ERR_CRTL_TX_PASSIVE = 0x20
-CAN_ERR_CRTL_LIMITS = (CAN_ERR_CRTL_RX_WARNING | CAN_ERR_CRTL_TX_WARNING
-                       | CAN_ERR_CRTL_RX_PASSIVE | CAN_ERR_CRTL_TX_PASSIVE)
-"""The controller's error counter crossed the warning or the error-passive limit."""
 
 PERIODIC_OUTSIDE_INTERFACES = ("socketcan", "shm")
 """Interfaces whose ``send_periodic`` keeps time outside this interpreter: SocketCAN's

@@ -31,29 +31,35 @@ from dbm_tools.parameters import (
     ExtendedState,
     NodeParameterSet,
 )
+from dpm.com import (
+    CanFrame,
+    encode_bootup_indication,
+    encode_layer2_frame,
+    encode_transparent_2b,
+)
+from dpm.commands import (
+    COM_BOOTUP_INDICATION,
+    COM_RECEIVE_TRANSPARENT,
+    COM_RX_CAN_LAYER2,
+    NMT_RESET_COMM,
+    NMT_START,
+    NMT_STOP,
+)
+from dpm.commands import NMT_RESET_NODE as NMT_RESET
 from dpm.layout import CONN_STATUS, IO_AREA_SIZE
-from dpm.message import Message
+from dpm.message import Message, Task
 from dpm.task2 import CanState, GlobalBits
-from firmware.can.bus import (
+from firmware.can.bus import PERIODIC_OUTSIDE_INTERFACES, CanBus
+from firmware.can.node import NODE_STOPPED, NodeHandler, State
+from firmware.can.sdo import HostSdoTransfer
+from firmware.frames import (
     CAN_ERR_ACK,
     CAN_ERR_BUSOFF,
     CAN_ERR_CRTL,
     CAN_ERR_CRTL_LIMITS,
     CAN_ERR_CRTL_RX_OVERFLOW,
     CAN_ERR_TX_TIMEOUT,
-    PERIODIC_OUTSIDE_INTERFACES,
-    CanBus,
 )
-from firmware.can.node import (
-    NMT_RESET,
-    NMT_RESET_COMM,
-    NMT_START,
-    NMT_STOP,
-    NODE_STOPPED,
-    NodeHandler,
-    State,
-)
-from firmware.can.sdo import HostSdoTransfer
 
 if TYPE_CHECKING:
     from firmware.device import Device
@@ -72,9 +78,6 @@ INDICATION_LIMIT = 254
 DEFAULT_SDO_TIMEOUT = 0.5
 """[ours] seconds an SDO request waits for its answer until COM_Set_SDO_Timeout; canopen's
 0.3 s lets a busy 2-core machine abort boot-ups that would have succeeded."""
-COM_BOOTUP_INDICATION = 117
-COM_RECEIVE_TRANSPARENT = 65
-COM_RX_CAN_LAYER2 = 83
 
 
 @dataclass
@@ -697,13 +700,12 @@ class Master:
                 return None
             kind, msg = self.indications.popleft()
             if kind == COM_BOOTUP_INDICATION:
-                return Message(rx=16, tx=3, b=COM_BOOTUP_INDICATION,
-                               data=bytes([msg.arbitration_id - 0x700]))
+                return Message(rx=Task.USER, tx=Task.CAN, b=COM_BOOTUP_INDICATION,
+                               data=encode_bootup_indication(msg.arbitration_id - 0x700))
             if kind == COM_RECEIVE_TRANSPARENT:
-                info = 0x80 | (0x40 if msg.is_remote_frame else 0) | (msg.dlc & 0x0F)
-                data = bytes([info]) + (msg.arbitration_id << 3).to_bytes(4, "big")
-                data += bytes(msg.data).ljust(8, b"\0")[:8]
-                return Message(rx=16, tx=3, b=COM_RECEIVE_TRANSPARENT, data=data)
+                data = encode_transparent_2b(CanFrame(msg.arbitration_id, bytes(msg.data),
+                                                      msg.is_remote_frame, msg.dlc, True))
+                return Message(rx=Task.USER, tx=Task.CAN, b=COM_RECEIVE_TRANSPARENT, data=data)
             data = layer2_frame(msg)
             while self.indications and self.indications[0][0] == COM_RX_CAN_LAYER2:
                 more = layer2_frame(self.indications[0][1])
@@ -711,15 +713,13 @@ class Master:
                     break
                 data += more
                 self.indications.popleft()
-            return Message(rx=16, tx=3, b=COM_RX_CAN_LAYER2, data=data)
+            return Message(rx=Task.USER, tx=Task.CAN, b=COM_RX_CAN_LAYER2, data=data)
 
 
 def layer2_frame(msg: can.Message) -> bytes:
     """A received frame in the layer-2 indication format (seed 5.3.2.2)."""
-    ident = msg.arbitration_id
-    second = ((ident & 0x7) << 5) | (0x10 if msg.is_remote_frame else 0) | (msg.dlc & 0x0F)
-    payload = b"" if msg.is_remote_frame else bytes(msg.data[: msg.dlc])
-    return bytes([ident >> 3, second]) + payload
+    return encode_layer2_frame(CanFrame(msg.arbitration_id, bytes(msg.data),
+                                        msg.is_remote_frame, msg.dlc))
 
 
 def _address(handler: NodeHandler) -> int:

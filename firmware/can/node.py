@@ -14,8 +14,7 @@ import logging
 import struct
 import threading
 import time
-from collections import deque
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import can
@@ -31,7 +30,12 @@ from dbm_tools.parameters import (
     NodeParameterSet,
     PdoData,
 )
-from firmware.can.bus import SDO_FRAME_LENGTH
+from dpm.com import EMCY_ENTRIES, NodeStatus
+from dpm.com import NodeDiagnosis as Diagnosis
+from dpm.commands import NMT_RESET_NODE as NMT_RESET
+from dpm.commands import NMT_START, NMT_STOP
+from dpm.errors import NodeEvent
+from firmware.frames import SDO_FRAME_LENGTH
 
 if TYPE_CHECKING:
     from firmware.can.master import Master
@@ -49,29 +53,26 @@ RTR_PERIOD = 0.1
 START_GRACE = 0.5
 """[ours] seconds after the NMT start in which a node may still report its old state: an
 error-control frame it sent before the start can reach the master after it."""
-EMCY_ENTRIES = 5
-"""COM_Node_Diag's Emcy_Data holds 40 bytes: five 8-byte EMCY messages."""
 
 # Err_Event numbers for nodes (seed 4.3)
-GUARDING_FAILED = 30
-LEFT_OPERATIONAL = 31
-GUARD_SEQUENCE = 32
-NO_RTR_RESPONSE = 33
-NO_RESPONSE = 34
-PROFILE_MISMATCH = 35
-DEVICE_TYPE_MISMATCH = 36
-UNKNOWN_SDO_RESPONSE = 37
-SDO_LENGTH = 38
-NODE_STOPPED = 39
+GUARDING_FAILED = NodeEvent.GUARDING_FAILED
+LEFT_OPERATIONAL = NodeEvent.LEFT_OPERATIONAL
+GUARD_SEQUENCE = NodeEvent.GUARD_SEQUENCE
+NO_RTR_RESPONSE = NodeEvent.NO_RTR_RESPONSE
+NO_RESPONSE = NodeEvent.NO_RESPONSE
+PROFILE_MISMATCH = NodeEvent.PROFILE_MISMATCH
+DEVICE_TYPE_MISMATCH = NodeEvent.DEVICE_TYPE_MISMATCH
+UNKNOWN_SDO_RESPONSE = NodeEvent.UNKNOWN_SDO_RESPONSE
+SDO_LENGTH = NodeEvent.SDO_LENGTH
+NODE_STOPPED = NodeEvent.NODE_STOPPED
 
 # Nodestatus_1 bits (seed 5.2.7)
-NO_RESPONSE_BIT = 0x01
-EMCY_OVERFLOW_BIT = 0x02
-PRM_FAULT_BIT = 0x04
-GUARD_ACTIVE_BIT = 0x08
-DEACTIVATED_BIT = 0x80
+NO_RESPONSE_BIT = NodeStatus.NO_RESPONSE
+EMCY_OVERFLOW_BIT = NodeStatus.EMCY_BUFFER_OVERFLOW
+PRM_FAULT_BIT = NodeStatus.PRM_FAULT
+GUARD_ACTIVE_BIT = NodeStatus.GUARD_ACTIVE
+DEACTIVATED_BIT = NodeStatus.DEACTIVATED
 
-NMT_START, NMT_STOP, NMT_PREOP, NMT_RESET, NMT_RESET_COMM = 0x01, 0x02, 0x80, 0x81, 0x82
 OPERATIONAL, STOPPED, PRE_OPERATIONAL, BOOT_UP = 5, 4, 127, 0
 
 
@@ -102,26 +103,6 @@ class InputPdo:
     offset: int
     requested: float = 0.0
     """When the last remote request went out, 0 when answered."""
-
-
-@dataclass
-class Diagnosis:
-    """The node's part of COM_Node_Diag (seed 5.2.7)."""
-
-    status: int = 0
-    add_info: int = 0
-    profile: int = 0
-    node_state: int = 0
-    actual_error: int = 0
-    emcy: deque[bytes] = field(default_factory=lambda: deque(maxlen=EMCY_ENTRIES))
-
-    def encode(self) -> bytes:
-        entries = b"".join(self.emcy)
-        return (
-            struct.pack("<BHHBBB", self.status, self.add_info, self.profile, self.node_state,
-                        self.actual_error, len(self.emcy))
-            + entries.ljust(40, b"\0")
-        )
 
 
 def swap_words(data: bytes) -> bytes:

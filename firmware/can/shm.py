@@ -67,7 +67,7 @@ import can
 import numpy as np
 import numpy.typing as npt
 
-from firmware.can.bus import CAN_ERR_CRTL, CAN_ERR_CRTL_RX_OVERFLOW
+from firmware.frames import CAN_ERR_CRTL, CAN_ERR_CRTL_RX_OVERFLOW
 
 if TYPE_CHECKING:
     from firmware.can.shm_tasks import SpareTimer

@@ -17,7 +17,7 @@ from types import FrameType
 import can
 
 from dbm_tools.network import NetworkError, NodeDescription, load_network
-from firmware.cli import SWITCH_INTERVAL
+from firmware.interpreter import SWITCH_INTERVAL
 from firmware.sim.network import SimulatedNetwork
 
 

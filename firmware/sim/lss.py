@@ -59,6 +59,9 @@ from functools import partial
 from typing import TYPE_CHECKING
 
 from dbm_tools.network import UNCONFIGURED, LssAddress, NodeDescription
+from firmware.sim.nmt import COB_ID as NMT_COB_ID
+from firmware.sim.nmt import RESET_COMMUNICATION as NMT_RESET_COMMUNICATION
+from firmware.sim.nmt import RESET_NODE as NMT_RESET_NODE
 
 if TYPE_CHECKING:
     from firmware.sim.network import SimulatedNetwork
@@ -70,9 +73,6 @@ LSS_REQUEST_COB_ID = 0x7E5
 """LSS master -> slaves."""
 LSS_ANSWER_COB_ID = 0x7E4
 """LSS slaves -> master."""
-NMT_COB_ID = 0x000
-NMT_RESET_NODE = 0x81
-NMT_RESET_COMMUNICATION = 0x82
 
 # CiA 305 command specifiers
 SWITCH_STATE_GLOBAL = 0x04

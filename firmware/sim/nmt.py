@@ -13,7 +13,7 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING
 
-from canopen.nmt import NmtSlave
+from canopen.nmt import NMT_COMMANDS, NmtSlave
 
 from firmware.sim.scheduler import Timer
 
@@ -25,11 +25,15 @@ STOPPED = 4
 OPERATIONAL = 5
 PRE_OPERATIONAL = 127
 
-START = 0x01
-STOP = 0x02
-ENTER_PRE_OPERATIONAL = 0x80
-RESET_NODE = 0x81
-RESET_COMMUNICATION = 0x82
+# NMT command specifiers, as canopen names them: the simulated nodes take nothing from the
+# card's modules (the card's own copy is dpm.commands.Nmt)
+START = NMT_COMMANDS["OPERATIONAL"]
+STOP = NMT_COMMANDS["STOPPED"]
+ENTER_PRE_OPERATIONAL = NMT_COMMANDS["PRE-OPERATIONAL"]
+RESET_NODE = NMT_COMMANDS["RESET"]
+RESET_COMMUNICATION = NMT_COMMANDS["RESET COMMUNICATION"]
+COB_ID = 0x000
+"""The NMT service's identifier (CiA 301)."""
 
 TOGGLE = 0x80
 LIFE_GUARD_ERROR = 0x8130

@@ -24,7 +24,7 @@ from canopen.objectdictionary.datatypes import UNSIGNED32
 from canopen.sdo.exceptions import SdoAbortedError
 
 from dbm_tools.network import NodeDescription
-from firmware.can.bus import (
+from firmware.frames import (
     CAN_ERR_ACK,
     CAN_ERR_BUSOFF,
     CAN_ERR_CRTL,

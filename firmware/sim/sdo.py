@@ -26,7 +26,7 @@ from canopen.sdo.constants import (
 from canopen.sdo.exceptions import SdoAbortedError
 from canopen.sdo.server import SdoServer
 
-from firmware.can.bus import SDO_FRAME_LENGTH
+from firmware.frames import SDO_FRAME_LENGTH
 
 if TYPE_CHECKING:
     from firmware.sim.node import SimulatedNode

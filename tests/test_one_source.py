@@ -1,0 +1,162 @@
+"""``dpm`` is the card's header: no module outside it defines a protocol number or layout.
+
+Every module of the other packages is parsed (never imported) and its module- and
+class-level assignments are checked:
+
+- an int literal (or a tuple of them) bound to a name of the card's protocol: a prefix
+  the seed uses for a family of numbers (``COM_``, ``NMT_``, ``F_``, ``ERR_``, ``LOAD_``,
+  ``MODE_``, ``AREA_``), a name containing ``Err_Event``, a task number's name
+  (``CAN_TASK``, ``USER``, ...), or any name ``dpm`` itself exports with an int value;
+- a ``struct.Struct`` layout, unless it is listed below as no card message (with why).
+
+Timeouts, CANopen object indexes and the like stay where they are used: their names
+match none of these rules.
+"""
+
+from __future__ import annotations
+
+import ast
+import importlib
+import pkgutil
+import re
+from pathlib import Path
+
+import dpm
+
+ROOT = Path(__file__).resolve().parents[1]
+PACKAGES = ("firmware", "host_api", "dbm_tools", "bench", "cifemu")
+
+PROTOCOL_NAME = re.compile(
+    r"^(COM_|NMT_|F_|ERR_|LOAD_|MODE_|AREA_)|Err_Event|ERR_EVENT"
+    r"|^(CAN_TASK|USER|PLC_TASK|RCS_TASK|GET_CONFIGURATION)$"
+)
+
+NOT_CARD_LAYOUTS: dict[tuple[str, str], str] = {
+    ("firmware/can/shm.py", "_HEADER"): "the shm bus's file header [ours]",
+    ("firmware/can/shm.py", "_STATION"): "a station record of the shm bus [ours]",
+    ("firmware/can/shm.py", "_RECORD"): "a frame record of the shm bus's rings [ours]",
+    ("firmware/can/sdo.py", "_INITIATE"): "a CiA 301 SDO frame on the bus, not a message",
+    ("host_api/driver.py", "DRIVERINFO"): "the C driver's DRIVERINFO structure",
+    ("host_api/driver.py", "IOINFO"): "the C driver's IOINFO structure",
+    ("host_api/driver.py", "BOARD_INFO_ENTRY"): "an entry of the C driver's BOARD_INFO",
+    ("host_api/driver.py", "COMSTATE"): "the C driver's COMSTATE structure",
+}
+
+
+def dpm_int_names() -> frozenset[str]:
+    """Every public upper-case name ``dpm``'s modules bind to an int (enum members too)."""
+    names: set[str] = set()
+    for info in pkgutil.iter_modules(dpm.__path__):
+        module = importlib.import_module(f"dpm.{info.name}")
+        names.update(name for name, value in vars(module).items()
+                     if name.isupper() and not name.startswith("_")
+                     and isinstance(value, int) and not isinstance(value, bool))
+    return frozenset(names)
+
+
+def _is_int_literal(node: ast.expr) -> bool:
+    if isinstance(node, ast.UnaryOp) and isinstance(node.op, ast.USub):
+        node = node.operand
+    if isinstance(node, ast.Tuple):
+        return bool(node.elts) and all(_is_int_literal(e) for e in node.elts)
+    return isinstance(node, ast.Constant) and type(node.value) is int
+
+
+def _is_struct_layout(node: ast.expr) -> bool:
+    return (isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute)
+            and node.func.attr == "Struct" and isinstance(node.func.value, ast.Name)
+            and node.func.value.id == "struct")
+
+
+def _bindings(target: ast.expr, value: ast.expr) -> list[tuple[str, ast.expr]]:
+    """(name, value) pairs of one assignment; ``A, B = 1, 2`` binds A to 1 and B to 2."""
+    if isinstance(target, ast.Name):
+        return [(target.id, value)]
+    if isinstance(target, ast.Tuple):
+        if isinstance(value, ast.Tuple) and len(value.elts) == len(target.elts):
+            return [b for t, v in zip(target.elts, value.elts, strict=True)
+                    for b in _bindings(t, v)]
+        return [b for t in target.elts for b in _bindings(t, value)]
+    return []
+
+
+def _assignments(body: list[ast.stmt], scope: str) -> list[tuple[str, int, str, ast.expr]]:
+    """(scope, line, name, value) of every assignment in a module's or class's body."""
+    found = []
+    for stmt in body:
+        if isinstance(stmt, ast.Assign):
+            found += [(scope, stmt.lineno, n, v) for t in stmt.targets
+                      for n, v in _bindings(t, stmt.value)]
+        elif isinstance(stmt, ast.AnnAssign) and stmt.value is not None:
+            found += [(scope, stmt.lineno, n, v) for n, v in _bindings(stmt.target, stmt.value)]
+        elif isinstance(stmt, ast.ClassDef):
+            found += _assignments(stmt.body, f"{stmt.name}.")
+    return found
+
+
+def offences(path: Path, reserved: frozenset[str]) -> list[str]:
+    """What ``path`` defines that belongs in ``dpm``, one line each."""
+    relative = path.relative_to(ROOT).as_posix() if path.is_relative_to(ROOT) else path.name
+    tree = ast.parse(path.read_text(encoding="utf-8"), filename=relative)
+    found = []
+    for scope, line, name, value in _assignments(tree.body, ""):
+        # dpm's own names count at module level; a class's members (an enum's) may reuse them
+        if _is_int_literal(value) and (PROTOCOL_NAME.search(name)
+                                       or (not scope and name in reserved)):
+            found.append(f"{relative}:{line}: {scope}{name} = {ast.unparse(value)}")
+        elif _is_struct_layout(value) and (relative, name) not in NOT_CARD_LAYOUTS:
+            found.append(f"{relative}:{line}: {scope}{name} = {ast.unparse(value)} (a layout)")
+    return found
+
+
+def modules() -> list[Path]:
+    return sorted(p for package in PACKAGES for p in (ROOT / package).rglob("*.py"))
+
+
+def test_the_rules_catch_what_they_must(tmp_path: Path) -> None:
+    """The checker itself: each kind of definition is caught, ordinary numbers are not."""
+    source = (
+        "import struct\nCOM_X, COM_Y = 67, 68\nTIMEOUT, AREA_BUS = 0.5, 127\nF_TIMEOUT = 48\n"
+        "CAN_TASK, USER = 3, 16\n"
+        "class T:\n    NMT_START = 0x01\n    READY = 1\n"
+        "REQUEST = struct.Struct('<BBH')\nSEND_TIMEOUT = 0.02\nRETRIES = 3\n"
+        "F_NAME = 'text'\nDPM_SIZE = 8192\n"
+    )
+    path = tmp_path / "sample.py"
+    path.write_text(source, encoding="utf-8")
+    found = offences(path, frozenset({"DPM_SIZE", "READY"}))
+    assert [line.split(": ", 1)[1].split(" =")[0] for line in found] == [
+        "COM_X", "COM_Y", "AREA_BUS", "F_TIMEOUT", "CAN_TASK", "USER", "T.NMT_START", "REQUEST",
+        "DPM_SIZE"]
+
+
+def test_every_exempted_layout_exists() -> None:
+    """A stale exemption would let a new card layout of the same name pass unseen."""
+    for (relative, name), why in NOT_CARD_LAYOUTS.items():
+        tree = ast.parse((ROOT / relative).read_text(encoding="utf-8"))
+        bound = {n for _, _, n, v in _assignments(tree.body, "") if _is_struct_layout(v)}
+        assert name in bound, f"{relative}: {name} ({why}) is gone; drop its exemption"
+
+
+def test_no_module_outside_dpm_defines_a_protocol_number() -> None:
+    reserved = dpm_int_names()
+    assert {"COM_DOWNLOAD", "NMT_START", "F_UNKNOWN_TASK", "IO_AREA_SIZE"} <= reserved
+    checked = modules()
+    assert len(checked) > 50, "the packages were not found"
+    found = [line for path in checked for line in offences(path, reserved)]
+    assert not found, "protocol numbers or layouts outside dpm:\n" + "\n".join(found)
+
+
+def test_the_simulated_nodes_take_nothing_from_the_card() -> None:
+    """firmware.sim models other vendors' nodes: it imports neither the card's header nor its
+    firmware, only the neutral modules both sides share."""
+    neutral = {"firmware.frames", "firmware.interpreter"}
+    found = []
+    for path in sorted((ROOT / "firmware" / "sim").rglob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+            if isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+                module = node.module
+                if (module.startswith(("dpm", "firmware"))
+                        and not module.startswith("firmware.sim") and module not in neutral):
+                    found.append(f"{path.relative_to(ROOT)}:{node.lineno}: {module}")
+    assert not found, "firmware.sim imports the card's modules:\n" + "\n".join(found)
