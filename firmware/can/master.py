@@ -277,7 +277,6 @@ class Master:
     def node_failed(self, handler: NodeHandler, event: int) -> None:
         self._booting.discard(handler.address)
         self.set_node_state(handler.address, False)
-        self.set_node_diag(handler.address, True)
         self._update_nexc()  # with Err_Event, not a supervision tick later
         self.device.report_error(handler.address, event)
         if self.auto_clear and not self.cleared and self.running:
