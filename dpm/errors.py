@@ -160,6 +160,9 @@ F_WRONG_MESSAGE_NUMBER = 22
 F_WRONG_SIZE = 23
 F_WRONG_SEQUENCE = 24
 F_CHECKSUM = 25
+F_FLASH_FULL = 53
+"""[ours] the flash could not take the database (its file system full or failing): the
+seed's "overstep of the buffer length"; the stored database stays as it was."""
 
 MSG_F_TEXT: dict[int, str] = {
     0: "no error, command executed",

@@ -8,10 +8,12 @@ stored database. The nodes run in ``cifemu sim`` on the ``shm`` interface, as on
 
 from __future__ import annotations
 
+import contextlib
 import random
 import signal
 import struct
 import subprocess
+import threading
 import time
 import uuid
 from collections.abc import Callable, Iterator
@@ -20,19 +22,28 @@ from pathlib import Path
 
 import pytest
 
+from dbm_tools.builder import build_dbm
+from dbm_tools.container import write_dbm
 from dbm_tools.network import load_network
 from dpm import flags as fl
 from dpm.commands import COM_NODE_DIAG
+from dpm.errors import Drv
 from dpm.message import Message, Task
 from dpm.task2 import CanState, GlobalBits
-from host_api.board import Board
-from host_api.online import configure_online
+from host_api import driver as d
+from host_api.board import Board, CifError
+from host_api.cia309.gateway import Cia309Error, Gateway
+from host_api.cia309.lss import WAITING, LssError, LssMaster
+from host_api.download import CONFIGURATION_DOWNLOAD, DevDownload, upload_database
+from host_api.online import ConfigurationError, configure_online
 from tests.conftest import Card, start_card, wait_until
 from tests.test_can_task import start_sim
 
 NO_RESPONSE_BIT = 0x01
 GUARD_ACTIVE_BIT = 0x08
 HEARTBEAT_NODES = [1, 2, 3]
+BOARD_TIMEOUT_S = 2.0
+"""The host's ``Board`` time-out: each mailbox transaction of a longer operation has it."""
 
 
 def _network(nodes: list[int], bus: str = "", node: str = "heartbeat_ms = 300") -> str:
@@ -67,6 +78,10 @@ class Bench:
         self.sim = None
 
 
+def _gone(path: Path) -> Callable[[], bool]:
+    return lambda: not path.exists()
+
+
 @pytest.fixture
 def make_bench(tmp_path: Path) -> Iterator[Callable[[str], Bench]]:
     made: list[Bench] = []
@@ -76,7 +91,8 @@ def make_bench(tmp_path: Path) -> Iterator[Callable[[str], Bench]]:
         network.write_text(toml)
         channel = f"chaos-{uuid.uuid4().hex}"
         card = start_card(tmp_path, 0, "--interface", "shm", "--channel", channel)
-        bench = Bench(card, None, Board(0, tmp_path, timeout=5000).open(), network, channel)
+        bench = Bench(card, None, Board(0, tmp_path, timeout=int(BOARD_TIMEOUT_S * 1000)).open(),
+                      network, channel)
         made.append(bench)
         bench.start_sim()
         return bench
@@ -88,8 +104,7 @@ def make_bench(tmp_path: Path) -> Iterator[Callable[[str], Bench]]:
         if bench.sim is not None:
             bench.sim.terminate()
             bench.sim.wait(timeout=10)
-        shm = Path(f"/dev/shm/cifemu-can-{bench.channel}")
-        wait_until(lambda shm=shm: not shm.exists(), 5,
+        wait_until(_gone(Path(f"/dev/shm/cifemu-can-{bench.channel}")), 5,
                    "the shm channel to go with its last station")
 
 
@@ -173,3 +188,180 @@ def test_sim_killed_with_auto_clear_stops_all_until_the_next_start(
                "the nodes in data exchange after the host's restart")
     diag = bench.board.diagnostics()
     assert diag.bCAN_State == CanState.OPERATE and not diag.bGlobalBits & GlobalBits.ACLR
+
+
+# --- the firmware killed ----------------------------------------------------------------------
+
+CARD_NODES = [1, 2, 3]
+LSS_SLAVE = "[[node]]\nid = 255\nlss = { vendor = 0x1234, product = 2, revision = 3, serial = 7 }\n"
+CALL_TIMEOUT_MS = 300
+SLACK_S = 0.5
+"""What a call may take beyond its time-out on this shared 2-core machine."""
+DOCUMENTED = frozenset(int(code) for code in Drv)
+
+
+@dataclass
+class Outcome:
+    """One host call: what it returned or raised, when it started and ended."""
+
+    what: str
+    started: float
+    ended: float
+
+
+class Activity:
+    """A host working in a thread of the test, one call after another, until told to stop."""
+
+    def __init__(self, call: Callable[[], str], limit_s: float) -> None:
+        self._call = call
+        self.limit = limit_s
+        """The call's own time-out: no call may outlast it by more than SLACK_S after
+        the kill (or at all, when it started after the kill)."""
+        self._stop = threading.Event()
+        self.outcomes: list[Outcome] = []
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            started = time.monotonic()
+            what = self._call()
+            self.outcomes.append(Outcome(what, started, time.monotonic()))
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._thread.join(self.limit + 5)
+        assert not self._thread.is_alive(), "a host call hung after the firmware died"
+
+
+    def late_or_undocumented(self, killed: float) -> list[Outcome]:
+        return [o for o in self.outcomes if o.what.startswith("undocumented")
+                or o.ended - max(o.started, killed) > self.limit + SLACK_S]
+
+
+def _driver_code(code: int) -> str:
+    return f"rc {code}" if code in DOCUMENTED else f"undocumented rc {code}"
+
+
+def _store_database(bench: Bench, toml: str) -> bytes:
+    """Put ``toml`` into the card's flash and start from it (the nodes operate)."""
+    card_network = bench.network.with_name("card.toml")
+    card_network.write_text(toml)
+    dbm = write_dbm(build_dbm(load_network(card_network)))
+    assert DevDownload(0, CONFIGURATION_DOWNLOAD, dbm) == 0
+    assert d.DevReset(0, d.WARMSTART, 5000) == 0
+    wait_until(lambda: bench.board.diagnostics().operating() == CARD_NODES, 10,
+               "the nodes in data exchange from the stored database")
+    code, stored = upload_database(0)
+    assert code == 0
+    return stored
+
+
+def _pdo_exchange() -> str:
+    code, _ = d.DevExchangeIO(0, 0, b"\x01\x02", 0, 8, CALL_TIMEOUT_MS)
+    return _driver_code(code)
+
+
+def _mailbox(board: Board) -> Callable[[], str]:
+    read = Message(rx=Task.PLC, tx=Task.USER, b=17, data=bytes([0, 1, 0, 0, 0, 8, 5, 1]))
+
+    def call() -> str:
+        try:
+            board.transact(read, timeout=CALL_TIMEOUT_MS)
+        except CifError as exc:
+            return _driver_code(exc.code)
+        return "rc 0"
+    return call
+
+
+def _online_configuration(board: Board, network: Path) -> Callable[[], str]:
+    def call() -> str:
+        try:
+            configure_online(board, load_network(network))
+        except CifError as exc:
+            return _driver_code(exc.code)
+        except ConfigurationError as exc:
+            return f"f {exc}"
+        return "rc 0"
+    return call
+
+
+def _gateway_sdo(gateway: Gateway) -> Callable[[], str]:
+    def call() -> str:
+        try:
+            gateway.sdo_upload(0x1000, 0, node_id=1)
+        except Cia309Error as exc:
+            return f"309 error {exc.error} abort {exc.abort_code} f {exc.f}"
+        return "ok"
+    return call
+
+
+def _lss_scan(lss: LssMaster) -> Callable[[], str]:
+    def call() -> str:
+        try:
+            lss.fastscan()
+            lss.switch_state_global(WAITING)
+        except LssError as exc:
+            return f"lss error {exc.code}"
+        return "ok"
+    return call
+
+
+@pytest.mark.parametrize("during", ["pdo", "mailbox", "online", "sdo309", "lss"])
+def test_firmware_killed_hosts_get_codes_and_a_new_firmware_brings_the_database_back(
+        make_bench: Callable[[str], Bench], tmp_path: Path, during: str) -> None:
+    bench = make_bench(_network(CARD_NODES) + (LSS_SLAVE if during == "lss" else ""))
+    stored = _store_database(bench, _network(CARD_NODES))
+    limit = CALL_TIMEOUT_MS / 1000
+    with contextlib.ExitStack() as stack:
+        if during == "pdo":
+            call = _pdo_exchange
+        elif during == "mailbox":
+            call = _mailbox(bench.board)
+        elif during == "online":
+            call, limit = _online_configuration(bench.board, bench.network), BOARD_TIMEOUT_S
+        elif during == "sdo309":
+            gateway = stack.enter_context(Gateway(boards=[0], directory=tmp_path))
+            gateway.set_command_timeout(1000)
+            call, limit = _gateway_sdo(gateway), 1.0
+        else:
+            lss = LssMaster(bench.board, timeout=0.3, scan_timeout=0.05)
+            call, limit = _lss_scan(lss), BOARD_TIMEOUT_S
+        activity = Activity(call, limit)
+        time.sleep(random.uniform(0.1, 0.8))
+        bench.card.proc.send_signal(signal.SIGKILL)
+        killed = time.monotonic()
+        assert bench.card.proc.wait(timeout=5) == -signal.SIGKILL
+        wait_until(lambda: time.monotonic() > killed + activity.limit + 0.5, 30,
+                   "calls after the kill")
+        activity.stop()
+        assert [o for o in activity.outcomes if o.started < killed], "no call before the kill"
+        assert [o for o in activity.outcomes if o.started > killed], "no call after the kill"
+        assert not activity.late_or_undocumented(killed), activity.late_or_undocumented(killed)
+    if during == "sdo309":  # the gateway's close ended board 0 for this whole process
+        assert d.DevInitBoard(0) in (Drv.DRV_NO_ERROR, Drv.DRV_DEV_NOT_READY)
+    _new_firmware(bench, tmp_path)
+    wait_until(lambda: bench.board.diagnostics().operating() == CARD_NODES, 10,
+               "the nodes back from the stored database")
+    assert upload_database(0) == (0, stored)
+
+
+def _answers(board: Board) -> bool:
+    try:
+        return board.transact(Message(rx=Task.PLC, tx=Task.USER, b=17,
+                                      data=bytes([0, 1, 0, 0, 0, 1, 5, 1])), timeout=200).f == 0
+    except CifError:
+        return False
+
+
+def _new_firmware(bench: Bench, directory: Path) -> None:
+    """Start a firmware on the killed one's board; returns once it answers the mailbox.
+
+    The image keeps what the killed firmware wrote last, READY and Nd_state included,
+    until the new one's start clears it: only an answer tells the new one from the old.
+    No stale lock or station may keep it from starting.
+    """
+    started = time.monotonic()
+    bench.card = start_card(directory, 0, "--interface", "shm", "--channel", bench.channel)
+    wait_until(lambda: _answers(bench.board), 10, "the new firmware's first answer")
+    assert time.monotonic() - started < 10
