@@ -13,6 +13,7 @@ import random
 import signal
 import struct
 import subprocess
+import sys
 import threading
 import time
 import uuid
@@ -36,7 +37,7 @@ from host_api.cia309.gateway import Cia309Error, Gateway
 from host_api.cia309.lss import WAITING, LssError, LssMaster
 from host_api.download import CONFIGURATION_DOWNLOAD, DevDownload, upload_database
 from host_api.online import ConfigurationError, configure_online
-from tests.conftest import Card, start_card, wait_until
+from tests.conftest import ROOT, Card, start_card, wait_until
 from tests.test_can_task import start_sim
 
 NO_RESPONSE_BIT = 0x01
@@ -365,3 +366,138 @@ def _new_firmware(bench: Bench, directory: Path) -> None:
     bench.card = start_card(directory, 0, "--interface", "shm", "--channel", bench.channel)
     wait_until(lambda: _answers(bench.board), 10, "the new firmware's first answer")
     assert time.monotonic() - started < 10
+
+
+# --- a host killed ----------------------------------------------------------------------------
+
+HOST = """
+import sys, time
+from pathlib import Path
+from dpm.image import lock_path
+from dpm.layout import DEV_MBX, SND_PD
+from dpm.message import Message
+from host_api import driver as d
+from host_api.board import Board
+from host_api.locks import ChannelLock
+
+directory, what = Path(sys.argv[1]), sys.argv[2]
+board = Board(0, directory, timeout=2000).open()
+read = Message(rx=2, tx=16, b=17, data=bytes([0, 1, 0, 0, 0, 8, 5, 1]))
+print("working", flush=True)
+if what == "mailbox":
+    while True:
+        board.transact(read)
+elif what == "io":
+    while True:
+        d.DevExchangeIO(0, 0, bytes(8), 0, 8, 2000)
+else:  # a half-written message and send area, with both of the channels' locks held
+    ChannelLock(lock_path(directory, 0, "transaction")).acquire(1)
+    ChannelLock(lock_path(directory, 0, "put")).acquire(1)
+    ChannelLock(lock_path(directory, 0, "io")).acquire(1)
+    import mmap, os
+    fd = os.open(directory / "board0.dpm", os.O_RDWR)
+    mm = mmap.mmap(fd, 8192)
+    mm[DEV_MBX : DEV_MBX + 4] = bytes([2, 16, 200, 1])  # ln 200, and no data yet
+    mm[SND_PD : SND_PD + 4] = b"\\xee" * 4
+    print("half", flush=True)
+    time.sleep(60)
+"""
+
+
+@pytest.mark.parametrize("holding", ["mailbox", "io", "half"])
+def test_host_killed_holding_a_channel_never_blocks_the_next_host(
+        make_bench: Callable[[str], Bench], tmp_path: Path, holding: str) -> None:
+    bench = make_bench(_network(CARD_NODES))
+    configure_online(bench.board, load_network(bench.network))
+    wait_until(lambda: bench.board.diagnostics().operating() == CARD_NODES, 10,
+               "the nodes in data exchange")
+    host = subprocess.Popen([sys.executable, "-c", HOST, str(tmp_path), holding],
+                            stdout=subprocess.PIPE, cwd=ROOT)
+    assert host.stdout is not None
+    assert host.stdout.readline() == b"working\n"
+    if holding == "half":
+        assert host.stdout.readline() == b"half\n"
+    time.sleep(random.uniform(0.05, 0.5))
+    host.send_signal(signal.SIGKILL)
+    host.wait(timeout=5)
+    started = time.monotonic()
+    answer = bench.board.transact(Message(rx=Task.PLC, tx=Task.USER, b=17,
+                                          data=bytes([0, 1, 0, 0, 0, 8, 5, 1])))
+    assert answer.f == 0
+    wait_until(lambda: bench.board.exchange_io(b"\x42", receive_size=1) == b"\x42", 3,
+               "node 1 to echo the next host's outputs")
+    assert time.monotonic() - started < BOARD_TIMEOUT_S + 3 + SLACK_S
+
+
+# --- the disk fills ---------------------------------------------------------------------------
+
+BIG_NETWORK = _network(list(range(1, 128)))
+
+
+@pytest.fixture
+def small_flash(private_flash: Path) -> Iterator[Callable[[int], None]]:
+    """Board 0's flash directory on a tmpfs of its own; the callable resizes it (KiB)."""
+    directory = private_flash / "board0"
+    directory.mkdir(parents=True)
+    mounted = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=64k,mode=0700", "tmpfs",
+                              str(directory)], capture_output=True, text=True)
+    if mounted.returncode:
+        pytest.skip(f"no small file system to fill: mount -t tmpfs failed: "
+                    f"{mounted.stderr.strip()}")
+
+    def resize(kib: int) -> None:
+        subprocess.run(["mount", "-o", f"remount,size={kib}k", str(directory)], check=True)
+
+    yield resize
+    subprocess.run(["umount", "-l", str(directory)], check=False)
+
+
+def _fill(directory: Path) -> None:
+    """Write a filler file until the file system is full."""
+    with open(directory / "filler", "wb", buffering=0) as filler:
+        try:
+            while True:
+                filler.write(b"\0" * 4096)
+        except OSError:
+            pass
+
+
+def _dbm(directory: Path, toml: str) -> bytes:
+    path = directory / "dbm.toml"
+    path.write_text(toml)
+    return write_dbm(build_dbm(load_network(path)))
+
+
+@pytest.mark.parametrize("full", ["during the download", "during the store"])
+def test_disk_full_gives_a_clear_error_and_keeps_the_old_database(
+        small_flash: Callable[[int], None], private_flash: Path, tmp_path: Path,
+        full: str) -> None:
+    card = start_card(tmp_path)
+    board = Board(0, tmp_path, timeout=5000).open()
+    try:
+        assert DevDownload(0, CONFIGURATION_DOWNLOAD, _dbm(tmp_path, _network(CARD_NODES))) == 0
+        code, old = upload_database(0)
+        assert code == 0
+        flash = private_flash / "board0"
+        new = _dbm(tmp_path, BIG_NETWORK)
+        if full == "during the download":
+            fill_at = random.randrange(len(new) // 240)
+
+            def progress(done: int, total: int) -> None:
+                del total
+                if done // 240 == fill_at:
+                    _fill(flash)
+            rc = DevDownload(0, CONFIGURATION_DOWNLOAD, new, progress)
+        else:
+            small_flash(16)  # room for the old database, not for the new one beside it
+            rc = DevDownload(0, CONFIGURATION_DOWNLOAD, new)
+        assert rc == 1000 + 53  # "overstep of the buffer length" [ours]: the flash is full
+        assert upload_database(0) == (0, old)
+        assert sorted(p.name for p in flash.iterdir() if p.name != "filler") == ["database.bin"]
+        (flash / "filler").unlink(missing_ok=True)
+        small_flash(256)
+        assert DevDownload(0, CONFIGURATION_DOWNLOAD, new) == 0
+        assert upload_database(0)[1] != old
+    finally:
+        board.close()
+        card.stop()
