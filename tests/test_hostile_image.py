@@ -6,7 +6,7 @@ writes random bytes into every area a host may write (the send area, DevMbx, the
 parameters) with DevFlags toggle storms. The firmware process must stay up, never write
 into those areas itself, and serve a well-formed host afterwards.
 
-CIFEMU_SOAK_SECONDS sets how long the random writer runs (default 8 s; the issue's
+CIFEMU_SOAK_SECONDS sets how long the random writer runs (default 5 s; the issue's
 long form is 60), as CIFEMU_FUZZ_EXAMPLES sets the fuzz tests' example counts.
 """
 
@@ -37,7 +37,7 @@ from host_api import driver
 from host_api.board import Board
 from tests.conftest import Card, start_card
 
-SOAK_SECONDS = max(1.0, float(os.environ.get("CIFEMU_SOAK_SECONDS", "8")))
+SOAK_SECONDS = max(1.0, float(os.environ.get("CIFEMU_SOAK_SECONDS", "5")))
 COM_SHARED_MEMORY = 17
 MSG_B = DEV_MBX + 6
 STORM_BITS = (fl.HOSTACK, fl.DEVCOM, fl.PDCOM, fl.STATEACK, fl.SPCCOM, fl.NOTREADY)
