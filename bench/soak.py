@@ -26,6 +26,7 @@ import os
 import socket
 import statistics
 import sys
+import threading
 import time
 from dataclasses import dataclass, field
 from multiprocessing.connection import Connection
@@ -37,11 +38,10 @@ import numpy.typing as npt
 
 from bench.can import (
     DRAIN_S,
-    HOST_IDLE_S,
     THROUGHPUT_NODES,
-    TIMEOUT_MS,
     U64,
     configure,
+    echo_window,
     io_offsets,
     network_toml,
     sdo_message,
@@ -52,7 +52,7 @@ from bench.can import (
 from bench.common import emit, machine_info, percentile, progress, source_fingerprint
 from dbm_tools.network import parse_network
 from dpm.task2 import ComDiagnostics
-from host_api.driver import DevExchangeIO
+from host_api.driver import DevGetTaskState
 
 NAME = "soak"
 DEFAULT_MINUTES = 1
@@ -228,54 +228,55 @@ class LoopHistogram:
         def at(q: float) -> float:
             index = int(np.searchsorted(cumulative, q * total, side="left"))
             return round((index + 0.5) * self.BIN_S * 1e6, 1)
-        return {"count": total, "p50": at(0.50), "p99": at(0.99)}
+        slow = int(self.counts[int(0.5 / self.BIN_S):].sum())
+        return {"count": total, "p50": at(0.50), "p99": at(0.99), "max": at(1.0),
+                "over_500_ms": slow}
 
 
 def pdo_window(board: int, values: U64, seconds: float, out_offset: int,
                in_offset: int) -> dict[str, Any]:
-    """Every node's PDO loop closed for ``seconds``, then the values in flight drain.
-
-    The loop of ``bench.can.echo_window`` (each node gets a new value once its last one
-    came back; a value still missing DRAIN_S after the window is lost), with the loop
-    times in a ``LoopHistogram`` instead of a list of every sample.
-    """
-    size = 8 * len(values)
+    """Every node's PDO loop closed for ``seconds`` (``bench.can.echo_window``), the loop
+    times kept in a ``LoopHistogram``."""
     histogram = LoopHistogram()
-    out = values
-    out += np.uint64(1)
-    pending = np.ones(len(values), dtype=bool)
-    start = time.perf_counter()
-    sent_at = np.full(len(values), start)
-    end, running, drain_deadline = start + seconds, True, 0.0
-    verified = verified_timed = errors = 0
-    elapsed = seconds
-    out_bytes = out.tobytes()
-    while True:
-        rc, raw = DevExchangeIO(board, out_offset, out_bytes, in_offset, size, TIMEOUT_MS)
-        now = time.perf_counter()
-        if rc != 0 or len(raw) != size:
-            errors += 1
-            continue
-        done = (np.frombuffer(raw, dtype="<u8") == out) & pending
-        echoed = int(np.count_nonzero(done))
-        if not echoed:
-            time.sleep(HOST_IDLE_S)
-        else:
-            verified += echoed
-            histogram.add(now - sent_at[done])
-            if running:
-                out[done] += np.uint64(1)
-                sent_at[done] = now
-                out_bytes = out.tobytes()
-            else:
-                pending &= ~done
-        if running and now >= end:
-            running, elapsed, verified_timed = False, now - start, verified
-            drain_deadline = now + DRAIN_S
-        elif not running and (not pending.any() or now > drain_deadline):
-            return {"frames": 2 * verified, "lost": int(np.count_nonzero(pending)),
-                    "frames_per_s": round(2 * verified_timed / elapsed, 1),
-                    "exchange_errors": errors, "loop_us": histogram.summary()}
+    window = echo_window(board, values, len(values), seconds, out_offset, in_offset,
+                         record=histogram.add)
+    return {"frames": 2 * window.verified_total, "lost": window.lost,
+            "frames_per_s": round(2 * window.echoes_per_s, 1),
+            "exchange_errors": window.exchange_errors, "loop_us": histogram.summary()}
+
+
+class ErrorWatch:
+    """Err_Event and Err_Node_adr as they change during the soak (Task2State every 0.1 s,
+    the first 50 changes): a node lost for a moment shows here even when it is back by
+    the end."""
+
+    PERIOD_S = 0.1
+    KEPT = 50
+
+    def __init__(self, board: int, start: float) -> None:
+        self.changes: list[dict[str, float | int]] = []
+        self._board, self._start = board, start
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="soak-errors", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        shown = (0, 0)
+        while not self._stop.wait(self.PERIOD_S):
+            rc, raw = DevGetTaskState(self._board, 2, 64)
+            if rc != 0:
+                continue
+            state = ComDiagnostics.decode(raw)
+            now = (state.bErr_event, state.bErr_rem_adr)
+            if now != shown and len(self.changes) < self.KEPT:
+                self.changes.append({"s": round(time.monotonic() - self._start, 1),
+                                     "err_event": now[0], "err_node_adr": now[1]})
+            shown = now
+
+    def stop(self) -> list[dict[str, float | int]]:
+        self._stop.set()
+        self._thread.join()
+        return self.changes
 
 
 def _growth(samples: list[dict[str, int | None]], role: str) -> float | None:
@@ -317,6 +318,7 @@ def soak(minutes: int) -> dict[str, Any]:
                 "mailbox_and_309_server_host": server_host.pid or 0,
                 "cia309_client": client.pid or 0}
         rss: list[dict[str, int | None]] = [{role: rss_kib(pid) for role, pid in pids.items()}]
+        watch = ErrorWatch(board.number, start)
         values = np.arange(1, len(nodes) + 1, dtype=np.uint64) << np.uint64(40)
         pdo: list[dict[str, Any]] = []
         for index in range(count):
@@ -331,10 +333,13 @@ def soak(minutes: int) -> dict[str, Any]:
         for process in (client, server_host):
             process.join(30)
         diagnostics = board.diagnostics()
+        error_changes = watch.stop()
         counters = {name: int(getattr(diagnostics, name)) for name in COUNTERS}
         firmware_log = card.log()
     result = _report(minutes, width, pdo, rss, mailbox_sdo, cia309_sdo, counters, diagnostics)
     result["firmware_log"] = firmware_log
+    result["err_event_changes"] = error_changes
+    result["invariants"]["no_err_event_during_the_soak"] = not error_changes
     return result
 
 
