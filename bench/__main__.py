@@ -10,7 +10,7 @@ import argparse
 from collections.abc import Callable
 from typing import Any
 
-from bench import can, cia309, dbm, exchange_io, lss, mailbox
+from bench import can, cia309, dbm, exchange_io, lss, mailbox, soak
 from bench.common import add_size_arguments, emit, help_text, progress
 
 Runner = Callable[[int | None, int | None], dict[str, Any]]
@@ -26,6 +26,8 @@ BENCHMARKS: dict[str, Runner] = {
 
 
 def main(argv: list[str] | None = None) -> int:
+    if (code := soak.dispatch(argv)) is not None:
+        return code
     parser = argparse.ArgumentParser(prog="python -m bench", description=help_text(__doc__))
     parser.add_argument("names", nargs="*", metavar="NAME",
                         help=f"benchmarks to run: {', '.join(BENCHMARKS)} (default: all)")

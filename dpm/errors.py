@@ -177,6 +177,9 @@ class RcsF(MsgF):
     WRONG_SIZE = 23, "wrong size"
     WRONG_SEQUENCE = 24, "wrong sequence"
     CHECKSUM = 25, "checksum error"
+    FLASH_FULL = 53, "overstep of the buffer length"
+    """[ours] the flash could not take the database (its file system full or failing): the
+    seed's "overstep of the buffer length"; the stored database stays as it was."""
     UNKNOWN_COMMAND = 152, "unknown command, DEVICE needs newer firmware"
     """COM_Upload's text; [ours] every task answers an unknown msg.b with it."""
     UNKNOWN_TASK = 153, "unknown receiver task [ours]"

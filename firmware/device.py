@@ -31,7 +31,7 @@ from dpm.layout import (
     TASK_STATE_SIZE,
     image_view,
 )
-from dpm.message import Ext, Message
+from dpm.message import MSG_MAX_SIZE, Ext, Message
 from dpm.task2 import CanState
 from firmware import info
 from firmware.can.master import BusConfig
@@ -293,9 +293,11 @@ class Device:
         self._set_level(fl.COM, bool(levels & fl.COM))
 
     def _receive(self) -> None:
-        mm = self.mm
-        ln = mm[DEV_MBX + 2]
-        raw = mm[DEV_MBX : DEV_MBX + 8 + ln]
+        # One copy of the whole message slot, decoded from the copy: a host that
+        # rewrites msg.ln while the card reads cannot make the length and the data
+        # disagree (every ln of 0..255 fits the slot). The tasks answer a message
+        # that is malformed for its command with their own msg.f.
+        raw = self.mm[DEV_MBX : DEV_MBX + MSG_MAX_SIZE]
         self.toggle_host_flags(fl.DEVACK)
         msg = Message.decode(raw)
         task = self.tasks.get(msg.rx)

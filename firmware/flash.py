@@ -135,12 +135,16 @@ class FlashStore:
         temp = self.directory / f".{DATABASE_FILE}.{os.getpid()}{_TEMP_SUFFIX}"
         fd = os.open(temp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o640)
         try:
-            view = memoryview(area)
-            while view:
-                view = view[os.write(fd, view) :]
-            os.fsync(fd)
-        finally:
-            os.close(fd)
+            try:
+                view = memoryview(area)
+                while view:
+                    view = view[os.write(fd, view) :]
+                os.fsync(fd)
+            finally:
+                os.close(fd)
+        except OSError:
+            temp.unlink(missing_ok=True)  # a full disk keeps no half database to fill it
+            raise
         os.replace(temp, self.path)
         self._sync_directory()
 
@@ -272,7 +276,11 @@ class LoadFunction:
             return msg.answer(f=RcsF.WRONG_SIZE)
         if _segment_name(area) != SEGMENT_NAME_CANOPEN:
             return msg.answer(f=RcsF.DB_NOT_VALID)
-        self.store.store(area)
+        try:
+            self.store.store(area)
+        except OSError as exc:
+            log.error("database not stored in %s: %s", self.store.directory, exc.strerror)
+            return msg.answer(f=RcsF.FLASH_FULL)
         log.info("database of %d bytes stored in %s", len(area), self.store.path)
         return msg.answer()
 

@@ -82,7 +82,9 @@ class RcsTask(Task):
         self._last_dev_watchdog = 0
         dev.mm[HOST_WATCHDOG] = 1
         dev.mm[DEV_WATCHDOG] = 0
-        self.host_not_ready = False
+        # A start ends a NOTREADY or watchdog hold-over: the outputs drive again (setting
+        # the two fields alone left the bus STOP after HOST_NOT_READY and a reset).
+        self._follow_not_ready(False)
         dev.fill_info()
         for task in dev.tasks.values():
             task.reset(cold)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -75,13 +76,16 @@ class EchoWindow:
 
 
 def echo_window(board: int, values: U64, active: int, seconds: float, out_offset: int,
-                in_offset: int) -> EchoWindow:
+                in_offset: int,
+                record: Callable[[npt.NDArray[np.float64]], object] | None = None) -> EchoWindow:
     """Drive ``active`` nodes' loops for ``seconds``, then let the values in flight drain.
 
     ``values`` holds every node's current output value (u64, little endian) and is
     advanced in place, so the next window starts from values the nodes have not seen.
     A value never comes back twice and is never replaced before it came back, so a
     value still missing ``DRAIN_S`` after the window is lost (and its node stalled).
+    ``record`` takes the loop times instead of ``EchoWindow.echo_s`` (the soak's
+    histogram, which does not grow).
     """
     window = EchoWindow(active, seconds)
     size = 8 * active
@@ -109,7 +113,7 @@ def echo_window(board: int, values: U64, active: int, seconds: float, out_offset
             time.sleep(HOST_IDLE_S)
         else:
             window.verified_total += echoed
-            window.echo_s.append(now - sent_at[done])
+            (record or window.echo_s.append)(now - sent_at[done])
             if running:
                 out[done] += np.uint64(1)
                 sent_at[done] = now

@@ -291,7 +291,6 @@ class Master:
             self._stop_node(handler)
             self._update_nexc()
             return
-        handler.diag.actual_error = 0  # Actual_Error is the node's error now: it has none
         self.device.clear_error(handler.address)
         self._update_nexc()  # before Nd_state: a host that sees all nodes up sees NEXC clear
         self.set_node_state(handler.address, not handler.awaiting_start)
@@ -301,7 +300,6 @@ class Master:
     def node_failed(self, handler: NodeHandler, event: int) -> None:
         self._booting.discard(handler.address)
         self.set_node_state(handler.address, False)
-        self.set_node_diag(handler.address, True)
         self._update_nexc()  # with Err_Event, not a supervision tick later
         self.device.report_error(handler.address, event)
         if self.auto_clear and not self.cleared and self.running:
@@ -329,6 +327,7 @@ class Master:
     def _stop_node(self, handler: NodeHandler) -> None:
         handler.idle()
         handler.diag.actual_error = NODE_STOPPED
+        handler.note_diag()  # Actual_Error changed: Nd_diag (seed 4.3)
         self.device.report_error(handler.address, NODE_STOPPED)
 
     def set_node_state(self, address: int, on: bool) -> None:

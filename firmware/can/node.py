@@ -136,6 +136,8 @@ class NodeHandler:
         """The card has not asked the node to go OPERATIONAL: START is set in its
         bitConfigNdState, or the global Start_Node has not gone out yet. The node is supervised
         in the state it is in, and Nd_state shows whether it operates (seed 4.2, 4.3)."""
+        self._diag_seen = (self.diag.status, self.diag.actual_error)
+        """Nodestatus_1 and Actual_Error as the host last read them (COM_Node_Diag)."""
         self.host_sdo = False
         """A host SDO transfer runs: the node's RPDOs are suppressed (seed 5.2.8)."""
         self._bootup = threading.Event()
@@ -253,7 +255,9 @@ class NodeHandler:
             return
         if generation != self._generation or self.state is not State.BOOTING:
             return
+        recovered = self.diag.actual_error != 0
         self.diag.status &= ~(NO_RESPONSE_BIT | PRM_FAULT_BIT)
+        self.diag.actual_error = 0  # the online error is over (seed 5.2.7 Actual_Error)
         now = time.monotonic()
         self._last_heartbeat = now
         self._next_guard = now
@@ -269,6 +273,10 @@ class NodeHandler:
         if self.supervised:
             self.diag.status |= GUARD_ACTIVE_BIT
         self.master.node_booted(self)
+        if recovered:
+            self.note_diag()
+        else:  # [ours] a first boot is the normal state (seed 4.3: Nd_state 1, Nd_diag 0)
+            self._diag_seen = (self.diag.status, self.diag.actual_error)
         if not skip & ConfigNdState.TXRXPDO:
             self.send_outputs(force=True)
             for entry in self._polled:
@@ -412,8 +420,18 @@ class NodeHandler:
         self.state = State.FAILED
         self.diag.actual_error = event
         self.diag.status &= ~GUARD_ACTIVE_BIT
+        if event == GUARDING_FAILED:  # guarding or heartbeat: the node no longer answers
+            self.diag.status |= NO_RESPONSE_BIT
         self._retry_at = time.monotonic() + RETRY_DELAY
         self.master.node_failed(self, event)
+        self.note_diag()
+
+    def note_diag(self) -> None:
+        """Nd_diag: set when Nodestatus_1 or Actual_Error differ from what the host last
+        read (seed 4.3), so a node that fails its restarts the same way again and again
+        raises it once, and its recovery from a failure raises it again."""
+        if (self.diag.status, self.diag.actual_error) != self._diag_seen:
+            self.master.set_node_diag(self.address, True)
 
     def disconnect(self) -> None:
         """The host cleared the node's connection bit: stop it and leave it alone."""
@@ -593,6 +611,7 @@ class NodeHandler:
     def read_diagnosis(self) -> bytes:
         """COM_Node_Diag: the 48-byte structure; reading clears the EMCY buffer."""
         raw = self.diag.encode()
+        self._diag_seen = (self.diag.status, self.diag.actual_error)
         self.diag.emcy.clear()
         self.diag.status &= ~EMCY_OVERFLOW_BIT
         return raw
