@@ -47,10 +47,10 @@ from dbm_tools.builder import build_dbm
 from dbm_tools.container import read_dbm, save_dbm
 from dbm_tools.network import parse_network
 from dbm_tools.validate import check_dbm
-from dpm.commands import LOAD_FIRST_LENGTH
+from dpm.commands import LOAD_CHUNK, LOAD_FIRST_LENGTH
 from dpm.layout import MSG_HEADER_SIZE
 from firmware.flash import FLASH_ENV
-from host_api.download import CHUNK, CONFIGURATION_DOWNLOAD, DevDownload
+from host_api.download import CONFIGURATION_DOWNLOAD, DevDownload
 
 NAME = "dbm"
 NODES = 127
@@ -112,7 +112,7 @@ def measure_parse(path: Path, count: int, warmup: int) -> tuple[Measured, Measur
 
 def _message_sizes(area_bytes: int) -> list[int]:
     """The download's messages as the mailbox carries them: header + data."""
-    pieces = [min(CHUNK, area_bytes - at) for at in range(0, area_bytes, CHUNK)]
+    pieces = [min(LOAD_CHUNK, area_bytes - at) for at in range(0, area_bytes, LOAD_CHUNK)]
     return [FIRST_MESSAGE_BYTES] + [8 + size for size in pieces]
 
 
