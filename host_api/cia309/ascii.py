@@ -354,6 +354,11 @@ class LineFramer:
         """Bytes held of a line whose end has not arrived yet."""
         return len(self._buffer)
 
+    @property
+    def partial(self) -> bool:
+        """A line has begun and its end has not arrived (held, or dropped as overlong)."""
+        return bool(self._buffer) or self._discarding
+
     def feed(self, data: bytes) -> list[str | OverlongLine]:
         """Take the next received bytes; return the lines (and overlong reports) they end."""
         out: list[str | OverlongLine] = []

@@ -2,6 +2,7 @@
 
   cifemu 309 serve [--host 127.0.0.1] [--port 60000] [--board N | --network N ...]
                    [--dialect canopennode|lely] [--read-only] [--max-clients N] [--max-line N]
+                   [--idle-timeout S] [--line-timeout S] [--max-output N]
   cifemu 309 exec '[1] 4 read 0x1017 0 u16'     one request to a running server
   cifemu 309 exec --direct '4 read 0x1017 0 u16'  ... or to a gateway in this process
   cifemu 309 shell [--direct]                    interactive, with history
@@ -17,6 +18,7 @@ import argparse
 import asyncio
 import contextlib
 import importlib
+import math
 import re
 import signal
 import socket
@@ -35,7 +37,10 @@ from host_api.cia309.datatypes import Dialect
 from host_api.cia309.gateway import Cia309Error, Gateway
 from host_api.cia309.server import (
     DEFAULT_HOST,
+    DEFAULT_IDLE_TIMEOUT,
+    DEFAULT_LINE_TIMEOUT,
     DEFAULT_MAX_CLIENTS,
+    DEFAULT_MAX_OUTPUT,
     DEFAULT_PORT,
     Client,
     Dispatcher,
@@ -77,6 +82,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                               metavar="N", help=f"longest request in bytes until a client "
                                                 f"sets its command size (default "
                                                 f"{DEFAULT_MAX_LINE})")
+    serve_parser.add_argument("--idle-timeout", type=_seconds, default=DEFAULT_IDLE_TIMEOUT,
+                              metavar="S", help=f"drop a client that sends nothing for S "
+                                                f"seconds while no request of its runs "
+                                                f"(default {DEFAULT_IDLE_TIMEOUT:g}; 0: never)")
+    serve_parser.add_argument("--line-timeout", type=_seconds, default=DEFAULT_LINE_TIMEOUT,
+                              metavar="S", help=f"drop a client whose request line is not "
+                                                f"ended S seconds after its first byte "
+                                                f"(default {DEFAULT_LINE_TIMEOUT:g}; 0: never)")
+    serve_parser.add_argument("--max-output", type=_positive, default=DEFAULT_MAX_OUTPUT,
+                              metavar="N", help=f"drop a client that leaves more than N bytes "
+                                                f"of answers and events unread (default "
+                                                f"{DEFAULT_MAX_OUTPUT})")
     serve_parser.set_defaults(action_func=_serve)
     exec_parser = sub.add_parser("exec", help="send one request, print its answer",
                                  description="Send one request and print the answer.")
@@ -96,6 +113,16 @@ def _positive(text: str) -> int:
     value = int(text)
     if value <= 0:
         raise argparse.ArgumentTypeError(f"{text} is not positive")
+    return value
+
+
+def _seconds(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text} is not a number of seconds") from None
+    if not (value >= 0 and math.isfinite(value)):
+        raise argparse.ArgumentTypeError(f"{text} is not a finite number of seconds >= 0")
     return value
 
 
@@ -173,7 +200,8 @@ def open_lss(gateway: Gateway) -> LssFactory | None:
 
 def _serve(args: argparse.Namespace) -> int:
     config = ServerConfig(args.host, args.port, args.dialect, args.read_only,
-                          args.max_clients, args.max_line)
+                          args.max_clients, args.max_line, args.idle_timeout,
+                          args.line_timeout, args.max_output)
     with Gateway(_boards(args), args.dpm_dir) as gateway:
         asyncio.run(_serve_until_signal(gateway, config, open_lss(gateway)))
     return 0

@@ -20,8 +20,18 @@ they go to the message log that ``log`` prints, as CANopenNode's gateway does. T
 Limits [ours]: 127.0.0.1 unless told otherwise; ``max_clients`` connections (one more
 is answered ``[0] ERROR:600`` and closed); lines longer than the client's command size
 (``--max-line``, raised per client by ``set command_size`` up to
-``MAX_COMMAND_SIZE``) are answered with 600 and dropped, the connection stays; a client
-that lets ``WRITE_BUFFER_LIMIT`` bytes of answers and events pile up is dropped.
+``MAX_COMMAND_SIZE``) are answered with 600 and dropped, the connection stays. A slot must
+not be held by a client that does nothing, or eight of them lock everyone else out, so
+three limits drop a connection without an answer:
+
+* ``idle_timeout``: no byte received for this long while none of its requests runs;
+* ``line_timeout``: a line begun but not ended within this long (a client sending one
+  byte a second never goes idle, but never finishes a request either);
+* ``max_output``: more than this many bytes of answers and events queued for a client
+  that does not read them. The server never waits for a client to read (it would stop
+  serving its requests and hold the slot); the queue is what bounds its memory.
+
+A time-out of 0 turns that time-out off.
 ``--read-only`` answers 100 to everything that writes to a node or the card (SDO and
 PDO writes, NMT, configuration, LSS); reads, ``info version``, ``help``, ``log`` and the
 client's own settings (default network and node, command time-out and size) remain.
@@ -116,8 +126,16 @@ log = logging.getLogger(__name__)
 DEFAULT_HOST = "127.0.0.1"
 DEFAULT_PORT = 60000
 DEFAULT_MAX_CLIENTS = 8
+DEFAULT_IDLE_TIMEOUT = 60.0
+"""[ours] seconds a connection may send nothing while it has no request running."""
+DEFAULT_LINE_TIMEOUT = 10.0
+"""[ours] seconds from the first byte of a request line to its line end."""
+DEFAULT_MAX_OUTPUT = 1 << 20
+"""[ours] bytes of answers and events that may wait for a client that does not read."""
+REFUSAL_FLUSH_S = 1.0
+"""How long the answer to a client over ``max_clients`` may take to leave before the
+connection is cut anyway."""
 LOG_LINES = 1000
-WRITE_BUFFER_LIMIT = 1 << 20
 READ_CHUNK = 65536
 
 READ_ONLY_REQUESTS = (
@@ -190,11 +208,13 @@ LSS_REQUESTS = (
 
 @dataclass(eq=False)
 class Client:
-    """One 309-3 client: its gateway session, its line framer, its last sequence number."""
+    """One 309-3 client: its gateway session, its line framer, its last sequence number,
+    and when (event-loop time) its unfinished line began."""
 
     gateway: Gateway
     framer: LineFramer
     last_sequence: int = 0
+    line_started: float | None = None
 
 
 class EventLog:
@@ -440,6 +460,9 @@ class ServerConfig:
     read_only: bool = False
     max_clients: int = DEFAULT_MAX_CLIENTS
     max_line: int = DEFAULT_MAX_LINE
+    idle_timeout: float = DEFAULT_IDLE_TIMEOUT
+    line_timeout: float = DEFAULT_LINE_TIMEOUT
+    max_output: int = DEFAULT_MAX_OUTPUT
 
 
 class Server:
@@ -479,7 +502,7 @@ class Server:
         if self._server is not None:
             self._server.close()
         for writer in list(self._clients.values()):
-            writer.close()
+            writer.transport.abort()
         if self._server is not None:
             await self._server.wait_closed()
         self._executor.shutdown(wait=False, cancel_futures=True)
@@ -497,45 +520,77 @@ class Server:
         for writer in list(self._clients.values()):
             self._write(writer, data)
 
-    @staticmethod
-    def _write(writer: asyncio.StreamWriter, data: bytes) -> None:
+    def _write(self, writer: asyncio.StreamWriter, data: bytes) -> None:
+        """Queue ``data`` for the client, or drop the client when its queue is over
+        ``max_output`` (``abort``: ``close`` would keep the queue until the client reads)."""
         if writer.is_closing():
             return
-        if writer.transport.get_write_buffer_size() > WRITE_BUFFER_LIMIT:
-            log.warning("dropping a client that does not read")
-            writer.close()
-            return
         writer.write(data)
+        if writer.transport.get_write_buffer_size() > self.config.max_output:
+            log.info("dropping %s: %d bytes of output it does not read", _peer(writer),
+                     writer.transport.get_write_buffer_size())
+            writer.transport.abort()
+
+    def _read_timeout(self, client: Client, now: float) -> float | None:
+        """How long the next read may wait: what is left of the line-assembly time while a
+        line is unfinished, else the idle time-out (None: no limit)."""
+        config = self.config
+        if client.framer.partial and config.line_timeout > 0:
+            assert client.line_started is not None
+            return max(0.0, client.line_started + config.line_timeout - now)
+        return config.idle_timeout if config.idle_timeout > 0 else None
 
     async def _serve_client(self, reader: asyncio.StreamReader,
                             writer: asyncio.StreamWriter) -> None:
         if len(self._clients) >= self.config.max_clients:
             writer.write(format_error(0, GatewayError.OUT_OF_MEMORY,
                                       self.config.dialect).encode("latin-1"))
-            await _close(writer)
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(_close(writer), REFUSAL_FLUSH_S)
+            writer.transport.abort()
             return
         client = Client(self.gateway.session(), LineFramer(self.config.max_line))
         self._clients[client] = writer
         loop = asyncio.get_running_loop()
         try:
-            while data := await reader.read(READ_CHUNK):
-                for line in client.framer.feed(data):
+            while True:
+                try:
+                    data = await asyncio.wait_for(reader.read(READ_CHUNK),
+                                                  self._read_timeout(client, loop.time()))
+                except TimeoutError:
+                    what = "line unfinished" if client.framer.partial else "idle"
+                    log.info("dropping %s: %s for too long", _peer(writer), what)
+                    break
+                if not data:
+                    break
+                lines = client.framer.feed(data)
+                if not client.framer.partial:
+                    client.line_started = None
+                elif lines or client.line_started is None:
+                    client.line_started = loop.time()
+                for line in lines:
                     answer = await loop.run_in_executor(self._executor, self.dispatcher.handle,
                                                         client, line)
+                    if writer.is_closing():
+                        break
                     if answer:
                         self._write(writer, answer.encode("latin-1"))
-                        await writer.drain()
         except ConnectionError:
             log.debug("a client went away")
         finally:
             del self._clients[client]
-            await _close(writer)
+            writer.transport.abort()
 
 
 async def _close(writer: asyncio.StreamWriter) -> None:
     writer.close()
     with contextlib.suppress(ConnectionError):
         await writer.wait_closed()
+
+
+def _peer(writer: asyncio.StreamWriter) -> str:
+    peer = writer.get_extra_info("peername")
+    return f"{peer[0]}:{peer[1]}" if isinstance(peer, tuple) else "a client"
 
 
 class BackgroundServer:
