@@ -15,28 +15,62 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from host_api.cia309.ascii import (
-    DEFAULT_MAX_LINE,
+from host_api.cia309.datatypes import (
+    DataTypeError,
+    Dialect,
+    format_value,
+    parse_data_type,
+    parse_integer,
+    parse_value,
+)
+from host_api.cia309.formatters import (
     SDO_ABORT_TEXTS,
+    abort_text,
+    error_text,
+    format_abort,
+    format_empty,
+    format_error,
+    format_event,
+    format_help,
+    format_lss_address,
+    format_lss_node_id,
+    format_lss_number,
+    format_ok,
+    format_pdo_read,
+    format_upload,
+    format_value_response,
+    format_version,
+)
+from host_api.cia309.framing import DEFAULT_MAX_LINE, LineFramer, OverlongLine
+from host_api.cia309.model import (
+    TYPE_LENGTH_MISMATCH,
     BootUpEvent,
+    DataType,
+    EmergencyEvent,
+    ErrorControlEvent,
+    Event,
+    GatewayError,
+    LssAddress,
+    NmtState,
+    PdoMapping,
+    RpdoEvent,
+    SdoProgressEvent,
+    VersionInfo,
+)
+from host_api.cia309.parser import parse_request
+from host_api.cia309.requests import (
     ConfigureRpdo,
     ConfigureTpdo,
     DisableGuarding,
     DisableHeartbeat,
-    EmergencyEvent,
     EnableGuarding,
     EnableHeartbeat,
     EnterPreoperational,
-    ErrorControlEvent,
-    Event,
-    GatewayError,
     GetVersion,
     Help,
     InitGateway,
-    LineFramer,
     Log,
     LssActivateBitRate,
-    LssAddress,
     LssAddressRange,
     LssAssignNodeId,
     LssCompleteConfiguration,
@@ -53,18 +87,13 @@ from host_api.cia309.ascii import (
     LssStore,
     LssSwitchGlobal,
     LssSwitchSelective,
-    NmtState,
-    OverlongLine,
     ParseError,
-    PdoMapping,
     ReadPdo,
     Request,
     ResetCommunication,
     ResetNode,
     RestoreConfiguration,
-    RpdoEvent,
     SdoDownload,
-    SdoProgressEvent,
     SdoUpload,
     SetBootUpForwarding,
     SetCommandSize,
@@ -78,33 +107,7 @@ from host_api.cia309.ascii import (
     StartNode,
     StopNode,
     StoreConfiguration,
-    VersionInfo,
     WritePdo,
-    abort_text,
-    error_text,
-    format_abort,
-    format_empty,
-    format_error,
-    format_event,
-    format_help,
-    format_lss_address,
-    format_lss_node_id,
-    format_lss_number,
-    format_ok,
-    format_pdo_read,
-    format_upload,
-    format_value_response,
-    format_version,
-    parse_request,
-)
-from host_api.cia309.datatypes import (
-    TYPE_LENGTH_MISMATCH,
-    DataType,
-    DataTypeError,
-    Dialect,
-    format_value,
-    parse_integer,
-    parse_value,
 )
 
 CO = Dialect.CANOPENNODE
@@ -184,7 +187,7 @@ VECTORS = [
 
 @pytest.mark.parametrize(("mnemonic", "text", "wire", "co_text", "lely_text"), VECTORS)
 def test_value_vectors(mnemonic: str, text: str, wire: str, co_text: str, lely_text: str) -> None:
-    dtype = DataType.from_mnemonic(mnemonic)
+    dtype = parse_data_type(mnemonic)
     for dialect in DIALECTS:
         assert parse_value(dtype, text, dialect) == bytes.fromhex(wire)
     assert format_value(dtype, bytes.fromhex(wire), CO) == co_text
@@ -244,7 +247,7 @@ def test_value_vectors(mnemonic: str, text: str, wire: str, co_text: str, lely_t
 )
 def test_malformed_and_out_of_range_values(mnemonic: str, text: str) -> None:
     with pytest.raises(DataTypeError) as caught:
-        parse_value(DataType.from_mnemonic(mnemonic), text, CO)
+        parse_value(parse_data_type(mnemonic), text, CO)
     assert caught.value.abort_code is None  # a syntax error: 309-3 error 101
 
 
@@ -288,9 +291,9 @@ def test_reserved_time_bits_are_not_shown() -> None:
 
 
 def test_data_type_table() -> None:
-    assert DataType.from_mnemonic("U16") is DataType.UNSIGNED16
+    assert parse_data_type("U16") is DataType.UNSIGNED16
     with pytest.raises(DataTypeError):
-        DataType.from_mnemonic("u12")
+        parse_data_type("u12")
     assert DataType.UNSIGNED24.size == 3
     assert DataType.VISIBLE_STRING.size is None
     assert DataType.INTEGER24.cia301_index == 0x10

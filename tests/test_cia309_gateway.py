@@ -25,8 +25,14 @@ from dpm.message import Message
 from dpm.task2 import CanState, ComDiagnostics
 from host_api import driver as d
 from host_api.board import Board
-from host_api.cia309.ascii import (
+from host_api.cia309.gateway import VENDOR_ID, Gateway
+from host_api.cia309.link import CanFrame
+from host_api.cia309.model import (
+    ALL_NODES,
+    MAX_COMMAND_SIZE,
     BootUpEvent,
+    Cia309Error,
+    DataType,
     EmergencyEvent,
     ErrorControlEvent,
     Event,
@@ -35,15 +41,6 @@ from host_api.cia309.ascii import (
     PdoMapping,
     RpdoEvent,
     SdoProgressEvent,
-)
-from host_api.cia309.datatypes import DataType
-from host_api.cia309.gateway import (
-    ALL_NODES,
-    MAX_COMMAND_SIZE,
-    VENDOR_ID,
-    CanFrame,
-    Cia309Error,
-    Gateway,
     decode_value,
 )
 from host_api.online import configure_online

@@ -32,9 +32,11 @@ from platformdirs import user_state_path
 
 from dpm.image import MAX_DEV_BOARDS
 from dpm.message import Message
-from host_api.cia309.ascii import DEFAULT_MAX_LINE, Event, LineFramer, format_event
 from host_api.cia309.datatypes import Dialect
-from host_api.cia309.gateway import Cia309Error, Gateway
+from host_api.cia309.formatters import format_event
+from host_api.cia309.framing import DEFAULT_MAX_LINE, LineFramer
+from host_api.cia309.gateway import Gateway
+from host_api.cia309.model import Cia309Error, Event
 from host_api.cia309.server import (
     DEFAULT_HOST,
     DEFAULT_IDLE_TIMEOUT,

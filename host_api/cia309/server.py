@@ -1,9 +1,10 @@
-"""The CiA 309-3 ASCII gateway on TCP: the codec of ``ascii`` over the services of ``gateway``.
+"""The CiA 309-3 ASCII gateway on TCP: the text layer over the services of ``gateway``.
 
-Layers, as pymodbus splits framer, PDU codec and transport (STYLE.md):
+Layers, as pymodbus splits framer, PDU codec and transport:
 
 * :class:`Dispatcher` turns one request line into one answer text: ``parse_request``,
-  the 309-1 call on a :class:`~host_api.cia309.gateway.Gateway` session, ``format_*``.
+  the 309-1 call on a :class:`~host_api.cia309.gateway.Gateway` session found in a table
+  by the request's type, ``format_*``.
   No socket: the TCP server, ``cifemu 309 exec --direct`` and ``cifemu 309 shell
   --direct`` share it.
 * :class:`Server` is the asyncio TCP server: one ``Client`` per connection with its own
@@ -48,10 +49,28 @@ from collections.abc import Callable, Iterable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from datetime import datetime
-from typing import Protocol
+from typing import Any, Protocol
 
-from host_api.cia309.ascii import (
-    DEFAULT_MAX_LINE,
+from host_api.cia309.datatypes import Dialect
+from host_api.cia309.formatters import (
+    format_abort,
+    format_empty,
+    format_error,
+    format_event,
+    format_help,
+    format_lss_address,
+    format_lss_node_id,
+    format_lss_number,
+    format_ok,
+    format_pdo_read,
+    format_upload,
+    format_version,
+)
+from host_api.cia309.framing import DEFAULT_MAX_LINE, LineFramer, OverlongLine
+from host_api.cia309.gateway import Gateway
+from host_api.cia309.model import Cia309Error, Event, GatewayError, LssAddress
+from host_api.cia309.parser import parse_request
+from host_api.cia309.requests import (
     ConfigureRpdo,
     ConfigureTpdo,
     DisableGuarding,
@@ -59,15 +78,11 @@ from host_api.cia309.ascii import (
     EnableGuarding,
     EnableHeartbeat,
     EnterPreoperational,
-    Event,
-    GatewayError,
     GetVersion,
     Help,
     InitGateway,
-    LineFramer,
     Log,
     LssActivateBitRate,
-    LssAddress,
     LssAssignNodeId,
     LssCompleteConfiguration,
     LssConfigureBitRate,
@@ -82,7 +97,6 @@ from host_api.cia309.ascii import (
     LssStore,
     LssSwitchGlobal,
     LssSwitchSelective,
-    OverlongLine,
     ParseError,
     ReadPdo,
     Request,
@@ -104,22 +118,7 @@ from host_api.cia309.ascii import (
     StopNode,
     StoreConfiguration,
     WritePdo,
-    format_abort,
-    format_empty,
-    format_error,
-    format_event,
-    format_help,
-    format_lss_address,
-    format_lss_node_id,
-    format_lss_number,
-    format_ok,
-    format_pdo_read,
-    format_upload,
-    format_version,
-    parse_request,
 )
-from host_api.cia309.datatypes import Dialect
-from host_api.cia309.gateway import Cia309Error, Gateway
 
 log = logging.getLogger(__name__)
 
@@ -197,14 +196,6 @@ class LssServices(Protocol):
 
 LssFactory = Callable[[int], LssServices]
 """The LSS services of a network (by its number)."""
-
-LSS_REQUESTS = (
-    LssSwitchGlobal, LssSwitchSelective, LssConfigureNodeId, LssConfigureBitRate,
-    LssActivateBitRate, LssStore, LssInquireAddress, LssInquireNodeId, LssIdentifyRemoteSlave,
-    LssIdentifyNonConfigured, LssFastscan, LssIdentifyFastscan, LssSlowscan, LssAssignNodeId,
-    LssCompleteConfiguration,
-)
-
 
 @dataclass(eq=False)
 class Client:
@@ -284,98 +275,21 @@ class Dispatcher:
             return format_error(sequence, exc.error, dialect)
 
     def _execute(self, client: Client, request: Request) -> str:
-        gateway = client.gateway
-        dialect = self.dialect
-        sequence = request.sequence
-        ok = format_ok(sequence, dialect)
-        if isinstance(request, SdoUpload):
-            data = gateway.sdo_upload(request.index, request.subindex, network=request.net,
-                                      node_id=request.node)
-            return format_upload(sequence, request.dtype, data, dialect)
-        if isinstance(request, SdoDownload):
-            gateway.sdo_download(request.index, request.subindex, request.data,
-                                 network=request.net, node_id=request.node)
-            return ok
-        if isinstance(request, StartNode):
-            gateway.start_node(request.node, network=request.net)
-        elif isinstance(request, StopNode):
-            gateway.stop_node(request.node, network=request.net)
-        elif isinstance(request, EnterPreoperational):
-            gateway.set_node_to_preoperational(request.node, network=request.net)
-        elif isinstance(request, ResetNode):
-            gateway.reset_node(request.node, network=request.net)
-        elif isinstance(request, ResetCommunication):
-            gateway.reset_communication(request.node, network=request.net)
-        elif isinstance(request, EnableGuarding):
-            gateway.enable_node_guarding(request.guard_time, request.lifetime_factor,
-                                         network=request.net, node_id=request.node)
-        elif isinstance(request, DisableGuarding):
-            gateway.disable_node_guarding(network=request.net, node_id=request.node)
-        elif isinstance(request, EnableHeartbeat):
-            gateway.start_heartbeat_consumer(request.consumer_time, network=request.net,
-                                             node_id=request.node)
-        elif isinstance(request, DisableHeartbeat):
-            gateway.disable_heartbeat_consumer(network=request.net, node_id=request.node)
-        elif isinstance(request, SetSdoTimeout):
-            gateway.configure_sdo_timeout(request.timeout_ms, network=request.net)
-        elif isinstance(request, SetSdoBlock):
-            raise Cia309Error(GatewayError.REQUEST_NOT_SUPPORTED,
-                              "the card runs segmented SDO transfers only")
-        elif isinstance(request, ConfigureRpdo):
-            gateway.configure_rpdo(request.number, request.cob_id, request.transmission_type,
-                                   request.mappings, network=request.net)
-        elif isinstance(request, ConfigureTpdo):
-            gateway.configure_tpdo(request.number, request.cob_id, request.transmission_type,
-                                   request.mappings, inhibit_time=request.inhibit_time,
-                                   event_timer=request.event_timer,
-                                   sync_start_value=request.sync_start, network=request.net)
-        elif isinstance(request, ReadPdo):
-            values = gateway.read_pdo_data(request.number, network=request.net)
-            network = gateway.resolve_network(request.net)
-            return format_pdo_read(sequence, network, request.number, values, dialect)
-        elif isinstance(request, WritePdo):
-            gateway.write_pdo_data(request.number, request.values, network=request.net)
-        elif isinstance(request, InitGateway):
-            gateway.initialize_gateway(request.bit_rate_index, network=request.net)
-        elif isinstance(request, StoreConfiguration):
-            gateway.store_configuration(request.specifier, network=request.net)
-        elif isinstance(request, RestoreConfiguration):
-            gateway.restore_configuration(request.specifier, network=request.net)
-        elif isinstance(request, SetHeartbeatProducer):
-            gateway.set_heartbeat_producer(request.producer_time, network=request.net)
-        elif isinstance(request, SetNodeId):
-            gateway.set_node_id(request.node_id, network=request.net)
-        elif isinstance(request, SetBootUpForwarding):
-            gateway.set_bootup_forwarding(request.enabled, network=request.net)
-        elif isinstance(request, SetDefaultNode):
-            gateway.set_default_node_id(request.node_id, network=request.net)
-        elif isinstance(request, SetDefaultNetwork):
-            gateway.set_default_network(request.network)
-        elif isinstance(request, SetCommandTimeout):
-            gateway.set_command_timeout(request.timeout_ms)
-        elif isinstance(request, SetCommandSize):
-            gateway.set_command_size(request.size)
-            client.framer.max_line = request.size
-        elif isinstance(request, GetVersion):
-            return format_version(sequence, gateway.get_version(network=request.net), dialect)
-        elif isinstance(request, Help):
-            return format_help(request.topic, dialect)
-        elif isinstance(request, Log):
-            return self.event_log.take() or format_empty(dialect) or ""
-        elif isinstance(request, LSS_REQUESTS):
-            return self._lss(gateway, request)
-        else:
-            raise Cia309Error(GatewayError.REQUEST_NOT_SUPPORTED, f"{type(request).__name__}")
-        return ok
+        handler = _SERVICES.get(type(request))
+        if handler is not None:
+            return handler(self, client, request)
+        lss_call = _LSS_SERVICES.get(type(request))
+        if lss_call is not None:
+            return self._lss(client.gateway, request, lss_call)
+        raise Cia309Error(GatewayError.REQUEST_NOT_SUPPORTED, type(request).__name__)
 
-    def _lss(self, gateway: Gateway, request: Request) -> str:
+    def _lss(self, gateway: Gateway, request: Any, call: _LssCall) -> str:
         """309-1 4.8: to the network's LSS services, when there are any (else 100)."""
         if self.lss is None:
             raise Cia309Error(GatewayError.REQUEST_NOT_SUPPORTED, "no LSS services here")
-        assert isinstance(request, LSS_REQUESTS)
         lss = self.lss(gateway.resolve_network(request.net))
         try:
-            return self._lss_call(lss, request)
+            answer = call(lss, request, self.dialect)
         except Cia309Error:
             raise
         except ValueError as exc:
@@ -385,65 +299,174 @@ class Dispatcher:
             if isinstance(code, int) and code in set(GatewayError):
                 raise Cia309Error(GatewayError(code), str(exc)) from exc
             raise
-
-    def _lss_call(self, lss: LssServices, request: Request) -> str:
-        sequence, dialect = request.sequence, self.dialect
-        answered = True
-        if isinstance(request, LssSwitchGlobal):
-            lss.switch_state_global(int(request.configuration))
-        elif isinstance(request, LssSwitchSelective):
-            lss.switch_state_selective(*_numbers(request.address))
-        elif isinstance(request, LssConfigureNodeId):
-            lss.configure_node_id(request.node_id)
-        elif isinstance(request, LssConfigureBitRate):
-            lss.configure_bit_timing(request.table_selector, request.table_index)
-        elif isinstance(request, LssActivateBitRate):
-            lss.activate_bit_timing(request.switch_delay_ms)
-        elif isinstance(request, LssStore):
-            lss.store_configuration()
-        elif isinstance(request, LssInquireAddress):
-            if request.lss_sub is not None:
-                value = lss.inquire_lss_number(request.lss_sub)
-                return format_lss_number(sequence, value, dialect)
-            numbers = [lss.inquire_lss_number(sub) for sub in range(4)]
-            return format_lss_address(sequence, LssAddress(*numbers), dialect)
-        elif isinstance(request, LssInquireNodeId):
-            return format_lss_node_id(sequence, lss.inquire_node_id(), dialect)
-        elif isinstance(request, LssIdentifyRemoteSlave):
-            selection = request.selection
-            answered = lss.identify_remote_slave(
-                selection.vendor_id, selection.product_code, selection.revision_low,
-                selection.revision_high, selection.serial_low, selection.serial_high)
-        elif isinstance(request, LssIdentifyNonConfigured):
-            answered = lss.identify_non_configured_slave()
-        elif isinstance(request, LssFastscan):
-            answered = lss.fastscan_step(request.id_number, request.bit_checked,
-                                         request.lss_sub, request.lss_next)
-        elif isinstance(request, LssIdentifyFastscan):
-            vendor, product, revision, serial = (
-                value if mask == 0xFFFF_FFFF else None
-                for value, mask in zip(_numbers(request.known), _numbers(request.mask),
-                                       strict=True))
-            timeout = None if request.timeout_ms is None else request.timeout_ms / 1000.0
-            found = lss.fastscan(vendor, product, revision, serial, timeout=timeout)
-            if found is None:
-                raise Cia309Error(GatewayError.TIME_OUT, "no unconfigured LSS slave answered")
-            return format_lss_address(sequence, LssAddress(*found), dialect)
-        elif isinstance(request, LssAssignNodeId):
-            lss.assign_node_id(_numbers(request.address), request.node_id)
-        elif isinstance(request, LssCompleteConfiguration):
-            if any(criterion.scan != 0 for criterion in request.criteria):
-                raise Cia309Error(GatewayError.REQUEST_NOT_SUPPORTED,
-                                  "lss_allnodes scans every LSS number")
-            timeout = None if request.timeout_ms is None else request.timeout_ms / 1000.0
-            lss.complete_node_id_configuration(
-                2 if request.first_node_id is None else request.first_node_id,
-                True if request.store is None else request.store, timeout=timeout)
-        else:
-            raise Cia309Error(GatewayError.REQUEST_NOT_SUPPORTED, type(request).__name__)
-        if not answered:
+        if answer is False:
             raise Cia309Error(GatewayError.TIME_OUT, "no LSS slave answered")
-        return format_ok(sequence, dialect)
+        if isinstance(answer, str):
+            return answer
+        return format_ok(request.sequence, self.dialect)
+
+
+_Service = Callable[[Dispatcher, Client, Any], str]
+"""How the dispatcher serves one type of request: its answer text."""
+
+
+def _ok(call: Callable[[Gateway, Any], object]) -> _Service:
+    """A service whose success is ``[seq] OK``."""
+    def serve(dispatcher: Dispatcher, client: Client, request: Any) -> str:
+        call(client.gateway, request)
+        return format_ok(request.sequence, dispatcher.dialect)
+    return serve
+
+
+def _sdo_upload(dispatcher: Dispatcher, client: Client, request: SdoUpload) -> str:
+    data = client.gateway.sdo_upload(request.index, request.subindex, network=request.net,
+                                     node_id=request.node)
+    return format_upload(request.sequence, request.dtype, data, dispatcher.dialect)
+
+
+def _set_sdo_block(gateway: Gateway, request: SetSdoBlock) -> None:
+    raise Cia309Error(GatewayError.REQUEST_NOT_SUPPORTED,
+                      "the card runs segmented SDO transfers only")
+
+
+def _read_pdo(dispatcher: Dispatcher, client: Client, request: ReadPdo) -> str:
+    values = client.gateway.read_pdo_data(request.number, network=request.net)
+    network = client.gateway.resolve_network(request.net)
+    return format_pdo_read(request.sequence, network, request.number, values,
+                           dispatcher.dialect)
+
+
+def _set_command_size(dispatcher: Dispatcher, client: Client, request: SetCommandSize) -> str:
+    client.gateway.set_command_size(request.size)
+    client.framer.max_line = request.size
+    return format_ok(request.sequence, dispatcher.dialect)
+
+
+def _get_version(dispatcher: Dispatcher, client: Client, request: GetVersion) -> str:
+    return format_version(request.sequence, client.gateway.get_version(network=request.net),
+                          dispatcher.dialect)
+
+
+def _help(dispatcher: Dispatcher, client: Client, request: Help) -> str:
+    return format_help(request.topic, dispatcher.dialect)
+
+
+def _log(dispatcher: Dispatcher, client: Client, request: Log) -> str:
+    return dispatcher.event_log.take() or format_empty(dispatcher.dialect) or ""
+
+
+_SERVICES: dict[type[Request], _Service] = {
+    SdoUpload: _sdo_upload,
+    SdoDownload: _ok(lambda g, r: g.sdo_download(r.index, r.subindex, r.data, network=r.net,
+                                                  node_id=r.node)),
+    StartNode: _ok(lambda g, r: g.start_node(r.node, network=r.net)),
+    StopNode: _ok(lambda g, r: g.stop_node(r.node, network=r.net)),
+    EnterPreoperational: _ok(lambda g, r: g.set_node_to_preoperational(r.node, network=r.net)),
+    ResetNode: _ok(lambda g, r: g.reset_node(r.node, network=r.net)),
+    ResetCommunication: _ok(lambda g, r: g.reset_communication(r.node, network=r.net)),
+    EnableGuarding: _ok(lambda g, r: g.enable_node_guarding(
+        r.guard_time, r.lifetime_factor, network=r.net, node_id=r.node)),
+    DisableGuarding: _ok(lambda g, r: g.disable_node_guarding(network=r.net, node_id=r.node)),
+    EnableHeartbeat: _ok(lambda g, r: g.start_heartbeat_consumer(
+        r.consumer_time, network=r.net, node_id=r.node)),
+    DisableHeartbeat: _ok(lambda g, r: g.disable_heartbeat_consumer(network=r.net,
+                                                                    node_id=r.node)),
+    SetSdoTimeout: _ok(lambda g, r: g.configure_sdo_timeout(r.timeout_ms, network=r.net)),
+    SetSdoBlock: _ok(_set_sdo_block),
+    ConfigureRpdo: _ok(lambda g, r: g.configure_rpdo(
+        r.number, r.cob_id, r.transmission_type, r.mappings, network=r.net)),
+    ConfigureTpdo: _ok(lambda g, r: g.configure_tpdo(
+        r.number, r.cob_id, r.transmission_type, r.mappings, inhibit_time=r.inhibit_time,
+        event_timer=r.event_timer, sync_start_value=r.sync_start, network=r.net)),
+    ReadPdo: _read_pdo,
+    WritePdo: _ok(lambda g, r: g.write_pdo_data(r.number, r.values, network=r.net)),
+    InitGateway: _ok(lambda g, r: g.initialize_gateway(r.bit_rate_index, network=r.net)),
+    StoreConfiguration: _ok(lambda g, r: g.store_configuration(r.specifier, network=r.net)),
+    RestoreConfiguration: _ok(lambda g, r: g.restore_configuration(r.specifier,
+                                                                   network=r.net)),
+    SetHeartbeatProducer: _ok(lambda g, r: g.set_heartbeat_producer(r.producer_time,
+                                                                    network=r.net)),
+    SetNodeId: _ok(lambda g, r: g.set_node_id(r.node_id, network=r.net)),
+    SetBootUpForwarding: _ok(lambda g, r: g.set_bootup_forwarding(r.enabled, network=r.net)),
+    SetDefaultNode: _ok(lambda g, r: g.set_default_node_id(r.node_id, network=r.net)),
+    SetDefaultNetwork: _ok(lambda g, r: g.set_default_network(r.network)),
+    SetCommandTimeout: _ok(lambda g, r: g.set_command_timeout(r.timeout_ms)),
+    SetCommandSize: _set_command_size,
+    GetVersion: _get_version,
+    Help: _help,
+    Log: _log,
+}
+"""The 309-1 service (and its answer) of each request the parser makes, but LSS's."""
+
+
+_LssCall = Callable[[LssServices, Any, Dialect], str | bool | None]
+"""One LSS request on a network's LSS services: an answer text, False when no slave
+answered (103), or None / True for ``[seq] OK``."""
+
+
+def _lss_inquire_address(lss: LssServices, request: LssInquireAddress, dialect: Dialect) -> str:
+    if request.lss_sub is not None:
+        return format_lss_number(request.sequence, lss.inquire_lss_number(request.lss_sub),
+                                 dialect)
+    numbers = [lss.inquire_lss_number(sub) for sub in range(4)]
+    return format_lss_address(request.sequence, LssAddress(*numbers), dialect)
+
+
+def _lss_identify_remote(lss: LssServices, request: LssIdentifyRemoteSlave,
+                         dialect: Dialect) -> bool:
+    selection = request.selection
+    return lss.identify_remote_slave(
+        selection.vendor_id, selection.product_code, selection.revision_low,
+        selection.revision_high, selection.serial_low, selection.serial_high)
+
+
+def _lss_identify_fastscan(lss: LssServices, request: LssIdentifyFastscan,
+                           dialect: Dialect) -> str:
+    vendor, product, revision, serial = (
+        value if mask == 0xFFFF_FFFF else None
+        for value, mask in zip(_numbers(request.known), _numbers(request.mask), strict=True))
+    timeout = None if request.timeout_ms is None else request.timeout_ms / 1000.0
+    found = lss.fastscan(vendor, product, revision, serial, timeout=timeout)
+    if found is None:
+        raise Cia309Error(GatewayError.TIME_OUT, "no unconfigured LSS slave answered")
+    return format_lss_address(request.sequence, LssAddress(*found), dialect)
+
+
+def _lss_complete(lss: LssServices, request: LssCompleteConfiguration, dialect: Dialect) -> None:
+    if any(criterion.scan != 0 for criterion in request.criteria):
+        raise Cia309Error(GatewayError.REQUEST_NOT_SUPPORTED,
+                          "lss_allnodes scans every LSS number")
+    timeout = None if request.timeout_ms is None else request.timeout_ms / 1000.0
+    lss.complete_node_id_configuration(
+        2 if request.first_node_id is None else request.first_node_id,
+        True if request.store is None else request.store, timeout=timeout)
+
+
+def _lss_slowscan(lss: LssServices, request: LssSlowscan, dialect: Dialect) -> None:
+    raise Cia309Error(GatewayError.REQUEST_NOT_SUPPORTED, type(request).__name__)
+
+
+_LSS_SERVICES: dict[type[Request], _LssCall] = {
+    LssSwitchGlobal: lambda lss, r, _: lss.switch_state_global(int(r.configuration)),
+    LssSwitchSelective: lambda lss, r, _: lss.switch_state_selective(*_numbers(r.address)),
+    LssConfigureNodeId: lambda lss, r, _: lss.configure_node_id(r.node_id),
+    LssConfigureBitRate: lambda lss, r, _: lss.configure_bit_timing(r.table_selector,
+                                                                    r.table_index),
+    LssActivateBitRate: lambda lss, r, _: lss.activate_bit_timing(r.switch_delay_ms),
+    LssStore: lambda lss, r, _: lss.store_configuration(),
+    LssInquireAddress: _lss_inquire_address,
+    LssInquireNodeId: lambda lss, r, dialect: format_lss_node_id(
+        r.sequence, lss.inquire_node_id(), dialect),
+    LssIdentifyRemoteSlave: _lss_identify_remote,
+    LssIdentifyNonConfigured: lambda lss, r, _: lss.identify_non_configured_slave(),
+    LssFastscan: lambda lss, r, _: lss.fastscan_step(r.id_number, r.bit_checked, r.lss_sub,
+                                                     r.lss_next),
+    LssIdentifyFastscan: _lss_identify_fastscan,
+    LssSlowscan: _lss_slowscan,
+    LssAssignNodeId: lambda lss, r, _: lss.assign_node_id(_numbers(r.address), r.node_id),
+    LssCompleteConfiguration: _lss_complete,
+}
+"""The LSS services (309-1 4.8) of each LSS request."""
 
 
 def _numbers(address: LssAddress) -> LssNumbers:
@@ -564,10 +587,6 @@ class Server:
                 if not data:
                     break
                 lines = client.framer.feed(data)
-                if not client.framer.partial:
-                    client.line_started = None
-                elif lines or client.line_started is None:
-                    client.line_started = loop.time()
                 for line in lines:
                     answer = await loop.run_in_executor(self._executor, self.dispatcher.handle,
                                                         client, line)
@@ -575,6 +594,12 @@ class Server:
                         break
                     if answer:
                         self._write(writer, answer.encode("latin-1"))
+                # A line's time runs from its first byte, or from when the server is done
+                # with the lines before it: time spent serving a batch is not the client's.
+                if not client.framer.partial:
+                    client.line_started = None
+                elif lines or client.line_started is None:
+                    client.line_started = loop.time()
         except ConnectionError:
             log.debug("a client went away")
         finally:
