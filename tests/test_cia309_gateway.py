@@ -21,7 +21,8 @@ from pathlib import Path
 import pytest
 
 from dbm_tools.network import load_network
-from dpm.message import Message
+from dpm.commands import AREA_BUS, COM_UPLOAD, MAX_LEN_DATA_UNIT
+from dpm.message import Message, Task
 from dpm.task2 import CanState, ComDiagnostics
 from host_api import driver as d
 from host_api.board import Board
@@ -480,7 +481,8 @@ def test_error_control_events_of_failing_nodes(main: Gateway, directory: Path) -
 
 def bit_rate(gateway: Gateway) -> int:
     """Baud_rate of the bus parameters the card runs with (COM_Upload of area 127)."""
-    answer = gateway.transact(Message(rx=3, tx=16, b=80, data=bytes([0, 127, 0, 0, 240])))
+    request = bytes([0, AREA_BUS, 0, 0, MAX_LEN_DATA_UNIT])
+    answer = gateway.transact(Message(rx=Task.CAN, tx=Task.USER, b=COM_UPLOAD, data=request))
     assert answer.f == 0
     return answer.data[0]
 

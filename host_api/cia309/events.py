@@ -19,11 +19,20 @@ from collections.abc import Callable, Iterator
 from dataclasses import replace
 from types import TracebackType
 
+from dpm.commands import (
+    COM_NODE_DIAG,
+    ERR_EVENT_GUARD_SEQUENCE,
+    ERR_EVENT_GUARDING_FAILED,
+    ERR_EVENT_LEFT_OPERATIONAL,
+    ERR_EVENT_NODE_STOPPED,
+    NODE_DIAG_EMCY_ENTRY,
+    NODE_DIAG_SIZE,
+)
 from dpm.errors import Drv
 from dpm.message import TelegramHeader, Tfc
 from dpm.task2 import CanState, ComDiagnostics
 from host_api import driver as d
-from host_api.cia309.link import COM_NODE_DIAG, DEFAULT_ANSWER_TIMEOUT, NODE_DIAG_SIZE, Link
+from host_api.cia309.link import DEFAULT_ANSWER_TIMEOUT, Link
 from host_api.cia309.model import (
     Cia309Error,
     EmergencyEvent,
@@ -36,11 +45,8 @@ from host_api.cia309.model import (
 log = logging.getLogger(__name__)
 
 MONITOR_PERIOD = 0.01
-EMCY_ENTRY = 8
 EMCY_HISTORY = 64
 """EMCYs the gateway keeps per node for ``read_device_error``."""
-
-GUARDING_FAILED, LEFT_OPERATIONAL, GUARD_SEQUENCE, NODE_STOPPED = 30, 31, 32, 39
 
 
 
@@ -254,8 +260,9 @@ class Monitor:
         raw = TelegramHeader.decode(answer.data).payload.ljust(NODE_DIAG_SIZE, b"\0")
         node_state, actual_error, entries = raw[5], raw[6], raw[7]
         history = self.emcy_history.setdefault(node, deque(maxlen=EMCY_HISTORY))
-        for index in range(min(entries, (NODE_DIAG_SIZE - 8) // EMCY_ENTRY)):
-            entry = raw[8 + EMCY_ENTRY * index : 8 + EMCY_ENTRY * (index + 1)]
+        size = NODE_DIAG_EMCY_ENTRY
+        for index in range(min(entries, (NODE_DIAG_SIZE - 8) // size)):
+            entry = raw[8 + size * index : 8 + size * (index + 1)]
             event = EmergencyEvent(self.network, node, int.from_bytes(entry[:2], "little"),
                                    entry[2], bytes(entry[3:8]))
             history.append(event)
@@ -275,13 +282,13 @@ def _error_control(event: int, supervision: str | None) -> GatewayError:
     """The 309-3 error of a node's Err_Event [ours, after Lely's gateway]: guarding and
     heartbeat time-outs by the supervision in force, a state the node should not be in
     as 204, a node that cannot be reached (no answer, wrong device) as lost connection."""
-    if event == GUARDING_FAILED:
+    if event == ERR_EVENT_GUARDING_FAILED:
         if supervision == "heartbeat":
             return GatewayError.HEARTBEAT_LOST
         return GatewayError.LOST_GUARDING_MESSAGE
-    if event == GUARD_SEQUENCE:
+    if event == ERR_EVENT_GUARD_SEQUENCE:
         return GatewayError.LOST_GUARDING_MESSAGE
-    if event in (LEFT_OPERATIONAL, NODE_STOPPED):
+    if event in (ERR_EVENT_LEFT_OPERATIONAL, ERR_EVENT_NODE_STOPPED):
         return GatewayError.WRONG_NMT_STATE
     return GatewayError.LOST_CONNECTION
 

@@ -47,12 +47,7 @@ from dbm_tools.tables import (
     checksum_crc,
 )
 from dbm_tools.validate import check_dbm
-from dpm.errors import Drv, err_event_text
-from dpm.message import Ext, Message, TelegramHeader, Tfc
-from host_api import driver as d
-from host_api.board import Board, CifError
-from host_api.cia309.events import EventDispatcher, EventStream, Monitor, Subscription
-from host_api.cia309.link import (
+from dpm.commands import (
     AREA_BUS,
     COM_BOOTUP_FORWARDING,
     COM_NMT_MODULE_PROTOCOL,
@@ -63,10 +58,23 @@ from host_api.cia309.link import (
     COM_SET_HEARTBEAT_PRODUCER,
     COM_SET_NODE_ID,
     COM_SET_SDO_TIMEOUT,
-    DEFAULT_ANSWER_TIMEOUT,
     F_SDO_ABORT,
+    LONG_SDO_LIMIT,
+    NMT_PREOP,
+    NMT_RESET_COMM,
+    NMT_RESET_NODE,
+    NMT_START,
+    NMT_STOP,
+    SDO_MAX_DATA,
+)
+from dpm.errors import Drv, err_event_text
+from dpm.message import Ext, Message, TelegramHeader, Tfc
+from host_api import driver as d
+from host_api.board import Board, CifError
+from host_api.cia309.events import EventDispatcher, EventStream, Monitor, Subscription
+from host_api.cia309.link import (
+    DEFAULT_ANSWER_TIMEOUT,
     RESET_TIMEOUT_MS,
-    SDO_PART,
     CanFrame,
     FrameListener,
     IndicationQueue,
@@ -78,7 +86,6 @@ from host_api.cia309.model import (
     ALL_NODES,
     MAX_COMMAND_SIZE,
     MAX_NODE_ID,
-    MAX_SDO_DATA,
     Cia309Error,
     DataType,
     DeviceError,
@@ -112,7 +119,6 @@ PROTOCOL_VERSION = (2, 0)
 RTR_ANSWER_TIMEOUT = 1.0
 """[ours] seconds ``read_pdo_data`` waits for the answer to its remote frame."""
 
-NMT_START, NMT_STOP, NMT_PREOP, NMT_RESET_NODE, NMT_RESET_COMM = 0x01, 0x02, 0x80, 0x81, 0x82
 PROGRAM_CONTROL = 0x1F51
 """CiA 302-3 program control of a remote controller: sub 1 takes these commands."""
 PROGRAM_STOP, PROGRAM_START, PROGRAM_RESET = 0, 1, 2
@@ -384,16 +390,16 @@ class Gateway:
 
     def _download(self, link: Link, node: int, index: int, subindex: int, data: bytes) -> None:
         what = f"SDO download {index:04X}:{subindex} to node {node}"
-        if len(data) > MAX_SDO_DATA:
+        if len(data) > LONG_SDO_LIMIT:
             raise Cia309Error(GatewayError.OUT_OF_MEMORY,
-                              f"{what}: {len(data)} bytes, at most {MAX_SDO_DATA}")
-        if len(data) <= SDO_PART:
+                              f"{what}: {len(data)} bytes, at most {LONG_SDO_LIMIT}")
+        if len(data) <= SDO_MAX_DATA:
             head = self._sdo_header(node, index, subindex, len(data), Tfc.WRITE)
             with link.sdo_channel(node, self._timeout()):
                 answer = link.request(COM_SDO_UP_DOWNLOAD, head + data, self._timeout())[-1]
             _check_sdo(answer, what)
             return
-        parts = [data[at : at + SDO_PART] for at in range(0, len(data), SDO_PART)]
+        parts = [data[at : at + SDO_MAX_DATA] for at in range(0, len(data), SDO_MAX_DATA)]
         with link.sdo_channel(node, self._timeout()):
             for number, part in enumerate(parts):
                 last = number == len(parts) - 1
@@ -401,7 +407,7 @@ class Gateway:
                 head = self._sdo_header(node, index, subindex, len(part), Tfc.WRITE)
                 answer = link.request(COM_SDO_UP_DOWNLOAD, head + part, self._timeout(), e=e)[-1]
                 _check_sdo(answer, what)
-                transferred = min(len(data), (number + 1) * SDO_PART)
+                transferred = min(len(data), (number + 1) * SDO_MAX_DATA)
                 self._core.events.emit(SdoProgressEvent(link.network, node, False, transferred))
 
     # --- 4.2 PDO access ---------------------------------------------------------------------
@@ -922,7 +928,7 @@ def _check_partial(data_type: DataType | None, offset: int, length: int | None) 
         return
     if data_type is not None and data_type not in _PARTIAL_TYPES:
         raise syntax_error(f"offset and length apply to strings and domains, not {data_type.value}")
-    if offset < 0 or (length is not None and length < 0) or offset > MAX_SDO_DATA:
+    if offset < 0 or (length is not None and length < 0) or offset > LONG_SDO_LIMIT:
         raise syntax_error(f"offset {offset} / length {length}")
 
 

@@ -29,8 +29,38 @@ from types import TracebackType
 
 from dbm_tools.errors import DbmError
 from dbm_tools.parameters import NdFlag, NodeParameterSet
-from dpm.errors import Drv
-from dpm.message import Ext, Message
+from dpm.commands import (
+    AREA_BUS,
+    COM_BOOTUP_FORWARDING,
+    COM_BOOTUP_INDICATION,
+    COM_CFGRX_LAYER2,
+    COM_DOWNLOAD,
+    COM_END_SEQ,
+    COM_RX_CAN_LAYER2,
+    COM_SET_NODE_ID,
+    COM_START_SEQ,
+    COM_TX_CAN_LAYER2,
+    COM_UPLOAD,
+    DOWNLOAD_AREA_SIZE,
+    F_BUFFER_LENGTH_OVERSTEPPED,
+    F_DOUBLE_NODE_ADDRESS,
+    F_FAULTY_PARAMETER,
+    F_HANDLER_FAILED,
+    F_LOCAL_RESOURCE,
+    F_NO_RESPONSE,
+    F_NOT_CONFIGURED,
+    F_NOT_OPERATIONAL,
+    F_PARAMETER_FAULT,
+    F_RECEIVE_BUFFER_OVERSTEPPED,
+    F_REMOTE_ADDRESS_RANGE,
+    F_SDO_ABORT,
+    F_SEQUENCE_ERROR,
+    F_SERVICE_ACTIVE,
+    F_TIMEOUT,
+    MAX_LEN_DATA_UNIT,
+)
+from dpm.errors import F_UNKNOWN_COMMAND, F_UNKNOWN_TASK, Drv
+from dpm.message import Ext, Message, Task
 from host_api import driver as d
 from host_api.board import Board, CifError
 from host_api.cia309.model import (
@@ -56,55 +86,23 @@ ABANDONED_NR_S = 60.0
 TRANSACTION_LOCK_WAIT_S = 5.0
 RESET_TIMEOUT_MS = 10000
 
-CAN_TASK, USER = 3, 16
-SDO_PART = 247
-"""Data bytes in one COM_SDO_Up_Download message: 255 minus the telegram header."""
-DOWNLOAD_UNIT = 240
-"""Bytes of a node data set per COM_Download (COM_Start_Seq's Max_Len_Data_Unit)."""
-AREA_BUS = 127
-NODE_DIAG_SIZE = 48
-
-# CAN-task messages (seed 5.2 and docs/card-commands.md)
-COM_NODE_DIAG = 66
-COM_START_SEQ, COM_DOWNLOAD, COM_END_SEQ = 67, 68, 69
-COM_SDO_UP_DOWNLOAD = 74
-COM_UPLOAD = 80
-COM_CFGRX_LAYER2 = 82
-COM_RX_CAN_LAYER2 = 83
-COM_TX_CAN_LAYER2 = 84
-COM_NMT_MODULE_PROTOCOL = 96
-COM_SET_SDO_TIMEOUT = 110
-COM_SET_GUARDING = 111
-COM_SET_HEARTBEAT_CONSUMER = 112
-COM_SET_EMCY_CONSUMER = 113
-COM_SET_HEARTBEAT_PRODUCER = 114
-COM_SET_NODE_ID = 115
-COM_BOOTUP_FORWARDING = 116
-COM_BOOTUP_INDICATION = 117
-
-# msg.f of the card (seed 5.2, docs/card-commands.md)
-F_SDO_ABORT = 3
-F_LOCAL_RESOURCE = 20
-F_FAULTY_PARAMETER = 55
-
-
 _F_ERRORS: dict[int, GatewayError] = {
-    17: GatewayError.TIME_OUT,  # no response from the node
-    48: GatewayError.TIME_OUT,  # download sequence timed out
-    19: GatewayError.INTERNAL_STATE,  # the node boots: its SDO channel is the card's
-    54: GatewayError.INTERNAL_STATE,  # another transfer to the node still runs
-    57: GatewayError.INTERNAL_STATE,  # sequence error of a split transfer
-    60: GatewayError.INTERNAL_STATE,  # the node-ID is taken by a configured node
-    200: GatewayError.INTERNAL_STATE,  # the network is not configured / not running
-    254: GatewayError.INTERNAL_STATE,  # the card's handler failed
+    F_NO_RESPONSE: GatewayError.TIME_OUT,
+    F_TIMEOUT: GatewayError.TIME_OUT,  # download sequence timed out
+    F_NOT_OPERATIONAL: GatewayError.INTERNAL_STATE,  # the node boots: the card's SDO channel
+    F_SERVICE_ACTIVE: GatewayError.INTERNAL_STATE,  # another transfer to the node still runs
+    F_SEQUENCE_ERROR: GatewayError.INTERNAL_STATE,  # of a split transfer
+    F_DOUBLE_NODE_ADDRESS: GatewayError.INTERNAL_STATE,  # the node-ID is a configured node's
+    F_NOT_CONFIGURED: GatewayError.INTERNAL_STATE,  # the network is not configured / running
+    F_HANDLER_FAILED: GatewayError.INTERNAL_STATE,
     F_LOCAL_RESOURCE: GatewayError.UNSUPPORTED_NODE,  # the node is not configured
-    161: GatewayError.UNSUPPORTED_NODE,  # node address out of range
-    51: GatewayError.OUT_OF_MEMORY,  # upload larger than the card's buffer
-    53: GatewayError.OUT_OF_MEMORY,  # download larger than the card's buffer
-    21: GatewayError.SYNTAX_ERROR,  # parameter fault
+    F_REMOTE_ADDRESS_RANGE: GatewayError.UNSUPPORTED_NODE,
+    F_RECEIVE_BUFFER_OVERSTEPPED: GatewayError.OUT_OF_MEMORY,  # upload over the card's buffer
+    F_BUFFER_LENGTH_OVERSTEPPED: GatewayError.OUT_OF_MEMORY,  # download over the card's buffer
+    F_PARAMETER_FAULT: GatewayError.SYNTAX_ERROR,
     F_FAULTY_PARAMETER: GatewayError.SYNTAX_ERROR,
-    152: GatewayError.REQUEST_NOT_SUPPORTED,  # unknown command: firmware without it
-    153: GatewayError.REQUEST_NOT_SUPPORTED,  # unknown task
+    F_UNKNOWN_COMMAND: GatewayError.REQUEST_NOT_SUPPORTED,  # firmware without the command
+    F_UNKNOWN_TASK: GatewayError.REQUEST_NOT_SUPPORTED,
 }
 """[ours] the card's msg.f -> the 309-3 error number a client sees."""
 
@@ -455,7 +453,7 @@ class Link:
         with self.gate.shared():
             nr, pending = self._register(b, multipart, on_part)
             try:
-                msg = Message(rx=CAN_TASK, tx=USER, b=b, data=data, nr=nr, e=e)
+                msg = Message(rx=Task.CAN, tx=Task.USER, b=b, data=data, nr=nr, e=e)
                 code = _put(self.number, msg, timeout)
                 if code != Drv.DRV_NO_ERROR:
                     raise driver_error(code, "DevPutMessage")
@@ -497,7 +495,7 @@ class Link:
     def send(self, b: int, data: bytes) -> None:
         """A command without an answer (COM_Tx_CAN_Layer2)."""
         with self.gate.shared():
-            msg = Message(rx=CAN_TASK, tx=USER, b=b, data=data)
+            msg = Message(rx=Task.CAN, tx=Task.USER, b=b, data=data)
             code = _put(self.number, msg, 1.0)
             if code != Drv.DRV_NO_ERROR:
                 raise driver_error(code, "DevPutMessage")
@@ -609,7 +607,7 @@ class Link:
     def upload_area(self, area: int, timeout: float) -> bytes | None:
         """A data set as the card holds it (COM_Upload); None when it has none (f 20)."""
         def chunk(offset: int) -> bytes | None:
-            request = bytes([0, area]) + struct.pack("<H", offset) + bytes([DOWNLOAD_UNIT])
+            request = bytes([0, area]) + struct.pack("<H", offset) + bytes([MAX_LEN_DATA_UNIT])
             answer = self.request(COM_UPLOAD, request, timeout)[-1]
             if answer.f == F_LOCAL_RESOURCE:
                 return None
@@ -631,13 +629,14 @@ class Link:
 
     def download_area(self, area: int, data: bytes, timeout: float) -> None:
         """COM_Download of a data set, split by COM_Start_Seq when it is long (seed 5.2.3)."""
-        if len(data) <= DOWNLOAD_UNIT:
+        if len(data) <= MAX_LEN_DATA_UNIT:
             self.command(COM_DOWNLOAD, bytes([0, area, 0, 0]) + data, timeout, "COM_Download")
             return
-        self.command(COM_START_SEQ, bytes([0, area]) + struct.pack("<H", 1000), timeout,
-                     "COM_Start_Seq")
-        for offset in range(0, len(data), DOWNLOAD_UNIT):
-            part = bytes([0, area]) + struct.pack("<H", offset) + data[offset : offset + 240]
+        self.command(COM_START_SEQ, bytes([0, area]) + struct.pack("<H", DOWNLOAD_AREA_SIZE),
+                     timeout, "COM_Start_Seq")
+        for offset in range(0, len(data), MAX_LEN_DATA_UNIT):
+            chunk = data[offset : offset + MAX_LEN_DATA_UNIT]
+            part = bytes([0, area]) + struct.pack("<H", offset) + chunk
             self.command(COM_DOWNLOAD, part, timeout, "COM_Download")
         self.command(COM_END_SEQ, b"\0", timeout, "COM_End_Seq")
 

@@ -56,17 +56,13 @@ from collections.abc import Callable, Iterable
 from enum import IntEnum
 from typing import Concatenate, NamedTuple, ParamSpec, TypeVar
 
+from dpm.commands import COM_CFGRX_LAYER2, COM_RX_CAN_LAYER2, COM_TX_CAN_LAYER2
 from dpm.errors import Drv
-from dpm.message import Message
+from dpm.message import Message, Task
 from host_api.board import Board, CifError
 
 LSS_REQUEST_COB_ID = 0x7E5
 LSS_ANSWER_COB_ID = 0x7E4
-CAN_TASK = 3
-USER = 16
-COM_CFGRX_LAYER2 = 82
-COM_RX_CAN_LAYER2 = 83
-COM_TX_CAN_LAYER2 = 84
 
 WAITING = 0
 """Switch state global: every slave to LSS waiting (an unconfigured one given a node-ID then
@@ -229,7 +225,7 @@ class LssMaster:
         The card drops its layer-2 filters when the host stops communication or the card
         restarts: call it again after either.
         """
-        request = Message(rx=CAN_TASK, tx=USER, b=COM_CFGRX_LAYER2,
+        request = Message(rx=Task.CAN, tx=Task.USER, b=COM_CFGRX_LAYER2,
                           data=bytes([LSS_ANSWER_COB_ID & 0xFF, LSS_ANSWER_COB_ID >> 8]))
         try:
             answer = self._transact(request)
@@ -248,7 +244,7 @@ class LssMaster:
         while self._read(0.0) is not None:
             pass
         try:
-            self.board.put_message(Message(rx=CAN_TASK, tx=USER, b=COM_TX_CAN_LAYER2,
+            self.board.put_message(Message(rx=Task.CAN, tx=Task.USER, b=COM_TX_CAN_LAYER2,
                                            data=b"".join(frames)))
         except CifError as exc:
             raise LssError(LssErrorCode.MEDIA_ERROR, f"COM_Tx_CAN_Layer2: {exc}") from exc

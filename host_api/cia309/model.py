@@ -18,8 +18,6 @@ from enum import IntEnum, StrEnum
 
 ALL_NODES = 0
 """The node-ID that addresses every node in the NMT services (309-1 "All")."""
-MAX_SDO_DATA = 65536
-"""Bytes one SDO transfer may carry through the card (docs/card-commands.md)."""
 MAX_COMMAND_SIZE = 131072
 """[ours] the largest command size ``set_command_size`` accepts: a 64 KiB DOMAIN in
 base64 on one 309-3 line, with room for the rest of the request."""
