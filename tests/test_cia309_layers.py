@@ -1,9 +1,12 @@
 """The CiA 309 package keeps Lely's split of ``gw`` and ``gw_txt``: no module of the typed
-service layer imports the 309-3 text layer, directly or through another module."""
+service layer imports the 309-3 text layer, directly or through another module; and its
+exceptions have one root."""
 
 from __future__ import annotations
 
 import ast
+import importlib
+import inspect
 from pathlib import Path
 
 PACKAGE = Path(__file__).parent.parent / "host_api" / "cia309"
@@ -32,3 +35,17 @@ def test_the_typed_layer_never_reaches_the_text_layer() -> None:
                 reached.add(imported)
                 todo.append(imported)
         assert not reached & TEXT, f"{module} reaches {sorted(reached & TEXT)}"
+
+
+def test_one_exception_root() -> None:
+    """Every exception class the package defines derives from Cia309Error, so a program
+    catches the package's failures with one clause."""
+    root = importlib.import_module("host_api.cia309.model").Cia309Error
+    found = []
+    for path in sorted(PACKAGE.glob("*.py")):
+        module = importlib.import_module(f"host_api.cia309.{path.stem}")
+        for _, item in inspect.getmembers(module, inspect.isclass):
+            if issubclass(item, BaseException) and item.__module__ == module.__name__:
+                found.append(item)
+                assert issubclass(item, root), f"{item.__qualname__} is no Cia309Error"
+    assert len(found) >= 4  # the root, ParseError, DataTypeError, LssError

@@ -32,7 +32,13 @@ import re
 import struct
 from enum import Enum, StrEnum
 
-from host_api.cia309.model import TIME_MS_MASK, TYPE_LENGTH_MISMATCH, DataType
+from host_api.cia309.model import (
+    TIME_MS_MASK,
+    TYPE_LENGTH_MISMATCH,
+    Cia309Error,
+    DataType,
+    ErrorCode,
+)
 
 
 class Dialect(StrEnum):
@@ -47,17 +53,17 @@ class Dialect(StrEnum):
         return "\r\n" if self is Dialect.CANOPENNODE else "\n"
 
 
-class DataTypeError(ValueError):
+class DataTypeError(Cia309Error, ValueError):
     """A value that is not of its data type, or bytes that cannot be one.
 
     ``abort_code`` is None for malformed or out-of-range text, which a 309-3 answer reports
-    as error 101 (syntax). For bytes of the wrong length it is the CiA 301 abort code the
-    answer carries instead (:data:`TYPE_LENGTH_MISMATCH`).
+    as error 101 (syntax, ``error``). For bytes of the wrong length it is the CiA 301 abort
+    code the answer carries instead (:data:`~host_api.cia309.model.TYPE_LENGTH_MISMATCH`).
     """
 
     def __init__(self, message: str, *, abort_code: int | None = None) -> None:
-        super().__init__(message)
-        self.abort_code = abort_code
+        error = ErrorCode.SYNTAX_ERROR if abort_code is None else None
+        super().__init__(error, message, abort_code=abort_code)
 
 
 def parse_data_type(token: str) -> DataType:
@@ -143,6 +149,7 @@ def parse_integer(token: str, low: int, high: int, what: str = "value") -> int:
 
     So ``0x1017``, ``4119`` and ``010`` (octal 8) are accepted and ``08`` is not, as in C; a
     sign is allowed, but unlike ``strtoul`` a negative number is never wrapped into range.
+    Raises DataTypeError (101) for anything else.
     """
     match = _C_INTEGER.fullmatch(token) if len(token) <= _MAX_NUMBER_TEXT else None
     if match is None:
@@ -164,7 +171,8 @@ def parse_value(dtype: DataType, text: str, dialect: Dialect = Dialect.CANOPENNO
     """The CiA 301 bytes of ``text``, the value part of a download request.
 
     ``text`` is everything after the data type with the comment removed; only the
-    variable-length types and ``t``/``td`` may span several words.
+    variable-length types and ``t``/``td`` may span several words. Raises DataTypeError
+    (101) for text that is no value of the type.
     """
     kind = _KINDS[dtype]
     text = text.strip()

@@ -36,9 +36,9 @@ from host_api.cia309.link import DEFAULT_ANSWER_TIMEOUT, Link
 from host_api.cia309.model import (
     Cia309Error,
     EmergencyEvent,
+    ErrorCode,
     ErrorControlEvent,
     Event,
-    GatewayError,
     NmtState,
 )
 
@@ -193,7 +193,7 @@ class Monitor:
             self._can_state = CanState.OFFLINE
             self.link.forget_node_sets()
         self._emit(ErrorControlEvent(self.network, self.link.own_node_id(),
-                                     error=GatewayError.CAN_INIT))
+                                     error=ErrorCode.CAN_INIT))
 
     def _monitor_loop(self) -> None:
         while not self._closing.wait(MONITOR_PERIOD):
@@ -221,16 +221,16 @@ class Monitor:
                 self._can_state = state.bCAN_State
                 if state.bCAN_State == CanState.OPERATE:
                     self._emit(ErrorControlEvent(self.network, self.link.own_node_id(),
-                                                 error=GatewayError.CAN_ACTIVE))
+                                                 error=ErrorCode.CAN_ACTIVE))
                 elif state.bCAN_State == CanState.OFFLINE:
                     self.link.forget_node_sets()
                     self._emit(ErrorControlEvent(self.network, self.link.own_node_id(),
-                                                 error=GatewayError.CAN_INIT))
+                                                 error=ErrorCode.CAN_INIT))
         own = self.link.own_node_id()
         for counter, error in (
-            ("usBus_Error_Cnt", GatewayError.ERROR_PASSIVE),
-            ("usBus_Off_Cnt", GatewayError.BUS_OFF),
-            ("usRx_Overflow", GatewayError.CAN_BUFFER_OVERFLOW),
+            ("usBus_Error_Cnt", ErrorCode.ERROR_PASSIVE),
+            ("usBus_Off_Cnt", ErrorCode.BUS_OFF),
+            ("usRx_Overflow", ErrorCode.CAN_BUFFER_OVERFLOW),
         ):
             if getattr(state, counter) > getattr(previous, counter):
                 self._emit(ErrorControlEvent(self.network, own, error=error))
@@ -245,7 +245,7 @@ class Monitor:
             self._reported.pop(node, None)
             started = self.link.supervised_by(node, timeout) == "heartbeat"
             self._emit(ErrorControlEvent(self.network, node, NmtState.OPERATIONAL,
-                                         GatewayError.HEARTBEAT_STARTED if started else None))
+                                         ErrorCode.HEARTBEAT_STARTED if started else None))
         for node in sorted(before - operating):
             if node in self.expected:
                 self._emit(ErrorControlEvent(self.network, node, self.expected[node]))
@@ -278,19 +278,19 @@ class Monitor:
         return actual_error
 
 
-def _error_control(event: int, supervision: str | None) -> GatewayError:
+def _error_control(event: int, supervision: str | None) -> ErrorCode:
     """The 309-3 error of a node's Err_Event [ours, after Lely's gateway]: guarding and
     heartbeat time-outs by the supervision in force, a state the node should not be in
     as 204, a node that cannot be reached (no answer, wrong device) as lost connection."""
     if event == ERR_EVENT_GUARDING_FAILED:
         if supervision == "heartbeat":
-            return GatewayError.HEARTBEAT_LOST
-        return GatewayError.LOST_GUARDING_MESSAGE
+            return ErrorCode.HEARTBEAT_LOST
+        return ErrorCode.LOST_GUARDING_MESSAGE
     if event == ERR_EVENT_GUARD_SEQUENCE:
-        return GatewayError.LOST_GUARDING_MESSAGE
+        return ErrorCode.LOST_GUARDING_MESSAGE
     if event in (ERR_EVENT_LEFT_OPERATIONAL, ERR_EVENT_NODE_STOPPED):
-        return GatewayError.WRONG_NMT_STATE
-    return GatewayError.LOST_CONNECTION
+        return ErrorCode.WRONG_NMT_STATE
+    return ErrorCode.LOST_CONNECTION
 
 
 # --------------------------------------------------------------------------- the gateway

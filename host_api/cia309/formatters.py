@@ -22,9 +22,9 @@ from host_api.cia309.model import (
     BootUpEvent,
     DataType,
     EmergencyEvent,
+    ErrorCode,
     ErrorControlEvent,
     Event,
-    GatewayError,
     LssAddress,
     NmtState,
     RpdoEvent,
@@ -32,8 +32,8 @@ from host_api.cia309.model import (
 )
 
 _LELY_ERROR_TEXTS = {
-    GatewayError.CAN_ACTIVE: "CAN active",
-    GatewayError.LSS_IMPLEMENTATION_ERROR: "LSS error",
+    ErrorCode.CAN_ACTIVE: "CAN active",
+    ErrorCode.LSS_IMPLEMENTATION_ERROR: "LSS error",
 }
 """Lely's ``co_gw_iec2str`` shortens these two."""
 
@@ -84,7 +84,7 @@ transfer carries the code instead of a 309-3 error number."""
 def error_text(error: int, dialect: Dialect = Dialect.CANOPENNODE) -> str:
     """The description of a 309-3 error number, as the dialect's gateway words it."""
     try:
-        code = GatewayError(error)
+        code = ErrorCode(error)
     except ValueError:
         return "Unknown error code"
     if dialect is Dialect.LELY:

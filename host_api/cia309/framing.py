@@ -10,7 +10,7 @@ import re
 from dataclasses import dataclass
 
 from host_api.cia309.datatypes import DataTypeError, parse_integer
-from host_api.cia309.model import GatewayError
+from host_api.cia309.model import ErrorCode
 from host_api.cia309.requests import ParseError
 
 DEFAULT_MAX_LINE = 16384
@@ -48,7 +48,7 @@ class OverlongLine:
     def error(self) -> ParseError:
         """309-1 4.6.5: a command above the command size is refused for lack of memory."""
         return ParseError(
-            GatewayError.OUT_OF_MEMORY, self.sequence, "request longer than the command size"
+            ErrorCode.OUT_OF_MEMORY, self.sequence, "request longer than the command size"
         )
 
 

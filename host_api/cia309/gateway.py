@@ -89,8 +89,8 @@ from host_api.cia309.model import (
     Cia309Error,
     DataType,
     DeviceError,
+    ErrorCode,
     Event,
-    GatewayError,
     NmtState,
     PdoMapping,
     SdoProgressEvent,
@@ -163,6 +163,12 @@ class Gateway:
     ``network`` and ``node_id`` arguments left None take the session's defaults; a node-ID
     given becomes the default for the following requests (309-1 3.2.1.23). With a single
     network, it is the default network from the start (3.2.1.21: "the unique network").
+
+    Raises: every service and the constructor raise only
+    :class:`~host_api.cia309.model.Cia309Error` for a failure, with the 309-3 error number
+    (``error``: 101 for an argument out of range, 103 for a time-out, 104/105 without a
+    default, 106/107 for a network or node not served, 102 for what the card's state
+    refuses) or the node's SDO abort (``abort_code``), and the card's ``f`` when it said no.
     """
 
     def __init__(
@@ -217,23 +223,23 @@ class Gateway:
     def _link(self, network: int | None) -> Link:
         if network is None:
             if self.default_network is None:
-                raise Cia309Error(GatewayError.NO_DEFAULT_NET, "no default network set")
+                raise Cia309Error(ErrorCode.NO_DEFAULT_NET, "no default network set")
             network = self.default_network
         link = self._core.links.get(network)
         if link is None:
-            raise Cia309Error(GatewayError.UNSUPPORTED_NET,
+            raise Cia309Error(ErrorCode.UNSUPPORTED_NET,
                               f"network {network} is not served (networks {self.networks})")
         return link
 
     def _node(self, node_id: int | None, *, all_nodes: bool = False) -> int:
         if node_id is None:
             if self.default_node_id is None:
-                raise Cia309Error(GatewayError.NO_DEFAULT_NODE, "no default node-ID set")
+                raise Cia309Error(ErrorCode.NO_DEFAULT_NODE, "no default node-ID set")
             return self.default_node_id
         if node_id == ALL_NODES and all_nodes:
             return ALL_NODES
         if not 1 <= node_id <= MAX_NODE_ID:
-            raise Cia309Error(GatewayError.UNSUPPORTED_NODE, f"node-ID {node_id}")
+            raise Cia309Error(ErrorCode.UNSUPPORTED_NODE, f"node-ID {node_id}")
         self.default_node_id = node_id
         return node_id
 
@@ -391,7 +397,7 @@ class Gateway:
     def _download(self, link: Link, node: int, index: int, subindex: int, data: bytes) -> None:
         what = f"SDO download {index:04X}:{subindex} to node {node}"
         if len(data) > LONG_SDO_LIMIT:
-            raise Cia309Error(GatewayError.OUT_OF_MEMORY,
+            raise Cia309Error(ErrorCode.OUT_OF_MEMORY,
                               f"{what}: {len(data)} bytes, at most {LONG_SDO_LIMIT}")
         if len(data) <= SDO_MAX_DATA:
             head = self._sdo_header(node, index, subindex, len(data), Tfc.WRITE)
@@ -483,7 +489,7 @@ class Gateway:
         with link.pdo_lock:
             for pdo in [*link.rpdos.values(), *link.tpdos.values()]:
                 if pdo.cob_id == cob_id and same_kind.get(number) is not pdo:
-                    raise Cia309Error(GatewayError.PDO_ALREADY_USED,
+                    raise Cia309Error(ErrorCode.PDO_ALREADY_USED,
                                       f"COB-ID 0x{cob_id:X} is PDO {pdo.number}'s")
 
     def read_pdo_data(self, pdo_number: int, *, network: int | None = None) -> tuple[int, ...]:
@@ -494,7 +500,7 @@ class Gateway:
         with link.pdo_lock:
             pdo = link.rpdos.get(pdo_number)
         if pdo is None:
-            raise Cia309Error(GatewayError.INTERNAL_STATE, f"no RPDO {pdo_number} configured")
+            raise Cia309Error(ErrorCode.INTERNAL_STATE, f"no RPDO {pdo_number} configured")
         if not pdo.rtr:
             return pdo.unpack(pdo.last or bytes(pdo.length))
         waiter: queue.SimpleQueue[bytes] = queue.SimpleQueue()
@@ -505,7 +511,7 @@ class Gateway:
             try:
                 return pdo.unpack(waiter.get(timeout=wait))
             except queue.Empty:
-                raise Cia309Error(GatewayError.TIME_OUT,
+                raise Cia309Error(ErrorCode.TIME_OUT,
                                   f"no answer to the remote frame of RPDO {pdo_number}") from None
         finally:
             link.rtr_waiters.pop(pdo_number, None)
@@ -518,7 +524,7 @@ class Gateway:
         with link.pdo_lock:
             pdo = link.tpdos.get(pdo_number)
         if pdo is None:
-            raise Cia309Error(GatewayError.INTERNAL_STATE, f"no TPDO {pdo_number} configured")
+            raise Cia309Error(ErrorCode.INTERNAL_STATE, f"no TPDO {pdo_number} configured")
         data = pdo.pack(values)
         wait = pdo.sent_at + pdo.inhibit_s - time.monotonic()
         if wait > 0:
@@ -594,7 +600,7 @@ class Gateway:
             self.disable_node_guarding(network=link.network, node_id=node)
             return
         if link.supervised_by(node, self._timeout()) == "heartbeat":
-            raise Cia309Error(GatewayError.INTERNAL_STATE,
+            raise Cia309Error(ErrorCode.INTERNAL_STATE,
                               f"node {node}: its heartbeat is consumed; disable it first")
         data = bytes([node, 1]) + struct.pack("<H", guard_time) + bytes([lifetime_factor])
         self._setting(link, COM_SET_GUARDING, node, data, "COM_Set_Guarding")
@@ -678,13 +684,13 @@ class Gateway:
         """
         link = self._link(network)
         if bit_rate_index is not None and bit_rate_index not in CIA305_BIT_RATES:
-            raise Cia309Error(GatewayError.LSS_BIT_RATE_NOT_SUPPORTED,
+            raise Cia309Error(ErrorCode.LSS_BIT_RATE_NOT_SUPPORTED,
                               f"bit rate index {bit_rate_index}")
         timeout = self._timeout()
         with link.gate.exclusive():
             bus = link.upload_area(AREA_BUS, timeout)
             if bus is None and bit_rate_index is not None:
-                raise Cia309Error(GatewayError.INTERNAL_STATE,
+                raise Cia309Error(ErrorCode.INTERNAL_STATE,
                                   "the network has no bus parameters to set a bit rate in")
             nodes = _node_areas(link, timeout)
             self._start_card(link, timeout)
@@ -725,7 +731,7 @@ class Gateway:
         with link.gate.exclusive():
             bus = link.upload_area(AREA_BUS, timeout)
             if bus is None:
-                raise Cia309Error(GatewayError.INTERNAL_STATE, "the network is not configured")
+                raise Cia309Error(ErrorCode.INTERNAL_STATE, "the network is not configured")
             nodes = _node_areas(link, timeout)
             with link.mailbox_released():
                 code, stored_area = upload_database(link.number)
@@ -766,7 +772,7 @@ class Gateway:
         tables[0].records[0] = global_set.encode()
         errors = [finding for finding in check_dbm(dbm) if finding.severity == "error"]
         if errors:
-            raise Cia309Error(GatewayError.INTERNAL_STATE,
+            raise Cia309Error(ErrorCode.INTERNAL_STATE,
                               f"the live configuration makes no valid database: {errors[0]}")
         return dbm
 
@@ -784,7 +790,7 @@ class Gateway:
             if code != Drv.DRV_NO_ERROR:
                 raise driver_error(code, "flash directory")
             if not entries:
-                raise Cia309Error(GatewayError.INTERNAL_STATE, "no configuration is stored")
+                raise Cia309Error(ErrorCode.INTERNAL_STATE, "no configuration is stored")
             link.settings.clear()
             link.supervision.clear()
             self._start_card(link, timeout)
@@ -803,7 +809,7 @@ class Gateway:
         """309-1 4.5.6: the card's own node-ID; 102 when a configured node has it."""
         link = self._link(network)
         if not 1 <= node_id <= MAX_NODE_ID:
-            raise Cia309Error(GatewayError.UNSUPPORTED_NODE, f"node-ID {node_id}")
+            raise Cia309Error(ErrorCode.UNSUPPORTED_NODE, f"node-ID {node_id}")
         self._setting(link, COM_SET_NODE_ID, 0, bytes([node_id]), "COM_Set_Node_ID")
 
     def start_emergency_consumer(
@@ -871,7 +877,7 @@ class Gateway:
         """309-1 4.6.5: promise to accept commands up to ``size`` bytes; 600 above
         ``MAX_COMMAND_SIZE``."""
         if not 1 <= size <= MAX_COMMAND_SIZE:
-            raise Cia309Error(GatewayError.OUT_OF_MEMORY,
+            raise Cia309Error(ErrorCode.OUT_OF_MEMORY,
                               f"command size {size}: at most {MAX_COMMAND_SIZE}")
         self.command_size = size
 
@@ -942,7 +948,7 @@ def _check_sdo(answer: Message, what: str) -> None:
 
 def _check_specifier(specifier: int | None) -> None:
     if specifier not in (None, 0):
-        raise Cia309Error(GatewayError.REQUEST_NOT_SUPPORTED,
+        raise Cia309Error(ErrorCode.REQUEST_NOT_SUPPORTED,
                           f"storage specifier {specifier}: the card has one store")
 
 

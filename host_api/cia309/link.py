@@ -66,8 +66,8 @@ from host_api.board import Board, CifError
 from host_api.cia309.model import (
     BootUpEvent,
     Cia309Error,
+    ErrorCode,
     Event,
-    GatewayError,
     RpdoEvent,
     syntax_error,
 )
@@ -86,23 +86,23 @@ ABANDONED_NR_S = 60.0
 TRANSACTION_LOCK_WAIT_S = 5.0
 RESET_TIMEOUT_MS = 10000
 
-_F_ERRORS: dict[int, GatewayError] = {
-    F_NO_RESPONSE: GatewayError.TIME_OUT,
-    F_TIMEOUT: GatewayError.TIME_OUT,  # download sequence timed out
-    F_NOT_OPERATIONAL: GatewayError.INTERNAL_STATE,  # the node boots: the card's SDO channel
-    F_SERVICE_ACTIVE: GatewayError.INTERNAL_STATE,  # another transfer to the node still runs
-    F_SEQUENCE_ERROR: GatewayError.INTERNAL_STATE,  # of a split transfer
-    F_DOUBLE_NODE_ADDRESS: GatewayError.INTERNAL_STATE,  # the node-ID is a configured node's
-    F_NOT_CONFIGURED: GatewayError.INTERNAL_STATE,  # the network is not configured / running
-    F_HANDLER_FAILED: GatewayError.INTERNAL_STATE,
-    F_LOCAL_RESOURCE: GatewayError.UNSUPPORTED_NODE,  # the node is not configured
-    F_REMOTE_ADDRESS_RANGE: GatewayError.UNSUPPORTED_NODE,
-    F_RECEIVE_BUFFER_OVERSTEPPED: GatewayError.OUT_OF_MEMORY,  # upload over the card's buffer
-    F_BUFFER_LENGTH_OVERSTEPPED: GatewayError.OUT_OF_MEMORY,  # download over the card's buffer
-    F_PARAMETER_FAULT: GatewayError.SYNTAX_ERROR,
-    F_FAULTY_PARAMETER: GatewayError.SYNTAX_ERROR,
-    F_UNKNOWN_COMMAND: GatewayError.REQUEST_NOT_SUPPORTED,  # firmware without the command
-    F_UNKNOWN_TASK: GatewayError.REQUEST_NOT_SUPPORTED,
+_F_ERRORS: dict[int, ErrorCode] = {
+    F_NO_RESPONSE: ErrorCode.TIME_OUT,
+    F_TIMEOUT: ErrorCode.TIME_OUT,  # download sequence timed out
+    F_NOT_OPERATIONAL: ErrorCode.INTERNAL_STATE,  # the node boots: the card's SDO channel
+    F_SERVICE_ACTIVE: ErrorCode.INTERNAL_STATE,  # another transfer to the node still runs
+    F_SEQUENCE_ERROR: ErrorCode.INTERNAL_STATE,  # of a split transfer
+    F_DOUBLE_NODE_ADDRESS: ErrorCode.INTERNAL_STATE,  # the node-ID is a configured node's
+    F_NOT_CONFIGURED: ErrorCode.INTERNAL_STATE,  # the network is not configured / running
+    F_HANDLER_FAILED: ErrorCode.INTERNAL_STATE,
+    F_LOCAL_RESOURCE: ErrorCode.UNSUPPORTED_NODE,  # the node is not configured
+    F_REMOTE_ADDRESS_RANGE: ErrorCode.UNSUPPORTED_NODE,
+    F_RECEIVE_BUFFER_OVERSTEPPED: ErrorCode.OUT_OF_MEMORY,  # upload over the card's buffer
+    F_BUFFER_LENGTH_OVERSTEPPED: ErrorCode.OUT_OF_MEMORY,  # download over the card's buffer
+    F_PARAMETER_FAULT: ErrorCode.SYNTAX_ERROR,
+    F_FAULTY_PARAMETER: ErrorCode.SYNTAX_ERROR,
+    F_UNKNOWN_COMMAND: ErrorCode.REQUEST_NOT_SUPPORTED,  # firmware without the command
+    F_UNKNOWN_TASK: ErrorCode.REQUEST_NOT_SUPPORTED,
 }
 """[ours] the card's msg.f -> the 309-3 error number a client sees."""
 
@@ -110,14 +110,14 @@ _F_ERRORS: dict[int, GatewayError] = {
 
 def card_error(f: int, what: str) -> Cia309Error:
     """The card answered msg.f != 0: the 309-3 error a client sees for it."""
-    error = _F_ERRORS.get(f, GatewayError.INTERNAL_STATE)
+    error = _F_ERRORS.get(f, ErrorCode.INTERNAL_STATE)
     return Cia309Error(error, f"{what}: the card answered msg.f = {f}", f=f)
 
 
 def driver_error(code: int, what: str) -> Cia309Error:
     """A driver call failed: its time-outs are 103, anything else 102."""
     timeouts = (Drv.DRV_DEV_PUT_TIMEOUT, Drv.DRV_DEV_GET_TIMEOUT, Drv.DRV_DEV_RESET_TIMEOUT)
-    error = GatewayError.TIME_OUT if code in timeouts else GatewayError.INTERNAL_STATE
+    error = ErrorCode.TIME_OUT if code in timeouts else ErrorCode.INTERNAL_STATE
     return Cia309Error(error, f"{what}: {CifError(code)}")
 
 
@@ -330,7 +330,7 @@ class Link:
         self._holding = self._transaction.acquire(TRANSACTION_LOCK_WAIT_S)
         if not self._holding:
             self.board.close()
-            raise Cia309Error(GatewayError.INTERNAL_STATE,
+            raise Cia309Error(ErrorCode.INTERNAL_STATE,
                               f"board {number}: another host holds its mailbox")
         self._closing = threading.Event()
         self._pending: dict[int, _Pending] = {}
@@ -459,7 +459,7 @@ class Link:
                     raise driver_error(code, "DevPutMessage")
                 if not pending.done.wait(timeout):
                     pending.abandoned_at = time.monotonic()
-                    raise Cia309Error(GatewayError.TIME_OUT,
+                    raise Cia309Error(ErrorCode.TIME_OUT,
                                       f"board {self.number}: no answer to msg.b {b} "
                                       f"within {timeout:g} s")
             finally:
@@ -476,7 +476,7 @@ class Link:
         with self._sdo_channels_lock:
             channel = self._sdo_channels.setdefault(node, threading.Lock())
         if not channel.acquire(timeout=timeout):
-            raise Cia309Error(GatewayError.TIME_OUT, f"node {node}: its SDO channel stays busy")
+            raise Cia309Error(ErrorCode.TIME_OUT, f"node {node}: its SDO channel stays busy")
         try:
             yield
         finally:
@@ -514,7 +514,7 @@ class Link:
                     pending = _Pending(b, multipart, on_part)
                     self._pending[nr] = pending
                     return nr, pending
-        raise Cia309Error(GatewayError.OUT_OF_MEMORY,
+        raise Cia309Error(ErrorCode.OUT_OF_MEMORY,
                           f"board {self.number}: 255 requests wait for answers")
 
     # --- layer 2 -------------------------------------------------------------------------------
@@ -527,7 +527,7 @@ class Link:
         data = b"".join(bytes([cob_id & 0xFF, cob_id >> 8]) for cob_id in new)
         answer = self.request(COM_CFGRX_LAYER2, data, timeout)[-1]
         if answer.f == F_FAULTY_PARAMETER:
-            raise Cia309Error(GatewayError.PDO_ALREADY_USED,
+            raise Cia309Error(ErrorCode.PDO_ALREADY_USED,
                               f"identifier(s) {', '.join(f'0x{i:X}' for i in new)} in use by "
                               "the card's CANopen side", f=answer.f)
         if answer.f:

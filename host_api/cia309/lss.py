@@ -60,6 +60,7 @@ from dpm.commands import COM_CFGRX_LAYER2, COM_RX_CAN_LAYER2, COM_TX_CAN_LAYER2
 from dpm.errors import Drv
 from dpm.message import Message, Task
 from host_api.board import Board, CifError
+from host_api.cia309.model import Cia309Error, ErrorCode
 
 LSS_REQUEST_COB_ID = 0x7E5
 LSS_ANSWER_COB_ID = 0x7E4
@@ -122,7 +123,7 @@ class LssErrorCode(IntEnum):
     """LSS command failed because of media error (here: the card refused the request)."""
 
 
-class LssError(Exception):
+class LssError(Cia309Error):
     """An LSS service failed: ``code`` (309-3), and the slave's CiA 305 answer if it sent one."""
 
     def __init__(self, code: LssErrorCode, what: str, lss_error: int | None = None,
@@ -137,7 +138,7 @@ class LssError(Exception):
             text += f" (LSS error code {lss_error}, spec-error {spec_error})"
         elif lss_error is not None:
             text += f" (LSS error code {lss_error})"
-        super().__init__(text)
+        super().__init__(ErrorCode(code), text)
 
 
 class LssAddress(NamedTuple):
@@ -201,7 +202,12 @@ def _serialised(method: Callable[Concatenate[LssMaster, P], R]
 
 
 class LssMaster:
-    """A CiA 305 LSS master on one card's CAN bus, one method per CiA 309-1 LSS service."""
+    """A CiA 305 LSS master on one card's CAN bus, one method per CiA 309-1 LSS service.
+
+    Every service raises :class:`LssError` (a ``Cia309Error``) when it fails: 103 when no
+    slave answers, 501..505 for the slave's refusal or the card's; the identify and
+    fastscan services answer False or None instead when nobody answers.
+    """
 
     def __init__(self, board: Board, indications: IndicationSource | None = None,
                  transact: Transact | None = None, timeout: float = DEFAULT_TIMEOUT_S,

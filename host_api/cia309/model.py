@@ -41,8 +41,9 @@ TIME_MS_MASK = 0x0FFF_FFFF
 # --------------------------------------------------------------------------- errors
 
 
-class GatewayError(IntEnum):
-    """The CiA 309-3 error numbers; ``text`` is the standard's wording."""
+class ErrorCode(IntEnum):
+    """The CiA 309-3 error numbers (the ``<code>`` of ``ERROR:<code>``); ``text`` is the
+    standard's wording. A number, not an exception: :class:`Cia309Error` carries it."""
 
     REQUEST_NOT_SUPPORTED = 100
     SYNTAX_ERROR = 101
@@ -78,55 +79,58 @@ class GatewayError(IntEnum):
         return _GATEWAY_ERROR_TEXTS[self]
 
 
-_GATEWAY_ERROR_TEXTS: dict[GatewayError, str] = {
-    GatewayError.REQUEST_NOT_SUPPORTED: "Request not supported",
-    GatewayError.SYNTAX_ERROR: "Syntax error",
-    GatewayError.INTERNAL_STATE: "Request not processed due to internal state",
-    GatewayError.TIME_OUT: "Time-out",
-    GatewayError.NO_DEFAULT_NET: "No default net set",
-    GatewayError.NO_DEFAULT_NODE: "No default node set",
-    GatewayError.UNSUPPORTED_NET: "Unsupported net",
-    GatewayError.UNSUPPORTED_NODE: "Unsupported node",
-    GatewayError.LOST_GUARDING_MESSAGE: "Lost guarding message",
-    GatewayError.LOST_CONNECTION: "Lost connection",
-    GatewayError.HEARTBEAT_STARTED: "Heartbeat started",
-    GatewayError.HEARTBEAT_LOST: "Heartbeat lost",
-    GatewayError.WRONG_NMT_STATE: "Wrong NMT state",
-    GatewayError.BOOT_UP: "Boot-up",
-    GatewayError.ERROR_PASSIVE: "Error passive",
-    GatewayError.BUS_OFF: "Bus off",
-    GatewayError.CAN_BUFFER_OVERFLOW: "CAN buffer overflow",
-    GatewayError.CAN_INIT: "CAN init",
-    GatewayError.CAN_ACTIVE: "CAN active (at init or start-up)",
-    GatewayError.PDO_ALREADY_USED: "PDO already used",
-    GatewayError.PDO_LENGTH_EXCEEDED: "PDO length exceeded",
-    GatewayError.LSS_IMPLEMENTATION_ERROR: "LSS implementation- / manufacturer-specific error",
-    GatewayError.LSS_NODE_ID_NOT_SUPPORTED: "LSS node-ID not supported",
-    GatewayError.LSS_BIT_RATE_NOT_SUPPORTED: "LSS bit-rate not supported",
-    GatewayError.LSS_PARAMETER_STORING_FAILED: "LSS parameter storing failed",
-    GatewayError.LSS_MEDIA_ERROR: "LSS command failed because of media error",
-    GatewayError.OUT_OF_MEMORY: "Running out of memory",
+_GATEWAY_ERROR_TEXTS: dict[ErrorCode, str] = {
+    ErrorCode.REQUEST_NOT_SUPPORTED: "Request not supported",
+    ErrorCode.SYNTAX_ERROR: "Syntax error",
+    ErrorCode.INTERNAL_STATE: "Request not processed due to internal state",
+    ErrorCode.TIME_OUT: "Time-out",
+    ErrorCode.NO_DEFAULT_NET: "No default net set",
+    ErrorCode.NO_DEFAULT_NODE: "No default node set",
+    ErrorCode.UNSUPPORTED_NET: "Unsupported net",
+    ErrorCode.UNSUPPORTED_NODE: "Unsupported node",
+    ErrorCode.LOST_GUARDING_MESSAGE: "Lost guarding message",
+    ErrorCode.LOST_CONNECTION: "Lost connection",
+    ErrorCode.HEARTBEAT_STARTED: "Heartbeat started",
+    ErrorCode.HEARTBEAT_LOST: "Heartbeat lost",
+    ErrorCode.WRONG_NMT_STATE: "Wrong NMT state",
+    ErrorCode.BOOT_UP: "Boot-up",
+    ErrorCode.ERROR_PASSIVE: "Error passive",
+    ErrorCode.BUS_OFF: "Bus off",
+    ErrorCode.CAN_BUFFER_OVERFLOW: "CAN buffer overflow",
+    ErrorCode.CAN_INIT: "CAN init",
+    ErrorCode.CAN_ACTIVE: "CAN active (at init or start-up)",
+    ErrorCode.PDO_ALREADY_USED: "PDO already used",
+    ErrorCode.PDO_LENGTH_EXCEEDED: "PDO length exceeded",
+    ErrorCode.LSS_IMPLEMENTATION_ERROR: "LSS implementation- / manufacturer-specific error",
+    ErrorCode.LSS_NODE_ID_NOT_SUPPORTED: "LSS node-ID not supported",
+    ErrorCode.LSS_BIT_RATE_NOT_SUPPORTED: "LSS bit-rate not supported",
+    ErrorCode.LSS_PARAMETER_STORING_FAILED: "LSS parameter storing failed",
+    ErrorCode.LSS_MEDIA_ERROR: "LSS command failed because of media error",
+    ErrorCode.OUT_OF_MEMORY: "Running out of memory",
 }
 
 
-_ABORT_ERRORS: dict[int, GatewayError] = {
-    0x0504_0000: GatewayError.TIME_OUT,
-    0x0504_0005: GatewayError.OUT_OF_MEMORY,
-    0x0604_0042: GatewayError.PDO_LENGTH_EXCEEDED,
+_ABORT_ERRORS: dict[int, ErrorCode] = {
+    0x0504_0000: ErrorCode.TIME_OUT,
+    0x0504_0005: ErrorCode.OUT_OF_MEMORY,
+    0x0604_0042: ErrorCode.PDO_LENGTH_EXCEEDED,
 }
 """SDO abort codes that have a 309-3 error number of their own (as Lely's gateway maps them)."""
 
 
 class Cia309Error(Exception):
-    """A 309-1 service failed; ``reason`` is what a 309-3 answer carries.
+    """The root of every exception of ``host_api.cia309``: a 309-1 service, a 309-3 line or
+    value, or an LSS service failed; ``reason`` is what a 309-3 answer carries.
 
     Exactly one of ``error`` (a 309-3 error number) and ``abort_code`` (the node's SDO
-    abort) is set; ``f`` is the card's msg.f when the card refused the request.
+    abort) is set; ``f`` is the card's msg.f when the card refused the request. The
+    subclasses say where it failed: ``requests.ParseError`` (a request line),
+    ``datatypes.DataTypeError`` (a value in text), ``lss.LssError`` (an LSS service).
     """
 
     def __init__(
         self,
-        error: GatewayError | None,
+        error: ErrorCode | None,
         message: str,
         *,
         abort_code: int | None = None,
@@ -156,7 +160,7 @@ class Cia309Error(Exception):
 
 def syntax_error(message: str) -> Cia309Error:
     """A value or request the 309-1 tables do not allow: 309-3 error 101."""
-    return Cia309Error(GatewayError.SYNTAX_ERROR, message)
+    return Cia309Error(ErrorCode.SYNTAX_ERROR, message)
 
 
 # --------------------------------------------------------------------------- data types
@@ -444,7 +448,7 @@ class ErrorControlEvent:
     net: int
     node: int
     state: NmtState | None = None
-    error: GatewayError | None = None
+    error: ErrorCode | None = None
 
 
 @dataclass(frozen=True)

@@ -28,7 +28,7 @@ from host_api.cia309.model import (
     TRANSMISSION_EVENT,
     TRANSMISSION_RTR,
     DataType,
-    GatewayError,
+    ErrorCode,
     LssAddress,
     PdoMapping,
 )
@@ -120,7 +120,7 @@ class _Context:
         self.dialect = dialect
         self.position = 0
 
-    def fail(self, message: str, error: GatewayError = GatewayError.SYNTAX_ERROR) -> ParseError:
+    def fail(self, message: str, error: ErrorCode = ErrorCode.SYNTAX_ERROR) -> ParseError:
         return ParseError(error, self.sequence, message)
 
     def optional(self) -> str | None:
@@ -138,17 +138,17 @@ class _Context:
     def remaining(self) -> int:
         return len(self.tokens) - self.position
 
-    def integer(self, what: str, low: int, high: int, error: GatewayError | None = None) -> int:
+    def integer(self, what: str, low: int, high: int, error: ErrorCode | None = None) -> int:
         return self.convert(self.word(what), what, low, high, error)
 
     def convert(
-        self, token: str, what: str, low: int, high: int, error: GatewayError | None = None
+        self, token: str, what: str, low: int, high: int, error: ErrorCode | None = None
     ) -> int:
         """A number argument; out of range is a syntax error unless ``error`` names another."""
         try:
             return parse_integer(token, low, high, what)
         except DataTypeError as exc:
-            code = GatewayError.SYNTAX_ERROR
+            code = ErrorCode.SYNTAX_ERROR
             if error is not None and _integer_or_none(token) is not None:
                 code = error
             raise self.fail(str(exc), code) from None
@@ -156,10 +156,10 @@ class _Context:
     def node_id(self, what: str = "node-ID", *, unconfigured: bool = False) -> int:
         """A node-ID argument: 1..127 (or 255 where LSS allows it); others are error 107."""
         token = self.word(what)
-        value = self.convert(token, what, 0, _U32, GatewayError.UNSUPPORTED_NODE)
+        value = self.convert(token, what, 0, _U32, ErrorCode.UNSUPPORTED_NODE)
         if 1 <= value <= MAX_NODE_ID or (unconfigured and value == LSS_UNCONFIGURED):
             return value
-        raise self.fail(f"{what} {value} is not a node-ID", GatewayError.UNSUPPORTED_NODE)
+        raise self.fail(f"{what} {value} is not a node-ID", ErrorCode.UNSUPPORTED_NODE)
 
     def rest(self, what: str) -> str:
         """The raw text of all remaining tokens, spaces inside quotes kept."""
@@ -188,7 +188,7 @@ class _Context:
         if self.numbers:
             node = self.numbers[-1]
             if node > MAX_NODE_ID or (node == 0 and not all_nodes):
-                raise self.fail(f"node {node} is not addressable", GatewayError.UNSUPPORTED_NODE)
+                raise self.fail(f"node {node} is not addressable", ErrorCode.UNSUPPORTED_NODE)
         return {"net": net, "node": node}
 
     def network_level(self) -> int | None:
@@ -203,7 +203,7 @@ class _Context:
 
     def _net(self, net: int) -> int:
         if not 1 <= net <= _U16:
-            raise self.fail(f"network {net} does not exist", GatewayError.UNSUPPORTED_NET)
+            raise self.fail(f"network {net} does not exist", ErrorCode.UNSUPPORTED_NET)
         return net
 
 
@@ -227,28 +227,28 @@ def parse_request(line: str, dialect: Dialect = Dialect.CANOPENNODE) -> Request 
         return None
     match = SEQUENCE.match(stripped)
     if match is None:
-        raise ParseError(GatewayError.SYNTAX_ERROR, None, "a request starts with [<sequence>]")
+        raise ParseError(ErrorCode.SYNTAX_ERROR, None, "a request starts with [<sequence>]")
     try:
         sequence = parse_integer(match.group(1), 0, _U32, "sequence")
     except DataTypeError as exc:
-        raise ParseError(GatewayError.SYNTAX_ERROR, None, str(exc)) from None
+        raise ParseError(ErrorCode.SYNTAX_ERROR, None, str(exc)) from None
     text = stripped[match.end() :]
     tokens = _tokenize(text, dialect, sequence)
     numbers: list[int] = []
     while tokens and tokens[0].text[0].isdigit():
         if len(numbers) == 2:
-            raise ParseError(GatewayError.SYNTAX_ERROR, sequence, "more than net and node")
+            raise ParseError(ErrorCode.SYNTAX_ERROR, sequence, "more than net and node")
         try:
             numbers.append(parse_integer(tokens.pop(0).text, 0, _U32, "net or node"))
         except DataTypeError as exc:
-            raise ParseError(GatewayError.SYNTAX_ERROR, sequence, str(exc)) from None
+            raise ParseError(ErrorCode.SYNTAX_ERROR, sequence, str(exc)) from None
     if not tokens:
-        raise ParseError(GatewayError.SYNTAX_ERROR, sequence, "command missing")
+        raise ParseError(ErrorCode.SYNTAX_ERROR, sequence, "command missing")
     command = tokens[0].text.lower()
     handler = _COMMANDS.get(command)
     if handler is None:
         raise ParseError(
-            GatewayError.REQUEST_NOT_SUPPORTED, sequence, f"unknown command {tokens[0].text!r}"
+            ErrorCode.REQUEST_NOT_SUPPORTED, sequence, f"unknown command {tokens[0].text!r}"
         )
     return handler(_Context(sequence, numbers, tokens[1:], text, dialect))
 
@@ -270,10 +270,10 @@ def _tokenize(text: str, dialect: Dialect, sequence: int) -> list[_Token]:
         if character == '"':
             end = _string_end(text, position + 1, dialect)
             if end is None:
-                raise ParseError(GatewayError.SYNTAX_ERROR, sequence, "unterminated string")
+                raise ParseError(ErrorCode.SYNTAX_ERROR, sequence, "unterminated string")
             position = end
             if position < len(text) and not text[position].isspace():
-                raise ParseError(GatewayError.SYNTAX_ERROR, sequence, "text after a string")
+                raise ParseError(ErrorCode.SYNTAX_ERROR, sequence, "text after a string")
         else:
             while position < len(text) and not text[position].isspace() and text[position] != "#":
                 position += 1
@@ -354,7 +354,7 @@ def _reset(ctx: _Context) -> Request:
         "communication": ResetCommunication,
     }
     if what not in requests:
-        raise ctx.fail(f"reset {what!r}", GatewayError.REQUEST_NOT_SUPPORTED)
+        raise ctx.fail(f"reset {what!r}", ErrorCode.REQUEST_NOT_SUPPORTED)
     return _nmt(requests[what])(ctx)
 
 
@@ -373,7 +373,7 @@ def _enable(ctx: _Context) -> Request:
         consumer_time = ctx.integer("heartbeat consumer time", 0, _U16)
         ctx.done()
         return EnableHeartbeat(sequence=ctx.sequence, **address, consumer_time=consumer_time)
-    raise ctx.fail(f"enable {what!r}", GatewayError.REQUEST_NOT_SUPPORTED)
+    raise ctx.fail(f"enable {what!r}", ErrorCode.REQUEST_NOT_SUPPORTED)
 
 
 def _disable(ctx: _Context) -> Request:
@@ -383,7 +383,7 @@ def _disable(ctx: _Context) -> Request:
         "heartbeat": DisableHeartbeat,
     }
     if what not in requests:
-        raise ctx.fail(f"disable {what!r}", GatewayError.REQUEST_NOT_SUPPORTED)
+        raise ctx.fail(f"disable {what!r}", ErrorCode.REQUEST_NOT_SUPPORTED)
     address = ctx.node_level()
     ctx.done()
     return requests[what](sequence=ctx.sequence, **address)
@@ -393,13 +393,13 @@ def _set(ctx: _Context) -> Request:
     what = ctx.word("what to set").lower()
     handler = _SET_COMMANDS.get(what)
     if handler is None:
-        raise ctx.fail(f"set {what!r}", GatewayError.REQUEST_NOT_SUPPORTED)
+        raise ctx.fail(f"set {what!r}", ErrorCode.REQUEST_NOT_SUPPORTED)
     return handler(ctx)
 
 
 def _set_network(ctx: _Context) -> Request:
     ctx.global_level()
-    network = ctx.integer("network", 1, _U16, GatewayError.UNSUPPORTED_NET)
+    network = ctx.integer("network", 1, _U16, ErrorCode.UNSUPPORTED_NET)
     ctx.done()
     return SetDefaultNetwork(sequence=ctx.sequence, network=network)
 
@@ -554,7 +554,7 @@ def _boot_up_indication(ctx: _Context) -> Request:
 def _info(ctx: _Context) -> Request:
     what = ctx.word("'version'").lower()
     if what != "version":
-        raise ctx.fail(f"info {what!r}", GatewayError.REQUEST_NOT_SUPPORTED)
+        raise ctx.fail(f"info {what!r}", ErrorCode.REQUEST_NOT_SUPPORTED)
     net = ctx.network_level()
     ctx.done()
     return GetVersion(sequence=ctx.sequence, net=net)

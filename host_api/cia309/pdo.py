@@ -15,7 +15,7 @@ from host_api.cia309.model import (
     TRANSMISSION_EVENT,
     Cia309Error,
     DataType,
-    GatewayError,
+    ErrorCode,
     PdoMapping,
     syntax_error,
 )
@@ -56,7 +56,7 @@ class Pdo:
 
     def pack(self, values: Sequence[int]) -> bytes:
         if len(values) != len(self.sizes):
-            raise Cia309Error(GatewayError.PDO_LENGTH_EXCEEDED,
+            raise Cia309Error(ErrorCode.PDO_LENGTH_EXCEEDED,
                               f"PDO {self.number} maps {len(self.sizes)} objects, "
                               f"not {len(values)}")
         data = b""
@@ -82,7 +82,7 @@ def pdo_sizes(mapped_objects: Sequence[PdoMapping]) -> tuple[int, ...]:
                                "sizes up in")
         sizes.append(size)
     if sum(sizes) > PDO_BYTES:
-        raise Cia309Error(GatewayError.PDO_LENGTH_EXCEEDED,
+        raise Cia309Error(ErrorCode.PDO_LENGTH_EXCEEDED,
                           f"the mapped objects take {sum(sizes)} bytes, a PDO has 8")
     return tuple(sizes)
 
@@ -97,7 +97,7 @@ def pdo_cob_id(cob_id: int) -> int | None:
     if cob_id & COB_ID_INVALID:
         return None
     if cob_id & COB_ID_29_BIT or cob_id & ~(COB_ID_INVALID | 0x4000_0000 | COB_ID_MASK):
-        raise Cia309Error(GatewayError.REQUEST_NOT_SUPPORTED,
+        raise Cia309Error(ErrorCode.REQUEST_NOT_SUPPORTED,
                           f"COB-ID 0x{cob_id:X}: layer-2 access has 11-bit identifiers only")
     return cob_id & COB_ID_MASK
 

@@ -10,21 +10,22 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from host_api.cia309.model import DataType, GatewayError, LssAddress, PdoMapping
+from host_api.cia309.model import Cia309Error, DataType, ErrorCode, LssAddress, PdoMapping
 
 NO_LSS_ADDRESS = LssAddress(0, 0, 0, 0)
 """The default of ``_lss_fastscan``'s known numbers and masks: nothing known."""
 
-class ParseError(Exception):
+class ParseError(Cia309Error):
     """A request line the gateway cannot accept; the answer is ``ERROR:<error>``.
 
     ``sequence`` is the request's sequence number when the line got that far, else None
     (CANopenNode then repeats the previous one, which is 0 on a fresh connection).
     """
 
-    def __init__(self, error: GatewayError, sequence: int | None, message: str) -> None:
-        super().__init__(message)
-        self.error = error
+    error: ErrorCode
+
+    def __init__(self, error: ErrorCode, sequence: int | None, message: str) -> None:
+        super().__init__(error, message)
         self.sequence = sequence
 
 

@@ -68,7 +68,7 @@ from host_api.cia309.formatters import (
 )
 from host_api.cia309.framing import DEFAULT_MAX_LINE, LineFramer, OverlongLine
 from host_api.cia309.gateway import Gateway
-from host_api.cia309.model import Cia309Error, Event, GatewayError, LssAddress
+from host_api.cia309.model import Cia309Error, ErrorCode, Event, LssAddress
 from host_api.cia309.parser import parse_request
 from host_api.cia309.requests import (
     ConfigureRpdo,
@@ -250,7 +250,9 @@ class Dispatcher:
         self.event_log = event_log or EventLog(dialect)
 
     def handle(self, client: Client, line: str | OverlongLine) -> str | None:
-        """The answer to one framed line (blocking: call it from a worker thread)."""
+        """The answer to one framed line (blocking: call it from a worker thread). A
+        failure of the line or the service is its ``ERROR`` answer; only a defect of the
+        gateway itself raises."""
         dialect = self.dialect
         if isinstance(line, OverlongLine):
             error = line.error()
@@ -265,7 +267,7 @@ class Dispatcher:
             return format_empty(dialect)
         client.last_sequence = sequence = request.sequence
         if self.read_only and not isinstance(request, READ_ONLY_REQUESTS):
-            return format_error(sequence, GatewayError.REQUEST_NOT_SUPPORTED, dialect)
+            return format_error(sequence, ErrorCode.REQUEST_NOT_SUPPORTED, dialect)
         try:
             return self._execute(client, request)
         except Cia309Error as exc:
@@ -281,26 +283,26 @@ class Dispatcher:
         lss_call = _LSS_SERVICES.get(type(request))
         if lss_call is not None:
             return self._lss(client.gateway, request, lss_call)
-        raise Cia309Error(GatewayError.REQUEST_NOT_SUPPORTED, type(request).__name__)
+        raise Cia309Error(ErrorCode.REQUEST_NOT_SUPPORTED, type(request).__name__)
 
     def _lss(self, gateway: Gateway, request: Any, call: _LssCall) -> str:
         """309-1 4.8: to the network's LSS services, when there are any (else 100)."""
         if self.lss is None:
-            raise Cia309Error(GatewayError.REQUEST_NOT_SUPPORTED, "no LSS services here")
+            raise Cia309Error(ErrorCode.REQUEST_NOT_SUPPORTED, "no LSS services here")
         lss = self.lss(gateway.resolve_network(request.net))
         try:
             answer = call(lss, request, self.dialect)
         except Cia309Error:
             raise
         except ValueError as exc:
-            raise Cia309Error(GatewayError.SYNTAX_ERROR, str(exc)) from exc
+            raise Cia309Error(ErrorCode.SYNTAX_ERROR, str(exc)) from exc
         except Exception as exc:
             code = getattr(exc, "code", None)
-            if isinstance(code, int) and code in set(GatewayError):
-                raise Cia309Error(GatewayError(code), str(exc)) from exc
+            if isinstance(code, int) and code in set(ErrorCode):
+                raise Cia309Error(ErrorCode(code), str(exc)) from exc
             raise
         if answer is False:
-            raise Cia309Error(GatewayError.TIME_OUT, "no LSS slave answered")
+            raise Cia309Error(ErrorCode.TIME_OUT, "no LSS slave answered")
         if isinstance(answer, str):
             return answer
         return format_ok(request.sequence, self.dialect)
@@ -325,7 +327,7 @@ def _sdo_upload(dispatcher: Dispatcher, client: Client, request: SdoUpload) -> s
 
 
 def _set_sdo_block(gateway: Gateway, request: SetSdoBlock) -> None:
-    raise Cia309Error(GatewayError.REQUEST_NOT_SUPPORTED,
+    raise Cia309Error(ErrorCode.REQUEST_NOT_SUPPORTED,
                       "the card runs segmented SDO transfers only")
 
 
@@ -428,13 +430,13 @@ def _lss_identify_fastscan(lss: LssServices, request: LssIdentifyFastscan,
     timeout = None if request.timeout_ms is None else request.timeout_ms / 1000.0
     found = lss.fastscan(vendor, product, revision, serial, timeout=timeout)
     if found is None:
-        raise Cia309Error(GatewayError.TIME_OUT, "no unconfigured LSS slave answered")
+        raise Cia309Error(ErrorCode.TIME_OUT, "no unconfigured LSS slave answered")
     return format_lss_address(request.sequence, LssAddress(*found), dialect)
 
 
 def _lss_complete(lss: LssServices, request: LssCompleteConfiguration, dialect: Dialect) -> None:
     if any(criterion.scan != 0 for criterion in request.criteria):
-        raise Cia309Error(GatewayError.REQUEST_NOT_SUPPORTED,
+        raise Cia309Error(ErrorCode.REQUEST_NOT_SUPPORTED,
                           "lss_allnodes scans every LSS number")
     timeout = None if request.timeout_ms is None else request.timeout_ms / 1000.0
     lss.complete_node_id_configuration(
@@ -443,7 +445,7 @@ def _lss_complete(lss: LssServices, request: LssCompleteConfiguration, dialect: 
 
 
 def _lss_slowscan(lss: LssServices, request: LssSlowscan, dialect: Dialect) -> None:
-    raise Cia309Error(GatewayError.REQUEST_NOT_SUPPORTED, type(request).__name__)
+    raise Cia309Error(ErrorCode.REQUEST_NOT_SUPPORTED, type(request).__name__)
 
 
 _LSS_SERVICES: dict[type[Request], _LssCall] = {
@@ -489,7 +491,11 @@ class ServerConfig:
 
 
 class Server:
-    """The asyncio TCP server; ``start`` binds, ``serve_forever`` runs, ``close`` ends."""
+    """The asyncio TCP server; ``start`` binds, ``serve_forever`` runs, ``close`` ends.
+
+    ``start`` raises OSError when the address cannot be bound (port in use, no such
+    address); nothing a client sends raises: each failure is a 309-3 answer or a drop.
+    """
 
     def __init__(self, gateway: Gateway, config: ServerConfig,
                  lss: LssFactory | None = None) -> None:
@@ -566,7 +572,7 @@ class Server:
     async def _serve_client(self, reader: asyncio.StreamReader,
                             writer: asyncio.StreamWriter) -> None:
         if len(self._clients) >= self.config.max_clients:
-            writer.write(format_error(0, GatewayError.OUT_OF_MEMORY,
+            writer.write(format_error(0, ErrorCode.OUT_OF_MEMORY,
                                       self.config.dialect).encode("latin-1"))
             with contextlib.suppress(TimeoutError):
                 await asyncio.wait_for(_close(writer), REFUSAL_FLUSH_S)
@@ -620,7 +626,8 @@ def _peer(writer: asyncio.StreamWriter) -> str:
 
 class BackgroundServer:
     """A server on an event-loop thread of its own, for a program that is not asyncio
-    (an embedding application, the tests, the benchmark); ``close`` ends it."""
+    (an embedding application, the tests, the benchmark); ``close`` ends it. Raises
+    OSError as ``Server.start`` does."""
 
     def __init__(self, gateway: Gateway, config: ServerConfig,
                  lss: LssFactory | None = None) -> None:
