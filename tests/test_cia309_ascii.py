@@ -715,6 +715,12 @@ def test_ok_value_and_error_answers() -> None:
     assert format_error(3, 101, describe=False) == "[3] ERROR:101\r\n"
     assert format_error(3, 101, LELY) == "[3] ERROR: 101 (Syntax error)\n"
     assert format_error(3, 101, LELY, describe=False) == "[3] ERROR: 101\n"
+    assert format_error(3, 101, detail="index missing") == (
+        "[3] ERROR:101 #Syntax error: index missing.\r\n")
+    assert format_error(3, 101, LELY, detail="index missing") == (
+        "[3] ERROR: 101 (Syntax error: index missing)\n")
+    explained = format_error(3, 100, detail="unknown command '\r\n" + "x" * 500 + "'")
+    assert explained.count("\r\n") == 1 and len(explained) < 200  # one line, bounded
     assert format_error(4, 999, LELY) == "[4] ERROR: 999 (Unknown error code)\n"
     assert format_abort(5, 0x06020000) == (
         "[5] ERROR:0x06020000 #Object does not exist in the object dictionary.\r\n"

@@ -18,6 +18,7 @@ import argparse
 import asyncio
 import contextlib
 import importlib
+import json
 import math
 import re
 import signal
@@ -100,6 +101,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     exec_parser = sub.add_parser("exec", help="send one request, print its answer",
                                  description="Send one request and print the answer.")
     exec_parser.add_argument("request", help="e.g. '[1] 4 read 0x1017 0 u16'")
+    exec_parser.add_argument("--json", action="store_true",
+                             help="print the answer, or the error, as one JSON object")
     _client_arguments(exec_parser)
     exec_parser.set_defaults(action_func=_exec)
     shell_parser = sub.add_parser("shell", help="interactive requests with history",
@@ -156,11 +159,11 @@ def run(args: argparse.Namespace) -> int:
     action: Callable[[argparse.Namespace], int] = args.action_func
     try:
         return action(args)
-    except Cia309Error as exc:
-        print(f"cifemu 309: {exc}", file=sys.stderr)
-        return 1
-    except OSError as exc:
-        print(f"cifemu 309: {exc}", file=sys.stderr)
+    except (Cia309Error, OSError) as exc:
+        if getattr(args, "json", False):
+            print(json.dumps({"ok": False, "error": {"text": str(exc)}}))
+        else:
+            print(f"cifemu 309: {exc}", file=sys.stderr)
         return 1
 
 
@@ -238,19 +241,42 @@ def _with_sequence(request: str, sequence: int) -> tuple[str, int]:
     return f"[{sequence}] {request.strip()}", sequence
 
 
-class _Remote:
+class Remote:
     """A connection to a running server: sends requests, tells answers from event lines."""
 
     def __init__(self, host: str, port: int, timeout: float,
                  on_event: Callable[[str], None]) -> None:
-        self._socket = socket.create_connection((host, port), timeout=timeout)
-        self._socket.settimeout(QUIET_S)
+        self._host, self._port = host, port
+        self._address = f"{host}:{port}"
         self._timeout = timeout
         self._on_event = on_event
+        self._socket = self._connect()
         self._buffer = b""
+        self._closed = False
+
+    def _connect(self) -> socket.socket:
+        try:
+            connection = socket.create_connection((self._host, self._port),
+                                                  timeout=self._timeout)
+        except OSError as exc:
+            reason = exc.strerror or str(exc)
+            raise ConnectionError(f"no 309-3 server at {self._address} ({reason}); start one "
+                                  "with 'cifemu 309 serve'") from exc
+        connection.settimeout(QUIET_S)
+        return connection
 
     def ask(self, line: str, sequence: int) -> str:
-        """Send ``line``; return its answer (every line of it)."""
+        """Send ``line``; return its answer (every line of it).
+
+        A connection the server ended while nothing was asked (its idle time-out, [ours])
+        is opened again first: the request was not sent, so nothing is asked twice; the
+        settings made with ``set`` on the old connection are gone, and a note says so.
+        """
+        if self._closed:
+            self._socket.close()
+            self._socket, self._buffer, self._closed = self._connect(), b"", False
+            print(f"cifemu 309: the server at {self._address} had closed the connection; "
+                  "connected again (defaults set with 'set' are gone)", file=sys.stderr)
         self._socket.sendall(line.encode("latin-1") + b"\n")
         answer: list[str] = []
         deadline = time.monotonic() + self._timeout
@@ -282,7 +308,8 @@ class _Remote:
             except TimeoutError:
                 return None
             if not chunk:
-                raise ConnectionError("the server closed the connection")
+                self._closed = True
+                raise ConnectionError(f"the server at {self._address} closed the connection")
             self._buffer += chunk
         line, _, self._buffer = self._buffer.partition(b"\n")
         return (line + b"\n").decode("latin-1")
@@ -328,10 +355,10 @@ def _print_event(text: str) -> None:
     _print_answer(text)
 
 
-def _connect(args: argparse.Namespace) -> _Remote | _Direct:
+def _connect(args: argparse.Namespace) -> Remote | _Direct:
     if args.direct:
         return _Direct(args, _print_event)
-    return _Remote(args.host, args.port, args.timeout, _print_event)
+    return Remote(args.host, args.port, args.timeout, _print_event)
 
 
 def _exec(args: argparse.Namespace) -> int:
@@ -341,8 +368,41 @@ def _exec(args: argparse.Namespace) -> int:
         answer = connection.ask(line, sequence)
     finally:
         connection.close()
-    _print_answer(answer)
-    return 1 if "ERROR" in answer else 0
+    document = answer_document(answer)
+    if args.json:
+        print(json.dumps(document))
+    else:
+        _print_answer(answer)
+    return 0 if document["ok"] else 1
+
+
+_ERROR_ANSWER = re.compile(
+    r"\[(\d+)\] ERROR:\s*(0x[0-9A-Fa-f]+|[0-9A-Fa-f]{8}|\d+)\s*(?:#(.*?)\.?|\((.*)\))?\s*")
+"""A 309-3 error answer of either dialect: ``ERROR:101 #text.``, ``ERROR: 101 (text)``,
+``ERROR:0x06020000 #text.``, ``ERROR: 06020000 (text)``."""
+
+
+def answer_document(answer: str) -> dict[str, object]:
+    """An answer as ``exec --json`` prints it: ``sequence`` (None for an answer without
+    one, as Lely's ``help``), ``ok``, and ``answer`` (the text after the sequence) or
+    ``error`` with ``code`` (a 309-3 number) or ``abort_code`` (an SDO abort), ``text`` and
+    the server's ``detail`` when it gave one."""
+    text = answer.replace("\r\n", "\n").rstrip("\n")
+    match = _ERROR_ANSWER.fullmatch(text)
+    if match is None:
+        sequence = _SEQUENCE.match(text)
+        body = text[sequence.end():].lstrip() if sequence else text
+        return {"sequence": int(sequence.group(1)) if sequence else None, "ok": True,
+                "answer": body}
+    number, comment = match.group(2), match.group(3) or match.group(4) or ""
+    described, _, detail = comment.partition(": ")
+    error: dict[str, object] = (
+        {"abort_code": int(number, 16)} if number.startswith("0x") or len(number) == 8
+        else {"code": int(number)})
+    error["text"] = described
+    if detail:
+        error["detail"] = detail
+    return {"sequence": int(match.group(1)), "ok": False, "error": error}
 
 
 def _shell(args: argparse.Namespace) -> int:
@@ -355,7 +415,7 @@ def _shell(args: argparse.Namespace) -> int:
     connection = _connect(args)
     lock = threading.Lock()
     stop = threading.Event()
-    if isinstance(connection, _Remote):
+    if isinstance(connection, Remote):
         remote = connection
 
         def pump() -> None:

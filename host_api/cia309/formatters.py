@@ -112,12 +112,27 @@ def format_value_response(sequence: int, text: str, dialect: Dialect = Dialect.C
     return _answer(sequence, text, dialect)
 
 
+DETAIL_LENGTH = 120
+"""[ours] characters of an explanation after an error's description, at the most."""
+
+
 def format_error(
-    sequence: int, error: int, dialect: Dialect = Dialect.CANOPENNODE, *, describe: bool = True
+    sequence: int, error: int, dialect: Dialect = Dialect.CANOPENNODE, *, describe: bool = True,
+    detail: str | None = None,
 ) -> str:
     """A 309-3 error number: CANopenNode ``ERROR:101 #Syntax error.`` (the description is
-    its default ``CO_CONFIG_GTW_ASCII_ERROR_DESC``), Lely ``ERROR: 101 (Syntax error)``."""
+    its default ``CO_CONFIG_GTW_ASCII_ERROR_DESC``), Lely ``ERROR: 101 (Syntax error)``.
+
+    [ours] ``detail`` says what was wrong, after the description inside the same comment
+    (``#Syntax error: index missing.``): clients read only the number, so the comment is
+    free for people. Control characters become ``?`` so the answer stays one line.
+    """
     text = error_text(error, dialect)
+    if detail:
+        clean = "".join(c if c.isprintable() else "?" for c in detail)
+        if len(clean) > DETAIL_LENGTH:
+            clean = clean[: DETAIL_LENGTH - 3] + "..."
+        text = f"{text}: {clean}"
     if dialect is Dialect.LELY:
         body = f"ERROR: {error}" + (f" ({text})" if describe else "")
     else:

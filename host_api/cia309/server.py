@@ -257,12 +257,12 @@ class Dispatcher:
         if isinstance(line, OverlongLine):
             error = line.error()
             sequence = client.last_sequence if error.sequence is None else error.sequence
-            return format_error(sequence, error.error, dialect)
+            return format_error(sequence, error.error, dialect, detail=str(error))
         try:
             request = parse_request(line, dialect)
         except ParseError as exc:
             sequence = client.last_sequence if exc.sequence is None else exc.sequence
-            return format_error(sequence, exc.error, dialect)
+            return format_error(sequence, exc.error, dialect, detail=str(exc))
         if request is None:
             return format_empty(dialect)
         client.last_sequence = sequence = request.sequence
