@@ -111,15 +111,15 @@ Transact = Callable[[Message], Message]
 
 
 class LssErrorCode(IntEnum):
-    """The CiA 309-3 error numbers an LSS service can fail with."""
+    """The CiA 309-3 error numbers an LSS service can fail with (the model's numbers)."""
 
-    TIME_OUT = 103
-    IMPLEMENTATION_ERROR = 501
+    TIME_OUT = ErrorCode.TIME_OUT
+    IMPLEMENTATION_ERROR = ErrorCode.LSS_IMPLEMENTATION_ERROR
     """LSS implementation- / manufacturer-specific error."""
-    NODE_ID_NOT_SUPPORTED = 502
-    BIT_RATE_NOT_SUPPORTED = 503
-    PARAMETER_STORING_FAILED = 504
-    MEDIA_ERROR = 505
+    NODE_ID_NOT_SUPPORTED = ErrorCode.LSS_NODE_ID_NOT_SUPPORTED
+    BIT_RATE_NOT_SUPPORTED = ErrorCode.LSS_BIT_RATE_NOT_SUPPORTED
+    PARAMETER_STORING_FAILED = ErrorCode.LSS_PARAMETER_STORING_FAILED
+    MEDIA_ERROR = ErrorCode.LSS_MEDIA_ERROR
     """LSS command failed because of media error (here: the card refused the request)."""
 
 
