@@ -210,7 +210,7 @@ def format_value(dtype: DataType, data: bytes, dialect: Dialect = Dialect.CANOPE
 
     Raises DataTypeError with :data:`TYPE_LENGTH_MISMATCH` when a fixed-size type gets a
     different number of bytes; CANopenNode's gateway then falls back to ``hex`` (see
-    ``format_upload`` in the ascii module), Lely's answers with the abort code.
+    ``format_upload`` in the formatters module), Lely's answers with the abort code.
     """
     if dtype.size is not None and len(data) != dtype.size:
         raise DataTypeError(
