@@ -36,7 +36,8 @@ from bench.common import (
     source_fingerprint,
 )
 from dbm_tools.network import parse_network
-from host_api.cia309.gateway import Cia309Error, Gateway
+from host_api.cia309.gateway import Gateway
+from host_api.cia309.model import Cia309Error
 from host_api.cia309.server import BackgroundServer, ServerConfig
 
 NAME = "cia309"

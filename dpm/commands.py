@@ -146,3 +146,29 @@ NMT_STOP = Nmt.STOP
 NMT_PREOP = Nmt.PREOPERATIONAL
 NMT_RESET_NODE = Nmt.RESET_NODE
 NMT_RESET_COMM = Nmt.RESET_COMMUNICATION
+
+# msg.f of CAN-task answers (seed 5.2; texts in dpm.errors.MSG_F_TEXT) and the Err_Event
+# numbers of a node (seed 4.3) that the CiA 309 gateway translates into 309-3 errors.
+F_SDO_ABORT = 3
+F_NO_RESPONSE = 17
+F_NOT_OPERATIONAL = 19
+F_LOCAL_RESOURCE = 20
+"""CON_LR: the node or the bus parameters asked for are not configured."""
+F_PARAMETER_FAULT = 21
+F_TIMEOUT = 48
+F_RECEIVE_BUFFER_OVERSTEPPED = 51
+F_BUFFER_LENGTH_OVERSTEPPED = 53
+F_SERVICE_ACTIVE = 54
+F_FAULTY_PARAMETER = 55
+F_SEQUENCE_ERROR = 57
+F_DOUBLE_NODE_ADDRESS = 60
+F_REMOTE_ADDRESS_RANGE = 161
+F_NOT_CONFIGURED = 200
+F_HANDLER_FAILED = 254
+"""[ours] a handler of the firmware failed unexpectedly; the firmware stays up and says so."""
+ERR_EVENT_GUARDING_FAILED = 30
+ERR_EVENT_LEFT_OPERATIONAL = 31
+ERR_EVENT_GUARD_SEQUENCE = 32
+ERR_EVENT_NODE_STOPPED = 39
+NODE_DIAG_EMCY_ENTRY = 8
+"""Bytes of one EMCY entry in a COM_Node_Diag answer."""

@@ -15,28 +15,62 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from host_api.cia309.ascii import (
-    DEFAULT_MAX_LINE,
+from host_api.cia309.datatypes import (
+    DataTypeError,
+    Dialect,
+    format_value,
+    parse_data_type,
+    parse_integer,
+    parse_value,
+)
+from host_api.cia309.formatters import (
     SDO_ABORT_TEXTS,
+    abort_text,
+    error_text,
+    format_abort,
+    format_empty,
+    format_error,
+    format_event,
+    format_help,
+    format_lss_address,
+    format_lss_node_id,
+    format_lss_number,
+    format_ok,
+    format_pdo_read,
+    format_upload,
+    format_value_response,
+    format_version,
+)
+from host_api.cia309.framing import DEFAULT_MAX_LINE, LineFramer, OverlongLine
+from host_api.cia309.model import (
+    TYPE_LENGTH_MISMATCH,
     BootUpEvent,
+    DataType,
+    EmergencyEvent,
+    ErrorCode,
+    ErrorControlEvent,
+    Event,
+    LssAddress,
+    NmtState,
+    PdoMapping,
+    RpdoEvent,
+    SdoProgressEvent,
+    VersionInfo,
+)
+from host_api.cia309.parser import parse_request
+from host_api.cia309.requests import (
     ConfigureRpdo,
     ConfigureTpdo,
     DisableGuarding,
     DisableHeartbeat,
-    EmergencyEvent,
     EnableGuarding,
     EnableHeartbeat,
     EnterPreoperational,
-    ErrorControlEvent,
-    Event,
-    GatewayError,
     GetVersion,
     Help,
     InitGateway,
-    LineFramer,
     Log,
     LssActivateBitRate,
-    LssAddress,
     LssAddressRange,
     LssAssignNodeId,
     LssCompleteConfiguration,
@@ -53,18 +87,13 @@ from host_api.cia309.ascii import (
     LssStore,
     LssSwitchGlobal,
     LssSwitchSelective,
-    NmtState,
-    OverlongLine,
     ParseError,
-    PdoMapping,
     ReadPdo,
     Request,
     ResetCommunication,
     ResetNode,
     RestoreConfiguration,
-    RpdoEvent,
     SdoDownload,
-    SdoProgressEvent,
     SdoUpload,
     SetBootUpForwarding,
     SetCommandSize,
@@ -78,33 +107,7 @@ from host_api.cia309.ascii import (
     StartNode,
     StopNode,
     StoreConfiguration,
-    VersionInfo,
     WritePdo,
-    abort_text,
-    error_text,
-    format_abort,
-    format_empty,
-    format_error,
-    format_event,
-    format_help,
-    format_lss_address,
-    format_lss_node_id,
-    format_lss_number,
-    format_ok,
-    format_pdo_read,
-    format_upload,
-    format_value_response,
-    format_version,
-    parse_request,
-)
-from host_api.cia309.datatypes import (
-    TYPE_LENGTH_MISMATCH,
-    DataType,
-    DataTypeError,
-    Dialect,
-    format_value,
-    parse_integer,
-    parse_value,
 )
 
 CO = Dialect.CANOPENNODE
@@ -184,7 +187,7 @@ VECTORS = [
 
 @pytest.mark.parametrize(("mnemonic", "text", "wire", "co_text", "lely_text"), VECTORS)
 def test_value_vectors(mnemonic: str, text: str, wire: str, co_text: str, lely_text: str) -> None:
-    dtype = DataType.from_mnemonic(mnemonic)
+    dtype = parse_data_type(mnemonic)
     for dialect in DIALECTS:
         assert parse_value(dtype, text, dialect) == bytes.fromhex(wire)
     assert format_value(dtype, bytes.fromhex(wire), CO) == co_text
@@ -244,7 +247,7 @@ def test_value_vectors(mnemonic: str, text: str, wire: str, co_text: str, lely_t
 )
 def test_malformed_and_out_of_range_values(mnemonic: str, text: str) -> None:
     with pytest.raises(DataTypeError) as caught:
-        parse_value(DataType.from_mnemonic(mnemonic), text, CO)
+        parse_value(parse_data_type(mnemonic), text, CO)
     assert caught.value.abort_code is None  # a syntax error: 309-3 error 101
 
 
@@ -288,9 +291,9 @@ def test_reserved_time_bits_are_not_shown() -> None:
 
 
 def test_data_type_table() -> None:
-    assert DataType.from_mnemonic("U16") is DataType.UNSIGNED16
+    assert parse_data_type("U16") is DataType.UNSIGNED16
     with pytest.raises(DataTypeError):
-        DataType.from_mnemonic("u12")
+        parse_data_type("u12")
     assert DataType.UNSIGNED24.size == 3
     assert DataType.VISIBLE_STRING.size is None
     assert DataType.INTEGER24.cia301_index == 0x10
@@ -392,7 +395,7 @@ def test_framer_reports_an_overlong_line_once_and_resyncs() -> None:
     assert framer.pending == 0
     assert framer.feed(b"AA\r\n[8] start\n") == ["[8] start"]
     error = overlong.error()
-    assert (error.error, error.sequence) == (GatewayError.OUT_OF_MEMORY, 7)
+    assert (error.error, error.sequence) == (ErrorCode.OUT_OF_MEMORY, 7)
     assert OverlongLine("AAAA").sequence is None
     assert OverlongLine("[12").sequence is None
     assert OverlongLine("[x] a").sequence is None
@@ -580,92 +583,92 @@ def _data(request: Request | None) -> bytes:
 
 # line, 309-3 error, sequence echoed
 ERRORS = [
-    ("[1] foo", GatewayError.REQUEST_NOT_SUPPORTED, 1),
-    ("[1] 4 led", GatewayError.REQUEST_NOT_SUPPORTED, 1),
-    ("[2] set foo 1", GatewayError.REQUEST_NOT_SUPPORTED, 2),
-    ("[2] reset all", GatewayError.REQUEST_NOT_SUPPORTED, 2),
-    ("[2] enable sync", GatewayError.REQUEST_NOT_SUPPORTED, 2),
-    ("[2] disable sync", GatewayError.REQUEST_NOT_SUPPORTED, 2),
-    ("[2] info date", GatewayError.REQUEST_NOT_SUPPORTED, 2),
-    ("start", GatewayError.SYNTAX_ERROR, None),
-    ("1 start", GatewayError.SYNTAX_ERROR, None),
-    ("[x] start", GatewayError.SYNTAX_ERROR, None),
-    ("[-1] start", GatewayError.SYNTAX_ERROR, None),
-    ("[4294967296] start", GatewayError.SYNTAX_ERROR, None),
-    ("[1 start", GatewayError.SYNTAX_ERROR, None),
-    ("[3]", GatewayError.SYNTAX_ERROR, 3),
-    ("[3] 4", GatewayError.SYNTAX_ERROR, 3),
-    ("[3] 1 2 3 start", GatewayError.SYNTAX_ERROR, 3),
-    ("[3] 4x start", GatewayError.SYNTAX_ERROR, 3),
-    ("[3] 4 start now", GatewayError.SYNTAX_ERROR, 3),
-    ("[4] read", GatewayError.SYNTAX_ERROR, 4),
-    ("[4] read 0x10000 0", GatewayError.SYNTAX_ERROR, 4),
-    ("[4] read 0x1000 256", GatewayError.SYNTAX_ERROR, 4),
-    ("[4] read 0x1000 0 u12", GatewayError.SYNTAX_ERROR, 4),
-    ("[4] read 0x1000 0 u8 extra", GatewayError.SYNTAX_ERROR, 4),
-    ("[5] write 0x1000 0 u8", GatewayError.SYNTAX_ERROR, 5),
-    ("[5] write 0x1000 0 u8 256", GatewayError.SYNTAX_ERROR, 5),
-    ("[5] write 0x1000 0 u8 1 2", GatewayError.SYNTAX_ERROR, 5),
-    ('[5] write 0x1000 0 vs "open', GatewayError.SYNTAX_ERROR, 5),
-    ('[5] write 0x1000 0 vs "a"b', GatewayError.SYNTAX_ERROR, 5),
-    ("[5] write 0x1000 0 d !!", GatewayError.SYNTAX_ERROR, 5),
-    ("[6] reset", GatewayError.SYNTAX_ERROR, 6),
-    ("[6] set", GatewayError.SYNTAX_ERROR, 6),
-    ("[6] set sdo_timeout 0", GatewayError.SYNTAX_ERROR, 6),
-    ("[6] set sdo_block 2", GatewayError.SYNTAX_ERROR, 6),
-    ("[6] 1 set network 2", GatewayError.SYNTAX_ERROR, 6),
-    ("[6] 1 2 set node 3", GatewayError.SYNTAX_ERROR, 6),
-    ("[6] 1 help", GatewayError.SYNTAX_ERROR, 6),
-    ("[6] help me", GatewayError.SYNTAX_ERROR, 6),
-    ("[6] log now", GatewayError.SYNTAX_ERROR, 6),
-    ("[7] init 10", GatewayError.SYNTAX_ERROR, 7),
-    ("[7] boot_up_indication maybe", GatewayError.SYNTAX_ERROR, 7),
-    ("[7] set rpdo 0 0x201 event 0", GatewayError.SYNTAX_ERROR, 7),
-    ("[7] set rpdo 513 0x201 event 0", GatewayError.SYNTAX_ERROR, 7),
-    ("[7] set rpdo 1 0x201 sync241 0", GatewayError.SYNTAX_ERROR, 7),
-    ("[7] set rpdo 1 0x201 cyclic 0", GatewayError.SYNTAX_ERROR, 7),
-    ("[7] set rpdo 1 0x201 event100 0", GatewayError.SYNTAX_ERROR, 7),
-    ("[7] set rpdo 1 0x201 event 65 u8", GatewayError.SYNTAX_ERROR, 7),
-    ("[7] set rpdo 1 0x201 event 2 u8", GatewayError.SYNTAX_ERROR, 7),
-    ("[7] set rpdo 1 0x201 event 1 vs", GatewayError.SYNTAX_ERROR, 7),
-    ("[7] set rpdo 1 0x201 event 1 0x6000", GatewayError.SYNTAX_ERROR, 7),
-    ("[7] set tpdox 1 0x181 event 500 0", GatewayError.SYNTAX_ERROR, 7),
-    ("[8] w p 1 2 5", GatewayError.SYNTAX_ERROR, 8),
-    ("[8] w p 1 1 5 6", GatewayError.SYNTAX_ERROR, 8),
-    ("[8] r p", GatewayError.SYNTAX_ERROR, 8),
-    ("[8] 1 2 r p 1", GatewayError.SYNTAX_ERROR, 8),
-    ("[9] lss_switch_glob 2", GatewayError.SYNTAX_ERROR, 9),
-    ("[9] lss_switch_sel 1 2 3", GatewayError.SYNTAX_ERROR, 9),
-    ("[9] lss_switch_sel 1 2 3 0x100000000", GatewayError.SYNTAX_ERROR, 9),
-    ("[9] lss_inquire_addr 4", GatewayError.SYNTAX_ERROR, 9),
-    ("[9] lss_inquire_addr 0x5E", GatewayError.SYNTAX_ERROR, 9),
-    ("[9] lss_fastscan 0 32 0 0", GatewayError.SYNTAX_ERROR, 9),
-    ("[9] lss_fastscan 0 0 4 0", GatewayError.SYNTAX_ERROR, 9),
-    ("[9] _lss_fastscan 1 2", GatewayError.SYNTAX_ERROR, 9),
-    ("[9] lss_allnodes 100 2", GatewayError.SYNTAX_ERROR, 9),
-    ("[9] lss_allnodes 100 2 1 3 0 0 0 0 0 0 0", GatewayError.SYNTAX_ERROR, 9),
-    ("[9] lss_store now", GatewayError.SYNTAX_ERROR, 9),
-    ("[10] 0 1 start", GatewayError.UNSUPPORTED_NET, 10),
-    ("[10] 65536 1 start", GatewayError.UNSUPPORTED_NET, 10),
-    ("[10] 0 store", GatewayError.UNSUPPORTED_NET, 10),
-    ("[10] set network 0", GatewayError.UNSUPPORTED_NET, 10),
-    ("[10] set network 65536", GatewayError.UNSUPPORTED_NET, 10),
-    ("[11] 128 start", GatewayError.UNSUPPORTED_NODE, 11),
-    ("[11] 1 200 read 0x1000 0", GatewayError.UNSUPPORTED_NODE, 11),
-    ("[11] 0 read 0x1000 0", GatewayError.UNSUPPORTED_NODE, 11),
-    ("[11] 0 enable heartbeat 100", GatewayError.UNSUPPORTED_NODE, 11),
-    ("[11] set node 0", GatewayError.UNSUPPORTED_NODE, 11),
-    ("[11] set node 128", GatewayError.UNSUPPORTED_NODE, 11),
-    ("[11] set id 128", GatewayError.UNSUPPORTED_NODE, 11),
-    ("[11] lss_set_node 200", GatewayError.UNSUPPORTED_NODE, 11),
-    ("[11] lss_assign 1 2 3 4 255", GatewayError.UNSUPPORTED_NODE, 11),
-    ("[11] lss_allnodes 100 128 1", GatewayError.UNSUPPORTED_NODE, 11),
-    ("[11] set node x", GatewayError.SYNTAX_ERROR, 11),
+    ("[1] foo", ErrorCode.REQUEST_NOT_SUPPORTED, 1),
+    ("[1] 4 led", ErrorCode.REQUEST_NOT_SUPPORTED, 1),
+    ("[2] set foo 1", ErrorCode.REQUEST_NOT_SUPPORTED, 2),
+    ("[2] reset all", ErrorCode.REQUEST_NOT_SUPPORTED, 2),
+    ("[2] enable sync", ErrorCode.REQUEST_NOT_SUPPORTED, 2),
+    ("[2] disable sync", ErrorCode.REQUEST_NOT_SUPPORTED, 2),
+    ("[2] info date", ErrorCode.REQUEST_NOT_SUPPORTED, 2),
+    ("start", ErrorCode.SYNTAX_ERROR, None),
+    ("1 start", ErrorCode.SYNTAX_ERROR, None),
+    ("[x] start", ErrorCode.SYNTAX_ERROR, None),
+    ("[-1] start", ErrorCode.SYNTAX_ERROR, None),
+    ("[4294967296] start", ErrorCode.SYNTAX_ERROR, None),
+    ("[1 start", ErrorCode.SYNTAX_ERROR, None),
+    ("[3]", ErrorCode.SYNTAX_ERROR, 3),
+    ("[3] 4", ErrorCode.SYNTAX_ERROR, 3),
+    ("[3] 1 2 3 start", ErrorCode.SYNTAX_ERROR, 3),
+    ("[3] 4x start", ErrorCode.SYNTAX_ERROR, 3),
+    ("[3] 4 start now", ErrorCode.SYNTAX_ERROR, 3),
+    ("[4] read", ErrorCode.SYNTAX_ERROR, 4),
+    ("[4] read 0x10000 0", ErrorCode.SYNTAX_ERROR, 4),
+    ("[4] read 0x1000 256", ErrorCode.SYNTAX_ERROR, 4),
+    ("[4] read 0x1000 0 u12", ErrorCode.SYNTAX_ERROR, 4),
+    ("[4] read 0x1000 0 u8 extra", ErrorCode.SYNTAX_ERROR, 4),
+    ("[5] write 0x1000 0 u8", ErrorCode.SYNTAX_ERROR, 5),
+    ("[5] write 0x1000 0 u8 256", ErrorCode.SYNTAX_ERROR, 5),
+    ("[5] write 0x1000 0 u8 1 2", ErrorCode.SYNTAX_ERROR, 5),
+    ('[5] write 0x1000 0 vs "open', ErrorCode.SYNTAX_ERROR, 5),
+    ('[5] write 0x1000 0 vs "a"b', ErrorCode.SYNTAX_ERROR, 5),
+    ("[5] write 0x1000 0 d !!", ErrorCode.SYNTAX_ERROR, 5),
+    ("[6] reset", ErrorCode.SYNTAX_ERROR, 6),
+    ("[6] set", ErrorCode.SYNTAX_ERROR, 6),
+    ("[6] set sdo_timeout 0", ErrorCode.SYNTAX_ERROR, 6),
+    ("[6] set sdo_block 2", ErrorCode.SYNTAX_ERROR, 6),
+    ("[6] 1 set network 2", ErrorCode.SYNTAX_ERROR, 6),
+    ("[6] 1 2 set node 3", ErrorCode.SYNTAX_ERROR, 6),
+    ("[6] 1 help", ErrorCode.SYNTAX_ERROR, 6),
+    ("[6] help me", ErrorCode.SYNTAX_ERROR, 6),
+    ("[6] log now", ErrorCode.SYNTAX_ERROR, 6),
+    ("[7] init 10", ErrorCode.SYNTAX_ERROR, 7),
+    ("[7] boot_up_indication maybe", ErrorCode.SYNTAX_ERROR, 7),
+    ("[7] set rpdo 0 0x201 event 0", ErrorCode.SYNTAX_ERROR, 7),
+    ("[7] set rpdo 513 0x201 event 0", ErrorCode.SYNTAX_ERROR, 7),
+    ("[7] set rpdo 1 0x201 sync241 0", ErrorCode.SYNTAX_ERROR, 7),
+    ("[7] set rpdo 1 0x201 cyclic 0", ErrorCode.SYNTAX_ERROR, 7),
+    ("[7] set rpdo 1 0x201 event100 0", ErrorCode.SYNTAX_ERROR, 7),
+    ("[7] set rpdo 1 0x201 event 65 u8", ErrorCode.SYNTAX_ERROR, 7),
+    ("[7] set rpdo 1 0x201 event 2 u8", ErrorCode.SYNTAX_ERROR, 7),
+    ("[7] set rpdo 1 0x201 event 1 vs", ErrorCode.SYNTAX_ERROR, 7),
+    ("[7] set rpdo 1 0x201 event 1 0x6000", ErrorCode.SYNTAX_ERROR, 7),
+    ("[7] set tpdox 1 0x181 event 500 0", ErrorCode.SYNTAX_ERROR, 7),
+    ("[8] w p 1 2 5", ErrorCode.SYNTAX_ERROR, 8),
+    ("[8] w p 1 1 5 6", ErrorCode.SYNTAX_ERROR, 8),
+    ("[8] r p", ErrorCode.SYNTAX_ERROR, 8),
+    ("[8] 1 2 r p 1", ErrorCode.SYNTAX_ERROR, 8),
+    ("[9] lss_switch_glob 2", ErrorCode.SYNTAX_ERROR, 9),
+    ("[9] lss_switch_sel 1 2 3", ErrorCode.SYNTAX_ERROR, 9),
+    ("[9] lss_switch_sel 1 2 3 0x100000000", ErrorCode.SYNTAX_ERROR, 9),
+    ("[9] lss_inquire_addr 4", ErrorCode.SYNTAX_ERROR, 9),
+    ("[9] lss_inquire_addr 0x5E", ErrorCode.SYNTAX_ERROR, 9),
+    ("[9] lss_fastscan 0 32 0 0", ErrorCode.SYNTAX_ERROR, 9),
+    ("[9] lss_fastscan 0 0 4 0", ErrorCode.SYNTAX_ERROR, 9),
+    ("[9] _lss_fastscan 1 2", ErrorCode.SYNTAX_ERROR, 9),
+    ("[9] lss_allnodes 100 2", ErrorCode.SYNTAX_ERROR, 9),
+    ("[9] lss_allnodes 100 2 1 3 0 0 0 0 0 0 0", ErrorCode.SYNTAX_ERROR, 9),
+    ("[9] lss_store now", ErrorCode.SYNTAX_ERROR, 9),
+    ("[10] 0 1 start", ErrorCode.UNSUPPORTED_NET, 10),
+    ("[10] 65536 1 start", ErrorCode.UNSUPPORTED_NET, 10),
+    ("[10] 0 store", ErrorCode.UNSUPPORTED_NET, 10),
+    ("[10] set network 0", ErrorCode.UNSUPPORTED_NET, 10),
+    ("[10] set network 65536", ErrorCode.UNSUPPORTED_NET, 10),
+    ("[11] 128 start", ErrorCode.UNSUPPORTED_NODE, 11),
+    ("[11] 1 200 read 0x1000 0", ErrorCode.UNSUPPORTED_NODE, 11),
+    ("[11] 0 read 0x1000 0", ErrorCode.UNSUPPORTED_NODE, 11),
+    ("[11] 0 enable heartbeat 100", ErrorCode.UNSUPPORTED_NODE, 11),
+    ("[11] set node 0", ErrorCode.UNSUPPORTED_NODE, 11),
+    ("[11] set node 128", ErrorCode.UNSUPPORTED_NODE, 11),
+    ("[11] set id 128", ErrorCode.UNSUPPORTED_NODE, 11),
+    ("[11] lss_set_node 200", ErrorCode.UNSUPPORTED_NODE, 11),
+    ("[11] lss_assign 1 2 3 4 255", ErrorCode.UNSUPPORTED_NODE, 11),
+    ("[11] lss_allnodes 100 128 1", ErrorCode.UNSUPPORTED_NODE, 11),
+    ("[11] set node x", ErrorCode.SYNTAX_ERROR, 11),
 ]
 
 
 @pytest.mark.parametrize(("line", "error", "sequence"), ERRORS, ids=[e[0] for e in ERRORS])
-def test_parse_errors(line: str, error: GatewayError, sequence: int | None) -> None:
+def test_parse_errors(line: str, error: ErrorCode, sequence: int | None) -> None:
     for dialect in DIALECTS:
         with pytest.raises(ParseError) as caught:
             parse_request(line, dialect)
@@ -712,6 +715,12 @@ def test_ok_value_and_error_answers() -> None:
     assert format_error(3, 101, describe=False) == "[3] ERROR:101\r\n"
     assert format_error(3, 101, LELY) == "[3] ERROR: 101 (Syntax error)\n"
     assert format_error(3, 101, LELY, describe=False) == "[3] ERROR: 101\n"
+    assert format_error(3, 101, detail="index missing") == (
+        "[3] ERROR:101 #Syntax error: index missing.\r\n")
+    assert format_error(3, 101, LELY, detail="index missing") == (
+        "[3] ERROR: 101 (Syntax error: index missing)\n")
+    explained = format_error(3, 100, detail="unknown command '\r\n" + "x" * 500 + "'")
+    assert explained.count("\r\n") == 1 and len(explained) < 200  # one line, bounded
     assert format_error(4, 999, LELY) == "[4] ERROR: 999 (Unknown error code)\n"
     assert format_abort(5, 0x06020000) == (
         "[5] ERROR:0x06020000 #Object does not exist in the object dictionary.\r\n"
@@ -774,8 +783,8 @@ def test_error_tables() -> None:
     """Every number of docs/cia309.md has its text; the Lely gateway words two of them shorter."""
     numbers = [100, 101, 102, 103, 104, 105, 106, 107, 200, 201, 202, 203, 204, 205,
                300, 301, 303, 304, 305, 400, 401, 501, 502, 503, 504, 505, 600]
-    assert sorted(int(code) for code in GatewayError) == numbers
-    assert all(GatewayError(number).text for number in numbers)
+    assert sorted(int(code) for code in ErrorCode) == numbers
+    assert all(ErrorCode(number).text for number in numbers)
     assert error_text(305) == "CAN active (at init or start-up)"
     assert error_text(305, LELY) == "CAN active"
     assert error_text(501, LELY) == "LSS error"
@@ -790,10 +799,10 @@ EVENTS: list[tuple[Event, str, str | None]] = [
      'CANopen Remote node ID = 0x05: NMT state changed to: "initializing" (0)\r\n'),
     (ErrorControlEvent(1, 5, NmtState.OPERATIONAL), "1 5 ERRORx OPER\n",
      'CANopen Remote node ID = 0x05: NMT state changed to: "operational" (5)\r\n'),
-    (ErrorControlEvent(2, 6, NmtState.PRE_OPERATIONAL, GatewayError.HEARTBEAT_STARTED),
+    (ErrorControlEvent(2, 6, NmtState.PRE_OPERATIONAL, ErrorCode.HEARTBEAT_STARTED),
      "2 6 ERRORx PREO 202 (Heartbeat started)\n",
      'CANopen Remote node ID = 0x06: NMT state changed to: "pre-operational" (127)\r\n'),
-    (ErrorControlEvent(1, 5, error=GatewayError.HEARTBEAT_LOST), "1 5 ERROR 203 (Heartbeat lost)\n",
+    (ErrorControlEvent(1, 5, error=ErrorCode.HEARTBEAT_LOST), "1 5 ERROR 203 (Heartbeat lost)\n",
      'CANopen Remote node ID = 0x05: NMT state changed to: "unknown" (-1)\r\n'),
     (ErrorControlEvent(1, 7, NmtState.INITIALIZING), "1 7 ERROR\n",
      'CANopen Remote node ID = 0x07: NMT state changed to: "initializing" (0)\r\n'),

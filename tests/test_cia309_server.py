@@ -11,6 +11,7 @@ without configuration for the ``cifemu 309 serve`` subprocess.
 from __future__ import annotations
 
 import base64
+import json
 import os
 import pty
 import queue
@@ -26,7 +27,7 @@ from pathlib import Path
 
 import pytest
 
-from host_api.cia309.cli import open_lss
+from host_api.cia309.cli import Remote, open_lss
 from host_api.cia309.datatypes import Dialect
 from host_api.cia309.gateway import Gateway
 from host_api.cia309.server import BackgroundServer, ServerConfig
@@ -232,21 +233,26 @@ def test_read_only_refuses_writes_and_nmt(connect: Connect) -> None:
 
 def test_malformed_lines_keep_the_connection(connect: Connect) -> None:
     c = connect("canopennode")
-    assert c.ask("hello\n") == "[0] ERROR:101 #Syntax error.\r\n"
-    assert c.ask(b"\xff\xfe\x00garbage\n".decode("latin-1")) == "[0] ERROR:101 #Syntax error.\r\n"
-    assert c.ask("[5] 2 read\n") == "[5] ERROR:101 #Syntax error.\r\n"
-    assert c.ask("[6] 2 frobnicate\n") == "[6] ERROR:100 #Request not supported.\r\n"
-    assert c.ask("[7] 200 read 0x1000 0 u8\n") == "[7] ERROR:107 #Unsupported node.\r\n"
+    assert c.ask("hello\n") == (
+        "[0] ERROR:101 #Syntax error: a request starts with [<sequence>].\r\n")
+    assert c.ask(b"\xff\xfe\x00garbage\n".decode("latin-1")).startswith("[0] ERROR:101 #")
+    assert c.ask("[5] 2 read\n") == "[5] ERROR:101 #Syntax error: index missing.\r\n"
+    assert c.ask("[6] 2 frobnicate\n") == (
+        "[6] ERROR:100 #Request not supported: unknown command 'frobnicate'.\r\n")
+    assert c.ask("[7] 200 read 0x1000 0 u8\n") == (
+        "[7] ERROR:107 #Unsupported node: node 200 is not addressable.\r\n")
     assert c.ask("[8] 3 2 read 0x1000 0 u8\n") == "[8] ERROR:106 #Unsupported net.\r\n"
     assert c.ask("[9] read 0x1000 0 u8\n") == "[9] ERROR:105 #No default node set.\r\n"
     assert c.ask("[10] 42 read 0x1000 0 u32\n") == "[10] ERROR:103 #Time-out.\r\n"
     assert c.ask("[11] set sdo_block 1\n") == "[11] ERROR:100 #Request not supported.\r\n"
     assert c.ask("[12] set command_size 64\n") == "[12] OK\r\n"
     long_line = f'[13] 2 write 0x2009 0 vs "{"x" * 100}"\n'
-    assert c.ask(long_line) == "[13] ERROR:600 #Running out of memory.\r\n"
+    assert c.ask(long_line) == (
+        "[13] ERROR:600 #Running out of memory: request longer than the command size.\r\n")
     assert c.ask("[14] 2 read 0x2006 0 u16\n").startswith("[14] ")  # still served
     assert c.ask("[15] set command_size 200000\n") == "[15] ERROR:600 #Running out of memory.\r\n"
-    assert c.ask("[16] wait\n") == "[16] ERROR:100 #Request not supported.\r\n"
+    assert c.ask("[16] wait\n") == (
+        "[16] ERROR:100 #Request not supported: unknown command 'wait'.\r\n")
 
 
 def test_lss_requests_reach_the_lss_services(connect: Connect) -> None:
@@ -327,3 +333,61 @@ def test_cli_serve_exec_and_shell(servers: dict[str, BackgroundServer], director
         assert (done.returncode, done.stdout) == (0, f"[1] {version}\n")
     finally:
         card.stop()
+
+
+def test_cli_exec_answers_errors_and_json(servers: dict[str, BackgroundServer]) -> None:
+    """Issue 14: ``exec help`` succeeds; a syntax error says what was wrong; ``--json``
+    gives answers and errors as one object; no server names host:port and the way out."""
+    port = str(servers["canopennode"].port)
+
+    def run(*args: str) -> subprocess.CompletedProcess[str]:
+        return subprocess.run(cifemu("exec", *args), capture_output=True, text=True, timeout=30)
+
+    done = run("--port", port, "help")
+    assert done.returncode == 0 and "Command strings start with" in done.stdout
+    done = run("--port", port, "[5] 2 read")
+    assert (done.returncode, done.stdout) == (1, "[5] ERROR:101 #Syntax error: index missing.\n")
+    done = run("--port", port, "--json", "[5] 2 read")
+    assert done.returncode == 1
+    assert json.loads(done.stdout) == {"sequence": 5, "ok": False, "error": {
+        "code": 101, "text": "Syntax error", "detail": "index missing"}}
+    done = run("--port", port, "--json", "[6] 2 read 0x1000 0 u32")
+    assert (done.returncode, json.loads(done.stdout)) == (0, {"sequence": 6, "ok": True,
+                                                              "answer": "0"})
+    done = run("--port", port, "--json", "[7] 2 read 0x5555 0 u32")
+    assert json.loads(done.stdout)["error"] == {
+        "abort_code": 0x0602_0000, "text": "Object does not exist in the object dictionary"}
+    with socket.socket() as unused:  # a port nobody listens on
+        unused.bind(("127.0.0.1", 0))
+        free = str(unused.getsockname()[1])
+    done = run("--port", free, "info version")
+    assert done.returncode == 1 and not done.stdout
+    assert f"127.0.0.1:{free}" in done.stderr and "cifemu 309 serve" in done.stderr
+    done = run("--port", free, "--json", "info version")
+    assert done.returncode == 1
+    assert "cifemu 309 serve" in json.loads(done.stdout)["error"]["text"]
+
+
+def test_shell_connects_again_after_the_idle_time_out(
+        servers: dict[str, BackgroundServer], capsys: pytest.CaptureFixture[str]) -> None:
+    """A shell left alone longer than the server's idle time-out asks its next request on a
+    new connection instead of failing."""
+    gateway = servers["canopennode"].server.gateway
+    short = BackgroundServer(gateway, ServerConfig(port=0, idle_timeout=0.3))
+    try:
+        remote = Remote("127.0.0.1", short.port, 10, lambda line: None)
+        assert remote.ask("[1] 2 read 0x1000 0 u32", 1) == "[1] 0\r\n"
+
+        def closed() -> bool:
+            try:
+                remote.poll_events()
+            except ConnectionError:
+                return True
+            return False
+
+        wait_until(closed, 5, "the server closing the idle connection")
+        assert remote.ask("[2] 2 read 0x1000 0 u32", 2) == "[2] 0\r\n"
+        assert "connected again" in capsys.readouterr().err
+        remote.close()
+    finally:
+        short.close()

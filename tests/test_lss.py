@@ -21,7 +21,8 @@ from pathlib import Path
 import pytest
 
 from dbm_tools.network import parse_network
-from dpm.message import Message
+from dpm.commands import COM_CFGRX_LAYER2, COM_RX_CAN_LAYER2, COM_SDO_UP_DOWNLOAD, COM_TX_CAN_LAYER2
+from dpm.message import Message, Task
 from firmware.sim.generic import GENERIC_PRODUCT_CODE, GENERIC_REVISION, GENERIC_VENDOR_ID
 from host_api.board import Board, CifError
 from host_api.cia309.lss import (
@@ -42,7 +43,6 @@ NETWORK = "[[node]]\nid = 5\n" + "".join(
     f"revision = {a.revision}, serial = {a.serial} }}\n" for a in SLAVES)
 NODE_5 = LssAddress(GENERIC_VENDOR_ID, GENERIC_PRODUCT_CODE, GENERIC_REVISION, 5)
 """The generic module's 1018h: its LSS address."""
-COM_CFGRX_LAYER2, COM_RX_CAN_LAYER2, COM_TX_CAN_LAYER2, COM_SDO_UP_DOWNLOAD = 82, 83, 84, 74
 TIMEOUT_S = 0.3
 
 
@@ -56,10 +56,10 @@ class Rig:
 
     def layer2(self, frames: bytes) -> None:
         """Raw layer-2 frames from the host (NMT, for one)."""
-        self.board.put_message(Message(rx=3, tx=16, b=COM_TX_CAN_LAYER2, data=frames))
+        self.board.put_message(Message(rx=Task.CAN, tx=Task.USER, b=COM_TX_CAN_LAYER2, data=frames))
 
     def listen(self, cob_id: int) -> None:
-        answer = self.board.transact(Message(rx=3, tx=16, b=COM_CFGRX_LAYER2,
+        answer = self.board.transact(Message(rx=Task.CAN, tx=Task.USER, b=COM_CFGRX_LAYER2,
                                              data=bytes([cob_id & 0xFF, cob_id >> 8])))
         assert answer.f == 0
 
@@ -78,7 +78,8 @@ class Rig:
 
     def sdo_read(self, node: int, index: int, sub: int) -> int:
         head = struct.pack("<BBHBBBB", node, 0, index, sub, 0, 0, 1)
-        answer = self.board.transact(Message(rx=3, tx=16, b=COM_SDO_UP_DOWNLOAD, data=head))
+        answer = self.board.transact(Message(rx=Task.CAN, tx=Task.USER, b=COM_SDO_UP_DOWNLOAD,
+                                             data=head))
         assert answer.f == 0, f"SDO read of node {node}: msg.f {answer.f}"
         return int.from_bytes(answer.data[8:], "little")
 

@@ -2,6 +2,7 @@
 
   cifemu 309 serve [--host 127.0.0.1] [--port 60000] [--board N | --network N ...]
                    [--dialect canopennode|lely] [--read-only] [--max-clients N] [--max-line N]
+                   [--idle-timeout S] [--line-timeout S] [--max-output N]
   cifemu 309 exec '[1] 4 read 0x1017 0 u16'     one request to a running server
   cifemu 309 exec --direct '4 read 0x1017 0 u16'  ... or to a gateway in this process
   cifemu 309 shell [--direct]                    interactive, with history
@@ -17,6 +18,8 @@ import argparse
 import asyncio
 import contextlib
 import importlib
+import json
+import math
 import re
 import signal
 import socket
@@ -30,12 +33,17 @@ from platformdirs import user_state_path
 
 from dpm.image import MAX_DEV_BOARDS
 from dpm.message import Message
-from host_api.cia309.ascii import DEFAULT_MAX_LINE, Event, LineFramer, format_event
 from host_api.cia309.datatypes import Dialect
-from host_api.cia309.gateway import Cia309Error, Gateway
+from host_api.cia309.formatters import format_event
+from host_api.cia309.framing import DEFAULT_MAX_LINE, LineFramer
+from host_api.cia309.gateway import Gateway
+from host_api.cia309.model import Cia309Error, Event
 from host_api.cia309.server import (
     DEFAULT_HOST,
+    DEFAULT_IDLE_TIMEOUT,
+    DEFAULT_LINE_TIMEOUT,
     DEFAULT_MAX_CLIENTS,
+    DEFAULT_MAX_OUTPUT,
     DEFAULT_PORT,
     Client,
     Dispatcher,
@@ -77,10 +85,24 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                               metavar="N", help=f"longest request in bytes until a client "
                                                 f"sets its command size (default "
                                                 f"{DEFAULT_MAX_LINE})")
+    serve_parser.add_argument("--idle-timeout", type=_seconds, default=DEFAULT_IDLE_TIMEOUT,
+                              metavar="S", help=f"drop a client that sends nothing for S "
+                                                f"seconds while no request of its runs "
+                                                f"(default {DEFAULT_IDLE_TIMEOUT:g}; 0: never)")
+    serve_parser.add_argument("--line-timeout", type=_seconds, default=DEFAULT_LINE_TIMEOUT,
+                              metavar="S", help=f"drop a client whose request line is not "
+                                                f"ended S seconds after its first byte "
+                                                f"(default {DEFAULT_LINE_TIMEOUT:g}; 0: never)")
+    serve_parser.add_argument("--max-output", type=_positive, default=DEFAULT_MAX_OUTPUT,
+                              metavar="N", help=f"drop a client that leaves more than N bytes "
+                                                f"of answers and events unread (default "
+                                                f"{DEFAULT_MAX_OUTPUT})")
     serve_parser.set_defaults(action_func=_serve)
     exec_parser = sub.add_parser("exec", help="send one request, print its answer",
                                  description="Send one request and print the answer.")
     exec_parser.add_argument("request", help="e.g. '[1] 4 read 0x1017 0 u16'")
+    exec_parser.add_argument("--json", action="store_true",
+                             help="print the answer, or the error, as one JSON object")
     _client_arguments(exec_parser)
     exec_parser.set_defaults(action_func=_exec)
     shell_parser = sub.add_parser("shell", help="interactive requests with history",
@@ -96,6 +118,16 @@ def _positive(text: str) -> int:
     value = int(text)
     if value <= 0:
         raise argparse.ArgumentTypeError(f"{text} is not positive")
+    return value
+
+
+def _seconds(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text} is not a number of seconds") from None
+    if not (value >= 0 and math.isfinite(value)):
+        raise argparse.ArgumentTypeError(f"{text} is not a finite number of seconds >= 0")
     return value
 
 
@@ -127,11 +159,11 @@ def run(args: argparse.Namespace) -> int:
     action: Callable[[argparse.Namespace], int] = args.action_func
     try:
         return action(args)
-    except Cia309Error as exc:
-        print(f"cifemu 309: {exc}", file=sys.stderr)
-        return 1
-    except OSError as exc:
-        print(f"cifemu 309: {exc}", file=sys.stderr)
+    except (Cia309Error, OSError) as exc:
+        if getattr(args, "json", False):
+            print(json.dumps({"ok": False, "error": {"text": str(exc)}}))
+        else:
+            print(f"cifemu 309: {exc}", file=sys.stderr)
         return 1
 
 
@@ -173,7 +205,8 @@ def open_lss(gateway: Gateway) -> LssFactory | None:
 
 def _serve(args: argparse.Namespace) -> int:
     config = ServerConfig(args.host, args.port, args.dialect, args.read_only,
-                          args.max_clients, args.max_line)
+                          args.max_clients, args.max_line, args.idle_timeout,
+                          args.line_timeout, args.max_output)
     with Gateway(_boards(args), args.dpm_dir) as gateway:
         asyncio.run(_serve_until_signal(gateway, config, open_lss(gateway)))
     return 0
@@ -208,19 +241,42 @@ def _with_sequence(request: str, sequence: int) -> tuple[str, int]:
     return f"[{sequence}] {request.strip()}", sequence
 
 
-class _Remote:
+class Remote:
     """A connection to a running server: sends requests, tells answers from event lines."""
 
     def __init__(self, host: str, port: int, timeout: float,
                  on_event: Callable[[str], None]) -> None:
-        self._socket = socket.create_connection((host, port), timeout=timeout)
-        self._socket.settimeout(QUIET_S)
+        self._host, self._port = host, port
+        self._address = f"{host}:{port}"
         self._timeout = timeout
         self._on_event = on_event
+        self._socket = self._connect()
         self._buffer = b""
+        self._closed = False
+
+    def _connect(self) -> socket.socket:
+        try:
+            connection = socket.create_connection((self._host, self._port),
+                                                  timeout=self._timeout)
+        except OSError as exc:
+            reason = exc.strerror or str(exc)
+            raise ConnectionError(f"no 309-3 server at {self._address} ({reason}); start one "
+                                  "with 'cifemu 309 serve'") from exc
+        connection.settimeout(QUIET_S)
+        return connection
 
     def ask(self, line: str, sequence: int) -> str:
-        """Send ``line``; return its answer (every line of it)."""
+        """Send ``line``; return its answer (every line of it).
+
+        A connection the server ended while nothing was asked (its idle time-out, [ours])
+        is opened again first: the request was not sent, so nothing is asked twice; the
+        settings made with ``set`` on the old connection are gone, and a note says so.
+        """
+        if self._closed:
+            self._socket.close()
+            self._socket, self._buffer, self._closed = self._connect(), b"", False
+            print(f"cifemu 309: the server at {self._address} had closed the connection; "
+                  "connected again (defaults set with 'set' are gone)", file=sys.stderr)
         self._socket.sendall(line.encode("latin-1") + b"\n")
         answer: list[str] = []
         deadline = time.monotonic() + self._timeout
@@ -252,7 +308,8 @@ class _Remote:
             except TimeoutError:
                 return None
             if not chunk:
-                raise ConnectionError("the server closed the connection")
+                self._closed = True
+                raise ConnectionError(f"the server at {self._address} closed the connection")
             self._buffer += chunk
         line, _, self._buffer = self._buffer.partition(b"\n")
         return (line + b"\n").decode("latin-1")
@@ -298,10 +355,10 @@ def _print_event(text: str) -> None:
     _print_answer(text)
 
 
-def _connect(args: argparse.Namespace) -> _Remote | _Direct:
+def _connect(args: argparse.Namespace) -> Remote | _Direct:
     if args.direct:
         return _Direct(args, _print_event)
-    return _Remote(args.host, args.port, args.timeout, _print_event)
+    return Remote(args.host, args.port, args.timeout, _print_event)
 
 
 def _exec(args: argparse.Namespace) -> int:
@@ -311,8 +368,41 @@ def _exec(args: argparse.Namespace) -> int:
         answer = connection.ask(line, sequence)
     finally:
         connection.close()
-    _print_answer(answer)
-    return 1 if "ERROR" in answer else 0
+    document = answer_document(answer)
+    if args.json:
+        print(json.dumps(document))
+    else:
+        _print_answer(answer)
+    return 0 if document["ok"] else 1
+
+
+_ERROR_ANSWER = re.compile(
+    r"\[(\d+)\] ERROR:\s*(0x[0-9A-Fa-f]+|[0-9A-Fa-f]{8}|\d+)\s*(?:#(.*?)\.?|\((.*)\))?\s*")
+"""A 309-3 error answer of either dialect: ``ERROR:101 #text.``, ``ERROR: 101 (text)``,
+``ERROR:0x06020000 #text.``, ``ERROR: 06020000 (text)``."""
+
+
+def answer_document(answer: str) -> dict[str, object]:
+    """An answer as ``exec --json`` prints it: ``sequence`` (None for an answer without
+    one, as Lely's ``help``), ``ok``, and ``answer`` (the text after the sequence) or
+    ``error`` with ``code`` (a 309-3 number) or ``abort_code`` (an SDO abort), ``text`` and
+    the server's ``detail`` when it gave one."""
+    text = answer.replace("\r\n", "\n").rstrip("\n")
+    match = _ERROR_ANSWER.fullmatch(text)
+    if match is None:
+        sequence = _SEQUENCE.match(text)
+        body = text[sequence.end():].lstrip() if sequence else text
+        return {"sequence": int(sequence.group(1)) if sequence else None, "ok": True,
+                "answer": body}
+    number, comment = match.group(2), match.group(3) or match.group(4) or ""
+    described, _, detail = comment.partition(": ")
+    error: dict[str, object] = (
+        {"abort_code": int(number, 16)} if number.startswith("0x") or len(number) == 8
+        else {"code": int(number)})
+    error["text"] = described
+    if detail:
+        error["detail"] = detail
+    return {"sequence": int(match.group(1)), "ok": False, "error": error}
 
 
 def _shell(args: argparse.Namespace) -> int:
@@ -325,7 +415,7 @@ def _shell(args: argparse.Namespace) -> int:
     connection = _connect(args)
     lock = threading.Lock()
     stop = threading.Event()
-    if isinstance(connection, _Remote):
+    if isinstance(connection, Remote):
         remote = connection
 
         def pump() -> None:

@@ -1,10 +1,11 @@
-"""CiA 309-3 data type mnemonics and their codecs between ASCII values and CiA 301 bytes.
+"""CiA 309-3 values in text: the codecs between ASCII values and CiA 301 bytes.
 
-An SDO request names a data type (``u16``, ``vs``, ...) and, for a download, a value in
-text. The gateway needs the value as the little-endian bytes CiA 301 puts on the bus, and
-an upload answer needs those bytes back in text. Both directions are pure functions here,
-tested against byte vectors, so the 309-3 server and the service layer share one codec and
-neither touches I/O (the same split as cantools' message codecs).
+An SDO request names a data type (``u16``, ``vs``, ...; :class:`~host_api.cia309.model.DataType`
+with its sizes is in the model) and, for a download, a value in text. The gateway needs the
+value as the little-endian bytes CiA 301 puts on the bus, and an upload answer needs those
+bytes back in text. Both directions are pure functions here, tested against byte vectors,
+part of the text layer (the typed service layer has its own codec of Python values,
+``model.encode_value``), touching no I/O (the same split as cantools' message codecs).
 
 Two gateways that exist today define what clients expect, and they disagree in places:
 
@@ -29,15 +30,15 @@ import base64
 import math
 import re
 import struct
-from dataclasses import dataclass
 from enum import Enum, StrEnum
 
-TYPE_LENGTH_MISMATCH = 0x06070010
-"""CiA 301 SDO abort code: data type does not match, length of service parameter does not
-match. Uploaded bytes that cannot be a value of the requested type answer with it (Lely)."""
-
-TIME_MS_MASK = 0x0FFF_FFFF
-"""TIME_OF_DAY / TIME_DIFFERENCE keep milliseconds in the low 28 bits; the top 4 are reserved."""
+from host_api.cia309.model import (
+    TIME_MS_MASK,
+    TYPE_LENGTH_MISMATCH,
+    Cia309Error,
+    DataType,
+    ErrorCode,
+)
 
 
 class Dialect(StrEnum):
@@ -52,76 +53,25 @@ class Dialect(StrEnum):
         return "\r\n" if self is Dialect.CANOPENNODE else "\n"
 
 
-class DataTypeError(ValueError):
+class DataTypeError(Cia309Error, ValueError):
     """A value that is not of its data type, or bytes that cannot be one.
 
     ``abort_code`` is None for malformed or out-of-range text, which a 309-3 answer reports
-    as error 101 (syntax). For bytes of the wrong length it is the CiA 301 abort code the
-    answer carries instead (:data:`TYPE_LENGTH_MISMATCH`).
+    as error 101 (syntax, ``error``). For bytes of the wrong length it is the CiA 301 abort
+    code the answer carries instead (:data:`~host_api.cia309.model.TYPE_LENGTH_MISMATCH`).
     """
 
     def __init__(self, message: str, *, abort_code: int | None = None) -> None:
-        super().__init__(message)
-        self.abort_code = abort_code
+        error = ErrorCode.SYNTAX_ERROR if abort_code is None else None
+        super().__init__(error, message, abort_code=abort_code)
 
 
-class DataType(StrEnum):
-    """The 309-3 data type mnemonics; the value is the mnemonic as written on the line."""
-
-    BOOLEAN = "b"
-    INTEGER8 = "i8"
-    INTEGER16 = "i16"
-    INTEGER24 = "i24"
-    INTEGER32 = "i32"
-    INTEGER40 = "i40"
-    INTEGER48 = "i48"
-    INTEGER56 = "i56"
-    INTEGER64 = "i64"
-    UNSIGNED8 = "u8"
-    UNSIGNED16 = "u16"
-    UNSIGNED24 = "u24"
-    UNSIGNED32 = "u32"
-    UNSIGNED40 = "u40"
-    UNSIGNED48 = "u48"
-    UNSIGNED56 = "u56"
-    UNSIGNED64 = "u64"
-    HEX8 = "x8"
-    HEX16 = "x16"
-    HEX32 = "x32"
-    HEX64 = "x64"
-    REAL32 = "r32"
-    REAL64 = "r64"
-    TIME_OF_DAY = "t"
-    TIME_DIFFERENCE = "td"
-    VISIBLE_STRING = "vs"
-    OCTET_STRING = "os"
-    UNICODE_STRING = "us"
-    DOMAIN = "d"
-    HEX = "hex"
-
-    @classmethod
-    def from_mnemonic(cls, token: str) -> DataType:
-        """The type a request names; both gateways compare mnemonics case-insensitively."""
-        try:
-            return cls(token.lower())
-        except ValueError:
-            raise DataTypeError(f"unknown data type {token!r}") from None
-
-    @property
-    def size(self) -> int | None:
-        """Bytes on the bus, or None for the variable-length types."""
-        return _SPECS[self].size
-
-    @property
-    def cia301_index(self) -> int | None:
-        """The CiA 301 data type index (object 0x0001..0x001B), also the index of a dummy
-        PDO mapping; None for the non-standard ``hex``."""
-        return _SPECS[self].index
-
-    @property
-    def pdo_mappable(self) -> bool:
-        """309-1 4.2.1: strings and domains are not PDO access data types."""
-        return self.size is not None
+def parse_data_type(token: str) -> DataType:
+    """The type a request names; both gateways compare mnemonics case-insensitively."""
+    try:
+        return DataType(token.lower())
+    except ValueError:
+        raise DataTypeError(f"unknown data type {token!r}") from None
 
 
 class _Kind(Enum):
@@ -136,44 +86,37 @@ class _Kind(Enum):
     HEX_BYTES = "hex bytes"
 
 
-@dataclass(frozen=True)
-class _Spec:
-    kind: _Kind
-    size: int | None
-    index: int | None
-
-
-_SPECS: dict[DataType, _Spec] = {
-    DataType.BOOLEAN: _Spec(_Kind.BOOLEAN, 1, 0x0001),
-    DataType.INTEGER8: _Spec(_Kind.SIGNED, 1, 0x0002),
-    DataType.INTEGER16: _Spec(_Kind.SIGNED, 2, 0x0003),
-    DataType.INTEGER24: _Spec(_Kind.SIGNED, 3, 0x0010),
-    DataType.INTEGER32: _Spec(_Kind.SIGNED, 4, 0x0004),
-    DataType.INTEGER40: _Spec(_Kind.SIGNED, 5, 0x0012),
-    DataType.INTEGER48: _Spec(_Kind.SIGNED, 6, 0x0013),
-    DataType.INTEGER56: _Spec(_Kind.SIGNED, 7, 0x0014),
-    DataType.INTEGER64: _Spec(_Kind.SIGNED, 8, 0x0015),
-    DataType.UNSIGNED8: _Spec(_Kind.UNSIGNED, 1, 0x0005),
-    DataType.UNSIGNED16: _Spec(_Kind.UNSIGNED, 2, 0x0006),
-    DataType.UNSIGNED24: _Spec(_Kind.UNSIGNED, 3, 0x0016),
-    DataType.UNSIGNED32: _Spec(_Kind.UNSIGNED, 4, 0x0007),
-    DataType.UNSIGNED40: _Spec(_Kind.UNSIGNED, 5, 0x0018),
-    DataType.UNSIGNED48: _Spec(_Kind.UNSIGNED, 6, 0x0019),
-    DataType.UNSIGNED56: _Spec(_Kind.UNSIGNED, 7, 0x001A),
-    DataType.UNSIGNED64: _Spec(_Kind.UNSIGNED, 8, 0x001B),
-    DataType.HEX8: _Spec(_Kind.HEX_UNSIGNED, 1, 0x0005),
-    DataType.HEX16: _Spec(_Kind.HEX_UNSIGNED, 2, 0x0006),
-    DataType.HEX32: _Spec(_Kind.HEX_UNSIGNED, 4, 0x0007),
-    DataType.HEX64: _Spec(_Kind.HEX_UNSIGNED, 8, 0x001B),
-    DataType.REAL32: _Spec(_Kind.REAL, 4, 0x0008),
-    DataType.REAL64: _Spec(_Kind.REAL, 8, 0x0011),
-    DataType.TIME_OF_DAY: _Spec(_Kind.TIME, 6, 0x000C),
-    DataType.TIME_DIFFERENCE: _Spec(_Kind.TIME, 6, 0x000D),
-    DataType.VISIBLE_STRING: _Spec(_Kind.VISIBLE, None, 0x0009),
-    DataType.OCTET_STRING: _Spec(_Kind.BASE64, None, 0x000A),
-    DataType.UNICODE_STRING: _Spec(_Kind.BASE64, None, 0x000B),
-    DataType.DOMAIN: _Spec(_Kind.BASE64, None, 0x000F),
-    DataType.HEX: _Spec(_Kind.HEX_BYTES, None, None),
+_KINDS: dict[DataType, _Kind] = {
+    DataType.BOOLEAN: _Kind.BOOLEAN,
+    DataType.INTEGER8: _Kind.SIGNED,
+    DataType.INTEGER16: _Kind.SIGNED,
+    DataType.INTEGER24: _Kind.SIGNED,
+    DataType.INTEGER32: _Kind.SIGNED,
+    DataType.INTEGER40: _Kind.SIGNED,
+    DataType.INTEGER48: _Kind.SIGNED,
+    DataType.INTEGER56: _Kind.SIGNED,
+    DataType.INTEGER64: _Kind.SIGNED,
+    DataType.UNSIGNED8: _Kind.UNSIGNED,
+    DataType.UNSIGNED16: _Kind.UNSIGNED,
+    DataType.UNSIGNED24: _Kind.UNSIGNED,
+    DataType.UNSIGNED32: _Kind.UNSIGNED,
+    DataType.UNSIGNED40: _Kind.UNSIGNED,
+    DataType.UNSIGNED48: _Kind.UNSIGNED,
+    DataType.UNSIGNED56: _Kind.UNSIGNED,
+    DataType.UNSIGNED64: _Kind.UNSIGNED,
+    DataType.HEX8: _Kind.HEX_UNSIGNED,
+    DataType.HEX16: _Kind.HEX_UNSIGNED,
+    DataType.HEX32: _Kind.HEX_UNSIGNED,
+    DataType.HEX64: _Kind.HEX_UNSIGNED,
+    DataType.REAL32: _Kind.REAL,
+    DataType.REAL64: _Kind.REAL,
+    DataType.TIME_OF_DAY: _Kind.TIME,
+    DataType.TIME_DIFFERENCE: _Kind.TIME,
+    DataType.VISIBLE_STRING: _Kind.VISIBLE,
+    DataType.OCTET_STRING: _Kind.BASE64,
+    DataType.UNICODE_STRING: _Kind.BASE64,
+    DataType.DOMAIN: _Kind.BASE64,
+    DataType.HEX: _Kind.HEX_BYTES,
 }
 
 _MAX_NUMBER_TEXT = 128
@@ -206,6 +149,7 @@ def parse_integer(token: str, low: int, high: int, what: str = "value") -> int:
 
     So ``0x1017``, ``4119`` and ``010`` (octal 8) are accepted and ``08`` is not, as in C; a
     sign is allowed, but unlike ``strtoul`` a negative number is never wrapped into range.
+    Raises DataTypeError (101) for anything else.
     """
     match = _C_INTEGER.fullmatch(token) if len(token) <= _MAX_NUMBER_TEXT else None
     if match is None:
@@ -227,10 +171,10 @@ def parse_value(dtype: DataType, text: str, dialect: Dialect = Dialect.CANOPENNO
     """The CiA 301 bytes of ``text``, the value part of a download request.
 
     ``text`` is everything after the data type with the comment removed; only the
-    variable-length types and ``t``/``td`` may span several words.
+    variable-length types and ``t``/``td`` may span several words. Raises DataTypeError
+    (101) for text that is no value of the type.
     """
-    spec = _SPECS[dtype]
-    kind = spec.kind
+    kind = _KINDS[dtype]
     text = text.strip()
     if not text:
         raise DataTypeError(f"no value for data type {dtype.value}")
@@ -249,7 +193,7 @@ def parse_value(dtype: DataType, text: str, dialect: Dialect = Dialect.CANOPENNO
         return data
     if kind is _Kind.REAL:
         return _parse_real(text, single=dtype is DataType.REAL32)
-    size = spec.size
+    size = dtype.size
     assert size is not None  # every remaining kind has a fixed size
     if kind is _Kind.BOOLEAN:
         return bytes([parse_integer(text, 0, 1, "BOOLEAN")])
@@ -266,15 +210,14 @@ def format_value(dtype: DataType, data: bytes, dialect: Dialect = Dialect.CANOPE
 
     Raises DataTypeError with :data:`TYPE_LENGTH_MISMATCH` when a fixed-size type gets a
     different number of bytes; CANopenNode's gateway then falls back to ``hex`` (see
-    ``format_upload`` in the ascii module), Lely's answers with the abort code.
+    ``format_upload`` in the formatters module), Lely's answers with the abort code.
     """
-    spec = _SPECS[dtype]
-    if spec.size is not None and len(data) != spec.size:
+    if dtype.size is not None and len(data) != dtype.size:
         raise DataTypeError(
-            f"{len(data)} bytes are no {dtype.value} value ({spec.size} bytes)",
+            f"{len(data)} bytes are no {dtype.value} value ({dtype.size} bytes)",
             abort_code=TYPE_LENGTH_MISMATCH,
         )
-    kind = spec.kind
+    kind = _KINDS[dtype]
     if kind is _Kind.BOOLEAN:
         if dialect is Dialect.LELY:
             return "1" if data[0] else "0"

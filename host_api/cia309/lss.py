@@ -56,17 +56,14 @@ from collections.abc import Callable, Iterable
 from enum import IntEnum
 from typing import Concatenate, NamedTuple, ParamSpec, TypeVar
 
+from dpm.commands import COM_CFGRX_LAYER2, COM_RX_CAN_LAYER2, COM_TX_CAN_LAYER2
 from dpm.errors import Drv
-from dpm.message import Message
+from dpm.message import Message, Task
 from host_api.board import Board, CifError
+from host_api.cia309.model import Cia309Error, ErrorCode
 
 LSS_REQUEST_COB_ID = 0x7E5
 LSS_ANSWER_COB_ID = 0x7E4
-CAN_TASK = 3
-USER = 16
-COM_CFGRX_LAYER2 = 82
-COM_RX_CAN_LAYER2 = 83
-COM_TX_CAN_LAYER2 = 84
 
 WAITING = 0
 """Switch state global: every slave to LSS waiting (an unconfigured one given a node-ID then
@@ -114,19 +111,19 @@ Transact = Callable[[Message], Message]
 
 
 class LssErrorCode(IntEnum):
-    """The CiA 309-3 error numbers an LSS service can fail with."""
+    """The CiA 309-3 error numbers an LSS service can fail with (the model's numbers)."""
 
-    TIME_OUT = 103
-    IMPLEMENTATION_ERROR = 501
+    TIME_OUT = ErrorCode.TIME_OUT
+    IMPLEMENTATION_ERROR = ErrorCode.LSS_IMPLEMENTATION_ERROR
     """LSS implementation- / manufacturer-specific error."""
-    NODE_ID_NOT_SUPPORTED = 502
-    BIT_RATE_NOT_SUPPORTED = 503
-    PARAMETER_STORING_FAILED = 504
-    MEDIA_ERROR = 505
+    NODE_ID_NOT_SUPPORTED = ErrorCode.LSS_NODE_ID_NOT_SUPPORTED
+    BIT_RATE_NOT_SUPPORTED = ErrorCode.LSS_BIT_RATE_NOT_SUPPORTED
+    PARAMETER_STORING_FAILED = ErrorCode.LSS_PARAMETER_STORING_FAILED
+    MEDIA_ERROR = ErrorCode.LSS_MEDIA_ERROR
     """LSS command failed because of media error (here: the card refused the request)."""
 
 
-class LssError(Exception):
+class LssError(Cia309Error):
     """An LSS service failed: ``code`` (309-3), and the slave's CiA 305 answer if it sent one."""
 
     def __init__(self, code: LssErrorCode, what: str, lss_error: int | None = None,
@@ -141,7 +138,7 @@ class LssError(Exception):
             text += f" (LSS error code {lss_error}, spec-error {spec_error})"
         elif lss_error is not None:
             text += f" (LSS error code {lss_error})"
-        super().__init__(text)
+        super().__init__(ErrorCode(code), text)
 
 
 class LssAddress(NamedTuple):
@@ -205,7 +202,12 @@ def _serialised(method: Callable[Concatenate[LssMaster, P], R]
 
 
 class LssMaster:
-    """A CiA 305 LSS master on one card's CAN bus, one method per CiA 309-1 LSS service."""
+    """A CiA 305 LSS master on one card's CAN bus, one method per CiA 309-1 LSS service.
+
+    Every service raises :class:`LssError` (a ``Cia309Error``) when it fails: 103 when no
+    slave answers, 501..505 for the slave's refusal or the card's; the identify and
+    fastscan services answer False or None instead when nobody answers.
+    """
 
     def __init__(self, board: Board, indications: IndicationSource | None = None,
                  transact: Transact | None = None, timeout: float = DEFAULT_TIMEOUT_S,
@@ -229,7 +231,7 @@ class LssMaster:
         The card drops its layer-2 filters when the host stops communication or the card
         restarts: call it again after either.
         """
-        request = Message(rx=CAN_TASK, tx=USER, b=COM_CFGRX_LAYER2,
+        request = Message(rx=Task.CAN, tx=Task.USER, b=COM_CFGRX_LAYER2,
                           data=bytes([LSS_ANSWER_COB_ID & 0xFF, LSS_ANSWER_COB_ID >> 8]))
         try:
             answer = self._transact(request)
@@ -248,7 +250,7 @@ class LssMaster:
         while self._read(0.0) is not None:
             pass
         try:
-            self.board.put_message(Message(rx=CAN_TASK, tx=USER, b=COM_TX_CAN_LAYER2,
+            self.board.put_message(Message(rx=Task.CAN, tx=Task.USER, b=COM_TX_CAN_LAYER2,
                                            data=b"".join(frames)))
         except CifError as exc:
             raise LssError(LssErrorCode.MEDIA_ERROR, f"COM_Tx_CAN_Layer2: {exc}") from exc

@@ -1,9 +1,10 @@
-"""The CiA 309-3 ASCII gateway on TCP: the codec of ``ascii`` over the services of ``gateway``.
+"""The CiA 309-3 ASCII gateway on TCP: the text layer over the services of ``gateway``.
 
-Layers, as pymodbus splits framer, PDU codec and transport (STYLE.md):
+Layers, as pymodbus splits framer, PDU codec and transport:
 
 * :class:`Dispatcher` turns one request line into one answer text: ``parse_request``,
-  the 309-1 call on a :class:`~host_api.cia309.gateway.Gateway` session, ``format_*``.
+  the 309-1 call on a :class:`~host_api.cia309.gateway.Gateway` session found in a table
+  by the request's type, ``format_*``.
   No socket: the TCP server, ``cifemu 309 exec --direct`` and ``cifemu 309 shell
   --direct`` share it.
 * :class:`Server` is the asyncio TCP server: one ``Client`` per connection with its own
@@ -20,8 +21,18 @@ they go to the message log that ``log`` prints, as CANopenNode's gateway does. T
 Limits [ours]: 127.0.0.1 unless told otherwise; ``max_clients`` connections (one more
 is answered ``[0] ERROR:600`` and closed); lines longer than the client's command size
 (``--max-line``, raised per client by ``set command_size`` up to
-``MAX_COMMAND_SIZE``) are answered with 600 and dropped, the connection stays; a client
-that lets ``WRITE_BUFFER_LIMIT`` bytes of answers and events pile up is dropped.
+``MAX_COMMAND_SIZE``) are answered with 600 and dropped, the connection stays. A slot must
+not be held by a client that does nothing, or eight of them lock everyone else out, so
+three limits drop a connection without an answer:
+
+* ``idle_timeout``: no byte received for this long while none of its requests runs;
+* ``line_timeout``: a line begun but not ended within this long (a client sending one
+  byte a second never goes idle, but never finishes a request either);
+* ``max_output``: more than this many bytes of answers and events queued for a client
+  that does not read them. The server never waits for a client to read (it would stop
+  serving its requests and hold the slot); the queue is what bounds its memory.
+
+A time-out of 0 turns that time-out off.
 ``--read-only`` answers 100 to everything that writes to a node or the card (SDO and
 PDO writes, NMT, configuration, LSS); reads, ``info version``, ``help``, ``log`` and the
 client's own settings (default network and node, command time-out and size) remain.
@@ -38,10 +49,28 @@ from collections.abc import Callable, Iterable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from datetime import datetime
-from typing import Protocol
+from typing import Any, Protocol
 
-from host_api.cia309.ascii import (
-    DEFAULT_MAX_LINE,
+from host_api.cia309.datatypes import Dialect
+from host_api.cia309.formatters import (
+    format_abort,
+    format_empty,
+    format_error,
+    format_event,
+    format_help,
+    format_lss_address,
+    format_lss_node_id,
+    format_lss_number,
+    format_ok,
+    format_pdo_read,
+    format_upload,
+    format_version,
+)
+from host_api.cia309.framing import DEFAULT_MAX_LINE, LineFramer, OverlongLine
+from host_api.cia309.gateway import Gateway
+from host_api.cia309.model import Cia309Error, ErrorCode, Event, LssAddress
+from host_api.cia309.parser import parse_request
+from host_api.cia309.requests import (
     ConfigureRpdo,
     ConfigureTpdo,
     DisableGuarding,
@@ -49,15 +78,11 @@ from host_api.cia309.ascii import (
     EnableGuarding,
     EnableHeartbeat,
     EnterPreoperational,
-    Event,
-    GatewayError,
     GetVersion,
     Help,
     InitGateway,
-    LineFramer,
     Log,
     LssActivateBitRate,
-    LssAddress,
     LssAssignNodeId,
     LssCompleteConfiguration,
     LssConfigureBitRate,
@@ -72,7 +97,6 @@ from host_api.cia309.ascii import (
     LssStore,
     LssSwitchGlobal,
     LssSwitchSelective,
-    OverlongLine,
     ParseError,
     ReadPdo,
     Request,
@@ -94,30 +118,23 @@ from host_api.cia309.ascii import (
     StopNode,
     StoreConfiguration,
     WritePdo,
-    format_abort,
-    format_empty,
-    format_error,
-    format_event,
-    format_help,
-    format_lss_address,
-    format_lss_node_id,
-    format_lss_number,
-    format_ok,
-    format_pdo_read,
-    format_upload,
-    format_version,
-    parse_request,
 )
-from host_api.cia309.datatypes import Dialect
-from host_api.cia309.gateway import Cia309Error, Gateway
 
 log = logging.getLogger(__name__)
 
 DEFAULT_HOST = "127.0.0.1"
 DEFAULT_PORT = 60000
 DEFAULT_MAX_CLIENTS = 8
+DEFAULT_IDLE_TIMEOUT = 60.0
+"""[ours] seconds a connection may send nothing while it has no request running."""
+DEFAULT_LINE_TIMEOUT = 10.0
+"""[ours] seconds from the first byte of a request line to its line end."""
+DEFAULT_MAX_OUTPUT = 1 << 20
+"""[ours] bytes of answers and events that may wait for a client that does not read."""
+REFUSAL_FLUSH_S = 1.0
+"""How long the answer to a client over ``max_clients`` may take to leave before the
+connection is cut anyway."""
 LOG_LINES = 1000
-WRITE_BUFFER_LIMIT = 1 << 20
 READ_CHUNK = 65536
 
 READ_ONLY_REQUESTS = (
@@ -180,21 +197,15 @@ class LssServices(Protocol):
 LssFactory = Callable[[int], LssServices]
 """The LSS services of a network (by its number)."""
 
-LSS_REQUESTS = (
-    LssSwitchGlobal, LssSwitchSelective, LssConfigureNodeId, LssConfigureBitRate,
-    LssActivateBitRate, LssStore, LssInquireAddress, LssInquireNodeId, LssIdentifyRemoteSlave,
-    LssIdentifyNonConfigured, LssFastscan, LssIdentifyFastscan, LssSlowscan, LssAssignNodeId,
-    LssCompleteConfiguration,
-)
-
-
 @dataclass(eq=False)
 class Client:
-    """One 309-3 client: its gateway session, its line framer, its last sequence number."""
+    """One 309-3 client: its gateway session, its line framer, its last sequence number,
+    and when (event-loop time) its unfinished line began."""
 
     gateway: Gateway
     framer: LineFramer
     last_sequence: int = 0
+    line_started: float | None = None
 
 
 class EventLog:
@@ -239,22 +250,24 @@ class Dispatcher:
         self.event_log = event_log or EventLog(dialect)
 
     def handle(self, client: Client, line: str | OverlongLine) -> str | None:
-        """The answer to one framed line (blocking: call it from a worker thread)."""
+        """The answer to one framed line (blocking: call it from a worker thread). A
+        failure of the line or the service is its ``ERROR`` answer; only a defect of the
+        gateway itself raises."""
         dialect = self.dialect
         if isinstance(line, OverlongLine):
             error = line.error()
             sequence = client.last_sequence if error.sequence is None else error.sequence
-            return format_error(sequence, error.error, dialect)
+            return format_error(sequence, error.error, dialect, detail=str(error))
         try:
             request = parse_request(line, dialect)
         except ParseError as exc:
             sequence = client.last_sequence if exc.sequence is None else exc.sequence
-            return format_error(sequence, exc.error, dialect)
+            return format_error(sequence, exc.error, dialect, detail=str(exc))
         if request is None:
             return format_empty(dialect)
         client.last_sequence = sequence = request.sequence
         if self.read_only and not isinstance(request, READ_ONLY_REQUESTS):
-            return format_error(sequence, GatewayError.REQUEST_NOT_SUPPORTED, dialect)
+            return format_error(sequence, ErrorCode.REQUEST_NOT_SUPPORTED, dialect)
         try:
             return self._execute(client, request)
         except Cia309Error as exc:
@@ -264,166 +277,198 @@ class Dispatcher:
             return format_error(sequence, exc.error, dialect)
 
     def _execute(self, client: Client, request: Request) -> str:
-        gateway = client.gateway
-        dialect = self.dialect
-        sequence = request.sequence
-        ok = format_ok(sequence, dialect)
-        if isinstance(request, SdoUpload):
-            data = gateway.sdo_upload(request.index, request.subindex, network=request.net,
-                                      node_id=request.node)
-            return format_upload(sequence, request.dtype, data, dialect)
-        if isinstance(request, SdoDownload):
-            gateway.sdo_download(request.index, request.subindex, request.data,
-                                 network=request.net, node_id=request.node)
-            return ok
-        if isinstance(request, StartNode):
-            gateway.start_node(request.node, network=request.net)
-        elif isinstance(request, StopNode):
-            gateway.stop_node(request.node, network=request.net)
-        elif isinstance(request, EnterPreoperational):
-            gateway.set_node_to_preoperational(request.node, network=request.net)
-        elif isinstance(request, ResetNode):
-            gateway.reset_node(request.node, network=request.net)
-        elif isinstance(request, ResetCommunication):
-            gateway.reset_communication(request.node, network=request.net)
-        elif isinstance(request, EnableGuarding):
-            gateway.enable_node_guarding(request.guard_time, request.lifetime_factor,
-                                         network=request.net, node_id=request.node)
-        elif isinstance(request, DisableGuarding):
-            gateway.disable_node_guarding(network=request.net, node_id=request.node)
-        elif isinstance(request, EnableHeartbeat):
-            gateway.start_heartbeat_consumer(request.consumer_time, network=request.net,
-                                             node_id=request.node)
-        elif isinstance(request, DisableHeartbeat):
-            gateway.disable_heartbeat_consumer(network=request.net, node_id=request.node)
-        elif isinstance(request, SetSdoTimeout):
-            gateway.configure_sdo_timeout(request.timeout_ms, network=request.net)
-        elif isinstance(request, SetSdoBlock):
-            raise Cia309Error(GatewayError.REQUEST_NOT_SUPPORTED,
-                              "the card runs segmented SDO transfers only")
-        elif isinstance(request, ConfigureRpdo):
-            gateway.configure_rpdo(request.number, request.cob_id, request.transmission_type,
-                                   request.mappings, network=request.net)
-        elif isinstance(request, ConfigureTpdo):
-            gateway.configure_tpdo(request.number, request.cob_id, request.transmission_type,
-                                   request.mappings, inhibit_time=request.inhibit_time,
-                                   event_timer=request.event_timer,
-                                   sync_start_value=request.sync_start, network=request.net)
-        elif isinstance(request, ReadPdo):
-            values = gateway.read_pdo_data(request.number, network=request.net)
-            network = gateway.resolve_network(request.net)
-            return format_pdo_read(sequence, network, request.number, values, dialect)
-        elif isinstance(request, WritePdo):
-            gateway.write_pdo_data(request.number, request.values, network=request.net)
-        elif isinstance(request, InitGateway):
-            gateway.initialize_gateway(request.bit_rate_index, network=request.net)
-        elif isinstance(request, StoreConfiguration):
-            gateway.store_configuration(request.specifier, network=request.net)
-        elif isinstance(request, RestoreConfiguration):
-            gateway.restore_configuration(request.specifier, network=request.net)
-        elif isinstance(request, SetHeartbeatProducer):
-            gateway.set_heartbeat_producer(request.producer_time, network=request.net)
-        elif isinstance(request, SetNodeId):
-            gateway.set_node_id(request.node_id, network=request.net)
-        elif isinstance(request, SetBootUpForwarding):
-            gateway.set_bootup_forwarding(request.enabled, network=request.net)
-        elif isinstance(request, SetDefaultNode):
-            gateway.set_default_node_id(request.node_id, network=request.net)
-        elif isinstance(request, SetDefaultNetwork):
-            gateway.set_default_network(request.network)
-        elif isinstance(request, SetCommandTimeout):
-            gateway.set_command_timeout(request.timeout_ms)
-        elif isinstance(request, SetCommandSize):
-            gateway.set_command_size(request.size)
-            client.framer.max_line = request.size
-        elif isinstance(request, GetVersion):
-            return format_version(sequence, gateway.get_version(network=request.net), dialect)
-        elif isinstance(request, Help):
-            return format_help(request.topic, dialect)
-        elif isinstance(request, Log):
-            return self.event_log.take() or format_empty(dialect) or ""
-        elif isinstance(request, LSS_REQUESTS):
-            return self._lss(gateway, request)
-        else:
-            raise Cia309Error(GatewayError.REQUEST_NOT_SUPPORTED, f"{type(request).__name__}")
-        return ok
+        handler = _SERVICES.get(type(request))
+        if handler is not None:
+            return handler(self, client, request)
+        lss_call = _LSS_SERVICES.get(type(request))
+        if lss_call is not None:
+            return self._lss(client.gateway, request, lss_call)
+        raise Cia309Error(ErrorCode.REQUEST_NOT_SUPPORTED, type(request).__name__)
 
-    def _lss(self, gateway: Gateway, request: Request) -> str:
+    def _lss(self, gateway: Gateway, request: Any, call: _LssCall) -> str:
         """309-1 4.8: to the network's LSS services, when there are any (else 100)."""
         if self.lss is None:
-            raise Cia309Error(GatewayError.REQUEST_NOT_SUPPORTED, "no LSS services here")
-        assert isinstance(request, LSS_REQUESTS)
+            raise Cia309Error(ErrorCode.REQUEST_NOT_SUPPORTED, "no LSS services here")
         lss = self.lss(gateway.resolve_network(request.net))
         try:
-            return self._lss_call(lss, request)
+            answer = call(lss, request, self.dialect)
         except Cia309Error:
             raise
         except ValueError as exc:
-            raise Cia309Error(GatewayError.SYNTAX_ERROR, str(exc)) from exc
+            raise Cia309Error(ErrorCode.SYNTAX_ERROR, str(exc)) from exc
         except Exception as exc:
             code = getattr(exc, "code", None)
-            if isinstance(code, int) and code in set(GatewayError):
-                raise Cia309Error(GatewayError(code), str(exc)) from exc
+            if isinstance(code, int) and code in set(ErrorCode):
+                raise Cia309Error(ErrorCode(code), str(exc)) from exc
             raise
+        if answer is False:
+            raise Cia309Error(ErrorCode.TIME_OUT, "no LSS slave answered")
+        if isinstance(answer, str):
+            return answer
+        return format_ok(request.sequence, self.dialect)
 
-    def _lss_call(self, lss: LssServices, request: Request) -> str:
-        sequence, dialect = request.sequence, self.dialect
-        answered = True
-        if isinstance(request, LssSwitchGlobal):
-            lss.switch_state_global(int(request.configuration))
-        elif isinstance(request, LssSwitchSelective):
-            lss.switch_state_selective(*_numbers(request.address))
-        elif isinstance(request, LssConfigureNodeId):
-            lss.configure_node_id(request.node_id)
-        elif isinstance(request, LssConfigureBitRate):
-            lss.configure_bit_timing(request.table_selector, request.table_index)
-        elif isinstance(request, LssActivateBitRate):
-            lss.activate_bit_timing(request.switch_delay_ms)
-        elif isinstance(request, LssStore):
-            lss.store_configuration()
-        elif isinstance(request, LssInquireAddress):
-            if request.lss_sub is not None:
-                value = lss.inquire_lss_number(request.lss_sub)
-                return format_lss_number(sequence, value, dialect)
-            numbers = [lss.inquire_lss_number(sub) for sub in range(4)]
-            return format_lss_address(sequence, LssAddress(*numbers), dialect)
-        elif isinstance(request, LssInquireNodeId):
-            return format_lss_node_id(sequence, lss.inquire_node_id(), dialect)
-        elif isinstance(request, LssIdentifyRemoteSlave):
-            selection = request.selection
-            answered = lss.identify_remote_slave(
-                selection.vendor_id, selection.product_code, selection.revision_low,
-                selection.revision_high, selection.serial_low, selection.serial_high)
-        elif isinstance(request, LssIdentifyNonConfigured):
-            answered = lss.identify_non_configured_slave()
-        elif isinstance(request, LssFastscan):
-            answered = lss.fastscan_step(request.id_number, request.bit_checked,
-                                         request.lss_sub, request.lss_next)
-        elif isinstance(request, LssIdentifyFastscan):
-            vendor, product, revision, serial = (
-                value if mask == 0xFFFF_FFFF else None
-                for value, mask in zip(_numbers(request.known), _numbers(request.mask),
-                                       strict=True))
-            timeout = None if request.timeout_ms is None else request.timeout_ms / 1000.0
-            found = lss.fastscan(vendor, product, revision, serial, timeout=timeout)
-            if found is None:
-                raise Cia309Error(GatewayError.TIME_OUT, "no unconfigured LSS slave answered")
-            return format_lss_address(sequence, LssAddress(*found), dialect)
-        elif isinstance(request, LssAssignNodeId):
-            lss.assign_node_id(_numbers(request.address), request.node_id)
-        elif isinstance(request, LssCompleteConfiguration):
-            if any(criterion.scan != 0 for criterion in request.criteria):
-                raise Cia309Error(GatewayError.REQUEST_NOT_SUPPORTED,
-                                  "lss_allnodes scans every LSS number")
-            timeout = None if request.timeout_ms is None else request.timeout_ms / 1000.0
-            lss.complete_node_id_configuration(
-                2 if request.first_node_id is None else request.first_node_id,
-                True if request.store is None else request.store, timeout=timeout)
-        else:
-            raise Cia309Error(GatewayError.REQUEST_NOT_SUPPORTED, type(request).__name__)
-        if not answered:
-            raise Cia309Error(GatewayError.TIME_OUT, "no LSS slave answered")
-        return format_ok(sequence, dialect)
+
+_Service = Callable[[Dispatcher, Client, Any], str]
+"""How the dispatcher serves one type of request: its answer text."""
+
+
+def _ok(call: Callable[[Gateway, Any], object]) -> _Service:
+    """A service whose success is ``[seq] OK``."""
+    def serve(dispatcher: Dispatcher, client: Client, request: Any) -> str:
+        call(client.gateway, request)
+        return format_ok(request.sequence, dispatcher.dialect)
+    return serve
+
+
+def _sdo_upload(dispatcher: Dispatcher, client: Client, request: SdoUpload) -> str:
+    data = client.gateway.sdo_upload(request.index, request.subindex, network=request.net,
+                                     node_id=request.node)
+    return format_upload(request.sequence, request.dtype, data, dispatcher.dialect)
+
+
+def _set_sdo_block(gateway: Gateway, request: SetSdoBlock) -> None:
+    raise Cia309Error(ErrorCode.REQUEST_NOT_SUPPORTED,
+                      "the card runs segmented SDO transfers only")
+
+
+def _read_pdo(dispatcher: Dispatcher, client: Client, request: ReadPdo) -> str:
+    values = client.gateway.read_pdo_data(request.number, network=request.net)
+    network = client.gateway.resolve_network(request.net)
+    return format_pdo_read(request.sequence, network, request.number, values,
+                           dispatcher.dialect)
+
+
+def _set_command_size(dispatcher: Dispatcher, client: Client, request: SetCommandSize) -> str:
+    client.gateway.set_command_size(request.size)
+    client.framer.max_line = request.size
+    return format_ok(request.sequence, dispatcher.dialect)
+
+
+def _get_version(dispatcher: Dispatcher, client: Client, request: GetVersion) -> str:
+    return format_version(request.sequence, client.gateway.get_version(network=request.net),
+                          dispatcher.dialect)
+
+
+def _help(dispatcher: Dispatcher, client: Client, request: Help) -> str:
+    return format_help(request.topic, dispatcher.dialect)
+
+
+def _log(dispatcher: Dispatcher, client: Client, request: Log) -> str:
+    return dispatcher.event_log.take() or format_empty(dispatcher.dialect) or ""
+
+
+_SERVICES: dict[type[Request], _Service] = {
+    SdoUpload: _sdo_upload,
+    SdoDownload: _ok(lambda g, r: g.sdo_download(r.index, r.subindex, r.data, network=r.net,
+                                                  node_id=r.node)),
+    StartNode: _ok(lambda g, r: g.start_node(r.node, network=r.net)),
+    StopNode: _ok(lambda g, r: g.stop_node(r.node, network=r.net)),
+    EnterPreoperational: _ok(lambda g, r: g.set_node_to_preoperational(r.node, network=r.net)),
+    ResetNode: _ok(lambda g, r: g.reset_node(r.node, network=r.net)),
+    ResetCommunication: _ok(lambda g, r: g.reset_communication(r.node, network=r.net)),
+    EnableGuarding: _ok(lambda g, r: g.enable_node_guarding(
+        r.guard_time, r.lifetime_factor, network=r.net, node_id=r.node)),
+    DisableGuarding: _ok(lambda g, r: g.disable_node_guarding(network=r.net, node_id=r.node)),
+    EnableHeartbeat: _ok(lambda g, r: g.start_heartbeat_consumer(
+        r.consumer_time, network=r.net, node_id=r.node)),
+    DisableHeartbeat: _ok(lambda g, r: g.disable_heartbeat_consumer(network=r.net,
+                                                                    node_id=r.node)),
+    SetSdoTimeout: _ok(lambda g, r: g.configure_sdo_timeout(r.timeout_ms, network=r.net)),
+    SetSdoBlock: _ok(_set_sdo_block),
+    ConfigureRpdo: _ok(lambda g, r: g.configure_rpdo(
+        r.number, r.cob_id, r.transmission_type, r.mappings, network=r.net)),
+    ConfigureTpdo: _ok(lambda g, r: g.configure_tpdo(
+        r.number, r.cob_id, r.transmission_type, r.mappings, inhibit_time=r.inhibit_time,
+        event_timer=r.event_timer, sync_start_value=r.sync_start, network=r.net)),
+    ReadPdo: _read_pdo,
+    WritePdo: _ok(lambda g, r: g.write_pdo_data(r.number, r.values, network=r.net)),
+    InitGateway: _ok(lambda g, r: g.initialize_gateway(r.bit_rate_index, network=r.net)),
+    StoreConfiguration: _ok(lambda g, r: g.store_configuration(r.specifier, network=r.net)),
+    RestoreConfiguration: _ok(lambda g, r: g.restore_configuration(r.specifier,
+                                                                   network=r.net)),
+    SetHeartbeatProducer: _ok(lambda g, r: g.set_heartbeat_producer(r.producer_time,
+                                                                    network=r.net)),
+    SetNodeId: _ok(lambda g, r: g.set_node_id(r.node_id, network=r.net)),
+    SetBootUpForwarding: _ok(lambda g, r: g.set_bootup_forwarding(r.enabled, network=r.net)),
+    SetDefaultNode: _ok(lambda g, r: g.set_default_node_id(r.node_id, network=r.net)),
+    SetDefaultNetwork: _ok(lambda g, r: g.set_default_network(r.network)),
+    SetCommandTimeout: _ok(lambda g, r: g.set_command_timeout(r.timeout_ms)),
+    SetCommandSize: _set_command_size,
+    GetVersion: _get_version,
+    Help: _help,
+    Log: _log,
+}
+"""The 309-1 service (and its answer) of each request the parser makes, but LSS's."""
+
+
+_LssCall = Callable[[LssServices, Any, Dialect], str | bool | None]
+"""One LSS request on a network's LSS services: an answer text, False when no slave
+answered (103), or None / True for ``[seq] OK``."""
+
+
+def _lss_inquire_address(lss: LssServices, request: LssInquireAddress, dialect: Dialect) -> str:
+    if request.lss_sub is not None:
+        return format_lss_number(request.sequence, lss.inquire_lss_number(request.lss_sub),
+                                 dialect)
+    numbers = [lss.inquire_lss_number(sub) for sub in range(4)]
+    return format_lss_address(request.sequence, LssAddress(*numbers), dialect)
+
+
+def _lss_identify_remote(lss: LssServices, request: LssIdentifyRemoteSlave,
+                         dialect: Dialect) -> bool:
+    selection = request.selection
+    return lss.identify_remote_slave(
+        selection.vendor_id, selection.product_code, selection.revision_low,
+        selection.revision_high, selection.serial_low, selection.serial_high)
+
+
+def _lss_identify_fastscan(lss: LssServices, request: LssIdentifyFastscan,
+                           dialect: Dialect) -> str:
+    vendor, product, revision, serial = (
+        value if mask == 0xFFFF_FFFF else None
+        for value, mask in zip(_numbers(request.known), _numbers(request.mask), strict=True))
+    timeout = None if request.timeout_ms is None else request.timeout_ms / 1000.0
+    found = lss.fastscan(vendor, product, revision, serial, timeout=timeout)
+    if found is None:
+        raise Cia309Error(ErrorCode.TIME_OUT, "no unconfigured LSS slave answered")
+    return format_lss_address(request.sequence, LssAddress(*found), dialect)
+
+
+def _lss_complete(lss: LssServices, request: LssCompleteConfiguration, dialect: Dialect) -> None:
+    if any(criterion.scan != 0 for criterion in request.criteria):
+        raise Cia309Error(ErrorCode.REQUEST_NOT_SUPPORTED,
+                          "lss_allnodes scans every LSS number")
+    timeout = None if request.timeout_ms is None else request.timeout_ms / 1000.0
+    lss.complete_node_id_configuration(
+        2 if request.first_node_id is None else request.first_node_id,
+        True if request.store is None else request.store, timeout=timeout)
+
+
+def _lss_slowscan(lss: LssServices, request: LssSlowscan, dialect: Dialect) -> None:
+    raise Cia309Error(ErrorCode.REQUEST_NOT_SUPPORTED, type(request).__name__)
+
+
+_LSS_SERVICES: dict[type[Request], _LssCall] = {
+    LssSwitchGlobal: lambda lss, r, _: lss.switch_state_global(int(r.configuration)),
+    LssSwitchSelective: lambda lss, r, _: lss.switch_state_selective(*_numbers(r.address)),
+    LssConfigureNodeId: lambda lss, r, _: lss.configure_node_id(r.node_id),
+    LssConfigureBitRate: lambda lss, r, _: lss.configure_bit_timing(r.table_selector,
+                                                                    r.table_index),
+    LssActivateBitRate: lambda lss, r, _: lss.activate_bit_timing(r.switch_delay_ms),
+    LssStore: lambda lss, r, _: lss.store_configuration(),
+    LssInquireAddress: _lss_inquire_address,
+    LssInquireNodeId: lambda lss, r, dialect: format_lss_node_id(
+        r.sequence, lss.inquire_node_id(), dialect),
+    LssIdentifyRemoteSlave: _lss_identify_remote,
+    LssIdentifyNonConfigured: lambda lss, r, _: lss.identify_non_configured_slave(),
+    LssFastscan: lambda lss, r, _: lss.fastscan_step(r.id_number, r.bit_checked, r.lss_sub,
+                                                     r.lss_next),
+    LssIdentifyFastscan: _lss_identify_fastscan,
+    LssSlowscan: _lss_slowscan,
+    LssAssignNodeId: lambda lss, r, _: lss.assign_node_id(_numbers(r.address), r.node_id),
+    LssCompleteConfiguration: _lss_complete,
+}
+"""The LSS services (309-1 4.8) of each LSS request."""
 
 
 def _numbers(address: LssAddress) -> LssNumbers:
@@ -440,10 +485,17 @@ class ServerConfig:
     read_only: bool = False
     max_clients: int = DEFAULT_MAX_CLIENTS
     max_line: int = DEFAULT_MAX_LINE
+    idle_timeout: float = DEFAULT_IDLE_TIMEOUT
+    line_timeout: float = DEFAULT_LINE_TIMEOUT
+    max_output: int = DEFAULT_MAX_OUTPUT
 
 
 class Server:
-    """The asyncio TCP server; ``start`` binds, ``serve_forever`` runs, ``close`` ends."""
+    """The asyncio TCP server; ``start`` binds, ``serve_forever`` runs, ``close`` ends.
+
+    ``start`` raises OSError when the address cannot be bound (port in use, no such
+    address); nothing a client sends raises: each failure is a 309-3 answer or a drop.
+    """
 
     def __init__(self, gateway: Gateway, config: ServerConfig,
                  lss: LssFactory | None = None) -> None:
@@ -479,7 +531,7 @@ class Server:
         if self._server is not None:
             self._server.close()
         for writer in list(self._clients.values()):
-            writer.close()
+            writer.transport.abort()
         if self._server is not None:
             await self._server.wait_closed()
         self._executor.shutdown(wait=False, cancel_futures=True)
@@ -497,39 +549,68 @@ class Server:
         for writer in list(self._clients.values()):
             self._write(writer, data)
 
-    @staticmethod
-    def _write(writer: asyncio.StreamWriter, data: bytes) -> None:
+    def _write(self, writer: asyncio.StreamWriter, data: bytes) -> None:
+        """Queue ``data`` for the client, or drop the client when its queue is over
+        ``max_output`` (``abort``: ``close`` would keep the queue until the client reads)."""
         if writer.is_closing():
             return
-        if writer.transport.get_write_buffer_size() > WRITE_BUFFER_LIMIT:
-            log.warning("dropping a client that does not read")
-            writer.close()
-            return
         writer.write(data)
+        if writer.transport.get_write_buffer_size() > self.config.max_output:
+            log.info("dropping %s: %d bytes of output it does not read", _peer(writer),
+                     writer.transport.get_write_buffer_size())
+            writer.transport.abort()
+
+    def _read_timeout(self, client: Client, now: float) -> float | None:
+        """How long the next read may wait: what is left of the line-assembly time while a
+        line is unfinished, else the idle time-out (None: no limit)."""
+        config = self.config
+        if client.framer.partial and config.line_timeout > 0:
+            assert client.line_started is not None
+            return max(0.0, client.line_started + config.line_timeout - now)
+        return config.idle_timeout if config.idle_timeout > 0 else None
 
     async def _serve_client(self, reader: asyncio.StreamReader,
                             writer: asyncio.StreamWriter) -> None:
         if len(self._clients) >= self.config.max_clients:
-            writer.write(format_error(0, GatewayError.OUT_OF_MEMORY,
+            writer.write(format_error(0, ErrorCode.OUT_OF_MEMORY,
                                       self.config.dialect).encode("latin-1"))
-            await _close(writer)
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(_close(writer), REFUSAL_FLUSH_S)
+            writer.transport.abort()
             return
         client = Client(self.gateway.session(), LineFramer(self.config.max_line))
         self._clients[client] = writer
         loop = asyncio.get_running_loop()
         try:
-            while data := await reader.read(READ_CHUNK):
-                for line in client.framer.feed(data):
+            while True:
+                try:
+                    data = await asyncio.wait_for(reader.read(READ_CHUNK),
+                                                  self._read_timeout(client, loop.time()))
+                except TimeoutError:
+                    what = "line unfinished" if client.framer.partial else "idle"
+                    log.info("dropping %s: %s for too long", _peer(writer), what)
+                    break
+                if not data:
+                    break
+                lines = client.framer.feed(data)
+                for line in lines:
                     answer = await loop.run_in_executor(self._executor, self.dispatcher.handle,
                                                         client, line)
+                    if writer.is_closing():
+                        break
                     if answer:
                         self._write(writer, answer.encode("latin-1"))
-                        await writer.drain()
+                # A line's time runs from its first byte, or from when the server is done
+                # with the lines before it: time spent serving a batch is not the client's.
+                if not client.framer.partial:
+                    client.line_started = None
+                elif lines or client.line_started is None:
+                    client.line_started = loop.time()
         except ConnectionError:
             log.debug("a client went away")
         finally:
             del self._clients[client]
-            await _close(writer)
+            writer.transport.abort()
 
 
 async def _close(writer: asyncio.StreamWriter) -> None:
@@ -538,9 +619,15 @@ async def _close(writer: asyncio.StreamWriter) -> None:
         await writer.wait_closed()
 
 
+def _peer(writer: asyncio.StreamWriter) -> str:
+    peer = writer.get_extra_info("peername")
+    return f"{peer[0]}:{peer[1]}" if isinstance(peer, tuple) else "a client"
+
+
 class BackgroundServer:
     """A server on an event-loop thread of its own, for a program that is not asyncio
-    (an embedding application, the tests, the benchmark); ``close`` ends it."""
+    (an embedding application, the tests, the benchmark); ``close`` ends it. Raises
+    OSError as ``Server.start`` does."""
 
     def __init__(self, gateway: Gateway, config: ServerConfig,
                  lss: LssFactory | None = None) -> None:

@@ -1,0 +1,661 @@
+"""The link to the card: one board's host mailbox, its layer-2 access and the
+configuration the card holds, for the CiA 309 service layer.
+
+* One :class:`Link` per board owns the host mailbox: a single reader thread takes every
+  message with ``DevGetMessage`` and routes answers by (``msg.a``, ``msg.nr``) to the
+  waiting call and indications (layer-2 frames, boot-up) to the gateway's own listeners.
+  Two readers would steal each other's answers, so the link also holds the board's
+  transaction lock for its lifetime: another host's ``Board.transact`` gets
+  DRV_CMD_ACTIVE instead of silently losing its answer to us.
+* The card's answers become 309 reasons here (:func:`card_error`, :func:`driver_error`):
+  the services above never look at a ``msg.f`` or a driver code.
+* The gateway's own on-line download and read-back of data sets (COM_Start_Seq /
+  COM_Download / COM_End_Seq, COM_Upload) are here and nowhere else in the package.
+"""
+
+from __future__ import annotations
+
+import itertools
+import logging
+import queue
+import struct
+import threading
+import time
+from collections.abc import Callable, Iterable, Iterator, Sequence
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from pathlib import Path
+from types import TracebackType
+
+from dbm_tools.errors import DbmError
+from dbm_tools.parameters import NdFlag, NodeParameterSet
+from dpm.commands import (
+    AREA_BUS,
+    COM_BOOTUP_FORWARDING,
+    COM_BOOTUP_INDICATION,
+    COM_CFGRX_LAYER2,
+    COM_DOWNLOAD,
+    COM_END_SEQ,
+    COM_RX_CAN_LAYER2,
+    COM_SET_NODE_ID,
+    COM_START_SEQ,
+    COM_TX_CAN_LAYER2,
+    COM_UPLOAD,
+    DOWNLOAD_AREA_SIZE,
+    F_BUFFER_LENGTH_OVERSTEPPED,
+    F_DOUBLE_NODE_ADDRESS,
+    F_FAULTY_PARAMETER,
+    F_HANDLER_FAILED,
+    F_LOCAL_RESOURCE,
+    F_NO_RESPONSE,
+    F_NOT_CONFIGURED,
+    F_NOT_OPERATIONAL,
+    F_PARAMETER_FAULT,
+    F_RECEIVE_BUFFER_OVERSTEPPED,
+    F_REMOTE_ADDRESS_RANGE,
+    F_SDO_ABORT,
+    F_SEQUENCE_ERROR,
+    F_SERVICE_ACTIVE,
+    F_TIMEOUT,
+    MAX_LEN_DATA_UNIT,
+)
+from dpm.errors import F_UNKNOWN_COMMAND, F_UNKNOWN_TASK, Drv
+from dpm.message import Ext, Message, Task
+from host_api import driver as d
+from host_api.board import Board, CifError
+from host_api.cia309.model import (
+    BootUpEvent,
+    Cia309Error,
+    ErrorCode,
+    Event,
+    RpdoEvent,
+    syntax_error,
+)
+from host_api.cia309.pdo import PDO_BYTES, Pdo
+
+log = logging.getLogger(__name__)
+
+DEFAULT_ANSWER_TIMEOUT = 120.0
+"""[ours] seconds a call waits for the card when no command time-out is set. The card
+answers every request itself (its SDO time-out runs out first); this only bounds the wait
+on a card that stopped."""
+READ_SLICE_MS = 20
+"""How long one DevGetMessage of the reader waits; a pause request waits at most this."""
+ABANDONED_NR_S = 60.0
+"""A message number whose caller gave up stays reserved this long for its late answer."""
+TRANSACTION_LOCK_WAIT_S = 5.0
+RESET_TIMEOUT_MS = 10000
+
+_F_ERRORS: dict[int, ErrorCode] = {
+    F_NO_RESPONSE: ErrorCode.TIME_OUT,
+    F_TIMEOUT: ErrorCode.TIME_OUT,  # download sequence timed out
+    F_NOT_OPERATIONAL: ErrorCode.INTERNAL_STATE,  # the node boots: the card's SDO channel
+    F_SERVICE_ACTIVE: ErrorCode.INTERNAL_STATE,  # another transfer to the node still runs
+    F_SEQUENCE_ERROR: ErrorCode.INTERNAL_STATE,  # of a split transfer
+    F_DOUBLE_NODE_ADDRESS: ErrorCode.INTERNAL_STATE,  # the node-ID is a configured node's
+    F_NOT_CONFIGURED: ErrorCode.INTERNAL_STATE,  # the network is not configured / running
+    F_HANDLER_FAILED: ErrorCode.INTERNAL_STATE,
+    F_LOCAL_RESOURCE: ErrorCode.UNSUPPORTED_NODE,  # the node is not configured
+    F_REMOTE_ADDRESS_RANGE: ErrorCode.UNSUPPORTED_NODE,
+    F_RECEIVE_BUFFER_OVERSTEPPED: ErrorCode.OUT_OF_MEMORY,  # upload over the card's buffer
+    F_BUFFER_LENGTH_OVERSTEPPED: ErrorCode.OUT_OF_MEMORY,  # download over the card's buffer
+    F_PARAMETER_FAULT: ErrorCode.SYNTAX_ERROR,
+    F_FAULTY_PARAMETER: ErrorCode.SYNTAX_ERROR,
+    F_UNKNOWN_COMMAND: ErrorCode.REQUEST_NOT_SUPPORTED,  # firmware without the command
+    F_UNKNOWN_TASK: ErrorCode.REQUEST_NOT_SUPPORTED,
+}
+"""[ours] the card's msg.f -> the 309-3 error number a client sees."""
+
+
+
+def card_error(f: int, what: str) -> Cia309Error:
+    """The card answered msg.f != 0: the 309-3 error a client sees for it."""
+    error = _F_ERRORS.get(f, ErrorCode.INTERNAL_STATE)
+    return Cia309Error(error, f"{what}: the card answered msg.f = {f}", f=f)
+
+
+def driver_error(code: int, what: str) -> Cia309Error:
+    """A driver call failed: its time-outs are 103, anything else 102."""
+    timeouts = (Drv.DRV_DEV_PUT_TIMEOUT, Drv.DRV_DEV_GET_TIMEOUT, Drv.DRV_DEV_RESET_TIMEOUT)
+    error = ErrorCode.TIME_OUT if code in timeouts else ErrorCode.INTERNAL_STATE
+    return Cia309Error(error, f"{what}: {CifError(code)}")
+
+
+# --------------------------------------------------------------------------- layer 2
+
+
+@dataclass(frozen=True)
+class CanFrame:
+    """One 11-bit CAN frame, as layer-2 access sends and receives it."""
+
+    cob_id: int
+    data: bytes = b""
+    remote: bool = False
+    dlc: int | None = None
+    """For a remote frame, the data length asked for; None: ``len(data)``."""
+
+    def encode(self) -> bytes:
+        """The seed's layer-2 form (5.3.1): ID.10..3, then ID.2..0 | RTR | DLC, then data."""
+        dlc = len(self.data) if self.dlc is None else self.dlc
+        second = ((self.cob_id & 0x7) << 5) | (0x10 if self.remote else 0) | (dlc & 0x0F)
+        return bytes([self.cob_id >> 3, second]) + (b"" if self.remote else self.data)
+
+
+def _layer2_frames(data: bytes) -> list[CanFrame]:
+    """The frames of a COM_Rx_CAN_Layer2 indication (seed 5.3.2.2)."""
+    frames = []
+    at = 0
+    while at + 2 <= len(data):
+        cob_id = (data[at] << 3) | (data[at + 1] >> 5)
+        remote = bool(data[at + 1] & 0x10)
+        dlc = data[at + 1] & 0x0F
+        size = 0 if remote else min(dlc, PDO_BYTES)
+        frames.append(CanFrame(cob_id, bytes(data[at + 2 : at + 2 + size]), remote, dlc))
+        at += 2 + size
+    return frames
+
+
+# --------------------------------------------------------------------------- events
+
+
+class FrameListener:
+    """Frames of chosen identifiers received by layer-2 access (``Gateway.listen``)."""
+
+    def __init__(self, link: Link, cob_ids: frozenset[int]) -> None:
+        self._link = link
+        self.cob_ids = cob_ids
+        self._queue: queue.SimpleQueue[CanFrame] = queue.SimpleQueue()
+
+    def put(self, frame: CanFrame) -> None:
+        self._queue.put(frame)
+
+    def get(self, timeout: float | None = None) -> CanFrame:
+        """The next frame; ``queue.Empty`` when none came within ``timeout`` seconds."""
+        return self._queue.get(timeout=timeout)
+
+    def close(self) -> None:
+        self._link.remove_listener(self)
+
+    def __enter__(self) -> FrameListener:
+        return self
+
+    def __exit__(
+        self, t: type[BaseException] | None, v: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        self.close()
+
+
+class IndicationQueue:
+    """Every COM_Rx_CAN_Layer2 indication (msg.b 83) as the card sent it, for code that
+    reads the layer-2 messages itself (the LSS master): call it with a time-out."""
+
+    def __init__(self, link: Link) -> None:
+        self._link = link
+        self._queue: queue.SimpleQueue[Message] = queue.SimpleQueue()
+
+    def put(self, msg: Message) -> None:
+        self._queue.put(msg)
+
+    def __call__(self, timeout: float) -> Message | None:
+        """The next indication within ``timeout`` seconds (0: only one already here)."""
+        try:
+            if timeout <= 0:
+                return self._queue.get_nowait()
+            return self._queue.get(timeout=timeout)
+        except queue.Empty:
+            return None
+
+    def close(self) -> None:
+        self._link.remove_indication_queue(self)
+
+
+# --------------------------------------------------------------------------- PDOs
+
+
+
+
+
+@dataclass
+class _Pending:
+    """A request waiting for its answer; a long upload collects several messages."""
+
+    b: int
+    multipart: bool
+    on_part: Callable[[Message], None] | None
+    messages: list[Message] = field(default_factory=list)
+    done: threading.Event = field(default_factory=threading.Event)
+    abandoned_at: float | None = None
+
+    def deliver(self, msg: Message) -> None:
+        self.messages.append(msg)
+        sequence = msg.e & Ext.SEQ_MASK
+        if self.multipart and not msg.f and sequence in (Ext.FIRST, Ext.CONT):
+            if self.on_part is not None:
+                self.on_part(msg)
+            return
+        if self.on_part is not None and self.multipart and sequence == Ext.LAST:
+            self.on_part(msg)
+        self.done.set()
+
+
+class _Gate:
+    """Requests share a link; a reset or a flash transfer takes it alone.
+
+    The thread holding it alone may still send requests (re-configuring after a reset).
+    """
+
+    def __init__(self) -> None:
+        self._condition = threading.Condition()
+        self._active = 0
+        self._owner: int | None = None
+
+    @contextmanager
+    def shared(self) -> Iterator[None]:
+        me = threading.get_ident()
+        with self._condition:
+            if self._owner != me:
+                while self._owner is not None:
+                    self._condition.wait()
+            self._active += 1
+        try:
+            yield
+        finally:
+            with self._condition:
+                self._active -= 1
+                self._condition.notify_all()
+
+    @contextmanager
+    def exclusive(self) -> Iterator[None]:
+        me = threading.get_ident()
+        with self._condition:
+            while self._owner is not None:
+                self._condition.wait()
+            self._owner = me
+            while self._active:
+                self._condition.wait()
+        try:
+            yield
+        finally:
+            with self._condition:
+                self._owner = None
+                self._condition.notify_all()
+
+
+PUT_RETRY_S = 0.0002
+
+
+def _put(number: int, msg: Message, timeout: float) -> int:
+    """DevPutMessage without waiting on the doorbell, retried until ``timeout`` seconds.
+
+    [ours] The reader thread waits on the board's doorbell in DevGetMessage; a second
+    thread waiting there too (DevPutMessage with a time-out, on a full mailbox) makes the
+    driver's poll object fail ("concurrent poll() invocation"). A full mailbox empties
+    within a device loop turn, so a short retry costs nothing.
+    """
+    deadline = time.monotonic() + timeout
+    while True:
+        code = d.DevPutMessage(number, msg, 0)
+        if code not in (Drv.DRV_DEV_MAILBOX_FULL, Drv.DRV_CMD_ACTIVE):
+            return int(code)
+        if time.monotonic() > deadline:
+            return Drv.DRV_DEV_PUT_TIMEOUT
+        time.sleep(PUT_RETRY_S)
+
+
+class _LinkBoard(Board):
+    """The board as the gateway holds it: sending never waits on the doorbell (see
+    ``_put``), and reading the mailbox is the reader thread's alone."""
+
+    def put_message(self, msg: Message, timeout: int | None = None) -> None:
+        code = _put(self.number, msg, self._timeout(timeout) / 1000.0)
+        if code != Drv.DRV_NO_ERROR:
+            raise CifError(code, "DevPutMessage")
+
+    def get_message(self, timeout: int | None = None) -> Message:
+        raise CifError(Drv.DRV_CMD_ACTIVE, "DevGetMessage: the 309 gateway reads this mailbox")
+
+
+class Link:
+    """One board: its mailbox reader, its layer-2 access, the gateway state kept for it."""
+
+    def __init__(self, number: int, directory: str | Path | None, emit: Callable[[Event], None]):
+        self.number = number
+        self.network = number + 1
+        self._emit = emit
+        try:
+            self.board = _LinkBoard(number, directory).open()
+        except CifError as exc:
+            raise driver_error(exc.code, f"board {number}") from exc
+        self._transaction = d._driver.boards[number].transaction_lock
+        self._holding = self._transaction.acquire(TRANSACTION_LOCK_WAIT_S)
+        if not self._holding:
+            self.board.close()
+            raise Cia309Error(ErrorCode.INTERNAL_STATE,
+                              f"board {number}: another host holds its mailbox")
+        self._closing = threading.Event()
+        self._pending: dict[int, _Pending] = {}
+        self._pending_lock = threading.Lock()
+        self._numbers = itertools.cycle(range(1, 256))
+        self.gate = _Gate()
+        self._reader_condition = threading.Condition()
+        self._reader_paused = False
+        self._reader_busy = False
+        self._sdo_channels: dict[int, threading.Lock] = {}
+        self._sdo_channels_lock = threading.Lock()
+        self._listeners: list[FrameListener] = []
+        self._indication_queues: list[IndicationQueue] = []
+        self._filters: set[int] = set()
+        self.rpdos: dict[int, Pdo] = {}
+        self.tpdos: dict[int, Pdo] = {}
+        self.pdo_lock = threading.Lock()
+        self.rtr_waiters: dict[int, queue.SimpleQueue[bytes]] = {}
+        self.settings: dict[tuple[int, int], bytes] = {}
+        """Card settings the gateway made (COM_Set_*), by (msg.b, node): replayed after
+        ``initialize_gateway`` re-configures the card."""
+        self.bootup_forwarding = False
+        self.supervision: dict[int, str | None] = {}
+        """Error control the gateway switched at run time, by node: "heartbeat",
+        "guarding" or None; other nodes supervise as their data set says."""
+        self._node_sets: dict[int, NodeParameterSet | None] = {}
+        self._reader = threading.Thread(target=self._read_loop, daemon=True,
+                                        name=f"cia309-reader-{number}")
+        self._reader.start()
+
+    def close(self) -> None:
+        self._closing.set()
+        if self._reader is not threading.current_thread():
+            self._reader.join(timeout=2)
+        if self._holding:
+            self._transaction.release()
+        self.board.close()
+
+    def own_node_id(self) -> int:
+        """The card's node-ID as the gateway set it (0: as its configuration says)."""
+        data = self.settings.get((COM_SET_NODE_ID, 0))
+        return data[0] if data else 0
+
+    # --- the mailbox -------------------------------------------------------------------------
+
+    def _read_loop(self) -> None:
+        while not self._closing.is_set():
+            with self._reader_condition:
+                while self._reader_paused and not self._closing.is_set():
+                    self._reader_condition.wait(0.1)
+                self._reader_busy = True
+            try:
+                code, msg = d.DevGetMessage(self.number, d.MSG_BUFFER_SIZE, READ_SLICE_MS)
+            finally:
+                with self._reader_condition:
+                    self._reader_busy = False
+                    self._reader_condition.notify_all()
+            if code == Drv.DRV_NO_ERROR and msg is not None:
+                try:
+                    self._route(msg)
+                except Exception:
+                    log.exception("board %d: routing %r failed", self.number, msg)
+            elif code not in (Drv.DRV_DEV_GET_TIMEOUT, Drv.DRV_DEV_GET_NO_MESSAGE):
+                self._closing.wait(0.01)  # the card restarts (-11) or is gone
+
+    @contextmanager
+    def reader_paused(self) -> Iterator[None]:
+        """The reader stands still: a driver call that waits on the doorbell (DevReset)
+        may, as only one thread of a process may wait there at a time."""
+        with self._reader_condition:
+            self._reader_paused = True
+            while self._reader_busy:
+                self._reader_condition.wait()
+        try:
+            yield
+        finally:
+            with self._reader_condition:
+                self._reader_paused = False
+                self._reader_condition.notify_all()
+
+    @contextmanager
+    def mailbox_released(self) -> Iterator[None]:
+        """The reader stands still and the transaction lock is free, so a driver routine
+        with its own request/answer loop (DevDownload, the flash directory) can run."""
+        with self.reader_paused():
+            self._transaction.release()
+            self._holding = False
+            try:
+                yield
+            finally:
+                self._holding = self._transaction.acquire(TRANSACTION_LOCK_WAIT_S)
+                if not self._holding:
+                    log.warning("board %d: another host took the mailbox", self.number)
+
+    def _route(self, msg: Message) -> None:
+        if msg.a == 0:
+            self._indication(msg)
+            return
+        with self._pending_lock:
+            pending = self._pending.get(msg.nr)
+            if pending is None or pending.b != msg.a:
+                log.debug("board %d: no caller for %r", self.number, msg)
+                return
+            if pending.abandoned_at is not None:
+                del self._pending[msg.nr]
+                return
+        pending.deliver(msg)
+
+    def request(
+        self,
+        b: int,
+        data: bytes,
+        timeout: float,
+        *,
+        e: int = 0,
+        multipart: bool = False,
+        on_part: Callable[[Message], None] | None = None,
+    ) -> list[Message]:
+        """Send one CAN-task command and wait for its answer (several for a long upload)."""
+        with self.gate.shared():
+            nr, pending = self._register(b, multipart, on_part)
+            try:
+                msg = Message(rx=Task.CAN, tx=Task.USER, b=b, data=data, nr=nr, e=e)
+                code = _put(self.number, msg, timeout)
+                if code != Drv.DRV_NO_ERROR:
+                    raise driver_error(code, "DevPutMessage")
+                if not pending.done.wait(timeout):
+                    pending.abandoned_at = time.monotonic()
+                    raise Cia309Error(ErrorCode.TIME_OUT,
+                                      f"board {self.number}: no answer to msg.b {b} "
+                                      f"within {timeout:g} s")
+            finally:
+                if pending.abandoned_at is None:
+                    with self._pending_lock:
+                        self._pending.pop(nr, None)
+            return pending.messages
+
+    @contextmanager
+    def sdo_channel(self, node: int, timeout: float) -> Iterator[None]:
+        """The node's SDO channel for one transfer: the card runs one transfer per node
+        and refuses a second (f 54), so the gateway's sessions take turns; 103 when the
+        turn does not come within the time-out."""
+        with self._sdo_channels_lock:
+            channel = self._sdo_channels.setdefault(node, threading.Lock())
+        if not channel.acquire(timeout=timeout):
+            raise Cia309Error(ErrorCode.TIME_OUT, f"node {node}: its SDO channel stays busy")
+        try:
+            yield
+        finally:
+            channel.release()
+
+    def command(self, b: int, data: bytes, timeout: float, what: str) -> Message:
+        """A request whose answer must say f 0; f 3 with four data bytes carries the SDO
+        abort of a node the card wrote to (COM_Set_Guarding writes 100Ch/100Dh/1017h)."""
+        answer = self.request(b, data, timeout)[-1]
+        if answer.f == F_SDO_ABORT and len(answer.data) == 4:
+            raise Cia309Error.abort(int.from_bytes(answer.data, "little"), what)
+        if answer.f:
+            raise card_error(answer.f, what)
+        return answer
+
+    def send(self, b: int, data: bytes) -> None:
+        """A command without an answer (COM_Tx_CAN_Layer2)."""
+        with self.gate.shared():
+            msg = Message(rx=Task.CAN, tx=Task.USER, b=b, data=data)
+            code = _put(self.number, msg, 1.0)
+            if code != Drv.DRV_NO_ERROR:
+                raise driver_error(code, "DevPutMessage")
+
+    def _register(
+        self, b: int, multipart: bool, on_part: Callable[[Message], None] | None
+    ) -> tuple[int, _Pending]:
+        now = time.monotonic()
+        with self._pending_lock:
+            for nr, old in list(self._pending.items()):
+                if old.abandoned_at is not None and now - old.abandoned_at > ABANDONED_NR_S:
+                    del self._pending[nr]
+            for _ in range(255):
+                nr = next(self._numbers)
+                if nr not in self._pending:
+                    pending = _Pending(b, multipart, on_part)
+                    self._pending[nr] = pending
+                    return nr, pending
+        raise Cia309Error(ErrorCode.OUT_OF_MEMORY,
+                          f"board {self.number}: 255 requests wait for answers")
+
+    # --- layer 2 -------------------------------------------------------------------------------
+
+    def add_filters(self, cob_ids: Iterable[int], timeout: float) -> None:
+        """COM_CfgRx_Layer2 for identifiers not filtered yet (a filter stays until a start)."""
+        new = sorted(set(cob_ids) - self._filters)
+        if not new:
+            return
+        data = b"".join(bytes([cob_id & 0xFF, cob_id >> 8]) for cob_id in new)
+        answer = self.request(COM_CFGRX_LAYER2, data, timeout)[-1]
+        if answer.f == F_FAULTY_PARAMETER:
+            raise Cia309Error(ErrorCode.PDO_ALREADY_USED,
+                              f"identifier(s) {', '.join(f'0x{i:X}' for i in new)} in use by "
+                              "the card's CANopen side", f=answer.f)
+        if answer.f:
+            raise card_error(answer.f, "COM_CfgRx_Layer2")
+        self._filters.update(new)
+
+    def add_listener(self, listener: FrameListener, timeout: float) -> None:
+        self.add_filters(listener.cob_ids, timeout)
+        with self.pdo_lock:
+            self._listeners.append(listener)
+
+    def remove_listener(self, listener: FrameListener) -> None:
+        with self.pdo_lock:
+            if listener in self._listeners:
+                self._listeners.remove(listener)
+
+    def add_indication_queue(self, indications: IndicationQueue) -> None:
+        with self.pdo_lock:
+            self._indication_queues.append(indications)
+
+    def remove_indication_queue(self, indications: IndicationQueue) -> None:
+        with self.pdo_lock:
+            if indications in self._indication_queues:
+                self._indication_queues.remove(indications)
+
+    def send_frames(self, frames: Sequence[CanFrame]) -> None:
+        data = b"".join(frame.encode() for frame in frames)
+        if not frames or len(data) > 255:
+            raise syntax_error(f"{len(frames)} frames do not fit one COM_Tx_CAN_Layer2")
+        self.send(COM_TX_CAN_LAYER2, data)
+
+    def forget_node_sets(self) -> None:
+        """The card starts or went off line: its data sets are read again when needed."""
+        self._node_sets.clear()
+
+    def restore_after_start(self, timeout: float) -> None:
+        """A card start dropped the layer-2 filters and boot-up forwarding: set them again."""
+        filters, self._filters = self._filters, set()
+        self._node_sets.clear()
+        self.add_filters(filters, timeout)
+        if self.bootup_forwarding:
+            self.command(COM_BOOTUP_FORWARDING, b"\x01", timeout, "COM_Bootup_Forwarding")
+
+    def _indication(self, msg: Message) -> None:
+        if msg.b == COM_BOOTUP_INDICATION and msg.data:
+            if self.bootup_forwarding:
+                self._emit(BootUpEvent(self.network, msg.data[0]))
+            return
+        if msg.b != COM_RX_CAN_LAYER2:
+            return
+        with self.pdo_lock:
+            queues = list(self._indication_queues)
+        for indications in queues:
+            indications.put(msg)
+        for frame in _layer2_frames(msg.data):
+            self._frame(frame)
+
+    def _frame(self, frame: CanFrame) -> None:
+        with self.pdo_lock:
+            listeners = [item for item in self._listeners if frame.cob_id in item.cob_ids]
+            rpdos = [pdo for pdo in self.rpdos.values() if pdo.cob_id == frame.cob_id]
+            for pdo in rpdos:
+                if not frame.remote and len(frame.data) >= pdo.length:
+                    pdo.last = frame.data[: pdo.length]
+        for listener in listeners:
+            listener.put(frame)
+        for pdo in rpdos:
+            if frame.remote or len(frame.data) < pdo.length:
+                continue  # a PDO length error: nothing to unmap
+            waiter = self.rtr_waiters.get(pdo.number)
+            if waiter is not None:
+                waiter.put(frame.data)
+            self._emit(RpdoEvent(self.network, pdo.number, pdo.unpack(frame.data)))
+
+    # --- card configuration read back ------------------------------------------------------
+
+    def upload_area(self, area: int, timeout: float) -> bytes | None:
+        """A data set as the card holds it (COM_Upload); None when it has none (f 20)."""
+        def chunk(offset: int) -> bytes | None:
+            request = bytes([0, area]) + struct.pack("<H", offset) + bytes([MAX_LEN_DATA_UNIT])
+            answer = self.request(COM_UPLOAD, request, timeout)[-1]
+            if answer.f == F_LOCAL_RESOURCE:
+                return None
+            if answer.f:
+                raise card_error(answer.f, f"COM_Upload of area {area}")
+            return answer.data
+
+        first = chunk(0)
+        if first is None or area == AREA_BUS:
+            return first
+        (total,) = struct.unpack_from("<H", first, 0)
+        data = first
+        while len(data) < total:
+            more = chunk(len(data))
+            if not more:
+                break
+            data += more
+        return data[:total]
+
+    def download_area(self, area: int, data: bytes, timeout: float) -> None:
+        """COM_Download of a data set, split by COM_Start_Seq when it is long (seed 5.2.3)."""
+        if len(data) <= MAX_LEN_DATA_UNIT:
+            self.command(COM_DOWNLOAD, bytes([0, area, 0, 0]) + data, timeout, "COM_Download")
+            return
+        self.command(COM_START_SEQ, bytes([0, area]) + struct.pack("<H", DOWNLOAD_AREA_SIZE),
+                     timeout, "COM_Start_Seq")
+        for offset in range(0, len(data), MAX_LEN_DATA_UNIT):
+            chunk = data[offset : offset + MAX_LEN_DATA_UNIT]
+            part = bytes([0, area]) + struct.pack("<H", offset) + chunk
+            self.command(COM_DOWNLOAD, part, timeout, "COM_Download")
+        self.command(COM_END_SEQ, b"\0", timeout, "COM_End_Seq")
+
+    def node_set(self, node: int, timeout: float) -> NodeParameterSet | None:
+        """The node's parameter data set in the card (cached until the next start)."""
+        if node not in self._node_sets:
+            raw = self.upload_area(node, timeout) if node < AREA_BUS else None
+            try:
+                self._node_sets[node] = NodeParameterSet.decode(raw) if raw else None
+            except DbmError:
+                self._node_sets[node] = None
+        return self._node_sets[node]
+
+    def supervised_by(self, node: int, timeout: float) -> str | None:
+        """How the card supervises the node: "heartbeat", "guarding" or None."""
+        if node in self.supervision:
+            return self.supervision[node]
+        params = self.node_set(node, timeout)
+        if params is None or not params.usGuardTime:
+            return None
+        return "heartbeat" if params.bNd_Flag & NdFlag.HRTBT else "guarding"
+
