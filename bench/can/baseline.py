@@ -13,7 +13,7 @@ from canopen.objectdictionary import ObjectDictionary
 from canopen.sdo.client import SdoClient
 
 from bench.can.card import (
-    NMT_ID,
+    COB_ID_NMT,
 )
 from dbm_tools.network import Network
 from dpm.commands import NMT_START
@@ -53,7 +53,7 @@ def start_all(sim: SimulatedNetwork, client: canopen.Network, timeout: float = 5
         if time.monotonic() > deadline:
             raise RuntimeError("simulated nodes did not boot")
         time.sleep(0.001)
-    client.send_message(NMT_ID, bytes([NMT_START, 0]))
+    client.send_message(COB_ID_NMT, bytes([NMT_START, 0]))
     while any(node.nmt.code != OPERATIONAL for node in sim.nodes.values()):
         if time.monotonic() > deadline:
             raise RuntimeError("simulated nodes did not reach OPERATIONAL")

@@ -19,8 +19,8 @@ from typing import Any
 
 from bench.can.baseline import in_process, sdo_client
 from bench.can.card import (
+    COB_ID_NMT,
     DEVICE_TYPE_BYTES,
-    NMT_ID,
     RESET_TIMEOUT_MS,
     SYNC_COB_ID,
     board_of,
@@ -101,7 +101,7 @@ def baseline_boot() -> dict[str, Any]:
             """The card's boot steps (firmware.can.node.NodeHandler._boot_steps)."""
             sdo = clients[node]
             bootups[node].clear()
-            client.send_message(NMT_ID, bytes([NMT_RESET_NODE, node]))
+            client.send_message(COB_ID_NMT, bytes([NMT_RESET_NODE, node]))
             if not bootups[node].wait(BOOTUP_TIMEOUT_S):
                 raise RuntimeError(f"node {node}: no boot-up")
             if bytes(sdo.upload(0x1000, 0)) != DEVICE_TYPE_BYTES:
@@ -109,7 +109,7 @@ def baseline_boot() -> dict[str, Any]:
             sdo.download(0x1017, 0, struct.pack("<H", 500))
             sdo.download(0x1005, 0, struct.pack("<I", SYNC_COB_ID))
             sdo.download(0x1014, 0, struct.pack("<I", 0x80 + node))
-            client.send_message(NMT_ID, bytes([NMT_START, node]))
+            client.send_message(COB_ID_NMT, bytes([NMT_START, node]))
 
         time.sleep(0.1)  # the nodes' power-on boot-ups
         with ThreadPoolExecutor(max_workers=BOOT_WORKERS) as pool:
