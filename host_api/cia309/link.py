@@ -34,14 +34,10 @@ from dpm.commands import (
     COM_BOOTUP_FORWARDING,
     COM_BOOTUP_INDICATION,
     COM_CFGRX_LAYER2,
-    COM_DOWNLOAD,
-    COM_END_SEQ,
     COM_RX_CAN_LAYER2,
     COM_SET_NODE_ID,
-    COM_START_SEQ,
     COM_TX_CAN_LAYER2,
     COM_UPLOAD,
-    DOWNLOAD_AREA_SIZE,
     F_BUFFER_LENGTH_OVERSTEPPED,
     F_DOUBLE_NODE_ADDRESS,
     F_FAULTY_PARAMETER,
@@ -58,6 +54,7 @@ from dpm.commands import (
     F_SERVICE_ACTIVE,
     F_TIMEOUT,
     MAX_LEN_DATA_UNIT,
+    Com,
 )
 from dpm.errors import F_UNKNOWN_COMMAND, F_UNKNOWN_TASK, Drv
 from dpm.message import Ext, Message, Task
@@ -72,6 +69,7 @@ from host_api.cia309.model import (
     syntax_error,
 )
 from host_api.cia309.pdo import PDO_BYTES, Pdo
+from host_api.online import download_data_set
 
 log = logging.getLogger(__name__)
 
@@ -628,17 +626,10 @@ class Link:
         return data[:total]
 
     def download_area(self, area: int, data: bytes, timeout: float) -> None:
-        """COM_Download of a data set, split by COM_Start_Seq when it is long (seed 5.2.3)."""
-        if len(data) <= MAX_LEN_DATA_UNIT:
-            self.command(COM_DOWNLOAD, bytes([0, area, 0, 0]) + data, timeout, "COM_Download")
-            return
-        self.command(COM_START_SEQ, bytes([0, area]) + struct.pack("<H", DOWNLOAD_AREA_SIZE),
-                     timeout, "COM_Start_Seq")
-        for offset in range(0, len(data), MAX_LEN_DATA_UNIT):
-            chunk = data[offset : offset + MAX_LEN_DATA_UNIT]
-            part = bytes([0, area]) + struct.pack("<H", offset) + chunk
-            self.command(COM_DOWNLOAD, part, timeout, "COM_Download")
-        self.command(COM_END_SEQ, b"\0", timeout, "COM_End_Seq")
+        """COM_Download of a data set, split by COM_Start_Seq when it is long (seed 5.2.3),
+        by the host's one on-line download routine; a refusal raises ``Cia309Error``."""
+        download_data_set(lambda b, payload: self.command(b, payload, timeout, Com(b).name),
+                          area, data, f"area {area}")
 
     def node_set(self, node: int, timeout: float) -> NodeParameterSet | None:
         """The node's parameter data set in the card (cached until the next start)."""
