@@ -49,6 +49,7 @@ from dbm_tools.tables import (
 from dbm_tools.validate import check_dbm
 from dpm.commands import (
     AREA_BUS,
+    AREA_EXTENDED,
     COM_BOOTUP_FORWARDING,
     COM_NMT_MODULE_PROTOCOL,
     COM_SDO_UP_DOWNLOAD,
@@ -67,7 +68,7 @@ from dpm.commands import (
     NMT_STOP,
     SDO_MAX_DATA,
 )
-from dpm.errors import Drv, err_event_text
+from dpm.errors import Drv, RcsF, err_event_text
 from dpm.message import Ext, Message, TelegramHeader, Tfc
 from host_api import driver as d
 from host_api.board import Board, CifError
@@ -107,7 +108,13 @@ from host_api.cia309.pdo import (
     pdo_cob_id,
     pdo_sizes,
 )
-from host_api.download import CONFIGURATION_DOWNLOAD, DevDownload, flash_directory, upload_database
+from host_api.download import (
+    CONFIGURATION_DOWNLOAD,
+    DevDownload,
+    delete_database,
+    flash_directory,
+    upload_database,
+)
 
 __all__ = ["Gateway"]
 
@@ -679,8 +686,12 @@ class Gateway:
         The card forgets an on-line configuration at a start, so the gateway reads it back
         (every node data set and the bus parameters), warm-starts the card, downloads it
         again with the new Baud_rate and repeats its own settings (SDO time-out, error
-        control, EMCY consumers, node-ID, heartbeat producer, layer-2 filters). Extended
-        bus parameters come back from flash only.
+        control, EMCY consumers, node-ID, heartbeat producer, layer-2 filters).
+
+        A database stored in flash would run after the start and refuse the on-line download
+        (seed 5.2.2, f 201), so [ours] the gateway takes it out of the flash for the start,
+        downloads its extended bus parameters on line with the rest, and puts it back
+        afterwards, whatever happens: it takes effect again at the card's next start.
         """
         link = self._link(network)
         if bit_rate_index is not None and bit_rate_index not in CIA305_BIT_RATES:
@@ -693,15 +704,39 @@ class Gateway:
                 raise Cia309Error(ErrorCode.INTERNAL_STATE,
                                   "the network has no bus parameters to set a bit rate in")
             nodes = _node_areas(link, timeout)
-            self._start_card(link, timeout)
-            for node, data in nodes.items():
-                link.download_area(node, data, timeout)
-            if bus is not None:
-                if bit_rate_index is not None:
-                    bus = bytes([CIA305_BIT_RATES[bit_rate_index]]) + bus[1:]
-                link.download_area(AREA_BUS, bus, timeout)
-            for (b, _), data in list(link.settings.items()):
-                link.command(b, data, timeout, f"repeating msg.b {b}")
+            stored = self._take_stored_database(link)
+            try:
+                self._start_card(link, timeout)
+                for node, data in nodes.items():
+                    link.download_area(node, data, timeout)
+                extended = _record(_read_area(stored), BUS_CAN_EXT) if stored else None
+                if extended is not None:
+                    link.download_area(AREA_EXTENDED, extended, timeout)
+                if bus is not None:
+                    if bit_rate_index is not None:
+                        bus = bytes([CIA305_BIT_RATES[bit_rate_index]]) + bus[1:]
+                    link.download_area(AREA_BUS, bus, timeout)
+                for (b, _), data in list(link.settings.items()):
+                    link.command(b, data, timeout, f"repeating msg.b {b}")
+            finally:
+                if stored is not None:
+                    with link.mailbox_released():
+                        code = DevDownload(link.number, CONFIGURATION_DOWNLOAD, stored)
+                    if code != Drv.DRV_NO_ERROR:
+                        raise driver_error(code, "DevDownload of the stored database")
+
+    def _take_stored_database(self, link: Link) -> bytes | None:
+        """The database stored in the card's flash, deleted there; None when there is none."""
+        with link.mailbox_released():
+            code, stored = upload_database(link.number)
+            if code == Drv.DRV_RCS_ERROR_OFFSET + RcsF.NO_DATABASE:
+                return None
+            if code != Drv.DRV_NO_ERROR:
+                raise driver_error(code, "upload of the stored database")
+            code = delete_database(link.number)
+        if code != Drv.DRV_NO_ERROR:
+            raise driver_error(code, "delete of the stored database")
+        return stored
 
     def _start_card(self, link: Link, timeout: float) -> None:
         """A warm start (the host's protocol parameters stay), then the gateway's layer-2
@@ -967,6 +1002,12 @@ def _read_area(area: bytes) -> DbmFile | None:
         return read_data_area(area)
     except DbmError:
         return None
+
+
+def _record(dbm: DbmFile | None, name: str) -> bytes | None:
+    """The first record of table ``name``, if the database has one."""
+    table = dbm.table(name) if dbm is not None else None
+    return table.records[0] if table is not None and table.records else None
 
 
 def _revision(version: bytes) -> int:
