@@ -9,7 +9,7 @@ Names follow the seed manual (``COM_SDO_Up_Download`` is ``Com.SDO_UP_DOWNLOAD``
 
 from __future__ import annotations
 
-from enum import IntEnum
+from enum import IntEnum, IntFlag
 
 
 class Rcs(IntEnum):
@@ -130,3 +130,29 @@ NMT_STOP = Nmt.STOP
 NMT_PREOP = Nmt.PREOPERATIONAL
 NMT_RESET_NODE = Nmt.RESET_NODE
 NMT_RESET_COMM = Nmt.RESET_COMMUNICATION
+
+
+# Added for libcif's com_user.h and rcsdef.h (checked against these by tests/test_libcif_headers.py).
+RCS_SYSTEM_FUNCTION = 1
+"""RCS_B_SYSFKT (rcsdef.h): msg.b of the RCS task's system functions."""
+
+
+class NodeStatus1(IntFlag):
+    """Nodestatus_1, the first byte of a COM_Node_Diag answer's data (seed 5.2.7)."""
+
+    NO_RESPONSE = 0x01
+    EMCY_BUFF_OVFL = 0x02
+    PRM_FAULT = 0x04
+    GUARD_ACTIVE = 0x08
+    DEACT = 0x80
+
+
+class NodeState(IntEnum):
+    """Node_state of a COM_Node_Diag answer: the node's guarding answer (seed 5.2.7)."""
+
+    DISCONNECTED = 1
+    CONNECTING = 2
+    PREPARING = 3
+    PREPARED = 4
+    OPERATIONAL = 5
+    PREOPERATIONAL = 127
