@@ -1,0 +1,33 @@
+/*
+ * driver.h - libcif's state shared by its source files (not installed).
+ */
+#ifndef CIFEMU_DRIVER_H
+#define CIFEMU_DRIVER_H
+
+#include <limits.h>
+
+#include "bell.h"
+#include "chanlock.h"
+#include "cif_user.h"
+
+#define CIFEMU_HIDDEN __attribute__((visibility("hidden")))
+
+typedef struct cifemu_counters {
+  unsigned int open, close, read, write, irq, io;
+  unsigned char last_function;
+} cifemu_counters;
+
+typedef struct cifemu_board {
+  unsigned short number;
+  unsigned char *mm; /* the map; flag bytes are read through flag_get (volatile) */
+  cifemu_bell bell;
+  cifemu_chanlock put_lock, get_lock, io_lock, flags_lock, transaction_lock;
+  cifemu_counters *counters;
+} cifemu_board;
+
+/* The initialised board, or NULL with *rc saying why (-34, -32). */
+CIFEMU_HIDDEN cifemu_board *cifemu_board_get(unsigned short number, short *rc);
+/* As cifemu_board_get, and the card must be READY (-11). */
+CIFEMU_HIDDEN cifemu_board *cifemu_ready_board(unsigned short number, short *rc);
+
+#endif
