@@ -37,8 +37,6 @@ static unsigned long long clamp_ms(unsigned long ms) {
 }
 
 int cifemu_chanlock_acquire(cifemu_chanlock *lock, unsigned long timeout_ms) {
-  long long deadline;
-  struct timespec pause = {0, FLOCK_RETRY_NS};
   if (pthread_mutex_trylock(&lock->mutex) == 0) { /* the uncontended case, without clocks */
     if (flock(lock->fd, LOCK_EX | LOCK_NB) == 0) return 1;
     pthread_mutex_unlock(&lock->mutex);
@@ -55,13 +53,17 @@ int cifemu_chanlock_acquire(cifemu_chanlock *lock, unsigned long timeout_ms) {
     }
     if (pthread_mutex_timedlock(&lock->mutex, &until) != 0) return 0;
   }
-  deadline = cifemu_now_ns() + (long long)clamp_ms(timeout_ms) * 1000000LL;
+  if (cifemu_flock_acquire(lock->fd, timeout_ms)) return 1;
+  pthread_mutex_unlock(&lock->mutex);
+  return 0;
+}
+
+int cifemu_flock_acquire(int fd, unsigned long timeout_ms) {
+  struct timespec pause = {0, FLOCK_RETRY_NS};
+  long long deadline = cifemu_now_ns() + (long long)clamp_ms(timeout_ms) * 1000000LL;
   for (;;) {
-    if (flock(lock->fd, LOCK_EX | LOCK_NB) == 0) return 1;
-    if ((errno != EWOULDBLOCK && errno != EINTR) || cifemu_now_ns() >= deadline) {
-      pthread_mutex_unlock(&lock->mutex);
-      return 0;
-    }
+    if (flock(fd, LOCK_EX | LOCK_NB) == 0) return 1;
+    if ((errno != EWOULDBLOCK && errno != EINTR) || cifemu_now_ns() >= deadline) return 0;
     nanosleep(&pause, NULL);
   }
 }

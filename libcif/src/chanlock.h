@@ -23,6 +23,9 @@ int cifemu_chanlock_acquire(cifemu_chanlock *lock, unsigned long timeout_ms);
 void cifemu_chanlock_take(cifemu_chanlock *lock);
 void cifemu_chanlock_release(cifemu_chanlock *lock);
 
+/* The flock alone, within timeout_ms: 1 taken, 0 not (for locks held across calls). */
+int cifemu_flock_acquire(int fd, unsigned long timeout_ms);
+
 long long cifemu_now_ns(void); /* CLOCK_MONOTONIC */
 
 #endif

@@ -17,6 +17,7 @@
 #include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
+#include <sys/file.h>
 #include <sys/mman.h>
 #include <sys/stat.h>
 #include <time.h>
@@ -137,6 +138,32 @@ cifemu_board *cifemu_ready_board(unsigned short number, short *rc) {
   return b;
 }
 
+int cifemu_txn_acquire(cifemu_board *b, unsigned long timeout_ms) {
+  int held;
+  pthread_mutex_lock(&b->txn_mutex);
+  if (!b->txn_held) b->txn_held = cifemu_flock_acquire(b->transaction_lock.fd, timeout_ms);
+  held = b->txn_held;
+  pthread_mutex_unlock(&b->txn_mutex);
+  return held;
+}
+
+void cifemu_txn_release_if_idle(cifemu_board *b) {
+  pthread_mutex_lock(&b->txn_mutex);
+  if (b->txn_held && b->txn_outstanding == 0 && b->txn_pinned == 0) {
+    flock(b->transaction_lock.fd, LOCK_UN);
+    b->txn_held = 0;
+  }
+  pthread_mutex_unlock(&b->txn_mutex);
+}
+
+void cifemu_txn_expect(cifemu_board *b, int delta) {
+  pthread_mutex_lock(&b->txn_mutex);
+  if (delta > 0) b->txn_outstanding++;
+  else if (delta < 0 && b->txn_outstanding > 0) b->txn_outstanding--;
+  else if (delta == 0) b->txn_outstanding = 0;
+  pthread_mutex_unlock(&b->txn_mutex);
+}
+
 static void image_path(char *out, size_t size, unsigned short number) {
   snprintf(out, size, "%s/board%u.dpm", directory, (unsigned)number);
 }
@@ -149,6 +176,7 @@ static void board_close(cifemu_board *b) {
   cifemu_chanlock_close(&b->flags_lock);
   cifemu_chanlock_close(&b->transaction_lock);
   munmap(b->mm, DPM_SIZE);
+  pthread_mutex_destroy(&b->txn_mutex);
   free(b);
 }
 
@@ -325,6 +353,7 @@ CIF_API short DevInitBoard(unsigned short usDevNumber) {
     goto out;
   }
   b = calloc(1, sizeof *b);
+  if (b != NULL) pthread_mutex_init(&b->txn_mutex, NULL);
   if (b == NULL || cifemu_bell_open(&b->bell, path) != 0 ||
       open_lock(&b->put_lock, usDevNumber, "put") != 0 ||
       open_lock(&b->get_lock, usDevNumber, "get") != 0 ||
@@ -376,10 +405,16 @@ CIF_API short DevPutMessage(unsigned short usDevNumber, MSG_STRUC *ptMessage,
   cifemu_board *b = cifemu_ready_board(usDevNumber, &rc);
   if (b == NULL) return rc;
   if (ptMessage == NULL) return DRV_USR_MSG_BUF_NULL_PTR;
-  if (!cifemu_chanlock_acquire(&b->put_lock, ulTimeout)) return DRV_CMD_ACTIVE;
+  if (!cifemu_txn_acquire(b, ulTimeout)) return DRV_CMD_ACTIVE;
+  if (!cifemu_chanlock_acquire(&b->put_lock, ulTimeout)) {
+    cifemu_txn_release_if_idle(b);
+    return DRV_CMD_ACTIVE;
+  }
   if (!wait_for(b, cond_free, CH_DEV_MBX, ulTimeout)) {
     rc = ulTimeout == 0 ? DRV_DEV_MAILBOX_FULL : DRV_DEV_PUT_TIMEOUT;
   } else {
+    /* a message with RCS_NAK_MSK is answered only when it fails: none is awaited */
+    if (!(ptMessage->e & 0x02)) cifemu_txn_expect(b, 1);
     /* the message is ln + 8 bytes; the caller's buffer may be no longer than that */
     memcpy(b->mm + OFS_DEV_MBX, ptMessage, 8u + ptMessage->ln);
     change_dev_flags(b, 0, 0, FL_DEVCOM, 1);
@@ -388,6 +423,7 @@ CIF_API short DevPutMessage(unsigned short usDevNumber, MSG_STRUC *ptMessage,
     rc = DRV_NO_ERROR;
   }
   cifemu_chanlock_release(&b->put_lock);
+  cifemu_txn_release_if_idle(b);
   return rc;
 }
 
@@ -399,9 +435,16 @@ CIF_API short DevGetMessage(unsigned short usDevNumber, unsigned short usSize,
   b = cifemu_ready_board(usDevNumber, &rc);
   if (b == NULL) return rc;
   if (ptMessage == NULL) return DRV_USR_MSG_BUF_NULL_PTR;
-  if (!cifemu_chanlock_acquire(&b->get_lock, ulTimeout)) return DRV_CMD_ACTIVE;
+  /* a host expecting nothing still waits for other hosts' transactions to finish */
+  if (!cifemu_txn_acquire(b, ulTimeout)) return DRV_CMD_ACTIVE;
+  if (!cifemu_chanlock_acquire(&b->get_lock, ulTimeout)) {
+    cifemu_txn_release_if_idle(b);
+    return DRV_CMD_ACTIVE;
+  }
   if (!wait_for(b, cond_pending, CH_HOST_MBX, ulTimeout)) {
     rc = ulTimeout == 0 ? DRV_DEV_GET_NO_MESSAGE : DRV_DEV_GET_TIMEOUT;
+    /* [ours] an answer that did not come in time frees the board for other hosts */
+    if (ulTimeout != 0) cifemu_txn_expect(b, 0);
   } else {
     unsigned length = 8u + b->mm[OFS_PC_MBX + 2];
     if (length > usSize) {
@@ -412,10 +455,12 @@ CIF_API short DevGetMessage(unsigned short usDevNumber, unsigned short usSize,
       change_dev_flags(b, 0, 0, FL_HOSTACK, b->bell.device_wants_ack);
       b->counters->read++;
       b->counters->last_function = FKT_READ;
+      cifemu_txn_expect(b, -1);
       rc = DRV_NO_ERROR;
     }
   }
   cifemu_chanlock_release(&b->get_lock);
+  cifemu_txn_release_if_idle(b);
   return rc;
 }
 
