@@ -462,3 +462,61 @@ def test_raw_access_reaches_the_connection_bits_but_not_the_flags(card: Card, bo
     assert d.DevReadWriteDPMRaw(board, d.PARAMETER_READ, 0x2F0, 16)[1][:3] == b"\x0f\xf0\xff"
     assert d.DevReadWriteDPMRaw(board, d.PARAMETER_READ, 1020, 3)[0] == Drv.DRV_USR_SIZE_TOO_LONG
     assert d.DevReadWriteDPMRaw(board, 3, 0, 1)[0] == Drv.DRV_USR_MODE_INVALID
+
+
+# --- DevDownload ----------------------------------------------------------------------------------
+
+TWO_NODES = ('[bus]\nbitrate = 125000\n[[node]]\nid = 3\nboot = ["start", "pdo"]\n'
+             '[[node]]\nid = 4\nboot = ["start", "pdo"]\n')
+
+
+def make_dbm(directory: Path, name: str = "net.dbm") -> Path:
+    from dbm_tools.builder import build_dbm
+    from dbm_tools.container import save_dbm
+    from dbm_tools.network import parse_network
+
+    path = directory / name
+    save_dbm(path, build_dbm(parse_network(TWO_NODES)))
+    return path
+
+
+def test_download_stores_a_database_the_card_starts_from(card: Card, board: int, d: Any,
+                                                         tmp_path: Path) -> None:
+    path = make_dbm(tmp_path)
+    assert d.DevDownload(board, d.CONFIGURATION_DOWNLOAD, path) == 0
+    assert d.DevReset(board, d.COLDSTART, 5000) == 0
+    wait_until(lambda: card.map()[0x1FFE] & 0x40, what="RUN from the stored database")
+    assert node_configured(d, board, 3) and node_configured(d, board, 4)
+
+
+def node_configured(d: Any, board: int, node: int) -> bool:
+    return bool(diagnostics(d, board).abNd_cfg[node // 8] & (1 << (node % 8)))
+
+
+def test_download_refusals_and_file_errors(board: int, d: Any, tmp_path: Path) -> None:
+    from dbm_tools.container import read_data_area, write_dbm
+
+    path = make_dbm(tmp_path)
+    broken = bytearray(write_dbm(read_data_area(path.read_bytes()[44:])))
+    broken[44] ^= 0xFF  # the checksum word w0: the card refuses with 25
+    (tmp_path / "broken.dbm").write_bytes(broken)
+    assert d.DevDownload(board, d.CONFIGURATION_DOWNLOAD, tmp_path / "broken.dbm") == 1025
+    assert d.DevDownload(board, d.CONFIGURATION_DOWNLOAD, "") == Drv.DRV_USR_FILENAME_INVALID
+    assert d.DevDownload(board, d.CONFIGURATION_DOWNLOAD, tmp_path / "none.dbm") == (
+        Drv.DRV_USR_FILE_OPEN_FAILED)
+    (tmp_path / "empty.dbm").write_bytes(b"")
+    assert d.DevDownload(board, d.CONFIGURATION_DOWNLOAD, tmp_path / "empty.dbm") == (
+        Drv.DRV_USR_FILE_SIZE_ZERO)
+    (tmp_path / "unreadable.dbm").symlink_to("/proc/self/mem")  # opens, then EIO
+    assert d.DevDownload(board, d.CONFIGURATION_DOWNLOAD, tmp_path / "unreadable.dbm") == (
+        Drv.DRV_USR_FILE_READ_FAILED)
+    (tmp_path / "net.txt").write_bytes(path.read_bytes())
+    assert d.DevDownload(board, d.CONFIGURATION_DOWNLOAD, tmp_path / "net.txt") == (
+        Drv.DRV_USR_INVALID_FILETYPE)
+    (tmp_path / "short.dbm").write_bytes(path.read_bytes()[:-2])
+    assert d.DevDownload(board, d.CONFIGURATION_DOWNLOAD, tmp_path / "short.dbm") == (
+        Drv.DRV_USR_INVALID_FILETYPE)
+    assert d.DevDownload(board, d.FIRMWARE_DOWNLOAD, path) == Drv.DRV_DEV_FUNCTION_FAILED
+    assert d.DevDownload(board, 7, path) == Drv.DRV_USR_MODE_INVALID
+    assert d.DevDownload(3, d.CONFIGURATION_DOWNLOAD, path) == Drv.DRV_USR_NOT_INITIALIZED
+
