@@ -132,7 +132,7 @@ NMT_RESET_NODE = Nmt.RESET_NODE
 NMT_RESET_COMM = Nmt.RESET_COMMUNICATION
 
 
-# Added for libcif's com_user.h and rcsdef.h (checked against these by tests/test_libcif_headers.py).
+# For libcif's com_user.h and rcsdef.h (checked against them by tests/test_libcif_headers.py).
 RCS_SYSTEM_FUNCTION = 1
 """RCS_B_SYSFKT (rcsdef.h): msg.b of the RCS task's system functions."""
 
