@@ -55,8 +55,13 @@ SIGNATURES: dict[str, list[type]] = {
     "DevReadWriteDPMData": [_US, _US, _US, _US, _P],
     "DevSpecialControl": [_US, _US, _PUS],
     "DevDownload": [_US, _US, ctypes.c_char_p, _PUL],
+    "dbm_init": [_P],
+    "dbm_init_ex": [_P, _UL],
+    "dbm_get_num": [ctypes.c_char_p, ctypes.POINTER(ctypes.c_ubyte)],
+    "dbm_get_num_of_set": [ctypes.c_ubyte, _PUS],
+    "dbm_fast_read": [ctypes.c_ubyte, _US, _US, _P, _PUS],
 }
-"""The prototypes of cif_user.h, as ctypes sees them."""
+"""The prototypes of cif_user.h and dbm_embd.h, as ctypes sees them."""
 
 
 class LibcifError(RuntimeError):
@@ -84,7 +89,7 @@ def flags(cflags: bool, libs: bool) -> str:
 
 
 def load() -> ctypes.CDLL:
-    """The shared library, built when missing, with every Dev* function's types set."""
+    """The shared library, built when missing, with every function's types set."""
     if not SHARED.exists():
         build()
     lib = ctypes.CDLL(str(SHARED))
