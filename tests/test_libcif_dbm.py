@@ -116,6 +116,15 @@ def test_lookup_codes(lib: ctypes.CDLL) -> None:
     assert reader.read(nodes, 1, length)[0] == DBM_OK
 
 
+def test_the_header_has_the_seeds_return_codes() -> None:
+    header = (libcif.INCLUDE / "dbm_embd.h").read_text()
+    names = ["DBM_OK", "DBM_NO_DAT", "DBM_NO_SET", "DBM_DAT_DIR_FULL",
+             "DBM_NOT_ENOUGH_FREESPACE", "DBM_SET_DEL"]
+    for value, name in enumerate(names):  # seed 6.5: 0 ... 5 in this order
+        assert f"#define {name} " in header
+        assert header.split(f"#define {name} ")[1].split()[0] == str(value), name
+
+
 def with_checksum(area: bytearray) -> bytes:
     area[0:2] = struct.pack("<H", sum(struct.unpack(f"<{len(area) // 2 - 1}H", area[2:])) & 0xFFFF)
     return bytes(area)

@@ -245,6 +245,14 @@ def test_unknown_task_and_unknown_command_are_answered(board: int, d: Any) -> No
     assert transact(d, board, Message(rx=2, tx=16, b=99, nr=4)).f == 152
 
 
+def test_nak_suppresses_only_successful_answers(board: int, d: Any) -> None:
+    write = bytes([0, 2, 0, 0, 0, 1, 5, 2])
+    assert d.DevPutMessage(board, Message(rx=2, tx=16, b=17, nr=1, e=2, data=write + b"\x5a"),
+                           1000) == 0
+    assert transact(d, board, Message(rx=2, tx=16, b=17, nr=2, e=2, data=bytes(8))).f == 167
+    assert d.DevGetMessage(board, 288, 0)[0] == Drv.DRV_DEV_GET_NO_MESSAGE
+
+
 def test_unread_answers_push_back_on_the_host(board: int, d: Any) -> None:
     """A host that never reads answers sees a full mailbox, not lost answers."""
     sent = 0
@@ -347,6 +355,7 @@ def test_reset_modes(card: Card, board: int, d: Any, mode: int) -> None:
     image = card.map()
     assert image[0x1FFF] == 0 and image[0x1FFE] & 0x80
     assert image[0x1FF7] >> 4 == (3 if mode == d.WARMSTART else 4)
+    assert image[0x1EF0:0x1F00] == b"\xff" * 16
 
 
 def test_reset_errors(card: Card, board: int, d: Any) -> None:

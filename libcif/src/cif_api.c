@@ -731,8 +731,12 @@ CIF_API short DevGetInfo(unsigned short usDevNumber, unsigned short usFunction,
   return DRV_NO_ERROR;
 }
 
+enum task_copy { READ_STATE, READ_PARAMETER, WRITE_PARAMETER };
+
+/* Task 1's or task 2's state or parameter area, copied out of or into the image. */
 static short task_area(unsigned short usDevNumber, unsigned short usNumber,
-                       unsigned short usSize, const void *pvData, cifemu_board **out) {
+                       unsigned short usSize, void *pvData, enum task_copy copy) {
+  unsigned offset;
   short rc;
   cifemu_board *b = cifemu_board_get(usDevNumber, &rc);
   if (b == NULL) return rc;
@@ -740,37 +744,28 @@ static short task_area(unsigned short usDevNumber, unsigned short usNumber,
   if (usSize == 0) return DRV_USR_SIZE_ZERO;
   if (usSize > TASK_AREA_SIZE) return DRV_USR_SIZE_TOO_LONG;
   if (pvData == NULL) return DRV_USR_BUF_PTR_NULL;
-  *out = b;
+  if (copy == READ_STATE) offset = usNumber == 1 ? OFS_TASK1_STATE : OFS_TASK2_STATE;
+  else offset = usNumber == 1 ? OFS_TASK1_PARAMETER : OFS_TASK2_PARAMETER;
+  if (copy == WRITE_PARAMETER) memcpy(b->mm + offset, pvData, usSize);
+  else memcpy(pvData, b->mm + offset, usSize);
   return DRV_NO_ERROR;
 }
 
 CIF_API short DevGetTaskState(unsigned short usDevNumber, unsigned short usNumber,
                               unsigned short usSize, void *pvData) {
-  cifemu_board *b = NULL;
-  short rc = task_area(usDevNumber, usNumber, usSize, pvData, &b);
-  if (rc == DRV_NO_ERROR)
-    memcpy(pvData, b->mm + (usNumber == 1 ? OFS_TASK1_STATE : OFS_TASK2_STATE), usSize);
-  return rc;
+  return task_area(usDevNumber, usNumber, usSize, pvData, READ_STATE);
 }
 
 CIF_API short DevGetTaskParameter(unsigned short usDevNumber, unsigned short usNumber,
                                   unsigned short usSize, void *pvData) {
-  cifemu_board *b = NULL;
-  short rc = task_area(usDevNumber, usNumber, usSize, pvData, &b);
-  if (rc == DRV_NO_ERROR)
-    memcpy(pvData, b->mm + (usNumber == 1 ? OFS_TASK1_PARAMETER : OFS_TASK2_PARAMETER), usSize);
-  return rc;
+  return task_area(usDevNumber, usNumber, usSize, pvData, READ_PARAMETER);
 }
 
 /* Takes effect at the next warm start. [ours] tasks 3..7 get -36: a CANopen card has
    parameter areas for tasks 1 and 2 only. */
 CIF_API short DevPutTaskParameter(unsigned short usDevNumber, unsigned short usNumber,
                                   unsigned short usSize, void *pvData) {
-  cifemu_board *b = NULL;
-  short rc = task_area(usDevNumber, usNumber, usSize, pvData, &b);
-  if (rc == DRV_NO_ERROR)
-    memcpy(b->mm + (usNumber == 1 ? OFS_TASK1_PARAMETER : OFS_TASK2_PARAMETER), pvData, usSize);
-  return rc;
+  return task_area(usDevNumber, usNumber, usSize, pvData, WRITE_PARAMETER);
 }
 
 static short read_write(cifemu_board *b, unsigned short usMode, unsigned start,

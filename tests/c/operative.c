@@ -190,11 +190,29 @@ static int sdo(unsigned char node, unsigned short index, unsigned char subindex,
   return transact(&msg, answer);
 }
 
+/* COM_NMT_Module_Protocol, then wait until the node's Nd_state bit reads `operating`. */
+static void nmt(unsigned char command, unsigned char node, int operating) {
+  RCS_MESSAGETELEGRAM_10 msg, answer;
+  COM_NMT_REQUEST *request = (COM_NMT_REQUEST *)&msg.device_adr;
+  double deadline;
+  int f;
+  new_message(&msg, COM_TASK_CAN, COM_NMT_Module_Protocol, sizeof *request);
+  request->bNmtCmd = command;
+  request->bNodeID = node;
+  f = transact(&msg, &answer);
+  CHECK(f == 0, "NMT %#x to node %d: msg.f %d", command, node, f);
+  deadline = now() + 5.0;
+  while (node_bit(diagnostics().abNd_state, node) != operating) {
+    CHECK(now() < deadline, "node %d's Nd_state bit is not %d after NMT %#x", node, operating,
+          command);
+    pause_ms(5);
+  }
+}
+
 int main(void) {
   RCS_MESSAGETELEGRAM_10 msg, answer;
   COM_PLC_PARAMETER param;
   COM_ND_DIAGNOSTICS nd;
-  COM_NMT_REQUEST *nmt;
   COM_DIAGNOSTICS diag;
   BUS_CAN bus;
   unsigned char set[COM_MAX_LEN_DATA_UNIT], out[8], in[8], value[4];
@@ -303,28 +321,8 @@ int main(void) {
          nd.bNodestatus_1);
 
   /* NMT: stop node 2 and start it again */
-  new_message(&msg, COM_TASK_CAN, COM_NMT_Module_Protocol, 2);
-  nmt = (COM_NMT_REQUEST *)&msg.device_adr;
-  nmt->bNmtCmd = NMT_STOP_REMOTE_NODE;
-  nmt->bNodeID = 2;
-  f = transact(&msg, &answer);
-  CHECK(f == 0, "NMT stop: msg.f %d", f);
-  deadline = now() + 5.0;
-  while (node_bit(diagnostics().abNd_state, 2)) {
-    CHECK(now() < deadline, "node 2 still in Nd_state after NMT stop");
-    pause_ms(5);
-  }
-  new_message(&msg, COM_TASK_CAN, COM_NMT_Module_Protocol, 2);
-  nmt = (COM_NMT_REQUEST *)&msg.device_adr;
-  nmt->bNmtCmd = NMT_START_REMOTE_NODE;
-  nmt->bNodeID = 2;
-  f = transact(&msg, &answer);
-  CHECK(f == 0, "NMT start: msg.f %d", f);
-  deadline = now() + 5.0;
-  while (!node_bit(diagnostics().abNd_state, 2)) {
-    CHECK(now() < deadline, "node 2 not back in Nd_state after NMT start");
-    pause_ms(5);
-  }
+  nmt(NMT_STOP_REMOTE_NODE, 2, 0);
+  nmt(NMT_START_REMOTE_NODE, 2, 1);
   printf("NMT: node 2 stopped and started again\n");
 
   CHECK((rc = DevExitBoard(BOARD)) == DRV_NO_ERROR, "DevExitBoard: %d", rc);
