@@ -107,7 +107,8 @@ int main(void) {
 """
 
 
-@pytest.mark.parametrize("form", ["pkg-config", "cifemu", "static", "cif_api.o", "c++"])
+@pytest.mark.parametrize("form", ["pkg-config", "cifemu", "static", "cif_api.o", "c++",
+                                  "include cif_api.c", "c++ include cif_api.c"])
 def test_a_program_links_in_every_form(built: None, card: Card, tmp_path: Path,
                                        form: str) -> None:
     assert CC is not None
@@ -127,13 +128,21 @@ def test_a_program_links_in_every_form(built: None, card: Card, tmp_path: Path,
         command = [CC, str(source), include, str(libcif.BUILD / "libcif.a"), "-pthread"]
     elif form == "cif_api.o":
         command = [CC, str(source), include, str(libcif.BUILD / "cif_api.o"), "-pthread"]
+    elif form == "include cif_api.c":  # the API compiled into the program itself
+        source.write_text(SMOKE.replace('"cif_user.h"\n', '"cif_user.h"\n#include "cif_api.c"\n'))
+        command = [CC, str(source), include, f"-I{libcif.BUILD}", "-pthread"]
     else:
         cxx = shutil.which("c++")
         if cxx is None:
             pytest.skip("no C++ compiler")
-        (tmp_path / "app.cpp").write_text(SMOKE)
-        command = [cxx, "-Wall", "-Wextra", "-Werror", str(tmp_path / "app.cpp"),
-                   *libcif.flags(True, True).split()]
+        text = SMOKE
+        if form == "c++ include cif_api.c":
+            text = SMOKE.replace('"cif_user.h"\n', '"cif_user.h"\n#include "cif_api.c"\n')
+            flags = [include, f"-I{libcif.BUILD}", "-pthread"]
+        else:
+            flags = libcif.flags(True, True).split()
+        (tmp_path / "app.cpp").write_text(text)
+        command = [cxx, "-Wall", "-Wextra", "-Werror", str(tmp_path / "app.cpp"), *flags]
     subprocess.run([*command, "-Wall", "-Wextra", "-Werror", "-o", str(tmp_path / "app")],
                    check=True)
     assert run(tmp_path / "app", card.directory) == "0 CANopen Master\n"

@@ -1,5 +1,7 @@
 /* bell.c - the doorbell [ours] (see bell.h) and the SHA-1 that names the device's socket. */
+#ifndef _GNU_SOURCE
 #define _GNU_SOURCE
+#endif
 #include "bell.h"
 
 #include <errno.h>
@@ -9,7 +11,6 @@
 #include <stdint.h>
 #include <stdlib.h>
 #include <string.h>
-#include <time.h>
 #include <unistd.h>
 
 #define RING_WANT_ACK 0x02
@@ -100,15 +101,13 @@ void cifemu_bell_ring(cifemu_bell *bell) {
 int cifemu_bell_wait(cifemu_bell *bell, long long timeout_ns) {
   struct pollfd pfd;
   unsigned char buf[16];
-  struct timespec ts;
   int rung = 0;
   ssize_t got;
   pfd.fd = bell->fd;
   pfd.events = POLLIN;
   if (timeout_ns < 0) timeout_ns = 0;
-  ts.tv_sec = (time_t)(timeout_ns / 1000000000LL);
-  ts.tv_nsec = (long)(timeout_ns % 1000000000LL);
-  if (ppoll(&pfd, 1, &ts, NULL) <= 0) return 0;
+  /* whole milliseconds, rounded up: a wait never ends before its time */
+  if (poll(&pfd, 1, (int)((timeout_ns + 999999) / 1000000)) <= 0) return 0;
   while ((got = recv(bell->fd, buf, sizeof buf, MSG_DONTWAIT)) > 0) {
     rung = 1;
     bell->device_wants_ack = buf[0] == RING_WANT_ACK;

@@ -1,5 +1,7 @@
 /* chanlock.c - see chanlock.h. */
+#ifndef _GNU_SOURCE
 #define _GNU_SOURCE
+#endif
 #include "chanlock.h"
 
 #include <errno.h>

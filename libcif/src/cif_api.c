@@ -9,7 +9,9 @@
  * DevReadWriteDPMData, DevExtendedData) is marked [ours] where the real driver's
  * behaviour is not documented.
  */
+#ifndef _GNU_SOURCE
 #define _GNU_SOURCE
+#endif
 #include <dirent.h>
 #include <errno.h>
 #include <fcntl.h>
@@ -36,7 +38,7 @@
 
 CIF_API int hDevDrv = -1;
 
-static pthread_mutex_t driver_lock = PTHREAD_RECURSIVE_MUTEX_INITIALIZER_NP;
+static pthread_mutex_t driver_lock = PTHREAD_MUTEX_INITIALIZER;
 static unsigned int open_count;
 static char directory[PATH_MAX];
 static cifemu_board *boards[MAX_DEV_BOARDS];
@@ -243,28 +245,30 @@ CIF_API short DevCloseDriver(void) {
   return rc;
 }
 
-CIF_API short DevGetBoardInfo(BOARD_INFO *pvData) {
+/* BOARD_INFO; the caller holds driver_lock. */
+static short board_info(BOARD_INFO *pvData) {
   char path[PATH_MAX + 16];
   unsigned short n, detected = 0;
-  short rc = DRV_NO_ERROR;
-  pthread_mutex_lock(&driver_lock);
-  if (open_count == 0) {
-    rc = DRV_USR_NOT_INITIALIZED;
-  } else if (pvData == NULL) {
-    rc = DRV_USR_BUF_PTR_NULL;
-  } else {
-    memset(pvData, 0, sizeof *pvData);
-    memcpy(pvData->abDriverVersion, DRIVER_VERSION, sizeof DRIVER_VERSION - 1);
-    for (n = 0; n < MAX_DEV_BOARDS; n++) {
-      int available;
-      image_path(path, sizeof path, n);
-      available = access(path, F_OK) == 0;
-      detected = (unsigned short)(detected + available);
-      pvData->tBoard[n].usBoard = n;
-      pvData->tBoard[n].usAvailable = (unsigned short)available;
-    }
-    pvData->usBoards_detected = detected;
+  if (open_count == 0) return DRV_USR_NOT_INITIALIZED;
+  if (pvData == NULL) return DRV_USR_BUF_PTR_NULL;
+  memset(pvData, 0, sizeof *pvData);
+  memcpy(pvData->abDriverVersion, DRIVER_VERSION, sizeof DRIVER_VERSION - 1);
+  for (n = 0; n < MAX_DEV_BOARDS; n++) {
+    int available;
+    image_path(path, sizeof path, n);
+    available = access(path, F_OK) == 0;
+    detected = (unsigned short)(detected + available);
+    pvData->tBoard[n].usBoard = n;
+    pvData->tBoard[n].usAvailable = (unsigned short)available;
   }
+  pvData->usBoards_detected = detected;
+  return DRV_NO_ERROR;
+}
+
+CIF_API short DevGetBoardInfo(BOARD_INFO *pvData) {
+  short rc;
+  pthread_mutex_lock(&driver_lock);
+  rc = board_info(pvData);
   pthread_mutex_unlock(&driver_lock);
   return rc;
 }
@@ -279,7 +283,7 @@ CIF_API short DevGetBoardInfoEx(void *pvData) {
   short rc;
   int n;
   pthread_mutex_lock(&driver_lock);
-  rc = pvData == NULL && open_count > 0 ? DRV_USR_BUF_PTR_NULL : DevGetBoardInfo(&info);
+  rc = pvData == NULL && open_count > 0 ? DRV_USR_BUF_PTR_NULL : board_info(&info);
   if (rc == DRV_NO_ERROR) {
     memset(ex, 0, sizeof *ex);
     memcpy(ex->abDriverVersion, info.abDriverVersion, sizeof ex->abDriverVersion);
@@ -341,7 +345,7 @@ CIF_API short DevInitBoard(unsigned short usDevNumber) {
     rc = DRV_DEV_DPM_ACCESS_ERROR;
     goto out;
   }
-  mm = mmap(NULL, DPM_SIZE, PROT_READ | PROT_WRITE, MAP_SHARED, fd, 0);
+  mm = (unsigned char *)mmap(NULL, DPM_SIZE, PROT_READ | PROT_WRITE, MAP_SHARED, fd, 0);
   close(fd);
   if (mm == MAP_FAILED) {
     rc = DRV_DEV_DPM_ACCESS_ERROR;
@@ -352,7 +356,7 @@ CIF_API short DevInitBoard(unsigned short usDevNumber) {
     munmap(mm, DPM_SIZE);
     goto out;
   }
-  b = calloc(1, sizeof *b);
+  b = (cifemu_board *)calloc(1, sizeof *b);
   if (b != NULL) pthread_mutex_init(&b->txn_mutex, NULL);
   if (b == NULL || cifemu_bell_open(&b->bell, path) != 0 ||
       open_lock(&b->put_lock, usDevNumber, "put") != 0 ||

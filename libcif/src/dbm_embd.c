@@ -21,7 +21,7 @@
 #define DESCRIPTOR_SIZE (14 + 18)
 #define DESCRIPTOR_POSITION 6
 
-static const unsigned char FILE_MAGIC[10] = {'D', 'B', 'M', 'F', 'I', 'L', 'E', ' ', ' ', 0};
+static const unsigned char DBM_FILE_MAGIC[10] = {'D', 'B', 'M', 'F', 'I', 'L', 'E', ' ', ' ', 0};
 
 static const unsigned char *area;   /* the data area of the file dbm_init took */
 static unsigned long area_size;     /* its bytes */
@@ -58,11 +58,11 @@ static int table(unsigned handle, const unsigned char **directory, unsigned long
 }
 
 CIF_API short dbm_init_ex(const void *ptDbmFile, unsigned long ulSize) {
-  const unsigned char *file = ptDbmFile;
+  const unsigned char *file = (const unsigned char *)ptDbmFile;
   unsigned long size, sum = 0, i;
   area = NULL;
   if (file == NULL) return DBM_NO_DAT;
-  if (ulSize >= sizeof FILE_MAGIC && memcmp(file, FILE_MAGIC, sizeof FILE_MAGIC) == 0) {
+  if (ulSize >= sizeof DBM_FILE_MAGIC && memcmp(file, DBM_FILE_MAGIC, sizeof DBM_FILE_MAGIC) == 0) {
     if (ulSize < FILE_HEADER_SIZE) return DBM_NO_DAT;
     size = file[38] | (unsigned long)file[39] << 8;
     if (size > ulSize - FILE_HEADER_SIZE) return DBM_NO_DAT;
@@ -89,11 +89,11 @@ CIF_API short dbm_init_ex(const void *ptDbmFile, unsigned long ulSize) {
 }
 
 CIF_API short dbm_init(void *ptDbmFile) {
-  const unsigned char *file = ptDbmFile;
+  const unsigned char *file = (const unsigned char *)ptDbmFile;
   unsigned long size;
   if (file == NULL) return DBM_NO_DAT;
   /* The file says how long it is: the header's length word, or a bare area's w5. */
-  if (memcmp(file, FILE_MAGIC, sizeof FILE_MAGIC) == 0)
+  if (memcmp(file, DBM_FILE_MAGIC, sizeof DBM_FILE_MAGIC) == 0)
     size = FILE_HEADER_SIZE + (file[38] | (unsigned long)file[39] << 8);
   else
     size = 2UL * (file[10] | (unsigned long)file[11] << 8);

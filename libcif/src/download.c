@@ -8,7 +8,9 @@
  * is never sent. Return codes as host_api.download's; the time-outs are the real
  * driver's: 10 s for the first message, 1 s for each continuation, 15 s for the last.
  */
+#ifndef _GNU_SOURCE
 #define _GNU_SOURCE
+#endif
 #include <errno.h>
 #include <stdio.h>
 #include <stdlib.h>
@@ -68,7 +70,7 @@ static short read_file(const char *name, unsigned char **data, size_t *size) {
   if (stat(name, &st) != 0 || S_ISDIR(st.st_mode)) return DRV_USR_FILE_OPEN_FAILED;
   file = fopen(name, "rb");
   if (file == NULL) return DRV_USR_FILE_OPEN_FAILED;
-  *data = malloc(MAX_FILE_SIZE + 1);
+  *data = (unsigned char *)malloc(MAX_FILE_SIZE + 1);
   if (*data == NULL) {
     fclose(file);
     return DRV_USR_FILE_NO_MEMORY;
