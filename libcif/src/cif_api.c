@@ -46,6 +46,9 @@ static cifemu_counters counters[MAX_DEV_BOARDS];
 /* DRIVERINFO per board number: kept from DevExitBoard to the next DevInitBoard while
    the driver stays open, as the Python driver keeps them. */
 
+/* DRIVERINFO's counters are updated by every thread of the host: atomically. */
+static void count(unsigned int *counter) { __atomic_fetch_add(counter, 1u, __ATOMIC_RELAXED); }
+
 /* ---- flags ---------------------------------------------------------------- */
 
 static unsigned char flag_get(const cifemu_board *b, unsigned offset) {
@@ -88,7 +91,7 @@ static int wait_for(cifemu_board *b, condition_fn cond, int arg, unsigned long t
     long long remaining = deadline - cifemu_now_ns();
     if (remaining <= 0) return cond(b, arg);
     if (cifemu_bell_wait(&b->bell, remaining < POLL_INTERVAL_NS ? remaining : POLL_INTERVAL_NS))
-      b->counters->irq++;
+      count(&b->counters->irq);
     if (cond(b, arg)) return 1;
   }
 }
@@ -377,8 +380,8 @@ CIF_API short DevInitBoard(unsigned short usDevNumber) {
   b->number = usDevNumber;
   b->mm = mm;
   b->counters = &counters[usDevNumber];
-  b->counters->open++;
-  b->counters->last_function = FKT_OPEN;
+  count(&b->counters->open);
+  __atomic_store_n(&b->counters->last_function, FKT_OPEN, __ATOMIC_RELAXED);
   cifemu_bell_ring(&b->bell); /* introduces this host to the device */
   __atomic_store_n(&boards[usDevNumber], b, __ATOMIC_RELEASE);
 out:
@@ -392,8 +395,8 @@ CIF_API short DevExitBoard(unsigned short usDevNumber) {
   pthread_mutex_lock(&driver_lock);
   b = cifemu_board_get(usDevNumber, &rc);
   if (b != NULL) {
-    b->counters->close++;
-    b->counters->last_function = FKT_CLOSE;
+    count(&b->counters->close);
+    __atomic_store_n(&b->counters->last_function, FKT_CLOSE, __ATOMIC_RELAXED);
     __atomic_store_n(&boards[usDevNumber], NULL, __ATOMIC_RELEASE);
     board_close(b);
   }
@@ -422,8 +425,8 @@ CIF_API short DevPutMessage(unsigned short usDevNumber, MSG_STRUC *ptMessage,
     /* the message is ln + 8 bytes; the caller's buffer may be no longer than that */
     memcpy(b->mm + OFS_DEV_MBX, ptMessage, 8u + ptMessage->ln);
     change_dev_flags(b, 0, 0, FL_DEVCOM, 1);
-    b->counters->write++;
-    b->counters->last_function = FKT_WRITE;
+    count(&b->counters->write);
+    __atomic_store_n(&b->counters->last_function, FKT_WRITE, __ATOMIC_RELAXED);
     rc = DRV_NO_ERROR;
   }
   cifemu_chanlock_release(&b->put_lock);
@@ -457,8 +460,8 @@ CIF_API short DevGetMessage(unsigned short usDevNumber, unsigned short usSize,
       memcpy(ptMessage, b->mm + OFS_PC_MBX, length);
       /* The device polls anyway; a ring only speeds up answers it has queued. */
       change_dev_flags(b, 0, 0, FL_HOSTACK, b->bell.device_wants_ack);
-      b->counters->read++;
-      b->counters->last_function = FKT_READ;
+      count(&b->counters->read);
+      __atomic_store_n(&b->counters->last_function, FKT_READ, __ATOMIC_RELAXED);
       cifemu_txn_expect(b, -1);
       rc = DRV_NO_ERROR;
     }
@@ -535,8 +538,8 @@ static short exchange(cifemu_board *b, unsigned mode, unsigned short usSendOffse
     }
     cifemu_chanlock_release(&b->io_lock);
   }
-  b->counters->io++;
-  b->counters->last_function = FKT_IO;
+  count(&b->counters->io);
+  __atomic_store_n(&b->counters->last_function, FKT_IO, __ATOMIC_RELAXED);
   if (!(host_flags(b) & FL_COM)) rc = DRV_DEV_NO_COM_FLAG;
   return rc;
 }
@@ -690,19 +693,19 @@ static void fill_driver_info(cifemu_board *b, DRIVERINFO *info) {
   const cifemu_counters *c = b->counters;
   unsigned char host = host_flags(b), dev = dev_flags(b);
   memset(info, 0, sizeof *info);
-  info->ulOpenCnt = c->open;
-  info->CloseCnt = c->close;
-  info->ulReadCnt = c->read;
-  info->ulWriteCnt = c->write;
-  info->ulIRQCnt = c->irq;
+  info->ulOpenCnt = __atomic_load_n(&c->open, __ATOMIC_RELAXED);
+  info->CloseCnt = __atomic_load_n(&c->close, __ATOMIC_RELAXED);
+  info->ulReadCnt = __atomic_load_n(&c->read, __ATOMIC_RELAXED);
+  info->ulWriteCnt = __atomic_load_n(&c->write, __ATOMIC_RELAXED);
+  info->ulIRQCnt = __atomic_load_n(&c->irq, __ATOMIC_RELAXED);
   info->bInitMsgFlag = (host & FL_READY) ? 1 : 0;
   info->bReadMsgFlag = ((host ^ dev) & CH_HOST_MBX) ? 1 : 0;
   info->bWriteMsgFlag = ((host ^ dev) & CH_DEV_MBX) ? 1 : 0;
-  info->bLastFunction = c->last_function;
+  info->bLastFunction = __atomic_load_n(&c->last_function, __ATOMIC_RELAXED);
   info->bHostFlags = host;
   info->bMyDevFlags = dev;
   info->bExIOFlag = (host & FL_COM) ? 1 : 0;
-  info->ulExIOCnt = c->io;
+  info->ulExIOCnt = __atomic_load_n(&c->io, __ATOMIC_RELAXED);
 }
 
 CIF_API short DevGetInfo(unsigned short usDevNumber, unsigned short usFunction,
@@ -727,7 +730,7 @@ CIF_API short DevGetInfo(unsigned short usDevNumber, unsigned short usFunction,
     IOINFO info;
     info.bComBit = (host_flags(b) & FL_COM) ? 1 : 0;
     info.bIOExchangeMode = (unsigned char)driver_mode(b);
-    info.ulIOExchangeCnt = b->counters->io;
+    info.ulIOExchangeCnt = __atomic_load_n(&b->counters->io, __ATOMIC_RELAXED);
     memcpy(pvData, &info, usSize);
   } else {
     memcpy(pvData, b->mm + offsets[usFunction], usSize);
