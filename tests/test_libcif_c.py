@@ -148,6 +148,30 @@ def test_a_program_links_in_every_form(built: None, card: Card, tmp_path: Path,
     assert run(tmp_path / "app", card.directory) == "0 CANopen Master\n"
 
 
+def test_the_installed_library_compiles_a_program(built: None, card: Card, tmp_path: Path) -> None:
+    """make install into a prefix, then pkg-config from there, as the README says."""
+    assert CC is not None
+    if shutil.which("pkg-config") is None:
+        pytest.skip("no pkg-config")
+    prefix = tmp_path / "prefix"
+    subprocess.run(["make", "-s", "-C", str(libcif.SOURCE), "install", f"PREFIX={prefix}"],
+                   check=True, capture_output=True)
+    for name in ("cif_user.h", "rcs_user.h", "rcsdef.h", "com_user.h", "dbm_embd.h",
+                 "cif_api.c"):
+        assert (prefix / "include" / name).exists(), name
+    for name in ("libcif.so.1", "libcif.a", "cif_api.o", "pkgconfig/libcif.pc"):
+        assert (prefix / "lib" / name).exists(), name
+    flags = subprocess.run(
+        ["pkg-config", "--cflags", "--libs", "libcif"], capture_output=True, text=True,
+        check=True, env={**os.environ, "PKG_CONFIG_PATH": str(prefix / "lib" / "pkgconfig")},
+    ).stdout.split()
+    assert f"-I{prefix}/include" in flags
+    (tmp_path / "app.c").write_text(SMOKE)
+    subprocess.run([CC, str(tmp_path / "app.c"), *flags, "-Wall", "-Wextra", "-Werror",
+                    "-o", str(tmp_path / "app")], check=True)
+    assert run(tmp_path / "app", card.directory) == "0 CANopen Master\n"
+
+
 def test_the_shared_library_has_its_soname(built: None) -> None:
     readelf = shutil.which("readelf")
     if readelf is None:
