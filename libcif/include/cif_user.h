@@ -99,6 +99,9 @@ typedef unsigned int CIF_UL32; /* 32 bits on every Linux ABI: the `ul` fields */
 #define DRV_CMD_ACTIVE             -4
 #define DRV_PARAMETER_UNKNOWN      -5
 #define DRV_WRONG_DRIVER_VERSION   -6
+#define DRV_PCI_SET_CONFIG_MODE    -7
+#define DRV_PCI_READ_DPM_LENGTH    -8
+#define DRV_PCI_SET_RUN_MODE       -9
 
 #define DRV_DEV_DPM_ACCESS_ERROR   -10
 #define DRV_DEV_NOT_READY          -11
@@ -138,6 +141,10 @@ typedef unsigned int CIF_UL32; /* 32 bits on every Linux ABI: the `ul` fields */
 #define DRV_USR_RECVSIZE_TOO_LONG  -47
 #define DRV_USR_SENDBUF_PTR_NULL   -48
 #define DRV_USR_RECVBUF_PTR_NULL   -49
+
+#define DRV_DEV_NO_VIRTUAL_MEM     -60 /* Linux only */
+#define DRV_DEV_UNMAP_VIRTUAL_MEM  -61 /* Linux only */
+#define DRV_DEV_REQUEST_IRQ_FAILED -62 /* Linux only */
 
 #define DRV_USR_FILE_OPEN_FAILED   -100
 #define DRV_USR_FILE_SIZE_ZERO     -101
