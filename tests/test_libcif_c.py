@@ -16,6 +16,7 @@ import os
 import shutil
 import subprocess
 import threading
+import time
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -25,6 +26,7 @@ from cifemu import libcif
 from dbm_tools.builder import build_dbm
 from dbm_tools.container import save_dbm
 from dbm_tools.network import parse_network
+from dpm.errors import Drv
 from dpm.message import Message
 from host_api import driver as d
 from tests.conftest import Card, start_card
@@ -244,3 +246,38 @@ def test_a_c_host_and_a_python_host_never_read_each_others_answers(
             pass
     assert out == f"cross_host: {count} answers, all this host's own\n"
     assert wrong == []
+
+
+def test_c_and_python_hosts_take_the_same_channel_locks(card: Card) -> None:
+    """While a Python host holds a channel, libcif's call on it gets -4, and the reverse."""
+    c = CDriver()
+    assert d.DevOpenDriver(card.directory) == 0 and d.DevInitBoard(0) == 0
+    assert c.DevOpenDriver(card.directory) == 0 and c.DevInitBoard(0) == 0
+    try:
+        assert c.DevPutTaskParameter(0, 2, bytes([3])) == 0  # bMode 3: handshake mode 4
+        assert c.DevReset(0, d.WARMSTART, 5000) == 0
+        board = d._driver.boards[0]
+        request = Message(rx=2, tx=16, b=17, nr=1, data=bytes([0, 1, 0, 0, 0, 2, 5, 1]))
+        for lock, call in ((board.put_lock, lambda: c.DevPutMessage(0, request, 30)),
+                           (board.get_lock, lambda: c.DevGetMessage(0, 288, 30)[0]),
+                           (board.io_lock, lambda: c.DevExchangeIO(0, 0, b"x", 0, 1, 30)[0])):
+            assert lock.acquire(1.0)
+            try:
+                assert call() == Drv.DRV_CMD_ACTIVE
+            finally:
+                lock.release()
+        # the reverse: a C host waits in DevPutMessage on a full mailbox of a frozen card
+        card.freeze()
+        try:
+            assert c.DevPutMessage(0, request, 0) == 0
+            waiter = threading.Thread(target=lambda: c.DevPutMessage(0, request, 500))
+            waiter.start()
+            deadline = time.monotonic() + 5
+            while d.DevPutMessage(0, request, 0) != Drv.DRV_CMD_ACTIVE:
+                assert time.monotonic() < deadline, "the C host's wait never held the channel"
+            waiter.join()
+        finally:
+            card.thaw()
+    finally:
+        c.DevCloseDriver()
+        d.DevCloseDriver()
