@@ -174,6 +174,17 @@ def test_the_installed_library_compiles_a_program(built: None, card: Card, tmp_p
     assert run(tmp_path / "app", card.directory) == "0 CANopen Master\n"
 
 
+def test_cifemu_libcif_prints_the_flags(built: None, capsys: pytest.CaptureFixture[str]) -> None:
+    from cifemu.cli import main
+
+    assert main(["libcif", "--cflags", "--libs"]) == 0
+    assert capsys.readouterr().out.split() == [
+        f"-I{libcif.INCLUDE}", f"-L{libcif.BUILD}", f"-Wl,-rpath,{libcif.BUILD}", "-lcif",
+        "-pthread"]
+    assert main(["libcif", "--cflags"]) == 0
+    assert capsys.readouterr().out == f"-I{libcif.INCLUDE}\n"
+
+
 def test_the_shared_library_has_its_soname(built: None) -> None:
     readelf = shutil.which("readelf")
     if readelf is None:
