@@ -210,17 +210,14 @@ def test_bad_input_gets_its_code_and_never_a_crash(built: None, card: Card, tmp_
 @pytest.mark.parametrize("variant", ["plain", "sanitized"])
 def test_chapter_7_2_makes_the_card_operative(built: None, simulated_card: Card, tmp_path: Path,
                                               variant: str) -> None:
-    """A SyCon-style database is in the card first (DevDownload from C), so the procedure's
-    step 1 has one to delete; then on-line configuration, process data, SDO, diagnostics, NMT."""
+    """A SyCon-style database goes into the card first (DevDownload, a cold start), so the
+    procedure's step 1 has one to delete; then on-line configuration, process data, SDO,
+    node diagnostics and NMT."""
     dbm = tmp_path / "sycon.dbm"
     save_dbm(dbm, build_dbm(parse_network(NETWORK)))
-    c = CDriver()
-    assert c.DevOpenDriver(simulated_card.directory) == 0 and c.DevInitBoard(0) == 0
-    assert c.DevDownload(0, d.CONFIGURATION_DOWNLOAD, dbm) == 0
-    assert c.DevReset(0, d.COLDSTART, 5000) == 0
-    assert c.DevCloseDriver() == 0
     program = compile_program(C_TESTS / "operative.c", tmp_path / "operative", variant)
-    out = run(program, simulated_card.directory)
+    out = run(program, simulated_card.directory, str(dbm))
+    assert f"step 0: {dbm.stat().st_size - 44} bytes of database downloaded" in out
     assert "step 1: the card ran from a database: deleted" in out
     assert out.endswith("operative: all steps done\n")
 

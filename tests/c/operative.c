@@ -12,7 +12,9 @@
  * The image is reached "directly" through DevReadWriteDPMData (offsets from the image's
  * start), as a program with the dual-port memory mapped would write it.
  *
- * Usage: CIF_DPM_DIR=<dir> operative; nodes 1 and 2 echo their outputs as inputs.
+ * Usage: CIF_DPM_DIR=<dir> operative [SYCON.dbm]; nodes 1 and 2 echo their outputs as inputs.
+ * With a DBM file, the program first puts it into the card's flash with DevDownload and
+ * cold-starts the card from it, as SyCon would have left the card: step 1 then deletes it.
  * Exit status 0 when every step did what the seed says, else 1 with the failed step.
  */
 #include <stdio.h>
@@ -209,7 +211,25 @@ static void nmt(unsigned char command, unsigned char node, int operating) {
   }
 }
 
-int main(void) {
+/* DevDownload of a SyCon-style database, then a cold start: the card runs from it. */
+static void download_database(const char *path) {
+  unsigned long bytes = 0;
+  long size;
+  short rc;
+  FILE *file = fopen(path, "rb");
+  CHECK(file != NULL, "cannot open %s", path);
+  fseek(file, 0, SEEK_END);
+  size = ftell(file);
+  fclose(file);
+  rc = DevDownload(BOARD, CONFIGURATION_DOWNLOAD, (unsigned char *)path, &bytes);
+  CHECK(rc == DRV_NO_ERROR, "DevDownload: %d", rc);
+  CHECK((long)bytes == size - 44, "DevDownload counted %lu bytes of %ld", bytes, size - 44);
+  rc = DevReset(BOARD, COLDSTART, 5000L);
+  CHECK(rc == DRV_NO_ERROR, "DevReset(COLDSTART): %d", rc);
+  printf("step 0: %lu bytes of database downloaded, card cold-started from it\n", bytes);
+}
+
+int main(int argc, char **argv) {
   RCS_MESSAGETELEGRAM_10 msg, answer;
   COM_PLC_PARAMETER param;
   COM_ND_DIAGNOSTICS nd;
@@ -224,6 +244,7 @@ int main(void) {
 
   CHECK((rc = DevOpenDriver()) == DRV_NO_ERROR, "DevOpenDriver: %d", rc);
   CHECK((rc = DevInitBoard(BOARD)) == DRV_NO_ERROR, "DevInitBoard: %d", rc);
+  if (argc > 1) download_database(argv[1]);
 
   /* 1. a SyCon database loaded? Then delete it (RCS load function, mode 4, segment 8). */
   if ((read_byte(HOST_FLAGS) & (READY_FLAG | RUN_FLAG)) == (READY_FLAG | RUN_FLAG)) {
