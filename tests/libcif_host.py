@@ -30,9 +30,18 @@ class CDriver:
         return getattr(driver, name)
 
     def DevOpenDriver(self, directory: str | Path | None = None) -> int:
-        if directory is not None:
-            os.environ["CIF_DPM_DIR"] = str(directory)
-        return int(self.lib.DevOpenDriver())
+        """libcif reads $CIF_DPM_DIR here: a directory given is set for this call only."""
+        if directory is None:
+            return int(self.lib.DevOpenDriver())
+        before = os.environ.get("CIF_DPM_DIR")
+        os.environ["CIF_DPM_DIR"] = str(directory)
+        try:
+            return int(self.lib.DevOpenDriver())
+        finally:
+            if before is None:
+                del os.environ["CIF_DPM_DIR"]
+            else:
+                os.environ["CIF_DPM_DIR"] = before
 
     def DevCloseDriver(self) -> int:
         return int(self.lib.DevCloseDriver())
