@@ -97,6 +97,8 @@ SMOKE = """
 #include <stdio.h>
 #include <string.h>
 #include "cif_user.h"
+#include "rcs_user.h"
+#include "COM_USER.H"
 int main(void) {
   FIRMWAREINFO fw;
   short rc = DevOpenDriver();
@@ -158,8 +160,8 @@ def test_the_installed_library_compiles_a_program(built: None, card: Card, tmp_p
     prefix = tmp_path / "prefix"
     subprocess.run(["make", "-s", "-C", str(libcif.SOURCE), "install", f"PREFIX={prefix}"],
                    check=True, capture_output=True)
-    for name in ("cif_user.h", "rcs_user.h", "rcsdef.h", "com_user.h", "dbm_embd.h",
-                 "cif_api.c"):
+    for name in ("cif_user.h", "rcs_user.h", "rcsdef.h", "com_user.h", "COM_USER.H",
+                 "dbm_embd.h", "cif_api.c"):
         assert (prefix / "include" / name).exists(), name
     for name in ("libcif.so.1", "libcif.a", "cif_api.o", "pkgconfig/libcif.pc"):
         assert (prefix / "lib" / name).exists(), name

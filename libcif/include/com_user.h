@@ -82,13 +82,13 @@ typedef unsigned int CIFEMU_U32;
 /* COM_DIAGNOSTICS.tError.bErr_rem_adr when the device itself reports */
 #define COM_ERR_DEVICE_ADR         255
 
-/* COM_ND_DIAGNOSTICS.bNodestatus_1 */
+/* COM_ND_DIAGNOSTICS.bNodeStatus_1, as a byte */
 #define COM_ND_NO_RESPONSE         0x01
 #define COM_ND_EMCY_BUFF_OVFL      0x02
 #define COM_ND_PRM_FAULT           0x04
 #define COM_ND_GUARD_ACTIVE        0x08
 #define COM_ND_DEACT               0x80
-/* COM_ND_DIAGNOSTICS.bNode_state (node guarding) */
+/* COM_ND_DIAGNOSTICS.bNodeState (node guarding) */
 #define COM_ND_STATE_DISCONNECTED  1
 #define COM_ND_STATE_CONNECTING    2
 #define COM_ND_STATE_PREPARING     3
@@ -169,15 +169,24 @@ typedef struct COM_DIAGNOSTICStag {
   unsigned char  abNd_diag[16];
 } COM_DIAGNOSTICS;
 
-/* The data of a COM_Node_Diag answer, after the telegram header (seed 5.2.7) */
+/* The data of a COM_Node_Diag answer, after the telegram header (seed 5.2.7). The field
+   names known from legacy programs (bNodeStatus_1's bits, bNodeState, bActualError) are
+   theirs; the seed's Nodestatus_1 byte is also COM_ND_NO_RESPONSE ... COM_ND_DEACT. */
 typedef struct COM_ND_DIAGNOSTICStag {
-  unsigned char  bNodestatus_1;
-  unsigned short usAdd_Info;       /* object 1000h, high word */
-  unsigned short usProfile_Number; /* object 1000h, low word */
-  unsigned char  bNode_state;
-  unsigned char  bActual_Error;
-  unsigned char  bEmcy_Entries;
-  unsigned char  abEmcy_Data[40];  /* five 8-byte emergency messages */
+  struct {
+    unsigned char bNodeNoResponse   : 1; /* node not responding */
+    unsigned char bEmcyBuffOverflow : 1; /* emergency buffer overflow */
+    unsigned char bPrmFault         : 1; /* master and node configuration differ */
+    unsigned char bGuardActive      : 1; /* guarding (or heartbeat) supervises the node */
+    unsigned char bReserved         : 3;
+    unsigned char bDeactivated      : 1; /* node deactivated, not handled by the master */
+  } bNodeStatus_1;
+  unsigned short usAddInfo;        /* object 1000h, high word */
+  unsigned short usProfileNumber;  /* object 1000h, low word */
+  unsigned char  bNodeState;       /* COM_ND_STATE_* from node guarding */
+  unsigned char  bActualError;     /* an Err_Event number (seed 4.3) */
+  unsigned char  bEmcyEntries;
+  unsigned char  abEmcyData[40];   /* five 8-byte emergency messages */
 } COM_ND_DIAGNOSTICS;
 
 /* COM_Download / COM_Upload / COM_Start_Seq / COM_End_Seq data (seed 5.2.3 - 5.2.6) */

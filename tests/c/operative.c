@@ -335,11 +335,17 @@ int main(int argc, char **argv) {
   f = transact(&msg, &answer);
   CHECK(f == 0 && answer.data_cnt == sizeof nd, "COM_Node_Diag: msg.f %d", f);
   memcpy(&nd, answer.d, sizeof nd);
-  CHECK(nd.usProfile_Number == 401 && nd.usAdd_Info == 0x000F, "node 2's device type");
-  CHECK(!(nd.bNodestatus_1 & (COM_ND_NO_RESPONSE | COM_ND_PRM_FAULT | COM_ND_DEACT)),
-        "node 2 reports Nodestatus_1 %#x", nd.bNodestatus_1);
-  printf("node diagnostics: node 2 profile %d, Nodestatus_1 %#x\n", nd.usProfile_Number,
-         nd.bNodestatus_1);
+  CHECK(nd.usProfileNumber == 401 && nd.usAddInfo == 0x000F, "node 2's device type");
+  CHECK(!nd.bNodeStatus_1.bNodeNoResponse && !nd.bNodeStatus_1.bPrmFault &&
+            !nd.bNodeStatus_1.bDeactivated && nd.bNodeStatus_1.bGuardActive,
+        "node 2's Nodestatus_1 bits");
+  CHECK((answer.d[0] & (COM_ND_NO_RESPONSE | COM_ND_GUARD_ACTIVE)) == COM_ND_GUARD_ACTIVE,
+        "Nodestatus_1 byte %#x", answer.d[0]);
+  /* the last state the node's heartbeat reported: it may predate the node's start */
+  CHECK(nd.bNodeState == COM_ND_STATE_OPERATIONAL || nd.bNodeState == COM_ND_STATE_PREOPERATIONAL,
+        "node 2's Node_state %d", nd.bNodeState);
+  printf("node diagnostics: node 2 profile %d, Nodestatus_1 %#x, error %d\n",
+         nd.usProfileNumber, answer.d[0], nd.bActualError);
 
   /* NMT: stop node 2 and start it again */
   nmt(NMT_STOP_REMOTE_NODE, 2, 0);
