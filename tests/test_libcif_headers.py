@@ -39,6 +39,10 @@ from host_api import driver as drv
 ROOT = Path(__file__).resolve().parents[1]
 INCLUDE = ROOT / "libcif" / "include"
 HEADERS = ["cif_user.h", "rcs_user.h", "rcsdef.h", "com_user.h"]
+"""The card's headers: every define in them is checked against dpm."""
+OTHER_PROTOCOLS = ["asc_user.h", "nvr_user.h", "dbm_embd.h"]
+"""Headers whose numbers are not the card's (other cards' tasks, the seed's DBM codes):
+compiled with the others, their numbers checked elsewhere or not the emulator's."""
 
 _BAUD = {f"COM_BAUD_{kbit}": code for code, kbit in prm.BAUD_RATES_KBIT.items()}
 
@@ -147,6 +151,12 @@ def test_every_define_has_its_source_and_agrees_with_it() -> None:
         assert defines[key] == value and value in MSG_F_TEXT
 
 
+def test_every_installed_header_is_checked_here() -> None:
+    present = {path.name for path in INCLUDE.iterdir()}
+    assert present == {*HEADERS, *OTHER_PROTOCOLS, "COM_USER.H"}
+    assert (INCLUDE / "COM_USER.H").read_text() == (INCLUDE / "com_user.h").read_text()
+
+
 def test_every_driver_code_is_in_the_header() -> None:
     missing = {m.name for m in Drv} - set(header_defines())
     assert not missing
@@ -204,7 +214,8 @@ def test_structures_match_the_image_layout(tmp_path: Path) -> None:
 def test_headers_compile_as_c89_c11_and_cpp(tmp_path: Path) -> None:
     """The size assertions hold in every dialect (each one fails compilation otherwise)."""
     src = tmp_path / "all.c"
-    src.write_text("".join(f'#include "{h}"\n' for h in HEADERS) + "int main(void){return 0;}\n")
+    src.write_text("".join(f'#include "{h}"\n' for h in [*HEADERS, *OTHER_PROTOCOLS, "COM_USER.H"])
+                   + "int main(void){return 0;}\n")
     for compiler, flags in (("cc", ["-std=c89", "-Wno-long-long"]), ("cc", ["-std=c11"]),
                             ("c++", ["-x", "c++", "-std=c++11"])):
         exe = shutil.which(compiler)
