@@ -7,6 +7,7 @@
                     (download, upload, delete, dir)
   cifemu demo       a card, a simulated network, on-line configuration, live status
   cifemu 309        the CiA 309-3 ASCII gateway (serve, exec, shell)
+  cifemu libcif     flags that compile a C program against libcif (--cflags --libs)
 """
 
 from __future__ import annotations
@@ -22,6 +23,7 @@ from pathlib import Path
 from rich.console import Console
 from rich.live import Live
 
+from cifemu import libcif as libcif_cli
 from dbm_tools.builder import build_dbm
 from dbm_tools.container import write_dbm
 from dbm_tools.network import load_network
@@ -119,6 +121,11 @@ def build_parser() -> argparse.ArgumentParser:
                             formatter_class=argparse.RawDescriptionHelpFormatter)
     cia309_cli.add_arguments(cia309)
     cia309.set_defaults(func=cia309_cli.run)
+    libcif = sub.add_parser("libcif", help="compiler and linker flags for C programs (libcif)",
+                            description=libcif_cli.__doc__,
+                            formatter_class=argparse.RawDescriptionHelpFormatter)
+    libcif_cli.add_arguments(libcif)
+    libcif.set_defaults(func=libcif_cli.run)
     demo = sub.add_parser("demo", help="a card, simulated nodes, live status (Ctrl-C ends)",
                           description=_demo.__doc__)
     demo.add_argument("--dpm-dir", default=os.environ.get("CIFEMU_DEMO_DIR"),

@@ -12,6 +12,8 @@ from __future__ import annotations
 import struct
 from enum import IntEnum
 
+from dpm.errors import CanF, NodeEvent
+
 
 class Rcs(IntEnum):
     """Commands of the RCS task (msg.rx 0)."""
@@ -147,28 +149,42 @@ NMT_PREOP = Nmt.PREOPERATIONAL
 NMT_RESET_NODE = Nmt.RESET_NODE
 NMT_RESET_COMM = Nmt.RESET_COMMUNICATION
 
-# msg.f of CAN-task answers (seed 5.2; texts in dpm.errors.MSG_F_TEXT) and the Err_Event
-# numbers of a node (seed 4.3) that the CiA 309 gateway translates into 309-3 errors.
-F_SDO_ABORT = 3
-F_NO_RESPONSE = 17
-F_NOT_OPERATIONAL = 19
-F_LOCAL_RESOURCE = 20
-"""CON_LR: the node or the bus parameters asked for are not configured."""
-F_PARAMETER_FAULT = 21
-F_TIMEOUT = 48
-F_RECEIVE_BUFFER_OVERSTEPPED = 51
-F_BUFFER_LENGTH_OVERSTEPPED = 53
-F_SERVICE_ACTIVE = 54
-F_FAULTY_PARAMETER = 55
-F_SEQUENCE_ERROR = 57
-F_DOUBLE_NODE_ADDRESS = 60
-F_REMOTE_ADDRESS_RANGE = 161
-F_NOT_CONFIGURED = 200
-F_HANDLER_FAILED = 254
-"""[ours] a handler of the firmware failed unexpectedly; the firmware stays up and says so."""
-ERR_EVENT_GUARDING_FAILED = 30
-ERR_EVENT_LEFT_OPERATIONAL = 31
-ERR_EVENT_GUARD_SEQUENCE = 32
-ERR_EVENT_NODE_STOPPED = 39
+# msg.f of CAN-task answers and the Err_Event numbers of a node that the CiA 309 gateway
+# translates into 309-3 errors, under the names it uses: each is a member of dpm.errors'
+# one table (CanF, NodeEvent), never a number of its own.
+F_SDO_ABORT = CanF.SDO_ABORT
+F_NO_RESPONSE = CanF.NO_RESPONSE
+F_NOT_OPERATIONAL = CanF.NODE_BUSY
+F_LOCAL_RESOURCE = CanF.LOCAL_RESOURCE
+F_PARAMETER_FAULT = CanF.PARAMETER_FAULT
+F_TIMEOUT = CanF.TIMEOUT
+F_RECEIVE_BUFFER_OVERSTEPPED = CanF.SDO_BUFFER
+F_BUFFER_LENGTH_OVERSTEPPED = CanF.BUFFER_LENGTH
+F_SERVICE_ACTIVE = CanF.SDO_FUNCTION
+F_FAULTY_PARAMETER = CanF.FAULTY_PARAMETER
+F_SEQUENCE_ERROR = CanF.SEQUENCE
+F_DOUBLE_NODE_ADDRESS = CanF.DOUBLE_ADDRESS
+F_REMOTE_ADDRESS_RANGE = CanF.NODE_DIAG_ADDRESS
+F_NOT_CONFIGURED = CanF.NOT_CONFIGURED
+F_HANDLER_FAILED = CanF.INTERNAL_ERROR
+ERR_EVENT_GUARDING_FAILED = NodeEvent.GUARDING_FAILED
+ERR_EVENT_LEFT_OPERATIONAL = NodeEvent.LEFT_OPERATIONAL
+ERR_EVENT_GUARD_SEQUENCE = NodeEvent.GUARD_SEQUENCE
+ERR_EVENT_NODE_STOPPED = NodeEvent.NODE_STOPPED
 NODE_DIAG_EMCY_ENTRY = 8
 """Bytes of one EMCY entry in a COM_Node_Diag answer."""
+
+# For libcif's com_user.h and rcsdef.h (checked against them by tests/test_libcif_headers.py).
+RCS_SYSTEM_FUNCTION = 1
+"""RCS_B_SYSFKT (rcsdef.h): msg.b of the RCS task's system functions."""
+
+
+class NodeState(IntEnum):
+    """Node_state of a COM_Node_Diag answer: the node's guarding answer (seed 5.2.7)."""
+
+    DISCONNECTED = 1
+    CONNECTING = 2
+    PREPARING = 3
+    PREPARED = 4
+    OPERATIONAL = 5
+    PREOPERATIONAL = 127

@@ -22,6 +22,9 @@ class Drv(IntEnum):
     DRV_CMD_ACTIVE = -4
     DRV_PARAMETER_UNKNOWN = -5
     DRV_WRONG_DRIVER_VERSION = -6
+    DRV_PCI_SET_CONFIG_MODE = -7
+    DRV_PCI_READ_DPM_LENGTH = -8
+    DRV_PCI_SET_RUN_MODE = -9
     DRV_DEV_DPM_ACCESS_ERROR = -10
     DRV_DEV_NOT_READY = -11
     DRV_DEV_NOT_RUNNING = -12
@@ -59,6 +62,9 @@ class Drv(IntEnum):
     DRV_USR_RECVSIZE_TOO_LONG = -47
     DRV_USR_SENDBUF_PTR_NULL = -48
     DRV_USR_RECVBUF_PTR_NULL = -49
+    DRV_DEV_NO_VIRTUAL_MEM = -60
+    DRV_DEV_UNMAP_VIRTUAL_MEM = -61
+    DRV_DEV_REQUEST_IRQ_FAILED = -62
     DRV_USR_FILE_OPEN_FAILED = -100
     DRV_USR_FILE_SIZE_ZERO = -101
     DRV_USR_FILE_NO_MEMORY = -102
@@ -76,6 +82,9 @@ DRV_TEXT: dict[int, str] = {
     -4: "DRIVER command on this channel is active",
     -5: "DRIVER unknown parameter in function occurred",
     -6: "DRIVER driver version is incompatible with DLL",
+    -7: "DRIVER error while setting the PCI configuration mode",
+    -8: "DRIVER could not read the PCI dual-port memory length",
+    -9: "DRIVER error while setting the PCI run mode",
     -10: "DEVICE dual port ram not accessible",
     -11: "DEVICE not ready (ready flag failed)",
     -12: "DEVICE not running (running flag failed)",
@@ -113,6 +122,9 @@ DRV_TEXT: dict[int, str] = {
     -47: "USER ReceiveSize parameter too long",
     -48: "USER pointer to send buffer is a null pointer",
     -49: "USER pointer to receive buffer is a null pointer",
+    -60: "DEVICE virtual memory not available (Linux)",
+    -61: "DEVICE unmapping virtual memory failed (Linux)",
+    -62: "DEVICE interrupt request failed (Linux)",
     -100: "USER file not opened",
     -101: "USER file size zero",
     -102: "USER not enough memory to load file",

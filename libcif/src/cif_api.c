@@ -1,0 +1,822 @@
+/*
+ * cif_api.c - the CIF device driver API over an emulated card's image (libcif).
+ *
+ * The behaviour of host_api/driver.py, in C and without Python in the host
+ * process: the same return codes in the same order of checks, the same channel
+ * locks (so C and Python hosts serialise on one card), the same doorbell with the
+ * polling fallback. DPM.md section 3 is the table both follow. What only the C API
+ * has (null pointers, DevGetBoardInfoEx, DevSetOpMode, DevGetMBXData,
+ * DevReadWriteDPMData, DevExtendedData) is marked [ours] where the real driver's
+ * behaviour is not documented.
+ */
+#ifndef _GNU_SOURCE
+#define _GNU_SOURCE
+#endif
+#include <dirent.h>
+#include <errno.h>
+#include <fcntl.h>
+#include <pthread.h>
+#include <stdio.h>
+#include <stdlib.h>
+#include <string.h>
+#include <sys/file.h>
+#include <sys/mman.h>
+#include <sys/stat.h>
+#include <time.h>
+#include <unistd.h>
+
+#include "dpm.h"
+#include "driver.h"
+
+#define CIF_API __attribute__((visibility("default")))
+#define DRIVER_VERSION "cifemu V0.1.0"
+#define DEFAULT_DPM_DIR "/dev/shm/cif"
+#define SPIN_NS 100000LL          /* watch the flags this long before sleeping on the bell */
+#define POLL_INTERVAL_NS 1000000LL /* the 1 ms of DPM.md 5 */
+#define SPECIAL_CONTROL_WAIT_MS 100UL
+#define STATE_FLAG_UNKNOWN 0xFF
+
+CIF_API int hDevDrv = -1;
+
+static pthread_mutex_t driver_lock = PTHREAD_MUTEX_INITIALIZER;
+static unsigned int open_count;
+static char directory[PATH_MAX];
+static cifemu_board *boards[MAX_DEV_BOARDS];
+static cifemu_counters counters[MAX_DEV_BOARDS];
+/* DRIVERINFO per board number: kept from DevExitBoard to the next DevInitBoard while
+   the driver stays open, as the Python driver keeps them. */
+
+/* DRIVERINFO's counters are updated by every thread of the host: atomically. */
+static void count(unsigned int *counter) { __atomic_fetch_add(counter, 1u, __ATOMIC_RELAXED); }
+
+/* ---- flags ---------------------------------------------------------------- */
+
+static unsigned char flag_get(const cifemu_board *b, unsigned offset) {
+  return __atomic_load_n(b->mm + offset, __ATOMIC_ACQUIRE);
+}
+static unsigned char host_flags(const cifemu_board *b) { return flag_get(b, OFS_HOST_FLAGS); }
+static unsigned char dev_flags(const cifemu_board *b) { return flag_get(b, OFS_DEV_FLAGS); }
+static int ready(const cifemu_board *b) { return (host_flags(b) & FL_READY) != 0; }
+static int pending(const cifemu_board *b, unsigned char channel) {
+  return ((host_flags(b) ^ dev_flags(b)) & channel) != 0;
+}
+
+/* Read-modify-write DevFlags under the flags lock, then ring the device. */
+static void change_dev_flags(cifemu_board *b, unsigned char set, unsigned char clear,
+                             unsigned char toggle, int ring) {
+  unsigned char value;
+  cifemu_chanlock_take(&b->flags_lock);
+  value = (unsigned char)(((dev_flags(b) | set) & ~clear & 0xFF) ^ toggle);
+  __atomic_store_n(b->mm + OFS_DEV_FLAGS, value, __ATOMIC_RELEASE);
+  cifemu_chanlock_release(&b->flags_lock);
+  if (ring) cifemu_bell_ring(&b->bell);
+}
+
+typedef int (*condition_fn)(const cifemu_board *b, int arg);
+
+/* Wait on the bell (polling as a fallback) until the condition or the timeout. */
+static int wait_for(cifemu_board *b, condition_fn cond, int arg, unsigned long timeout_ms) {
+  long long deadline, spin_end, now;
+  if (cond(b, arg)) return 1;
+  if (timeout_ms == 0) return 0;
+  if (timeout_ms > 2000000000UL) timeout_ms = 2000000000UL;
+  now = cifemu_now_ns();
+  deadline = now + (long long)timeout_ms * 1000000LL;
+  /* A card answers most requests within tens of microseconds: watching the flags
+     that long first saves the sleep and wake-up of the bell. */
+  spin_end = now + SPIN_NS;
+  while (cifemu_now_ns() < spin_end)
+    if (cond(b, arg)) return 1;
+  for (;;) {
+    long long remaining = deadline - cifemu_now_ns();
+    if (remaining <= 0) return cond(b, arg);
+    if (cifemu_bell_wait(&b->bell, remaining < POLL_INTERVAL_NS ? remaining : POLL_INTERVAL_NS))
+      count(&b->counters->irq);
+    if (cond(b, arg)) return 1;
+  }
+}
+
+static int cond_pending(const cifemu_board *b, int channel) {
+  return pending(b, (unsigned char)channel);
+}
+static int cond_free(const cifemu_board *b, int channel) {
+  return !pending(b, (unsigned char)channel);
+}
+static int cond_pd_turn(const cifemu_board *b, int device_controlled) {
+  return pending(b, CH_PD) == device_controlled;
+}
+static int cond_reset_done(const cifemu_board *b, int unused) {
+  (void)unused;
+  return (dev_flags(b) & (FL_RESET | FL_INIT)) == 0;
+}
+static int cond_ready(const cifemu_board *b, int unused) {
+  (void)unused;
+  return ready(b);
+}
+static int cond_host_bit(const cifemu_board *b, int bit_and_level) {
+  int bit = bit_and_level & 0xFF, want = bit_and_level >> 8;
+  return ((host_flags(b) & bit) != 0) == want;
+}
+
+/* ---- boards --------------------------------------------------------------- */
+
+cifemu_board *cifemu_board_get(unsigned short number, short *rc) {
+  cifemu_board *b;
+  if (number >= MAX_DEV_BOARDS) {
+    *rc = DRV_USR_DEV_NUMBER_INVALID;
+    return NULL;
+  }
+  b = __atomic_load_n(&boards[number], __ATOMIC_ACQUIRE);
+  if (open_count == 0 || b == NULL) {
+    *rc = DRV_USR_NOT_INITIALIZED;
+    return NULL;
+  }
+  return b;
+}
+
+cifemu_board *cifemu_ready_board(unsigned short number, short *rc) {
+  cifemu_board *b = cifemu_board_get(number, rc);
+  if (b != NULL && !ready(b)) {
+    *rc = DRV_DEV_NOT_READY;
+    return NULL;
+  }
+  return b;
+}
+
+int cifemu_txn_acquire(cifemu_board *b, unsigned long timeout_ms) {
+  int held;
+  pthread_mutex_lock(&b->txn_mutex);
+  if (!b->txn_held) b->txn_held = cifemu_flock_acquire(b->transaction_lock.fd, timeout_ms);
+  held = b->txn_held;
+  pthread_mutex_unlock(&b->txn_mutex);
+  return held;
+}
+
+void cifemu_txn_release_if_idle(cifemu_board *b) {
+  pthread_mutex_lock(&b->txn_mutex);
+  if (b->txn_held && b->txn_outstanding == 0 && b->txn_pinned == 0) {
+    flock(b->transaction_lock.fd, LOCK_UN);
+    b->txn_held = 0;
+  }
+  pthread_mutex_unlock(&b->txn_mutex);
+}
+
+void cifemu_txn_expect(cifemu_board *b, int delta) {
+  pthread_mutex_lock(&b->txn_mutex);
+  if (delta > 0) b->txn_outstanding++;
+  else if (delta < 0 && b->txn_outstanding > 0) b->txn_outstanding--;
+  else if (delta == 0) b->txn_outstanding = 0;
+  pthread_mutex_unlock(&b->txn_mutex);
+}
+
+static void image_path(char *out, size_t size, unsigned short number) {
+  snprintf(out, size, "%s/board%u.dpm", directory, (unsigned)number);
+}
+
+static void board_close(cifemu_board *b) {
+  cifemu_bell_close(&b->bell);
+  cifemu_chanlock_close(&b->put_lock);
+  cifemu_chanlock_close(&b->get_lock);
+  cifemu_chanlock_close(&b->io_lock);
+  cifemu_chanlock_close(&b->flags_lock);
+  cifemu_chanlock_close(&b->transaction_lock);
+  munmap(b->mm, DPM_SIZE);
+  pthread_mutex_destroy(&b->txn_mutex);
+  free(b);
+}
+
+/* The driver's checks: DPM access (test pattern), READY, the DPM size. */
+static short check_card(unsigned char *mm) {
+  static const unsigned char pattern[3] = {0x55, 0xAA, 0x00};
+  unsigned char identifier[3], readback[3];
+  memcpy(identifier, mm + OFS_DEV_IDENTIFIER, 3);
+  if (memcmp(identifier, "CIF", 3) != 0) return DRV_DEV_DPM_ACCESS_ERROR;
+  memcpy(mm + OFS_DEV_IDENTIFIER, pattern, 3);
+  memcpy(readback, mm + OFS_DEV_IDENTIFIER, 3);
+  memcpy(mm + OFS_DEV_IDENTIFIER, identifier, 3);
+  if (memcmp(readback, pattern, 3) != 0) return DRV_DEV_DPM_ACCESS_ERROR;
+  if (!(__atomic_load_n(mm + OFS_HOST_FLAGS, __ATOMIC_ACQUIRE) & FL_READY)) {
+    unsigned char error = mm[OFS_RCS_ERROR];
+    return (short)(error > 0 && error < 250 ? DRV_RCS_ERROR_OFFSET + error : DRV_DEV_NOT_READY);
+  }
+  if ((unsigned)mm[OFS_DPM_SIZE] * 1024u != DPM_SIZE) return DRV_DEV_DPMSIZE_MISMATCH;
+  return DRV_NO_ERROR;
+}
+
+/* ---- driver and board ----------------------------------------------------- */
+
+CIF_API short DevOpenDriver(void) {
+  const char *env = getenv("CIF_DPM_DIR");
+  const char *path = env != NULL ? env : DEFAULT_DPM_DIR;
+  struct stat st;
+  short rc = DRV_NO_ERROR;
+  pthread_mutex_lock(&driver_lock);
+  if (strlen(path) >= sizeof directory - 16 || stat(path, &st) != 0 || !S_ISDIR(st.st_mode)) {
+    rc = DRV_USR_OPEN_ERROR;
+  } else if (open_count > 0 && strcmp(directory, path) != 0) {
+    rc = DRV_USR_OPEN_ERROR; /* one process, one image directory */
+  } else {
+    if (open_count == 0) {
+      strcpy(directory, path);
+      hDevDrv = open(path, O_RDONLY | O_DIRECTORY | O_CLOEXEC);
+    }
+    open_count++;
+  }
+  pthread_mutex_unlock(&driver_lock);
+  return rc;
+}
+
+CIF_API short DevCloseDriver(void) {
+  short rc = DRV_NO_ERROR;
+  int n;
+  pthread_mutex_lock(&driver_lock);
+  if (open_count == 0) {
+    rc = DRV_USR_NOT_INITIALIZED;
+  } else if (--open_count == 0) {
+    for (n = 0; n < MAX_DEV_BOARDS; n++) {
+      if (boards[n] != NULL) {
+        cifemu_board *b = boards[n];
+        __atomic_store_n(&boards[n], NULL, __ATOMIC_RELEASE);
+        board_close(b);
+      }
+    }
+    memset(counters, 0, sizeof counters);
+    if (hDevDrv >= 0) close(hDevDrv);
+    hDevDrv = -1;
+  }
+  pthread_mutex_unlock(&driver_lock);
+  return rc;
+}
+
+/* BOARD_INFO; the caller holds driver_lock. */
+static short board_info(BOARD_INFO *pvData) {
+  char path[PATH_MAX + 16];
+  unsigned short n, detected = 0;
+  if (open_count == 0) return DRV_USR_NOT_INITIALIZED;
+  if (pvData == NULL) return DRV_USR_BUF_PTR_NULL;
+  memset(pvData, 0, sizeof *pvData);
+  memcpy(pvData->abDriverVersion, DRIVER_VERSION, sizeof DRIVER_VERSION - 1);
+  for (n = 0; n < MAX_DEV_BOARDS; n++) {
+    int available;
+    image_path(path, sizeof path, n);
+    available = access(path, F_OK) == 0;
+    detected = (unsigned short)(detected + available);
+    pvData->tBoard[n].usBoard = n;
+    pvData->tBoard[n].usAvailable = (unsigned short)available;
+  }
+  pvData->usBoards_detected = detected;
+  return DRV_NO_ERROR;
+}
+
+CIF_API short DevGetBoardInfo(BOARD_INFO *pvData) {
+  short rc;
+  pthread_mutex_lock(&driver_lock);
+  rc = board_info(pvData);
+  pthread_mutex_unlock(&driver_lock);
+  return rc;
+}
+
+static void fill_driver_info(cifemu_board *b, DRIVERINFO *info);
+
+/* [ours] BOARD_INFO's entries, and for each initialised board its DRIVERINFO and the
+   card's information areas; boards this process has not initialised stay zero. */
+CIF_API short DevGetBoardInfoEx(void *pvData) {
+  BOARD_INFOEX *ex = (BOARD_INFOEX *)pvData;
+  BOARD_INFO info;
+  short rc;
+  int n;
+  pthread_mutex_lock(&driver_lock);
+  rc = pvData == NULL && open_count > 0 ? DRV_USR_BUF_PTR_NULL : board_info(&info);
+  if (rc == DRV_NO_ERROR) {
+    memset(ex, 0, sizeof *ex);
+    memcpy(ex->abDriverVersion, info.abDriverVersion, sizeof ex->abDriverVersion);
+    for (n = 0; n < MAX_DEV_BOARDS; n++) {
+      cifemu_board *b = boards[n];
+      ex->tBoard[n].usBoard = info.tBoard[n].usBoard;
+      ex->tBoard[n].usAvailable = info.tBoard[n].usAvailable;
+      if (b == NULL) continue;
+      fill_driver_info(b, &ex->tBoard[n].tDriverInfo);
+      memcpy(&ex->tBoard[n].tFirmware, b->mm + OFS_FIRMWARE_INFO, sizeof(FIRMWAREINFO));
+      memcpy(&ex->tBoard[n].tDeviceInfo, b->mm + OFS_DEV_INFO, sizeof(DEVINFO));
+      memcpy(&ex->tBoard[n].tRcsInfo, b->mm + OFS_RCS_INFO, sizeof(RCSINFO));
+      memcpy(&ex->tBoard[n].tVersion, b->mm + OFS_VERSION_INFO, sizeof(VERSIONINFO));
+    }
+  }
+  pthread_mutex_unlock(&driver_lock);
+  return rc;
+}
+
+/* [ours] Linux only: polling (0) or interrupt (1). The emulated card always has its
+   doorbell with polling beside it, so both modes are accepted and usIrq reads 0. */
+CIF_API short DevSetOpMode(unsigned short usBoard, unsigned short usMode, unsigned short *usIrq) {
+  short rc;
+  if (cifemu_board_get(usBoard, &rc) == NULL) return rc;
+  if (usMode != POLLING_MODE && usMode != INTERRUPT_MODE) return DRV_USR_MODE_INVALID;
+  if (usIrq != NULL) *usIrq = 0;
+  return DRV_NO_ERROR;
+}
+
+static int open_lock(cifemu_chanlock *lock, unsigned short number, const char *what) {
+  char path[PATH_MAX + 32];
+  snprintf(path, sizeof path, "%s/board%u.%s.lock", directory, (unsigned)number, what);
+  return cifemu_chanlock_open(lock, path);
+}
+
+CIF_API short DevInitBoard(unsigned short usDevNumber) {
+  char path[PATH_MAX + 16];
+  unsigned char *mm;
+  cifemu_board *b;
+  struct stat st;
+  short rc;
+  int fd;
+  if (usDevNumber >= MAX_DEV_BOARDS) return DRV_USR_DEV_NUMBER_INVALID;
+  pthread_mutex_lock(&driver_lock);
+  if (open_count == 0) {
+    rc = DRV_USR_NOT_INITIALIZED;
+    goto out;
+  }
+  rc = DRV_NO_ERROR;
+  if (boards[usDevNumber] != NULL) goto out;
+  image_path(path, sizeof path, usDevNumber);
+  if (access(path, F_OK) != 0) {
+    rc = DRV_USR_DEV_NUMBER_INVALID;
+    goto out;
+  }
+  fd = open(path, O_RDWR | O_CLOEXEC);
+  if (fd < 0 || fstat(fd, &st) != 0 || st.st_size < DPM_SIZE) {
+    if (fd >= 0) close(fd);
+    rc = DRV_DEV_DPM_ACCESS_ERROR;
+    goto out;
+  }
+  mm = (unsigned char *)mmap(NULL, DPM_SIZE, PROT_READ | PROT_WRITE, MAP_SHARED, fd, 0);
+  close(fd);
+  if (mm == MAP_FAILED) {
+    rc = DRV_DEV_DPM_ACCESS_ERROR;
+    goto out;
+  }
+  rc = check_card(mm);
+  if (rc != DRV_NO_ERROR) {
+    munmap(mm, DPM_SIZE);
+    goto out;
+  }
+  b = (cifemu_board *)calloc(1, sizeof *b);
+  if (b != NULL) pthread_mutex_init(&b->txn_mutex, NULL);
+  if (b == NULL || cifemu_bell_open(&b->bell, path) != 0 ||
+      open_lock(&b->put_lock, usDevNumber, "put") != 0 ||
+      open_lock(&b->get_lock, usDevNumber, "get") != 0 ||
+      open_lock(&b->io_lock, usDevNumber, "io") != 0 ||
+      open_lock(&b->flags_lock, usDevNumber, "flags") != 0 ||
+      open_lock(&b->transaction_lock, usDevNumber, "transaction") != 0) {
+    /* [ours] no socket or lock file for this host: the board cannot be shared safely */
+    if (b != NULL) {
+      b->mm = mm;
+      board_close(b);
+    } else {
+      munmap(mm, DPM_SIZE);
+    }
+    rc = DRV_USR_INIT_DRV_ERROR;
+    goto out;
+  }
+  b->number = usDevNumber;
+  b->mm = mm;
+  b->counters = &counters[usDevNumber];
+  count(&b->counters->open);
+  __atomic_store_n(&b->counters->last_function, FKT_OPEN, __ATOMIC_RELAXED);
+  cifemu_bell_ring(&b->bell); /* introduces this host to the device */
+  __atomic_store_n(&boards[usDevNumber], b, __ATOMIC_RELEASE);
+out:
+  pthread_mutex_unlock(&driver_lock);
+  return rc;
+}
+
+CIF_API short DevExitBoard(unsigned short usDevNumber) {
+  cifemu_board *b;
+  short rc = DRV_NO_ERROR;
+  pthread_mutex_lock(&driver_lock);
+  b = cifemu_board_get(usDevNumber, &rc);
+  if (b != NULL) {
+    count(&b->counters->close);
+    __atomic_store_n(&b->counters->last_function, FKT_CLOSE, __ATOMIC_RELAXED);
+    __atomic_store_n(&boards[usDevNumber], NULL, __ATOMIC_RELEASE);
+    board_close(b);
+  }
+  pthread_mutex_unlock(&driver_lock);
+  return rc;
+}
+
+/* ---- mailboxes ------------------------------------------------------------ */
+
+CIF_API short DevPutMessage(unsigned short usDevNumber, MSG_STRUC *ptMessage,
+                            unsigned long ulTimeout) {
+  short rc;
+  cifemu_board *b = cifemu_ready_board(usDevNumber, &rc);
+  if (b == NULL) return rc;
+  if (ptMessage == NULL) return DRV_USR_MSG_BUF_NULL_PTR;
+  if (!cifemu_txn_acquire(b, ulTimeout)) return DRV_CMD_ACTIVE;
+  if (!cifemu_chanlock_acquire(&b->put_lock, ulTimeout)) {
+    cifemu_txn_release_if_idle(b);
+    return DRV_CMD_ACTIVE;
+  }
+  if (!wait_for(b, cond_free, CH_DEV_MBX, ulTimeout)) {
+    rc = ulTimeout == 0 ? DRV_DEV_MAILBOX_FULL : DRV_DEV_PUT_TIMEOUT;
+  } else {
+    /* a message with RCS_NAK_MSK is answered only when it fails: none is awaited */
+    if (!(ptMessage->e & 0x02)) cifemu_txn_expect(b, 1);
+    /* the message is ln + 8 bytes; the caller's buffer may be no longer than that */
+    memcpy(b->mm + OFS_DEV_MBX, ptMessage, 8u + ptMessage->ln);
+    change_dev_flags(b, 0, 0, FL_DEVCOM, 1);
+    count(&b->counters->write);
+    __atomic_store_n(&b->counters->last_function, FKT_WRITE, __ATOMIC_RELAXED);
+    rc = DRV_NO_ERROR;
+  }
+  cifemu_chanlock_release(&b->put_lock);
+  cifemu_txn_release_if_idle(b);
+  return rc;
+}
+
+CIF_API short DevGetMessage(unsigned short usDevNumber, unsigned short usSize,
+                            MSG_STRUC *ptMessage, unsigned long ulTimeout) {
+  short rc;
+  cifemu_board *b;
+  if (usSize == 0 || usSize > MSG_BUFFER_SIZE) return DRV_USR_SIZE_INVALID;
+  b = cifemu_ready_board(usDevNumber, &rc);
+  if (b == NULL) return rc;
+  if (ptMessage == NULL) return DRV_USR_MSG_BUF_NULL_PTR;
+  /* a host expecting nothing still waits for other hosts' transactions to finish */
+  if (!cifemu_txn_acquire(b, ulTimeout)) return DRV_CMD_ACTIVE;
+  if (!cifemu_chanlock_acquire(&b->get_lock, ulTimeout)) {
+    cifemu_txn_release_if_idle(b);
+    return DRV_CMD_ACTIVE;
+  }
+  if (!wait_for(b, cond_pending, CH_HOST_MBX, ulTimeout)) {
+    rc = ulTimeout == 0 ? DRV_DEV_GET_NO_MESSAGE : DRV_DEV_GET_TIMEOUT;
+    /* [ours] an answer that did not come in time frees the board for other hosts */
+    if (ulTimeout != 0) cifemu_txn_expect(b, 0);
+  } else {
+    unsigned length = 8u + b->mm[OFS_PC_MBX + 2];
+    if (length > usSize) {
+      rc = DRV_USR_MSG_BUF_TOO_SHORT; /* the message stays in the mailbox */
+    } else {
+      memcpy(ptMessage, b->mm + OFS_PC_MBX, length);
+      /* The device polls anyway; a ring only speeds up answers it has queued. */
+      change_dev_flags(b, 0, 0, FL_HOSTACK, b->bell.device_wants_ack);
+      count(&b->counters->read);
+      __atomic_store_n(&b->counters->last_function, FKT_READ, __ATOMIC_RELAXED);
+      cifemu_txn_expect(b, -1);
+      rc = DRV_NO_ERROR;
+    }
+  }
+  cifemu_chanlock_release(&b->get_lock);
+  cifemu_txn_release_if_idle(b);
+  return rc;
+}
+
+CIF_API short DevGetMBXState(unsigned short usDevNumber, unsigned short *pusDevMBXState,
+                             unsigned short *pusHostMBXState) {
+  short rc;
+  unsigned char host, dev;
+  cifemu_board *b = cifemu_ready_board(usDevNumber, &rc);
+  if (b == NULL) return rc;
+  if (pusDevMBXState == NULL || pusHostMBXState == NULL) return DRV_USR_BUF_PTR_NULL;
+  host = host_flags(b);
+  dev = dev_flags(b);
+  *pusDevMBXState = (host ^ dev) & CH_DEV_MBX ? DEVICE_MBX_FULL : DEVICE_MBX_EMPTY;
+  *pusHostMBXState = (host ^ dev) & CH_HOST_MBX ? HOST_MBX_FULL : HOST_MBX_EMPTY;
+  return DRV_NO_ERROR;
+}
+
+/* [ours] a copy of both mailboxes as they are, without any handshake: usHostSize bytes
+   of the host mailbox (PcMbx) and usDevSize bytes of the device mailbox (DevMbx),
+   each 1..288 (0 -> -42, larger -> -43). */
+CIF_API short DevGetMBXData(unsigned short usDevNumber, unsigned short usHostSize,
+                            void *pvHostData, unsigned short usDevSize, void *pvDevData) {
+  short rc;
+  cifemu_board *b = cifemu_ready_board(usDevNumber, &rc);
+  if (b == NULL) return rc;
+  if (usHostSize == 0 || usDevSize == 0) return DRV_USR_SIZE_ZERO;
+  if (usHostSize > MSG_BUFFER_SIZE || usDevSize > MSG_BUFFER_SIZE) return DRV_USR_SIZE_TOO_LONG;
+  if (pvHostData == NULL || pvDevData == NULL) return DRV_USR_BUF_PTR_NULL;
+  memcpy(pvHostData, b->mm + OFS_PC_MBX, usHostSize);
+  memcpy(pvDevData, b->mm + OFS_DEV_MBX, usDevSize);
+  return DRV_NO_ERROR;
+}
+
+/* ---- process data --------------------------------------------------------- */
+
+static short exchange(cifemu_board *b, unsigned mode, unsigned short usSendOffset,
+                      unsigned short usSendSize, const void *pvSendData,
+                      unsigned short usReceiveOffset, unsigned short usReceiveSize,
+                      void *pvReceiveData, unsigned long ulTimeout) {
+  short rc;
+  if (usSendSize && (unsigned)usSendOffset + usSendSize > IO_AREA_SIZE)
+    return DRV_USR_SENDSIZE_TOO_LONG;
+  if (usReceiveSize && (unsigned)usReceiveOffset + usReceiveSize > IO_AREA_SIZE)
+    return DRV_USR_RECVSIZE_TOO_LONG;
+  if (usSendSize && pvSendData == NULL) return DRV_USR_SENDBUF_PTR_NULL;
+  if (usReceiveSize && pvReceiveData == NULL) return DRV_USR_RECVBUF_PTR_NULL;
+  if (!ready(b)) return DRV_DEV_NOT_READY;
+  if (mode < 1 || mode > 5) return DRV_DEV_COM_MODE_UNKNOWN;
+  if (mode == 3) { /* uncontrolled: no handshake, just the copy */
+    if (usSendSize) memcpy(b->mm + OFS_SND_PD + usSendOffset, pvSendData, usSendSize);
+    if (usReceiveSize) memcpy(pvReceiveData, b->mm + OFS_RCV_PD + usReceiveOffset, usReceiveSize);
+    rc = DRV_NO_ERROR;
+  } else {
+    int device_controlled = mode == 1 || mode == 2;
+    if (!cifemu_chanlock_acquire(&b->io_lock, ulTimeout)) return DRV_CMD_ACTIVE;
+    /* Device-controlled: the host's turn is while the bits differ; host-controlled:
+       while they are equal (the device answered). */
+    if (wait_for(b, cond_pd_turn, device_controlled, ulTimeout)) {
+      __atomic_thread_fence(__ATOMIC_ACQUIRE);
+      if (usSendSize) memcpy(b->mm + OFS_SND_PD + usSendOffset, pvSendData, usSendSize);
+      if (usReceiveSize)
+        memcpy(pvReceiveData, b->mm + OFS_RCV_PD + usReceiveOffset, usReceiveSize);
+      __atomic_thread_fence(__ATOMIC_RELEASE);
+      change_dev_flags(b, 0, 0, FL_PDCOM, 1);
+      rc = DRV_NO_ERROR;
+    } else {
+      rc = ulTimeout == 0 ? DRV_DEV_EXCHANGE_FAILED : DRV_DEV_EXCHANGE_TIMEOUT;
+    }
+    cifemu_chanlock_release(&b->io_lock);
+  }
+  count(&b->counters->io);
+  __atomic_store_n(&b->counters->last_function, FKT_IO, __ATOMIC_RELAXED);
+  if (!(host_flags(b) & FL_COM)) rc = DRV_DEV_NO_COM_FLAG;
+  return rc;
+}
+
+static unsigned driver_mode(const cifemu_board *b) { return b->mm[OFS_DRIVER_TYPE] >> 4; }
+
+CIF_API short DevExchangeIO(unsigned short usDevNumber, unsigned short usSendOffset,
+                            unsigned short usSendSize, void *pvSendData,
+                            unsigned short usReceiveOffset, unsigned short usReceiveSize,
+                            void *pvReceiveData, unsigned long ulTimeout) {
+  short rc;
+  cifemu_board *b = cifemu_board_get(usDevNumber, &rc);
+  if (b == NULL) return rc;
+  return exchange(b, driver_mode(b), usSendOffset, usSendSize, pvSendData, usReceiveOffset,
+                  usReceiveSize, pvReceiveData, ulTimeout);
+}
+
+CIF_API short DevExchangeIOEx(unsigned short usDevNumber, unsigned short usMode,
+                              unsigned short usSendOffset, unsigned short usSendSize,
+                              void *pvSendData, unsigned short usReceiveOffset,
+                              unsigned short usReceiveSize, void *pvReceiveData,
+                              unsigned long ulTimeout) {
+  short rc;
+  cifemu_board *b = cifemu_board_get(usDevNumber, &rc);
+  if (b == NULL) return rc;
+  if (usMode > 4) return DRV_USR_MODE_INVALID;
+  return exchange(b, usMode + 1u, usSendOffset, usSendSize, pvSendData, usReceiveOffset,
+                  usReceiveSize, pvReceiveData, ulTimeout);
+}
+
+CIF_API short DevExchangeIOErr(unsigned short usDevNumber, unsigned short usSendOffset,
+                               unsigned short usSendSize, void *pvSendData,
+                               unsigned short usReceiveOffset, unsigned short usReceiveSize,
+                               void *pvReceiveData, COMSTATE *ptState,
+                               unsigned long ulTimeout) {
+  short rc;
+  unsigned state_mode;
+  cifemu_board *b = cifemu_board_get(usDevNumber, &rc);
+  if (b == NULL) {
+    if (ptState != NULL) memset(ptState, 0, sizeof *ptState);
+    return rc;
+  }
+  if (ptState == NULL) return DRV_USR_BUF_PTR_NULL;
+  rc = DevExchangeIO(usDevNumber, usSendOffset, usSendSize, pvSendData, usReceiveOffset,
+                     usReceiveSize, pvReceiveData, ulTimeout);
+  memset(ptState, 0, sizeof *ptState);
+  state_mode = b->mm[OFS_DRIVER_TYPE] & 0x0F;
+  ptState->usMode = (unsigned short)state_mode;
+  if (state_mode == STATE_MODE_4) {
+    if (pending(b, CH_STATE)) {
+      memcpy(ptState->abState, b->mm + OFS_TASK2_STATE, TASK_AREA_SIZE);
+      ptState->usStateFlag = 1;
+      change_dev_flags(b, 0, 0, FL_STATEACK, 1);
+    }
+  } else if (state_mode == STATE_MODE_3) {
+    ptState->usStateFlag = (host_flags(b) & FL_STATECOM) ? 1 : 0;
+    memcpy(ptState->abState, b->mm + OFS_TASK2_STATE, TASK_AREA_SIZE);
+  } else {
+    ptState->usStateFlag = STATE_FLAG_UNKNOWN;
+  }
+  return rc;
+}
+
+CIF_API short DevReadSendData(unsigned short usDevNumber, unsigned short usOffset,
+                              unsigned short usSize, void *pvData) {
+  short rc;
+  cifemu_board *b = cifemu_ready_board(usDevNumber, &rc);
+  if (b == NULL) return rc;
+  if ((unsigned)usOffset + usSize > IO_AREA_SIZE) return DRV_USR_SIZE_TOO_LONG;
+  if (!(host_flags(b) & FL_COM)) return DRV_DEV_NO_COM_FLAG;
+  if (usSize && pvData == NULL) return DRV_USR_BUF_PTR_NULL;
+  if (usSize) memcpy(pvData, b->mm + OFS_SND_PD + usOffset, usSize);
+  return DRV_NO_ERROR;
+}
+
+/* ---- control -------------------------------------------------------------- */
+
+CIF_API short DevReset(unsigned short usDevNumber, unsigned short usMode, unsigned long ulTimeout) {
+  short rc;
+  unsigned char request;
+  long long deadline;
+  long long remaining;
+  cifemu_board *b = cifemu_board_get(usDevNumber, &rc);
+  if (b == NULL) return rc;
+  switch (usMode) {
+    case COLDSTART: request = FL_RESET; break;
+    case WARMSTART: request = FL_INIT; break;
+    case BOOTSTART: request = FL_RESET | FL_INIT; break;
+    default: return DRV_USR_MODE_INVALID;
+  }
+  if (ulTimeout > 2000000000UL) ulTimeout = 2000000000UL;
+  change_dev_flags(b, request, 0, 0, 1);
+  deadline = cifemu_now_ns() + (long long)ulTimeout * 1000000LL;
+  if (!wait_for(b, cond_reset_done, 0, ulTimeout)) return DRV_DEV_RESET_TIMEOUT;
+  remaining = (deadline - cifemu_now_ns()) / 1000000LL;
+  if (!wait_for(b, cond_ready, 0, remaining > 0 ? (unsigned long)remaining : 0UL))
+    return DRV_DEV_RESET_TIMEOUT;
+  return DRV_NO_ERROR;
+}
+
+CIF_API short DevSetHostState(unsigned short usDevNumber, unsigned short usMode,
+                              unsigned long ulTimeout) {
+  short rc;
+  cifemu_board *b = cifemu_ready_board(usDevNumber, &rc);
+  if (b == NULL) return rc;
+  if (usMode == HOST_READY) change_dev_flags(b, 0, FL_NOTREADY, 0, 1);
+  else if (usMode == HOST_NOT_READY) change_dev_flags(b, FL_NOTREADY, 0, 0, 1);
+  else return DRV_USR_MODE_INVALID;
+  if (ulTimeout > 0 &&
+      !wait_for(b, cond_host_bit, FL_COM | (usMode == HOST_READY) << 8, ulTimeout))
+    return DRV_DEV_NO_COM_FLAG;
+  return DRV_NO_ERROR;
+}
+
+CIF_API short DevTriggerWatchDog(unsigned short usDevNumber, unsigned short usFunction,
+                                 unsigned short *usDevWatchDog) {
+  short rc;
+  unsigned char value;
+  cifemu_board *b = cifemu_ready_board(usDevNumber, &rc);
+  if (b == NULL) return rc;
+  if (usFunction != WATCHDOG_START && usFunction != WATCHDOG_STOP) return DRV_USR_MODE_INVALID;
+  if (usDevWatchDog == NULL) return DRV_USR_BUF_PTR_NULL;
+  value = usFunction == WATCHDOG_START ? flag_get(b, OFS_HOST_WATCHDOG) : 0;
+  __atomic_store_n(b->mm + OFS_DEV_WATCHDOG, value, __ATOMIC_RELEASE);
+  cifemu_bell_ring(&b->bell);
+  *usDevWatchDog = value;
+  return DRV_NO_ERROR;
+}
+
+/* Set (1) or clear (0) SPCCOM; returns the SPCACK level once the card mirrored it.
+   [ours] the call waits up to 100 ms for the mirror, then reports the level as it is. */
+CIF_API short DevSpecialControl(unsigned short usDevNumber, unsigned short usMode,
+                                unsigned short *pusCtrlAck) {
+  short rc;
+  cifemu_board *b = cifemu_ready_board(usDevNumber, &rc);
+  if (b == NULL) return rc;
+  if (usMode != SPECIAL_CONTROL_SET && usMode != SPECIAL_CONTROL_CLEAR)
+    return DRV_USR_MODE_INVALID;
+  if (pusCtrlAck == NULL) return DRV_USR_BUF_PTR_NULL;
+  if (usMode == SPECIAL_CONTROL_SET) change_dev_flags(b, FL_SPCCOM, 0, 0, 1);
+  else change_dev_flags(b, 0, FL_SPCCOM, 0, 1);
+  wait_for(b, cond_host_bit, FL_SPCACK | (usMode == SPECIAL_CONTROL_SET) << 8,
+           SPECIAL_CONTROL_WAIT_MS);
+  *pusCtrlAck = (host_flags(b) & FL_SPCACK) ? 1 : 0;
+  return DRV_NO_ERROR;
+}
+
+/* ---- information and parameters ------------------------------------------- */
+
+static void fill_driver_info(cifemu_board *b, DRIVERINFO *info) {
+  const cifemu_counters *c = b->counters;
+  unsigned char host = host_flags(b), dev = dev_flags(b);
+  memset(info, 0, sizeof *info);
+  info->ulOpenCnt = __atomic_load_n(&c->open, __ATOMIC_RELAXED);
+  info->CloseCnt = __atomic_load_n(&c->close, __ATOMIC_RELAXED);
+  info->ulReadCnt = __atomic_load_n(&c->read, __ATOMIC_RELAXED);
+  info->ulWriteCnt = __atomic_load_n(&c->write, __ATOMIC_RELAXED);
+  info->ulIRQCnt = __atomic_load_n(&c->irq, __ATOMIC_RELAXED);
+  info->bInitMsgFlag = (host & FL_READY) ? 1 : 0;
+  info->bReadMsgFlag = ((host ^ dev) & CH_HOST_MBX) ? 1 : 0;
+  info->bWriteMsgFlag = ((host ^ dev) & CH_DEV_MBX) ? 1 : 0;
+  info->bLastFunction = __atomic_load_n(&c->last_function, __ATOMIC_RELAXED);
+  info->bHostFlags = host;
+  info->bMyDevFlags = dev;
+  info->bExIOFlag = (host & FL_COM) ? 1 : 0;
+  info->ulExIOCnt = __atomic_load_n(&c->io, __ATOMIC_RELAXED);
+}
+
+CIF_API short DevGetInfo(unsigned short usDevNumber, unsigned short usFunction,
+                         unsigned short usSize, void *pvData) {
+  static const unsigned short sizes[9] = {0, 33, 32, 32, 112, 8, 6, 6, IO_AREA_SIZE};
+  static const unsigned short offsets[9] = {0, 0, OFS_VERSION_INFO, OFS_FIRMWARE_INFO,
+                                            OFS_TASK_INFO, OFS_RCS_INFO, OFS_DEV_INFO, 0,
+                                            OFS_SND_PD};
+  short rc;
+  cifemu_board *b = cifemu_board_get(usDevNumber, &rc);
+  if (b == NULL) return rc;
+  if (usSize == 0) return DRV_USR_SIZE_ZERO;
+  if (usFunction < GET_DRIVER_INFO || usFunction > GET_IO_SEND_DATA)
+    return DRV_USR_INFO_AREA_INVALID;
+  if (usSize > sizes[usFunction]) return DRV_USR_SIZE_TOO_LONG;
+  if (pvData == NULL) return DRV_USR_BUF_PTR_NULL;
+  if (usFunction == GET_DRIVER_INFO) {
+    DRIVERINFO info;
+    fill_driver_info(b, &info);
+    memcpy(pvData, &info, usSize);
+  } else if (usFunction == GET_IO_INFO) {
+    IOINFO info;
+    info.bComBit = (host_flags(b) & FL_COM) ? 1 : 0;
+    info.bIOExchangeMode = (unsigned char)driver_mode(b);
+    info.ulIOExchangeCnt = __atomic_load_n(&b->counters->io, __ATOMIC_RELAXED);
+    memcpy(pvData, &info, usSize);
+  } else {
+    memcpy(pvData, b->mm + offsets[usFunction], usSize);
+  }
+  return DRV_NO_ERROR;
+}
+
+enum task_copy { READ_STATE, READ_PARAMETER, WRITE_PARAMETER };
+
+/* Task 1's or task 2's state or parameter area, copied out of or into the image. */
+static short task_area(unsigned short usDevNumber, unsigned short usNumber,
+                       unsigned short usSize, void *pvData, enum task_copy copy) {
+  unsigned offset;
+  short rc;
+  cifemu_board *b = cifemu_board_get(usDevNumber, &rc);
+  if (b == NULL) return rc;
+  if (usNumber != 1 && usNumber != 2) return DRV_USR_NUMBER_INVALID;
+  if (usSize == 0) return DRV_USR_SIZE_ZERO;
+  if (usSize > TASK_AREA_SIZE) return DRV_USR_SIZE_TOO_LONG;
+  if (pvData == NULL) return DRV_USR_BUF_PTR_NULL;
+  if (copy == READ_STATE) offset = usNumber == 1 ? OFS_TASK1_STATE : OFS_TASK2_STATE;
+  else offset = usNumber == 1 ? OFS_TASK1_PARAMETER : OFS_TASK2_PARAMETER;
+  if (copy == WRITE_PARAMETER) memcpy(b->mm + offset, pvData, usSize);
+  else memcpy(pvData, b->mm + offset, usSize);
+  return DRV_NO_ERROR;
+}
+
+CIF_API short DevGetTaskState(unsigned short usDevNumber, unsigned short usNumber,
+                              unsigned short usSize, void *pvData) {
+  return task_area(usDevNumber, usNumber, usSize, pvData, READ_STATE);
+}
+
+CIF_API short DevGetTaskParameter(unsigned short usDevNumber, unsigned short usNumber,
+                                  unsigned short usSize, void *pvData) {
+  return task_area(usDevNumber, usNumber, usSize, pvData, READ_PARAMETER);
+}
+
+/* Takes effect at the next warm start. [ours] tasks 3..7 get -36: a CANopen card has
+   parameter areas for tasks 1 and 2 only. */
+CIF_API short DevPutTaskParameter(unsigned short usDevNumber, unsigned short usNumber,
+                                  unsigned short usSize, void *pvData) {
+  return task_area(usDevNumber, usNumber, usSize, pvData, WRITE_PARAMETER);
+}
+
+static short read_write(cifemu_board *b, unsigned short usMode, unsigned start,
+                        unsigned short usSize, void *pvData) {
+  if (usSize && pvData == NULL) return DRV_USR_BUF_PTR_NULL;
+  if (usSize == 0) return DRV_NO_ERROR;
+  if (usMode == PARAMETER_READ) {
+    memcpy(pvData, b->mm + start, usSize);
+  } else {
+    memcpy(b->mm + start, pvData, usSize);
+    cifemu_bell_ring(&b->bell);
+  }
+  return DRV_NO_ERROR;
+}
+
+CIF_API short DevReadWriteDPMRaw(unsigned short usDevNumber, unsigned short usMode,
+                                 unsigned short usOffset, unsigned short usSize, void *pvData) {
+  short rc;
+  cifemu_board *b = cifemu_board_get(usDevNumber, &rc);
+  if (b == NULL) return rc;
+  if (usMode != PARAMETER_READ && usMode != PARAMETER_WRITE) return DRV_USR_MODE_INVALID;
+  if ((unsigned)usOffset + usSize > RAW_AREA_LIMIT) return DRV_USR_SIZE_TOO_LONG;
+  return read_write(b, usMode, LAST_KB + usOffset, usSize, pvData);
+}
+
+/* Offsets from the image's start; the whole image is reachable (LIBCIF.md 5). */
+CIF_API short DevReadWriteDPMData(unsigned short usDevNumber, unsigned short usMode,
+                                  unsigned short usOffset, unsigned short usSize, void *pvData) {
+  short rc;
+  cifemu_board *b = cifemu_board_get(usDevNumber, &rc);
+  if (b == NULL) return rc;
+  if (usMode != PARAMETER_READ && usMode != PARAMETER_WRITE) return DRV_USR_MODE_INVALID;
+  if ((unsigned)usOffset + usSize > DPM_SIZE) return DRV_USR_SIZE_TOO_LONG;
+  return read_write(b, usMode, usOffset, usSize, pvData);
+}
+
+/* [ours] the extended data areas belong to other protocols' cards; the CANopen master
+   has none, so every mode is refused with -37 once the board checks passed. */
+CIF_API short DevExtendedData(unsigned short usDevNumber, unsigned short usMode,
+                              unsigned short usSize, void *pvData) {
+  short rc;
+  (void)usMode;
+  (void)usSize;
+  (void)pvData;
+  if (cifemu_board_get(usDevNumber, &rc) == NULL) return rc;
+  return DRV_USR_MODE_INVALID;
+}

@@ -1,0 +1,158 @@
+"""libcif through ctypes, shaped like host_api.driver: the same calls, the same tuples.
+
+The driver behaviour tests take either module (``host_api.driver`` or ``CDriver()``) and
+assert the same return codes and data, so the two implementations cannot drift apart.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import os
+from pathlib import Path
+
+from cifemu import libcif
+from dpm.message import Message
+from host_api.driver import ComState
+
+MSG_SIZE = 288
+
+
+class CDriver:
+    """libcif's Dev* functions with host_api.driver's Python signatures."""
+
+    def __init__(self) -> None:
+        self.lib = libcif.load()
+
+    def __getattr__(self, name: str) -> object:
+        # the constants (GET_IO_INFO, WARMSTART, ...) are the Python driver's
+        from host_api import driver
+
+        return getattr(driver, name)
+
+    def DevOpenDriver(self, directory: str | Path | None = None) -> int:
+        """libcif reads $CIF_DPM_DIR here: a directory given is set for this call only."""
+        if directory is None:
+            return int(self.lib.DevOpenDriver())
+        before = os.environ.get("CIF_DPM_DIR")
+        os.environ["CIF_DPM_DIR"] = str(directory)
+        try:
+            return int(self.lib.DevOpenDriver())
+        finally:
+            if before is None:
+                del os.environ["CIF_DPM_DIR"]
+            else:
+                os.environ["CIF_DPM_DIR"] = before
+
+    def DevCloseDriver(self) -> int:
+        return int(self.lib.DevCloseDriver())
+
+    def DevGetBoardInfo(self) -> tuple[int, bytes]:
+        buf = ctypes.create_string_buffer(58)
+        rc = int(self.lib.DevGetBoardInfo(buf))
+        return rc, buf.raw if rc == 0 else b""
+
+    def DevInitBoard(self, number: int) -> int:
+        return int(self.lib.DevInitBoard(number))
+
+    def DevExitBoard(self, number: int) -> int:
+        return int(self.lib.DevExitBoard(number))
+
+    def DevPutMessage(self, number: int, msg: Message | bytes, timeout: int) -> int:
+        raw = msg.encode() if isinstance(msg, Message) else bytes(msg)
+        buf = ctypes.create_string_buffer(raw.ljust(MSG_SIZE, b"\0"), MSG_SIZE)
+        return int(self.lib.DevPutMessage(number, buf, timeout))
+
+    def DevGetMessage(self, number: int, size: int, timeout: int) -> tuple[int, Message | None]:
+        # a buffer of exactly the size given, so an overlong copy is a memory error
+        buf = ctypes.create_string_buffer(size if 0 < size <= MSG_SIZE else MSG_SIZE)
+        rc = int(self.lib.DevGetMessage(number, size & 0xFFFF, buf, timeout))
+        return rc, Message.decode(buf.raw) if rc == 0 else None
+
+    def DevGetMBXState(self, number: int) -> tuple[int, int, int]:
+        dev, host = ctypes.c_ushort(), ctypes.c_ushort()
+        rc = int(self.lib.DevGetMBXState(number, ctypes.byref(dev), ctypes.byref(host)))
+        return (rc, dev.value, host.value) if rc == 0 else (rc, 0, 0)
+
+    def _io(self, call: str, number: int, *mode: int, send_offset: int, send_data: bytes,
+            recv_offset: int, recv_size: int, timeout: int,
+            state: ctypes.Array[ctypes.c_char] | None = None) -> tuple[int, bytes]:
+        send = ctypes.create_string_buffer(send_data, max(1, len(send_data)))
+        recv = ctypes.create_string_buffer(max(1, recv_size))
+        extra = (state,) if state is not None else ()
+        rc = int(getattr(self.lib, call)(number, *mode, send_offset, len(send_data), send,
+                                         recv_offset, recv_size, recv, *extra, timeout))
+        copied = rc in (0, -21) and recv_size > 0
+        return rc, recv.raw[:recv_size] if copied else b""
+
+    def DevExchangeIO(self, number: int, send_offset: int, send_data: bytes, recv_offset: int,
+                      recv_size: int, timeout: int) -> tuple[int, bytes]:
+        return self._io("DevExchangeIO", number, send_offset=send_offset, send_data=send_data,
+                        recv_offset=recv_offset, recv_size=recv_size, timeout=timeout)
+
+    def DevExchangeIOEx(self, number: int, mode: int, send_offset: int, send_data: bytes,
+                        recv_offset: int, recv_size: int, timeout: int) -> tuple[int, bytes]:
+        return self._io("DevExchangeIOEx", number, mode, send_offset=send_offset,
+                        send_data=send_data, recv_offset=recv_offset, recv_size=recv_size,
+                        timeout=timeout)
+
+    def DevExchangeIOErr(self, number: int, send_offset: int, send_data: bytes, recv_offset: int,
+                         recv_size: int, timeout: int) -> tuple[int, bytes, ComState]:
+        state = ctypes.create_string_buffer(68)
+        rc, data = self._io("DevExchangeIOErr", number, send_offset=send_offset,
+                            send_data=send_data, recv_offset=recv_offset, recv_size=recv_size,
+                            timeout=timeout, state=state)
+        raw = state.raw
+        return rc, data, ComState(int.from_bytes(raw[0:2], "little"),
+                                  int.from_bytes(raw[2:4], "little"), raw[4:68])
+
+    def DevReadSendData(self, number: int, offset: int, size: int) -> tuple[int, bytes]:
+        buf = ctypes.create_string_buffer(max(1, size))
+        rc = int(self.lib.DevReadSendData(number, offset, size, buf))
+        return rc, buf.raw[:size] if rc == 0 else b""
+
+    def DevReset(self, number: int, mode: int, timeout: int) -> int:
+        return int(self.lib.DevReset(number, mode, timeout))
+
+    def DevSetHostState(self, number: int, mode: int, timeout: int) -> int:
+        return int(self.lib.DevSetHostState(number, mode, timeout))
+
+    def _value_call(self, call: str, number: int, mode: int) -> tuple[int, int]:
+        value = ctypes.c_ushort()
+        rc = int(getattr(self.lib, call)(number, mode, ctypes.byref(value)))
+        return rc, value.value if rc == 0 else 0
+
+    def DevTriggerWatchDog(self, number: int, function: int) -> tuple[int, int]:
+        return self._value_call("DevTriggerWatchDog", number, function)
+
+    def DevSpecialControl(self, number: int, mode: int) -> tuple[int, int]:
+        return self._value_call("DevSpecialControl", number, mode)
+
+    def DevGetInfo(self, number: int, area: int, size: int) -> tuple[int, bytes]:
+        buf = ctypes.create_string_buffer(max(1, size))
+        rc = int(self.lib.DevGetInfo(number, area, size, buf))
+        return rc, buf.raw[:size] if rc == 0 else b""
+
+    def _task(self, call: str, number: int, task: int, size: int) -> tuple[int, bytes]:
+        buf = ctypes.create_string_buffer(max(1, size))
+        rc = int(getattr(self.lib, call)(number, task, size, buf))
+        return rc, buf.raw[:size] if rc == 0 else b""
+
+    def DevGetTaskState(self, number: int, task: int, size: int) -> tuple[int, bytes]:
+        return self._task("DevGetTaskState", number, task, size)
+
+    def DevGetTaskParameter(self, number: int, task: int, size: int) -> tuple[int, bytes]:
+        return self._task("DevGetTaskParameter", number, task, size)
+
+    def DevPutTaskParameter(self, number: int, task: int, data: bytes) -> int:
+        buf = ctypes.create_string_buffer(data, max(1, len(data)))
+        return int(self.lib.DevPutTaskParameter(number, task, len(data), buf))
+
+    def DevReadWriteDPMRaw(self, number: int, mode: int, offset: int, size: int,
+                           data: bytes = b"") -> tuple[int, bytes]:
+        buf = ctypes.create_string_buffer(data.ljust(size, b"\0"), max(1, size, len(data)))
+        rc = int(self.lib.DevReadWriteDPMRaw(number, mode, offset, size, buf))
+        return rc, buf.raw[:size] if rc == 0 and mode == 1 else b""
+
+    def DevDownload(self, number: int, mode: int, source: str | Path) -> int:
+        count = ctypes.c_ulong()
+        return int(self.lib.DevDownload(number, mode, os.fsencode(source), ctypes.byref(count)))
