@@ -17,6 +17,19 @@ from host_api.driver import ComState
 MSG_SIZE = 288
 
 
+class PythonDriver:
+    """host_api.driver's Dev* functions and constants, with DevDownload and its modes from
+    host_api.download (the driver module does not import the download module)."""
+
+    def __getattr__(self, name: str) -> object:
+        from host_api import download, driver
+
+        return getattr(driver if hasattr(driver, name) else download, name)
+
+
+PYTHON_DRIVER = PythonDriver()
+
+
 class CDriver:
     """libcif's Dev* functions with host_api.driver's Python signatures."""
 
@@ -24,10 +37,9 @@ class CDriver:
         self.lib = libcif.load()
 
     def __getattr__(self, name: str) -> object:
-        # the constants (GET_IO_INFO, WARMSTART, ...) are the Python driver's
-        from host_api import driver
-
-        return getattr(driver, name)
+        # the constants (GET_IO_INFO, WARMSTART, CONFIGURATION_DOWNLOAD, ...) are the
+        # Python driver's
+        return getattr(PYTHON_DRIVER, name)
 
     def DevOpenDriver(self, directory: str | Path | None = None) -> int:
         """libcif reads $CIF_DPM_DIR here: a directory given is set for this call only."""

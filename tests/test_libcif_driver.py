@@ -21,10 +21,9 @@ from dpm.errors import Drv
 from dpm.layout import offset_of
 from dpm.message import Message
 from dpm.task2 import ComDiagnostics
-from host_api import driver as python_driver
 from host_api.locks import ChannelLock
 from tests.conftest import Card, start_card, wait_until
-from tests.libcif_host import CDriver
+from tests.libcif_host import PYTHON_DRIVER, CDriver
 
 SHM_READ_RECEIVE = bytes([0, 1, 0, 0, 0, 4, 5, 1])  # COM_Shared_Memory: 4 bytes at 0, read
 
@@ -34,7 +33,7 @@ def d(request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPatch) -> Iterat
     """The implementation under test; the driver is closed again whatever the test did."""
     monkeypatch.setenv("CIF_DPM_DIR", "/nonexistent")
     try:
-        impl: Any = python_driver if request.param == "python" else CDriver()
+        impl: Any = PYTHON_DRIVER if request.param == "python" else CDriver()
     except LibcifError as exc:
         pytest.skip(str(exc))
     yield impl
