@@ -7,6 +7,7 @@
                     (download, upload, delete, dir)
   cifemu demo       a card, a simulated network, on-line configuration, live status
   cifemu configure  configure a running card on line from a network description
+  cifemu monitor    the CAN traffic with its CANopen meaning, live
   cifemu 309        the CiA 309-3 ASCII gateway (serve, exec, shell)
 """
 
@@ -23,6 +24,7 @@ from host_api import configure_cli
 from host_api import status as status_cli
 from host_api.cia309 import cli as cia309_cli
 from host_api.cli_output import quiet_broken_pipe
+from host_api.monitor import cli as monitor_cli
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -61,6 +63,11 @@ def build_parser() -> argparse.ArgumentParser:
                                formatter_class=argparse.RawDescriptionHelpFormatter)
     configure_cli.add_arguments(configure)
     configure.set_defaults(func=configure_cli.run)
+    monitor = sub.add_parser("monitor", help="the CAN traffic with its CANopen meaning, live",
+                             description=monitor_cli.__doc__,
+                             formatter_class=argparse.RawDescriptionHelpFormatter)
+    monitor_cli.add_arguments(monitor)
+    monitor.set_defaults(func=monitor_cli.run)
     return parser
 
 
