@@ -8,6 +8,7 @@
   cifemu demo       a card, a simulated network, on-line configuration, live status
   cifemu configure  configure a running card on line from a network description
   cifemu monitor    the CAN traffic with its CANopen meaning, live
+  cifemu top        a live view of one card: nodes, process image, bus, events
   cifemu 309        the CiA 309-3 ASCII gateway (serve, exec, shell)
 """
 
@@ -25,6 +26,7 @@ from host_api import status as status_cli
 from host_api.cia309 import cli as cia309_cli
 from host_api.cli_output import quiet_broken_pipe
 from host_api.monitor import cli as monitor_cli
+from host_api.top import cli as top_cli
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -68,6 +70,11 @@ def build_parser() -> argparse.ArgumentParser:
                              formatter_class=argparse.RawDescriptionHelpFormatter)
     monitor_cli.add_arguments(monitor)
     monitor.set_defaults(func=monitor_cli.run)
+    top = sub.add_parser("top", help="a live view of one card (nodes, process image, bus, "
+                         "events)", description=top_cli.__doc__,
+                         formatter_class=argparse.RawDescriptionHelpFormatter)
+    top_cli.add_arguments(top)
+    top.set_defaults(func=top_cli.run)
     return parser
 
 

@@ -31,13 +31,16 @@ from dpm.layout import HOST_FLAGS
 from host_api import driver as d
 from host_api import status as status_cli
 from host_api.board import Board, CifError
+from host_api.configure_cli import configure
 from host_api.download import CONFIGURATION_DOWNLOAD, DevDownload
 from host_api.driver import COLDSTART
 from host_api.liveness import firmware_liveness
-from host_api.online import ConfigurationError, configure_online
+from host_api.network_view import remember_network
+from host_api.online import ConfigurationError
 
 EXAMPLE_NETWORK = Path(__file__).with_name("examples") / "demo.toml"
 START_TIMEOUT_S = 15.0
+NETWORK_WAIT_S = 10.0
 
 
 def _ready(image: bytes | None) -> bool:
@@ -125,9 +128,10 @@ def _show(args: argparse.Namespace, directory: Path, network_path: Path, network
                     print("cifemu demo: the card refused the database", file=sys.stderr)
                     return 1
                 board.reset(COLDSTART)  # the card starts from its flash
+                remember_network(directory, board_no, network_path)
             else:
-                configure_online(board, network,
-                                 lambda step: console.print(f"configuring: {step}"))
+                configure(board, network, NETWORK_WAIT_S,
+                          lambda step: console.print(f"configuring: {step}"))
             console.print(f"card image {image_path(directory, board_no)}: `cifemu status`, "
                           "`cifemu top` and `cifemu monitor` see it; Ctrl-C ends the demo")
             counter = 0

@@ -21,10 +21,11 @@ from typing import Any
 
 from dbm_tools.network import Network, NetworkError, load_network
 from dpm.errors import ERR_NODE_DEVICE, MSG_F_TEXT
-from dpm.image import DEFAULT_DPM_DIR, MAX_DEV_BOARDS
+from dpm.image import DEFAULT_DPM_DIR, MAX_DEV_BOARDS, dpm_dir
 from dpm.task2 import ComDiagnostics
 from host_api.board import Board, CifError
 from host_api.cli_output import fail, print_json
+from host_api.network_view import remember_network
 from host_api.online import ConfigurationError, configure_online
 
 COMMAND = "configure"
@@ -84,6 +85,8 @@ def configure(board: Board, network: Network, wait_s: float,
               progress: Callable[[str], None]) -> dict[str, Any]:
     """Configure on line and (for ``wait_s`` > 0) wait for the network; the outcome."""
     configure_online(board, network, progress)
+    if network.path is not None:
+        remember_network(dpm_dir(board.directory), board.number, network.path)
     nodes = [node.id for node in network.nodes if node.active]
     if wait_s <= 0:
         return _result(board.diagnostics(), nodes) | {"missing": []}

@@ -165,3 +165,21 @@ def load_view(path: Path | None) -> NetworkView:
     if path is None:
         return NetworkView()
     return network_view(load_network(path))
+
+
+def _remembered_path(directory: Path, board: int) -> Path:
+    return directory / f"board{board}.network"
+
+
+def remember_network(directory: Path, board: int, network: Path) -> None:
+    """Note beside the image which file the card was configured from [ours], so that
+    ``cifemu top`` and ``cifemu monitor`` name its nodes without being told."""
+    _remembered_path(directory, board).write_text(f"{network.resolve()}\n")
+
+
+def remembered_network(directory: Path, board: int) -> Path | None:
+    try:
+        text = _remembered_path(directory, board).read_text().strip()
+    except OSError:
+        return None
+    return Path(text) if text and Path(text).exists() else None

@@ -34,7 +34,7 @@ from host_api.cli_output import fail
 from host_api.liveness import firmware_liveness
 from host_api.monitor.codec import KINDS, Meaning, decode
 from host_api.monitor.tap_bus import TapBus
-from host_api.network_view import NetworkView, load_view
+from host_api.network_view import NetworkView, load_view, remembered_network
 
 COMMAND = "monitor"
 RECEIVE_TIMEOUT_S = 0.2
@@ -52,7 +52,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="the python-can channel of --interface (default: cifemu, vcan0 "
                              "for socketcan)")
     parser.add_argument("--network", type=Path, default=None, metavar="NETWORK.toml",
-                        help="name nodes and map PDOs to the process image and their objects")
+                        help="name nodes and map PDOs to the process image and their objects "
+                             "(default on the tap: the file the card was last configured from)")
     parser.add_argument("--node", type=int, action="append", default=None, metavar="ID",
                         help="show only frames of this node (repeatable); NMT commands to "
                              "all nodes are shown too")
@@ -133,10 +134,13 @@ def _open(args: argparse.Namespace) -> tuple[can.BusABC, bool] | str:
 
 
 def run(args: argparse.Namespace) -> int:
+    network = args.network
+    if network is None and args.interface is None:
+        network = remembered_network(dpm_dir(args.dpm_dir), args.board)
     try:
-        view = load_view(args.network)
+        view = load_view(network)
     except (NetworkError, BuildError, OSError) as exc:
-        return fail(COMMAND, f"{args.network}: {exc}", args.json)
+        return fail(COMMAND, f"{network}: {exc}", args.json)
     opened = _open(args)
     if isinstance(opened, str):
         return fail(COMMAND, opened, args.json)
