@@ -30,7 +30,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
-import sys
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
@@ -74,6 +73,7 @@ from dbm_tools.tables import (
     checksum_crc,
 )
 from dbm_tools.validate import Finding, check_dbm
+from host_api.cli_output import fail
 
 PROG = "cifemu dbm"
 SETTLE_SECONDS = 1.0
@@ -694,8 +694,7 @@ def run(args: argparse.Namespace) -> int:
             return delete(args.board, args.dpm_dir, console)
         return directory_listing(args.board, args.dpm_dir, args.json, console)
     except UsageError as exc:
-        print(f"{PROG} {command}: {exc}", file=sys.stderr)
-        return 1
+        return fail(f"dbm {command}", str(exc), getattr(args, "json", False))
 
 
 def main(argv: list[str] | None = None) -> int:
