@@ -22,7 +22,7 @@ from types import FrameType
 from rich.console import Console
 from rich.live import Live
 
-from dbm_tools.builder import build_dbm
+from dbm_tools.builder import BuildError, build_dbm
 from dbm_tools.container import write_dbm
 from dbm_tools.network import Network, NetworkError, load_network
 from dpm.flags import READY
@@ -76,7 +76,8 @@ def run(args: argparse.Namespace) -> int:
     network_path = args.network or EXAMPLE_NETWORK
     try:
         network = load_network(network_path)
-    except (NetworkError, OSError) as exc:
+        build_dbm(network)  # a description the card would refuse never reaches it
+    except (NetworkError, BuildError, OSError) as exc:
         print(f"cifemu demo: {network_path}: {exc}", file=sys.stderr)
         return 1
     live = firmware_liveness(directory, args.board)

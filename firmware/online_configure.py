@@ -14,6 +14,7 @@ import logging
 import threading
 from pathlib import Path
 
+from dbm_tools.builder import BuildError, build_dbm
 from dbm_tools.network import NetworkError, load_network
 from dpm import flags as fl
 from dpm.layout import HOST_FLAGS
@@ -46,7 +47,8 @@ class OnlineConfiguration(threading.Thread):
     def run(self) -> None:
         try:
             network = load_network(self.path)
-        except (NetworkError, OSError) as exc:
+            build_dbm(network)  # a description the card would refuse never reaches it
+        except (NetworkError, BuildError, OSError) as exc:
             self._fail(f"--configure {self.path}: {exc}")
             return
         if not self._wait_ready():

@@ -19,17 +19,22 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from dbm_tools.builder import BuildError, build_dbm
 from dbm_tools.network import Network, NetworkError, load_network
-from dpm.errors import ERR_NODE_DEVICE, MSG_F_TEXT
+from dpm.errors import ERR_NODE_DEVICE, MSG_F_TEXT, Drv
 from dpm.image import DEFAULT_DPM_DIR, MAX_DEV_BOARDS, dpm_dir
 from dpm.task2 import ComDiagnostics
 from host_api.board import Board, CifError
 from host_api.cli_output import fail, print_json
+from host_api.liveness import firmware_liveness
 from host_api.network_view import remember_network
 from host_api.online import ConfigurationError, configure_online
 
 COMMAND = "configure"
 POLL_S = 0.05
+START_WAIT_S = 10.0
+"""How long a card whose firmware runs may take to come up READY (a start from flash,
+``--reset-delay``)."""
 
 
 def msg_f_text(f: int) -> str:
@@ -50,6 +55,21 @@ def wait_for_network(board: Board, nodes: list[int], timeout_s: float,
         seen |= running
         if set(nodes) <= running or diag.bErr_event or time.monotonic() >= deadline:
             return diag
+        time.sleep(POLL_S)
+
+
+def open_when_ready(board: int, directory: str | None, wait_s: float) -> Board:
+    """The board, opened (the caller closes it); a firmware that holds its lock but is
+    still starting (no identifier or no READY yet) is given ``wait_s`` to come up."""
+    deadline = time.monotonic() + wait_s
+    while True:
+        try:
+            return Board(board, directory).open()
+        except CifError as exc:
+            starting = exc.code in (Drv.DRV_DEV_DPM_ACCESS_ERROR, Drv.DRV_DEV_NOT_READY)
+            if (not starting or time.monotonic() >= deadline
+                    or not firmware_liveness(dpm_dir(directory), board).alive):
+                raise
         time.sleep(POLL_S)
 
 
@@ -96,13 +116,17 @@ def configure(board: Board, network: Network, wait_s: float,
 def run(args: argparse.Namespace) -> int:
     try:
         network = load_network(args.network)
-    except (NetworkError, OSError) as exc:
+        build_dbm(network)  # a description the card would refuse never reaches it
+    except (NetworkError, BuildError, OSError) as exc:
         return fail(COMMAND, f"{args.network}: {exc}", args.json)
     progress: Callable[[str], None] = (
         (lambda text: None) if args.json else (lambda text: print(f"configuring: {text}")))
     try:
-        with Board(args.board, args.dpm_dir) as board:
+        board = open_when_ready(args.board, args.dpm_dir, START_WAIT_S)
+        try:
             outcome = configure(board, network, args.wait, progress)
+        finally:
+            board.close()
     except CifError as exc:
         hint = (f"; is `cifemu firmware --board {args.board}` running?"
                 if exc.name in ("DRV_USR_DEV_NUMBER_INVALID", "DRV_DEV_NOT_READY") else "")

@@ -110,3 +110,55 @@ def test_demo_uses_the_default_directory_refuses_a_busy_board_and_cleans_up(
         assert demo.wait(timeout=20) == 0
     assert not images.exists()
     assert list(temp.iterdir()) == []
+
+
+def test_a_refusal_shows_the_msg_f_number_and_text(tmp_path: Path) -> None:
+    """The card keeps node 1's synchronous PDO from the first configuration, so a second
+    one without a SYNC timer is refused by the bus parameters' data check (msg.f 67)."""
+    synchronous = tmp_path / "sync.toml"
+    synchronous.write_text('[bus]\nsync_period_ms = 10\n[[node]]\nid = 1\n[[node.pdo]]\n'
+                           'direction = "input"\ncob_id = 0x181\nlength = 8\ntransmission = 1\n')
+    no_sync = tmp_path / "nosync.toml"
+    no_sync.write_text("[[node]]\nid = 2\n")
+    card = start_card(tmp_path)
+    try:
+        first = cifemu("configure", str(synchronous), "--dpm-dir", str(tmp_path), "--wait", "0")
+        assert first.returncode == 0, first.stderr
+        text = cifemu("configure", str(no_sync), "--dpm-dir", str(tmp_path))
+        as_json = cifemu("configure", str(no_sync), "--dpm-dir", str(tmp_path), "--json")
+    finally:
+        card.stop()
+    assert text.returncode == 1 and "Traceback" not in text.stderr
+    assert "msg.f = 67 (data check: SYNC message timer reload value out of range)" in text.stderr
+    error = json.loads(as_json.stdout)["error"]
+    assert as_json.returncode == 1 and error["msg_f"] == 67
+
+
+def test_a_description_the_card_would_refuse_never_reaches_it(tmp_path: Path) -> None:
+    bad = tmp_path / "bad.toml"
+    bad.write_text('[[node]]\nid = 1\n[[node.pdo]]\ndirection = "input"\ncob_id = 0x181\n'
+                   'length = 8\ntransmission = 250\n')
+    card = start_card(tmp_path)
+    try:
+        out = cifemu("configure", str(bad), "--dpm-dir", str(tmp_path))
+        assert nd_state(tmp_path) == []
+        status = json.loads(cifemu("status", "--json", "--dpm-dir", str(tmp_path)).stdout)
+    finally:
+        card.stop()
+    assert out.returncode == 1 and "Traceback" not in out.stderr
+    assert "63 (data check: unknown PDO" in out.stderr
+    assert status["task2state"]["nd_cfg"] == []
+
+
+def test_configure_waits_for_a_card_that_is_still_starting(tmp_path: Path) -> None:
+    card = subprocess.Popen([sys.executable, "-m", "firmware", "--dpm-dir", str(tmp_path),
+                             "--simulate", str(DEMO), "--reset-delay", "1.5",
+                             "--log-level", "WARNING"])
+    try:
+        wait_until(lambda: (tmp_path / "board0.dpm").exists(), 20, "the image")
+        out = cifemu("configure", str(DEMO), "--dpm-dir", str(tmp_path))
+        assert out.returncode == 0, out.stderr
+        assert nd_state(tmp_path) == [1, 2, 3, 4]
+    finally:
+        card.terminate()
+        card.wait(timeout=10)
