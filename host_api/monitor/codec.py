@@ -81,18 +81,27 @@ def _expedited(data: bytes) -> str:
     return f"{value.hex(' ')} ({int.from_bytes(value, 'little')})"
 
 
+def _initiate(data: bytes) -> str:
+    """An initiate frame's transfer: the expedited data, or the announced size."""
+    if data[0] & 0x02:
+        return f"= {_expedited(data)}"
+    return f"segmented, {_u32(data, 4)} bytes" if data[0] & 0x01 else "segmented"
+
+
+def _segment(data: bytes) -> str:
+    """A segment's data (n unused bytes in bits 1..3), and whether it is the last."""
+    used = data[1 : 8 - ((data[0] >> 1) & 7)]
+    return used.hex(" ") + (" (last)" if data[0] & 0x01 else "")
+
+
 def _sdo_request(node: int, data: bytes) -> str:
     ccs = data[0] >> 5
     if ccs == 1:
-        expedited = bool(data[0] & 0x02)
-        body = (f"= {_expedited(data)}" if expedited
-                else f"segmented, {_u32(data, 4)} bytes" if data[0] & 0x01 else "segmented")
-        return f"SDO download request node {node} {_index(data)} {body}"
+        return f"SDO download request node {node} {_index(data)} {_initiate(data)}"
     if ccs == 2:
         return f"SDO upload request node {node} {_index(data)}"
     if ccs == 0:
-        return f"SDO download segment node {node} {data[1 : 8 - ((data[0] >> 1) & 7)].hex(' ')}" \
-            + (" (last)" if data[0] & 0x01 else "")
+        return f"SDO download segment node {node} {_segment(data)}"
     if ccs == 3:
         return f"SDO upload segment request node {node}"
     if ccs == 4:
@@ -105,14 +114,11 @@ def _sdo_request(node: int, data: bytes) -> str:
 def _sdo_response(node: int, data: bytes) -> str:
     scs = data[0] >> 5
     if scs == 2:
-        body = (f"= {_expedited(data)}" if data[0] & 0x02
-                else f"segmented, {_u32(data, 4)} bytes" if data[0] & 0x01 else "segmented")
-        return f"SDO upload response node {node} {_index(data)} {body}"
+        return f"SDO upload response node {node} {_index(data)} {_initiate(data)}"
     if scs == 3:
         return f"SDO download response node {node} {_index(data)} ok"
     if scs == 0:
-        return f"SDO upload segment node {node} {data[1 : 8 - ((data[0] >> 1) & 7)].hex(' ')}" \
-            + (" (last)" if data[0] & 0x01 else "")
+        return f"SDO upload segment node {node} {_segment(data)}"
     if scs == 1:
         return f"SDO download segment response node {node}"
     if scs == 4:
