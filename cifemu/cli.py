@@ -15,7 +15,6 @@
 from __future__ import annotations
 
 import argparse
-import sys
 
 from cifemu import demo as demo_cli
 from dbm_tools import cli as dbm_cli
@@ -24,7 +23,7 @@ from firmware.sim import cli as sim_cli
 from host_api import configure_cli
 from host_api import status as status_cli
 from host_api.cia309 import cli as cia309_cli
-from host_api.cli_output import quiet_broken_pipe
+from host_api.cli_output import run_guarded
 from host_api.monitor import cli as monitor_cli
 from host_api.top import cli as top_cli
 
@@ -80,9 +79,4 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    try:
-        result: int = args.func(args)
-        sys.stdout.flush()  # inside the guard: a closed pipe shows at the flush
-    except BrokenPipeError:  # the reader left (`--json | head`): no traceback
-        return quiet_broken_pipe()
-    return result
+    return run_guarded(args.func, args)

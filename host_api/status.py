@@ -24,7 +24,7 @@ from dpm.image import DEFAULT_DPM_DIR, MAX_DEV_BOARDS, dpm_dir, image_path, open
 from dpm.layout import image_view
 from dpm.task2 import GLOBAL_BIT_TEXT, ComDiagnostics, ComPlcParameter, GlobalBits, node_bits
 from firmware.card_info import read_card_info
-from host_api.cli_output import fail, print_json
+from host_api.cli_output import fail, print_json, run_guarded
 from host_api.liveness import firmware_liveness
 
 EXIT_OK = 0
@@ -145,6 +145,10 @@ def render(board: int, snap: dict[str, Any]) -> Group:
             card.add_row("firmware process", f"[bold red]DEAD[/]: the firmware lock is free "
                          f"({last}); the flags below are what it left")
         card.add_row("database", _database_line(state["database"]))
+        bus = state["bus"]
+        if bus:
+            rate = f" at {bus['bitrate']} bit/s" if bus["bitrate"] else ""
+            card.add_row("CAN bus", f"{bus['interface']} channel {bus['channel']}{rate}")
     card.add_row("HostFlags", _flags_line(snap["host_flags"], HostFlag))
     card.add_row("DevFlags", _flags_line(snap["dev_flags"], DevFlag))
     mbx = snap["mailbox"]
@@ -238,4 +242,4 @@ def run(args: argparse.Namespace) -> int:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m host_api", description=__doc__)
     add_arguments(parser)
-    return run(parser.parse_args(argv))
+    return run_guarded(run, parser.parse_args(argv))
