@@ -93,3 +93,22 @@ def test_a_closed_pipe_ends_quietly(tmp_path: Path) -> None:
     proc.wait(timeout=60)
     assert "Traceback" not in stderr and "BrokenPipeError" not in stderr, stderr
     assert proc.returncode == 1
+
+
+def test_sim_announces_its_nodes_as_one_json_line(tmp_path: Path) -> None:
+    sim = subprocess.Popen([sys.executable, "-m", "cifemu", "sim", str(DEMO), "--interface",
+                            "virtual", "--channel", f"json{tmp_path.name}", "--json",
+                            "--log-level", "WARNING"],
+                           stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT)
+    try:
+        assert sim.stdout is not None
+        first = json.loads(sim.stdout.readline())
+    finally:
+        sim.terminate()
+        sim.wait(timeout=20)
+    assert all(SNAKE.match(key) for key in keys(first))
+    assert [node["id"] for node in first["nodes"]] == [1, 2, 3, 4]
+    assert first["bitrate"] == 500000
+    failed = cifemu("sim", str(tmp_path / "missing.toml"), "--interface", "virtual",
+                    "--channel", "x", "--json")
+    assert failed.returncode == 1 and json.loads(failed.stdout)["error"]["command"] == "sim"
