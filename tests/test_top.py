@@ -9,15 +9,17 @@ import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 from textual.widgets import DataTable, RichLog, Static
 
 from host_api.board import Board
+from host_api.status import read_image, snapshot
 from host_api.top.app import TopApp
 from host_api.top.cli import build_model
 from host_api.top.feed import CardFeed
 from host_api.top.render import pdo_cells
-from tests.conftest import ROOT, start_card
+from tests.conftest import ROOT, start_card, wait_until
 
 DEMO = ROOT / "cifemu" / "examples" / "demo.toml"
 
@@ -45,6 +47,12 @@ def test_once_without_a_card_is_one_line(tmp_path: Path) -> None:
                           str(tmp_path)], capture_output=True, text=True, timeout=60, cwd=ROOT)
     assert out.returncode == 1 and out.stderr.startswith("cifemu top: no image")
     assert out.stderr.count("\n") == 1
+
+
+def snapshot_of(directory: Path) -> dict[str, Any]:
+    image = read_image(0, str(directory))
+    assert image is not None
+    return snapshot(image)
 
 
 def _text(app: TopApp, selector: str) -> str:
@@ -122,3 +130,23 @@ def test_live_view_keys_act_on_the_selected_node(tmp_path: Path) -> None:
     finally:
         feed.stop()
         card.stop()
+
+
+def test_a_view_started_after_an_emcy_still_shows_it_and_a_trace_does_not(
+        tmp_path: Path) -> None:
+    card = start_card(tmp_path, 0, "--simulate", str(DEMO), "--configure")
+    try:
+        wait_until(lambda: 4 in (snapshot_of(tmp_path)["task2state"]["nd_diag"]), 20,
+                   "node 4's EMCY burst in Nd_diag")
+        time.sleep(1.0)  # the burst (3 EMCYs, 0.2 s apart) is over
+        out = subprocess.run([sys.executable, "-m", "cifemu", "top", "--once", "--dpm-dir",
+                              str(tmp_path), "--sample", "0.5"], capture_output=True, text=True,
+                             timeout=60, cwd=ROOT, env={**os.environ, "COLUMNS": "220"})
+        trace = subprocess.run([sys.executable, "-m", "cifemu", "monitor", "--dpm-dir",
+                                str(tmp_path), "--type", "emcy", "--duration", "1.5"],
+                               capture_output=True, text=True, timeout=60, cwd=ROOT)
+    finally:
+        card.stop()
+    row = next(line for line in out.stdout.splitlines() if "sensor box" in line)
+    assert "4210h Temperature: device temperature" in row
+    assert trace.returncode == 0 and trace.stdout == ""

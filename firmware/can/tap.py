@@ -7,7 +7,9 @@ image path (no file to clean up after a crash). A monitor binds an automatic
 name and sends ``SUBSCRIBE`` at least every ``RENEW_S``; the card sends each
 frame to every subscriber heard from within ``EXPIRE_S``, and drops one whose
 socket is gone. Sending never blocks: a subscriber that does not keep up loses
-frames, the card never waits for it.
+frames, the card never waits for it. A new subscriber first gets the last EMCY of
+each node again, marked as a replay, so a state view started after a node's
+emergency still shows it; a trace drops replays.
 
 A frame datagram is ``FRAME_HEAD`` (time stamp, identifier, flags, DLC) and the
 data bytes. The codec (``encode_frame`` / ``decode_frame``) is apart from the
@@ -39,6 +41,11 @@ FLAG_ERROR = 0x04
 FLAG_RX = 0x08
 """Set for a frame the card received, clear for one it sent."""
 FLAG_FD = 0x10
+FLAG_REPLAY = 0x20
+"""A frame sent again to a new subscriber: the last EMCY of each node, so a view
+started after a node's emergency still shows it [ours]."""
+EMCY_IDS = range(0x081, 0x100)
+"""CiA 301's predefined EMCY identifiers (080h + node-ID)."""
 
 
 def tap_address(image_path: Path) -> bytes:
@@ -47,23 +54,25 @@ def tap_address(image_path: Path) -> bytes:
     return b"\0cifemu-tap-" + digest.encode()
 
 
-def encode_frame(msg: can.Message, received: bool) -> bytes:
+def encode_frame(msg: can.Message, received: bool, replay: bool = False) -> bytes:
     flags = ((FLAG_EXTENDED if msg.is_extended_id else 0) | (FLAG_REMOTE if msg.is_remote_frame
              else 0) | (FLAG_ERROR if msg.is_error_frame else 0) | (FLAG_RX if received else 0)
-             | (FLAG_FD if msg.is_fd else 0))
+             | (FLAG_FD if msg.is_fd else 0) | (FLAG_REPLAY if replay else 0))
     return FRAME_HEAD.pack(msg.timestamp, msg.arbitration_id, flags, msg.dlc) + bytes(msg.data)
 
 
-def decode_frame(datagram: bytes, channel: str | None = None) -> can.Message:
-    """A frame datagram back into a python-can message; ValueError when it is malformed."""
+def decode_frame(datagram: bytes, channel: str | None = None) -> tuple[can.Message, bool]:
+    """A frame datagram back into a python-can message and whether it is a replay;
+    ValueError when it is malformed."""
     if len(datagram) < FRAME_HEAD.size:
         raise ValueError(f"tap datagram of {len(datagram)} bytes is shorter than its head")
     timestamp, ident, flags, dlc = FRAME_HEAD.unpack_from(datagram)
-    return can.Message(
+    msg = can.Message(
         timestamp=timestamp, arbitration_id=ident, is_extended_id=bool(flags & FLAG_EXTENDED),
         is_remote_frame=bool(flags & FLAG_REMOTE), is_error_frame=bool(flags & FLAG_ERROR),
         is_rx=bool(flags & FLAG_RX), is_fd=bool(flags & FLAG_FD), dlc=dlc,
         data=datagram[FRAME_HEAD.size:], channel=channel, check=False)
+    return msg, bool(flags & FLAG_REPLAY)
 
 
 class TapPublisher:
@@ -75,6 +84,8 @@ class TapPublisher:
         self._sock.setblocking(False)
         self._sock.bind(address)
         self._subscribers: dict[bytes, float] = {}
+        self._last_emcy: dict[int, bytes] = {}
+        """Per EMCY identifier, the last one as a replay datagram."""
         self._lock = threading.Lock()
         self._drain_due = 0.0
 
@@ -86,6 +97,9 @@ class TapPublisher:
                 break
             if payload == SUBSCRIBE and isinstance(peer, bytes) and peer and (
                     peer in self._subscribers or len(self._subscribers) < MAX_SUBSCRIBERS):
+                if peer not in self._subscribers:
+                    for datagram in self._last_emcy.values():
+                        self._send(peer, datagram)
                 self._subscribers[peer] = now
         for peer, seen in list(self._subscribers.items()):
             if now - seen > EXPIRE_S:
@@ -95,6 +109,9 @@ class TapPublisher:
         """Offer one frame (any thread); costs a clock read while nobody listens."""
         now = time.monotonic()
         with self._lock:
+            if msg.arbitration_id in EMCY_IDS and not msg.is_extended_id and not (
+                    msg.is_remote_frame or msg.is_error_frame):
+                self._last_emcy[msg.arbitration_id] = encode_frame(msg, received, replay=True)
             if now >= self._drain_due:
                 self._drain_due = now + DRAIN_INTERVAL_S
                 self._drain(now)
@@ -102,12 +119,15 @@ class TapPublisher:
                 return
             datagram = encode_frame(msg, received)
             for peer in list(self._subscribers):
-                try:
-                    self._sock.sendto(datagram, peer)
-                except (ConnectionRefusedError, FileNotFoundError):
-                    del self._subscribers[peer]
-                except OSError:
-                    pass  # the subscriber's queue is full: it loses this frame
+                self._send(peer, datagram)
+
+    def _send(self, peer: bytes, datagram: bytes) -> None:
+        try:
+            self._sock.sendto(datagram, peer)
+        except (ConnectionRefusedError, FileNotFoundError):
+            self._subscribers.pop(peer, None)
+        except OSError:
+            pass  # the subscriber's queue is full: it loses this frame
 
     def close(self) -> None:
         self._sock.close()

@@ -19,13 +19,17 @@ from firmware.can.tap import TapSubscriber, decode_frame
 class TapBus(can.BusABC):
     """Frames of the card serving ``image_path``; sending is refused (a tap only listens)."""
 
-    def __init__(self, image_path: Path, channel: str = "cifemu", **kwargs: Any) -> None:
+    def __init__(self, image_path: Path, channel: str = "cifemu", replays: bool = False,
+                 **kwargs: Any) -> None:
         self._subscriber = TapSubscriber(image_path)
         if not self._subscriber.subscribe():
             self._subscriber.close()
             raise can.CanInitializationError(f"no card's frame tap for {image_path}")
         self.channel_info = f"frame tap of {image_path}"
         self._channel = channel
+        self._replays = replays
+        """Whether the card's replay of each node's last EMCY is wanted (a state view)
+        or dropped (a trace shows only what happens while it runs)."""
         super().__init__(channel=channel, **kwargs)
 
     def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
@@ -33,9 +37,10 @@ class TapBus(can.BusABC):
         if datagram is None:
             return None, False
         try:
-            return decode_frame(datagram, self._channel), False
+            msg, replay = decode_frame(datagram, self._channel)
         except ValueError:
             return None, False
+        return (msg if self._replays or not replay else None), False
 
     def send(self, msg: can.Message, timeout: float | None = None) -> None:
         raise can.CanOperationError("the card's frame tap is receive-only")

@@ -39,7 +39,7 @@ class CardFeed:
         if self.model.bitrate is None:
             self.model.bitrate = (info.get("bus") or {}).get("bitrate")
         try:
-            self._bus = TapBus(image_path(self.directory, self.board), channel)
+            self._bus = TapBus(image_path(self.directory, self.board), channel, replays=True)
         except can.CanError as exc:
             self.tap_error = str(exc)
             return
