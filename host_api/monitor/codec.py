@@ -10,6 +10,7 @@ labelled.
 from __future__ import annotations
 
 import struct
+from collections.abc import Callable
 from dataclasses import dataclass
 
 from host_api.monitor.cia301 import NMT_COMMAND_TEXT, emcy_text, nmt_state_text, sdo_abort_text
@@ -94,38 +95,25 @@ def _segment(data: bytes) -> str:
     return used.hex(" ") + (" (last)" if data[0] & 0x01 else "")
 
 
-def _sdo_request(node: int, data: bytes) -> str:
-    ccs = data[0] >> 5
-    if ccs == 1:
-        return f"SDO download request node {node} {_index(data)} {_initiate(data)}"
-    if ccs == 2:
-        return f"SDO upload request node {node} {_index(data)}"
-    if ccs == 0:
-        return f"SDO download segment node {node} {_segment(data)}"
-    if ccs == 3:
-        return f"SDO upload segment request node {node}"
-    if ccs == 4:
-        return _abort("SDO abort by client", node, data)
-    if ccs in (5, 6):
-        return f"SDO block {'upload' if ccs == 5 else 'download'} request node {node}"
-    return f"SDO request node {node} with unknown command specifier {ccs}"
+_SdoText = Callable[[int, bytes], str]
 
-
-def _sdo_response(node: int, data: bytes) -> str:
-    scs = data[0] >> 5
-    if scs == 2:
-        return f"SDO upload response node {node} {_index(data)} {_initiate(data)}"
-    if scs == 3:
-        return f"SDO download response node {node} {_index(data)} ok"
-    if scs == 0:
-        return f"SDO upload segment node {node} {_segment(data)}"
-    if scs == 1:
-        return f"SDO download segment response node {node}"
-    if scs == 4:
-        return _abort("SDO abort by server", node, data)
-    if scs in (5, 6):
-        return f"SDO block {'download' if scs == 5 else 'upload'} response node {node}"
-    return f"SDO response node {node} with unknown command specifier {scs}"
+_SDO_TEXT: dict[tuple[bool, int], _SdoText] = {
+    # (response?, command specifier): the client's ccs, the server's scs (CiA 301 7.2.4.3)
+    (False, 1): lambda n, d: f"SDO download request node {n} {_index(d)} {_initiate(d)}",
+    (False, 2): lambda n, d: f"SDO upload request node {n} {_index(d)}",
+    (False, 0): lambda n, d: f"SDO download segment node {n} {_segment(d)}",
+    (False, 3): lambda n, d: f"SDO upload segment request node {n}",
+    (False, 4): lambda n, d: _abort("SDO abort by client", n, d),
+    (False, 5): lambda n, d: f"SDO block upload request node {n}",
+    (False, 6): lambda n, d: f"SDO block download request node {n}",
+    (True, 2): lambda n, d: f"SDO upload response node {n} {_index(d)} {_initiate(d)}",
+    (True, 3): lambda n, d: f"SDO download response node {n} {_index(d)} ok",
+    (True, 0): lambda n, d: f"SDO upload segment node {n} {_segment(d)}",
+    (True, 1): lambda n, d: f"SDO download segment response node {n}",
+    (True, 4): lambda n, d: _abort("SDO abort by server", n, d),
+    (True, 5): lambda n, d: f"SDO block download response node {n}",
+    (True, 6): lambda n, d: f"SDO block upload response node {n}",
+}
 
 
 def _abort(what: str, node: int, data: bytes) -> str:
@@ -145,7 +133,12 @@ def _sdo_text(node: int, data: bytes, response: bool) -> str:
     if len(data) != 8:
         return f"SDO {'response' if response else 'request'} node {node} of {len(data)} bytes " \
             "(CiA 301 wants 8)"
-    return _sdo_response(node, data) if response else _sdo_request(node, data)
+    specifier = data[0] >> 5
+    text = _SDO_TEXT.get((response, specifier))
+    if text is None:
+        return (f"SDO {'response' if response else 'request'} node {node} with unknown "
+                f"command specifier {specifier}")
+    return text(node, data)
 
 
 def decode(can_id: int, data: bytes, *, extended: bool = False, remote: bool = False,
