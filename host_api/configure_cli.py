@@ -22,9 +22,10 @@ from typing import Any
 from dbm_tools.builder import BuildError, build_dbm
 from dbm_tools.network import Network, NetworkError, load_network
 from dpm.errors import ERR_NODE_DEVICE, MSG_F_TEXT, Drv
-from dpm.image import DEFAULT_DPM_DIR, MAX_DEV_BOARDS, dpm_dir
+from dpm.image import dpm_dir
 from dpm.task2 import ComDiagnostics
 from host_api.board import Board, CifError
+from host_api.cli_options import add_card_options
 from host_api.cli_output import fail, print_json
 from host_api.liveness import firmware_liveness
 from host_api.network_view import remember_network
@@ -77,10 +78,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("network", type=Path, metavar="NETWORK.toml",
                         help="the network description (the same file `cifemu sim` and "
                              "`cifemu dbm build` read)")
-    parser.add_argument("--board", type=int, default=0, choices=range(MAX_DEV_BOARDS),
-                        metavar="N", help="board number 0..3 (default 0)")
-    parser.add_argument("--dpm-dir", default=None,
-                        help=f"image directory (default $CIF_DPM_DIR or {DEFAULT_DPM_DIR})")
+    add_card_options(parser)
     parser.add_argument("--wait", type=float, default=10.0, metavar="SECONDS",
                         help="how long to wait for the nodes to reach data exchange "
                              "(default 10; 0 does not wait)")

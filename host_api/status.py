@@ -20,10 +20,11 @@ from rich.table import Table
 from dpm import flags as fl
 from dpm.errors import ERR_NODE_DEVICE
 from dpm.flags import DevFlag, HostFlag
-from dpm.image import DEFAULT_DPM_DIR, MAX_DEV_BOARDS, dpm_dir, image_path, open_image
+from dpm.image import dpm_dir, image_path, open_image
 from dpm.layout import image_view
 from dpm.task2 import GLOBAL_BIT_TEXT, ComDiagnostics, ComPlcParameter, GlobalBits, node_bits
 from firmware.card_info import read_card_info
+from host_api.cli_options import add_card_options
 from host_api.cli_output import fail, print_json, run_guarded
 from host_api.liveness import firmware_liveness
 
@@ -199,10 +200,7 @@ def read_image(board: int, directory: str | None) -> bytes | None:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--board", type=int, default=0, choices=range(MAX_DEV_BOARDS),
-                        metavar="N", help="board number 0..3 (default 0)")
-    parser.add_argument("--dpm-dir", default=None,
-                        help=f"image directory (default $CIF_DPM_DIR or {DEFAULT_DPM_DIR})")
+    add_card_options(parser)
     parser.add_argument("--watch", action="store_true", help="refresh until Ctrl-C")
     parser.add_argument("--interval", type=float, default=0.5, help="--watch refresh seconds")
     parser.add_argument("--json", action="store_true", help="print the decoded state as JSON")

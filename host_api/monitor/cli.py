@@ -28,8 +28,9 @@ import can
 
 from dbm_tools.builder import BuildError
 from dbm_tools.network import NetworkError
-from dpm.image import DEFAULT_DPM_DIR, MAX_DEV_BOARDS, dpm_dir, image_path
+from dpm.image import dpm_dir, image_path
 from firmware.card_info import read_card_info
+from host_api.cli_options import add_card_options
 from host_api.cli_output import fail
 from host_api.liveness import firmware_liveness
 from host_api.monitor.codec import KINDS, Meaning, decode
@@ -41,10 +42,7 @@ RECEIVE_TIMEOUT_S = 0.2
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--board", type=int, default=0, choices=range(MAX_DEV_BOARDS),
-                        metavar="N", help="the card whose frame tap to listen to (default 0)")
-    parser.add_argument("--dpm-dir", default=None,
-                        help=f"image directory (default $CIF_DPM_DIR or {DEFAULT_DPM_DIR})")
+    add_card_options(parser, "the card whose frame tap to listen to (default 0)")
     parser.add_argument("--interface", default=None,
                         help="listen on this python-can interface instead of the card's tap "
                              "(shm, socketcan, ...)")

@@ -28,7 +28,8 @@ from rich.console import Console
 
 from dbm_tools.builder import BuildError
 from dbm_tools.network import NetworkError, load_network
-from dpm.image import DEFAULT_DPM_DIR, MAX_DEV_BOARDS, dpm_dir, image_path
+from dpm.image import dpm_dir, image_path
+from host_api.cli_options import add_card_options
 from host_api.cli_output import fail
 from host_api.liveness import firmware_liveness
 from host_api.network_view import network_view, remembered_network
@@ -40,10 +41,7 @@ COMMAND = "top"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--board", type=int, default=0, choices=range(MAX_DEV_BOARDS),
-                        metavar="N", help="board number 0..3 (default 0)")
-    parser.add_argument("--dpm-dir", default=None,
-                        help=f"image directory (default $CIF_DPM_DIR or {DEFAULT_DPM_DIR})")
+    add_card_options(parser)
     parser.add_argument("--network", type=Path, default=None, metavar="NETWORK.toml",
                         help="names, supervision and PDO map (default: the file the card was "
                              "last configured from)")
