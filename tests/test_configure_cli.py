@@ -162,3 +162,15 @@ def test_configure_waits_for_a_card_that_is_still_starting(tmp_path: Path) -> No
     finally:
         card.terminate()
         card.wait(timeout=10)
+
+
+def test_firmware_configure_that_fails_stops_the_card_with_status_1(tmp_path: Path) -> None:
+    bad = tmp_path / "bad.toml"
+    bad.write_text('[[node]]\nid = 1\n[[node.pdo]]\ndirection = "input"\ncob_id = 0x181\n'
+                   'length = 8\ntransmission = 250\n')
+    out = subprocess.run([sys.executable, "-m", "cifemu", "firmware", "--dpm-dir", str(tmp_path),
+                          "--simulate", str(DEMO), "--configure", str(bad), "--log-level",
+                          "WARNING"], capture_output=True, text=True, timeout=60, cwd=ROOT)
+    assert out.returncode == 1
+    assert "63 (data check: unknown PDO" in out.stderr and "the card stops" in out.stderr
+    assert "Traceback" not in out.stderr

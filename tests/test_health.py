@@ -114,3 +114,14 @@ def test_the_database_loaded_from_flash_is_logged_and_shown(tmp_path: Path) -> N
     log = stderr.decode()
     assert "database from flash: 'plant A' of" in log and "4 node(s)" in log
     assert os.path.exists(tmp_path / "board0.card.json")
+
+
+def test_top_once_says_a_killed_firmware_is_dead(tmp_path: Path) -> None:
+    card = start_card(tmp_path)
+    kill(card)
+    out = subprocess.run([sys.executable, "-m", "cifemu", "top", "--once", "--sample", "0.2",
+                          "--dpm-dir", str(tmp_path)], capture_output=True, text=True,
+                         timeout=60, cwd=ROOT)
+    assert out.returncode == 3
+    assert f"firmware DEAD (last pid {card.proc.pid})" in out.stdout
+    assert "no frames: no card's frame tap" in out.stdout

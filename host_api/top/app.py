@@ -76,8 +76,6 @@ class TopApp(App[None]):
         table = self.query_one("#nodes", DataTable)
         for column in NODE_COLUMNS:
             table.add_column(column, key=column)
-        if self.feed.tap_error:
-            self.model.log(time.time(), f"no frames: {self.feed.tap_error}")
         self.refresh_view()
         self.set_interval(self.interval, self.refresh_view)
 

@@ -74,6 +74,8 @@ def run(args: argparse.Namespace) -> int:
         return fail(COMMAND, f"{path}: {exc}", False)
     feed = CardFeed(model, args.board, directory)
     feed.start()
+    if feed.tap_error:
+        model.log(time.time(), f"no frames: {feed.tap_error}")
     try:
         if args.once:
             deadline = time.monotonic() + args.sample
