@@ -97,6 +97,8 @@ def run(args: argparse.Namespace) -> int:
         device = Device(args.board, args.dpm_dir, reset_delay=args.reset_delay, bus=bus,
                         flash_dir=args.flash)
     except BoardBusyError as exc:
+        if simulation is not None:
+            sim_bus.shutdown()
         print(f"cifemu firmware: board {args.board} refused: {exc}", file=sys.stderr)
         return 1
     if simulation is not None:
