@@ -6,6 +6,9 @@
   cifemu dbm        DBM files (show, check, build, diff) and a card's stored database
                     (download, upload, delete, dir)
   cifemu demo       a card, a simulated network, on-line configuration, live status
+  cifemu configure  configure a running card on line from a network description
+  cifemu monitor    the CAN traffic with its CANopen meaning, live
+  cifemu top        a live view of one card: nodes, process image, bus, events
   cifemu 309        the CiA 309-3 ASCII gateway (serve, exec, shell)
   cifemu libcif     flags that compile a C program against libcif (--cflags --libs)
 """
@@ -13,85 +16,18 @@
 from __future__ import annotations
 
 import argparse
-import os
-import subprocess
-import sys
-import tempfile
-import time
-from pathlib import Path
 
-from rich.console import Console
-from rich.live import Live
-
+from cifemu import demo as demo_cli
 from cifemu import libcif as libcif_cli
-from dbm_tools.builder import build_dbm
-from dbm_tools.container import write_dbm
-from dbm_tools.network import load_network
-from dpm.flags import READY
-from dpm.layout import HOST_FLAGS
 from firmware import cli as firmware_cli
 from firmware.sim import cli as sim_cli
+from host_api import configure_cli
 from host_api import dbm_commands as dbm_cli
-from host_api import driver as d
 from host_api import status as status_cli
-from host_api.board import Board
 from host_api.cia309 import cli as cia309_cli
-from host_api.download import CONFIGURATION_DOWNLOAD, DevDownload
-from host_api.driver import COLDSTART
-from host_api.online import configure_online
-
-
-def _ready(image: bytes | None) -> bool:
-    return image is not None and bool(image[HOST_FLAGS] & READY)
-
-
-EXAMPLE_NETWORK = Path(__file__).with_name("examples") / "demo.toml"
-
-
-def _demo(args: argparse.Namespace) -> int:
-    """A card and a simulated network, configured on line, with its live status."""
-    directory = args.dpm_dir or tempfile.mkdtemp(prefix="cifemu-demo-")
-    network = args.network or EXAMPLE_NETWORK
-    card = subprocess.Popen(
-        [sys.executable, "-m", "firmware", "--board", "0", "--dpm-dir", directory,
-         "--flash", str(Path(directory) / "flash"), "--simulate", str(network),
-         "--log-level", "WARNING"]
-    )
-    console = Console()
-    try:
-        deadline = time.monotonic() + 15
-        while not _ready(status_cli.read_image(0, directory)):
-            if card.poll() is not None or time.monotonic() > deadline:
-                print("cifemu demo: the firmware did not start", file=sys.stderr)
-                return 1
-            time.sleep(0.05)
-        with Board(0, directory) as board:
-            if args.from_dbm:
-                database = write_dbm(build_dbm(load_network(network)))
-                console.print(f"downloading a DBM of {len(database)} bytes built from {network}")
-                if DevDownload(0, CONFIGURATION_DOWNLOAD, database) != 0:
-                    print("cifemu demo: the card refused the database", file=sys.stderr)
-                    return 1
-                board.reset(COLDSTART)  # the card starts from its flash
-            else:
-                configure_online(board, load_network(network),
-                                 lambda step: console.print(f"configuring: {step}"))
-            console.print(f"card image {directory}/board0.dpm; Ctrl-C ends the demo")
-            counter = 0
-            with Live(console=console, auto_refresh=False) as live:
-                while True:
-                    counter = (counter + 1) & 0xFF
-                    d.DevExchangeIO(0, 0, bytes([counter]) * 32, 0, 0, 100)
-                    snapshot = status_cli.read_image(0, directory)
-                    if snapshot is not None:
-                        live.update(status_cli.render(0, status_cli.snapshot(snapshot)),
-                                    refresh=True)
-                    time.sleep(0.2)
-    except KeyboardInterrupt:
-        return 0
-    finally:
-        card.terminate()
-        card.wait(timeout=10)
+from host_api.cli_output import run_guarded
+from host_api.monitor import cli as monitor_cli
+from host_api.top import cli as top_cli
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -127,20 +63,27 @@ def build_parser() -> argparse.ArgumentParser:
     libcif_cli.add_arguments(libcif)
     libcif.set_defaults(func=libcif_cli.run)
     demo = sub.add_parser("demo", help="a card, simulated nodes, live status (Ctrl-C ends)",
-                          description=_demo.__doc__)
-    demo.add_argument("--dpm-dir", default=os.environ.get("CIFEMU_DEMO_DIR"),
-                      help="image directory (default: a fresh temporary one)")
-    demo.add_argument("--from-dbm", action="store_true",
-                      help="build a DBM from the network, download it into the card's flash and "
-                           "cold-start the card from it, instead of configuring it on line")
-    demo.add_argument("--network", type=Path, default=None,
-                      help=f"network description to simulate (default: {EXAMPLE_NETWORK.name}, "
-                           "four generic I/O modules)")
-    demo.set_defaults(func=_demo)
+                          description=demo_cli.__doc__)
+    demo_cli.add_arguments(demo)
+    demo.set_defaults(func=demo_cli.run)
+    configure = sub.add_parser("configure", help="configure a running card on line from a "
+                               "network description", description=configure_cli.__doc__,
+                               formatter_class=argparse.RawDescriptionHelpFormatter)
+    configure_cli.add_arguments(configure)
+    configure.set_defaults(func=configure_cli.run)
+    monitor = sub.add_parser("monitor", help="the CAN traffic with its CANopen meaning, live",
+                             description=monitor_cli.__doc__,
+                             formatter_class=argparse.RawDescriptionHelpFormatter)
+    monitor_cli.add_arguments(monitor)
+    monitor.set_defaults(func=monitor_cli.run)
+    top = sub.add_parser("top", help="a live view of one card (nodes, process image, bus, "
+                         "events)", description=top_cli.__doc__,
+                         formatter_class=argparse.RawDescriptionHelpFormatter)
+    top_cli.add_arguments(top)
+    top.set_defaults(func=top_cli.run)
     return parser
 
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    result: int = args.func(args)
-    return result
+    return run_guarded(args.func, args)

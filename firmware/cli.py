@@ -12,11 +12,13 @@ from types import FrameType
 import can
 
 from dbm_tools.network import NetworkError, load_network
-from dpm.image import DEFAULT_DPM_DIR, MAX_DEV_BOARDS, BoardBusyError
+from dpm.image import DEFAULT_DPM_DIR, MAX_DEV_BOARDS, BoardBusyError, dpm_dir, image_path
 from firmware.can.master import BusConfig
+from firmware.can.tap import tap_address
 from firmware.device import Device
 from firmware.flash import FLASH_ENV
 from firmware.interpreter import SWITCH_INTERVAL
+from firmware.online_configure import OnlineConfiguration
 from firmware.sim import SimulatedNetwork
 
 
@@ -47,6 +49,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="the board's flash directory, where a downloaded DBM is kept "
                              f"(default ${FLASH_ENV}/board<N>, else "
                              "<user data dir>/cifemu/flash/board<N>)")
+    parser.add_argument("--configure", nargs="?", const=True, default=None, type=Path,
+                        metavar="NETWORK.toml",
+                        help="once the card is up, configure it on line from a network "
+                             "description (default: the --simulate file), as `cifemu "
+                             "configure` does; a refusal stops the card with exit status 1")
     parser.add_argument("--reset-delay", type=float, default=0.0, metavar="SECONDS",
                         help="emulate a real card's slow start (default 0: milliseconds)")
     parser.add_argument("--log-level", default="INFO",
@@ -65,18 +72,30 @@ def run(args: argparse.Namespace) -> int:
         except NetworkError as exc:
             print(f"cifemu firmware: {args.simulate}: {exc}", file=sys.stderr)
             return 1
+    configure_path = args.simulate if args.configure is True else args.configure
+    if configure_path is None and args.configure is True:
+        print("cifemu firmware: --configure needs a network description (or --simulate)",
+              file=sys.stderr)
+        return 1
     bus = BusConfig(args.interface, args.channel or default_channel(args.interface),
-                    args.bitrate, args.trace)
+                    args.bitrate, args.trace,
+                    tap_address(image_path(dpm_dir(args.dpm_dir), args.board)))
+    simulation = None
+    if network is not None:  # before the card: a bus that cannot open leaves no image
+        try:
+            sim_bus = can.Bus(interface=bus.interface, channel=bus.channel)
+        except INTERFACE_ERRORS as exc:
+            return _interface_error(bus, exc)
+        simulation = SimulatedNetwork(network, sim_bus)
     try:
         device = Device(args.board, args.dpm_dir, reset_delay=args.reset_delay, bus=bus,
                         flash_dir=args.flash)
     except BoardBusyError as exc:
+        if simulation is not None:
+            sim_bus.shutdown()
         print(f"cifemu firmware: board {args.board} refused: {exc}", file=sys.stderr)
         return 1
-    simulation = None
-    if network is not None:
-        sim_bus = can.Bus(interface=bus.interface, channel=bus.channel)
-        simulation = SimulatedNetwork(network, sim_bus)
+    if simulation is not None:
         simulation.start()
 
     def on_signal(signum: int, frame: FrameType | None) -> None:
@@ -86,13 +105,32 @@ def run(args: argparse.Namespace) -> int:
     signal.signal(signal.SIGTERM, on_signal)
     signal.signal(signal.SIGINT, on_signal)
     logging.getLogger("firmware").info("board %d serving %s", args.board, device.path)
+    configuring = None
+    if configure_path is not None:
+        configuring = OnlineConfiguration(device, configure_path)
+        configuring.start()
     try:
         device.run()
+    except INTERFACE_ERRORS as exc:
+        if device.can.master.bus is not None:
+            raise  # the controller was up: not an interface error
+        device.path.unlink(missing_ok=True)
+        return _interface_error(bus, exc)
     finally:
         if simulation is not None:
             simulation.stop()
             sim_bus.shutdown()
-    return 0
+    return 1 if configuring is not None and configuring.failed else 0
+
+
+INTERFACE_ERRORS = (can.CanError, OSError, ValueError, ImportError, NotImplementedError)
+"""What python-can raises when an interface or channel cannot be opened."""
+
+
+def _interface_error(bus: BusConfig, exc: BaseException) -> int:
+    print(f"cifemu firmware: cannot open CAN interface {bus.interface!r} channel "
+          f"{bus.channel!r}: {exc}", file=sys.stderr)
+    return 1
 
 
 def default_channel(interface: str) -> str:

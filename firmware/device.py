@@ -65,6 +65,7 @@ class Device:
         self._instance_lock = ExclusiveLock(lock_path(self.directory, board))
         self.path = image_path(self.directory, board)
         self.mm = create_image(self.path)
+        self.mm[HOST_FLAGS] = 0  # a killed predecessor's READY is not this firmware's
         self.view: Any = image_view(self.mm)
         self.bell = DeviceBell(self.path)
         self.outbox: deque[Message] = deque()

@@ -16,6 +16,7 @@ from dpm import flags as fl
 from dpm.commands import LOAD_FUNCTION
 from dpm.layout import DEV_FLAGS, DEV_WATCHDOG, HOST_WATCHDOG, TASK2_PARAMETER, TASK_PARAMETER_SIZE
 from dpm.task2 import ComPlcParameter, GlobalBits
+from firmware import card_info
 from firmware.flash import LoadFunction, StoredDatabase
 from firmware.task import Task
 
@@ -70,6 +71,7 @@ class RcsTask(Task):
             return
         cold = kind is not Start.WARM
         database = dev.database = StoredDatabase.load(dev.flash)
+        card_info.publish(dev)
         if cold:  # a warm start keeps the host's parameters: they rank above flash (seed 2)
             parameter = database.protocol_parameters() if database else ComPlcParameter()
         else:

@@ -15,9 +15,11 @@ One convention for ``status``, ``dbm``, ``sim``, ``configure``, ``monitor`` and
 
 from __future__ import annotations
 
+import argparse
 import json
 import os
 import sys
+from collections.abc import Callable
 from typing import Any
 
 EXIT_FAILURE = 1
@@ -36,6 +38,16 @@ def fail(command: str, message: str, as_json: bool, code: int = EXIT_FAILURE,
     else:
         print(f"cifemu {command}: {message}", file=sys.stderr)
     return code
+
+
+def run_guarded(run: Callable[[argparse.Namespace], int], args: argparse.Namespace) -> int:
+    """Run a command; a reader that leaves early (BrokenPipeError) ends it quietly."""
+    try:
+        result = run(args)
+        sys.stdout.flush()  # inside the guard: a closed pipe shows at the flush
+    except BrokenPipeError:
+        return quiet_broken_pipe()
+    return result
 
 
 def quiet_broken_pipe() -> int:

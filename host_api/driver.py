@@ -58,6 +58,7 @@ from dpm.layout import (
     offset_of,
 )
 from dpm.message import Message, MessageError
+from host_api.liveness import firmware_liveness
 from host_api.locks import ChannelLock
 from host_api.registry import Counters as _Counters
 from host_api.registry import MappedBoard as _Board
@@ -191,6 +192,8 @@ def DevInitBoard(number: int) -> int:
         except OSError:
             return Drv.DRV_DEV_DPM_ACCESS_ERROR
         rc = _check_card(mm)
+        if rc == Drv.DRV_NO_ERROR and not firmware_liveness(_driver.directory, number).alive:
+            rc = Drv.DRV_DEV_NOT_READY  # [ours] READY left behind by a killed firmware
         if rc != Drv.DRV_NO_ERROR:
             mm.close()
             return rc
@@ -256,7 +259,8 @@ def DevPutMessage(number: int, msg: Message | bytes, timeout: int) -> int:
             lambda: not fl.pending(board.host(), board.dev(), fl.DEV_MBX), timeout
         )
         if not free:
-            return Drv.DRV_DEV_MAILBOX_FULL if timeout <= 0 else Drv.DRV_DEV_PUT_TIMEOUT
+            return (Drv.DRV_DEV_MAILBOX_FULL if timeout <= 0
+                    else board.timed_out(Drv.DRV_DEV_PUT_TIMEOUT))
         board.mm[DEV_MBX : DEV_MBX + len(raw)] = raw
         board.change_dev_flags(toggle=fl.DEVCOM)
         board.counters.write += 1
@@ -283,7 +287,8 @@ def DevGetMessage(number: int, size: int, timeout: int) -> tuple[int, Message | 
             lambda: fl.pending(board.host(), board.dev(), fl.HOST_MBX), timeout
         )
         if not waiting:
-            return (Drv.DRV_DEV_GET_NO_MESSAGE if timeout <= 0 else Drv.DRV_DEV_GET_TIMEOUT), None
+            return (Drv.DRV_DEV_GET_NO_MESSAGE if timeout <= 0
+                    else board.timed_out(Drv.DRV_DEV_GET_TIMEOUT)), None
         mm = board.mm
         length = 8 + mm[PC_MBX + 2]
         if length > size:
@@ -352,7 +357,8 @@ def _exchange(
                 board.change_dev_flags(toggle=fl.PDCOM)
                 rc = Drv.DRV_NO_ERROR
             else:
-                rc = Drv.DRV_DEV_EXCHANGE_FAILED if timeout <= 0 else Drv.DRV_DEV_EXCHANGE_TIMEOUT
+                rc = (Drv.DRV_DEV_EXCHANGE_FAILED if timeout <= 0
+                      else board.timed_out(Drv.DRV_DEV_EXCHANGE_TIMEOUT))
         finally:
             board.io_lock.release()
     board.counters.io += 1
@@ -446,10 +452,10 @@ def DevReset(number: int, mode: int, timeout: int) -> int:
     board.change_dev_flags(set_bits=request)
     deadline = time.monotonic() + timeout / 1000.0
     if not board.wait_for(lambda: not board.dev() & (fl.RESET | fl.INIT), timeout):
-        return Drv.DRV_DEV_RESET_TIMEOUT
+        return board.timed_out(Drv.DRV_DEV_RESET_TIMEOUT)
     remaining = max(0, int((deadline - time.monotonic()) * 1000))
     if not board.wait_for(board.ready, remaining):
-        return Drv.DRV_DEV_RESET_TIMEOUT
+        return board.timed_out(Drv.DRV_DEV_RESET_TIMEOUT)
     return Drv.DRV_NO_ERROR
 
 

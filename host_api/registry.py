@@ -28,6 +28,7 @@ from dpm.doorbell import POLL_INTERVAL, HostBell
 from dpm.errors import Drv
 from dpm.image import MAX_DEV_BOARDS
 from dpm.layout import DEV_FLAGS, HOST_FLAGS
+from host_api.liveness import firmware_liveness
 from host_api.locks import ChannelLock
 
 SPIN_SECONDS = 100e-6
@@ -71,6 +72,12 @@ class MappedBoard:
 
     def ready(self) -> bool:
         return bool(self.host() & fl.READY)
+
+    def timed_out(self, code: int) -> int:
+        """A wait's time-out code, or DRV_DEV_NOT_READY when the firmware has died
+        meanwhile [ours]: a killed firmware leaves READY set, so only its lock tells."""
+        alive = firmware_liveness(self.path.parent, self.number).alive
+        return code if alive else Drv.DRV_DEV_NOT_READY
 
     def change_dev_flags(
         self, set_bits: int = 0, clear_bits: int = 0, toggle: int = 0, ring: bool = True

@@ -1,15 +1,16 @@
 """cifemu status: the card's state as a person reads it.
 
 It maps the image read-only, so looking never disturbs a running card, and
-works on a card whose firmware is down (it then says so).
+works on a card whose firmware is down: it then says so (the firmware lock is
+free; the last pid) and exits with status 3. It also shows which database the
+card's last start loaded from flash.
 """
 
 from __future__ import annotations
 
 import argparse
-import json
-import sys
 import time
+from pathlib import Path
 from typing import Any
 
 from rich.console import Console, Group
@@ -19,7 +20,7 @@ from rich.table import Table
 from dpm import flags as fl
 from dpm.errors import ERR_NODE_DEVICE
 from dpm.flags import DevFlag, HostFlag
-from dpm.image import DEFAULT_DPM_DIR, MAX_DEV_BOARDS, dpm_dir, image_path, open_image
+from dpm.image import dpm_dir, image_path, open_image
 from dpm.layout import image_view
 from dpm.task2 import (
     EXCHANGE_MODE_TEXT,
@@ -29,6 +30,14 @@ from dpm.task2 import (
     GlobalBits,
     node_bits,
 )
+from firmware.card_info import read_card_info
+from host_api.cli_options import add_card_options
+from host_api.cli_output import fail, print_json, run_guarded
+from host_api.liveness import firmware_liveness
+
+EXIT_OK = 0
+EXIT_DEAD = 3
+"""[ours] the image is there but no firmware holds its lock (killed, crashed, stopped)."""
 
 
 def _text(raw: Any) -> str:
@@ -44,8 +53,8 @@ def snapshot(image: bytes) -> dict[str, Any]:
     param = ComPlcParameter.decode(bytes(view["Task2Parameter"].tobytes()))
     driver_type = int(rcs["bDriverType"])
     return {
-        "host_flags": {f.name: bool(host & f) for f in HostFlag},
-        "dev_flags": {f.name: bool(dev & f) for f in DevFlag},
+        "host_flags": [f.name for f in HostFlag if host & f],
+        "dev_flags": [f.name for f in DevFlag if dev & f],
         "mailbox": {
             "device_mailbox_full": fl.pending(host, dev, fl.DEV_MBX),
             "host_mailbox_full": fl.pending(host, dev, fl.HOST_MBX),
@@ -56,91 +65,123 @@ def snapshot(image: bytes) -> dict[str, Any]:
             "tasks": [_text(view["TaskInfo"][i]["abTaskName"]) for i in range(7)],
         },
         "rcs": {
-            "usRcsVersion": int(rcs["usRcsVersion"]),
-            "bRcsError": int(rcs["bRcsError"]),
-            "bHostWatchDog": int(rcs["bHostWatchDog"]),
-            "bDevWatchDog": int(rcs["bDevWatchDog"]),
-            "exchange_mode": EXCHANGE_MODE_TEXT.get(driver_type >> 4, str(driver_type >> 4)),
+            "rcs_version": int(rcs["usRcsVersion"]),
+            "rcs_error": int(rcs["bRcsError"]),
+            "host_watchdog": int(rcs["bHostWatchDog"]),
+            "dev_watchdog": int(rcs["bDevWatchDog"]),
+            "exchange_mode": driver_type >> 4,
+            "exchange_mode_text": EXCHANGE_MODE_TEXT.get(driver_type >> 4, str(driver_type >> 4)),
             "state_mode": driver_type & 0x0F,
         },
         "device": {
-            "bDpmSize": int(devinfo["bDpmSize"]),
-            "abDevIdentifier": _text(devinfo["abDevIdentifier"]),
-            "ulDeviceNo": int(view["VersionInfo"]["ulDeviceNo"]),
-            "ulSerialNo": f"{int(view['VersionInfo']['ulSerialNo']):X}",
+            "dpm_size_kib": int(devinfo["bDpmSize"]),
+            "dev_identifier": _text(devinfo["abDevIdentifier"]),
+            "device_no": int(view["VersionInfo"]["ulDeviceNo"]),
+            "serial_no": int(view["VersionInfo"]["ulSerialNo"]),
         },
         "protocol_parameter": {
-            "bMode": param.bMode,
-            "usWatchDogTime": param.usWatchDogTime,
+            "mode": param.bMode,
+            "watchdog_time_ms": param.usWatchDogTime,
             "connection_disabled": [n for n in range(128) if n not in node_bits(
                 param.abConnStatus)],
         },
         "process_data": {
-            "outputs": bytes(view["SndPd"][:32]).hex(" "),
-            "inputs": bytes(view["RcvPd"][:32]).hex(" "),
+            "outputs": bytes(view["SndPd"][:32]).hex(),
+            "inputs": bytes(view["RcvPd"][:32]).hex(),
         },
         "task2state": {
             "global_bits": [bit.name for bit in GlobalBits if diag.bGlobalBits & bit],
-            "CAN_state": diag.can_state_name,
-            "Err_Node_adr": diag.bErr_rem_adr,
-            "Err_Event": diag.bErr_event,
-            "Err_text": diag.err_text,
-            "Bus_Error_Cnt": diag.usBus_Error_Cnt,
-            "Bus_Off_Cnt": diag.usBus_Off_Cnt,
-            "Msg_Time_Out": diag.usMsg_Time_Out,
-            "Rx_Overflow": diag.usRx_Overflow,
-            "Nd_cfg": diag.configured(),
-            "Nd_state": diag.operating(),
-            "Nd_diag": diag.diagnostic(),
+            "can_state": diag.can_state_name,
+            "err_node_adr": diag.bErr_rem_adr,
+            "err_event": diag.bErr_event,
+            "err_text": diag.err_text,
+            "bus_error_cnt": diag.usBus_Error_Cnt,
+            "bus_off_cnt": diag.usBus_Off_Cnt,
+            "msg_time_out": diag.usMsg_Time_Out,
+            "rx_overflow": diag.usRx_Overflow,
+            "nd_cfg": diag.configured(),
+            "nd_state": diag.operating(),
+            "nd_diag": diag.diagnostic(),
         },
     }
 
 
-def _flags_line(flags: dict[str, bool]) -> str:
+def health(directory: Path, board: int) -> dict[str, Any]:
+    """Whether the firmware runs (its lock), its (last) pid, and what its last start loaded."""
+    live = firmware_liveness(directory, board)
+    info = read_card_info(directory, board) or {}
+    return {"alive": live.alive, "pid": live.pid, "database": info.get("database"),
+            "bus": info.get("bus")}
+
+
+def _flags_line(names: list[str], every: type[HostFlag] | type[DevFlag]) -> str:
     return " ".join(
-        f"[bold green]{k}[/]" if v else f"[dim]{k.lower()}[/]" for k, v in flags.items()
+        f"[bold green]{f.name}[/]" if f.name in names else f"[dim]{str(f.name).lower()}[/]"
+        for f in every
     )
 
 
+def _database_line(database: dict[str, Any] | None) -> str:
+    if database is None:
+        return "none in flash (configured on line, or not at all)"
+    text = (f"{database['name'] or '(no name)'} of {database['date'] or '?'}, "
+            f"{database['nodes']} node(s)")
+    return text if database["usable"] else f"{text}, NOT USED: " + "; ".join(database["faults"])
+
+
 def render(board: int, snap: dict[str, Any]) -> Group:
-    """Rich tables of a snapshot."""
+    """Rich tables of a snapshot (with ``health`` under the key "health" when known)."""
     card = Table(title=f"board {board}", show_header=False, expand=False)
     card.add_column(style="bold")
     card.add_column()
     fw, rcs, dev = snap["firmware"], snap["rcs"], snap["device"]
-    card.add_row("HostFlags", _flags_line(snap["host_flags"]))
-    card.add_row("DevFlags", _flags_line(snap["dev_flags"]))
+    state = snap.get("health")
+    if state is not None:
+        if state["alive"]:
+            card.add_row("firmware process", f"running, pid {state['pid']}")
+        else:
+            last = f"last pid {state['pid']}" if state["pid"] else "stopped cleanly"
+            card.add_row("firmware process", f"[bold red]DEAD[/]: the firmware lock is free "
+                         f"({last}); the flags below are what it left")
+        card.add_row("database", _database_line(state["database"]))
+        bus = state["bus"]
+        if bus:
+            rate = f" at {bus['bitrate']} bit/s" if bus["bitrate"] else ""
+            card.add_row("CAN bus", f"{bus['interface']} channel {bus['channel']}{rate}")
+    card.add_row("HostFlags", _flags_line(snap["host_flags"], HostFlag))
+    card.add_row("DevFlags", _flags_line(snap["dev_flags"], DevFlag))
     mbx = snap["mailbox"]
     card.add_row("mailboxes", f"device mailbox {'FULL' if mbx['device_mailbox_full'] else 'free'}, "
                  f"host mailbox {'message waiting' if mbx['host_mailbox_full'] else 'empty'}")
     card.add_row("firmware", f"{fw['name']} {fw['version']}  tasks "
                  + ", ".join(f"{i + 1}:{t}" for i, t in enumerate(fw["tasks"]) if t))
-    card.add_row("device", f"{dev['abDevIdentifier']} {dev['bDpmSize']} KiB  "
-                 f"device no. {dev['ulDeviceNo']}  serial {dev['ulSerialNo']}")
-    card.add_row("RCS", f"version {rcs['usRcsVersion']:#06x}  error {rcs['bRcsError']}  "
-                 f"watchdog host {rcs['bHostWatchDog']} dev {rcs['bDevWatchDog']}")
-    card.add_row("process data", f"mode {rcs['exchange_mode']}, state field mode "
+    card.add_row("device", f"{dev['dev_identifier']} {dev['dpm_size_kib']} KiB  "
+                 f"device no. {dev['device_no']}  serial {dev['serial_no']:X}")
+    card.add_row("RCS", f"version {rcs['rcs_version']:#06x}  error {rcs['rcs_error']}  "
+                 f"watchdog host {rcs['host_watchdog']} dev {rcs['dev_watchdog']}")
+    card.add_row("process data", f"mode {rcs['exchange_mode_text']}, state field mode "
                  f"{rcs['state_mode']}")
     pp = snap["protocol_parameter"]
-    card.add_row("protocol parameter", f"bMode {pp['bMode']}  usWatchDogTime {pp['usWatchDogTime']}"
-                 f" ms  stopped nodes {pp['connection_disabled'] or 'none'}")
-    card.add_row("outputs 0..31", snap["process_data"]["outputs"])
-    card.add_row("inputs 0..31", snap["process_data"]["inputs"])
+    card.add_row("protocol parameter", f"bMode {pp['mode']}  usWatchDogTime "
+                 f"{pp['watchdog_time_ms']} ms  stopped nodes "
+                 f"{pp['connection_disabled'] or 'none'}")
+    card.add_row("outputs 0..31", bytes.fromhex(snap["process_data"]["outputs"]).hex(" "))
+    card.add_row("inputs 0..31", bytes.fromhex(snap["process_data"]["inputs"]).hex(" "))
     ts = snap["task2state"]
     diag = Table(title="Task2State (COM_DIAGNOSTICS)", show_header=False)
     diag.add_column(style="bold")
     diag.add_column()
     bits = ts["global_bits"]
     diag.add_row("global bits", "\n".join(GLOBAL_BIT_TEXT[GlobalBits[b]] for b in bits) or "none")
-    diag.add_row("CAN_state", ts["CAN_state"])
-    where = "device" if ts["Err_Node_adr"] == ERR_NODE_DEVICE else f"node {ts['Err_Node_adr']}"
-    diag.add_row("error", f"{ts['Err_Event']} at {where}: {ts['Err_text']}"
-                 if ts["Err_Event"] else "none")
-    diag.add_row("counters", f"Bus_Error_Cnt {ts['Bus_Error_Cnt']}  Bus_Off_Cnt "
-                 f"{ts['Bus_Off_Cnt']}  Msg_Time_Out {ts['Msg_Time_Out']}  "
-                 f"Rx_Overflow {ts['Rx_Overflow']}")
+    diag.add_row("CAN_state", ts["can_state"])
+    where = "device" if ts["err_node_adr"] == ERR_NODE_DEVICE else f"node {ts['err_node_adr']}"
+    diag.add_row("error", f"{ts['err_event']} at {where}: {ts['err_text']}"
+                 if ts["err_event"] else "none")
+    diag.add_row("counters", f"Bus_Error_Cnt {ts['bus_error_cnt']}  Bus_Off_Cnt "
+                 f"{ts['bus_off_cnt']}  Msg_Time_Out {ts['msg_time_out']}  "
+                 f"Rx_Overflow {ts['rx_overflow']}")
     for name in ("Nd_cfg", "Nd_state", "Nd_diag"):
-        diag.add_row(name, ", ".join(map(str, ts[name])) or "-")
+        diag.add_row(name, ", ".join(map(str, ts[name.lower()])) or "-")
     return Group(card, diag)
 
 
@@ -206,35 +247,39 @@ The full reference: docs/dpm.md sections 1, 2 and 5.
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.formatter_class = argparse.RawDescriptionHelpFormatter
     parser.epilog = GUIDE
-    parser.add_argument("--board", type=int, default=0, choices=range(MAX_DEV_BOARDS),
-                        metavar="N", help="board number 0..3 (default 0)")
-    parser.add_argument("--dpm-dir", default=None,
-                        help=f"image directory (default $CIF_DPM_DIR or {DEFAULT_DPM_DIR})")
+    add_card_options(parser)
     parser.add_argument("--watch", action="store_true", help="refresh until Ctrl-C")
     parser.add_argument("--interval", type=float, default=0.5, help="--watch refresh seconds")
     parser.add_argument("--json", action="store_true", help="print the decoded state as JSON")
 
 
+def _full_snapshot(image: bytes, directory: Path, board: int) -> dict[str, Any]:
+    return {"board": board, **snapshot(image), "health": health(directory, board)}
+
+
 def run(args: argparse.Namespace) -> int:
     console = Console()
+    directory = dpm_dir(args.dpm_dir)
     image = read_image(args.board, args.dpm_dir)
     if image is None:
-        where = image_path(dpm_dir(args.dpm_dir), args.board)
-        print(f"cifemu status: no image at {where}: is `cifemu firmware "
-              f"--board {args.board}` running?", file=sys.stderr)
-        return 1
+        where = image_path(directory, args.board)
+        return fail("status", f"no image at {where}: is `cifemu firmware --board {args.board}` "
+                    "running?", args.json, image=str(where))
+    snap = _full_snapshot(image, directory, args.board)
+    alive = EXIT_OK if snap["health"]["alive"] else EXIT_DEAD
     if args.json:
-        print(json.dumps(snapshot(image), indent=2))
-        return 0
+        print_json(snap)
+        return alive
     if not args.watch:
-        console.print(render(args.board, snapshot(image)))
-        return 0
+        console.print(render(args.board, snap))
+        return alive
     try:
-        with Live(render(args.board, snapshot(image)), console=console, auto_refresh=False) as live:
+        with Live(render(args.board, snap), console=console, auto_refresh=False) as live:
             while True:
                 time.sleep(args.interval)
                 image = read_image(args.board, args.dpm_dir) or image
-                live.update(render(args.board, snapshot(image)), refresh=True)
+                live.update(render(args.board, _full_snapshot(image, directory, args.board)),
+                            refresh=True)
     except KeyboardInterrupt:
         return 0
 
@@ -242,4 +287,4 @@ def run(args: argparse.Namespace) -> int:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m host_api", description=__doc__)
     add_arguments(parser)
-    return run(parser.parse_args(argv))
+    return run_guarded(run, parser.parse_args(argv))

@@ -15,6 +15,7 @@ from pathlib import Path
 import pytest
 
 from host_api import driver
+from host_api.liveness import firmware_liveness
 
 # test_sim.py loads tests.buses as a plugin, but test_can_task.py imports it first:
 # registered here, it is rewritten on that first import, as its plugin use expects.
@@ -85,7 +86,8 @@ def start_card(directory: Path, board: int = 0, *extra: str) -> Card:
         if card.path.exists() and card.path.stat().st_size == IMAGE_SIZE:
             with open(card.path, "rb") as f:
                 f.seek(HOST_FLAGS)
-                if f.read(1)[0] & READY:
+                # READY from this process, not from a killed predecessor's image
+                if f.read(1)[0] & READY and firmware_liveness(directory, board).pid == proc.pid:
                     return card
         if time.monotonic() > deadline:
             card.stop()

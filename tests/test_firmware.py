@@ -129,9 +129,9 @@ def test_status_command_shows_a_running_card(card: Card) -> None:
         [sys.executable, "-m", "cifemu", "status", "--json", "--dpm-dir", str(card.directory)],
         capture_output=True, text=True, timeout=30, check=True,
     ).stdout)
-    assert data["host_flags"]["READY"] is True
-    assert data["rcs"]["exchange_mode"].startswith("4 ")
-    assert data["task2state"]["CAN_state"] == "OFFLINE"
+    assert "READY" in data["host_flags"]
+    assert data["rcs"]["exchange_mode"] == 4
+    assert data["task2state"]["can_state"] == "OFFLINE"
 
 
 def test_status_decodes_errors_with_the_seed_text(card: Card) -> None:
@@ -141,8 +141,8 @@ def test_status_decodes_errors_with_the_seed_text(card: Card) -> None:
         [sys.executable, "-m", "cifemu", "status", "--json", "--dpm-dir", str(card.directory)],
         capture_output=True, text=True, timeout=30, check=True,
     ).stdout)
-    assert data["task2state"]["Err_Event"] == 52
-    assert data["task2state"]["Err_text"] == "unknown handshake mode was configured"
+    assert data["task2state"]["err_event"] == 52
+    assert data["task2state"]["err_text"] == "unknown handshake mode was configured"
     assert data["task2state"]["global_bits"] == ["CTRL"]
 
 
@@ -174,7 +174,7 @@ def test_demo_runs_the_bundled_network_until_ctrl_c(tmp_path: Path, extra: list[
     def operating() -> list[int]:
         out = subprocess.run([sys.executable, "-m", "cifemu", "status", "--json", "--dpm-dir",
                               str(tmp_path)], capture_output=True, text=True, timeout=30)
-        return json.loads(out.stdout)["task2state"]["Nd_state"] if out.returncode == 0 else []
+        return json.loads(out.stdout)["task2state"]["nd_state"] if out.returncode == 0 else []
 
     try:
         wait_until(lambda: operating() == [1, 2, 3, 4], 30, "the demo's four nodes")

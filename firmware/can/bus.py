@@ -22,6 +22,7 @@ from typing import Any
 import can
 import canopen
 
+from firmware.can.tap import TapPublisher
 from firmware.errors import BusSetupError
 from firmware.frames import SDO_FRAME_LENGTH
 
@@ -54,7 +55,7 @@ class CanBus(can.Listener):
 
     def __init__(self, interface: str = "virtual", channel: str = "cifemu",
                  bitrate: int | None = None, trace: Path | None = None,
-                 **config: Any) -> None:
+                 tap: bytes | None = None, **config: Any) -> None:
         kwargs: dict[str, Any] = dict(config)
         if bitrate is not None and interface != "virtual":
             kwargs["bitrate"] = bitrate
@@ -79,6 +80,7 @@ class CanBus(can.Listener):
         self.on_error_frame: Callable[[can.Message], None] = lambda msg: None
         self.on_send_timeout: Callable[[], None] = lambda: None
         self._trace: can.Listener | None = can.Logger(str(trace)) if trace else None
+        self._tap = TapPublisher(tap) if tap else None
         listeners: list[can.Listener] = [self]
         self._notifier = can.Notifier(self.bus, listeners, timeout=0.1)
 
@@ -114,6 +116,8 @@ class CanBus(can.Listener):
         if self._trace is not None:
             with self._trace_lock:
                 self._trace.on_message_received(msg)
+        if self._tap is not None:
+            self._tap.publish(msg, received=True)
         if msg.is_error_frame:
             self.on_error_frame(msg)
             return
@@ -155,6 +159,7 @@ class CanBus(can.Listener):
         msg = can.Message(
             timestamp=time.time(),
             is_rx=False,
+            channel=self.channel,  # the trace labels sent frames as received ones
             arbitration_id=can_id,
             is_extended_id=can_id > 0x7FF if extended is None else extended,
             is_remote_frame=remote,
@@ -173,6 +178,8 @@ class CanBus(can.Listener):
         if self._trace is not None:
             with self._trace_lock:
                 self._trace.on_message_received(msg)
+        if self._tap is not None:
+            self._tap.publish(msg, received=False)
         return True
 
     def send_periodic(self, can_id: int, period: float) -> can.broadcastmanager.CyclicSendTaskABC:
@@ -203,4 +210,6 @@ class CanBus(can.Listener):
         self._notifier.stop()
         if self._trace is not None:
             self._trace.stop()
+        if self._tap is not None:
+            self._tap.close()
         self.bus.shutdown()

@@ -96,6 +96,8 @@ class BusConfig:
     channel: str = "cifemu"
     bitrate: int | None = None
     trace: Path | None = None
+    tap: bytes | None = None
+    """The abstract socket name of the frame tap (``firmware.can.tap``) [ours]."""
 
 
 class Master:
@@ -147,7 +149,7 @@ class Master:
     def open(self) -> None:
         """Connect the controller to the bus (once, at power-on)."""
         cfg = self.config
-        self.bus = CanBus(cfg.interface, cfg.channel, cfg.bitrate, cfg.trace)
+        self.bus = CanBus(cfg.interface, cfg.channel, cfg.bitrate, cfg.trace, cfg.tap)
         self.bus.on_error_frame = self._on_error_frame
         self.bus.on_send_timeout = self._on_send_timeout
         self.bus.subscribe_all(self._on_any_frame)

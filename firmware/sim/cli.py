@@ -8,6 +8,7 @@ Ctrl-C; prints each node it simulates.
 from __future__ import annotations
 
 import argparse
+import json
 import logging
 import signal
 import sys
@@ -19,6 +20,7 @@ import can
 from dbm_tools.network import NetworkError, NodeDescription, load_network
 from firmware.interpreter import SWITCH_INTERVAL
 from firmware.sim.network import SimulatedNetwork
+from host_api.cli_output import fail
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -32,6 +34,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="bit rate (default: the description's bus.bitrate)")
     parser.add_argument("--log-level", default="INFO",
                         choices=["DEBUG", "INFO", "WARNING", "ERROR"])
+    parser.add_argument("--json", action="store_true",
+                        help="announce the powered nodes as one JSON line (and errors as a "
+                             "JSON object)")
 
 
 def describe(node: NodeDescription) -> str:
@@ -84,15 +89,13 @@ def run(args: argparse.Namespace) -> int:
     try:
         network = load_network(args.network)
     except NetworkError as exc:
-        print(f"cifemu sim: {exc}", file=sys.stderr)
-        return 1
+        return fail("sim", str(exc), args.json)
     bitrate = args.bitrate or network.bus.bitrate
     try:
         bus = can.Bus(interface=args.interface, channel=args.channel, bitrate=bitrate)
     except (can.CanError, OSError, ValueError, ImportError) as exc:
-        print(f"cifemu sim: cannot open {args.interface} channel {args.channel}: {exc}",
-              file=sys.stderr)
-        return 1
+        return fail("sim", f"cannot open {args.interface} channel {args.channel}: {exc}",
+                    args.json)
     done = threading.Event()
 
     def on_signal(signum: int, frame: FrameType | None) -> None:
@@ -104,10 +107,16 @@ def run(args: argparse.Namespace) -> int:
     try:
         with SimulatedNetwork(network, bus):
             # Printed once the nodes are powered: a script may wait for the first line.
-            print(f"simulating {args.network} on {args.interface} {args.channel} "
-                  f"at {bitrate} bit/s", flush=True)
-            for node in network.nodes:
-                print(f"  {describe(node)}", flush=True)
+            if args.json:
+                print(json.dumps({"network": str(args.network), "interface": args.interface,
+                                  "channel": args.channel, "bitrate": bitrate,
+                                  "nodes": [{"id": node.id, "description": describe(node)}
+                                            for node in network.nodes]}), flush=True)
+            else:
+                print(f"simulating {args.network} on {args.interface} {args.channel} "
+                      f"at {bitrate} bit/s", flush=True)
+                for node in network.nodes:
+                    print(f"  {describe(node)}", flush=True)
             done.wait()
     finally:
         bus.shutdown()

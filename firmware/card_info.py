@@ -1,0 +1,94 @@
+"""What a running firmware tells the tools beside its image [ours].
+
+The image has no room for the facts a person operating the card asks first:
+which database the last start loaded from flash, which bus the controller is
+on, where its frame tap is. At every start the firmware writes them to
+``<dir>/board<N>.card.json`` (mode 0660, replaced atomically) and logs the
+database; ``cifemu status``, ``top`` and ``monitor`` read the file.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from dbm_tools.errors import DbmError
+from dbm_tools.tables import NODES, PROJEKT, ProjektRecord
+from dpm.image import IMAGE_MODE
+
+if TYPE_CHECKING:
+    from firmware.device import Device
+    from firmware.flash import StoredDatabase
+
+log = logging.getLogger("firmware.rcs")
+
+
+def card_info_path(directory: Path, board: int) -> Path:
+    return directory / f"board{board}.card.json"
+
+
+def describe_database(database: StoredDatabase | None, stored_at: float | None
+                      ) -> dict[str, Any] | None:
+    """Name, date, node count and verdict of the database a start found (None: no database)."""
+    if database is None:
+        return None
+    name = date = ""
+    nodes = 0
+    if database.dbm is not None:
+        projekt = database.dbm.table(PROJEKT)
+        if projekt is not None and projekt.records:
+            try:
+                record = ProjektRecord.decode(projekt.records[0])
+                name, date = record.szProjectName, record.szDate
+            except DbmError:
+                pass  # a faulty PROJEKT record: the faults below say what is wrong
+        table = database.dbm.table(NODES)
+        nodes = len(table.records) if table is not None else 0
+    return {"name": name, "date": date, "nodes": nodes, "usable": database.usable,
+            "faults": [text for _, _, text in database.faults], "stored_at": stored_at}
+
+
+def log_database(info: dict[str, Any] | None) -> None:
+    if info is None:
+        log.info("no database in flash: waiting for an on-line configuration")
+    elif info["usable"]:
+        log.info("database from flash: %r of %s, %d node(s)", info["name"], info["date"] or "?",
+                 info["nodes"])
+    else:
+        log.warning("database from flash: %r of %s, %d node(s), not used: %s", info["name"],
+                    info["date"] or "?", info["nodes"], "; ".join(info["faults"]))
+
+
+def publish(device: Device) -> None:
+    """Log the start's database and write the card's facts beside the image."""
+    database = describe_database(device.database, device.flash.stored_at())
+    log_database(database)
+    config = device.can.master.config
+    info = {
+        "pid": os.getpid(),
+        "board": device.board,
+        "image": str(device.path),
+        "flash": str(device.flash.path),
+        "database": database,
+        "bus": {"interface": config.interface, "channel": config.channel,
+                "bitrate": config.bitrate},
+        "tap": "@" + config.tap[1:].decode() if config.tap else None,
+    }
+    path = card_info_path(device.directory, device.board)
+    temporary = path.with_suffix(".tmp")
+    fd = os.open(temporary, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, IMAGE_MODE)
+    with os.fdopen(fd, "w") as file:
+        json.dump(info, file, indent=2)
+    os.replace(temporary, path)
+
+
+def read_card_info(directory: Path, board: int) -> dict[str, Any] | None:
+    """The facts of the last start, or None when no firmware published any."""
+    try:
+        data = json.loads(card_info_path(directory, board).read_text())
+    except (OSError, ValueError):
+        return None
+    return data if isinstance(data, dict) else None

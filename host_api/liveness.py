@@ -1,0 +1,85 @@
+"""Is a board's firmware alive? Asked of its lock, never of the image [ours].
+
+A firmware holds ``board<N>.firmware.lock`` (flock, exclusive) for its whole
+life and writes its pid into it; a clean stop empties the file, so a pid that is
+still there while nobody holds the lock is the last pid of a firmware that died
+(SIGKILL, crash). The image cannot tell: a killed firmware leaves READY set.
+
+The lock is looked up in /proc/locks rather than probed with ``flock``: a probe
+holds the lock for an instant, and a firmware starting in that instant would be
+refused as a second firmware.
+"""
+
+from __future__ import annotations
+
+import errno
+import fcntl
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+from dpm.image import lock_path
+
+PROC_LOCKS = Path("/proc/locks")
+
+
+@dataclass(frozen=True)
+class FirmwareLiveness:
+    """``alive``: a process holds the firmware lock; ``pid``: its pid, else the last one."""
+
+    alive: bool
+    pid: int | None
+
+
+def _recorded_pid(path: Path) -> int | None:
+    try:
+        text = path.read_text(errors="replace").strip()
+    except OSError:
+        return None
+    return int(text) if text.isdigit() else None
+
+
+def _flock_holders(path: Path) -> list[int] | None:
+    """Pids holding an flock on ``path`` per /proc/locks; None when it cannot be read."""
+    try:
+        stat = path.stat()
+        lines = PROC_LOCKS.read_text().splitlines()
+    except OSError:
+        return None
+    device = f"{os.major(stat.st_dev):02x}:{os.minor(stat.st_dev):02x}:{stat.st_ino}"
+    holders = []
+    for line in lines:
+        fields = line.split()
+        if "->" in fields:  # a waiter, not a holder
+            continue
+        if len(fields) >= 6 and fields[1] == "FLOCK" and fields[5] == device:
+            holders.append(int(fields[4]))
+    return holders
+
+
+def _probe(path: Path) -> bool:
+    """Fallback without /proc: a shared non-blocking flock fails while a firmware holds it."""
+    try:
+        fd = os.open(path, os.O_RDONLY)
+    except OSError:
+        return False
+    try:
+        fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+    except OSError as exc:
+        return exc.errno in (errno.EWOULDBLOCK, errno.EAGAIN)
+    finally:
+        os.close(fd)
+    return False
+
+
+def firmware_liveness(directory: Path, board: int) -> FirmwareLiveness:
+    """Whether board ``board``'s firmware in ``directory`` runs, and its (last) pid."""
+    path = lock_path(directory, board)
+    recorded = _recorded_pid(path)
+    holders = _flock_holders(path)
+    if holders is None:
+        return FirmwareLiveness(_probe(path), recorded)
+    if not holders:
+        return FirmwareLiveness(False, recorded)
+    # A pid of 0 is a holder in another pid namespace: trust the file's.
+    return FirmwareLiveness(True, holders[0] or recorded)

@@ -1,0 +1,176 @@
+"""`cifemu configure`, `cifemu firmware --configure`, interface errors and the demo's tidiness."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+from host_api.status import read_image, snapshot
+from tests.conftest import ROOT, start_card, wait_until
+
+DEMO = ROOT / "cifemu" / "examples" / "demo.toml"
+
+
+def cifemu(*args: str, env: dict[str, str] | None = None) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([sys.executable, "-m", "cifemu", *args], capture_output=True,
+                          text=True, timeout=60, cwd=ROOT, env=env)
+
+
+def nd_state(directory: Path, board: int = 0) -> list[int]:
+    image = read_image(board, str(directory))
+    return snapshot(image)["task2state"]["nd_state"] if image else []
+
+
+def test_configure_brings_a_hand_started_card_to_data_exchange(tmp_path: Path) -> None:
+    card = start_card(tmp_path, 0, "--simulate", str(DEMO))
+    try:
+        assert nd_state(tmp_path) == []
+        out = cifemu("configure", str(DEMO), "--dpm-dir", str(tmp_path))
+        assert out.returncode == 0, out.stderr
+        assert "configuring: node 4" in out.stdout and "node 4 in data exchange" in out.stdout
+        assert nd_state(tmp_path) == [1, 2, 3, 4]
+        again = cifemu("configure", str(DEMO), "--dpm-dir", str(tmp_path), "--json")
+        result = json.loads(again.stdout)
+        assert again.returncode == 0 and result["ok"] is True and result["nd_state"] == [1, 2, 3, 4]
+    finally:
+        card.stop()
+
+
+def test_configure_reports_nodes_that_never_come(tmp_path: Path) -> None:
+    """The card is configured for node 5, which nobody simulates: Err_Event 34 at node 5."""
+    network = tmp_path / "net.toml"
+    network.write_text("[[node]]\nid = 1\n[[node]]\nid = 5\n")
+    only_one = tmp_path / "sim.toml"
+    only_one.write_text("[[node]]\nid = 1\n")
+    card = start_card(tmp_path, 0, "--simulate", str(only_one))
+    try:
+        out = cifemu("configure", str(network), "--dpm-dir", str(tmp_path), "--json",
+                     "--wait", "8")
+        result = json.loads(out.stdout)
+        assert out.returncode == 1
+        assert result["missing"] == [5] and result["err_node_adr"] == 5
+        assert result["err_event"] == 34 and "no response" in result["err_text"]
+    finally:
+        card.stop()
+
+
+def test_configure_errors_are_one_line_or_one_json_object(tmp_path: Path) -> None:
+    out = cifemu("configure", str(DEMO), "--dpm-dir", str(tmp_path))
+    assert out.returncode == 1 and "Traceback" not in out.stderr
+    assert out.stderr.count("\n") == 1 and "cifemu firmware --board 0" in out.stderr
+    as_json = cifemu("configure", str(DEMO), "--dpm-dir", str(tmp_path), "--json")
+    error = json.loads(as_json.stdout)["error"]
+    assert as_json.returncode == 1 and error["driver_code"] == -34
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[[node]]\nid = 300\n")
+    out = cifemu("configure", str(bad), "--dpm-dir", str(tmp_path))
+    assert out.returncode == 1 and "bad.toml" in out.stderr and "Traceback" not in out.stderr
+
+
+def test_firmware_configure_gives_a_running_network_in_one_command(tmp_path: Path) -> None:
+    card = start_card(tmp_path, 0, "--simulate", str(DEMO), "--configure")
+    try:
+        wait_until(lambda: nd_state(tmp_path) == [1, 2, 3, 4], 20, "four nodes in data exchange")
+    finally:
+        assert card.stop() == 0
+
+
+def test_firmware_reports_an_interface_error_in_one_line_and_leaves_no_image(
+        tmp_path: Path) -> None:
+    for extra in (["--interface", "socketcan", "--channel", "nope"],
+                  ["--interface", "socketcan", "--channel", "nope", "--simulate", str(DEMO)],
+                  ["--interface", "no-such-interface"]):
+        out = cifemu("firmware", "--dpm-dir", str(tmp_path), "--log-level", "WARNING", *extra)
+        assert out.returncode == 1, extra
+        assert out.stderr.startswith("cifemu firmware: cannot open CAN interface"), out.stderr
+        assert out.stderr.count("\n") == 1 and "Traceback" not in out.stderr
+        assert not (tmp_path / "board0.dpm").exists()
+
+
+def test_demo_uses_the_default_directory_refuses_a_busy_board_and_cleans_up(
+        tmp_path: Path) -> None:
+    images = tmp_path / "cif"
+    temp = tmp_path / "tmp"
+    temp.mkdir()
+    env = {**os.environ, "CIF_DPM_DIR": str(images), "TMPDIR": str(temp)}
+    demo = subprocess.Popen([sys.executable, "-m", "cifemu", "demo"], cwd=ROOT, env=env,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    try:
+        wait_until(lambda: nd_state(images) == [1, 2, 3, 4], 30, "the demo's nodes")
+        second = cifemu("demo", env=env)
+        assert second.returncode == 1 and "already served by process" in second.stderr
+        status = cifemu("status", "--json", env=env)  # found without --dpm-dir
+        assert status.returncode == 0, status.stderr
+    finally:
+        demo.send_signal(signal.SIGINT)
+        assert demo.wait(timeout=20) == 0
+    assert not images.exists()
+    assert list(temp.iterdir()) == []
+
+
+def test_a_refusal_shows_the_msg_f_number_and_text(tmp_path: Path) -> None:
+    """The card keeps node 1's synchronous PDO from the first configuration, so a second
+    one without a SYNC timer is refused by the bus parameters' data check (msg.f 67)."""
+    synchronous = tmp_path / "sync.toml"
+    synchronous.write_text('[bus]\nsync_period_ms = 10\n[[node]]\nid = 1\n[[node.pdo]]\n'
+                           'direction = "input"\ncob_id = 0x181\nlength = 8\ntransmission = 1\n')
+    no_sync = tmp_path / "nosync.toml"
+    no_sync.write_text("[[node]]\nid = 2\n")
+    card = start_card(tmp_path)
+    try:
+        first = cifemu("configure", str(synchronous), "--dpm-dir", str(tmp_path), "--wait", "0")
+        assert first.returncode == 0, first.stderr
+        text = cifemu("configure", str(no_sync), "--dpm-dir", str(tmp_path))
+        as_json = cifemu("configure", str(no_sync), "--dpm-dir", str(tmp_path), "--json")
+    finally:
+        card.stop()
+    assert text.returncode == 1 and "Traceback" not in text.stderr
+    assert "msg.f = 67 (data check: SYNC message timer reload value out of range)" in text.stderr
+    error = json.loads(as_json.stdout)["error"]
+    assert as_json.returncode == 1 and error["msg_f"] == 67
+
+
+def test_a_description_the_card_would_refuse_never_reaches_it(tmp_path: Path) -> None:
+    bad = tmp_path / "bad.toml"
+    bad.write_text('[[node]]\nid = 1\n[[node.pdo]]\ndirection = "input"\ncob_id = 0x181\n'
+                   'length = 8\ntransmission = 250\n')
+    card = start_card(tmp_path)
+    try:
+        out = cifemu("configure", str(bad), "--dpm-dir", str(tmp_path))
+        assert nd_state(tmp_path) == []
+        status = json.loads(cifemu("status", "--json", "--dpm-dir", str(tmp_path)).stdout)
+    finally:
+        card.stop()
+    assert out.returncode == 1 and "Traceback" not in out.stderr
+    assert "63 (data check: unknown PDO" in out.stderr
+    assert status["task2state"]["nd_cfg"] == []
+
+
+def test_configure_waits_for_a_card_that_is_still_starting(tmp_path: Path) -> None:
+    card = subprocess.Popen([sys.executable, "-m", "firmware", "--dpm-dir", str(tmp_path),
+                             "--simulate", str(DEMO), "--reset-delay", "1.5",
+                             "--log-level", "WARNING"])
+    try:
+        wait_until(lambda: (tmp_path / "board0.dpm").exists(), 20, "the image")
+        out = cifemu("configure", str(DEMO), "--dpm-dir", str(tmp_path))
+        assert out.returncode == 0, out.stderr
+        assert nd_state(tmp_path) == [1, 2, 3, 4]
+    finally:
+        card.terminate()
+        card.wait(timeout=10)
+
+
+def test_firmware_configure_that_fails_stops_the_card_with_status_1(tmp_path: Path) -> None:
+    bad = tmp_path / "bad.toml"
+    bad.write_text('[[node]]\nid = 1\n[[node.pdo]]\ndirection = "input"\ncob_id = 0x181\n'
+                   'length = 8\ntransmission = 250\n')
+    out = subprocess.run([sys.executable, "-m", "cifemu", "firmware", "--dpm-dir", str(tmp_path),
+                          "--simulate", str(DEMO), "--configure", str(bad), "--log-level",
+                          "WARNING"], capture_output=True, text=True, timeout=60, cwd=ROOT)
+    assert out.returncode == 1
+    assert "63 (data check: unknown PDO" in out.stderr and "the card stops" in out.stderr
+    assert "Traceback" not in out.stderr

@@ -1,0 +1,127 @@
+"""A dead firmware is seen as dead; the database of the last start is told (real processes)."""
+
+from __future__ import annotations
+
+import datetime
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+from dbm_tools.builder import build_dbm
+from dbm_tools.container import write_dbm
+from dbm_tools.network import load_network
+from dpm.errors import Drv
+from dpm.message import Message
+from host_api import driver as d
+from host_api.download import CONFIGURATION_DOWNLOAD, DevDownload
+from host_api.liveness import firmware_liveness
+from tests.conftest import ROOT, Card, start_card, wait_until
+
+DEMO = ROOT / "cifemu" / "examples" / "demo.toml"
+
+
+def status(directory: Path, *extra: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([sys.executable, "-m", "cifemu", "status", "--dpm-dir", str(directory),
+                           *extra], capture_output=True, text=True, timeout=60, cwd=ROOT)
+
+
+def kill(card: Card) -> None:
+    card.proc.send_signal(signal.SIGKILL)
+    card.proc.wait(timeout=10)
+
+
+def test_status_reports_a_killed_firmware_as_dead_with_its_last_pid(tmp_path: Path) -> None:
+    card = start_card(tmp_path)
+    alive = status(tmp_path, "--json")
+    assert alive.returncode == 0
+    assert json.loads(alive.stdout)["health"] == {
+        "alive": True, "pid": card.proc.pid, "database": None,
+        "bus": {"interface": "virtual", "channel": "cifemu", "bitrate": None}}
+    kill(card)
+    assert card.map()[0x1FFE] & 0x80  # the image still says READY
+    text = status(tmp_path)
+    assert text.returncode == 3
+    assert "DEAD" in text.stdout and f"last pid {card.proc.pid}" in text.stdout
+    as_json = status(tmp_path, "--json")
+    health = json.loads(as_json.stdout)["health"]
+    assert as_json.returncode == 3 and health["alive"] is False
+    assert health["pid"] == card.proc.pid
+
+
+def test_a_cleanly_stopped_firmware_leaves_no_pid(tmp_path: Path) -> None:
+    card = start_card(tmp_path)
+    assert card.stop() == 0
+    assert firmware_liveness(tmp_path, 0).alive is False
+    assert firmware_liveness(tmp_path, 0).pid is None
+    assert status(tmp_path).returncode == 3
+
+
+def test_init_board_after_a_sigkill_is_not_ready(tmp_path: Path) -> None:
+    card = start_card(tmp_path)
+    kill(card)
+    assert d.DevOpenDriver(tmp_path) == 0
+    try:
+        assert d.DevInitBoard(0) == Drv.DRV_DEV_NOT_READY
+    finally:
+        d.DevCloseDriver()
+
+
+def test_a_running_host_gets_not_ready_within_its_timeout(tmp_path: Path) -> None:
+    card = start_card(tmp_path)
+    assert d.DevOpenDriver(tmp_path) == 0
+    try:
+        assert d.DevInitBoard(0) == 0
+        kill(card)
+        assert d.DevPutMessage(0, Message(rx=3, tx=16, b=66), 200) == 0  # the mailbox was free
+        start = time.monotonic()
+        assert d.DevGetMessage(0, 288, 300)[0] == Drv.DRV_DEV_NOT_READY
+        assert time.monotonic() - start < 1.0
+        # the device mailbox stays full: nobody takes the message
+        assert d.DevPutMessage(0, Message(rx=3, tx=16, b=66), 200) == Drv.DRV_DEV_NOT_READY
+        assert d.DevReset(0, d.WARMSTART, 200) == Drv.DRV_DEV_NOT_READY
+    finally:
+        while d.DevCloseDriver() == 0:
+            pass
+
+
+def test_the_database_loaded_from_flash_is_logged_and_shown(tmp_path: Path) -> None:
+    flash = tmp_path / "flash0"
+    card = start_card(tmp_path, 0, "--flash", str(flash))
+    database = write_dbm(build_dbm(load_network(DEMO), project="plant A",
+                                   date=datetime.date(2026, 11, 30)))
+    assert d.DevOpenDriver(tmp_path) == 0
+    try:
+        assert d.DevInitBoard(0) == 0
+        assert DevDownload(0, CONFIGURATION_DOWNLOAD, database) == 0
+    finally:
+        while d.DevCloseDriver() == 0:
+            pass
+    assert card.stop() == 0
+    card = start_card(tmp_path, 0, "--flash", str(flash), "--log-level", "INFO")
+    try:
+        wait_until(lambda: (json.loads(status(tmp_path, "--json").stdout)["health"]["database"]
+                            or {}).get("name") == "plant A", 10, "the database in status")
+        shown = json.loads(status(tmp_path, "--json").stdout)["health"]["database"]
+        assert shown["nodes"] == 4 and shown["usable"] is True and "30.11.2026" in shown["date"]
+        assert "plant A" in status(tmp_path).stdout
+    finally:
+        card.proc.terminate()
+        _, stderr = card.proc.communicate(timeout=10)
+    log = stderr.decode()
+    assert "database from flash: 'plant A' of" in log and "4 node(s)" in log
+    assert os.path.exists(tmp_path / "board0.card.json")
+
+
+def test_top_once_says_a_killed_firmware_is_dead(tmp_path: Path) -> None:
+    card = start_card(tmp_path)
+    kill(card)
+    out = subprocess.run([sys.executable, "-m", "cifemu", "top", "--once", "--sample", "0.2",
+                          "--dpm-dir", str(tmp_path)], capture_output=True, text=True,
+                         timeout=60, cwd=ROOT)
+    assert out.returncode == 3
+    assert f"firmware DEAD (last pid {card.proc.pid})" in out.stdout
+    assert "no frames: no card's frame tap" in out.stdout
