@@ -101,7 +101,16 @@ def _result(diag: ComDiagnostics, nodes: list[int]) -> dict[str, Any]:
 
 def configure(board: Board, network: Network, wait_s: float,
               progress: Callable[[str], None]) -> dict[str, Any]:
-    """Configure on line and (for ``wait_s`` > 0) wait for the network; the outcome."""
+    """Configure on line and (for ``wait_s`` > 0) wait for the network; the outcome.
+
+    A card that holds a configuration already is warm-started first: the seed's card
+    takes a network's data sets once per start, and a second set for a node is f 60. A
+    database from flash comes back with that start and refuses the download (f 201).
+    """
+    held = board.diagnostics()
+    if held.configured() or held.can_state_name != "OFFLINE":
+        progress("the card holds a configuration: warm start first")
+        board.reset()
     configure_online(board, network, progress)
     if network.path is not None:
         remember_network(dpm_dir(board.directory), board.number, network.path)

@@ -113,25 +113,26 @@ def test_demo_uses_the_default_directory_refuses_a_busy_board_and_cleans_up(
 
 
 def test_a_refusal_shows_the_msg_f_number_and_text(tmp_path: Path) -> None:
-    """The card keeps node 1's synchronous PDO from the first configuration, so a second
-    one without a SYNC timer is refused by the bus parameters' data check (msg.f 67)."""
-    synchronous = tmp_path / "sync.toml"
-    synchronous.write_text('[bus]\nsync_period_ms = 10\n[[node]]\nid = 1\n[[node.pdo]]\n'
-                           'direction = "input"\ncob_id = 0x181\nlength = 8\ntransmission = 1\n')
-    no_sync = tmp_path / "nosync.toml"
-    no_sync.write_text("[[node]]\nid = 2\n")
+    """A database in the card's flash runs after the warm start that configure begins with,
+    and the card refuses the on-line download (seed 5.2.2, msg.f 201 [ours])."""
+    network = tmp_path / "net.toml"
+    network.write_text("[[node]]\nid = 2\n")
+    dbm = tmp_path / "plant.dbm"
     card = start_card(tmp_path)
     try:
-        first = cifemu("configure", str(synchronous), "--dpm-dir", str(tmp_path), "--wait", "0")
-        assert first.returncode == 0, first.stderr
-        text = cifemu("configure", str(no_sync), "--dpm-dir", str(tmp_path))
-        as_json = cifemu("configure", str(no_sync), "--dpm-dir", str(tmp_path), "--json")
+        assert cifemu("dbm", "build", str(network), "-o", str(dbm)).returncode == 0
+        stored = cifemu("dbm", "download", str(dbm), "--reset", "--dpm-dir", str(tmp_path))
+        assert stored.returncode == 0, stored.stderr
+        text = cifemu("configure", str(network), "--dpm-dir", str(tmp_path))
+        as_json = cifemu("configure", str(network), "--dpm-dir", str(tmp_path), "--json")
     finally:
         card.stop()
     assert text.returncode == 1 and "Traceback" not in text.stderr
-    assert "msg.f = 67 (data check: SYNC message timer reload value out of range)" in text.stderr
+    assert "warm start first" in text.stdout
+    assert ("msg.f = 201 (a database from flash runs: no on-line download [ours])"
+            in text.stderr)
     error = json.loads(as_json.stdout)["error"]
-    assert as_json.returncode == 1 and error["msg_f"] == 67
+    assert as_json.returncode == 1 and error["msg_f"] == 201
 
 
 def test_a_description_the_card_would_refuse_never_reaches_it(tmp_path: Path) -> None:
