@@ -11,11 +11,14 @@ operative without SyCon") end to end: 7.1 with the driver functions, 7.2 through
 from __future__ import annotations
 
 import itertools
+import mmap
 import re
 import struct
 import time
 from collections.abc import Callable
 from pathlib import Path
+
+import pytest
 
 from dbm_tools.builder import build_dbm
 from dbm_tools.container import save_dbm
@@ -325,8 +328,8 @@ def test_transparent_send_with_dlc_above_8(make_net: Callable[..., Net],
     net.card.stop()
     lines = trace.read_text().splitlines()
     data = " ".join(f"{b:02X}" for b in payload)
-    assert [line for line in lines if re.search(rf"\b123\s+Rx\s+d f {data}$", line)]
-    assert [line for line in lines if re.search(rf"\b124\s+Rx\s+d a {data}$", line)]
+    assert [line for line in lines if re.search(rf"\b123\s+Tx\s+d f {data}$", line)]
+    assert [line for line in lines if re.search(rf"\b124\s+Tx\s+d a {data}$", line)]
 
 
 # --- answers of the seed's tables ----------------------------------------------------------------
@@ -429,30 +432,56 @@ def test_seed_7_1_with_the_driver_functions(make_net: Callable[..., Net],
     assert d.DevCloseDriver() == 0
 
 
+def delete_database_by_message(mm: mmap.mmap, nr: int) -> None:
+    """Seed 5.2.2's delete message (RCS task, b 6, mode 4, start segment 8), raw."""
+    answer = test_raw_dpm.transact(mm, 0, 6, bytes([4, 8]), nr)
+    assert (answer.a, answer.f) == (6, 0)
+
+
 def test_seed_7_2_with_direct_access_to_the_image(make_net: Callable[..., Net],
                                                   tmp_path: Path) -> None:
-    """Seed 7.2, step by step, through the image and the raw mailbox handshake alone."""
+    """Seed 7.2, step by step, through the image and the raw mailbox handshake alone.
+
+    Step 1 says "goto step 1" after the delete; this card keeps RUN until its next start
+    (see the xfail test below), so the host here goes on once it has deleted the database.
+    """
     net = make_net("[[node]]\nid = 1\n[[node]]\nid = 2\n")
     stored_database(net, tmp_path)
     mm = net.card.map()
     raw = test_raw_dpm
     nr = itertools.count(1)
-    deleted = 0
-    for _ in range(3):  # 1
-        if mm[raw.HOST_FLAGS] & (raw.READY | raw.RUN) != raw.READY | raw.RUN:
-            break
-        answer = raw.transact(mm, 0, 6, bytes([4, 8]), next(nr))
-        assert (answer.a, answer.f) == (6, 0)
-        deleted += 1
-    assert deleted == 1 and mm[raw.HOST_FLAGS] & (raw.READY | raw.RUN) == raw.READY
+    assert mm[raw.HOST_FLAGS] & (raw.READY | raw.RUN) == raw.READY | raw.RUN  # 1: SyCon's
+    delete_database_by_message(mm, next(nr))
     raw.start(mm, raw.INIT, (3, 0))  # 2: Task2Parameter; 3: WARMSTART into bDevFlags
+    assert mm[raw.HOST_FLAGS] & (raw.READY | raw.RUN) == raw.READY  # no database now
     for node in (1, 2):  # 4: the data sets, then the bus parameters
         assert raw.transact(mm, 3, 67, bytes([0, node]) + struct.pack("<H", 1000),
                             next(nr)).f == 0
         assert raw.transact(mm, 3, 68, bytes([0, node, 0, 0]) + node_set(node), next(nr)).f == 0
         assert raw.transact(mm, 3, 69, b"\0", next(nr)).f == 0
     assert raw.transact(mm, 3, 68, BUS_PARAMETERS, next(nr)).f == 0
-    wait_until(lambda: mm[raw.HOST_FLAGS] & 0x20, 5, "COM")
-    wait_until(lambda: mm[0x1F60] == 0b110, 10, "Nd_state of nodes 1 and 2")
+    wait_until(lambda: mm[raw.HOST_FLAGS] & 0x20, 5, "COM")  # the network runs
+    wait_until(lambda: mm[ND_STATE] == 0b110, 10, "Nd_state of nodes 1 and 2")
     mm.close()
 
+
+ND_STATE = 0x1F60
+"""Task2State's Nd_state, nodes 0..7 (seed 4.3)."""
+
+
+@pytest.mark.xfail(strict=True, reason=(
+    "seed 7.2 step 1: after the delete database message the host goes to step 1 again and "
+    "expects bHostFlags to show RDY only; the card keeps RUN (and its network) until its "
+    "next start, so a host following 7.2 literally deletes again and again"))
+def test_seed_7_2_step_1_sees_rdy_only_after_the_delete(make_net: Callable[..., Net],
+                                                        tmp_path: Path) -> None:
+    net = make_net("[[node]]\nid = 1\n[[node]]\nid = 2\n")
+    stored_database(net, tmp_path)
+    mm = net.card.map()
+    delete_database_by_message(mm, 1)
+    raw = test_raw_dpm
+    try:
+        wait_until(lambda: mm[raw.HOST_FLAGS] & (raw.READY | raw.RUN) == raw.READY, 2,
+                   "bHostFlags RDY only")
+    finally:
+        mm.close()
