@@ -15,9 +15,11 @@ import mmap
 import re
 import struct
 import time
+import uuid
 from collections.abc import Callable
 from pathlib import Path
 
+import can
 import pytest
 
 from dbm_tools.builder import build_dbm
@@ -26,6 +28,7 @@ from dbm_tools.network import BOOT_STEPS, load_network
 from dbm_tools.parameters import NdFlag, NodeParameterSet, PdoData
 from dpm import flags as fl
 from dpm.message import Ext, Message
+from firmware.can.bus import CanBus
 from host_api import driver as d
 from host_api.download import CONFIGURATION_DOWNLOAD, DevDownload
 from tests import test_can_task, test_raw_dpm
@@ -290,6 +293,32 @@ def test_msg_time_out_counts_and_saturates(make_net: Callable[..., Net]) -> None
 
 TASK2_STATE_GLOBAL = 0x1F40
 """Task2State's global bits (seed 4.3)."""
+
+
+def test_a_frame_the_controller_cannot_send_in_20_ms_is_a_msg_time_out(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """Seed 4.3: each frame is supervised to be sent within 20 ms. The controller hands that
+    time-out to python-can's send, and a frame not sent by then is reported (the master counts
+    it into Msg_Time_Out, as the test above shows) instead of raising into the caller.
+
+    Mocked because neither ``virtual`` nor ``shm`` ever refuses a frame: only SocketCAN gives
+    up on one nobody acknowledges, and this machine has none."""
+    bus = CanBus("virtual", f"test-untested-{uuid.uuid4().hex}")
+    timeouts: list[float | None] = []
+    reported: list[bool] = []
+
+    def refuse(msg: can.Message, timeout: float | None = None) -> None:
+        timeouts.append(timeout)
+        raise can.CanOperationError("Transmit buffer full")
+
+    try:
+        monkeypatch.setattr(bus.bus, "send", refuse)
+        bus.on_send_timeout = lambda: reported.append(True)
+        assert bus.send(0x123, b"\x01") is False
+        assert timeouts == [0.020] and reported == [True]
+    finally:
+        monkeypatch.undo()
+        bus.shutdown()
 
 
 # --- the RX-PDO hold during a host SDO transfer (seed 5.2.8) -------------------------------------
