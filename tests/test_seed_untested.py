@@ -42,6 +42,8 @@ make_net = test_can_task.make_net
 SYNC_ID = 0x080
 MSG_TIME_OUT = 0x1F48
 """Task2State's usMsg_Time_Out (seed 4.3)."""
+TASK2_STATE_GLOBAL = 0x1F40
+"""Task2State's global bits (seed 4.3)."""
 TOUT = 0x40
 """Task2State's global bit TIMEOUT-ERROR (seed 4.3)."""
 
@@ -291,10 +293,6 @@ def test_msg_time_out_counts_and_saturates(make_net: Callable[..., Net]) -> None
     assert struct.unpack_from("<H", image, MSG_TIME_OUT)[0] == 65535
 
 
-TASK2_STATE_GLOBAL = 0x1F40
-"""Task2State's global bits (seed 4.3)."""
-
-
 def test_a_frame_the_controller_cannot_send_in_20_ms_is_a_msg_time_out(
         monkeypatch: pytest.MonkeyPatch) -> None:
     """Seed 4.3: each frame is supervised to be sent within 20 ms. The controller hands that
@@ -346,7 +344,7 @@ id = 2
     request = struct.pack("<BBHBBBB", 1, 0, 0x1000, 0, 0, 0, 1)
     assert d.DevPutMessage(0, Message(rx=3, tx=16, b=74, nr=7, data=request), 1000) == 0
     wait_until(lambda: d.DevGetMBXState(0)[1] == d.DEVICE_MBX_EMPTY, 2, "the card to take it")
-    assert exchange(net, b"\x22" * 16, 0, 16)[:0] == b""  # the change, during the transfer
+    exchange(net, b"\x22" * 16, 0, 16)  # the change, during the transfer
     rc, answer = d.DevGetMessage(0, 288, 3000)
     assert rc == 0 and answer is not None and (answer.a, answer.f) == (74, 17)
     wait_until(lambda: exchange(net, b"\x22" * 16, 0, 16) == b"\x22" * 16, 5, "both echoes")
