@@ -8,6 +8,7 @@
   cifemu demo       a card, a simulated network, on-line configuration, live status
   cifemu 309        the CiA 309-3 ASCII gateway (serve, exec, shell)
   cifemu libcif     flags that compile a C program against libcif (--cflags --libs)
+  cifemu legacy     run an unchanged legacy binary against the card (/dev/cif preloaded)
 """
 
 from __future__ import annotations
@@ -33,6 +34,7 @@ from dpm.layout import HOST_FLAGS
 from firmware import cli as firmware_cli
 from firmware.sim import cli as sim_cli
 from host_api import driver as d
+from host_api import legacy as legacy_cli
 from host_api import status as status_cli
 from host_api.board import Board
 from host_api.cia309 import cli as cia309_cli
@@ -126,6 +128,11 @@ def build_parser() -> argparse.ArgumentParser:
                             formatter_class=argparse.RawDescriptionHelpFormatter)
     libcif_cli.add_arguments(libcif)
     libcif.set_defaults(func=libcif_cli.run)
+    legacy = sub.add_parser("legacy", help="run a legacy binary with /dev/cif served by the card",
+                            description=legacy_cli.__doc__,
+                            formatter_class=argparse.RawDescriptionHelpFormatter)
+    legacy_cli.add_arguments(legacy)
+    legacy.set_defaults(func=legacy_cli.run)
     demo = sub.add_parser("demo", help="a card, simulated nodes, live status (Ctrl-C ends)",
                           description=_demo.__doc__)
     demo.add_argument("--dpm-dir", default=os.environ.get("CIFEMU_DEMO_DIR"),

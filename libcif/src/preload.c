@@ -228,7 +228,11 @@ static int real_fcntl(int fd, int cmd, void *arg) {
 
 /* ---- the device's descriptors ----------------------------------------------------------- */
 
+/* state_lock guards the descriptor table; board_lock the driver's and the boards' state.
+   libcif's calls under board_lock close files, and close takes state_lock: never the
+   other way round. */
 static pthread_mutex_t state_lock = PTHREAD_MUTEX_INITIALIZER;
+static pthread_mutex_t board_lock = PTHREAD_MUTEX_INITIALIZER;
 static int device_fds[MAX_DEVICE_FDS];
 static int device_fd_count;
 static int driver_open;                       /* DevOpenDriver succeeded once */
@@ -292,9 +296,9 @@ static int device_open(int flags) {
     errno = ENODEV;
     return -1;
   }
-  pthread_mutex_lock(&state_lock);
+  pthread_mutex_lock(&board_lock);
   if (!driver_open) driver_open = DevOpenDriver() == DRV_NO_ERROR;
-  pthread_mutex_unlock(&state_lock);
+  pthread_mutex_unlock(&board_lock);
   if (!driver_open) {
     errno = ENODEV;
     return -1;
@@ -357,9 +361,9 @@ static int safe_copy(void *dst, const void *src, size_t size) {
 static int board_ready_for_calls(unsigned board) {
   unsigned opens;
   if (board >= MAX_DEV_BOARDS) return 0;
-  pthread_mutex_lock(&state_lock);
+  pthread_mutex_lock(&board_lock);
   opens = board_opens[board];
-  pthread_mutex_unlock(&state_lock);
+  pthread_mutex_unlock(&board_lock);
   return opens > 0;
 }
 
@@ -471,11 +475,11 @@ static long do_initdrv(void *arg) {
   if (!board_exists(c.board)) {
     c.error = DRV_BOARD_NOT_INIT;
   } else {
-    pthread_mutex_lock(&state_lock);
+    pthread_mutex_lock(&board_lock);
     if (board_opens[c.board] == 0) c.error = DevInitBoard(c.board);
     if (c.error == DRV_USR_DEV_NUMBER_INVALID) c.error = DRV_BOARD_NOT_INIT; /* image gone */
     if (c.error == DRV_NO_ERROR) board_opens[c.board]++;
-    pthread_mutex_unlock(&state_lock);
+    pthread_mutex_unlock(&board_lock);
     c.dpm_size = file_byte(c.board, OFS_DPM_SIZE);
   }
   COPY_OUT(c);
@@ -489,14 +493,14 @@ static long do_exitdrv(void *arg) {
   if (!board_exists(c.board)) {
     c.error = DRV_BOARD_NOT_INIT;
   } else {
-    pthread_mutex_lock(&state_lock);
+    pthread_mutex_lock(&board_lock);
     if (board_opens[c.board] == 0) {
       c.error = DRV_BOARD_NOT_INIT;
     } else if (--board_opens[c.board] == 0) {
       DevExitBoard(c.board);
     }
     c.open_count = (uint16_t)board_opens[c.board];
-    pthread_mutex_unlock(&state_lock);
+    pthread_mutex_unlock(&board_lock);
   }
   COPY_OUT(c);
   return (long)sizeof c;
@@ -937,9 +941,13 @@ EXPORT int close(int fd) {
 }
 
 static int ioctl_common(int fd, unsigned long request, void *arg) {
+  static int trace = -1;
   long done;
   if (!is_device_fd(fd)) return real_ioctl(fd, request, arg);
   done = device_ioctl(request, arg);
+  if (trace < 0) trace = getenv("CIFDEV_TRACE") != NULL;
+  if (trace) /* [ours] CIFDEV_TRACE=1: each ioctl, its return and the structure's sError */
+    fprintf(stderr, "cifdev: ioctl(%d, 0x%08lx, %p) = %ld\n", fd, request, arg, done);
   if (done < 0) {
     errno = (int)-done;
     return -1;
