@@ -51,6 +51,7 @@ pytestmark = pytest.mark.skipif(CC is None or shutil.which("make") is None,
 EXPECTED = {
     # the device: any flags, fcntl, read gives 0 bytes, write fails, close of a stranger
     "close_unopened": 1, "open": 1, "fcntl": 1, "read": 0, "write_enomem": 1,
+    "dup_is_device": 1, "closed_dup_is_not": 1,
     "boardinfo": 0, "boards_detected": 1, "board0_available": 1, "board1_available": 0,
     # INITDRV: the DPM size in kB; a board the driver does not have is -1
     "initdrv": 0, "dpm_size": 8, "initdrv_absent": -1, "initdrv_board9": -1,

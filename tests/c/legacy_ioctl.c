@@ -342,6 +342,13 @@ int main(int argc, char **argv) {
   SHOW("fcntl", fcntl(fd, F_SETFD, FD_CLOEXEC) == 0 && fcntl(fd, F_GETFD) == FD_CLOEXEC);
   SHOW("read", read(fd, buffer, 4));
   SHOW("write_enomem", write(fd, buffer, 4) == -1 && errno == ENOMEM);
+  { /* a duplicate is the device too (a write to /dev/null would succeed) */
+    int copy = dup(fd), copy2 = fcntl(fd, F_DUPFD_CLOEXEC, 50);
+    SHOW("dup_is_device", write(copy, buffer, 4) == -1 && write(copy2, buffer, 4) == -1);
+    close(copy);
+    close(copy2);
+    SHOW("closed_dup_is_not", write(copy, buffer, 4) == -1 && errno == EBADF);
+  }
 
   /* ---- board information, initialisation ---- */
   {
