@@ -193,17 +193,20 @@ typedef int (*fcntl_fn)(int, int, ...);
 
 static void *next_symbol(const char *name) { return dlsym(RTLD_NEXT, name); }
 
-/* The libc function the program would have reached; direct system calls when dlsym
-   has none (a libc without that alias). */
-static int real_open(const char *path, int flags, mode_t mode) {
-  static open_fn fn;
-  if (fn == NULL) fn = (open_fn)next_symbol("open64");
+/* The libc function the program would have reached (open for open, open64 for open64:
+   an i386 program without large-file support keeps its flags); direct system calls
+   when dlsym has none. */
+static int real_open_named(const char *name, const char *path, int flags, mode_t mode) {
+  open_fn fn = (open_fn)next_symbol(name);
   if (fn == NULL) return (int)syscall(SYS_openat, AT_FDCWD, path, flags, mode);
   return fn(path, flags, mode);
 }
-static int real_openat(int dirfd, const char *path, int flags, mode_t mode) {
-  static openat_fn fn;
-  if (fn == NULL) fn = (openat_fn)next_symbol("openat64");
+static int real_open(const char *path, int flags, mode_t mode) {
+  return real_open_named("open", path, flags, mode);
+}
+static int real_openat_named(const char *name, int dirfd, const char *path, int flags,
+                             mode_t mode) {
+  openat_fn fn = (openat_fn)next_symbol(name);
   if (fn == NULL) return (int)syscall(SYS_openat, dirfd, path, flags, mode);
   return fn(dirfd, path, flags, mode);
 }
@@ -889,7 +892,7 @@ EXPORT int open(const char *path, int flags, ...) {
   mode = mode_argument(flags, args);
   va_end(args);
   if (is_device_path(path)) return device_open(flags);
-  return real_open(path, flags, mode);
+  return real_open_named("open", path, flags, mode);
 }
 
 EXPORT int open64(const char *path, int flags, ...) {
@@ -899,7 +902,7 @@ EXPORT int open64(const char *path, int flags, ...) {
   mode = mode_argument(flags, args);
   va_end(args);
   if (is_device_path(path)) return device_open(flags);
-  return real_open(path, flags, mode);
+  return real_open_named("open64", path, flags, mode);
 }
 
 EXPORT int openat(int dirfd, const char *path, int flags, ...) {
@@ -909,7 +912,7 @@ EXPORT int openat(int dirfd, const char *path, int flags, ...) {
   mode = mode_argument(flags, args);
   va_end(args);
   if (is_device_path(path)) return device_open(flags);
-  return real_openat(dirfd, path, flags, mode);
+  return real_openat_named("openat", dirfd, path, flags, mode);
 }
 
 EXPORT int openat64(int dirfd, const char *path, int flags, ...) {
@@ -919,7 +922,7 @@ EXPORT int openat64(int dirfd, const char *path, int flags, ...) {
   mode = mode_argument(flags, args);
   va_end(args);
   if (is_device_path(path)) return device_open(flags);
-  return real_openat(dirfd, path, flags, mode);
+  return real_openat_named("openat64", dirfd, path, flags, mode);
 }
 
 /* _FORTIFY_SOURCE's checked forms, which programs built with it call. */
