@@ -93,6 +93,8 @@ EXPECTED = {
     "extdata": 0, "irq_poll_polling": 0, "irq_poll_irq": 0, "irq_poll_interrupt": 0,
     "getdpmptr": -33,
     # unknown numbers ENOTTY; a structure the driver cannot read EFAULT
+    "boardinfo_bad_pointer": -45, "boardinfoex_bad_pointer": -45,
+    "readsend_bad_pointer": -45, "rwraw_write_bad_pointer": -45, "null_structures": 1,
     "unknown_nr26": 1, "unknown_type": 1, "bad_structure": 1, "reset_warm": 0,
     "exitdrv": 0, "exitdrv_count": 0, "exitdrv_again": -1, "putmsg_after_exit": -1,
     "close": 0, "close_again": 1, "reopen_rdwr": 1, "close_reopened": 0,

@@ -526,6 +526,31 @@ int main(int argc, char **argv) {
     char c[32];
     SHOW("getdpmptr", call(GETDPMPTR, c, (short *)c));
   }
+  {
+    boardinfo_cmd c = {0, 58, (void *)8, 0};
+    SHOW("boardinfo_bad_pointer", call(BOARDINFO, &c, &c.error));
+    SHOW("boardinfoex_bad_pointer", call(BOARDINFOEX, &c, &c.error));
+  }
+  {
+    readsend_cmd c = {0, 0, 4, (void *)8, 0};
+    SHOW("readsend_bad_pointer", call(READSEND, &c, &c.error));
+  }
+  SHOW("rwraw_write_bad_pointer", raw(RWRAW, 2, 0, 4, (void *)8));
+  { /* every number of both generations with no structure, or one at a wild address:
+       EFAULT (or the driver's 0 for GETDPMPTR), never a crash */
+    int n, ok = 1, generation;
+    for (generation = 0; generation < 2; generation++) {
+      generation_26 = generation;
+      for (n = 1; n <= 25; n++) {
+        unsigned long cmd = (n <= 4 || n == 25) ? sized(n) : NR(n);
+        int want = n == 23 ? 0 : -1;
+        if (ioctl(fd, cmd, NULL) != want || (want == -1 && errno != EFAULT)) ok = 0;
+        if (ioctl(fd, cmd, (void *)8) != want || (want == -1 && errno != EFAULT)) ok = 0;
+      }
+    }
+    generation_26 = strcmp(argv[1], "26") == 0;
+    SHOW("null_structures", ok);
+  }
   SHOW("unknown_nr26", ioctl(fd, NR(26), buffer) == -1 && errno == ENOTTY);
   SHOW("unknown_type", ioctl(fd, _IO('x', 1), buffer) == -1 && errno == ENOTTY);
   SHOW("bad_structure", ioctl(fd, INITDRV, (void *)16) == -1 && errno == EFAULT);
