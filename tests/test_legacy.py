@@ -53,6 +53,9 @@ EXPECTED = {
     "close_unopened": 1, "open": 1, "fcntl": 1, "read": 0, "write_enomem": 1,
     "dup_is_device": 1, "closed_dup_is_not": 1,
     "boardinfo": 0, "boards_detected": 1, "board0_available": 1, "board1_available": 0,
+    # GETINFO and DPM access reached a board before INITDRV; a message did not
+    "getinfo_before_initdrv": 0, "firmware_before_initdrv": "CANopen Master",
+    "rwdpm_before_initdrv": 0, "identifier_before_initdrv": "CIF", "putmsg_before_initdrv": -1,
     # INITDRV: the DPM size in kB; a board the driver does not have is -1
     "initdrv": 0, "dpm_size": 8, "initdrv_absent": -1, "initdrv_board9": -1,
     "boardinfoex": 0, "boardinfoex_firmware": "CANopen Master", "boardinfoex_opens": 1,

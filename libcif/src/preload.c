@@ -370,24 +370,48 @@ static int board_ready_for_calls(unsigned board) {
   return opens > 0;
 }
 
+/* The image's bytes: through libcif for a board this process initialised, otherwise
+   from the image file, as the driver reached every board it had detected (GETINFO,
+   GETMBX, RWRAW, RWDPMDATA needed no INITDRV). DRV_BOARD_NOT_INIT when neither works. */
+static short dpm_access(unsigned board, int write, unsigned offset, unsigned length,
+                        void *data) {
+  char path[PATH_MAX];
+  long done;
+  int fd;
+  if (length == 0) return DRV_NO_ERROR;
+  if (board_ready_for_calls(board))
+    return DevReadWriteDPMData((unsigned short)board, write ? PARAMETER_WRITE : PARAMETER_READ,
+                               (unsigned short)offset, (unsigned short)length, data);
+  snprintf(path, sizeof path, "%s/board%u.dpm", image_directory(), board);
+  fd = real_open(path, (write ? O_RDWR : O_RDONLY) | O_CLOEXEC, 0);
+  if (fd < 0) return DRV_BOARD_NOT_INIT;
+  done = write ? (long)pwrite(fd, data, length, offset) : (long)pread(fd, data, length, offset);
+  real_close(fd);
+  return done == (long)length ? DRV_NO_ERROR : DRV_BOARD_NOT_INIT;
+}
+
 static unsigned char image_byte(unsigned board, unsigned offset) {
   unsigned char value = 0;
-  DevReadWriteDPMData((unsigned short)board, PARAMETER_READ, (unsigned short)offset, 1, &value);
+  dpm_access(board, 0, offset, 1, &value);
   return value;
 }
 
-/* The image's byte read from the file, for a board this process has not initialised. */
-static unsigned char file_byte(unsigned board, unsigned offset) {
-  char path[PATH_MAX];
-  unsigned char value = 0;
-  int fd;
-  snprintf(path, sizeof path, "%s/board%u.dpm", image_directory(), board);
-  fd = real_open(path, O_RDONLY | O_CLOEXEC, 0);
-  if (fd >= 0) {
-    if (pread(fd, &value, 1, offset) != 1) value = 0;
-    real_close(fd);
+/* DRIVERINFO, IOINFO or VERSIONINFO in libcif's layout: libcif's own for a board this
+   process initialised, else what the image says (no counters). */
+static short info_area(unsigned board, unsigned short area, void *out, unsigned short size) {
+  if (board_ready_for_calls(board)) return DevGetInfo((unsigned short)board, area, size, out);
+  memset(out, 0, size);
+  if (area == GET_VERSION_INFO) return dpm_access(board, 0, OFS_VERSION_INFO, size, out);
+  if (area == GET_IO_INFO) {
+    IOINFO *io = (IOINFO *)out;
+    io->bComBit = (image_byte(board, OFS_HOST_FLAGS) & FL_COM) ? 1 : 0;
+    io->bIOExchangeMode = (unsigned char)(image_byte(board, OFS_DRIVER_TYPE) >> 4);
+  } else {
+    DRIVERINFO *info = (DRIVERINFO *)out;
+    info->bHostFlags = image_byte(board, OFS_HOST_FLAGS);
+    info->bMyDevFlags = image_byte(board, OFS_DEV_FLAGS);
   }
-  return value;
+  return DRV_NO_ERROR;
 }
 
 static void native_driverinfo(drv_driverinfo *out, const DRIVERINFO *in) {
@@ -483,7 +507,7 @@ static long do_initdrv(void *arg) {
     if (c.error == DRV_USR_DEV_NUMBER_INVALID) c.error = DRV_BOARD_NOT_INIT; /* image gone */
     if (c.error == DRV_NO_ERROR) board_opens[c.board]++;
     pthread_mutex_unlock(&board_lock);
-    c.dpm_size = file_byte(c.board, OFS_DPM_SIZE);
+    c.dpm_size = image_byte(c.board, OFS_DPM_SIZE);
   }
   COPY_OUT(c);
   return (long)sizeof c;
@@ -650,7 +674,7 @@ static long do_getinfo(void *arg) {
   long done = 0;
   COPY_IN(c);
   c.error = DRV_NO_ERROR;
-  if (!board_ready_for_calls(c.board)) {
+  if (!board_exists(c.board)) {
     c.error = DRV_BOARD_NOT_INIT;
   } else if (c.area < GET_DRIVER_INFO || c.area > GET_IO_SEND_DATA) {
     c.error = DRV_PARAM_UNKNOWN;
@@ -661,13 +685,13 @@ static long do_getinfo(void *arg) {
     if (c.area == GET_DRIVER_INFO) {
       DRIVERINFO info;
       drv_driverinfo out;
-      c.error = DevGetInfo(c.board, GET_DRIVER_INFO, sizeof info, &info);
+      c.error = info_area(c.board, GET_DRIVER_INFO, &info, sizeof info);
       native_driverinfo(&out, &info);
       memcpy(data, &out, sizeof out);
     } else if (c.area == GET_IO_INFO) {
       IOINFO info;
       drv_ioinfo out;
-      c.error = DevGetInfo(c.board, GET_IO_INFO, sizeof info, &info);
+      c.error = info_area(c.board, GET_IO_INFO, &info, sizeof info);
       out.com = info.bComBit;
       out.mode = info.bIOExchangeMode;
       out.count = info.ulIOExchangeCnt;
@@ -675,11 +699,11 @@ static long do_getinfo(void *arg) {
     } else if (c.area == GET_VERSION_INFO) {
       VERSIONINFO info;
       drv_versioninfo out;
-      c.error = DevGetInfo(c.board, GET_VERSION_INFO, sizeof info, &info);
+      c.error = info_area(c.board, GET_VERSION_INFO, &info, sizeof info);
       native_versioninfo(&out, &info);
       memcpy(data, &out, sizeof out);
-    } else if (c.length > 0) { /* the other areas are the image's bytes */
-      c.error = DevReadWriteDPMData(c.board, PARAMETER_READ, offsets[c.area], c.length, data);
+    } else { /* the other areas are the image's bytes */
+      c.error = dpm_access(c.board, 0, offsets[c.area], c.length, data);
     }
     if (c.error == DRV_NO_ERROR && safe_copy(c.data, data, c.length) != 0)
       c.error = DRV_USR_BUF_PTR_NULL; /* [ours] */
@@ -717,15 +741,13 @@ static long do_getmbx(void *arg) {
   io_getmbx c;
   COPY_IN(c);
   c.error = DRV_NO_ERROR;
-  if (!board_ready_for_calls(c.board))
+  if (!board_exists(c.board))
     return (long)(sizeof c.error + c.dev_length + c.host_length); /* nothing written back */
   if (c.dev_length > MSG_BUFFER_SIZE || c.host_length > MSG_BUFFER_SIZE) {
     c.error = DRV_USR_SIZE_TOO_LONG; /* [ours] */
   } else {
-    if (c.dev_length > 0)
-      c.error = DevReadWriteDPMData(c.board, PARAMETER_READ, OFS_DEV_MBX, c.dev_length, c.dev);
-    if (c.error == DRV_NO_ERROR && c.host_length > 0)
-      c.error = DevReadWriteDPMData(c.board, PARAMETER_READ, OFS_PC_MBX, c.host_length, c.host);
+    c.error = dpm_access(c.board, 0, OFS_DEV_MBX, c.dev_length, c.dev);
+    if (c.error == DRV_NO_ERROR) c.error = dpm_access(c.board, 0, OFS_PC_MBX, c.host_length, c.host);
   }
   COPY_OUT(c);
   return (long)(sizeof c.error + c.dev_length + c.host_length);
@@ -738,7 +760,7 @@ static long do_rawdata(void *arg, int whole_image) {
   io_rawdata c;
   short rc = DRV_NO_ERROR;
   COPY_IN(c);
-  if (!board_ready_for_calls(c.board)) {
+  if (!board_exists(c.board)) {
     rc = DRV_BOARD_NOT_INIT;
   } else if (c.mode != PARAMETER_READ && c.mode != PARAMETER_WRITE) {
     rc = DRV_USR_MODE_INVALID;
@@ -747,8 +769,8 @@ static long do_rawdata(void *arg, int whole_image) {
   } else if (c.mode == PARAMETER_WRITE && safe_copy(data, c.data, c.length) != 0) {
     rc = DRV_USR_BUF_PTR_NULL;
   } else {
-    rc = whole_image ? DevReadWriteDPMData(c.board, c.mode, c.offset, c.length, data)
-                     : DevReadWriteDPMRaw(c.board, c.mode, c.offset, c.length, data);
+    rc = dpm_access(c.board, c.mode == PARAMETER_WRITE, (whole_image ? 0u : LAST_KB) + c.offset,
+                    c.length, data);
     if (rc == DRV_NO_ERROR && c.mode == PARAMETER_READ && safe_copy(c.data, data, c.length) != 0)
       rc = DRV_USR_BUF_PTR_NULL;
   }

@@ -334,6 +334,7 @@ int main(int argc, char **argv) {
   }
   generation_26 = strcmp(argv[1], "26") == 0;
   setvbuf(stdout, NULL, _IONBF, 0);
+  memset(&msg, 0, sizeof msg);
 
   /* ---- the device itself ---- */
   SHOW("close_unopened", close(1000) == -1 && errno == EBADF);
@@ -359,6 +360,12 @@ int main(int argc, char **argv) {
     SHOW("board0_available", info.entry[0].available);
     SHOW("board1_available", info.entry[1].available);
   }
+  /* the driver served these for any board it had, before INITDRV */
+  SHOW("getinfo_before_initdrv", get_info(0, 3, 32, buffer));
+  printf("firmware_before_initdrv=%.14s\n", buffer);
+  SHOW("rwdpm_before_initdrv", raw(RWDPMDATA, 1, 0x1FFB, 3, buffer));
+  printf("identifier_before_initdrv=%.3s\n", buffer);
+  SHOW("putmsg_before_initdrv", put_msg(0, &msg, 0));
   SHOW("initdrv", init_board(0, &dpm_size));
   SHOW("dpm_size", dpm_size);
   SHOW("initdrv_absent", init_board(1, &dpm_size));
