@@ -197,7 +197,13 @@ static void *next_symbol(const char *name) { return dlsym(RTLD_NEXT, name); }
    an i386 program without large-file support keeps its flags); direct system calls
    when dlsym has none. */
 static int real_open_named(const char *name, const char *path, int flags, mode_t mode) {
-  open_fn fn = (open_fn)next_symbol(name);
+  static open_fn open_fn_cache, open64_fn_cache;
+  open_fn *cache = strcmp(name, "open") == 0 ? &open_fn_cache : &open64_fn_cache;
+  open_fn fn = __atomic_load_n(cache, __ATOMIC_ACQUIRE);
+  if (fn == NULL) {
+    fn = (open_fn)next_symbol(name);
+    __atomic_store_n(cache, fn, __ATOMIC_RELEASE);
+  }
   if (fn == NULL) return (int)syscall(SYS_openat, AT_FDCWD, path, flags, mode);
   return fn(path, flags, mode);
 }
@@ -206,7 +212,13 @@ static int real_open(const char *path, int flags, mode_t mode) {
 }
 static int real_openat_named(const char *name, int dirfd, const char *path, int flags,
                              mode_t mode) {
-  openat_fn fn = (openat_fn)next_symbol(name);
+  static openat_fn openat_fn_cache, openat64_fn_cache;
+  openat_fn *cache = strcmp(name, "openat") == 0 ? &openat_fn_cache : &openat64_fn_cache;
+  openat_fn fn = __atomic_load_n(cache, __ATOMIC_ACQUIRE);
+  if (fn == NULL) {
+    fn = (openat_fn)next_symbol(name);
+    __atomic_store_n(cache, fn, __ATOMIC_RELEASE);
+  }
   if (fn == NULL) return (int)syscall(SYS_openat, dirfd, path, flags, mode);
   return fn(dirfd, path, flags, mode);
 }
@@ -245,7 +257,8 @@ static int is_device_path(const char *path) { return path != NULL && strcmp(path
 
 static int is_device_fd(int fd) {
   int i, found = 0;
-  if (fd < 0) return 0;
+  /* most calls of most programs: no device open, no lock taken */
+  if (fd < 0 || __atomic_load_n(&device_fd_count, __ATOMIC_ACQUIRE) == 0) return 0;
   pthread_mutex_lock(&state_lock);
   for (i = 0; i < device_fd_count && !found; i++) found = device_fds[i] == fd;
   pthread_mutex_unlock(&state_lock);
@@ -256,7 +269,8 @@ static void forget_fd_locked(int fd) {
   int i;
   for (i = 0; i < device_fd_count; i++) {
     if (device_fds[i] == fd) {
-      device_fds[i] = device_fds[--device_fd_count];
+      device_fds[i] = device_fds[device_fd_count - 1];
+      __atomic_store_n(&device_fd_count, device_fd_count - 1, __ATOMIC_RELEASE);
       return;
     }
   }
@@ -265,7 +279,8 @@ static void forget_fd_locked(int fd) {
 static int remember_fd_locked(int fd) {
   forget_fd_locked(fd);
   if (device_fd_count == MAX_DEVICE_FDS) return -1;
-  device_fds[device_fd_count++] = fd;
+  device_fds[device_fd_count] = fd;
+  __atomic_store_n(&device_fd_count, device_fd_count + 1, __ATOMIC_RELEASE);
   return 0;
 }
 
