@@ -1054,6 +1054,18 @@ EXPORT int fcntl64(int fd, int cmd, ...) {
   return fcntl_common(fd, cmd, arg);
 }
 
+#if defined(__i386__)
+/* i386 programs built with 64-bit time_t call this name */
+EXPORT int __fcntl_time64(int fd, int cmd, ...) {
+  va_list args;
+  void *arg;
+  va_start(args, cmd);
+  arg = va_arg(args, void *);
+  va_end(args);
+  return fcntl_common(fd, cmd, arg);
+}
+#endif
+
 EXPORT int dup(int fd) { return track_duplicate(fd, (int)syscall(SYS_dup, fd)); }
 
 EXPORT int dup2(int oldfd, int newfd) {
