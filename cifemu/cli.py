@@ -11,6 +11,7 @@
   cifemu top        a live view of one card: nodes, process image, bus, events
   cifemu 309        the CiA 309-3 ASCII gateway (serve, exec, shell)
   cifemu libcif     flags that compile a C program against libcif (--cflags --libs)
+  cifemu legacy     run an unchanged legacy binary against the card (/dev/cif preloaded)
 """
 
 from __future__ import annotations
@@ -23,6 +24,7 @@ from firmware import cli as firmware_cli
 from firmware.sim import cli as sim_cli
 from host_api import configure_cli
 from host_api import dbm_commands as dbm_cli
+from host_api import legacy as legacy_cli
 from host_api import status as status_cli
 from host_api.cia309 import cli as cia309_cli
 from host_api.cli_output import run_guarded
@@ -62,6 +64,11 @@ def build_parser() -> argparse.ArgumentParser:
                             formatter_class=argparse.RawDescriptionHelpFormatter)
     libcif_cli.add_arguments(libcif)
     libcif.set_defaults(func=libcif_cli.run)
+    legacy = sub.add_parser("legacy", help="run a legacy binary with /dev/cif served by the card",
+                            description=legacy_cli.__doc__,
+                            formatter_class=argparse.RawDescriptionHelpFormatter)
+    legacy_cli.add_arguments(legacy)
+    legacy.set_defaults(func=legacy_cli.run)
     demo = sub.add_parser("demo", help="a card, simulated nodes, live status (Ctrl-C ends)",
                           description=demo_cli.__doc__)
     demo_cli.add_arguments(demo)
