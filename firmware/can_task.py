@@ -72,6 +72,7 @@ from dpm.commands import (
 from dpm.errors import CanF
 from dpm.message import Ext, Message, MessageError, TelegramHeader, Tfc
 from dpm.task2 import CanState, GlobalBits
+from firmware.can.bus import INTERFACE_ERRORS
 from firmware.can.master import BusConfig, Master
 from firmware.can.node import NodeHandler, State
 from firmware.can.sdo import HostSdoTransfer, SdoResult
@@ -105,6 +106,8 @@ class CanTask(Task):
         self.bus_data: bytes | None = None
         self.from_flash = False
         """The running configuration came from the database in flash (``StoredDatabase``)."""
+        self.fatal: str | None = None
+        """Why the controller could not be opened: the card runs with FAT (``open``)."""
         self.extended_data: bytes | None = None
         self._sequence: _Sequence | None = None
         self.handlers.update({
@@ -133,13 +136,35 @@ class CanTask(Task):
     # --- life cycle ---------------------------------------------------------------------------
 
     def open(self) -> None:
-        self.master.open()
+        """Connect the controller; one that cannot be opened leaves the card up with FAT.
+
+        Seed 4.3: FAT, "because of heavy internal error, no further bus communication is
+        possible". A host then sees a faulty card, not a dead one: READY without RUN, FAT in
+        Task2State's global bits after every start, and [ours] f 200 ("DEVICE is not
+        configured") for every CAN-task command.
+        """
+        try:
+            self.master.open()
+        except INTERFACE_ERRORS as exc:
+            if self.master.config.exit_on_error:
+                raise
+            cfg = self.master.config
+            self.fatal = (f"cannot open CAN interface {cfg.interface!r} channel "
+                          f"{cfg.channel!r}: {exc}")
+            log.error("%s; the card stays up with FAT set (no bus communication)", self.fatal)
 
     def close(self) -> None:
         self.master.close()
 
+    def handle(self, msg: Message) -> Message | None:
+        if self.fatal is not None:
+            return msg.answer(f=CanF.NOT_CONFIGURED)  # FAT: no bus to configure or use
+        return super().handle(msg)
+
     def reset(self, cold: bool) -> None:
         del cold
+        if self.fatal is not None:
+            self.device.set_global_bit(GlobalBits.FAT, True)  # after every start's clear
         self.master.reset()
         self.node_data.clear()
         self.bus_data = None

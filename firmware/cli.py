@@ -13,6 +13,7 @@ import can
 
 from dbm_tools.network import NetworkError, load_network
 from dpm.image import DEFAULT_DPM_DIR, MAX_DEV_BOARDS, BoardBusyError, dpm_dir, image_path
+from firmware.can.bus import INTERFACE_ERRORS
 from firmware.can.master import BusConfig
 from firmware.can.tap import tap_address
 from firmware.device import Device
@@ -39,6 +40,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--bitrate", type=int, default=None, metavar="BPS",
                         help="bit rate for interfaces that set one (default: the bus "
                              "parameters' Baud_rate)")
+    parser.add_argument("--exit-on-bus-error", action="store_true",
+                        help="end with one line and exit status 1 when the CAN interface "
+                             "cannot be opened; by default the card stays up with FAT set in "
+                             "Task2State, as the seed's card does, so hosts see a faulty card")
     parser.add_argument("--trace", type=Path, default=None, metavar="FILE",
                         help="log every frame the card sends or receives; the format follows "
                              "the suffix: .blf, .asc, .log (candump), .csv, .trc ...")
@@ -79,7 +84,8 @@ def run(args: argparse.Namespace) -> int:
         return 1
     bus = BusConfig(args.interface, args.channel or default_channel(args.interface),
                     args.bitrate, args.trace,
-                    tap_address(image_path(dpm_dir(args.dpm_dir), args.board)))
+                    tap_address(image_path(dpm_dir(args.dpm_dir), args.board)),
+                    exit_on_error=args.exit_on_bus_error)
     simulation = None
     if network is not None:  # before the card: a bus that cannot open leaves no image
         try:
@@ -123,8 +129,6 @@ def run(args: argparse.Namespace) -> int:
     return 1 if configuring is not None and configuring.failed else 0
 
 
-INTERFACE_ERRORS = (can.CanError, OSError, ValueError, ImportError, NotImplementedError)
-"""What python-can raises when an interface or channel cannot be opened."""
 
 
 def _interface_error(bus: BusConfig, exc: BaseException) -> int:

@@ -9,6 +9,11 @@ import subprocess
 import sys
 from pathlib import Path
 
+from dpm.commands import COM_DOWNLOAD, COM_SHARED_MEMORY
+from dpm.errors import CanF
+from dpm.message import Message
+from dpm.task2 import GlobalBits
+from host_api.board import Board
 from host_api.status import read_image, snapshot
 from tests.conftest import ROOT, start_card, wait_until
 
@@ -81,14 +86,38 @@ def test_firmware_configure_gives_a_running_network_in_one_command(tmp_path: Pat
 
 def test_firmware_reports_an_interface_error_in_one_line_and_leaves_no_image(
         tmp_path: Path) -> None:
-    for extra in (["--interface", "socketcan", "--channel", "nope"],
+    for extra in (["--interface", "socketcan", "--channel", "nope", "--exit-on-bus-error"],
                   ["--interface", "socketcan", "--channel", "nope", "--simulate", str(DEMO)],
-                  ["--interface", "no-such-interface"]):
+                  ["--interface", "no-such-interface", "--exit-on-bus-error"]):
         out = cifemu("firmware", "--dpm-dir", str(tmp_path), "--log-level", "WARNING", *extra)
         assert out.returncode == 1, extra
         assert out.stderr.startswith("cifemu firmware: cannot open CAN interface"), out.stderr
         assert out.stderr.count("\n") == 1 and "Traceback" not in out.stderr
         assert not (tmp_path / "board0.dpm").exists()
+
+
+def test_a_card_whose_interface_cannot_open_stays_up_with_fat(tmp_path: Path) -> None:
+    """Seed 4.3 FAT: "no further bus communication is possible" -- a faulty card, not a
+    dead one. READY without RUN, FAT in the global bits (also after a warm start), every
+    CAN-task command f 200, the RCS and PLC tasks still answer; one log line says why."""
+    card = start_card(tmp_path, 0, "--interface", "no-such-interface", "--log-level", "ERROR")
+    try:
+        with Board(0, tmp_path) as board:
+            for _ in range(2):
+                diag = board.diagnostics()
+                assert diag.bGlobalBits & GlobalBits.FAT and diag.can_state_name == "OFFLINE"
+                answer = board.transact(Message(rx=3, tx=16, b=COM_DOWNLOAD,
+                                                data=bytes([0, 127, 0, 0, 2]) + bytes(6)))
+                assert answer.f == CanF.NOT_CONFIGURED
+                shared = board.transact(Message(rx=2, tx=16, b=COM_SHARED_MEMORY,
+                                                data=bytes([0, 1, 0, 0, 0, 4, 5, 1])))
+                assert shared.f == 0
+                board.reset()
+    finally:
+        assert card.stop() == 0
+    assert card.proc.stderr is not None
+    log = card.proc.stderr.read().decode()
+    assert "cannot open CAN interface 'no-such-interface'" in log and "FAT" in log
 
 
 def test_demo_uses_the_default_directory_refuses_a_busy_board_and_cleans_up(

@@ -28,6 +28,9 @@ from firmware.frames import SDO_FRAME_LENGTH
 
 log = logging.getLogger(__name__)
 
+INTERFACE_ERRORS = (can.CanError, OSError, ValueError, ImportError, NotImplementedError)
+"""What python-can raises when an interface or channel cannot be opened."""
+
 SEND_TIMEOUT = 0.020
 """Seed 4.3: each CAN message is supervised to be sent within 20 ms."""
 FrameCallback = Callable[[can.Message], None]

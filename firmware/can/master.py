@@ -98,6 +98,9 @@ class BusConfig:
     trace: Path | None = None
     tap: bytes | None = None
     """The abstract socket name of the frame tap (``firmware.can.tap``) [ours]."""
+    exit_on_error: bool = False
+    """A controller that cannot be opened ends the firmware, instead of the seed's card
+    staying up with FAT set (``cifemu firmware --exit-on-bus-error``)."""
 
 
 class Master:
