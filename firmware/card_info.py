@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from dbm_tools.errors import DbmError
+from dbm_tools.parameters import BAUD_RATES_KBIT
 from dbm_tools.tables import NODES, PROJEKT, ProjektRecord
 from dpm.image import IMAGE_MODE
 
@@ -66,7 +67,10 @@ def publish(device: Device) -> None:
     """Log the start's database and write the card's facts beside the image."""
     database = describe_database(device.database, device.flash.stored_at())
     log_database(database)
-    config = device.can.master.config
+    master = device.can.master
+    config = master.config
+    bus = master.bus
+    params = master.bus_params
     info = {
         "pid": os.getpid(),
         "board": device.board,
@@ -74,7 +78,10 @@ def publish(device: Device) -> None:
         "flash": str(device.flash.path),
         "database": database,
         "bus": {"interface": config.interface, "channel": config.channel,
-                "bitrate": config.bitrate},
+                "bitrate": bus.bitrate if bus is not None else None,
+                "sets_bitrate": bus is not None and bus.takes_bitrate,
+                "baud_rate": BAUD_RATES_KBIT[params.Baud_rate] * 1000 if params else None,
+                "fatal": device.can.fatal},
         "tap": "@" + config.tap[1:].decode() if config.tap else None,
     }
     path = card_info_path(device.directory, device.board)

@@ -38,8 +38,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="python-can channel (default: 'cifemu' for virtual and shm, vcan0 "
                              "for socketcan, the default group for udp_multicast)")
     parser.add_argument("--bitrate", type=int, default=None, metavar="BPS",
-                        help="bit rate for interfaces that set one (default: the bus "
-                             "parameters' Baud_rate)")
+                        help="the controller's bit rate until the bus parameters come; their "
+                             "Baud_rate then sets it, on interfaces whose rate the card sets "
+                             "(not virtual, shm, udp_multicast, or socketcan, whose link rate "
+                             "is the kernel's). Default: the interface's own")
     parser.add_argument("--exit-on-bus-error", action="store_true",
                         help="end with one line and exit status 1 when the CAN interface "
                              "cannot be opened; by default the card stays up with FAT set in "

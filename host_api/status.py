@@ -40,6 +40,19 @@ EXIT_DEAD = 3
 """[ours] the image is there but no firmware holds its lock (killed, crashed, stopped)."""
 
 
+def _bus_text(bus: dict[str, Any]) -> str:
+    """The controller's interface and the bit rate in use, against the bus parameters'."""
+    where = f"{bus['interface']} channel {bus['channel']}"
+    if bus.get("fatal"):
+        return f"{where}: FAT, {bus['fatal']}"
+    wanted = bus.get("baud_rate")
+    if bus.get("sets_bitrate"):
+        rate = f"{bus['bitrate']} bit/s" if bus.get("bitrate") else "the interface's own rate"
+        return f"{where} at {rate}" + (f" (Baud_rate {wanted} bit/s)" if wanted else "")
+    return f"{where}, whose bit rate the card does not set" + (
+        f" (Baud_rate {wanted} bit/s)" if wanted else "")
+
+
 def _text(raw: Any) -> str:
     return bytes(raw).decode("ascii", "replace").strip(" \0")
 
@@ -146,8 +159,7 @@ def render(board: int, snap: dict[str, Any]) -> Group:
         card.add_row("database", _database_line(state["database"]))
         bus = state["bus"]
         if bus:
-            rate = f" at {bus['bitrate']} bit/s" if bus["bitrate"] else ""
-            card.add_row("CAN bus", f"{bus['interface']} channel {bus['channel']}{rate}")
+            card.add_row("CAN bus", _bus_text(bus))
     card.add_row("HostFlags", _flags_line(snap["host_flags"], HostFlag))
     card.add_row("DevFlags", _flags_line(snap["dev_flags"], DevFlag))
     mbx = snap["mailbox"]

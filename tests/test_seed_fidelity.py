@@ -6,7 +6,10 @@ every bus of ``tests/test_can_task.py``'s back-to-back fixture.
 
 from __future__ import annotations
 
+import contextlib
+import os
 import struct
+import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -17,10 +20,13 @@ from dbm_tools.builder import build_dbm
 from dbm_tools.container import save_dbm
 from dbm_tools.network import load_network
 from dbm_tools.parameters import NdFlag, NodeParameterSet, PdoData
+from dpm.message import Message
+from firmware.card_info import read_card_info
 from host_api import driver as d
+from host_api.board import Board
 from host_api.download import CONFIGURATION_DOWNLOAD, DevDownload, delete_database
 from tests import test_can_task
-from tests.conftest import wait_until
+from tests.conftest import start_card, wait_until
 from tests.test_can_task import Net, candump, exchange
 
 interface = test_can_task.interface
@@ -405,3 +411,43 @@ def test_bmode_0_and_4(make_net: Callable[..., Net], mode: int) -> None:
     net.configure()
     net.wait_operating([1])
     wait_until(lambda: exchange(net, b"\x33" * 8) == b"\x33" * 8, 5, "the echo")
+
+
+def test_baud_rate_reaches_a_controller_that_takes_one(tmp_path: Path) -> None:
+    """Seed 5.2.5.4: Baud_rate fixes the bus's rate. An slcan adapter (python-can's slcan on
+    a pseudo-terminal, read on the other side as the adapter would) is opened at the
+    command line's 125 kbit/s ("S4"); the bus parameters' Baud_rate 2 sets it to 500 kbit/s
+    ("S6"), and the card's facts say so. A rate the adapter lacks (800 kbit/s) is Err_Event
+    56 at 255, and the controller keeps its rate."""
+    adapter, tty = os.openpty()
+    heard = bytearray()
+
+    def listen() -> None:
+        with contextlib.suppress(OSError):
+            while chunk := os.read(adapter, 4096):
+                heard.extend(chunk)
+
+    threading.Thread(target=listen, daemon=True).start()
+    card = start_card(tmp_path, 0, "--interface", "slcan", "--channel", os.ttyname(tty),
+                      "--bitrate", "125000")
+    try:
+        wait_until(lambda: b"S4\r" in heard and b"O\r" in heard, 5, "the adapter opened")
+        with Board(0, tmp_path) as board:
+            for code, f in ((2, 0), (1, 0)):  # 500 kbit/s, then 800 kbit/s
+                bus = bytes([code]) + struct.pack("<HH", 0x80, 0) + bytes(2)
+                answer = board.transact(Message(rx=3, tx=16, b=68, data=bytes([0, 127, 0, 0])
+                                                + bus))
+                assert answer.f == f
+                if code == 2:
+                    wait_until(lambda: b"S6\r" in heard, 5, "the adapter set to 500 kbit/s")
+                    info = read_card_info(tmp_path, 0)
+                    assert info is not None and info["bus"]["bitrate"] == 500000
+            diag = board.diagnostics()
+            assert (diag.bErr_rem_adr, diag.bErr_event) == (255, 56)
+            info = read_card_info(tmp_path, 0)
+            assert info is not None and info["bus"]["bitrate"] == 500000
+            assert info["bus"]["baud_rate"] == 800000
+    finally:
+        card.stop()
+        os.close(adapter)
+        os.close(tty)

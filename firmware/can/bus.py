@@ -39,6 +39,9 @@ PERIODIC_OUTSIDE_INTERFACES = ("socketcan", "shm")
 """Interfaces whose ``send_periodic`` keeps time outside this interpreter: SocketCAN's
 broadcast manager in the kernel, ``shm``'s timer process. Elsewhere it is a thread."""
 ECHOING_INTERFACES = ("udp_multicast",)
+FIXED_RATE_INTERFACES = ("virtual", "shm", "udp_multicast", "socketcan")
+"""Interfaces whose bit rate the card cannot set: the in-memory buses have none, and a
+SocketCAN link's is the kernel's (``ip link set can0 type can bitrate N``, as root)."""
 """Transports that hand a sender its own frames back; the controller drops them."""
 
 
@@ -60,11 +63,16 @@ class CanBus(can.Listener):
                  bitrate: int | None = None, trace: Path | None = None,
                  tap: bytes | None = None, **config: Any) -> None:
         kwargs: dict[str, Any] = dict(config)
-        if bitrate is not None and interface != "virtual":
+        self.takes_bitrate = interface not in FIXED_RATE_INTERFACES
+        """Whether ``set_bitrate`` reaches the controller (the seed's Baud_rate)."""
+        if bitrate is not None and self.takes_bitrate:
             kwargs["bitrate"] = bitrate
         if interface == "shm":
             kwargs.setdefault("timer_process", True)  # see send_periodic
         self.bus = can.Bus(interface=interface, channel=channel, **kwargs)
+        self._open_kwargs = kwargs
+        self.bitrate = bitrate if self.takes_bitrate else None
+        """The rate the controller runs at, where the card sets it; None: not the card's."""
         self.interface = interface
         self.channel = channel
         self.network = _MasterNetwork(self)
@@ -208,6 +216,23 @@ class CanBus(can.Listener):
         total = int(getattr(self.bus, "rx_overflows", 0))
         lost, self._rx_overflows_seen = total - self._rx_overflows_seen, total
         return max(1, lost)
+
+    def set_bitrate(self, bitrate: int) -> None:
+        """Run the controller at ``bitrate``: live where the interface can (slcan's
+        ``set_bitrate``), else by closing it and opening it again. Only where
+        ``takes_bitrate``; raises what python-can raises for a rate it cannot set, and the
+        controller keeps its old one then."""
+        setter = getattr(self.bus, "set_bitrate", None)
+        if callable(setter):
+            setter(bitrate)
+        else:
+            self._notifier.stop()
+            self.bus.shutdown()
+            kwargs = {**self._open_kwargs, "bitrate": bitrate}
+            self.bus = can.Bus(interface=self.interface, channel=self.channel, **kwargs)
+            self._open_kwargs = kwargs
+            self._notifier = can.Notifier(self.bus, [self], timeout=0.1)
+        self.bitrate = bitrate
 
     def shutdown(self) -> None:
         self._notifier.stop()

@@ -25,6 +25,7 @@ from canopen.sdo.client import SdoClient
 
 from dbm_tools.parameters import (
     ACLR_ACTIVE,
+    BAUD_RATES_KBIT,
     MOTOROLA,
     BusParameterSet,
     ExtendedBusParameterSet,
@@ -46,10 +47,12 @@ from dpm.commands import (
     NMT_STOP,
 )
 from dpm.commands import NMT_RESET_NODE as NMT_RESET
+from dpm.errors import ERR_NODE_DEVICE, DeviceEvent
 from dpm.layout import CONN_STATUS, IO_AREA_SIZE
 from dpm.message import Message, Task
 from dpm.task2 import CanState, GlobalBits
-from firmware.can.bus import PERIODIC_OUTSIDE_INTERFACES, CanBus
+from firmware import card_info
+from firmware.can.bus import INTERFACE_ERRORS, PERIODIC_OUTSIDE_INTERFACES, CanBus
 from firmware.can.node import NODE_STOPPED, NodeHandler, State
 from firmware.can.sdo import HostSdoTransfer
 from firmware.frames import (
@@ -254,6 +257,7 @@ class Master:
         """The bus parameter download: (re)start the whole network."""
         restart = self.running
         self.bus_params = params
+        self._apply_baud_rate(BAUD_RATES_KBIT[params.Baud_rate] * 1000)
         self.running = True
         self.cleared = False
         self.halted = not self.image.driving
@@ -266,6 +270,21 @@ class Master:
             handler.attach()
             if not self.halted:
                 self._boot(handler)
+
+    def _apply_baud_rate(self, bitrate: int) -> None:
+        """Seed 5.2.5.4: Baud_rate fixes the bus's rate. The controller takes it where the
+        interface lets the card set one (``CanBus.takes_bitrate``); a rate the interface
+        cannot run is [ours] the seed's device Err_Event 56, "baudrate out of range", and the
+        controller keeps its rate. What runs goes to the card's facts (``cifemu status``)."""
+        bus = self.bus
+        if bus is not None and bus.takes_bitrate and bus.bitrate != bitrate:
+            try:
+                bus.set_bitrate(bitrate)
+                log.info("controller at %d bit/s (Baud_rate)", bitrate)
+            except INTERFACE_ERRORS as exc:
+                log.error("the controller cannot run at %d bit/s: %s", bitrate, exc)
+                self.device.report_error(ERR_NODE_DEVICE, DeviceEvent.BAUD_RATE, GlobalBits.CTRL)
+        card_info.publish(self.device)
 
     def _boot(self, handler: NodeHandler) -> None:
         if handler.state is State.INACTIVE:
