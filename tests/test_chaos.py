@@ -143,8 +143,8 @@ def test_sim_killed_heartbeat_nodes_report_the_seed_errors_and_recover(
     # the restart attempts (1 s pause, 3 s for a boot-up) end in 34 "no response during
     # its configuration"; once read, the same failure again does not raise Nd_diag
     wait_until(lambda: bench.board.diagnostics().bErr_event == 34, 8, "Err_Event 34")
-    for node in HEARTBEAT_NODES:
-        assert bench.diag_bits(node)[6] == 34
+    wait_until(lambda: all(bench.diag_bits(node)[6] == 34 for node in HEARTBEAT_NODES), 3,
+               "Actual_Error 34 at every node (read, so Nd_diag clear)")
     time.sleep(4.5)  # one more restart attempt of every node fails the same way
     assert bench.board.diagnostics().diagnostic() == []
     bench.start_sim()
