@@ -485,12 +485,11 @@ def test_disk_full_gives_a_clear_error_and_keeps_the_old_database(
         flash = private_flash / "board0"
         new = _dbm(tmp_path, BIG_NETWORK)
         if full == "during the download":
-            # after one of the data messages before the last (progress counts bytes sent)
-            fill_at = random.randrange(1, len(new) // 240)
+            # after a data message at a random point, but before the last one
+            fill_from = random.random()
 
             def progress(done: int, total: int) -> None:
-                del total
-                if done // 240 == fill_at:
+                if fill_from * total <= done < total and not (flash / "filler").exists():
                     _fill(flash)
             rc = DevDownload(0, CONFIGURATION_DOWNLOAD, new, progress)
         else:
