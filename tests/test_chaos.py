@@ -30,7 +30,7 @@ from dpm import flags as fl
 from dpm.commands import COM_NODE_DIAG
 from dpm.errors import Drv
 from dpm.message import Message, Task
-from dpm.task2 import CanState, ComDiagnostics, GlobalBits
+from dpm.task2 import CanState, GlobalBits
 from host_api import driver as d
 from host_api.board import Board, CifError
 from host_api.cia309.gateway import Cia309Error, Gateway
@@ -47,7 +47,9 @@ BOARD_TIMEOUT_S = 2.0
 """The host's ``Board`` time-out: each mailbox transaction of a longer operation has it."""
 
 
-def _network(nodes: list[int], bus: str = "", node: str = "heartbeat_ms = 300") -> str:
+def _network(nodes: list[int], bus: str = "", node: str = "heartbeat_ms = 600") -> str:
+    """Heartbeat consumers of 600 ms (producers of 300 ms): lost quickly after a kill, yet
+    not lost by a busy shared machine during a boot."""
     return bus + "".join(f"[[node]]\nid = {n}\n{node}\n" for n in nodes)
 
 
@@ -127,11 +129,10 @@ def test_sim_killed_heartbeat_nodes_report_the_seed_errors_and_recover(
         bench.diag_bits(node)  # the boot's own changes read: Nd_diag clear
     time.sleep(random.uniform(0, 0.3))
     bench.kill_sim()
-    def lost(diag: ComDiagnostics) -> bool:  # node 2's deadline may pass before node 1's
-        return (diag.bErr_event, diag.bErr_rem_adr) == (30, 1) and diag.operating() == []
-
-    wait_until(lambda: lost(bench.board.diagnostics()), 2, "Err_Event 30: the heartbeat lost")
+    wait_until(lambda: bench.board.diagnostics().operating() == [], 3,
+               "every node's heartbeat lost")
     diag = bench.board.diagnostics()
+    assert (diag.bErr_rem_adr, diag.bErr_event) == (1, 30)
     assert diag.bGlobalBits & GlobalBits.NEXC
     assert diag.bCAN_State == CanState.OPERATE  # auto-clear off: the master keeps running
     wait_until(lambda: bench.board.diagnostics().diagnostic() == HEARTBEAT_NODES, 2,
@@ -141,9 +142,9 @@ def test_sim_killed_heartbeat_nodes_report_the_seed_errors_and_recover(
     assert raw[6] in (30, 34)
     # the restart attempts (1 s pause, 3 s for a boot-up) end in 34 "no response during
     # its configuration"; once read, the same failure again does not raise Nd_diag
-    wait_until(lambda: bench.board.diagnostics().bErr_event == 34, 6, "Err_Event 34")
-    for node in HEARTBEAT_NODES:
-        assert bench.diag_bits(node)[6] == 34
+    wait_until(lambda: bench.board.diagnostics().bErr_event == 34, 8, "Err_Event 34")
+    wait_until(lambda: all(bench.diag_bits(node)[6] == 34 for node in HEARTBEAT_NODES), 3,
+               "Actual_Error 34 at every node (read, so Nd_diag clear)")
     time.sleep(4.5)  # one more restart attempt of every node fails the same way
     assert bench.board.diagnostics().diagnostic() == []
     bench.start_sim()
@@ -166,13 +167,15 @@ def test_sim_killed_with_auto_clear_stops_all_until_the_next_start(
     """Auto-clear on: one lost node stops all (ACLR, CLEAR, COM off, 39 for the others,
     seed 4.3); with the nodes back, the host's next start and configuration bring the whole
     network back (a data set downloaded again without a start is f 60: no silent replace)."""
-    bench = make_bench(_network(HEARTBEAT_NODES, bus="[bus]\nauto_clear = true\n"))
+    # the default heartbeat (1 s): under auto-clear one late heartbeat of a busy machine
+    # during the boot would stop the whole network before the test begins
+    bench = make_bench(_network(HEARTBEAT_NODES, bus="[bus]\nauto_clear = true\n", node=""))
     configure_online(bench.board, load_network(bench.network))
     wait_until(lambda: bench.board.diagnostics().operating() == HEARTBEAT_NODES, 10,
                "the nodes in data exchange")
     time.sleep(random.uniform(0, 0.3))
     bench.kill_sim()
-    wait_until(lambda: bench.board.diagnostics().bCAN_State == CanState.CLEAR, 2,
+    wait_until(lambda: bench.board.diagnostics().bCAN_State == CanState.CLEAR, 3,
                "CAN_state CLEAR")
     diag = bench.board.diagnostics()
     assert diag.bGlobalBits & GlobalBits.ACLR and diag.operating() == []
@@ -483,11 +486,11 @@ def test_disk_full_gives_a_clear_error_and_keeps_the_old_database(
         flash = private_flash / "board0"
         new = _dbm(tmp_path, BIG_NETWORK)
         if full == "during the download":
-            fill_at = random.randrange(len(new) // 240)
+            # after a data message at a random point, but before the last one
+            fill_from = random.random()
 
             def progress(done: int, total: int) -> None:
-                del total
-                if done // 240 == fill_at:
+                if fill_from * total <= done < total and not (flash / "filler").exists():
                     _fill(flash)
             rc = DevDownload(0, CONFIGURATION_DOWNLOAD, new, progress)
         else:

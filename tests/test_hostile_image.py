@@ -16,11 +16,13 @@ import mmap
 import os
 import random
 import time
+import uuid
 from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
 
+from dbm_tools.network import load_network
 from dpm import flags as fl
 from dpm.layout import (
     DEV_FLAGS,
@@ -35,13 +37,17 @@ from dpm.layout import (
 from dpm.message import MSG_MAX_SIZE, Message, Task
 from host_api import driver
 from host_api.board import Board
-from tests.conftest import Card, start_card
+from host_api.driver import COLDSTART
+from host_api.online import configure_online
+from tests.conftest import Card, start_card, wait_until
+from tests.test_can_task import start_sim
 
 SOAK_SECONDS = max(1.0, float(os.environ.get("CIFEMU_SOAK_SECONDS", "5")))
 COM_SHARED_MEMORY = 17
 MSG_B = DEV_MBX + 6
 STORM_BITS = (fl.HOSTACK, fl.DEVCOM, fl.PDCOM, fl.STATEACK, fl.SPCCOM, fl.NOTREADY)
 """Every DevFlags bit but RESET and INIT (a start rewrites the parameters, by design)."""
+NETWORK_NODES = [1, 2, 3]
 
 
 @pytest.fixture
@@ -173,3 +179,40 @@ def test_random_writes_to_every_host_area_never_crash_the_card(hostile_card: Car
     finally:
         while driver.DevCloseDriver() == 0:
             pass
+
+
+def test_random_writes_while_the_bus_runs_then_a_host_restarts_it(tmp_path: Path) -> None:
+    """The same writer against a card exchanging process data with simulated nodes: the
+    random connection-status bits and NOTREADY toggles stop and restart nodes and the bus
+    under it, and its random messages reach the nodes (layer-2 frames, NMT, SDO). Then the
+    nodes are powered anew (the writer may have reconfigured them through the card, as it
+    may: those are services a host has), and a well-formed host cold-starts the card (the
+    writer left garbage in the parameters a warm start would take), configures it and
+    exchanges data again."""
+    network = tmp_path / "network.toml"
+    network.write_text("".join(f"[[node]]\nid = {n}\n" for n in NETWORK_NODES))
+    channel = f"hostile-{uuid.uuid4().hex}"
+    card = start_card(tmp_path, 0, "--interface", "shm", "--channel", channel)
+    sim = start_sim(network, "shm", channel)
+    try:
+        with Board(0, tmp_path, timeout=5000) as board:
+            configure_online(board, load_network(network))
+            wait_until(lambda: board.diagnostics().operating() == NETWORK_NODES, 10,
+                       "the nodes in data exchange")
+        counts = _random_writes(card, SOAK_SECONDS, seed=1313)
+        assert card.proc.poll() is None, "the firmware died of a host's writes"
+        assert counts["writes"] > 100 and counts["storms"] > 100
+        sim.terminate()
+        sim.wait(timeout=10)
+        sim = start_sim(network, "shm", channel)
+        with Board(0, tmp_path, timeout=5000) as board:
+            board.reset(COLDSTART)
+            configure_online(board, load_network(network))
+            wait_until(lambda: board.diagnostics().operating() == NETWORK_NODES, 10,
+                       "the nodes in data exchange again")
+            wait_until(lambda: board.exchange_io(b"\x77", receive_size=1) == b"\x77", 3,
+                       "node 1 to echo the outputs")
+    finally:
+        card.stop()
+        sim.terminate()
+        sim.wait(timeout=10)

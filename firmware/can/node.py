@@ -232,6 +232,12 @@ class NodeHandler:
         try:
             channel = self.master.sdo_client(self.address)
             with channel.lock:
+                if generation != self._generation:
+                    # A newer start of the node came while this one waited for the channel:
+                    # that one boots it. Without this, a host toggling NOTREADY queued boot
+                    # after stale boot (up to 3 s each), and a new configuration waited
+                    # behind all of them.
+                    return
                 self._sdo_length_error = False
                 self._boot_steps(skip, channel.sdo, reset_sent)
         except SdoAbortedError as exc:
@@ -272,11 +278,11 @@ class NodeHandler:
         self.state = State.OPERATING
         if self.supervised:
             self.diag.status |= GUARD_ACTIVE_BIT
-        self.master.node_booted(self)
-        if recovered:
+        if recovered:  # before Nd_state, as above
             self.note_diag()
         else:  # [ours] a first boot is the normal state (seed 4.3: Nd_state 1, Nd_diag 0)
             self._diag_seen = (self.diag.status, self.diag.actual_error)
+        self.master.node_booted(self)
         if not skip & ConfigNdState.TXRXPDO:
             self.send_outputs(force=True)
             for entry in self._polled:
@@ -423,8 +429,8 @@ class NodeHandler:
         if event == GUARDING_FAILED:  # guarding or heartbeat: the node no longer answers
             self.diag.status |= NO_RESPONSE_BIT
         self._retry_at = time.monotonic() + RETRY_DELAY
+        self.note_diag()  # before Err_Event: a host that sees the event sees Nd_diag too
         self.master.node_failed(self, event)
-        self.note_diag()
 
     def note_diag(self) -> None:
         """Nd_diag: set when Nodestatus_1 or Actual_Error differ from what the host last
