@@ -25,7 +25,7 @@ bench: $(STAMP)
 
 # The SocketCAN tests (marker vcan) inside a Linux with vcan0: User-Mode Linux through
 # tools/vcan-vm where this kernel has no SocketCAN, the host itself where it has vcan0.
-VCAN_VM := tools/vcan-vm --vcan 2
+VCAN_VM := tools/vcan-vm
 VCAN_TIMEOUT ?= 1200
 
 test-vcan: $(STAMP)
