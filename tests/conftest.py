@@ -102,8 +102,8 @@ def pytest_configure(config: pytest.Config) -> None:
 
 
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
-    """Marks every test that runs on SocketCAN ``vcan``, so that ``-m vcan`` selects them:
-    the ``socketcan`` variants of the back-to-back fixtures, and whatever a module marks."""
+    """Marks the ``socketcan`` variants of the back-to-back fixtures ``vcan``, so that
+    ``-m vcan`` selects them (``test_vcan_tools.py``, SocketCAN only, marks itself)."""
     for item in items:
         callspec = getattr(item, "callspec", None)
         if callspec is not None and "socketcan" in callspec.params.values():
