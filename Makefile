@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: test demo bench lint clean
+.PHONY: test demo bench lint clean test-vcan bench-vcan
 
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PY) -m venv $(VENV)
@@ -22,6 +22,20 @@ demo: $(STAMP)
 
 bench: $(STAMP)
 	$(BIN)/python -m bench
+
+# The SocketCAN tests (marker vcan) inside a Linux with vcan0: User-Mode Linux through
+# tools/vcan-vm where this kernel has no SocketCAN, the host itself where it has vcan0.
+VCAN_VM := tools/vcan-vm
+VCAN_TIMEOUT ?= 1200
+
+test-vcan: $(STAMP)
+	$(VCAN_VM) --timeout $(VCAN_TIMEOUT) -- env CIFEMU_REQUIRE_SOCKETCAN=1 \
+		$(BIN)/python -m pytest -q -m vcan
+
+# The SocketCAN figures (bench.vcan: vcan0, the broadcast manager, the card on them).
+bench-vcan: $(STAMP)
+	$(VCAN_VM) --timeout $(VCAN_TIMEOUT) -- $(BIN)/python -m bench.vcan
+
 
 lint: $(STAMP)
 	$(BIN)/ruff check .

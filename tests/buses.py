@@ -23,17 +23,22 @@ import pytest
 SOCKETCAN_CHANNEL = "vcan0"
 
 
+HOW_TO_RUN = (f"run it with `make test-vcan` (a User-Mode Linux through tools/vcan-vm), or "
+              f"on a Linux with vcan after `modprobe vcan; ip link add dev {SOCKETCAN_CHANNEL} "
+              f"type vcan; ip link set up {SOCKETCAN_CHANNEL}`")
+"""What a skipped SocketCAN test tells its user."""
+
+
 def socketcan_missing() -> str | None:
     """Why SocketCAN tests cannot run on this machine, or None when they can."""
     if not hasattr(socket, "AF_CAN"):
-        return "this Python has no AF_CAN (SocketCAN is Linux only)"
+        return f"this Python has no AF_CAN (SocketCAN is Linux only): {HOW_TO_RUN}"
     try:
         with socket.socket(socket.AF_CAN, socket.SOCK_RAW, socket.CAN_RAW) as probe:
             probe.bind((SOCKETCAN_CHANNEL,))
     except OSError as exc:
-        return (f"SocketCAN channel {SOCKETCAN_CHANNEL} is unavailable ({exc.strerror}); "
-                f"create it with: ip link add dev {SOCKETCAN_CHANNEL} type vcan && "
-                f"ip link set up {SOCKETCAN_CHANNEL}")
+        return (f"SocketCAN channel {SOCKETCAN_CHANNEL} is unavailable ({exc.strerror}): "
+                f"{HOW_TO_RUN}")
     return None
 
 

@@ -17,6 +17,9 @@ import pytest
 from host_api import driver
 from host_api.liveness import firmware_liveness
 
+REQUIRE_SOCKETCAN = "CIFEMU_REQUIRE_SOCKETCAN"
+"""Set by ``make test-vcan``: there a SocketCAN test that skips is a failure."""
+
 # test_sim.py loads tests.buses as a plugin, but test_can_task.py imports it first:
 # registered here, it is rewritten on that first import, as its plugin use expects.
 pytest.register_assert_rewrite("tests.buses")
@@ -93,6 +96,32 @@ def start_card(directory: Path, board: int = 0, *extra: str) -> Card:
             card.stop()
             raise RuntimeError("firmware did not become READY")
         time.sleep(0.005)
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    config.addinivalue_line("markers", "vcan: needs SocketCAN with vcan0 (make test-vcan)")
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    """Marks the ``socketcan`` variants of the back-to-back fixtures ``vcan``, so that
+    ``-m vcan`` selects them (``test_vcan_tools.py``, SocketCAN only, marks itself)."""
+    for item in items:
+        callspec = getattr(item, "callspec", None)
+        if callspec is not None and "socketcan" in callspec.params.values():
+            item.add_marker(pytest.mark.vcan)
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_makereport(item: pytest.Item, call: pytest.CallInfo[None]
+                              ) -> Iterator[None]:
+    """Under ``make test-vcan`` a skipped ``vcan`` test fails: the run exists to prove them."""
+    del call
+    outcome = yield
+    report: pytest.TestReport = outcome.get_result()  # type: ignore[attr-defined]
+    if (report.skipped and os.environ.get(REQUIRE_SOCKETCAN)
+            and item.get_closest_marker("vcan") is not None):
+        report.outcome = "failed"
+        report.longrepr = f"skipped under {REQUIRE_SOCKETCAN}: {report.longrepr}"
 
 
 @pytest.fixture(autouse=True)

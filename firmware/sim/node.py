@@ -270,9 +270,11 @@ class SimulatedNode(LocalNode):
 
     def _boot(self) -> None:
         sim = self.description.sim
+        # PRE-OPERATIONAL before the boot-up is out: on SocketCAN a master hears it at
+        # once and may look at the node's state (or send it a request) right away.
+        self.nmt.enter(PRE_OPERATIONAL)
         if not sim.no_bootup:
             self.network.send_message(0x700 + self.node_id, b"\x00")
-        self.nmt.enter(PRE_OPERATIONAL)
         log.info("node %d: boot-up, PRE-OPERATIONAL", self.node_id)
         self.pdo_engine.configure()
         self.nmt.start_heartbeat(self.value(0x1017, 0, 0))
