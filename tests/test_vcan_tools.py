@@ -236,7 +236,9 @@ def test_candump_sees_the_cards_nmt_sdo_pdo_guarding_and_the_nodes_emcy(
 def test_sync_comes_from_the_kernels_broadcast_manager(bench: Callable[..., Bench]) -> None:
     """The card hands SYNC to the kernel (SocketCAN's broadcast manager): candump's time
     stamps show the period, and SYNC goes on while the card's process is stopped."""
-    b = bench("[bus]\nsync_period_ms = 10\n[[node]]\nid = 1\n")
+    b = bench("[bus]\nsync_period_ms = 10\n[[node]]\nid = 1\n"  # a synchronous RPDO: the
+              '[[node.pdo]]\ndirection = "output"\ncob_id = 0x201\ntransmission = 1\n'
+              '[[node.pdo]]\ndirection = "input"\ncob_id = 0x181\n')  # card sends SYNC
     b.wait_operating([1])
     syncs = b.candump.wait(0x080, "50 SYNCs", count=50)
     assert all(f.data == b"" and not f.remote for f in syncs)
