@@ -40,7 +40,8 @@ def test_status_reports_a_killed_firmware_as_dead_with_its_last_pid(tmp_path: Pa
     assert alive.returncode == 0
     assert json.loads(alive.stdout)["health"] == {
         "alive": True, "pid": card.proc.pid, "database": None,
-        "bus": {"interface": "virtual", "channel": "cifemu", "bitrate": None}}
+        "bus": {"interface": "virtual", "channel": "cifemu", "bitrate": None,
+                "sets_bitrate": False, "baud_rate": None, "fatal": None}}
     kill(card)
     assert card.map()[0x1FFE] & 0x80  # the image still says READY
     text = status(tmp_path)

@@ -22,6 +22,7 @@
 #include <sys/file.h>
 #include <sys/mman.h>
 #include <sys/stat.h>
+#include <sys/sysmacros.h>
 #include <time.h>
 #include <unistd.h>
 
@@ -171,6 +172,44 @@ void cifemu_txn_expect(cifemu_board *b, int delta) {
 
 static void image_path(char *out, size_t size, unsigned short number) {
   snprintf(out, size, "%s/board%u.dpm", directory, (unsigned)number);
+}
+
+/* [ours] Whether a process holds board `number`'s firmware lock (flock on
+ * board<N>.firmware.lock), as host_api.liveness asks: a killed firmware leaves READY set
+ * in the image, so only its lock tells. Read from /proc/locks, since a probing flock
+ * could make a firmware starting in that instant refuse itself; without /proc, a shared
+ * non-blocking flock that fails means a holder. */
+static int firmware_alive(unsigned short number) {
+  char path[PATH_MAX + 32], line[256], device[64];
+  struct stat st;
+  FILE *locks;
+  int alive = 0, fd;
+  snprintf(path, sizeof path, "%s/board%u.firmware.lock", directory, (unsigned)number);
+  if (stat(path, &st) != 0) return 0;
+  snprintf(device, sizeof device, "%02x:%02x:%lu", major(st.st_dev), minor(st.st_dev),
+           (unsigned long)st.st_ino);
+  locks = fopen("/proc/locks", "r");
+  if (locks != NULL) {
+    while (!alive && fgets(line, sizeof line, locks) != NULL) {
+      char kind[16], where[64];
+      if (strstr(line, "->") != NULL) continue; /* a waiter, not a holder */
+      if (sscanf(line, "%*s %15s %*s %*s %*s %63s", kind, where) == 2 &&
+          strcmp(kind, "FLOCK") == 0 && strcmp(where, device) == 0)
+        alive = 1;
+    }
+    fclose(locks);
+    return alive;
+  }
+  fd = open(path, O_RDONLY | O_CLOEXEC);
+  if (fd < 0) return 0;
+  if (flock(fd, LOCK_SH | LOCK_NB) != 0) alive = errno == EWOULDBLOCK;
+  close(fd);
+  return alive;
+}
+
+/* A wait's time-out code, or DRV_DEV_NOT_READY when the firmware died meanwhile. */
+static short timed_out(const cifemu_board *b, short code) {
+  return firmware_alive(b->number) ? code : DRV_DEV_NOT_READY;
 }
 
 static void board_close(cifemu_board *b) {
@@ -355,6 +394,8 @@ CIF_API short DevInitBoard(unsigned short usDevNumber) {
     goto out;
   }
   rc = check_card(mm);
+  if (rc == DRV_NO_ERROR && !firmware_alive(usDevNumber))
+    rc = DRV_DEV_NOT_READY; /* [ours] READY left behind by a killed firmware */
   if (rc != DRV_NO_ERROR) {
     munmap(mm, DPM_SIZE);
     goto out;
@@ -418,7 +459,7 @@ CIF_API short DevPutMessage(unsigned short usDevNumber, MSG_STRUC *ptMessage,
     return DRV_CMD_ACTIVE;
   }
   if (!wait_for(b, cond_free, CH_DEV_MBX, ulTimeout)) {
-    rc = ulTimeout == 0 ? DRV_DEV_MAILBOX_FULL : DRV_DEV_PUT_TIMEOUT;
+    rc = ulTimeout == 0 ? DRV_DEV_MAILBOX_FULL : timed_out(b, DRV_DEV_PUT_TIMEOUT);
   } else {
     /* a message with RCS_NAK_MSK is answered only when it fails: none is awaited */
     if (!(ptMessage->e & 0x02)) cifemu_txn_expect(b, 1);
@@ -449,7 +490,7 @@ CIF_API short DevGetMessage(unsigned short usDevNumber, unsigned short usSize,
     return DRV_CMD_ACTIVE;
   }
   if (!wait_for(b, cond_pending, CH_HOST_MBX, ulTimeout)) {
-    rc = ulTimeout == 0 ? DRV_DEV_GET_NO_MESSAGE : DRV_DEV_GET_TIMEOUT;
+    rc = ulTimeout == 0 ? DRV_DEV_GET_NO_MESSAGE : timed_out(b, DRV_DEV_GET_TIMEOUT);
     /* [ours] an answer that did not come in time frees the board for other hosts */
     if (ulTimeout != 0) cifemu_txn_expect(b, 0);
   } else {
@@ -534,7 +575,7 @@ static short exchange(cifemu_board *b, unsigned mode, unsigned short usSendOffse
       change_dev_flags(b, 0, 0, FL_PDCOM, 1);
       rc = DRV_NO_ERROR;
     } else {
-      rc = ulTimeout == 0 ? DRV_DEV_EXCHANGE_FAILED : DRV_DEV_EXCHANGE_TIMEOUT;
+      rc = ulTimeout == 0 ? DRV_DEV_EXCHANGE_FAILED : timed_out(b, DRV_DEV_EXCHANGE_TIMEOUT);
     }
     cifemu_chanlock_release(&b->io_lock);
   }
@@ -633,10 +674,10 @@ CIF_API short DevReset(unsigned short usDevNumber, unsigned short usMode, unsign
   if (ulTimeout > 2000000000UL) ulTimeout = 2000000000UL;
   change_dev_flags(b, request, 0, 0, 1);
   deadline = cifemu_now_ns() + (long long)ulTimeout * 1000000LL;
-  if (!wait_for(b, cond_reset_done, 0, ulTimeout)) return DRV_DEV_RESET_TIMEOUT;
+  if (!wait_for(b, cond_reset_done, 0, ulTimeout)) return timed_out(b, DRV_DEV_RESET_TIMEOUT);
   remaining = (deadline - cifemu_now_ns()) / 1000000LL;
   if (!wait_for(b, cond_ready, 0, remaining > 0 ? (unsigned long)remaining : 0UL))
-    return DRV_DEV_RESET_TIMEOUT;
+    return timed_out(b, DRV_DEV_RESET_TIMEOUT);
   return DRV_NO_ERROR;
 }
 
