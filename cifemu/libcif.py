@@ -1,10 +1,10 @@
-"""``cifemu libcif``: compiler and linker flags for C programs, and libcif loaded into Python.
+"""cifemu libcif: compiler and linker flags for C programs, and libcif loaded into Python.
 
   cifemu libcif --cflags --libs     flags that compile a legacy program against libcif:
                                     cc app.c $(cifemu libcif --cflags --libs)
 
-The library is built from ``libcif/`` of this clone (``make -C libcif``) when it is
-missing. ``load()`` gives the shared library to Python (ctypes) with every ``Dev*``
+The library is built from libcif/ of this clone (make -C libcif) when it is
+missing. load() gives the shared library to Python (ctypes) with every Dev*
 function's argument and return types set: the tests run the driver behaviour tests
 through it, and the benchmarks measure it beside the Python host.
 """

@@ -1,4 +1,4 @@
-"""``cifemu legacy``: run an unchanged legacy binary against the emulated card.
+"""cifemu legacy: run an unchanged legacy binary against the emulated card.
 
   cifemu legacy [--board-dir DIR] -- PROGRAM ARGS...
 
