@@ -154,3 +154,18 @@ def test_each_package_facade_gives_what_it_lists_and_the_distributions_version()
         missing = [item for item in package.__all__ if getattr(package, item, None) is None]
         assert not missing, f"{name} lists {missing} but has no such names"
         assert package.__version__ == expected, name
+
+
+def test_the_readme_names_every_modules_job() -> None:
+    """README's architecture table lists every module of every package with its one job."""
+    text = (ROOT / "README.md").read_text()
+    rows = {line.split("`", 2)[1].rstrip("/"): line for line in text.splitlines()
+            if line.startswith("| `") and "`: " in line}
+    missing = []
+    for name, path in module_names(ROOT, PACKAGES).items():
+        if path.name in ("__init__.py", "__main__.py"):
+            continue
+        package, module = str(path.parent.relative_to(ROOT)), path.stem
+        if f"`{module}`: " not in rows.get(package, ""):
+            missing.append(name)
+    assert not missing, f"modules without their job in README's architecture section: {missing}"
