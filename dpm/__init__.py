@@ -5,7 +5,8 @@ dtypes), ``flags`` (HostFlags/DevFlags and the handshakes), ``message`` (MSG_STR
 telegram header, task numbers), ``commands`` (command codes and message sizes),
 ``errors`` (driver codes, ``msg.f`` and Err_Event numbers and texts), ``task2``
 (Task2Parameter/Task2State), ``image`` (the image file) and ``doorbell`` (the event
-channel). Every other package takes the card's numbers from here.
+channel). Every other package takes the card's numbers from here. ``DpmError`` is the root of
+what this package raises.
 
 The names below are the ones nearly every user of the card needs; the rest are imported
 from their modules.
@@ -14,7 +15,7 @@ from their modules.
 from importlib.metadata import version
 
 from dpm.commands import Com, LoadMode, Nmt, Plc, Rcs
-from dpm.errors import Drv
+from dpm.errors import DpmError, Drv
 from dpm.flags import DevFlag, HostFlag
 from dpm.message import Ext, Message, MessageError, Task, TelegramHeader, Tfc
 from dpm.task2 import ComDiagnostics, ComPlcParameter
@@ -26,6 +27,7 @@ __all__ = [
     "ComDiagnostics",
     "ComPlcParameter",
     "DevFlag",
+    "DpmError",
     "Drv",
     "Ext",
     "HostFlag",

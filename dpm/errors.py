@@ -12,6 +12,11 @@ from __future__ import annotations
 from enum import IntEnum
 
 
+class DpmError(Exception):
+    """The root of what dpm raises: ``MessageError`` (bytes that are no message of the
+    card's) and ``BoardBusyError`` (a board another firmware serves)."""
+
+
 class Drv(IntEnum):
     """Driver return codes (CIFUSER.H)."""
 

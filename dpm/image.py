@@ -13,6 +13,7 @@ import mmap
 import os
 from pathlib import Path
 
+from dpm.errors import DpmError
 from dpm.layout import DPM_SIZE
 
 MAX_DEV_BOARDS = 4
@@ -35,7 +36,7 @@ def lock_path(directory: Path, board: int, what: str = "firmware") -> Path:
     return directory / f"board{board}.{what}.lock"
 
 
-class BoardBusyError(RuntimeError):
+class BoardBusyError(DpmError, RuntimeError):
     """Another firmware already serves this board."""
 
 

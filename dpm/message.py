@@ -11,6 +11,7 @@ import struct
 from dataclasses import dataclass, field
 from enum import IntEnum
 
+from dpm.errors import DpmError
 from dpm.layout import MSG_DATA_SIZE, MSG_HEADER_SIZE
 
 MSG_MAX_SIZE = MSG_HEADER_SIZE + MSG_DATA_SIZE
@@ -61,7 +62,7 @@ TDT_INTEL = 0x80
 """Bit of data_type selecting Intel byte order."""
 
 
-class MessageError(ValueError):
+class MessageError(DpmError, ValueError):
     """A byte string that is not a well-formed message."""
 
 

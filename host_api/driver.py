@@ -127,8 +127,7 @@ class ComState:
 
 
 _driver = registry
-"""This module's name for the registry. host_api.cia309.gateway still reads a board's
-transaction lock through it; the public way is ``host_api.registry.transaction_lock``."""
+"""This module's name for the registry (the public API is ``host_api.registry``)."""
 
 
 # --- driver and board ------------------------------------------------------------------

@@ -29,6 +29,7 @@ from dpm.commands import (
 )
 from dpm.message import Message, MessageError, Task
 from host_api.board import Board
+from host_api.errors import HostApiError
 
 Transact = Callable[[int, bytes], Message]
 """Sends one CAN-task request (msg.b and its data) and returns the card's answer to it."""
@@ -37,7 +38,7 @@ SEQUENCE_TIMEOUT_MS = 1000
 """[ours] COM_Start_Seq's Timeout: the longest pause between two messages of a sequence."""
 
 
-class ConfigurationError(RuntimeError):
+class ConfigurationError(HostApiError, RuntimeError):
     """The CAN task refused a data set: ``f`` is the seed's msg.f number."""
 
     def __init__(self, what: str, f: int) -> None:

@@ -70,6 +70,7 @@ from host_api.cia309.model import (
 )
 from host_api.cia309.pdo import PDO_BYTES, Pdo
 from host_api.online import download_data_set
+from host_api.registry import transaction_lock
 
 log = logging.getLogger(__name__)
 
@@ -324,7 +325,9 @@ class Link:
             self.board = _LinkBoard(number, directory).open()
         except CifError as exc:
             raise driver_error(exc.code, f"board {number}") from exc
-        self._transaction = d._driver.boards[number].transaction_lock
+        lock = transaction_lock(number)
+        assert lock is not None  # the board was opened just now
+        self._transaction = lock
         self._holding = self._transaction.acquire(TRANSACTION_LOCK_WAIT_S)
         if not self._holding:
             self.board.close()
