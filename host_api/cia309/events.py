@@ -19,17 +19,17 @@ from collections.abc import Callable, Iterator
 from dataclasses import replace
 from types import TracebackType
 
+from dpm.com import NodeDiagnosis, node_diag_request
 from dpm.commands import (
     COM_NODE_DIAG,
     ERR_EVENT_GUARD_SEQUENCE,
     ERR_EVENT_GUARDING_FAILED,
     ERR_EVENT_LEFT_OPERATIONAL,
     ERR_EVENT_NODE_STOPPED,
-    NODE_DIAG_EMCY_ENTRY,
     NODE_DIAG_SIZE,
 )
 from dpm.errors import Drv
-from dpm.message import TelegramHeader, Tfc
+from dpm.message import MessageError, TelegramHeader
 from dpm.task2 import CanState, ComDiagnostics
 from host_api import driver as d
 from host_api.cia309.link import DEFAULT_ANSWER_TIMEOUT, Link
@@ -255,14 +255,17 @@ class Monitor:
     def read_diagnosis(self, node: int, timeout: float, *, operating: bool) -> int:
         """COM_Node_Diag: EMCYs into the history and out as events, a failure out as an
         error control event; returns the node's Actual_Error."""
-        head = TelegramHeader(node, 0, 0, 0, 0, 5, Tfc.READ).encode()
-        answer = self.link.command(COM_NODE_DIAG, head, timeout, "COM_Node_Diag")
-        raw = TelegramHeader.decode(answer.data).payload.ljust(NODE_DIAG_SIZE, b"\0")
-        node_state, actual_error, entries = raw[5], raw[6], raw[7]
+        answer = self.link.command(COM_NODE_DIAG, node_diag_request(node), timeout,
+                                   "COM_Node_Diag")
+        try:
+            diagnosis = NodeDiagnosis.decode(
+                TelegramHeader.decode(answer.data).payload.ljust(NODE_DIAG_SIZE, b"\0"))
+        except MessageError as exc:
+            raise Cia309Error(ErrorCode.INTERNAL_STATE,
+                              f"COM_Node_Diag of node {node}: {exc}") from exc
+        node_state, actual_error = diagnosis.node_state, diagnosis.actual_error
         history = self.emcy_history.setdefault(node, deque(maxlen=EMCY_HISTORY))
-        size = NODE_DIAG_EMCY_ENTRY
-        for index in range(min(entries, (NODE_DIAG_SIZE - 8) // size)):
-            entry = raw[8 + size * index : 8 + size * (index + 1)]
+        for entry in diagnosis.emcy:
             event = EmergencyEvent(self.network, node, int.from_bytes(entry[:2], "little"),
                                    entry[2], bytes(entry[3:8]))
             history.append(event)

@@ -29,6 +29,7 @@ from types import TracebackType
 
 from dbm_tools.errors import DbmError
 from dbm_tools.parameters import NdFlag, NodeParameterSet
+from dpm.com import UploadRequest
 from dpm.commands import (
     AREA_BUS,
     COM_BOOTUP_FORWARDING,
@@ -608,7 +609,7 @@ class Link:
     def upload_area(self, area: int, timeout: float) -> bytes | None:
         """A data set as the card holds it (COM_Upload); None when it has none (f 20)."""
         def chunk(offset: int) -> bytes | None:
-            request = bytes([0, area]) + struct.pack("<H", offset) + bytes([MAX_LEN_DATA_UNIT])
+            request = UploadRequest(area, MAX_LEN_DATA_UNIT, offset).encode()
             answer = self.request(COM_UPLOAD, request, timeout)[-1]
             if answer.f == F_LOCAL_RESOURCE:
                 return None
