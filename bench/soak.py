@@ -47,7 +47,14 @@ from bench.can.card import (
 from bench.can.echo import DRAIN_S, U64, echo_window
 from bench.can.sdo import sdo_message
 from bench.can.throughput import THROUGHPUT_NODES
-from bench.common import emit, machine_info, percentile, progress, source_fingerprint
+from bench.common import (
+    emit,
+    help_text,
+    machine_info,
+    percentile,
+    progress,
+    source_fingerprint,
+)
 from dbm_tools.network import parse_network
 from dpm.task2 import ComDiagnostics
 from host_api.driver import DevGetTaskState
@@ -394,7 +401,7 @@ def _report(minutes: int, width: float, pdo: list[dict[str, Any]],
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m bench soak", description=__doc__)
+    parser = argparse.ArgumentParser(prog="python -m bench soak", description=help_text(__doc__))
     parser.add_argument("--minutes", type=int, default=DEFAULT_MINUTES,
                         help=f"minutes of load (default {DEFAULT_MINUTES})")
     args = parser.parse_args(argv)
