@@ -33,29 +33,26 @@ from typing import Any
 import can
 import numpy as np
 
-from bench.can import (
+from bench.can.card import (
     SYNC_COB_ID,
-    SYNC_NODES,
-    SYNC_SECONDS,
-    SYNC_SETTLE_S,
     SimCard,
     configure,
-    echo_window,
     io_offsets,
     network_toml,
     select_uncontrolled,
-    sync_stats,
     wait_operating,
 )
+from bench.can.echo import echo_window
+from bench.can.sync import SYNC_NODES, SYNC_SECONDS, SYNC_SETTLE_S, sync_stats
 from bench.common import (
     STARTUP_TIMEOUT,
-    _scratch_root,
-    _stop,
-    _wait_ready,
     emit,
     latency_stats,
     machine_info,
     progress,
+    scratch_root,
+    stop_process,
+    wait_ready,
 )
 from dbm_tools.network import parse_network
 from dpm.image import image_path
@@ -151,7 +148,7 @@ def card_sync() -> dict[str, Any]:
     text = network_toml(nodes, sync_period_ms=CARD_SYNC_MS)
     network = parse_network(text)
     out_offset, in_offset = io_offsets(network)
-    with tempfile.TemporaryDirectory(prefix="cifemu-bench-vcan-", dir=_scratch_root()) as tmp:
+    with tempfile.TemporaryDirectory(prefix="cifemu-bench-vcan-", dir=scratch_root()) as tmp:
         directory = Path(tmp)
         toml = directory / "network.toml"
         toml.write_text(text)
@@ -160,7 +157,7 @@ def card_sync() -> dict[str, Any]:
                                stdin=subprocess.DEVNULL, stdout=subprocess.PIPE)
         assert sim.stdout is not None
         if not sim.stdout.readline().startswith(b"simulating"):
-            _stop(sim)
+            stop_process(sim)
             raise RuntimeError("cifemu sim did not start")
         threading.Thread(target=sim.stdout.read, daemon=True).start()
         stderr_path = directory / "firmware.stderr"
@@ -173,7 +170,7 @@ def card_sync() -> dict[str, Any]:
         card = SimCard(directory, proc, None, stderr_path, sim=sim)
         receiver = bus()
         try:
-            _wait_ready(proc, image_path(directory, BOARD), STARTUP_TIMEOUT)
+            wait_ready(proc, image_path(directory, BOARD), STARTUP_TIMEOUT)
             card.board = Board(BOARD, directory, timeout=5000).open()
             select_uncontrolled(card.board)
             configure(card, network)

@@ -32,6 +32,7 @@ from dbm_tools.network import GENERIC_DEVICE_TYPE, Network
 from dbm_tools.parameters import NodeParameterSet
 from dbm_tools.tables import NODES
 from dpm.image import image_path
+from dpm.layout import IO_AREA_SIZE
 from dpm.task2 import BMODE_TO_EXCHANGE_MODE, ComDiagnostics, ComPlcParameter, PlcMode
 from host_api.board import Board
 from host_api.driver import (
@@ -159,13 +160,24 @@ def board_of(card: SimCard) -> Board:
 
 def network_toml(nodes: Sequence[int], *, sync_period_ms: int = 0, eds: Path | None = None,
                  handshake: str = "uncontrolled") -> str:
-    """A network description of generic nodes (or nodes of ``eds``)."""
+    """A network description of generic nodes (or nodes of ``eds``).
+
+    With a SYNC period the first node also gets a synchronous RPDO of one byte (type 1, at
+    the process image's last output byte, so no other node's offsets move): the card sends
+    SYNC only while a node uses a SYNC-controlled PDO (seed 4.2), and the generic nodes'
+    PDOs are event-driven. The node has no such RPDO and ignores the frame.
+    """
     lines = ["[bus]", f"sync_period_ms = {sync_period_ms}", "host_watchdog_ms = 0",
              f'handshake = "{handshake}"']
-    for node in nodes:
+    for number, node in enumerate(nodes):
         lines += ["[[node]]", f"id = {node}"]
         if eds is not None:
             lines.append(f'eds = "{eds}"')
+        elif sync_period_ms and number == 0:
+            lines += ["[[node.pdo]]", 'direction = "output"', f"cob_id = {0x200 + node}",
+                      "[[node.pdo]]", 'direction = "input"', f"cob_id = {0x180 + node}",
+                      "[[node.pdo]]", 'direction = "output"', f"cob_id = {0x300 + node}",
+                      "length = 1", "transmission = 1", f"offset = {IO_AREA_SIZE - 1}"]
     return "\n".join(lines) + "\n"
 
 
