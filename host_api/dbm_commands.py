@@ -24,7 +24,7 @@ from dbm_tools.validate import check_dbm
 from dpm.errors import drv_name, drv_text
 from dpm.flags import COM, READY, RUN
 from dpm.image import DEFAULT_DPM_DIR, MAX_DEV_BOARDS
-from host_api.cli_output import fail, print_json, quiet_broken_pipe
+from host_api.cli_output import fail, print_json, quiet_broken_pipe, run_guarded
 from host_api.download import (
     CONFIGURATION_DOWNLOAD,
     DevDownload,
@@ -273,4 +273,4 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m dbm_tools", description=DESCRIPTION,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     add_arguments(parser)
-    return run(parser.parse_args(argv))
+    return run_guarded(run, parser.parse_args(argv))  # `| head` ends it quietly
