@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: test demo bench lint clean test-vcan bench-vcan
+.PHONY: test demo bench lint clean test-vcan bench-vcan test-soak
 
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PY) -m venv $(VENV)
@@ -27,6 +27,12 @@ bench: $(STAMP)
 # tools/vcan-vm where this kernel has no SocketCAN, the host itself where it has vcan0.
 VCAN_VM := tools/vcan-vm
 VCAN_TIMEOUT ?= 1200
+
+# The soak benchmark's 1-minute form with its invariants (issue 13's CI form; 30 minutes by
+# hand: python -m bench soak --minutes 30). .ci/run gives it a second try, because on a
+# shared machine one late heartbeat of 126 nodes in a minute is the machine's, not the card's.
+test-soak: $(STAMP)
+	CIFEMU_SOAK_MINUTES=1 $(BIN)/python -m pytest -q tests/test_soak.py
 
 test-vcan: $(STAMP)
 	$(VCAN_VM) --timeout $(VCAN_TIMEOUT) -- env CIFEMU_REQUIRE_SOCKETCAN=1 \
