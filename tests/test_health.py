@@ -36,21 +36,24 @@ def kill(card: Card) -> None:
 
 def test_status_reports_a_killed_firmware_as_dead_with_its_last_pid(tmp_path: Path) -> None:
     card = start_card(tmp_path)
-    alive = status(tmp_path, "--json")
-    assert alive.returncode == 0
-    assert json.loads(alive.stdout)["health"] == {
-        "alive": True, "pid": card.proc.pid, "database": None,
-        "bus": {"interface": "virtual", "channel": "cifemu", "bitrate": None,
-                "sets_bitrate": False, "baud_rate": None, "fatal": None}}
-    kill(card)
-    assert card.map()[0x1FFE] & 0x80  # the image still says READY
-    text = status(tmp_path)
-    assert text.returncode == 3
-    assert "DEAD" in text.stdout and f"last pid {card.proc.pid}" in text.stdout
-    as_json = status(tmp_path, "--json")
-    health = json.loads(as_json.stdout)["health"]
-    assert as_json.returncode == 3 and health["alive"] is False
-    assert health["pid"] == card.proc.pid
+    try:
+        alive = status(tmp_path, "--json")
+        assert alive.returncode == 0
+        assert json.loads(alive.stdout)["health"] == {
+            "alive": True, "pid": card.proc.pid, "database": None,
+            "bus": {"interface": "virtual", "channel": "cifemu", "bitrate": None,
+                    "sets_bitrate": False, "baud_rate": None, "fatal": None}}
+        kill(card)
+        assert card.map()[0x1FFE] & 0x80  # the image still says READY
+        text = status(tmp_path)
+        assert text.returncode == 3
+        assert "DEAD" in text.stdout and f"last pid {card.proc.pid}" in text.stdout
+        as_json = status(tmp_path, "--json")
+        health = json.loads(as_json.stdout)["health"]
+        assert as_json.returncode == 3 and health["alive"] is False
+        assert health["pid"] == card.proc.pid
+    finally:
+        card.stop()  # a failed assertion must not leave the firmware running
 
 
 def test_a_cleanly_stopped_firmware_leaves_no_pid(tmp_path: Path) -> None:
