@@ -47,6 +47,7 @@ from dbm_tools.tables import (
     checksum_crc,
 )
 from dbm_tools.validate import check_dbm
+from dpm.com import NodeSwitch, SdoTimeoutRequest
 from dpm.commands import (
     AREA_BUS,
     AREA_EXTENDED,
@@ -377,7 +378,7 @@ class Gateway:
         link = self._link(network)
         if not 1 <= sdo_timeout <= 0xFFFF:
             raise syntax_error(f"SDO time-out {sdo_timeout} ms is not 1..65535")
-        self._setting(link, COM_SET_SDO_TIMEOUT, 0, bytes([0]) + struct.pack("<H", sdo_timeout),
+        self._setting(link, COM_SET_SDO_TIMEOUT, 0, SdoTimeoutRequest(0, sdo_timeout).encode(),
                       "COM_Set_SDO_Timeout")
 
     def _sdo_header(self, node: int, index: int, subindex: int, count: int, function: int
@@ -609,7 +610,7 @@ class Gateway:
         if link.supervised_by(node, self._timeout()) == "heartbeat":
             raise Cia309Error(ErrorCode.INTERNAL_STATE,
                               f"node {node}: its heartbeat is consumed; disable it first")
-        data = bytes([node, 1]) + struct.pack("<H", guard_time) + bytes([lifetime_factor])
+        data = NodeSwitch(node, True, guard_time, lifetime_factor).encode()
         self._setting(link, COM_SET_GUARDING, node, data, "COM_Set_Guarding")
         link.supervision[node] = "guarding"
 
@@ -622,7 +623,7 @@ class Gateway:
         node = self._node(node_id)
         if link.supervised_by(node, self._timeout()) == "heartbeat":
             return
-        self._setting(link, COM_SET_GUARDING, node, bytes([node, 0, 0, 0, 0]),
+        self._setting(link, COM_SET_GUARDING, node, NodeSwitch(node, False, 0, 0).encode(),
                       "COM_Set_Guarding")
         link.supervision[node] = None
 
@@ -638,7 +639,7 @@ class Gateway:
         if not heartbeat_consumer_time:
             self.disable_heartbeat_consumer(network=link.network, node_id=node)
             return
-        data = bytes([node, 1]) + struct.pack("<H", heartbeat_consumer_time)
+        data = NodeSwitch(node, True, heartbeat_consumer_time).encode()
         self._setting(link, COM_SET_HEARTBEAT_CONSUMER, node, data,
                       "COM_Set_Heartbeat_Consumer")
         link.supervision[node] = "heartbeat"
@@ -652,7 +653,7 @@ class Gateway:
         node = self._node(node_id)
         if link.supervised_by(node, self._timeout()) == "guarding":
             return
-        self._setting(link, COM_SET_HEARTBEAT_CONSUMER, node, bytes([node, 0, 0, 0]),
+        self._setting(link, COM_SET_HEARTBEAT_CONSUMER, node, NodeSwitch(node, False, 0).encode(),
                       "COM_Set_Heartbeat_Consumer")
         link.supervision[node] = None
 
@@ -865,7 +866,7 @@ class Gateway:
         node = self._node(node_id)
         if not 0 <= cob_id <= COB_ID_MASK:
             raise syntax_error(f"EMCY COB-ID 0x{cob_id:X} is not an 11-bit identifier")
-        data = bytes([node, int(on)]) + struct.pack("<H", cob_id)
+        data = NodeSwitch(node, on, cob_id).encode()
         self._setting(link, COM_SET_EMCY_CONSUMER, node, data, "COM_Set_Emcy_Consumer")
 
     def set_command_timeout(self, time_out: int) -> None:
