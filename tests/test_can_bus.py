@@ -29,8 +29,13 @@ def controller() -> Iterator[tuple[CanBus, SdoClient]]:
     channel = f"test-can-bus-{uuid.uuid4().hex}"
     node_bus = can.Bus(interface="virtual", channel=channel)
     sim = SimulatedNetwork(parse_network("[[node]]\nid = 1\n"), node_bus)
-    sim.start()
     bus = CanBus("virtual", channel)
+    booted = threading.Event()
+    bus.subscribe(0x701, lambda msg: booted.set())
+    sim.start()
+    # The node answers SDO only once it has booted, and this controller has no master
+    # whose tick would time a lost request out: wait for its boot-up first.
+    assert booted.wait(10), "the simulated node sent no boot-up"
     client = SdoClient(0x601, 0x581, ObjectDictionary())  # type: ignore[no-untyped-call]
     client.network = bus.network
     bus.network.subscribe(0x581, client.on_response)
