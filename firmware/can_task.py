@@ -106,6 +106,9 @@ class CanTask(Task):
         self.bus_data: bytes | None = None
         self.from_flash = False
         """The running configuration came from the database in flash (``StoredDatabase``)."""
+        self.run_withdrawn = False
+        """[ours] "delete database" took RUN away until the next start or bus parameter set
+        (``RcsTask._withdraw_run``)."""
         self.fatal: str | None = None
         """Why the controller could not be opened: the card runs with FAT (``open``)."""
         self.extended_data: bytes | None = None
@@ -170,6 +173,7 @@ class CanTask(Task):
         self.bus_data = None
         self.extended_data = None
         self.from_flash = False
+        self.run_withdrawn = False
         self._sequence = None
         self._long_download.clear()
 
@@ -215,6 +219,7 @@ class CanTask(Task):
         if errors:
             return errors[0].number
         self.bus_data = bytes(data)
+        self.run_withdrawn = False
         self.master.start_network(BusParameterSet.decode(data))
         return 0
 

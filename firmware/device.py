@@ -260,6 +260,7 @@ class Device:
         self._levels()
         if (mm[HOST_FLAGS] ^ mm[DEV_FLAGS]) & fl.DEV_MBX and len(self.outbox) < OUTBOX_LIMIT:
             self._receive()
+            self._levels()  # RUN as the message left it (delete database), before its answer
         if not (mm[HOST_FLAGS] ^ mm[DEV_FLAGS]) & fl.HOST_MBX:
             if not self.outbox:
                 indication = self.can.next_indication()
@@ -280,12 +281,14 @@ class Device:
         return state
 
     def level_flags(self) -> int:
-        """RUN while configured, COM while the bus communication runs; shows CAN_state too."""
+        """RUN while configured (and no database deleted since), COM while the bus
+        communication runs; shows CAN_state too."""
         state = self._current_can_state()
         if state != self._shown_can_state:
             self._shown_can_state = state
             self.view["Task2State"]["bCAN_State"] = state
-        return (fl.RUN if state != CanState.OFFLINE else 0) | (
+        run = state != CanState.OFFLINE and not self.can.run_withdrawn
+        return (fl.RUN if run else 0) | (
             fl.COM if state == CanState.OPERATE else 0)
 
     def _levels(self) -> None:

@@ -53,6 +53,7 @@ from __future__ import annotations
 import logging
 import os
 import struct
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -197,8 +198,10 @@ class _Upload:
 class LoadFunction:
     """msg.b 6 of the RCS task: download, upload, delete and list the stored database."""
 
-    def __init__(self, store: FlashStore) -> None:
+    def __init__(self, store: FlashStore, on_delete: Callable[[], None]) -> None:
         self.store = store
+        self._on_delete = on_delete
+        """Called after a delete: the card withdraws RUN (``RcsTask``)."""
         self._download: _Download | None = None
         self._upload: _Upload | None = None
 
@@ -319,6 +322,7 @@ class LoadFunction:
             return msg.answer(f=RcsF.PARAMETER_FAULT)
         self.store.erase()
         log.info("database deleted from %s", self.store.path)
+        self._on_delete()
         return msg.answer(data=bytes([MODE_DELETE]))
 
     def _directory(self, msg: Message) -> Message:

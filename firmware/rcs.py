@@ -52,7 +52,7 @@ class RcsTask(Task):
         self._last_dev_watchdog = 0
         self._watchdog_deadline = 0.0
         self.host_not_ready = False
-        self.load_function = LoadFunction(device.flash)
+        self.load_function = LoadFunction(device.flash, self._withdraw_run)
         self.handlers[LOAD_FUNCTION] = self.load_function.handle
 
     def reset(self, cold: bool) -> None:
@@ -98,6 +98,13 @@ class RcsTask(Task):
             database.configure(dev)
         # READY, RUN and COM in one write: a host that saw READY also sees RUN.
         dev.write_host_flags(fl.READY | dev.level_flags())
+
+    def _withdraw_run(self) -> None:
+        """[ours] After "delete database" RUN drops at once, the network running on (seed
+        7.2 step 1: a host deletes and reads bHostFlags again until it shows RDY alone;
+        had RUN stayed until the next start, it would delete for ever). The next start, or
+        a new bus parameter set, gives RUN back."""
+        self.device.can.run_withdrawn = True
 
     def service(self, dev_flags: int, now: float) -> None:
         """Follow NOTREADY and the host watchdog; called every loop turn."""
