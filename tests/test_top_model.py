@@ -6,6 +6,7 @@ from pathlib import Path
 
 from dbm_tools.network import load_network
 from dpm.layout import DPM_SIZE, RCV_PD, TASK2_STATE
+from host_api.monitor.framebits import frame_bits
 from host_api.network_view import network_view
 from host_api.top.model import CardModel
 
@@ -91,5 +92,7 @@ def test_process_image_changes_history_and_bus_load(tmp_path: Path) -> None:
     figures = card.bus(50.5)
     assert figures.frames_per_s == 10
     assert figures.load_percent is not None
-    assert abs(figures.load_percent - 100 * 10 * (47 + 64) / 125000) < 1e-9
+    # TPDO1 of node 1 with eight zero bytes: 111 bits unstuffed, 15 stuff bits (framebits).
+    assert abs(figures.load_percent - 100 * 10 * frame_bits(0x181, bytes(8)) / 125000) < 1e-9
+    assert frame_bits(0x181, bytes(8)) > 47 + 64
     assert figures.can_state == "OPERATE"

@@ -7,7 +7,7 @@ Err_Event the card reported for it (with the manual's text) and its last EMCY
 (with the CiA 301 meaning of the code). Below: the process image mapped to
 nodes and PDOs (hex and decimal, changes highlighted), a sparkline of one PDO's
 value, the bus counters and load (frames/s and percent of the bit rate, from
-the frames the card's tap shows), and an event log (Err_Event, EMCY, boot-ups,
+the frames the card's tap shows, stuff bits counted), and an event log (Err_Event, EMCY, boot-ups,
 NMT, your commands).
 
 Keys: s start, t stop, p pre-operational, r reset the selected node; o read an

@@ -20,15 +20,13 @@ from dpm.layout import IO_AREA_SIZE, RCV_PD, SND_PD, TASK2_STATE, TASK_STATE_SIZ
 from dpm.task2 import ComDiagnostics
 from host_api.monitor.cia301 import emcy_text, nmt_state_text
 from host_api.monitor.codec import decode
+from host_api.monitor.framebits import frame_bits
 from host_api.network_view import NetworkView, PdoSlot
 
 EVENT_LIMIT = 200
 HISTORY_LIMIT = 60
 CHANGE_HIGHLIGHT_S = 1.0
 LOAD_WINDOW_S = 1.0
-FRAME_OVERHEAD_BITS = 47
-"""[ours] bits of an 11-bit data frame besides its data (no stuffing counted): the load is
-an estimate from the frames the card's tap saw."""
 
 
 @dataclass
@@ -155,7 +153,9 @@ class CardModel:
         """One frame from the card's tap (or any bus the card is on)."""
         meaning = decode(can_id, data, extended=extended, remote=remote, error=error)
         with self._lock:
-            self._frames.append((timestamp, FRAME_OVERHEAD_BITS + 8 * len(data)))
+            if not error:  # an error frame's length is the fault's, not the sender's
+                bits = frame_bits(can_id, data, extended=extended, remote=remote)
+                self._frames.append((timestamp, bits))
             node = meaning.node
             if meaning.kind == "heartbeat" and node is not None and data:
                 row = self._node(node)
