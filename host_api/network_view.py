@@ -17,6 +17,7 @@ from pathlib import Path
 from typing import Any
 
 from dbm_tools.builder import build_dbm
+from dbm_tools.eds import import_od
 from dbm_tools.network import Network, NodeDescription, load_network
 from dbm_tools.parameters import NodeParameterSet
 from dbm_tools.tables import NODES
@@ -80,10 +81,8 @@ class NetworkView:
 def _object_dictionary(node: NodeDescription) -> Any:
     if node.eds is None:
         return None
-    import canopen  # only a network with EDS files pays its import time
-
     try:
-        return canopen.objectdictionary.import_od(str(node.eds), node.id)
+        return import_od(node.eds, node.id)  # only a network with EDS files imports canopen
     except Exception:  # the builder has read this EDS already; a view does without names
         return None
 
