@@ -127,15 +127,43 @@ def _pdos(od: Any, where: Path) -> list[EdsPdo]:
     return pdos
 
 
+def import_od(path: Path, node_id: int) -> Any:
+    """canopen's object dictionary of an EDS/DCF file, with empty [DeviceInfo] entries
+    read as absent ([ours]; canopen takes ``int("")`` and fails). CANopenEditor writes
+    ``VendorNumber=`` and ``ProductNumber=`` when a project leaves them blank, as in
+    CANopenNode's own example DS301_profile.eds. Any error of canopen's parser passes
+    through; files of other suffixes go to canopen unchanged."""
+    import io
+
+    import canopen  # a quarter of a second: only callers that need an EDS pay it
+
+    if path.suffix.lower() not in (".eds", ".dcf"):
+        return canopen.objectdictionary.import_od(str(path), node_id)
+    raw = path.read_bytes()
+    try:
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError:
+        text = raw.decode("latin-1")  # [ours] tools on Windows write their code page
+    lines, section = [], ""
+    for line in text.splitlines(keepends=True):
+        stripped = line.strip()
+        if stripped.startswith("["):
+            section = stripped.strip("[]").strip().lower()
+        elif section == "deviceinfo" and stripped.endswith("=") and "=" not in stripped[:-1]:
+            continue
+        lines.append(line)
+    source = io.StringIO("".join(lines))
+    source.name = str(path)
+    return canopen.objectdictionary.import_od(source, node_id)
+
+
 def read_eds(path: Path, node_id: int) -> EdsDevice:
     """Read an EDS/DCF file for node ``node_id`` ($NODEID resolves to it).
 
     Raises EdsError for a file that cannot be read or that the card cannot map.
     """
-    import canopen  # a quarter of a second: only ``build`` pays it, not show/check/diff
-
     try:
-        od = canopen.objectdictionary.import_od(str(path), node_id)
+        od = import_od(path, node_id)
     except Exception as exc:
         # The canopen parser lets whatever its input provokes escape (OSError,
         # configparser errors, KeyError, ValueError...); the user needs one message.

@@ -3,7 +3,9 @@
 Sends every node's parameter set, the extended bus parameters and the bus
 parameters to the CAN task (COM_Start_Seq / COM_Download / COM_End_Seq, seed
 chapter 7), then waits until every configured node is in data exchange
-(Nd_state) or the card reports an error (Err_Event). Nothing is stored in the
+(Nd_state) or the card reports an error (Err_Event), and watches a supervised
+network one supervision period longer: a node that refuses OPERATIONAL after its
+start is an error, not a success. Nothing is stored in the
 card's flash: a reset forgets this configuration (use `cifemu dbm download`
 for one that survives).
 
@@ -36,6 +38,13 @@ POLL_S = 0.05
 START_WAIT_S = 10.0
 """How long a card whose firmware runs may take to come up READY (a start from flash,
 ``--reset-delay``)."""
+SETTLE_S = 1.0
+"""[ours] How long, beyond the longest supervision period of the network, configure keeps
+watching once every node is in Nd_state. The card sets a node's bit as soon as it has
+started it; only the node's next heartbeat or guarding answer tells whether it runs (a
+node may stay PRE-OPERATIONAL: CANopenNode's devices do while their error register is
+set), and the card gives a started node half a second before it counts that as Err_Event
+31. One period plus this covers both."""
 
 
 def msg_f_text(f: int) -> str:
@@ -43,18 +52,42 @@ def msg_f_text(f: int) -> str:
     return CanF.text_of(f)
 
 
+def supervision_s(network: Network) -> float:
+    """The longest time the card may take to learn that an active node stopped: its
+    heartbeat consumer time, or guard time times life time factor; 0 when none is
+    supervised (the builder's usGuardTime and bLifeTimeFactor, seed 5.2.6)."""
+    periods = [0.0]
+    for node in network.nodes:
+        if not node.active:
+            continue
+        if node.error_control == "heartbeat":
+            periods.append(node.heartbeat_ms / 1000.0)
+        elif node.error_control == "guarding":
+            periods.append(node.guard_time_ms * max(1, node.life_time_factor) / 1000.0)
+    return max(periods)
+
+
 def wait_for_network(board: Board, nodes: list[int], timeout_s: float,
-                     progress: Callable[[str], None]) -> ComDiagnostics:
-    """Poll Task2State until every node is in Nd_state, an Err_Event shows, or time is up."""
+                     progress: Callable[[str], None], settle_s: float = 0.0) -> ComDiagnostics:
+    """Poll Task2State until every node has been in Nd_state for ``settle_s``, an
+    Err_Event shows, or ``timeout_s`` passes before every node got there."""
     deadline = time.monotonic() + timeout_s
     seen: set[int] = set()
+    all_since: float | None = None
     while True:
         diag = board.diagnostics()
         running = set(diag.operating())
         for node in sorted((running & set(nodes)) - seen):
             progress(f"node {node} in data exchange")
         seen |= running
-        if set(nodes) <= running or diag.bErr_event or time.monotonic() >= deadline:
+        now = time.monotonic()
+        if not set(nodes) <= running:
+            all_since = None
+        elif all_since is None:
+            all_since = now
+        if diag.bErr_event or (all_since is not None and now - all_since >= settle_s):
+            return diag
+        if all_since is None and now >= deadline:
             return diag
         time.sleep(POLL_S)
 
@@ -117,7 +150,9 @@ def configure(board: Board, network: Network, wait_s: float,
     nodes = [node.id for node in network.nodes if node.active]
     if wait_s <= 0:
         return _result(board.diagnostics(), nodes) | {"missing": []}
-    return _result(wait_for_network(board, nodes, wait_s, progress), nodes)
+    supervised = supervision_s(network)
+    settle = supervised + SETTLE_S if supervised else 0.0
+    return _result(wait_for_network(board, nodes, wait_s, progress, settle), nodes)
 
 
 def run(args: argparse.Namespace) -> int:

@@ -17,6 +17,7 @@ from pathlib import Path
 from typing import Any
 
 from dbm_tools.builder import build_dbm
+from dbm_tools.eds import import_od
 from dbm_tools.network import Network, NodeDescription, load_network
 from dbm_tools.parameters import NodeParameterSet
 from dbm_tools.tables import NODES
@@ -24,6 +25,8 @@ from dbm_tools.tables import NODES
 RPDO_MAPPING = 0x1600
 TPDO_MAPPING = 0x1A00
 """CiA 301: the mapping parameter objects of the first RPDO and TPDO."""
+PREDEFINED_BASES = {"input": (0x180, 0x280, 0x380, 0x480), "output": (0x200, 0x300, 0x400, 0x500)}
+"""CiA 301's predefined connection set: TPDO1..4 and RPDO1..4 at these COB-IDs + node-ID."""
 
 
 @dataclass(frozen=True)
@@ -42,8 +45,10 @@ class PdoSlot:
     """One PDO of one node as the card handles it.
 
     ``direction`` is the master's: "input" is the node's TPDO (RcvPd area),
-    "output" its RPDO (SndPd area); ``number`` counts the node's PDOs of that
-    direction from 1, as TPDO1/RPDO1 do.
+    "output" its RPDO (SndPd area); ``number`` is the node's own PDO number (TPDO3 is
+    1802h/1A02h): from the EDS's communication object with this COB-ID, else from the
+    predefined connection set, else the place among the node's PDOs of that direction in
+    the card's list, counted from 1.
     """
 
     node: int
@@ -80,10 +85,8 @@ class NetworkView:
 def _object_dictionary(node: NodeDescription) -> Any:
     if node.eds is None:
         return None
-    import canopen  # only a network with EDS files pays its import time
-
     try:
-        return canopen.objectdictionary.import_od(str(node.eds), node.id)
+        return import_od(node.eds, node.id)  # only a network with EDS files imports canopen
     except Exception:  # the builder has read this EDS already; a view does without names
         return None
 
@@ -115,9 +118,9 @@ def _entries(od: Any, mapping: int) -> tuple[MappedEntry, ...]:
     return tuple(entries)
 
 
-def _eds_mappings(od: Any) -> dict[tuple[str, int], tuple[MappedEntry, ...]]:
-    """(direction, COB-ID) -> mapped entries of every PDO the EDS defines."""
-    found: dict[tuple[str, int], tuple[MappedEntry, ...]] = {}
+def _eds_mappings(od: Any) -> dict[tuple[str, int], tuple[int, tuple[MappedEntry, ...]]]:
+    """(direction, COB-ID) -> number and mapped entries of every PDO the EDS defines."""
+    found: dict[tuple[str, int], tuple[int, tuple[MappedEntry, ...]]] = {}
     for direction, communication, mapping in (("input", 0x1800, TPDO_MAPPING),
                                               ("output", 0x1400, RPDO_MAPPING)):
         for number in range(512):
@@ -126,8 +129,13 @@ def _eds_mappings(od: Any) -> dict[tuple[str, int], tuple[MappedEntry, ...]]:
                 if number >= 4:
                     break
                 continue
-            found[(direction, cob_id & 0x7FF)] = _entries(od, mapping + number)
+            found[(direction, cob_id & 0x7FF)] = (number + 1, _entries(od, mapping + number))
     return found
+
+
+def _predefined_number(direction: str, node_id: int, cob_id: int) -> int | None:
+    bases = PREDEFINED_BASES[direction]
+    return bases.index(cob_id - node_id) + 1 if cob_id - node_id in bases else None
 
 
 def network_view(network: Network) -> NetworkView:
@@ -154,9 +162,11 @@ def network_view(network: Network) -> NetworkView:
             position = counters[direction]
             counters[direction] += 1
             offset = offsets[direction][position] if position < len(offsets[direction]) else 0
-            view.slots.append(PdoSlot(node_id, direction, position + 1, pdo.usPdoCOBId,
-                                      pdo.data_length, offset,
-                                      mappings.get((direction, pdo.usPdoCOBId), ())))
+            number, entries = mappings.get((direction, pdo.usPdoCOBId), (None, ()))
+            if number is None:
+                number = _predefined_number(direction, node_id, pdo.usPdoCOBId) or position + 1
+            view.slots.append(PdoSlot(node_id, direction, number, pdo.usPdoCOBId,
+                                      pdo.data_length, offset, entries))
     return view
 
 

@@ -63,6 +63,27 @@ def test_configure_reports_nodes_that_never_come(tmp_path: Path) -> None:
         card.stop()
 
 
+def test_configure_does_not_call_a_node_that_refuses_operational_configured(
+        tmp_path: Path) -> None:
+    """The card sets a node's Nd_state bit once it has started it; only the node's next
+    heartbeat says whether it really runs. A node that stays out of OPERATIONAL (as a
+    CANopenNode device does while its error register is set) is Err_Event 31 a moment
+    later: configure must report that, not a network in data exchange."""
+    network = tmp_path / "net.toml"
+    network.write_text("[[node]]\nid = 1\nheartbeat_ms = 200\n"
+                       "[node.sim]\nleave_operational_after_s = 0.0\n")
+    card = start_card(tmp_path, 0, "--simulate", str(network))
+    try:
+        out = cifemu("configure", str(network), "--dpm-dir", str(tmp_path), "--json",
+                     "--wait", "8")
+        result = json.loads(out.stdout)
+        assert out.returncode == 1, result
+        assert result["ok"] is False
+        assert (result["err_node_adr"], result["err_event"]) == (1, 31)
+    finally:
+        card.stop()
+
+
 def test_configure_errors_are_one_line_or_one_json_object(tmp_path: Path) -> None:
     out = cifemu("configure", str(DEMO), "--dpm-dir", str(tmp_path))
     assert out.returncode == 1 and "Traceback" not in out.stderr

@@ -36,6 +36,7 @@ from dbm_tools.tables import (
     checksum_crc,
 )
 from dbm_tools.validate import check_dbm
+from firmware.sim.network import object_dictionary
 
 DATA = Path(__file__).resolve().parent / "data"
 EDS = DATA / "io-module.eds"
@@ -69,6 +70,22 @@ def test_eds_gives_device_type_identity_and_enabled_pdos_with_nodeid_resolved() 
         ("output", 1, 0x205, 2, 255, 0),
     ]
     assert [p.cob_id for p in read_eds(EDS, 17).pdos] == [0x191, 0x291, 0x211]
+
+
+def test_eds_with_empty_device_info_numbers_reads_them_as_absent(tmp_path: Path) -> None:
+    """CANopenEditor writes ``VendorNumber=`` and ``ProductNumber=`` for a project that
+    leaves them blank (CANopenNode's own example DS301_profile.eds): the numbers come
+    from 1018h instead, and the simulator and the network view load the file too."""
+    blank = tmp_path / "blank.eds"
+    blank.write_text(EDS.read_text().replace("VendorNumber=0x0000A5C3", "VendorNumber=")
+                     .replace("ProductNumber=0x00001604", "ProductNumber=  "))
+    device = read_eds(blank, 5)
+    assert (device.vendor_name, device.product_name) == ("Acme Automation", "IO-16/16/2 module")
+    assert (device.vendor_number, device.product_number) == (0xA5C3, 0x1604)  # from 1018h
+    assert [p.cob_id for p in device.pdos] == [0x185, 0x285, 0x205]
+    network = parse_network(f'[[node]]\nid = 5\neds = "{blank}"\n', tmp_path)
+    od = object_dictionary(network.nodes[0], network.bus)
+    assert od.device_information.vendor_name == "Acme Automation" and 0x1A00 in od
 
 
 def test_eds_errors_name_the_file_and_the_pdo(tmp_path: Path) -> None:

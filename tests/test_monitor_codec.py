@@ -80,3 +80,24 @@ def test_pdos_are_named_and_mapped_by_the_network_view(tmp_path: Path) -> None:
                            "Analogue input 2=0x1 (1)")
     plain = decode(0x201, bytes(8), view=view)
     assert plain.text == "RPDO1 node 1 out[0..7]"
+
+
+def test_a_pdo_keeps_the_nodes_own_number_whatever_its_place_in_the_card(tmp_path: Path) -> None:
+    """A description lists the PDOs the card maps in any order (here the node's TPDO3, then
+    its TPDO1 and TPDO2): each is still named by the node's own number, from the EDS's
+    communication object, else from its predefined COB-ID; only a COB-ID of neither kind
+    is counted in the list's order."""
+    network = tmp_path / "net.toml"
+    pdo = '[[node.pdo]]\ndirection = "{}"\ncob_id = {}\nlength = {}\n'
+    network.write_text(
+        f'[[node]]\nid = 5\neds = "{DATA / "io-module.eds"}"\n'
+        + pdo.format("input", "0x385", 4) + pdo.format("input", "0x185", 2)
+        + pdo.format("input", "0x285", 4) + pdo.format("output", "0x205", 2)
+        + '[[node]]\nid = 1\n' + pdo.format("input", "0x381", 2)
+        + pdo.format("input", "0x1F1", 2))
+    view = network_view(load_network(network))
+    labels = {slot.cob_id: slot.label for slot in view.slots}
+    assert labels == {0x385: "TPDO3", 0x185: "TPDO1", 0x285: "TPDO2", 0x205: "RPDO1",
+                      0x381: "TPDO3", 0x1F1: "TPDO2"}
+    assert decode(0x185, bytes.fromhex("0102"), view=view).text == (
+        "TPDO1 node 5 in[8..9]: Read input 1h-8h=0x1 (1), Read input 9h-10h=0x2 (2)")

@@ -26,8 +26,9 @@ from types import TracebackType
 
 import can
 import canopen
-from canopen.objectdictionary import ObjectDictionary, import_od
+from canopen.objectdictionary import ObjectDictionary
 
+from dbm_tools.eds import import_od
 from dbm_tools.network import (
     UNCONFIGURED,
     BusDescription,
@@ -52,7 +53,7 @@ def object_dictionary(node: NodeDescription, bus: BusDescription) -> ObjectDicti
     if node.eds is None:
         return generic_object_dictionary(node, bus.sync_cob_id)
     try:
-        return import_od(str(node.eds), node.id)
+        return import_od(node.eds, node.id)  # type: ignore[no-any-return]
     except Exception as exc:  # canopen's parser lets any error of a bad file through
         raise NetworkError(f"node {node.id}: cannot load {node.eds}: {exc!r}") from exc
 
