@@ -21,12 +21,19 @@ import pytest
 
 from tests.buses import socketcan_missing
 
+# The first test's set-up may install qemu and download the kernel: more than the
+# suite's usual two minutes on a fresh machine.
+pytestmark = pytest.mark.timeout(420)
+
 ROOT = Path(__file__).resolve().parents[1]
 VCAN_VM = ROOT / "tools" / "vcan-vm"
 
 ROUND_TRIP = """\
-import os, sys
+import os, subprocess, sys, time
 import can
+# A file still open in a process the command leaves running: only the guest's sync at the
+# end brings it to the host (the guest caches what it writes to the host's files).
+subprocess.Popen(["sh", "-c", "exec 3>kept_open.txt; echo written >&3; exec sleep 600"])
 print("rmem", open("/proc/sys/net/core/rmem_default").read().strip(),
       "unbuffered", os.environ.get("PYTHONUNBUFFERED"), "mark", os.environ["VCAN_VM_MARK"])
 print("operstate", open("/sys/class/net/vcan0/operstate").read().strip(),
@@ -39,6 +46,8 @@ with can.Bus(interface="socketcan", channel="vcan0") as a, \\
     back = a.recv(5)
 with open("answer.txt", "w") as out:
     out.write(" ".join(f"{m.arbitration_id:03X}#{m.data.hex()}" for m in (got, back)))
+while open("kept_open.txt").read() != "written\\n":
+    time.sleep(0.05)
 print("on stderr", file=sys.stderr)
 sys.exit(3)
 """
@@ -57,7 +66,7 @@ def qemu() -> None:
     the tests where qemu cannot be installed, and only there."""
     if platform.system() != "Linux" or platform.machine() != "x86_64":
         pytest.skip("the qemu backend runs the host's programs: it needs an x86-64 Linux")
-    first = vcan_vm("--backend", "qemu", "--", "true")
+    first = vcan_vm("--backend", "qemu", "--", "true", timeout=360)
     if first.returncode == 125 and ("install" in first.stderr or "apt-get" in first.stderr):
         pytest.skip(f"qemu cannot be installed here: {first.stderr.strip()}")
     assert first.returncode == 0, first.stderr
@@ -90,6 +99,7 @@ def test_qemu_runs_a_python_can_round_trip_on_vcan0_in_the_callers_directory(
     assert "on stderr" in result.stderr.splitlines()
     # Written inside, in the caller's directory, and on the host once the command ended.
     assert (tmp_path / "answer.txt").read_text() == "123#70696e67 124#676e6970"
+    assert (tmp_path / "kept_open.txt").read_text() == "written\n"
     assert left_behind(mark) == []
 
 
