@@ -141,3 +141,11 @@ def test_auto_falls_back_to_qemu_when_user_mode_linux_cannot_start(
     result = vcan_vm("--", "sh", "-c", "test -d /sys/class/net/vcan0 && exit 42", env=env)
     assert result.returncode == 42, result.stderr
     assert "falling back to qemu" in result.stderr
+
+
+def test_help_names_every_backend_in_plain_text() -> None:
+    result = subprocess.run([str(VCAN_VM), "--help"], capture_output=True, text=True, timeout=60)
+    assert result.returncode == 0, result.stderr
+    assert "`" not in result.stdout, result.stdout  # read in a terminal: no markup
+    for backend in ("native", "uml", "qemu"):
+        assert f"\n  {backend} " in result.stdout, backend
