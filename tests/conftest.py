@@ -31,8 +31,15 @@ DEV_FLAGS = 0x1FFF
 READY = 0x80
 
 
+TIME_SCALE = 4.0 if os.environ.get("VCAN_VM_BACKEND") == "qemu" else 1.0
+"""Under tools/vcan-vm's qemu backend (no KVM) Python runs about 20 times slower: the
+waits for the card's own work (a start, a condition) get four times longer there. What the
+card must do in a given time (supervision, SYNC) is not scaled."""
+
+
 def wait_until(condition: Callable[[], object], timeout: float = 5.0, what: str = "") -> None:
     """Poll ``condition`` until true; fail the test with ``what`` at the deadline."""
+    timeout *= TIME_SCALE
     deadline = time.monotonic() + timeout
     while not condition():
         if time.monotonic() > deadline:
@@ -81,7 +88,7 @@ def start_card(directory: Path, board: int = 0, *extra: str) -> Card:
         stderr=subprocess.PIPE,
     )
     card = Card(directory, board, proc)
-    deadline = time.monotonic() + 15
+    deadline = time.monotonic() + 15 * TIME_SCALE
     while True:
         if proc.poll() is not None:
             stderr = proc.stderr.read().decode() if proc.stderr else ""
