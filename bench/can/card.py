@@ -63,6 +63,27 @@ SDO_TIMEOUT_TEXT = "0x05040000"
 """canopen's SDO client logs its timeout abort with this code."""
 
 
+@dataclass(frozen=True, slots=True)
+class SeparateBus:
+    """Where the card meets nodes that run as ``cifemu sim`` in a process of their own.
+
+    ``shm`` gets a fresh channel per card (the default); ``socketcan`` uses the named
+    link (vcan0 inside ``tools/vcan-vm``), which the phases then share one after another.
+    """
+
+    interface: str = "shm"
+    channel: str | None = None
+
+    def for_card(self) -> tuple[str, str]:
+        """The interface and channel of one card and its ``cifemu sim``."""
+        if self.channel is not None:
+            return self.interface, self.channel
+        return self.interface, f"bench-{uuid.uuid4().hex[:12]}"
+
+    def describe(self) -> str:
+        return f"{self.interface} {self.channel}" if self.channel else f"fresh {self.interface}"
+
+
 @dataclass(slots=True)
 class SimCard:
     """A firmware process with its simulated network, and the host's board on it."""
@@ -100,14 +121,14 @@ class SimCard:
 
 
 @contextmanager
-def simulated_card(description: str, *, trace: bool = False,
-                   separate: bool = False) -> Iterator[SimCard]:
+def simulated_card(description: str, *, trace: bool = False, separate: bool = False,
+                   bus: SeparateBus | None = None) -> Iterator[SimCard]:
     """``cifemu firmware --simulate`` on a fresh image directory and flash; board opened.
 
     ``separate`` runs the nodes as ``cifemu sim`` in a process of their own, the
-    two meeting on a fresh ``shm`` channel, so the card's threads do not share
-    an interpreter lock with the simulator (as on a real bus, where the nodes
-    are other machines).
+    two meeting on ``bus`` (a fresh ``shm`` channel by default), so the card's
+    threads do not share an interpreter lock with the simulator (as on a real bus,
+    where the nodes are other machines).
     """
     with tempfile.TemporaryDirectory(prefix="cifemu-bench-can-", dir=scratch_root()) as tmp:
         directory = Path(tmp)
@@ -115,7 +136,7 @@ def simulated_card(description: str, *, trace: bool = False,
         toml.write_text(description)
         trace_path = directory / "trace.log" if trace else None
         stderr_path = directory / "firmware.stderr"
-        interface, channel = ("shm", f"bench-{uuid.uuid4().hex[:12]}") if separate else (
+        interface, channel = (bus or SeparateBus()).for_card() if separate else (
             "virtual", CHANNEL)
         command = [sys.executable, "-m", "firmware", "--board", str(BOARD), "--dpm-dir", tmp,
                    "--log-level", "WARNING", "--interface", interface, "--channel", channel,
