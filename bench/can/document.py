@@ -11,7 +11,7 @@ python-can talking straight to the same simulated nodes in this process:
 
 --profile adds a py-spy profile of the firmware during an extra throughput window.
 --nodes N caps every phase's network at N nodes. Where os.cpu_count() is 1 (inside
-tools/vcan-vm, say) the phases default to SMALL_NODES: the full configuration's 126
+tools/vcan-vm, say) the phases default to 16 nodes (SMALL_NODES): the full configuration's 126
 booting nodes saturate one CPU there, and the card's time-outs then fail nodes that did
 answer (README "SocketCAN under User-Mode Linux"). --interface socketcan --channel vcan0
 runs the phases whose nodes are a process of their own (throughput, boot, sync) on that
@@ -153,7 +153,7 @@ def run(count: int | None = None, warmup: int | None = None, *,
     if "sync" in phases:
         result = sync_jitter(sync_nodes, bus)
         document["sync_jitter"] = result
-        p99 = result["cif"]["idle"].get("jitter_us", {}).get("p99")
+        p99 = result["cif"].get("idle", {}).get("jitter_us", {}).get("p99")
         meets["sync_jitter"] = p99 is not None and p99 <= TARGET_SYNC_P99_US
     document["run_seconds"] = round(time.perf_counter() - started, 1)
     return document
