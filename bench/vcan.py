@@ -30,6 +30,7 @@ has its baseline from the same run, on the same (virtual) machine.
 from __future__ import annotations
 
 import argparse
+import os
 import subprocess
 import sys
 import tempfile
@@ -78,6 +79,9 @@ CARD_SYNC_MS = (10, 1)
 """The card's SYNC periods tried: inside User-Mode Linux on a loaded 2-core host, 1 ms has
 failed (the card's receive thread fell behind 1,000 SYNC frames/s and boot SDOs timed out)."""
 SHM_CHANNEL = "cifemu-bench-vcan"
+HOST_LOADAVG = "CIFEMU_HOST_LOADAVG"
+"""The host's load average (1, 5, 15 min) as ``make bench-vcan`` starts the guest: inside
+User-Mode Linux, ``machine.loadavg`` is the guest's own."""
 CAN_PHASES = ("latency", "throughput", "sdo", "boot")
 """The CAN benchmark's phases run here; its sync phase (the card's SYNC at 1 ms, 16 nodes) is
 ``card_sync`` above, on vcan0 too."""
@@ -256,6 +260,7 @@ def run(count: int | None = None, card_sync_ms: tuple[int, ...] = CARD_SYNC_MS,
         "benchmark": "vcan",
         "description": __doc__.split("\n\n")[0] if __doc__ else "",
         "machine": machine_info(),
+        "host_loadavg_at_start": os.environ.get(HOST_LOADAVG),
         "round_trip": {"socketcan": round_trip(count), "baseline_shm": round_trip(count, "shm")},
         "burst": {"socketcan": burst(BURST), "baseline_shm": burst(BURST, "shm")},
         "sync_1ms": {"bcm": periodic_sync("socketcan"), "shm_timer": periodic_sync("shm")},
