@@ -31,7 +31,7 @@ from collections.abc import Sequence
 from typing import Any
 
 from bench.can.boot import BOOT_NODES, BOOT_REPEATS, boot
-from bench.can.card import SeparateBus
+from bench.can.card import OPERATING_POLL_S, SeparateBus
 from bench.can.echo import STALL_S
 from bench.can.pdo_loop import pdo_latency
 from bench.can.sdo import DOMAIN_BYTES, SDO_SECONDS, sdo
@@ -116,6 +116,7 @@ def run(count: int | None = None, warmup: int | None = None, *,
             "throughput_seconds": THROUGHPUT_SECONDS, "stall_s": STALL_S,
             "sdo_seconds": SDO_SECONDS, "domain_bytes": DOMAIN_BYTES,
             "boot_nodes": boot_nodes, "boot_repeats": BOOT_REPEATS,
+            "operating_poll_s": OPERATING_POLL_S,
             "sync_period_ms": SYNC_PERIOD_MS, "sync_seconds": SYNC_SECONDS,
             "sync_nodes": sync_nodes,
         },
