@@ -92,8 +92,7 @@ def test_a_pre_operational_report_sent_before_the_start_and_read_late_is_no_depa
     assert rig.diag().bErr_event == 0
     assert rig.diag().operating() == [NODE]
     # The same report sent now is a departure (Err_Event 31): the frames do reach the card.
-    # The toggle bit alternates, since the card checks it on every error-control frame of a
-    # node without heartbeat.
+    # (Its toggle bit differs from the first one's, as a guarded node's answers alternate.)
     rig.send(0x700 + NODE, bytes([TOGGLE | PRE_OPERATIONAL]), time.time())
     wait_until(lambda: rig.diag().bErr_event == 31, 5, "Err_Event 31")
     assert rig.diag().bErr_rem_adr == NODE

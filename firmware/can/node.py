@@ -577,7 +577,7 @@ class NodeHandler:
             return
         if self.heartbeat:
             self._last_heartbeat = now
-        else:
+        elif self.supervised:  # guarding; unsupervised, a frame is the node's own heartbeat
             self._guard_pending = False
             self._guard_misses = 0
             toggle = value & 0x80
