@@ -577,7 +577,7 @@ class NodeHandler:
             return
         if self.heartbeat:
             self._last_heartbeat = now
-        elif self.supervised:  # guarding; unsupervised, a frame is the node's own heartbeat
+        elif self.supervised:  # guarding; [ours] unsupervised: the node's own heartbeat
             self._guard_pending = False
             self._guard_misses = 0
             toggle = value & 0x80
@@ -591,7 +591,7 @@ class NodeHandler:
             if not self._confirmed and now - self._started_at < START_GRACE:
                 return  # sent before the start reached it
             if msg.timestamp and msg.timestamp < self._start_stamp:
-                return  # on the bus before the start, read late by a busy card
+                return  # [ours] on the bus before the start, read late by a busy card
             self.fail(LEFT_OPERATIONAL)
             return
         self.master.set_node_state(self.address, operating)
