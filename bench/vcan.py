@@ -2,26 +2,35 @@
 
 Runs where SocketCAN and vcan0 exist: on a Linux with vcan, or inside
 ``tools/vcan-vm`` (``make bench-vcan``), where every figure is one of User-Mode
-Linux, whose every system call goes through ptrace on the host.
+Linux, whose every system call goes through ptrace on the host. Every figure
+has its baseline from the same run, on the same (virtual) machine.
 
 1. ``round_trip``: python-can on vcan0, two bus objects in this process; one
    sends, the other receives and answers, the first receives the answer.
+   Baseline: the same on ``shm`` (two stations in this process).
 2. ``burst``: frames sent back to back to a receiver that reads them after the
-   burst: how many arrive (the socket buffer is what holds them).
+   burst: how many arrive (the socket buffer is what holds them). Baseline: ``shm``.
 3. ``bcm_sync``: python-can ``send_periodic`` at 1 ms, which on socketcan is the
    kernel's broadcast manager, received with the kernel's time stamps: the floor
-   of the card's SYNC on socketcan.
-4. ``card_sync``: ``[bus] sync_period_ms = 10`` (see ``CARD_SYNC_MS``), 16 generic
+   of the card's SYNC on socketcan. Beside it the ``shm`` counterpart: the timer
+   process the card's SYNC comes from on ``shm`` (SCHED_FIFO where allowed),
+   time stamped by that process as it writes each frame.
+4. ``card_sync``: ``[bus] sync_period_ms`` = 10 and 1 (``CARD_SYNC_MS``), 16 generic
    nodes in ``cifemu sim`` (a process of its own), the card on vcan0 (its controller
    hands SYNC to the broadcast manager): the periods between SYNC frames as this
    process receives them, idle and while the host drives the PDO loop on all 16 nodes.
+   A period whose nodes do not all boot is reported as such, with the card's log.
+5. ``can``: the CAN benchmark (``python -m bench.can``) but its sync phase, its
+   separate nodes on vcan0, at its configuration for one CPU
+   (``bench.can.document.default_nodes``).
 
-    python -m bench.vcan [--count N]
+    python -m bench.vcan [--count N] [--card-sync-ms MS ...] [--no-can]
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import subprocess
 import sys
 import tempfile
@@ -33,8 +42,10 @@ from typing import Any
 import can
 import numpy as np
 
+from bench.can import document
 from bench.can.card import (
     SYNC_COB_ID,
+    SeparateBus,
     SimCard,
     configure,
     io_offsets,
@@ -57,24 +68,37 @@ from bench.common import (
 from dbm_tools.network import parse_network
 from dpm.image import image_path
 from host_api.board import Board
+from host_api.errors import HostApiError
 
 CHANNEL = "vcan0"
 BOARD = 0
 ROUND_TRIPS = 2000
 BURST = 5000
 PERIOD_S = 0.001
-CARD_SYNC_MS = 10
-"""The card's SYNC period here: at 1 ms, inside User-Mode Linux on a loaded 2-core host,
-the receivers fell behind 1,000 SYNC frames/s and every boot SDO timed out."""
+CARD_SYNC_MS = (10, 1)
+"""The card's SYNC periods tried: inside User-Mode Linux on a loaded 2-core host, 1 ms has
+failed (the card's receive thread fell behind 1,000 SYNC frames/s and boot SDOs timed out)."""
+SHM_CHANNEL = "cifemu-bench-vcan"
+HOST_LOADAVG = "CIFEMU_HOST_LOADAVG"
+"""The host's load average (1, 5, 15 min) as ``make bench-vcan`` starts the guest: inside
+User-Mode Linux, ``machine.loadavg`` is the guest's own."""
+CAN_PHASES = ("latency", "throughput", "sdo", "boot")
+"""The CAN benchmark's phases run here; its sync phase (the card's SYNC at 1 ms, 16 nodes) is
+``card_sync`` above, on vcan0 too."""
+FIRST_SYNC_TIMEOUT_S = 10.0
+"""How long the first frame of a periodic task may take: the ``shm`` timer process is an
+interpreter start away (about 1 s inside User-Mode Linux)."""
 
 
-def bus() -> can.BusABC:
+def bus(interface: str = "socketcan") -> can.BusABC:
+    if interface == "shm":
+        return can.Bus(interface="shm", channel=SHM_CHANNEL)
     return can.Bus(interface="socketcan", channel=CHANNEL)
 
 
-def round_trip(count: int) -> dict[str, Any]:
-    progress(f"vcan round trip: {count} frames")
-    a, b = bus(), bus()
+def round_trip(count: int, interface: str = "socketcan") -> dict[str, Any]:
+    progress(f"{interface} round trip: {count} frames")
+    a, b = bus(interface), bus(interface)
     try:
         request = can.Message(arbitration_id=0x123, data=bytes(8), is_extended_id=False)
         answer = can.Message(arbitration_id=0x124, data=bytes(8), is_extended_id=False)
@@ -96,9 +120,9 @@ def round_trip(count: int) -> dict[str, Any]:
         b.shutdown()
 
 
-def burst(count: int) -> dict[str, Any]:
-    progress(f"vcan burst: {count} frames back to back")
-    a, b = bus(), bus()
+def burst(count: int, interface: str = "socketcan") -> dict[str, Any]:
+    progress(f"{interface} burst: {count} frames back to back")
+    a, b = bus(interface), bus(interface)
     try:
         start = time.perf_counter()
         for n in range(count):
@@ -128,24 +152,48 @@ def record_syncs(receiver: can.BusABC, seconds: float) -> np.ndarray[Any, np.dty
     return np.array(stamps, dtype=np.float64)
 
 
-def bcm_sync() -> dict[str, Any]:
-    progress(f"broadcast manager: send_periodic at 1 ms for {SYNC_SECONDS} s")
-    sender, receiver = bus(), bus()
+def periodic_sync(interface: str) -> dict[str, Any]:
+    """``send_periodic`` at 1 ms: the kernel's broadcast manager on socketcan, the card's
+    timer process on ``shm`` (``timer_process``, as the card's controller opens it)."""
+    what = "broadcast manager" if interface == "socketcan" else "shm timer process"
+    progress(f"{what}: send_periodic at 1 ms for {SYNC_SECONDS} s")
+    if interface == "shm":
+        sender = can.Bus(interface="shm", channel=SHM_CHANNEL, timer_process=True)
+    else:
+        sender = bus()
+    receiver = bus(interface)
     try:
         task = sender.send_periodic(
             can.Message(arbitration_id=SYNC_COB_ID, data=b"", is_extended_id=False), PERIOD_S)
+        deadline = time.monotonic() + FIRST_SYNC_TIMEOUT_S
+        while (msg := receiver.recv(0.1)) is None or msg.arbitration_id != SYNC_COB_ID:
+            if time.monotonic() > deadline:
+                raise RuntimeError(f"no SYNC from the {what}")
         time.sleep(0.2)
         stamps = record_syncs(receiver, SYNC_SECONDS)
         task.stop()
-        return sync_stats(stamps, PERIOD_S, SYNC_SECONDS)
+        result = {"source": what, **sync_stats(stamps, PERIOD_S, SYNC_SECONDS)}
+        realtime = getattr(task, "realtime", None)
+        if realtime is not None:
+            result["sched_fifo"] = realtime
+        return result
     finally:
         sender.shutdown()
         receiver.shutdown()
 
 
-def card_sync() -> dict[str, Any]:
+def card_sync(period_ms: int) -> dict[str, Any]:
+    """The card's SYNC at ``period_ms``; a network that does not come up is a result too."""
+    try:
+        return card_sync_run(period_ms)
+    except (RuntimeError, HostApiError) as exc:
+        progress(f"card SYNC at {period_ms} ms: {exc}")
+        return {"nodes": SYNC_NODES, "sync_period_ms": period_ms, "failed": str(exc)}
+
+
+def card_sync_run(period_ms: int) -> dict[str, Any]:
     nodes = list(range(1, SYNC_NODES + 1))
-    text = network_toml(nodes, sync_period_ms=CARD_SYNC_MS)
+    text = network_toml(nodes, sync_period_ms=period_ms)
     network = parse_network(text)
     out_offset, in_offset = io_offsets(network)
     with tempfile.TemporaryDirectory(prefix="cifemu-bench-vcan-", dir=scratch_root()) as tmp:
@@ -174,9 +222,13 @@ def card_sync() -> dict[str, Any]:
             card.board = Board(BOARD, directory, timeout=5000).open()
             select_uncontrolled(card.board)
             configure(card, network)
-            wait_operating(BOARD, len(nodes))
+            try:
+                wait_operating(BOARD, len(nodes))
+            except RuntimeError as exc:
+                raise RuntimeError(f"{exc}; the firmware log: {card.log()}") from None
             time.sleep(SYNC_SETTLE_S)
-            progress(f"card SYNC on vcan0: {SYNC_SECONDS} s idle, then with the PDO loop")
+            progress(f"card SYNC at {period_ms} ms on vcan0: {SYNC_SECONDS} s idle, then with "
+                     "the PDO loop")
             idle = record_syncs(receiver, SYNC_SECONDS)
             values = np.arange(1, len(nodes) + 1, dtype=np.uint64) << np.uint64(40)
             recorded: list[np.ndarray[Any, np.dtype[np.float64]]] = []
@@ -186,8 +238,8 @@ def card_sync() -> dict[str, Any]:
             window = echo_window(BOARD, values, len(nodes), SYNC_SECONDS, out_offset,
                                  in_offset)
             recorder.join()
-            period_s = CARD_SYNC_MS / 1e3
-            return {"nodes": len(nodes), "sync_period_ms": CARD_SYNC_MS,
+            period_s = period_ms / 1e3
+            return {"nodes": len(nodes), "sync_period_ms": period_ms,
                     "idle": sync_stats(idle, period_s, SYNC_SECONDS),
                     "with_pdo_loop": {"verified_echoes_per_s": round(window.echoes_per_s, 1),
                                       **sync_stats(recorded[0], period_s, SYNC_SECONDS)},
@@ -201,16 +253,23 @@ def card_sync() -> dict[str, Any]:
                          f"{logged['first_lines']}")
 
 
-def run(count: int | None = None) -> dict[str, Any]:
-    return {
+def run(count: int | None = None, card_sync_ms: tuple[int, ...] = CARD_SYNC_MS,
+        with_can: bool = True) -> dict[str, Any]:
+    count = count or ROUND_TRIPS
+    document_: dict[str, Any] = {
         "benchmark": "vcan",
         "description": __doc__.split("\n\n")[0] if __doc__ else "",
         "machine": machine_info(),
-        "round_trip": round_trip(count or ROUND_TRIPS),
-        "burst": burst(BURST),
-        "bcm_sync": bcm_sync(),
-        "card_sync": card_sync(),
+        "host_loadavg_at_start": os.environ.get(HOST_LOADAVG),
+        "round_trip": {"socketcan": round_trip(count), "baseline_shm": round_trip(count, "shm")},
+        "burst": {"socketcan": burst(BURST), "baseline_shm": burst(BURST, "shm")},
+        "sync_1ms": {"bcm": periodic_sync("socketcan"), "shm_timer": periodic_sync("shm")},
+        "card_sync": [card_sync(period) for period in card_sync_ms],
     }
+    if with_can:
+        progress("the CAN benchmark, its separate nodes on vcan0")
+        document_["can"] = document.run(only=CAN_PHASES, bus=SeparateBus("socketcan", CHANNEL))
+    return document_
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -218,8 +277,13 @@ def main(argv: list[str] | None = None) -> int:
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--count", type=int, default=None,
                         help=f"round trips (default {ROUND_TRIPS})")
+    parser.add_argument("--card-sync-ms", type=int, nargs="+", default=list(CARD_SYNC_MS),
+                        metavar="MS", help="the card's SYNC periods to measure "
+                                           f"(default {' '.join(map(str, CARD_SYNC_MS))})")
+    parser.add_argument("--no-can", action="store_true",
+                        help="leave out the CAN benchmark's phases (python -m bench.can)")
     args = parser.parse_args(argv)
-    emit(run(args.count))
+    emit(run(args.count, tuple(args.card_sync_ms), with_can=not args.no_can))
     return 0
 
 

@@ -23,6 +23,7 @@ from bench.can.card import (
     DEVICE_TYPE_BYTES,
     RESET_TIMEOUT_MS,
     SYNC_COB_ID,
+    SeparateBus,
     board_of,
     network_toml,
     simulated_card,
@@ -50,12 +51,12 @@ BOOT_WORKERS = 32
 BOOTUP_TIMEOUT_S = 3.0
 
 
-def card_boot() -> dict[str, Any]:
-    nodes = list(range(1, BOOT_NODES + 1))
+def card_boot(count: int, bus: SeparateBus | None) -> dict[str, Any]:
+    nodes = list(range(1, count + 1))
     text = network_toml(nodes)
     database = write_dbm(build_dbm(parse_network(text)))
     runs: list[dict[str, float]] = []
-    with simulated_card(text, separate=True) as card:
+    with simulated_card(text, separate=True, bus=bus) as card:
         board = board_of(card)
         rc = DevDownload(board.number, CONFIGURATION_DOWNLOAD, database)
         if rc != 0:
@@ -81,8 +82,8 @@ def _median(values: list[float]) -> float:
     return percentile(sorted(values), 50)
 
 
-def baseline_boot() -> dict[str, Any]:
-    nodes = list(range(1, BOOT_NODES + 1))
+def baseline_boot(count: int) -> dict[str, Any]:
+    nodes = list(range(1, count + 1))
     network = parse_network(network_toml(nodes))
     runs: list[float] = []
     with in_process(network) as (_, client):
@@ -129,17 +130,20 @@ def baseline_boot() -> dict[str, Any]:
     }
 
 
-def boot(online_126_s: float | None) -> dict[str, Any]:
-    baseline = baseline_boot()
-    card = card_boot()
-    if online_126_s is not None:
-        card["online_126_nodes_s"] = online_126_s
-        card["online_note"] = ("on-line configuration (configure_online), 126 nodes, timed from "
-                               "the bus parameter download; node 127 cannot be configured on "
-                               "line because area code 127 of COM_Download is the bus "
-                               "parameter set (taken from the pdo_throughput phase)")
+def boot(online: tuple[int, float] | None, nodes: int = BOOT_NODES,
+         bus: SeparateBus | None = None) -> dict[str, Any]:
+    """``online``: the pdo_throughput phase's on-line boot, (nodes, seconds)."""
+    baseline = baseline_boot(nodes)
+    card = card_boot(nodes, bus)
+    if online is not None:
+        card["online_nodes"], card["online_s"] = online
+        card["online_note"] = ("on-line configuration (configure_online) of the pdo_throughput "
+                               "phase's network (126 nodes in the full configuration), timed "
+                               "from the bus parameter download; node 127 cannot be configured "
+                               "on line because area code 127 of COM_Download is the bus "
+                               "parameter set")
     return {
-        "description": f"{BOOT_NODES} generic nodes stored in the card's flash (DevDownload), "
+        "description": f"{nodes} generic nodes stored in the card's flash (DevDownload), "
                        "then DevReset(COLDSTART): seconds from the reset call until all "
                        "nodes are in Nd_state (the start downloads nodes, then the bus "
                        "parameters, which start the network)",

@@ -149,6 +149,9 @@ class NodeHandler:
         self._guard_misses = 0
         self._toggle: int | None = None
         self._started_at = 0.0
+        self._start_stamp = 0.0
+        """[ours] Wall-clock time (as frames are stamped) of the node's last start: an
+        error-control frame stamped before it is no answer to it, however late it is read."""
         self._confirmed = False
         """The node reported OPERATIONAL since its start."""
         self._sdo_length_error = False
@@ -271,6 +274,7 @@ class NodeHandler:
         self._guard_misses = 0
         self._toggle = None
         self._started_at = now
+        self._start_stamp = time.time()
         self._confirmed = False
         self.awaiting_start = bool(skip & ConfigNdState.START) or self.master.global_start
         for output in self.outputs:
@@ -349,6 +353,7 @@ class NodeHandler:
             return
         self.awaiting_start = False
         self._started_at = now
+        self._start_stamp = time.time()
         self._confirmed = False
         if not self.params.bitConfigNdState & ConfigNdState.TXRXPDO:
             self.send_outputs(force=True)  # the first RX-PDO, now that the node takes it
@@ -572,7 +577,7 @@ class NodeHandler:
             return
         if self.heartbeat:
             self._last_heartbeat = now
-        else:
+        elif self.supervised:  # guarding; [ours] unsupervised: the node's own heartbeat
             self._guard_pending = False
             self._guard_misses = 0
             toggle = value & 0x80
@@ -585,6 +590,8 @@ class NodeHandler:
         if self.operational_expected and not self.awaiting_start and not operating:
             if not self._confirmed and now - self._started_at < START_GRACE:
                 return  # sent before the start reached it
+            if msg.timestamp and msg.timestamp < self._start_stamp:
+                return  # [ours] on the bus before the start, read late by a busy card
             self.fail(LEFT_OPERATIONAL)
             return
         self.master.set_node_state(self.address, operating)

@@ -1,0 +1,98 @@
+"""Frames the card reads late are judged by when they were on the bus, not when it read them.
+
+On a loaded machine (one CPU under User-Mode Linux, booting many nodes) the card's receive
+thread falls behind the bus by up to a second; candump showed a node's last pre-operational
+heartbeat, sent before the card's NMT Start_Node, read more than START_GRACE after the start,
+and the card failed the node with Err_Event 31 although it had done nothing wrong. Here the
+frame is injected on the ``shm`` bus with that time stamp (a station that keeps the stamps it
+is given), as the card would read it from a queue it fell behind on.
+"""
+
+from __future__ import annotations
+
+import struct
+import time
+import uuid
+from collections.abc import Iterator
+from pathlib import Path
+
+import can
+import pytest
+
+from dbm_tools.network import parse_network
+from dpm.task2 import ComDiagnostics
+from firmware.can.node import START_GRACE
+from firmware.can.shm import ShmBus
+from host_api.board import Board
+from host_api.online import configure_online
+from tests.conftest import start_card, wait_until
+from tests.test_can_task import start_sim
+
+NODE = 2
+NETWORK = f'[[node]]\nid = {NODE}\nerror_control = "none"\n'
+"""A node without heartbeat: every error-control frame the card sees is the test's."""
+PRE_OPERATIONAL, TOGGLE, NMT_START = 0x7F, 0x80, 0x01
+
+
+class Rig:
+    def __init__(self, board: Board, station: ShmBus) -> None:
+        self.board = board
+        self.station = station
+
+    def diag(self) -> ComDiagnostics:
+        return self.board.diagnostics()
+
+    def send(self, ident: int, data: bytes, stamp: float) -> None:
+        self.station.send(can.Message(timestamp=stamp, arbitration_id=ident, data=data,
+                                      is_extended_id=False))
+
+
+@pytest.fixture
+def rig(tmp_path: Path) -> Iterator[Rig]:
+    channel = f"test-{uuid.uuid4().hex}"
+    toml = tmp_path / "network.toml"
+    toml.write_text(NETWORK)
+    card = start_card(tmp_path, 0, "--interface", "shm", "--channel", channel)
+    sim = start_sim(toml, "shm", channel)
+    station = ShmBus(channel, preserve_timestamps=True)
+    board = Board(0, tmp_path, timeout=5000).open()
+    try:
+        yield Rig(board, station)
+    finally:
+        board.close()
+        station.shutdown()
+        card.stop()
+        sim.terminate()
+        sim.wait(timeout=10)
+
+
+def start_stamp(station: ShmBus, deadline: float) -> float:
+    """The bus time stamp of the card's NMT Start_Node to the node."""
+    while time.monotonic() < deadline:
+        msg = station.recv(0.1)
+        if msg is not None and msg.arbitration_id == 0 and bytes(msg.data) == bytes(
+                [NMT_START, NODE]):
+            return msg.timestamp
+    raise AssertionError("no Start_Node for the node on the bus")
+
+
+def test_a_pre_operational_report_sent_before_the_start_and_read_late_is_no_departure(
+        rig: Rig) -> None:
+    configure_online(rig.board, parse_network(NETWORK))
+    started = start_stamp(rig.station, time.monotonic() + 10)
+    wait_until(lambda: rig.diag().operating() == [NODE], 10, "the node in data exchange")
+    read_late = started + START_GRACE + 0.2
+    wait_until(lambda: time.time() > read_late, 5, "the start's grace to pass")
+    # On the bus 50 ms before the start, read now: the card fell behind, the node did not.
+    rig.send(0x700 + NODE, bytes([PRE_OPERATIONAL]), started - 0.05)
+    # An EMCY behind it: the card reads a station's frames in order, so once the EMCY shows
+    # in Nd_diag the heartbeat before it has been judged.
+    rig.send(0x80 + NODE, struct.pack("<HB5x", 0x1000, 1), time.time())
+    wait_until(lambda: NODE in rig.diag().diagnostic(), 5, "the EMCY in Nd_diag")
+    assert rig.diag().bErr_event == 0
+    assert rig.diag().operating() == [NODE]
+    # The same report sent now is a departure (Err_Event 31): the frames do reach the card.
+    # (Its toggle bit differs from the first one's, as a guarded node's answers alternate.)
+    rig.send(0x700 + NODE, bytes([TOGGLE | PRE_OPERATIONAL]), time.time())
+    wait_until(lambda: rig.diag().bErr_event == 31, 5, "Err_Event 31")
+    assert rig.diag().bErr_rem_adr == NODE
