@@ -96,3 +96,15 @@ def test_a_pre_operational_report_sent_before_the_start_and_read_late_is_no_depa
     rig.send(0x700 + NODE, bytes([TOGGLE | PRE_OPERATIONAL]), time.time())
     wait_until(lambda: rig.diag().bErr_event == 31, 5, "Err_Event 31")
     assert rig.diag().bErr_rem_adr == NODE
+
+
+def test_an_adapter_stamping_by_its_own_clock_still_reports_a_departure(rig: Rig) -> None:
+    """Some adapters stamp frames in seconds since their own power-on. Such a stamp is not
+    the wall clock's, so it must not make a node's departure look older than its start."""
+    configure_online(rig.board, parse_network(NETWORK))
+    started = start_stamp(rig.station, time.monotonic() + 10)
+    wait_until(lambda: rig.diag().operating() == [NODE], 10, "the node in data exchange")
+    wait_until(lambda: time.time() > started + START_GRACE + 0.2, 5, "the start's grace")
+    rig.send(0x700 + NODE, bytes([PRE_OPERATIONAL]), 1234.5)  # 20 min after power-on
+    wait_until(lambda: rig.diag().bErr_event == 31, 5, "Err_Event 31")
+    assert rig.diag().bErr_rem_adr == NODE

@@ -53,6 +53,10 @@ RTR_PERIOD = 0.1
 START_GRACE = 0.5
 """[ours] seconds after the NMT start in which a node may still report its old state: an
 error-control frame it sent before the start can reach the master after it."""
+FOREIGN_CLOCK_S = 60.0
+"""[ours] A frame stamped further than this from the wall clock is stamped by the adapter's
+own clock: its stamp says nothing about when it was on the bus relative to the card's
+resets and starts (``wall_stamp``)."""
 
 # Err_Event numbers for nodes (seed 4.3)
 GUARDING_FAILED = NodeEvent.GUARDING_FAILED
@@ -111,6 +115,14 @@ def swap_words(data: bytes) -> bytes:
     for i in range(0, len(out) - 1, 2):
         out[i], out[i + 1] = out[i + 1], out[i]
     return bytes(out)
+
+
+def wall_stamp(msg: can.Message) -> float | None:
+    """The frame's time stamp when it is on this machine's wall clock, as virtual, shm and
+    socketcan stamp; None for an adapter that counts from its own power-on, whose stamps
+    would otherwise make every frame look older than the node's last reset or start."""
+    stamp = msg.timestamp
+    return stamp if stamp and abs(stamp - time.time()) < FOREIGN_CLOCK_S else None
 
 
 class NodeHandler:
@@ -561,12 +573,13 @@ class NodeHandler:
         if msg.is_remote_frame or not msg.data:
             return
         now = time.monotonic()
+        stamp = wall_stamp(msg)
         value = msg.data[0]
         state = value & 0x7F
         if state == BOOT_UP and msg.arbitration_id == 0x700 + self.address:
             # One sent before our reset (at power-on, say) must not pass for its answer:
             # the node would still be resetting when the first SDO request comes.
-            if not msg.timestamp or msg.timestamp >= self._reset_at:
+            if stamp is None or stamp >= self._reset_at:
                 self._bootup.set()
             if self.state is State.OPERATING:
                 log.info("node %d: unexpected boot-up", self.address)
@@ -590,7 +603,7 @@ class NodeHandler:
         if self.operational_expected and not self.awaiting_start and not operating:
             if not self._confirmed and now - self._started_at < START_GRACE:
                 return  # sent before the start reached it
-            if msg.timestamp and msg.timestamp < self._start_stamp:
+            if stamp is not None and stamp < self._start_stamp:
                 return  # [ours] on the bus before the start, read late by a busy card
             self.fail(LEFT_OPERATIONAL)
             return
