@@ -180,6 +180,9 @@ class NodeHandler:
             strict=False)]
         self._polled = [e for e in self.inputs if e.pdo.bTransType in (SYNC_RTR, ASYNC_RTR)]
         """Inputs that come only when asked by a remote frame (252, 253)."""
+        self._synchronous = [e for e in self.outputs if e.pdo.bTransType <= 240]
+        """Outputs a SYNC may send: at 1,000 SYNCs/s the others are not even read then
+        (the master's tick sends a changed event-driven output)."""
 
     # --- wiring to the bus -----------------------------------------------------------------
 
@@ -541,7 +544,7 @@ class NodeHandler:
         waiting = False
         image = self.master.image
         now = time.monotonic()
-        for entry in self.outputs:
+        for entry in self._synchronous if sync and not force else self.outputs:
             pdo = entry.pdo
             data = image.read_outputs(entry.offset, pdo.data_length)
             if pdo.bLength & MSK_WORD_PDO and self.master.motorola:
