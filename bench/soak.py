@@ -30,6 +30,7 @@ import threading
 import time
 from dataclasses import dataclass, field
 from multiprocessing.connection import Connection
+from multiprocessing.synchronize import Event as EventType
 from pathlib import Path
 from typing import Any
 
@@ -76,6 +77,8 @@ MAILBOX_NODES = 8
 SDO_PAUSE_S = 0.002
 """Between two SDO reads of one client: 'a host doing SDO transfers', not a flood that
 would starve the PDO loop on a 2-core machine."""
+CLIENT_DONE_WAIT_S = 30.0
+"""How long the 309-3 server outlives its own SDO loop for the client's last request."""
 DEVICE_TYPE = 0x000F0191
 COUNTERS = ("usBus_Error_Cnt", "usBus_Off_Cnt", "usMsg_Time_Out", "usRx_Overflow")
 
@@ -152,8 +155,11 @@ def _p50_p99(seconds: list[float]) -> dict[str, float | int]:
 # --- the two SDO hosts (processes of their own) -----------------------------------------------
 
 
-def _mailbox_and_server_host(directory: str, windows: Windows, conn: Connection) -> None:
-    """The 309-3 server (it owns the mailbox reader) and a host's mailbox SDO reads."""
+def _mailbox_and_server_host(directory: str, windows: Windows, conn: Connection,
+                             client_done: EventType) -> None:
+    """The 309-3 server (it owns the mailbox reader) and a host's mailbox SDO reads. The
+    server stays until the 309-3 client is done: closed at the same deadline as the
+    client's, it cut off the client's last request (an empty answer, counted a failure)."""
     from host_api.cia309.gateway import Gateway
     from host_api.cia309.server import BackgroundServer, ServerConfig
 
@@ -178,12 +184,14 @@ def _mailbox_and_server_host(directory: str, windows: Windows, conn: Connection)
                     else:
                         windows.add(now, now - began)
                 time.sleep(SDO_PAUSE_S)
+            client_done.wait(CLIENT_DONE_WAIT_S)
         finally:
             server.close()
     conn.send(windows.summary())
 
 
-def _cia309_client(port: int, windows: Windows, conn: Connection) -> None:
+def _cia309_client(port: int, windows: Windows, conn: Connection,
+                   done: EventType) -> None:
     """A 309-3 client reading 1000h round its nodes, one request at a time."""
     until = windows.start + windows.width * windows.count
     with socket.create_connection(("127.0.0.1", port), timeout=10) as sock:
@@ -204,6 +212,7 @@ def _cia309_client(port: int, windows: Windows, conn: Connection) -> None:
                 if not line:
                     break
             time.sleep(SDO_PAUSE_S)
+    done.set()
     conn.send(windows.summary())
 
 
@@ -311,12 +320,15 @@ def soak(minutes: int) -> dict[str, Any]:
         start = time.monotonic()
         windows = Windows(start, width, count)
         server_end, server_conn = context.Pipe(duplex=False)
+        client_done = context.Event()
         server_host = context.Process(target=_mailbox_and_server_host,
-                                      args=(str(card.directory), windows, server_conn))
+                                      args=(str(card.directory), windows, server_conn,
+                                            client_done))
         server_host.start()
         port = server_end.recv()
         client_end, client_conn = context.Pipe(duplex=False)
-        client = context.Process(target=_cia309_client, args=(port, windows, client_conn))
+        client = context.Process(target=_cia309_client,
+                                 args=(port, windows, client_conn, client_done))
         client.start()
         assert card.sim is not None
         pids = {"firmware": card.pid, "sim": card.sim.pid, "pdo_host": os.getpid(),
