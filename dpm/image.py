@@ -11,6 +11,7 @@ import errno
 import fcntl
 import mmap
 import os
+from collections.abc import Callable
 from pathlib import Path
 
 from dpm.errors import DpmError
@@ -41,9 +42,13 @@ class BoardBusyError(DpmError, RuntimeError):
 
 
 class ExclusiveLock:
-    """A non-blocking flock held for an object's life; records the holder's pid."""
+    """A non-blocking flock held for an object's life; records the holder's pid.
 
-    def __init__(self, path: Path) -> None:
+    ``on_acquired`` runs the moment the flock is held, before anything else: the lock is
+    what tells hosts that a firmware runs, so what must be true of a running firmware
+    (no stale READY in its image) is made true first."""
+
+    def __init__(self, path: Path, on_acquired: Callable[[], None] | None = None) -> None:
         self.path = path
         self._fd = os.open(path, os.O_RDWR | os.O_CREAT, IMAGE_MODE)
         try:
@@ -56,6 +61,8 @@ class ExclusiveLock:
                     f"{path} is held by process {holder}: a firmware already serves this board"
                 ) from None
             raise
+        if on_acquired is not None:
+            on_acquired()
         os.ftruncate(self._fd, 0)
         os.pwrite(self._fd, f"{os.getpid()}\n".encode(), 0)
 

@@ -62,10 +62,17 @@ class Device:
         self.board = board
         self.directory = dpm_dir(directory)
         self.directory.mkdir(parents=True, exist_ok=True)
-        self._instance_lock = ExclusiveLock(lock_path(self.directory, board))
         self.path = image_path(self.directory, board)
+        # Mapped before the lock (harmless beside a running card: same file, same size), so
+        # that a killed predecessor's READY goes the moment this firmware holds the lock,
+        # which is when hosts start to take it for a running one.
         self.mm = create_image(self.path)
-        self.mm[HOST_FLAGS] = 0  # a killed predecessor's READY is not this firmware's
+        try:
+            self._instance_lock = ExclusiveLock(lock_path(self.directory, board),
+                                                on_acquired=self._clear_host_flags)
+        except BaseException:
+            self.mm.close()
+            raise
         self.view: Any = image_view(self.mm)
         self.bell = DeviceBell(self.path)
         self.outbox: deque[Message] = deque()
@@ -146,6 +153,9 @@ class Device:
         self.bell.ring_self()
 
     # --- flags -------------------------------------------------------------------------
+
+    def _clear_host_flags(self) -> None:
+        self.mm[HOST_FLAGS] = 0  # a killed predecessor's READY is not this firmware's
 
     def write_host_flags(self, value: int) -> None:
         self.mm[HOST_FLAGS] = value
