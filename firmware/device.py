@@ -267,10 +267,9 @@ class Device:
             self._flush()
             return
         self.rcs.service(dev, now)
-        self._levels()
         if (mm[HOST_FLAGS] ^ mm[DEV_FLAGS]) & fl.DEV_MBX and len(self.outbox) < OUTBOX_LIMIT:
             self._receive()
-            self._levels()  # RUN as the message left it (delete database), before its answer
+        self._levels()  # after the message: RUN as it left it (delete database), before its answer
         if not (mm[HOST_FLAGS] ^ mm[DEV_FLAGS]) & fl.HOST_MBX:
             if not self.outbox:
                 indication = self.can.next_indication()
