@@ -22,6 +22,7 @@ import socket
 import subprocess
 import sys
 import threading
+import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
@@ -214,9 +215,28 @@ def test_several_clients_at_once(connect: Connect) -> None:
     for thread in threads:
         thread.join(30)
     assert not failures
-    refused = connect("canopennode")  # a fourth client: over the limit of 3
+
+
+def test_a_new_client_ends_the_one_idle_longest(connect: Connect) -> None:
+    """Issue 20: over the limit of 3, a new client is served within 2 s and the client idle
+    longest sees its connection end, without a line; while none is idle (each waits for a
+    node that does not answer), a new client is refused with 600."""
+    clients = [connect("canopennode") for _ in range(3)]
+    for sequence, client in enumerate(clients, 1):  # the first is idle longest
+        assert client.ask(f"[{sequence}] 1 read 0x1000 0 u32\n") == f"[{sequence}] 983441\r\n"
+    began = time.monotonic()
+    fourth = connect("canopennode")
+    assert fourth.ask("[4] 1 read 0x1000 0 u32\n") == "[4] 983441\r\n"
+    assert time.monotonic() - began < 2
+    assert clients[0].sock.recv(10) == b""
+    busy = [*clients[1:], fourth]
+    for client in busy:  # node 42 is not on the bus: 9 SDO time-outs of 300 ms, in turn
+        client.send("".join(f"[{sequence}] 42 read 0x1000 0 u32\n" for sequence in (5, 6, 7)))
+    refused = connect("canopennode")
     assert refused.until(b"\r\n") == b"[0] ERROR:600 #Running out of memory.\r\n"
     assert refused.sock.recv(10) == b""
+    for client in busy:
+        assert client.until(b"[7] ERROR:103 #Time-out.\r\n").endswith(b"\r\n")
 
 
 def test_read_only_refuses_writes_and_nmt(connect: Connect) -> None:

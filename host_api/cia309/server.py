@@ -18,20 +18,28 @@ they happen; CANopenNode's ``cocomm`` would take such a line for its answer, so 
 they go to the message log that ``log`` prints, as CANopenNode's gateway does. The log
 (the last ``LOG_LINES`` events) is kept in both dialects.
 
-Limits [ours]: 127.0.0.1 unless told otherwise; ``max_clients`` connections (one more
-is answered ``[0] ERROR:600`` and closed); lines longer than the client's command size
-(``--max-line``, raised per client by ``set command_size`` up to
-``MAX_COMMAND_SIZE``) are answered with 600 and dropped, the connection stays. A slot must
-not be held by a client that does nothing, or eight of them lock everyone else out, so
-three limits drop a connection without an answer:
+Limits [ours]: 127.0.0.1 unless told otherwise; ``max_clients`` connections; lines longer
+than the client's command size (``--max-line``, raised per client by ``set command_size`` up
+to ``MAX_COMMAND_SIZE``) are answered with 600 and dropped, the connection stays. A slot must
+not be held by a client that does nothing, or eight of them lock everyone else out:
 
+* a new connection while every slot is taken ends the connection that has been idle longest
+  (idle: no request of it runs or waits to be read, or it does not read its answers), which
+  sees its answers and then the end of the connection, as after its idle time-out; when no
+  client is idle, the new one is answered ``[0] ERROR:600`` and closed;
 * ``idle_timeout``: no byte received for this long while none of its requests runs;
 * ``line_timeout``: a line begun but not ended within this long (a client sending one
-  byte a second never goes idle, but never finishes a request either);
-* ``max_output``: more than this many bytes of answers and events queued for a client
-  that does not read them. The server never waits for a client to read (it would stop
-  serving its requests and hold the slot); the queue is what bounds its memory.
+  byte a second never goes idle, but never finishes a request either), or answers not read
+  for this long: a client's requests are not read while more than ``WRITE_HIGH`` bytes of
+  its answers wait (back-pressure), so a client that never reads holds little and is
+  ended here;
+* ``max_output``: the answers and events waiting for all clients together (events do not
+  wait for a client to read); over it, the client with the most is ended.
 
+The idle and line time-outs and the budget end a connection without an answer. Memory
+then stays bounded: per client ``WRITE_HIGH`` plus one answer, ``READ_CHUNK`` of request
+lines and its command size; in all ``max_output`` of output at most; the kernel's socket
+buffers are ``SOCKET_BUFFER``.
 A time-out of 0 turns that time-out off.
 ``--read-only`` answers 100 to everything that writes to a node or the card (SDO and
 PDO writes, NMT, configuration, LSS); reads, ``info version``, ``help``, ``log`` and the
@@ -42,7 +50,11 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import fcntl
 import logging
+import socket
+import sys
+import termios
 import threading
 from collections import deque
 from collections.abc import Callable, Iterable
@@ -130,12 +142,28 @@ DEFAULT_IDLE_TIMEOUT = 60.0
 DEFAULT_LINE_TIMEOUT = 10.0
 """[ours] seconds from the first byte of a request line to its line end."""
 DEFAULT_MAX_OUTPUT = 1 << 20
-"""[ours] bytes of answers and events that may wait for a client that does not read."""
+"""[ours] bytes of answers and events that may wait, for all clients together."""
 REFUSAL_FLUSH_S = 1.0
-"""How long the answer to a client over ``max_clients`` may take to leave before the
-connection is cut anyway."""
+"""How long the last answers to a client that is ended (a refusal, an eviction) may take
+to leave before the connection is cut anyway."""
 LOG_LINES = 1000
-READ_CHUNK = 65536
+READ_CHUNK = 4096
+"""[ours] bytes of requests read at once: what a client that pipelines thousands of short
+requests holds as lines while it waits for its answers to be read."""
+WRITE_HIGH = 64 * 1024
+"""[ours] bytes of a client's answers that may wait before its next request is read."""
+WRITE_LOW = 16 * 1024
+"""Reading its requests again once its waiting answers are down to this."""
+IDLE_GRACE_S = 1.0
+"""[ours] a client that has had an answer keeps its slot this long after its last byte or
+answer, whatever new clients come: a client between two requests is not idle."""
+SLOT_WAIT_S = IDLE_GRACE_S + 0.25
+"""How long a new client waits for a slot (while every client is busy or in its grace)
+before it is refused; at most ``max_clients`` wait."""
+SLOT_POLL_S = 0.05
+SOCKET_BUFFER = 64 * 1024
+"""[ours] SO_SNDBUF and SO_RCVBUF of every connection (the kernel doubles them), instead of
+the kernel's autotuning up to megabytes per socket."""
 
 READ_ONLY_REQUESTS = (
     SdoUpload, ReadPdo, GetVersion, Help, Log,
@@ -490,6 +518,64 @@ class ServerConfig:
     max_output: int = DEFAULT_MAX_OUTPUT
 
 
+class _Protocol(asyncio.StreamReaderProtocol):
+    """asyncio's stream protocol, counting the bytes received: a client whose request has
+    arrived but has not been read yet is not idle, and must not lose its slot."""
+
+    received = 0
+
+    def data_received(self, data: bytes) -> None:
+        self.received += len(data)
+        super().data_received(data)
+
+
+@dataclass(eq=False)
+class _Connection:
+    """A client's connection as the server keeps it: what slot eviction and the output
+    budget look at."""
+
+    client: Client
+    writer: asyncio.StreamWriter
+    protocol: _Protocol
+    last_active: float
+    """Event-loop time of its last byte received or its last answer written."""
+    consumed: int = 0
+    """Bytes taken from the stream so far (``protocol.received`` minus this are waiting)."""
+    serving: bool = False
+    """One of its requests runs."""
+    draining: bool = False
+    """Its requests wait until it reads its answers."""
+    answered: bool = False
+    """It has had an answer."""
+
+    def waiting_input(self) -> bool:
+        """Bytes of it have arrived that the server has not read: in the stream, or still
+        in the kernel (a new connection's first request before its first read)."""
+        if self.protocol.received > self.consumed:
+            return True
+        sock = self.writer.get_extra_info("socket")
+        if sock is None:
+            return False
+        try:
+            queued = fcntl.ioctl(sock.fileno(), termios.FIONREAD, bytes(4))
+        except OSError:
+            return False
+        return int.from_bytes(queued, sys.byteorder) > 0
+
+    def idle(self, now: float) -> bool:
+        """May lose its slot to a new client: nothing of it runs or waits to be read, and
+        it does not read its answers, or it has not finished a request yet, or nothing came
+        from it or went to it for IDLE_GRACE_S (a client between two requests keeps its
+        slot)."""
+        if self.serving:
+            return False
+        if self.draining:
+            return True
+        if self.waiting_input():
+            return False
+        return not self.answered or now - self.last_active >= IDLE_GRACE_S
+
+
 class Server:
     """The asyncio TCP server; ``start`` binds, ``serve_forever`` runs, ``close`` ends.
 
@@ -502,7 +588,11 @@ class Server:
         self.gateway = gateway
         self.config = config
         self.dispatcher = Dispatcher(config.dialect, read_only=config.read_only, lss=lss)
-        self._clients: dict[Client, asyncio.StreamWriter] = {}
+        self._connections: list[_Connection] = []
+        self._ending: set[asyncio.WriteTransport] = set()
+        self._newcomers = 0
+        """New connections waiting for a slot."""
+        """Connections ended after their last answers, until those have left."""
         self._executor = ThreadPoolExecutor(max_workers=config.max_clients,
                                             thread_name_prefix="cia309-client")
         self._server: asyncio.Server | None = None
@@ -516,9 +606,16 @@ class Server:
         return int(self._server.sockets[0].getsockname()[1])
 
     async def start(self) -> None:
-        self._loop = asyncio.get_running_loop()
-        self._server = await asyncio.start_server(self._serve_client, self.config.host,
-                                                  self.config.port)
+        loop = self._loop = asyncio.get_running_loop()
+
+        def protocol() -> _Protocol:
+            return _Protocol(asyncio.StreamReader(limit=READ_CHUNK, loop=loop),
+                             self._serve_client, loop=loop)
+
+        self._server = await loop.create_server(protocol, self.config.host, self.config.port)
+        for sock in self._server.sockets:  # accepted connections inherit them
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, SOCKET_BUFFER)
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, SOCKET_BUFFER)
         log.info("CiA 309-3 gateway (%s) on %s:%d", self.config.dialect.value,
                  self.config.host, self.port)
 
@@ -530,8 +627,10 @@ class Server:
         self._subscription.cancel()
         if self._server is not None:
             self._server.close()
-        for writer in list(self._clients.values()):
-            writer.transport.abort()
+        for connection in list(self._connections):
+            connection.writer.transport.abort()
+        for transport in list(self._ending):
+            transport.abort()
         if self._server is not None:
             await self._server.wait_closed()
         self._executor.shutdown(wait=False, cancel_futures=True)
@@ -546,19 +645,86 @@ class Server:
         if line is None or self.config.dialect is not Dialect.LELY:
             return
         data = line.encode("latin-1")
-        for writer in list(self._clients.values()):
-            self._write(writer, data)
+        for connection in list(self._connections):
+            self._write(connection, data)
 
-    def _write(self, writer: asyncio.StreamWriter, data: bytes) -> None:
-        """Queue ``data`` for the client, or drop the client when its queue is over
-        ``max_output`` (``abort``: ``close`` would keep the queue until the client reads)."""
+    def _write(self, connection: _Connection, data: bytes) -> None:
+        """Queue ``data`` for the client; then, while the output waiting for all clients
+        (ended ones whose last answers still leave included) is over ``max_output``, cut the
+        connection with the most (``abort``: ``close`` would keep its queue until it reads)."""
+        writer = connection.writer
         if writer.is_closing():
             return
         writer.write(data)
-        if writer.transport.get_write_buffer_size() > self.config.max_output:
-            log.info("dropping %s: %d bytes of output it does not read", _peer(writer),
-                     writer.transport.get_write_buffer_size())
-            writer.transport.abort()
+        while (total := self._output()) > self.config.max_output:
+            largest = max((other.writer.transport for other in self._connections),
+                          key=_waiting, default=None)
+            ending = max(self._ending, key=_waiting, default=None)
+            if largest is None or (ending is not None and _waiting(ending) > _waiting(largest)):
+                assert ending is not None
+                self._ending.discard(ending)
+                ending.abort()
+                continue
+            owner = next(other for other in self._connections
+                         if other.writer.transport is largest)
+            self._end(owner, f"{_waiting(largest)} bytes of output it does not read "
+                             f"({total} for all clients)", flush=False)
+
+    def _output(self) -> int:
+        """Bytes of output waiting, for all clients together."""
+        return (sum(_waiting(other.writer.transport) for other in self._connections)
+                + sum(_waiting(transport) for transport in self._ending))
+
+    def _end(self, connection: _Connection, why: str, *, flush: bool) -> None:
+        """Free the client's slot now and end its connection: after its waiting output
+        (``flush``, for at most REFUSAL_FLUSH_S) or at once."""
+        with contextlib.suppress(ValueError):
+            self._connections.remove(connection)
+        log.info("dropping %s: %s", _peer(connection.writer), why)
+        transport = connection.writer.transport
+        if not flush:
+            transport.abort()
+            return
+        transport.close()
+        self._ending.add(transport)
+
+        def cut() -> None:
+            self._ending.discard(transport)
+            transport.abort()
+
+        asyncio.get_running_loop().call_later(REFUSAL_FLUSH_S, cut)
+
+    def _take_slot(self) -> bool:
+        """Make room for a new client when every slot is taken, by ending the idle client
+        idle longest; False when none is idle."""
+        if len(self._connections) < self.config.max_clients:
+            return True
+        now = asyncio.get_running_loop().time()
+        idle = [connection for connection in self._connections if connection.idle(now)]
+        if not idle:
+            return False
+        longest = min(idle, key=lambda connection: connection.last_active)
+        self._end(longest, f"idle longest ({now - longest.last_active:.1f} s) when a new "
+                           "client came", flush=not longest.draining)
+        return True
+
+    async def _wait_for_slot(self) -> bool:
+        """A slot for a new client, within SLOT_WAIT_S (a client idle for less than
+        IDLE_GRACE_S may become idle enough); False when none came or too many wait."""
+        if self._take_slot():
+            return True
+        if self._newcomers >= self.config.max_clients:
+            return False
+        self._newcomers += 1
+        try:
+            deadline = asyncio.get_running_loop().time() + SLOT_WAIT_S
+            while asyncio.get_running_loop().time() < deadline:
+                await asyncio.sleep(SLOT_POLL_S)
+                if self._take_slot():
+                    return True
+            return False
+        finally:
+            self._newcomers -= 1
 
     def _read_timeout(self, client: Client, now: float) -> float | None:
         """How long the next read may wait: what is left of the line-assembly time while a
@@ -569,37 +735,69 @@ class Server:
             return max(0.0, client.line_started + config.line_timeout - now)
         return config.idle_timeout if config.idle_timeout > 0 else None
 
+    async def _drain(self, connection: _Connection) -> bool:
+        """Back-pressure: while more than WRITE_HIGH bytes of answers wait, wait for the
+        client to read them down to WRITE_LOW, for at most the line time-out (else the idle
+        time-out); False when it did not."""
+        config = self.config
+        if _waiting(connection.writer.transport) <= WRITE_HIGH:
+            return True
+        timeout = config.line_timeout or config.idle_timeout or None
+        connection.draining = True
+        try:
+            await asyncio.wait_for(connection.writer.drain(), timeout)
+        except TimeoutError:
+            return False
+        finally:
+            connection.draining = False
+        return True
+
     async def _serve_client(self, reader: asyncio.StreamReader,
                             writer: asyncio.StreamWriter) -> None:
-        if len(self._clients) >= self.config.max_clients:
+        if not await self._wait_for_slot():
             writer.write(format_error(0, ErrorCode.OUT_OF_MEMORY,
                                       self.config.dialect).encode("latin-1"))
             with contextlib.suppress(TimeoutError):
                 await asyncio.wait_for(_close(writer), REFUSAL_FLUSH_S)
             writer.transport.abort()
             return
-        client = Client(self.gateway.session(), LineFramer(self.config.max_line))
-        self._clients[client] = writer
         loop = asyncio.get_running_loop()
+        protocol = writer.transport.get_protocol()
+        assert isinstance(protocol, _Protocol)
+        writer.transport.set_write_buffer_limits(WRITE_HIGH, WRITE_LOW)
+        client = Client(self.gateway.session(), LineFramer(self.config.max_line))
+        connection = _Connection(client, writer, protocol, loop.time())
+        self._connections.append(connection)
         try:
-            while True:
+            while connection in self._connections:
                 try:
                     data = await asyncio.wait_for(reader.read(READ_CHUNK),
                                                   self._read_timeout(client, loop.time()))
                 except TimeoutError:
                     what = "line unfinished" if client.framer.partial else "idle"
-                    log.info("dropping %s: %s for too long", _peer(writer), what)
+                    self._end(connection, f"{what} for too long", flush=False)
                     break
                 if not data:
                     break
+                connection.consumed += len(data)
+                connection.last_active = loop.time()
                 lines = client.framer.feed(data)
                 for line in lines:
-                    answer = await loop.run_in_executor(self._executor, self.dispatcher.handle,
-                                                        client, line)
+                    connection.serving = True
+                    try:
+                        answer = await loop.run_in_executor(
+                            self._executor, self.dispatcher.handle, client, line)
+                    finally:
+                        connection.serving = False
+                    connection.last_active = loop.time()
+                    connection.answered = True
                     if writer.is_closing():
                         break
                     if answer:
-                        self._write(writer, answer.encode("latin-1"))
+                        self._write(connection, answer.encode("latin-1"))
+                    if not await self._drain(connection):
+                        self._end(connection, "does not read its answers", flush=False)
+                        break
                 # A line's time runs from its first byte, or from when the server is done
                 # with the lines before it: time spent serving a batch is not the client's.
                 if not client.framer.partial:
@@ -609,8 +807,15 @@ class Server:
         except ConnectionError:
             log.debug("a client went away")
         finally:
-            del self._clients[client]
-            writer.transport.abort()
+            with contextlib.suppress(ValueError):
+                self._connections.remove(connection)
+            if not writer.transport.is_closing():
+                writer.transport.abort()
+
+
+def _waiting(transport: asyncio.WriteTransport) -> int:
+    """Bytes of output waiting for the client to read them."""
+    return transport.get_write_buffer_size()
 
 
 async def _close(writer: asyncio.StreamWriter) -> None:
