@@ -79,7 +79,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     serve_parser.add_argument("--read-only", action="store_true",
                               help="answer 100 to writes, NMT and configuration")
     serve_parser.add_argument("--max-clients", type=_positive, default=DEFAULT_MAX_CLIENTS,
-                              metavar="N", help=f"connections at once (default "
+                              metavar="N", help=f"connections at once; one more ends "
+                                                f"the client idle longest (default "
                                                 f"{DEFAULT_MAX_CLIENTS})")
     serve_parser.add_argument("--max-line", type=_positive, default=DEFAULT_MAX_LINE,
                               metavar="N", help=f"longest request in bytes until a client "
@@ -91,11 +92,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                                                 f"(default {DEFAULT_IDLE_TIMEOUT:g}; 0: never)")
     serve_parser.add_argument("--line-timeout", type=_seconds, default=DEFAULT_LINE_TIMEOUT,
                               metavar="S", help=f"drop a client whose request line is not "
-                                                f"ended S seconds after its first byte "
-                                                f"(default {DEFAULT_LINE_TIMEOUT:g}; 0: never)")
+                                                f"ended S seconds after its first byte, or "
+                                                f"that does not read its answers for S "
+                                                f"seconds (default {DEFAULT_LINE_TIMEOUT:g}; "
+                                                f"0: never)")
     serve_parser.add_argument("--max-output", type=_positive, default=DEFAULT_MAX_OUTPUT,
-                              metavar="N", help=f"drop a client that leaves more than N bytes "
-                                                f"of answers and events unread (default "
+                              metavar="N", help=f"bytes of answers and events left unread "
+                                                f"by all clients together; over it, drop the "
+                                                f"client with the most (default "
                                                 f"{DEFAULT_MAX_OUTPUT})")
     serve_parser.set_defaults(action_func=_serve)
     exec_parser = sub.add_parser("exec", help="send one request, print its answer",

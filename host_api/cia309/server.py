@@ -23,10 +23,13 @@ than the client's command size (``--max-line``, raised per client by ``set comma
 to ``MAX_COMMAND_SIZE``) are answered with 600 and dropped, the connection stays. A slot must
 not be held by a client that does nothing, or eight of them lock everyone else out:
 
-* a new connection while every slot is taken ends the connection that has been idle longest
-  (idle: no request of it runs or waits to be read, or it does not read its answers), which
-  sees its answers and then the end of the connection, as after its idle time-out; when no
-  client is idle, the new one is answered ``[0] ERROR:600`` and closed;
+* a new connection while every slot is taken ends the idle connection that has been idle
+  longest, which sees its last answers and then the end of the connection, as after its
+  idle time-out. Idle: no request of it runs or waits to be read, and it does not read its
+  answers, or has not finished a request yet, or has sent and been sent nothing for
+  ``IDLE_GRACE_S`` (a client between two requests keeps its slot). The new connection waits
+  up to ``SLOT_WAIT_S`` for one to become idle, else it is answered ``[0] ERROR:600`` and
+  closed (at once when ``max_clients`` others wait already);
 * ``idle_timeout``: no byte received for this long while none of its requests runs;
 * ``line_timeout``: a line begun but not ended within this long (a client sending one
   byte a second never goes idle, but never finishes a request either), or answers not read
@@ -39,8 +42,7 @@ not be held by a client that does nothing, or eight of them lock everyone else o
 The idle and line time-outs and the budget end a connection without an answer. Memory
 then stays bounded: per client ``WRITE_HIGH`` plus one answer, ``READ_CHUNK`` of request
 lines and its command size; in all ``max_output`` of output at most; the kernel's socket
-buffers are ``SOCKET_BUFFER``.
-A time-out of 0 turns that time-out off.
+buffers are ``SOCKET_BUFFER``. A time-out of 0 turns that time-out off.
 ``--read-only`` answers 100 to everything that writes to a node or the card (SDO and
 PDO writes, NMT, configuration, LSS); reads, ``info version``, ``help``, ``log`` and the
 client's own settings (default network and node, command time-out and size) remain.
@@ -590,9 +592,9 @@ class Server:
         self.dispatcher = Dispatcher(config.dialect, read_only=config.read_only, lss=lss)
         self._connections: list[_Connection] = []
         self._ending: set[asyncio.WriteTransport] = set()
+        """Connections ended after their last answers, until those have left."""
         self._newcomers = 0
         """New connections waiting for a slot."""
-        """Connections ended after their last answers, until those have left."""
         self._executor = ThreadPoolExecutor(max_workers=config.max_clients,
                                             thread_name_prefix="cia309-client")
         self._server: asyncio.Server | None = None
@@ -783,6 +785,8 @@ class Server:
                 connection.last_active = loop.time()
                 lines = client.framer.feed(data)
                 for line in lines:
+                    if connection not in self._connections:
+                        break  # ended while its answers waited to be read
                     connection.serving = True
                     try:
                         answer = await loop.run_in_executor(
