@@ -227,6 +227,18 @@ def test_every_other_file_is_left_alone(preloads: dict[str, Path], tmp_path: Pat
 
 
 LIFECYCLE = Path(__file__).with_name("c") / "legacy_lifecycle.c"
+# EXITDRV returns at once, later calls get -1, the waiting GETMSG its -18 after its
+# time-out; then the board is unmapped and opens again
+EXIT_WHILE_WAITING = {
+    "open": 1, "initdrv": 0, "waiter_sleeps": 1, "exitdrv": 0, "exitdrv_returned_at_once": 1,
+    "waiter_still_waiting": 1, "putmsg_after_exit": -1, "waiter": -18,
+    "mapped_after_waiter": 0, "initdrv_again": 0, "round_trip": 0, "exitdrv_again": 0,
+    "close": 0}
+# after the close-all loop the card answers; the program's file and descriptors unchanged
+CLOSE_ALL = {
+    "open": 1, "initdrv": 0, "round_trip": 0, "mbxinfo": 0, "reopen": 1, "mbxinfo_after": 0,
+    "round_trip_after": 0, "exitdrv": 0, "close": 0, "scratch_fds_open": 1,
+    "scratch_unchanged": 1}
 
 
 @pytest.fixture(scope="module")
@@ -262,11 +274,7 @@ def test_exitdrv_while_another_thread_waits_in_getmsg(preloads: dict[str, Path],
     need(preloads, abi)
     done = run_legacy(lifecycle[abi], simulated_card.directory, "exit_while_waiting")
     assert done.returncode == 0, f"exit status {done.returncode}\n{done.stdout}{done.stderr}"
-    assert parse(done.stdout) == {
-        "open": 1, "initdrv": 0, "waiter_sleeps": 1, "exitdrv": 0,
-        "exitdrv_returned_at_once": 1, "waiter_still_waiting": 1, "putmsg_after_exit": -1,
-        "waiter": -18, "mapped_after_waiter": 0, "initdrv_again": 0, "round_trip": 0,
-        "exitdrv_again": 0, "close": 0}, done.stdout + done.stderr
+    assert parse(done.stdout) == EXIT_WHILE_WAITING, done.stdout + done.stderr
     assert simulated_card.proc.poll() is None
 
 
@@ -288,12 +296,44 @@ def test_a_close_all_loop_never_makes_the_device_write_into_a_program_file(
     done = run_legacy(lifecycle[abi], simulated_card.directory, "close_all", how,
                       str(scratch))
     assert done.returncode == 0, f"exit status {done.returncode}\n{done.stdout}{done.stderr}"
-    assert parse(done.stdout) == {
-        "open": 1, "initdrv": 0, "round_trip": 0, "mbxinfo": 0, "reopen": 1,
-        "mbxinfo_after": 0, "round_trip_after": 0, "exitdrv": 0, "close": 0,
-        "scratch_fds_open": 1, "scratch_unchanged": 1}, done.stdout + done.stderr
+    assert parse(done.stdout) == CLOSE_ALL, done.stdout + done.stderr
     assert scratch.read_bytes() == content
     assert simulated_card.proc.poll() is None
+
+
+@pytest.fixture(scope="module")
+def sanitized_preload() -> str:
+    """LD_PRELOAD for libcif/build/asan/libcifdev.so: ASan's and UBSan's run-time
+    libraries first, as ASan requires of a program not built with it."""
+    assert CC is not None
+    libcif.build("sanitize")
+    runtimes = [subprocess.run([CC, f"-print-file-name={name}"], capture_output=True,
+                               text=True, check=True).stdout.strip()
+                for name in ("libasan.so", "libubsan.so")]
+    if not all(Path(runtime).is_absolute() for runtime in runtimes):
+        pytest.skip("no ASan/UBSan run-time libraries for this compiler")
+    return " ".join([*runtimes, str(libcif.BUILD / "asan" / "libcifdev.so")])
+
+
+@pytest.mark.parametrize("args", [["exit_while_waiting"], ["close_all", "close_table"],
+                                  ["close_all", "raw"]])
+def test_lifecycle_under_the_sanitizers(sanitized_preload: str, lifecycle: dict[str, Path],
+                                        simulated_card: Card, tmp_path: Path,
+                                        args: list[str]) -> None:
+    """The same shutdown and close-all runs with the preload built with AddressSanitizer
+    and UBSan (x86-64): a use after unmap or free, or undefined behaviour, fails them."""
+    scratch = tmp_path / "scratch.log"
+    scratch.write_bytes(b"the program's own log\n")
+    env = {**os.environ, "CIF_DPM_DIR": str(simulated_card.directory),
+           "LD_PRELOAD": sanitized_preload, "ASAN_OPTIONS": "detect_leaks=0"}
+    extra = [str(scratch)] if args[0] == "close_all" else []
+    done = subprocess.run([str(lifecycle["x86-64"]), *args, *extra], env=env,
+                          capture_output=True, text=True, timeout=180, check=False)
+    assert done.returncode == 0, done.stdout + done.stderr
+    assert parse(done.stdout) == (EXIT_WHILE_WAITING if extra == [] else CLOSE_ALL), \
+        done.stdout + done.stderr
+    assert scratch.read_bytes() == b"the program's own log\n"
+    assert "runtime error" not in done.stderr and "AddressSanitizer" not in done.stderr
 
 
 # --- cifemu legacy ------------------------------------------------------------------------
