@@ -278,6 +278,22 @@ def test_exitdrv_while_another_thread_waits_in_getmsg(preloads: dict[str, Path],
     assert simulated_card.proc.poll() is None
 
 
+@pytest.mark.parametrize("abi", ["x86-64", "i386"])
+def test_a_child_forked_while_a_thread_waits_closes_its_board_at_once(
+        preloads: dict[str, Path], lifecycle: dict[str, Path], simulated_card: Card,
+        abi: str) -> None:
+    """The child of a fork has only the forking thread: none of the parent's calls in
+    flight is its own, so its EXITDRV unmaps the board at once; the parent's waiting
+    GETMSG ends with its -18."""
+    need(preloads, abi)
+    done = run_legacy(lifecycle[abi], simulated_card.directory, "fork_while_waiting")
+    assert done.returncode == 0, f"exit status {done.returncode}\n{done.stdout}{done.stderr}"
+    assert parse(done.stdout) == {
+        "open": 1, "initdrv": 0, "waiter_sleeps": 1, "child_exitdrv": 0,
+        "child_mapped_after_exitdrv": 0, "child_status": 0, "parent_mapped": 1,
+        "waiter": -18, "exitdrv": 0, "close": 0}, done.stdout + done.stderr
+
+
 @pytest.mark.parametrize("how", ["close", "close_table", "closefrom", "raw"])
 @pytest.mark.parametrize("abi", ["x86-64", "i386"])
 def test_a_close_all_loop_never_makes_the_device_write_into_a_program_file(

@@ -557,6 +557,12 @@ static int any_board(void) {
   return 0;
 }
 
+/* A child of fork has only the thread that forked: none of its device calls is in
+   flight, whatever the parent's other threads were doing. */
+static void child_after_fork(void) { calls_in_flight = 0; }
+static pthread_once_t forks_watched = PTHREAD_ONCE_INIT;
+static void watch_forks(void) { pthread_atfork(NULL, NULL, child_after_fork); }
+
 /* open("/dev/cif"): a descriptor of /dev/null stands for the device, so that fcntl,
    dup, poll and close work on it as on any descriptor. The driver refused the open
    with ENODEV when it had found no board. */
@@ -570,6 +576,7 @@ static int device_open(int flags) {
   /* from here on the program's close looks at the preload's own descriptors, before
      libcif or the copy pipe opens the first */
   __atomic_store_n(&private_used, 1, __ATOMIC_RELEASE);
+  pthread_once(&forks_watched, watch_forks);
   pthread_mutex_lock(&board_lock);
   if (!driver_open) driver_open = DevOpenDriver() == DRV_NO_ERROR;
   pthread_mutex_unlock(&board_lock);

@@ -6,6 +6,9 @@
  *   legacy_lifecycle exit_while_waiting
  *       Thread A waits in GETMSG (4 s); thread B calls EXITDRV once A sleeps in it.
  *       The program must not crash; A's call ends with the driver's code.
+ *   legacy_lifecycle fork_while_waiting
+ *       As above, but a child forked meanwhile calls EXITDRV: it has no call in flight,
+ *       so the board is unmapped in the child at once (the parent keeps it).
  *   legacy_lifecycle close_all close|close_table|closefrom|raw SCRATCH
  *       After INITDRV and a message round trip the program closes its descriptors the
  *       way daemons do (close() for 3..255 or for the whole table, glibc's
@@ -28,6 +31,7 @@
 #include <sys/ioctl.h>
 #include <sys/stat.h>
 #include <sys/syscall.h>
+#include <sys/wait.h>
 #include <time.h>
 #include <unistd.h>
 
@@ -201,6 +205,39 @@ static int exit_while_waiting(void) {
   return 0;
 }
 
+/* A child forked while another thread of the parent waits in GETMSG: the child has no
+   call in flight, so its EXITDRV unmaps the board at once. */
+static int fork_while_waiting(void) {
+  pthread_t thread;
+  long long deadline;
+  int sleeping = 0, status = -1;
+  pid_t child;
+  device = open("/dev/cif", O_RDWR);
+  SHOW("open", device >= 0);
+  SHOW("initdrv", init_board(device));
+  if (pthread_create(&thread, NULL, waiter, NULL) != 0) return 1;
+  deadline = now_ms() + 3000;
+  while (now_ms() < deadline && !sleeping) {
+    sleeping = __atomic_load_n(&waiter_tid, __ATOMIC_ACQUIRE) != 0 && waiter_sleeps();
+    if (!sleeping) sched_yield();
+  }
+  SHOW("waiter_sleeps", sleeping);
+  child = fork();
+  if (child == 0) {
+    SHOW("child_exitdrv", exit_board(device));
+    SHOW("child_mapped_after_exitdrv", image_mapped());
+    _exit(0);
+  }
+  waitpid(child, &status, 0);
+  SHOW("child_status", status);
+  SHOW("parent_mapped", image_mapped());
+  pthread_join(thread, NULL);
+  SHOW("waiter", waiter_rc);
+  SHOW("exitdrv", exit_board(device));
+  SHOW("close", close(device));
+  return 0;
+}
+
 /* ---- close_all ---------------------------------------------------------------------------- */
 
 static int open_descriptors(int *fds) {
@@ -285,7 +322,9 @@ static int close_all(const char *how, const char *scratch) {
 int main(int argc, char **argv) {
   setvbuf(stdout, NULL, _IONBF, 0);
   if (argc == 2 && strcmp(argv[1], "exit_while_waiting") == 0) return exit_while_waiting();
+  if (argc == 2 && strcmp(argv[1], "fork_while_waiting") == 0) return fork_while_waiting();
   if (argc == 4 && strcmp(argv[1], "close_all") == 0) return close_all(argv[2], argv[3]);
-  fprintf(stderr, "usage: legacy_lifecycle exit_while_waiting | close_all HOW SCRATCH\n");
+  fprintf(stderr, "usage: legacy_lifecycle exit_while_waiting | fork_while_waiting | "
+                  "close_all HOW SCRATCH\n");
   return 2;
 }
