@@ -274,11 +274,17 @@ static private_fd private_fds[MAX_PRIVATE_FDS];
 static int private_count;
 static int private_used; /* the program's close checks the table from the first one on */
 
+/* A number can have a stale entry (libcif's, until DevExitBoard) and a fresh one (the
+   number was free again and the preload took it): the fresh one is the descriptor. */
 static private_fd *private_find_locked(int fd) {
+  private_fd *stale = NULL;
   int i;
-  for (i = 0; i < private_count; i++)
-    if (private_fds[i].fd == fd) return &private_fds[i];
-  return NULL;
+  for (i = 0; i < private_count; i++) {
+    if (private_fds[i].fd != fd) continue;
+    if (!private_fds[i].stale) return &private_fds[i];
+    stale = &private_fds[i];
+  }
+  return stale;
 }
 
 static void private_remove_locked(private_fd *entry) {
