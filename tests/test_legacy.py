@@ -223,6 +223,135 @@ def test_every_other_file_is_left_alone(preloads: dict[str, Path], tmp_path: Pat
         assert done.returncode != 0 and "Inappropriate ioctl" in done.stderr
 
 
+# --- shutdown with calls in flight, close-all loops (docs/legacy.md "Threads and descriptors")
+
+
+LIFECYCLE = Path(__file__).with_name("c") / "legacy_lifecycle.c"
+# EXITDRV returns at once, later calls get -1, the waiting GETMSG its -18 after its
+# time-out; then the board is unmapped and opens again
+EXIT_WHILE_WAITING = {
+    "open": 1, "initdrv": 0, "waiter_sleeps": 1, "exitdrv": 0, "exitdrv_returned_at_once": 1,
+    "waiter_still_waiting": 1, "putmsg_after_exit": -1, "waiter": -18,
+    "mapped_after_waiter": 0, "initdrv_again": 0, "round_trip": 0, "exitdrv_again": 0,
+    "close": 0}
+# after the close-all loop the card answers; the program's file and descriptors unchanged
+CLOSE_ALL = {
+    "open": 1, "initdrv": 0, "round_trip": 0, "mbxinfo": 0, "reopen": 1, "mbxinfo_after": 0,
+    "round_trip_after": 0, "exitdrv": 0, "close": 0, "scratch_fds_open": 1,
+    "scratch_unchanged": 1}
+
+
+@pytest.fixture(scope="module")
+def lifecycle(tmp_path_factory: pytest.TempPathFactory,
+              preloads: dict[str, Path]) -> dict[str, Path]:
+    """tests/c/legacy_lifecycle.c compiled for each ABI with a preload."""
+    assert CC is not None
+    out = tmp_path_factory.mktemp("lifecycle")
+    built = {}
+    for abi, abi_flags in {"x86-64": [], "i386": ["-m32"]}.items():
+        if abi not in preloads:
+            continue
+        program = out / f"legacy_lifecycle-{abi}"
+        subprocess.run([CC, *abi_flags, "-std=c99", "-Wall", "-Wextra", "-Werror", "-g",
+                        str(LIFECYCLE), "-o", str(program), "-pthread"], check=True)
+        built[abi] = program
+    return built
+
+
+def run_legacy(program: Path, directory: Path, *args: str) -> subprocess.CompletedProcess[str]:
+    """PROGRAM ARGS through `cifemu legacy`, as a user starts a legacy binary."""
+    return cifemu_legacy("--board-dir", str(directory), "--", str(program), *args)
+
+
+@pytest.mark.parametrize("abi", ["x86-64", "i386"])
+def test_exitdrv_while_another_thread_waits_in_getmsg(preloads: dict[str, Path],
+                                                      lifecycle: dict[str, Path],
+                                                      simulated_card: Card, abi: str) -> None:
+    """A daemon's shutdown: thread B's EXITDRV while thread A waits in GETMSG. It used to
+    unmap the board under A (SIGSEGV, 5 of 5). Now EXITDRV returns at once, later calls
+    get the driver's -1, A's call ends as it would have (no message: -18 after its
+    time-out), the board is unmapped then, and the program exits 0."""
+    need(preloads, abi)
+    done = run_legacy(lifecycle[abi], simulated_card.directory, "exit_while_waiting")
+    assert done.returncode == 0, f"exit status {done.returncode}\n{done.stdout}{done.stderr}"
+    assert parse(done.stdout) == EXIT_WHILE_WAITING, done.stdout + done.stderr
+    assert simulated_card.proc.poll() is None
+
+
+@pytest.mark.parametrize("abi", ["x86-64", "i386"])
+def test_a_child_forked_while_a_thread_waits_closes_its_board_at_once(
+        preloads: dict[str, Path], lifecycle: dict[str, Path], simulated_card: Card,
+        abi: str) -> None:
+    """The child of a fork has only the forking thread: none of the parent's calls in
+    flight is its own, so its EXITDRV unmaps the board at once; the parent's waiting
+    GETMSG ends with its -18."""
+    need(preloads, abi)
+    done = run_legacy(lifecycle[abi], simulated_card.directory, "fork_while_waiting")
+    assert done.returncode == 0, f"exit status {done.returncode}\n{done.stdout}{done.stderr}"
+    assert parse(done.stdout) == {
+        "open": 1, "initdrv": 0, "waiter_sleeps": 1, "child_exitdrv": 0,
+        "child_mapped_after_exitdrv": 0, "child_status": 0, "parent_mapped": 1,
+        "waiter": -18, "exitdrv": 0, "close": 0}, done.stdout + done.stderr
+
+
+@pytest.mark.parametrize("how", ["close", "close_table", "closefrom", "raw"])
+@pytest.mark.parametrize("abi", ["x86-64", "i386"])
+def test_a_close_all_loop_never_makes_the_device_write_into_a_program_file(
+        preloads: dict[str, Path], lifecycle: dict[str, Path], simulated_card: Card,
+        tmp_path: Path, abi: str, how: str) -> None:
+    """A daemon closes every descriptor it does not know (close() of 3..255 or of the
+    whole table, closefrom, or raw close system calls), opens its own file onto the
+    freed numbers (for raw: dup'ed onto every number it had open) and talks to the card
+    again. The preload's hidden descriptors used to die there, and the next ioctl wrote
+    its structure (7 bytes for MBXINFO) into the program's file. Now the device works,
+    and the file and its descriptors are as the program left them."""
+    need(preloads, abi)
+    scratch = tmp_path / "scratch.log"
+    content = bytes(range(256)) * 4
+    scratch.write_bytes(content)
+    done = run_legacy(lifecycle[abi], simulated_card.directory, "close_all", how,
+                      str(scratch))
+    assert done.returncode == 0, f"exit status {done.returncode}\n{done.stdout}{done.stderr}"
+    assert parse(done.stdout) == CLOSE_ALL, done.stdout + done.stderr
+    assert scratch.read_bytes() == content
+    assert simulated_card.proc.poll() is None
+
+
+@pytest.fixture(scope="module")
+def sanitized_preload() -> str:
+    """LD_PRELOAD for libcif/build/asan/libcifdev.so: ASan's and UBSan's run-time
+    libraries first, as ASan requires of a program not built with it."""
+    assert CC is not None
+    libcif.build("sanitize")
+    runtimes = [subprocess.run([CC, f"-print-file-name={name}"], capture_output=True,
+                               text=True, check=True).stdout.strip()
+                for name in ("libasan.so", "libubsan.so")]
+    if not all(Path(runtime).is_absolute() for runtime in runtimes):
+        pytest.skip("no ASan/UBSan run-time libraries for this compiler")
+    return " ".join([*runtimes, str(libcif.BUILD / "asan" / "libcifdev.so")])
+
+
+@pytest.mark.parametrize("args", [["exit_while_waiting"], ["close_all", "close_table"],
+                                  ["close_all", "raw"]])
+def test_lifecycle_under_the_sanitizers(sanitized_preload: str, lifecycle: dict[str, Path],
+                                        simulated_card: Card, tmp_path: Path,
+                                        args: list[str]) -> None:
+    """The same shutdown and close-all runs with the preload built with AddressSanitizer
+    and UBSan (x86-64): a use after unmap or free, or undefined behaviour, fails them."""
+    scratch = tmp_path / "scratch.log"
+    scratch.write_bytes(b"the program's own log\n")
+    env = {**os.environ, "CIF_DPM_DIR": str(simulated_card.directory),
+           "LD_PRELOAD": sanitized_preload, "ASAN_OPTIONS": "detect_leaks=0"}
+    extra = [str(scratch)] if args[0] == "close_all" else []
+    done = subprocess.run([str(lifecycle["x86-64"]), *args, *extra], env=env,
+                          capture_output=True, text=True, timeout=180, check=False)
+    assert done.returncode == 0, done.stdout + done.stderr
+    assert parse(done.stdout) == (EXIT_WHILE_WAITING if extra == [] else CLOSE_ALL), \
+        done.stdout + done.stderr
+    assert scratch.read_bytes() == b"the program's own log\n"
+    assert "runtime error" not in done.stderr and "AddressSanitizer" not in done.stderr
+
+
 # --- cifemu legacy ------------------------------------------------------------------------
 
 

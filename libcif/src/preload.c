@@ -33,6 +33,7 @@
 #include <errno.h>
 #include <fcntl.h>
 #include <limits.h>
+#include <poll.h>
 #include <pthread.h>
 #include <stdarg.h>
 #include <stddef.h>
@@ -40,7 +41,10 @@
 #include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
+#include <sys/file.h>
 #include <sys/ioctl.h>
+#include <sys/resource.h>
+#include <sys/socket.h>
 #include <sys/stat.h>
 #include <sys/syscall.h>
 #include <sys/types.h>
@@ -241,28 +245,282 @@ static int real_fcntl(int fd, int cmd, void *arg) {
   return fn(fd, cmd, arg);
 }
 
+/* ---- the preload's own descriptors [ours] ------------------------------------------------
+
+   The kernel driver had no descriptors in the program; the preload has some: the copy
+   pipe, and libcif's board files (the lock files, the doorbell socket, the image
+   directory, an image while it is mapped). Daemons close every descriptor they do not
+   know and then open their own files onto the freed numbers. So each of the preload's
+   descriptors
+   - lives at the top of the descriptor table (F_DUPFD_CLOEXEC from PRIVATE_TOP below
+     min(RLIMIT_NOFILE, 1024)), where a program's lowest-free allocation comes last;
+   - is not closed by the program's close, close_range or closefrom (close answers
+     EBADF: for the program nothing is open there);
+   - is checked before every use: fstat's st_dev/st_ino must be those it had when the
+     preload opened it. One that was closed or replaced behind libc's back (a raw
+     system call, dup2 onto it) is stale: never read, written, locked or closed again;
+     the preload opens a new one (the pipe at once, a board at the next ioctl that
+     finds no other call in flight, see board_maintenance).
+   libcif's calls reach these through the linker's --wrap (libcif/Makefile), so libcif's
+   sources stay as they are. */
+
+#define PRIVATE_TOP 64     /* slots kept at the top of the table */
+#define MAX_PRIVATE_FDS 128
+
+typedef struct { int fd, stale; dev_t dev; ino_t ino; } private_fd;
+
+static pthread_mutex_t private_lock = PTHREAD_MUTEX_INITIALIZER;
+static private_fd private_fds[MAX_PRIVATE_FDS];
+static int private_count;
+static int private_used; /* the program's close checks the table from the first one on */
+
+/* A number can have a stale entry (libcif's, until DevExitBoard) and a fresh one (the
+   number was free again and the preload took it): the fresh one is the descriptor. */
+static private_fd *private_find_locked(int fd) {
+  private_fd *stale = NULL;
+  int i;
+  for (i = 0; i < private_count; i++) {
+    if (private_fds[i].fd != fd) continue;
+    if (!private_fds[i].stale) return &private_fds[i];
+    stale = &private_fds[i];
+  }
+  return stale;
+}
+
+static void private_remove_locked(private_fd *entry) {
+  *entry = private_fds[--private_count];
+}
+
+/* The entry still names the file the preload opened; a stale one never again. */
+static int private_valid_locked(private_fd *entry) {
+  struct stat st;
+  if (entry->stale) return 0;
+  if (fstat(entry->fd, &st) != 0 || st.st_dev != entry->dev || st.st_ino != entry->ino)
+    entry->stale = 1;
+  return !entry->stale;
+}
+
+/* A new descriptor of the preload's: moved to the top of the table and registered.
+   -1 (EMFILE) when the table is full: a descriptor it cannot check is not kept. */
+static int private_adopt_locked(int fd) {
+  struct rlimit limit;
+  struct stat st;
+  int floor = 0, moved;
+  if (fd < 0) return fd;
+  if (getrlimit(RLIMIT_NOFILE, &limit) == 0) {
+    rlim_t top = limit.rlim_cur < 1024 ? limit.rlim_cur : 1024;
+    if (top > 2 * PRIVATE_TOP) floor = (int)(top - PRIVATE_TOP);
+  }
+  if (floor > fd) {
+    moved = (int)syscall(SYS_fcntl, fd, F_DUPFD_CLOEXEC, floor);
+    if (moved >= 0) {
+      syscall(SYS_close, fd);
+      fd = moved;
+    }
+  }
+  if (private_count == MAX_PRIVATE_FDS || fstat(fd, &st) != 0) {
+    syscall(SYS_close, fd);
+    errno = EMFILE;
+    return -1;
+  }
+  private_fds[private_count].fd = fd;
+  private_fds[private_count].stale = 0;
+  private_fds[private_count].dev = st.st_dev;
+  private_fds[private_count].ino = st.st_ino;
+  private_count++;
+  return fd;
+}
+
+/* Whether fd is one of the preload's and still its own file: the check before a use. */
+static int private_verified(int fd) {
+  private_fd *entry;
+  int valid;
+  pthread_mutex_lock(&private_lock);
+  entry = private_find_locked(fd);
+  valid = entry != NULL && private_valid_locked(entry);
+  pthread_mutex_unlock(&private_lock);
+  return valid;
+}
+
+/* Close one of the preload's descriptors; a stale one is only forgotten (the number is
+   the program's now). Anything else is not the preload's to close: EBADF. */
+static int private_close(int fd) {
+  private_fd *entry;
+  int rc = -1;
+  pthread_mutex_lock(&private_lock);
+  entry = private_find_locked(fd);
+  if (entry != NULL) {
+    if (private_valid_locked(entry)) rc = (int)syscall(SYS_close, fd);
+    else rc = 0;
+    private_remove_locked(entry);
+  }
+  pthread_mutex_unlock(&private_lock);
+  if (entry == NULL) errno = EBADF;
+  return rc;
+}
+
+/* Check every registered descriptor now; 1 when one is stale. The stale entries stay
+   until their owner closes them (libcif in DevExitBoard) or private_purge_stale. */
+static int private_any_stale(void) {
+  int i, stale = 0;
+  pthread_mutex_lock(&private_lock);
+  for (i = 0; i < private_count; i++) stale |= !private_valid_locked(&private_fds[i]);
+  pthread_mutex_unlock(&private_lock);
+  return stale;
+}
+
+static void private_purge_stale(void) {
+  int i;
+  pthread_mutex_lock(&private_lock);
+  for (i = private_count - 1; i >= 0; i--)
+    if (private_fds[i].stale) private_remove_locked(&private_fds[i]);
+  pthread_mutex_unlock(&private_lock);
+}
+
+/* The program's close of fd: 1 when the preload keeps it (its own, still valid). A
+   stale entry becomes the program's descriptor to close. */
+static int private_refuses_close(int fd) {
+  private_fd *entry;
+  int keep = 0;
+  if (!__atomic_load_n(&private_used, __ATOMIC_ACQUIRE)) return 0;
+  pthread_mutex_lock(&private_lock);
+  entry = private_find_locked(fd);
+  if (entry != NULL) keep = private_valid_locked(entry);
+  pthread_mutex_unlock(&private_lock);
+  return keep;
+}
+
+/* libcif's descriptor calls (-Wl,--wrap in libcif/Makefile). __real_* is libc's. */
+int __real_socket(int domain, int type, int protocol);
+int __real_flock(int fd, int operation);
+ssize_t __real_sendto(int fd, const void *buf, size_t len, int flags,
+                      const struct sockaddr *to, socklen_t to_len);
+ssize_t __real_recv(int fd, void *buf, size_t len, int flags);
+int __real_poll(struct pollfd *fds, nfds_t count, int timeout);
+
+int __wrap_open(const char *path, int flags, ...);
+int __wrap_socket(int domain, int type, int protocol);
+int __wrap_close(int fd);
+int __wrap_flock(int fd, int operation);
+ssize_t __wrap_sendto(int fd, const void *buf, size_t len, int flags,
+                      const struct sockaddr *to, socklen_t to_len);
+ssize_t __wrap_recv(int fd, void *buf, size_t len, int flags);
+int __wrap_poll(struct pollfd *fds, nfds_t count, int timeout);
+
+/* Held across libc's open and the move: the program's close of the fresh low number
+   waits until it is the preload's at the top (or nobody's). */
+int __wrap_open(const char *path, int flags, ...) {
+  va_list args;
+  mode_t mode = 0;
+  int fd;
+  va_start(args, flags);
+  if (flags & O_CREAT) mode = (mode_t)va_arg(args, int);
+  va_end(args);
+  pthread_mutex_lock(&private_lock);
+  fd = private_adopt_locked(real_open(path, flags | O_CLOEXEC, mode));
+  pthread_mutex_unlock(&private_lock);
+  return fd;
+}
+
+int __wrap_socket(int domain, int type, int protocol) {
+  int fd;
+  pthread_mutex_lock(&private_lock);
+  fd = private_adopt_locked(__real_socket(domain, type | SOCK_CLOEXEC, protocol));
+  pthread_mutex_unlock(&private_lock);
+  return fd;
+}
+
+int __wrap_close(int fd) { return private_close(fd); }
+
+int __wrap_flock(int fd, int operation) {
+  if (!private_verified(fd)) {
+    errno = EBADF;
+    return -1;
+  }
+  return __real_flock(fd, operation);
+}
+
+ssize_t __wrap_sendto(int fd, const void *buf, size_t len, int flags,
+                      const struct sockaddr *to, socklen_t to_len) {
+  if (!private_verified(fd)) {
+    errno = EBADF;
+    return -1;
+  }
+  return __real_sendto(fd, buf, len, flags, to, to_len);
+}
+
+ssize_t __wrap_recv(int fd, void *buf, size_t len, int flags) {
+  if (!private_verified(fd)) {
+    errno = EBADF;
+    return -1;
+  }
+  return __real_recv(fd, buf, len, flags);
+}
+
+/* A stale descriptor is left out (fd -1): the wait still lasts its time, as a bell
+   that does not ring, and libcif polls the flags. */
+int __wrap_poll(struct pollfd *fds, nfds_t count, int timeout) {
+  struct pollfd checked[8];
+  nfds_t i;
+  int done;
+  if (count > sizeof checked / sizeof checked[0]) {
+    errno = EINVAL;
+    return -1;
+  }
+  for (i = 0; i < count; i++) {
+    checked[i] = fds[i];
+    if (!private_verified(fds[i].fd)) checked[i].fd = -1;
+  }
+  done = __real_poll(checked, count, timeout);
+  for (i = 0; i < count; i++) fds[i].revents = checked[i].fd < 0 ? 0 : checked[i].revents;
+  return done;
+}
+
 /* ---- the device's descriptors ----------------------------------------------------------- */
 
 /* state_lock guards the descriptor table; board_lock the driver's and the boards' state.
-   libcif's calls under board_lock close files, and close takes state_lock: never the
-   other way round. */
+   Neither is taken while holding the other; private_lock (the preload's own
+   descriptors) may be taken under either. */
 static pthread_mutex_t state_lock = PTHREAD_MUTEX_INITIALIZER;
 static pthread_mutex_t board_lock = PTHREAD_MUTEX_INITIALIZER;
 static int device_fds[MAX_DEVICE_FDS];
 static int device_fd_count;
+static dev_t device_dev; /* what a device descriptor is underneath: /dev/null's st_dev/st_ino */
+static ino_t device_ino;
 static int driver_open;                       /* DevOpenDriver succeeded once */
 static unsigned board_opens[MAX_DEV_BOARDS]; /* INITDRV minus EXITDRV, in this process */
+static int board_mapped[MAX_DEV_BOARDS];      /* libcif holds the board (DevInitBoard) */
+static unsigned calls_in_flight;              /* device ioctls running now, all threads */
 
 static int is_device_path(const char *path) { return path != NULL && strcmp(path, DEVICE_PATH) == 0; }
 
+static void forget_fd_locked(int fd);
+
+/* A device descriptor the program closed behind libc's back (a raw system call) and
+   whose number now holds another file is that file, not the device [ours]. */
 static int is_device_fd(int fd) {
   int i, found = 0;
+  struct stat st;
   /* most calls of most programs: no device open, no lock taken */
   if (fd < 0 || __atomic_load_n(&device_fd_count, __ATOMIC_ACQUIRE) == 0) return 0;
   pthread_mutex_lock(&state_lock);
   for (i = 0; i < device_fd_count && !found; i++) found = device_fds[i] == fd;
+  if (found && (fstat(fd, &st) != 0 || st.st_dev != device_dev || st.st_ino != device_ino)) {
+    forget_fd_locked(fd);
+    found = 0;
+  }
   pthread_mutex_unlock(&state_lock);
   return found;
+}
+
+/* A descriptor libc just gave the program (open, openat) is not the device. */
+static int not_a_device(int fd) {
+  if (fd >= 0 && __atomic_load_n(&device_fd_count, __ATOMIC_ACQUIRE) != 0) {
+    pthread_mutex_lock(&state_lock);
+    forget_fd_locked(fd);
+    pthread_mutex_unlock(&state_lock);
+  }
+  return fd;
 }
 
 static void forget_fd_locked(int fd) {
@@ -305,15 +563,26 @@ static int any_board(void) {
   return 0;
 }
 
+/* A child of fork has only the thread that forked: none of its device calls is in
+   flight, whatever the parent's other threads were doing. */
+static void child_after_fork(void) { calls_in_flight = 0; }
+static pthread_once_t forks_watched = PTHREAD_ONCE_INIT;
+static void watch_forks(void) { pthread_atfork(NULL, NULL, child_after_fork); }
+
 /* open("/dev/cif"): a descriptor of /dev/null stands for the device, so that fcntl,
    dup, poll and close work on it as on any descriptor. The driver refused the open
    with ENODEV when it had found no board. */
 static int device_open(int flags) {
+  struct stat st;
   int fd;
   if (!any_board()) {
     errno = ENODEV;
     return -1;
   }
+  /* from here on the program's close looks at the preload's own descriptors, before
+     libcif or the copy pipe opens the first */
+  __atomic_store_n(&private_used, 1, __ATOMIC_RELEASE);
+  pthread_once(&forks_watched, watch_forks);
   pthread_mutex_lock(&board_lock);
   if (!driver_open) driver_open = DevOpenDriver() == DRV_NO_ERROR;
   pthread_mutex_unlock(&board_lock);
@@ -324,7 +593,10 @@ static int device_open(int flags) {
   fd = real_open("/dev/null", (flags & (O_ACCMODE | O_CLOEXEC | O_NONBLOCK | O_APPEND)), 0);
   if (fd < 0) return -1;
   pthread_mutex_lock(&state_lock);
-  if (remember_fd_locked(fd) != 0) {
+  if (fstat(fd, &st) != 0) st.st_ino = 0;
+  device_dev = st.st_dev;
+  device_ino = st.st_ino;
+  if (st.st_ino == 0 || remember_fd_locked(fd) != 0) {
     pthread_mutex_unlock(&state_lock);
     real_close(fd);
     errno = EMFILE;
@@ -348,6 +620,30 @@ static void drain(size_t count) {
   }
 }
 
+/* The copy pipe, both ends still the preload's; a new one when an end is stale (a
+   stale end is the program's now: left alone). 0 when no pipe can be made. */
+static int copy_pipe_ready_locked(void) {
+  int ends[2];
+  if (copy_pipe[0] >= 0 && private_verified(copy_pipe[0]) && private_verified(copy_pipe[1]))
+    return 1;
+  if (copy_pipe[0] >= 0) {
+    private_close(copy_pipe[0]);
+    private_close(copy_pipe[1]);
+  }
+  copy_pipe[0] = copy_pipe[1] = -1;
+  pthread_mutex_lock(&private_lock);
+  if (syscall(SYS_pipe2, ends, O_CLOEXEC) == 0) {
+    copy_pipe[0] = private_adopt_locked(ends[0]);
+    copy_pipe[1] = private_adopt_locked(ends[1]);
+  }
+  pthread_mutex_unlock(&private_lock);
+  if (copy_pipe[0] >= 0 && copy_pipe[1] >= 0) return 1;
+  if (copy_pipe[0] >= 0) private_close(copy_pipe[0]);
+  if (copy_pipe[1] >= 0) private_close(copy_pipe[1]);
+  copy_pipe[0] = copy_pipe[1] = -1;
+  return 0;
+}
+
 /* Copy size bytes from src to dst through a pipe: the kernel checks both pointers and
    answers EFAULT where the driver's copy_from_user/copy_to_user would have failed.
    0 on success, -1 when either side is not accessible. */
@@ -356,8 +652,7 @@ static int safe_copy(void *dst, const void *src, size_t size) {
   int rc = -1;
   if (size == 0) return 0;
   pthread_mutex_lock(&pipe_lock);
-  if (copy_pipe[0] < 0 && syscall(SYS_pipe2, copy_pipe, O_CLOEXEC) != 0) {
-    copy_pipe[0] = copy_pipe[1] = -1;
+  if (!copy_pipe_ready_locked()) {
     pthread_mutex_unlock(&pipe_lock);
     return -1;
   }
@@ -377,12 +672,47 @@ static int safe_copy(void *dst, const void *src, size_t size) {
 
 /* The board as the driver checked it: there and initialised by this process. */
 static int board_ready_for_calls(unsigned board) {
-  unsigned opens;
+  int ready;
   if (board >= MAX_DEV_BOARDS) return 0;
   pthread_mutex_lock(&board_lock);
-  opens = board_opens[board];
+  ready = board_opens[board] > 0 && board_mapped[board];
   pthread_mutex_unlock(&board_lock);
-  return opens > 0;
+  return ready;
+}
+
+/* [ours] What the kernel driver never had to do, done while no device call runs in
+   this process (board_lock held, calls_in_flight 0), so that no thread is inside libcif
+   on a board that changes under it:
+   - a board EXITDRV closed (its INITDRV count 0) is unmapped now: EXITDRV only counts,
+     the calls that were in flight finished on the mapped board, as they did in the
+     kernel driver, and the last of them to leave unmaps it;
+   - when one of the preload's descriptors went stale (docs/legacy.md, close-all
+     loops), every open board is opened anew: DevExitBoard forgets the stale
+     descriptors without closing the program's files, DevInitBoard opens new ones. A
+     board that does not open again answers -1 until INITDRV opens it. */
+static void board_maintenance_locked(void) {
+  int stale = private_any_stale();
+  unsigned n;
+  for (n = 0; n < MAX_DEV_BOARDS; n++) {
+    if (!board_mapped[n] || (board_opens[n] > 0 && !stale)) continue;
+    DevExitBoard((unsigned short)n);
+    board_mapped[n] = 0;
+    if (board_opens[n] > 0) board_mapped[n] = DevInitBoard((unsigned short)n) == DRV_NO_ERROR;
+  }
+  if (stale) private_purge_stale(); /* the image directory's, which libcif keeps open */
+}
+
+static void calls_enter(void) {
+  pthread_mutex_lock(&board_lock);
+  if (calls_in_flight == 0) board_maintenance_locked();
+  calls_in_flight++;
+  pthread_mutex_unlock(&board_lock);
+}
+
+static void calls_leave(void) {
+  pthread_mutex_lock(&board_lock);
+  if (--calls_in_flight == 0) board_maintenance_locked();
+  pthread_mutex_unlock(&board_lock);
 }
 
 /* The image's bytes: through libcif for a board this process initialised, otherwise
@@ -398,10 +728,11 @@ static short dpm_access(unsigned board, int write, unsigned offset, unsigned len
     return DevReadWriteDPMData((unsigned short)board, write ? PARAMETER_WRITE : PARAMETER_READ,
                                (unsigned short)offset, (unsigned short)length, data);
   snprintf(path, sizeof path, "%s/board%u.dpm", image_directory(), board);
-  fd = real_open(path, (write ? O_RDWR : O_RDONLY) | O_CLOEXEC, 0);
+  fd = __wrap_open(path, (write ? O_RDWR : O_RDONLY) | O_CLOEXEC);
   if (fd < 0) return DRV_BOARD_NOT_INIT;
-  done = write ? (long)pwrite(fd, data, length, offset) : (long)pread(fd, data, length, offset);
-  real_close(fd);
+  done = !private_verified(fd) ? -1
+         : write ? (long)pwrite(fd, data, length, offset) : (long)pread(fd, data, length, offset);
+  private_close(fd);
   return done == (long)length ? DRV_NO_ERROR : DRV_BOARD_NOT_INIT;
 }
 
@@ -518,9 +849,13 @@ static long do_initdrv(void *arg) {
     c.error = DRV_BOARD_NOT_INIT;
   } else {
     pthread_mutex_lock(&board_lock);
-    if (board_opens[c.board] == 0) c.error = DevInitBoard(c.board);
+    /* a board EXITDRV closed while calls were in flight is still mapped: kept */
+    if (!board_mapped[c.board]) c.error = DevInitBoard(c.board);
     if (c.error == DRV_USR_DEV_NUMBER_INVALID) c.error = DRV_BOARD_NOT_INIT; /* image gone */
-    if (c.error == DRV_NO_ERROR) board_opens[c.board]++;
+    if (c.error == DRV_NO_ERROR) {
+      board_mapped[c.board] = 1;
+      board_opens[c.board]++;
+    }
     pthread_mutex_unlock(&board_lock);
     c.dpm_size = image_byte(c.board, OFS_DPM_SIZE);
   }
@@ -536,11 +871,9 @@ static long do_exitdrv(void *arg) {
     c.error = DRV_BOARD_NOT_INIT;
   } else {
     pthread_mutex_lock(&board_lock);
-    if (board_opens[c.board] == 0) {
-      c.error = DRV_BOARD_NOT_INIT;
-    } else if (--board_opens[c.board] == 0) {
-      DevExitBoard(c.board);
-    }
+    /* the unmap waits for the calls in flight: board_maintenance_locked */
+    if (board_opens[c.board] == 0) c.error = DRV_BOARD_NOT_INIT;
+    else board_opens[c.board]--;
     c.open_count = (uint16_t)board_opens[c.board];
     pthread_mutex_unlock(&board_lock);
   }
@@ -875,7 +1208,7 @@ static long do_getmsg(void *arg) {
 }
 
 /* One ioctl on the device: the driver's return value, negative for -errno. */
-static long device_ioctl(unsigned long request, void *arg) {
+static long device_call(unsigned long request, void *arg) {
   unsigned cmd = (unsigned)request, nr = IOC_NR(cmd);
   if (IOC_TYPE(cmd) != IOC_MAGIC || nr > NUMBER_OF_IOCTLS) return -ENOTTY;
   if (nr == 0 || (cmd != expected_cmd(nr, 1) && cmd != expected_cmd(nr, 0)))
@@ -909,6 +1242,14 @@ static long device_ioctl(unsigned long request, void *arg) {
   }
 }
 
+static long device_ioctl(unsigned long request, void *arg) {
+  long done;
+  calls_enter();
+  done = device_call(request, arg);
+  calls_leave();
+  return done;
+}
+
 /* ---- the interposed libc functions ------------------------------------------------------- */
 
 #define EXPORT __attribute__((visibility("default")))
@@ -929,7 +1270,7 @@ EXPORT int open(const char *path, int flags, ...) {
   mode = mode_argument(flags, args);
   va_end(args);
   if (is_device_path(path)) return device_open(flags);
-  return real_open_named("open", path, flags, mode);
+  return not_a_device(real_open_named("open", path, flags, mode));
 }
 
 EXPORT int open64(const char *path, int flags, ...) {
@@ -939,7 +1280,7 @@ EXPORT int open64(const char *path, int flags, ...) {
   mode = mode_argument(flags, args);
   va_end(args);
   if (is_device_path(path)) return device_open(flags);
-  return real_open_named("open64", path, flags, mode);
+  return not_a_device(real_open_named("open64", path, flags, mode));
 }
 
 EXPORT int openat(int dirfd, const char *path, int flags, ...) {
@@ -949,7 +1290,7 @@ EXPORT int openat(int dirfd, const char *path, int flags, ...) {
   mode = mode_argument(flags, args);
   va_end(args);
   if (is_device_path(path)) return device_open(flags);
-  return real_openat_named("openat", dirfd, path, flags, mode);
+  return not_a_device(real_openat_named("openat", dirfd, path, flags, mode));
 }
 
 EXPORT int openat64(int dirfd, const char *path, int flags, ...) {
@@ -959,7 +1300,7 @@ EXPORT int openat64(int dirfd, const char *path, int flags, ...) {
   mode = mode_argument(flags, args);
   va_end(args);
   if (is_device_path(path)) return device_open(flags);
-  return real_openat_named("openat64", dirfd, path, flags, mode);
+  return not_a_device(real_openat_named("openat64", dirfd, path, flags, mode));
 }
 
 /* _FORTIFY_SOURCE's checked forms, which programs built with it call. */
@@ -976,8 +1317,75 @@ EXPORT int close(int fd) {
     forget_fd_locked(fd);
     pthread_mutex_unlock(&state_lock);
     /* the driver's release did nothing: boards stay initialised until EXITDRV */
+  } else if (private_refuses_close(fd)) {
+    errno = EBADF; /* [ours] the preload's own: for the program nothing is open there */
+    return -1;
   }
   return real_close(fd);
+}
+
+#ifndef CLOSE_RANGE_UNSHARE
+#define CLOSE_RANGE_UNSHARE (1U << 1)
+#endif
+#ifndef CLOSE_RANGE_CLOEXEC
+#define CLOSE_RANGE_CLOEXEC (1U << 2)
+#endif
+
+/* Close first..last with the kernel's close_range, or one by one where it has none. */
+static int close_span(unsigned first, unsigned last, int flags) {
+  struct rlimit limit;
+  unsigned fd, end = last;
+#ifdef SYS_close_range
+  if (syscall(SYS_close_range, first, last, flags) == 0) return 0;
+  if (errno != ENOSYS) return -1;
+#endif
+  if (flags & CLOSE_RANGE_CLOEXEC) {
+    errno = ENOSYS;
+    return -1;
+  }
+  if (getrlimit(RLIMIT_NOFILE, &limit) == 0 && limit.rlim_cur != RLIM_INFINITY &&
+      limit.rlim_cur <= end)
+    end = (unsigned)limit.rlim_cur - 1u;
+  for (fd = first; fd <= end && fd >= first; fd++) syscall(SYS_close, (int)fd);
+  return 0;
+}
+
+static int compare_ints(const void *a, const void *b) {
+  return (*(const int *)a > *(const int *)b) - (*(const int *)a < *(const int *)b);
+}
+
+/* glibc 2.34's close_range and closefrom: every descriptor of the range but the
+   preload's own is closed [ours]. CLOSE_RANGE_CLOEXEC only marks: passed on whole. */
+EXPORT int close_range(unsigned first, unsigned last, int flags) {
+  int keep[MAX_PRIVATE_FDS], kept = 0, i, rc = 0;
+  unsigned long long from = first; /* past ~0U when the last kept one is `last` */
+  if (first > last || (flags & (int)CLOSE_RANGE_CLOEXEC)) return close_span(first, last, flags);
+  pthread_mutex_lock(&private_lock);
+  for (i = 0; i < private_count; i++) {
+    unsigned fd = (unsigned)private_fds[i].fd;
+    if (fd >= first && fd <= last && private_valid_locked(&private_fds[i]))
+      keep[kept++] = private_fds[i].fd;
+  }
+  pthread_mutex_unlock(&private_lock);
+  qsort(keep, (size_t)kept, sizeof keep[0], compare_ints);
+  for (i = 0; i <= kept && rc == 0; i++) {
+    unsigned long long to = i < kept ? (unsigned long long)keep[i] - 1u : last;
+    if (from <= to) {
+      rc = close_span((unsigned)from, (unsigned)to, flags);
+      flags &= ~(int)CLOSE_RANGE_UNSHARE; /* the table is this process's own from the first */
+    }
+    if (i < kept) from = (unsigned long long)keep[i] + 1u;
+  }
+  pthread_mutex_lock(&state_lock);
+  for (i = device_fd_count - 1; i >= 0; i--)
+    if ((unsigned)device_fds[i] >= first && (unsigned)device_fds[i] <= last)
+      forget_fd_locked(device_fds[i]);
+  pthread_mutex_unlock(&state_lock);
+  return rc;
+}
+
+EXPORT void closefrom(int lowfd) {
+  if (lowfd >= 0) close_range((unsigned)lowfd, ~0U, 0);
 }
 
 static int ioctl_common(int fd, unsigned long request, void *arg) {
