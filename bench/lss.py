@@ -54,17 +54,11 @@ from bench.common import (
     wait_ready,
 )
 from dbm_tools.network import parse_network
+from dpm.cia305 import WAITING, LssAddress
 from dpm.image import image_path
 from firmware.sim import SimulatedNetwork
 from host_api.board import Board
-from host_api.cia309.lss import (
-    DEFAULT_SCAN_TIMEOUT_S,
-    DEFAULT_TIMEOUT_S,
-    SETTLE_S,
-    WAITING,
-    LssAddress,
-    LssMaster,
-)
+from host_api.cia309.lss import DEFAULT_SCAN_TIMEOUT_S, DEFAULT_TIMEOUT_S, SETTLE_S, LssMaster
 
 NAME = "lss"
 NODES = 8

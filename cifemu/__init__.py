@@ -1,8 +1,7 @@
 """``cifemu``, the umbrella command: ``main`` parses ``cifemu COMMAND ...``.
 
-Each command lives in its package (``firmware.cli``, ``firmware.sim.cli``,
-``host_api.status``, ``host_api.dbm_commands``, ``host_api.cia309.cli``); this package
-only puts them under one name, and adds ``cifemu demo``.
+``cifemu.cli.COMMANDS`` is the one table of commands: each names the module that
+implements it, which is imported only when that command runs.
 """
 
 from importlib.metadata import version

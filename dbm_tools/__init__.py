@@ -12,23 +12,46 @@
 Nothing here talks to a card: the package never imports host_api or firmware.
 """
 
+from importlib import import_module
 from importlib.metadata import version
+from typing import TYPE_CHECKING, Any
 
-from dbm_tools.builder import BuildError, build_dbm
-from dbm_tools.container import (
-    DbmFile,
-    DbmTable,
-    data_area,
-    load_dbm,
-    read_data_area,
-    read_dbm,
-    save_dbm,
-    write_dbm,
-)
-from dbm_tools.eds import EdsError
-from dbm_tools.errors import DbmError
-from dbm_tools.network import Network, NetworkError, load_network, parse_network
-from dbm_tools.validate import Finding, check_dbm
+if TYPE_CHECKING:
+    from dbm_tools.builder import BuildError, build_dbm
+    from dbm_tools.container import (
+        DbmFile,
+        DbmTable,
+        data_area,
+        load_dbm,
+        read_data_area,
+        read_dbm,
+        save_dbm,
+        write_dbm,
+    )
+    from dbm_tools.eds import EdsError
+    from dbm_tools.errors import DbmError
+    from dbm_tools.network import Network, NetworkError, load_network, parse_network
+    from dbm_tools.validate import Finding, check_dbm
+
+_HOMES = {
+    "BuildError": "builder", "build_dbm": "builder",
+    "DbmFile": "container", "DbmTable": "container", "data_area": "container",
+    "load_dbm": "container", "read_data_area": "container", "read_dbm": "container",
+    "save_dbm": "container", "write_dbm": "container",
+    "EdsError": "eds", "DbmError": "errors",
+    "Network": "network", "NetworkError": "network", "load_network": "network",
+    "parse_network": "network",
+    "Finding": "validate", "check_dbm": "validate",
+}
+"""Each name's module. They load on first use: the builder pulls in canopen's EDS parser,
+which a command that only reads a card should not pay for at start-up."""
+
+
+def __getattr__(name: str) -> Any:
+    if name in _HOMES:
+        return getattr(import_module(f"dbm_tools.{_HOMES[name]}"), name)
+    raise AttributeError(f"module 'dbm_tools' has no attribute {name!r}")
+
 
 __version__ = version("cifemu")
 

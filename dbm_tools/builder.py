@@ -56,7 +56,6 @@ from dbm_tools.network import (
     GENERIC_PRODUCT,
     GENERIC_PRODUCT_CODE,
     GENERIC_VENDOR_ID,
-    UNCONFIGURED,
     Network,
     NodeDescription,
     PdoDescription,
@@ -93,6 +92,7 @@ from dbm_tools.tables import (
     checksum_crc,
 )
 from dbm_tools.validate import PROCESS_IMAGE_SIZE, check_dbm
+from dpm.cia305 import UNCONFIGURED
 
 HEARTBEAT_PRODUCER = 0x1017
 DESCRIPT_INPUT = 0x10

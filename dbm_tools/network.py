@@ -83,6 +83,7 @@ from pathlib import Path
 from typing import Any
 
 from dbm_tools.errors import DbmError
+from dpm.cia305 import UNCONFIGURED, LssAddress
 
 BITRATES: dict[int, int] = {
     1_000_000: 0, 800_000: 1, 500_000: 2, 250_000: 3, 125_000: 4,
@@ -100,8 +101,6 @@ GENERIC_VENDOR_ID = 0x00434946
 GENERIC_PRODUCT_CODE = 0x00000191
 GENERIC_PRODUCT = "cifemu generic I/O"
 """The generic module's identity: the simulator reports it, the builder describes it."""
-
-UNCONFIGURED = 255
 
 HANDSHAKES: dict[str, int] = {
     "buffered-device-controlled": 1, "uncontrolled": 2, "buffered-host-controlled": 3,
@@ -158,14 +157,6 @@ class PdoDescription:
     inhibit: int = 0
     word: bool = False
     offset: int | None = None
-
-
-@dataclass
-class LssAddress:
-    vendor: int
-    product: int
-    revision: int
-    serial: int
 
 
 @dataclass

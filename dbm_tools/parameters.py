@@ -18,6 +18,7 @@ from enum import IntFlag
 
 from dbm_tools._binary import fixed, pack, unpack
 from dbm_tools.errors import DbmError
+from dpm.cia301 import SYNC_RTR, SYNC_TYPES_MAX
 from dpm.errors import CanF
 
 
@@ -52,12 +53,6 @@ class ExtendedState(IntFlag):
 
 MSK_LENGTH = 0x7F
 MSK_WORD_PDO = 0x80
-SYNC_TYPES_MAX = 240
-"""CiA 301 transmission types 0 (acyclic) to 240 (every 240th SYNC) are synchronous."""
-SYNC_RTR = 252
-"""CiA 301 transmission type: sampled at SYNC, sent only on a remote frame."""
-ASYNC_RTR = 253
-"""CiA 301 transmission type: sent only on a remote frame."""
 
 BAUD_RATES_KBIT = {0: 1000, 1: 800, 2: 500, 3: 250, 4: 125, 5: 100, 6: 50, 7: 20, 8: 10}
 """Baud_rate codes (COM_BAUD_1000 = 0 ... COM_BAUD_10 = 8) and their bit rates."""

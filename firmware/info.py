@@ -4,15 +4,15 @@ from __future__ import annotations
 
 from typing import Any
 
-FIRMWARE_NAME = b"CANopen Master"  # [ours] (docs/dpm.md 1)
-FIRMWARE_VERSION = b"V1.070 cifemu"
-DEVICE_NUMBER = 1250100
-"""[ours] ulDeviceNo of the emulated card."""
-RCS_VERSION = 0x0100
-DEV_TYPE = 0x32
-DEV_MODEL = 0x05
-TASKS = {1: (b"PLC", 0x0100), 2: (b"CAN", 0x0100)}
-"""TASKINFO entries by index: entry 2 (task 2) "PLC", entry 3 (task 3) "CAN"."""
+from dpm.identity import (
+    DEV_MODEL,
+    DEV_TYPE,
+    DEVICE_NUMBER,
+    FIRMWARE_NAME,
+    FIRMWARE_VERSION,
+    RCS_VERSION,
+    TASKS,
+)
 
 
 def _bcd(value: int) -> int:

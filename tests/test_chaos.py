@@ -27,6 +27,7 @@ from dbm_tools.builder import build_dbm
 from dbm_tools.container import write_dbm
 from dbm_tools.network import load_network
 from dpm import flags as fl
+from dpm.cia305 import WAITING
 from dpm.commands import COM_NODE_DIAG
 from dpm.errors import Drv
 from dpm.message import Message, Task
@@ -34,7 +35,7 @@ from dpm.task2 import CanState, GlobalBits
 from host_api import driver as d
 from host_api.board import Board, CifError
 from host_api.cia309.gateway import Cia309Error, Gateway
-from host_api.cia309.lss import WAITING, LssError, LssMaster
+from host_api.cia309.lss import LssError, LssMaster
 from host_api.download import CONFIGURATION_DOWNLOAD, DevDownload, upload_database
 from host_api.online import ConfigurationError, configure_online
 from tests.conftest import ROOT, Card, start_card, wait_until

@@ -15,6 +15,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from dpm.cia305 import LssAddress
 from host_api.cia309.datatypes import (
     DataTypeError,
     Dialect,
@@ -50,7 +51,6 @@ from host_api.cia309.model import (
     ErrorCode,
     ErrorControlEvent,
     Event,
-    LssAddress,
     NmtState,
     PdoMapping,
     RpdoEvent,

@@ -21,13 +21,13 @@ from pathlib import Path
 import pytest
 
 from dbm_tools.network import load_network
+from dpm.com import CanFrame
 from dpm.commands import AREA_BUS, COM_UPLOAD, MAX_LEN_DATA_UNIT
 from dpm.message import Message, Task
 from dpm.task2 import CanState, ComDiagnostics
 from host_api import driver as d
 from host_api.board import Board
 from host_api.cia309.gateway import VENDOR_ID, Gateway
-from host_api.cia309.link import CanFrame
 from host_api.cia309.model import (
     ALL_NODES,
     MAX_COMMAND_SIZE,

@@ -30,7 +30,8 @@ import pytest
 from canopen.sdo.exceptions import SdoAbortedError, SdoCommunicationError
 
 from cifemu.cli import build_parser
-from dbm_tools.network import GENERIC_DEVICE_TYPE, LssAddress, NetworkError, parse_network
+from dbm_tools.network import GENERIC_DEVICE_TYPE, NetworkError, parse_network
+from dpm.cia305 import LssAddress
 from firmware.sim import SimulatedNetwork
 from firmware.sim.cli import describe
 from firmware.sim.generic import GENERIC_PRODUCT_CODE, GENERIC_REVISION, GENERIC_VENDOR_ID

@@ -12,10 +12,8 @@ import canopen
 from canopen.objectdictionary import ObjectDictionary
 from canopen.sdo.client import SdoClient
 
-from bench.can.card import (
-    COB_ID_NMT,
-)
 from dbm_tools.network import Network
+from dpm.cia301 import COB_ID_NMT
 from dpm.commands import NMT_START
 from firmware.sim import SimulatedNetwork
 from firmware.sim.nmt import INITIALISING, OPERATIONAL

@@ -19,7 +19,6 @@ from typing import Any
 
 from bench.can.baseline import in_process, sdo_client
 from bench.can.card import (
-    COB_ID_NMT,
     DEVICE_TYPE_BYTES,
     RESET_TIMEOUT_MS,
     SYNC_COB_ID,
@@ -37,6 +36,7 @@ from bench.common import (
 from dbm_tools.builder import build_dbm
 from dbm_tools.container import write_dbm
 from dbm_tools.network import parse_network
+from dpm.cia301 import COB_ID_NMT
 from dpm.commands import NMT_RESET_NODE, NMT_START
 from host_api.download import CONFIGURATION_DOWNLOAD, DevDownload
 from host_api.driver import (

@@ -57,8 +57,6 @@ UNCONTROLLED_BMODE = PlcMode.UNCONTROLLED
 """Task2Parameter bMode that selects the uncontrolled handshake at a warm start."""
 UNCONTROLLED_EXCHANGE_MODE = BMODE_TO_EXCHANGE_MODE[UNCONTROLLED_BMODE]
 
-RPDO1, TPDO1, COB_ID_NMT = 0x200, 0x180, 0x000
-"""CiA 301 identifiers: RPDO1 and TPDO1 bases (plus the node-ID), the NMT command."""
 SYNC_COB_ID = 0x080
 """CiA 301's SYNC identifier, as the network descriptions of the phases leave it."""
 DEVICE_TYPE_BYTES = GENERIC_DEVICE_TYPE.to_bytes(4, "little")

@@ -22,8 +22,6 @@ import numpy as np
 
 from bench.can.baseline import in_process, start_all
 from bench.can.card import (
-    RPDO1,
-    TPDO1,
     SeparateBus,
     io_offsets,
     network_toml,
@@ -38,6 +36,7 @@ from bench.common import (
     ratio,
 )
 from dbm_tools.network import parse_network
+from dpm.cia301 import RPDO_BASES, TPDO_BASES
 
 THROUGHPUT_NODES = 126
 THROUGHPUT_ACTIVE = (16, 126)
@@ -46,8 +45,8 @@ THROUGHPUT_SECONDS = 4.0
 
 def trace_counts(window: EchoWindow, trace: Trace) -> dict[str, Any]:
     """What the card's own trace saw during a window; nodes 1..active."""
-    rpdo = (RPDO1 + 1, RPDO1 + window.active + 1)
-    tpdo = (TPDO1 + 1, TPDO1 + window.active + 1)
+    rpdo = (RPDO_BASES[0] + 1, RPDO_BASES[0] + window.active + 1)
+    tpdo = (TPDO_BASES[0] + 1, TPDO_BASES[0] + window.active + 1)
     timed = (window.wall_start, window.wall_end)
     whole = (window.wall_start, window.wall_drained)
     rpdo_timed = count_frames(trace, *rpdo, *timed)
@@ -146,11 +145,12 @@ class _Echoes:
     drained: threading.Event = field(default_factory=threading.Event)
 
     def send(self, index: int) -> None:
-        self.client.send_message(RPDO1 + 1 + index, self.values[index].to_bytes(8, "little"))
+        self.client.send_message(RPDO_BASES[0] + 1 + index,
+                                 self.values[index].to_bytes(8, "little"))
 
     def on_tpdo(self, can_id: int, data: bytearray, timestamp: float) -> None:
         del timestamp
-        index = can_id - TPDO1 - 1
+        index = can_id - TPDO_BASES[0] - 1
         if index not in self.pending or int.from_bytes(data, "little") != self.values[index]:
             return
         self.verified += 1
@@ -171,7 +171,7 @@ def baseline_pdo_throughput(count: int) -> dict[str, Any]:
         time.sleep(0.05)  # the TPDOs of entering OPERATIONAL
         loop = _Echoes(client, [(node << 40) + 1 for node in nodes], pending=set(range(len(nodes))))
         for node in nodes:
-            client.subscribe(TPDO1 + node, loop.on_tpdo)
+            client.subscribe(TPDO_BASES[0] + node, loop.on_tpdo)
         progress(f"pdo throughput (baseline): {len(nodes)} nodes for {THROUGHPUT_SECONDS} s")
         start = time.perf_counter()
         for index in range(len(nodes)):
@@ -183,7 +183,7 @@ def baseline_pdo_throughput(count: int) -> dict[str, Any]:
         loop.drained.wait(DRAIN_S)
         lost = len(loop.pending)
         for node in nodes:
-            client.unsubscribe(TPDO1 + node, loop.on_tpdo)
+            client.unsubscribe(TPDO_BASES[0] + node, loop.on_tpdo)
     echoes = timed / elapsed
     return {
         "name": "canopen network in this process drives the same closed loop on the same "

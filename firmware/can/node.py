@@ -22,14 +22,13 @@ from canopen.sdo.client import SdoClient
 from canopen.sdo.exceptions import SdoAbortedError, SdoCommunicationError
 
 from dbm_tools.parameters import (
-    ASYNC_RTR,
     MSK_WORD_PDO,
-    SYNC_RTR,
     ConfigNdState,
     NdFlag,
     NodeParameterSet,
     PdoData,
 )
+from dpm.cia301 import ASYNC_RTR, SYNC_RTR
 from dpm.com import EMCY_ENTRIES, NodeStatus
 from dpm.com import NodeDiagnosis as Diagnosis
 from dpm.commands import NMT_RESET_NODE as NMT_RESET

@@ -21,9 +21,9 @@ from dbm_tools.network import (
     GENERIC_PRODUCT,
     GENERIC_PRODUCT_CODE,
     GENERIC_VENDOR_ID,
-    LssAddress,
     NodeDescription,
 )
+from dpm.cia305 import LssAddress
 
 GENERIC_REVISION = 0x00010000
 IO_BYTES = 8

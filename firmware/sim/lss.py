@@ -58,7 +58,37 @@ from dataclasses import replace
 from functools import partial
 from typing import TYPE_CHECKING
 
-from dbm_tools.network import UNCONFIGURED, LssAddress, NodeDescription
+from dbm_tools.network import NodeDescription
+from dpm.cia305 import (
+    ACTIVATE_BIT_TIMING,
+    BIT_TIMING_TABLE,
+    CONFIGURATION,
+    CONFIGURE_BIT_TIMING,
+    CONFIGURE_NODE_ID,
+    ERROR_BIT_TIMING_NOT_SUPPORTED,
+    ERROR_NODE_ID_RANGE,
+    ERROR_NONE,
+    FASTSCAN,
+    FASTSCAN_RESET,
+    IDENTIFY_NON_CONFIGURED_REMOTE,
+    IDENTIFY_NON_CONFIGURED_SLAVE,
+    IDENTIFY_REMOTE_SERIAL_HIGH,
+    IDENTIFY_REMOTE_VENDOR,
+    IDENTIFY_SLAVE,
+    INQUIRE_NODE_ID,
+    INQUIRE_SERIAL,
+    INQUIRE_VENDOR,
+    LSS_ANSWER_COB_ID,
+    LSS_REQUEST_COB_ID,
+    STORE_CONFIGURATION,
+    SWITCH_SELECTIVE_ANSWER,
+    SWITCH_SELECTIVE_SERIAL,
+    SWITCH_SELECTIVE_VENDOR,
+    SWITCH_STATE_GLOBAL,
+    UNCONFIGURED,
+    WAITING,
+    LssAddress,
+)
 from firmware.sim.nmt import COB_ID as NMT_COB_ID
 from firmware.sim.nmt import RESET_COMMUNICATION as NMT_RESET_COMMUNICATION
 from firmware.sim.nmt import RESET_NODE as NMT_RESET_NODE
@@ -68,46 +98,6 @@ if TYPE_CHECKING:
     from firmware.sim.node import SimulatedNode
 
 log = logging.getLogger(__name__)
-
-LSS_REQUEST_COB_ID = 0x7E5
-"""LSS master -> slaves."""
-LSS_ANSWER_COB_ID = 0x7E4
-"""LSS slaves -> master."""
-
-# CiA 305 command specifiers
-SWITCH_STATE_GLOBAL = 0x04
-CONFIGURE_NODE_ID = 0x11
-CONFIGURE_BIT_TIMING = 0x13
-ACTIVATE_BIT_TIMING = 0x15
-STORE_CONFIGURATION = 0x17
-SWITCH_SELECTIVE_VENDOR = 0x40
-SWITCH_SELECTIVE_SERIAL = 0x43
-SWITCH_SELECTIVE_ANSWER = 0x44
-IDENTIFY_REMOTE_VENDOR = 0x46
-IDENTIFY_REMOTE_SERIAL_HIGH = 0x4B
-IDENTIFY_NON_CONFIGURED_REMOTE = 0x4C
-IDENTIFY_SLAVE = 0x4F
-IDENTIFY_NON_CONFIGURED_SLAVE = 0x50
-FASTSCAN = 0x51
-INQUIRE_VENDOR = 0x5A
-INQUIRE_SERIAL = 0x5D
-INQUIRE_NODE_ID = 0x5E
-
-WAITING = 0
-CONFIGURATION = 1
-FASTSCAN_RESET = 0x80
-"""BitChecked 80h: every unconfigured slave answers and restarts its scan at the vendor-ID."""
-
-ERROR_NONE = 0
-ERROR_NODE_ID_RANGE = 1
-ERROR_BIT_TIMING_NOT_SUPPORTED = 1
-
-BIT_TIMING_TABLE: dict[int, int] = {
-    0: 1_000_000, 1: 800_000, 2: 500_000, 3: 250_000, 4: 125_000,
-    6: 50_000, 7: 20_000, 8: 10_000,
-}
-"""CiA 305 table selector 0 (the CiA 301 bit timings), index -> bit/s; index 5 is reserved
-and 9 (automatic bit rate detection) is something a simulated device cannot do."""
 
 
 def _valid_node_id(node_id: int) -> bool:

@@ -30,13 +30,12 @@ from canopen.objectdictionary import ObjectDictionary
 
 from dbm_tools.eds import import_od
 from dbm_tools.network import (
-    UNCONFIGURED,
     BusDescription,
-    LssAddress,
     Network,
     NetworkError,
     NodeDescription,
 )
+from dpm.cia305 import UNCONFIGURED, LssAddress
 from firmware.sim.generic import generic_object_dictionary
 from firmware.sim.lss import LssBus
 from firmware.sim.node import SimulatedNode

@@ -35,7 +35,7 @@ from typing import TYPE_CHECKING
 from canopen.network import Callback
 from canopen.pdo import PdoMap, PdoMaps
 
-from dbm_tools.parameters import SYNC_RTR
+from dpm.cia301 import EVENT_TYPES, SYNC_RTR, SYNC_TYPES_MAX
 from firmware.sim.nmt import OPERATIONAL
 from firmware.sim.scheduler import Timer
 
@@ -44,8 +44,6 @@ if TYPE_CHECKING:
 
 PDO_LENGTH_ERROR = 0x8210
 """EMCY code: PDO not processed due to length error (CiA 301 table 21)."""
-SYNC_LAST = 240
-EVENT_TYPES = (254, 255)
 INHIBIT_UNIT_S = 100e-6
 APPLICATION_AREA = 0x2000
 """Objects from here on have no side effects on write: their PDOs may take the byte path."""
@@ -185,7 +183,7 @@ class PdoEngine:
                     payload = self._payload(tpdo)
                     if payload != tpdo.last:
                         self._send(tpdo, payload)
-                elif kind <= SYNC_LAST:
+                elif kind <= SYNC_TYPES_MAX:
                     tpdo.sync_count += 1
                     if tpdo.sync_count >= kind:
                         tpdo.sync_count = 0
@@ -215,7 +213,7 @@ class PdoEngine:
             if len(data) < rpdo.size:
                 self._node.emergency(PDO_LENGTH_ERROR)
                 return
-            if (rpdo.map.trans_type or 0) <= SYNC_LAST:
+            if (rpdo.map.trans_type or 0) <= SYNC_TYPES_MAX:
                 self._pending[can_id] = bytes(data)
                 return
             self._apply(rpdo, bytes(data))

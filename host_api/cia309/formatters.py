@@ -17,6 +17,7 @@ from __future__ import annotations
 
 from datetime import datetime
 
+from dpm.cia305 import LssAddress
 from host_api.cia309.datatypes import DataTypeError, Dialect, format_value
 from host_api.cia309.model import (
     BootUpEvent,
@@ -25,7 +26,6 @@ from host_api.cia309.model import (
     ErrorCode,
     ErrorControlEvent,
     Event,
-    LssAddress,
     NmtState,
     RpdoEvent,
     VersionInfo,
@@ -203,7 +203,7 @@ def format_lss_address(
     sequence: int, address: LssAddress, dialect: Dialect = Dialect.CANOPENNODE
 ) -> str:
     """A whole LSS address (``lss_inquire_addr`` without argument, ``_lss_fastscan``)."""
-    numbers = (address.vendor_id, address.product_code, address.revision, address.serial)
+    numbers = (address.vendor, address.product, address.revision, address.serial)
     return _answer(sequence, " ".join(_lss_hex(number, dialect) for number in numbers), dialect)
 
 

@@ -47,7 +47,7 @@ from dbm_tools.tables import (
     checksum_crc,
 )
 from dbm_tools.validate import check_dbm
-from dpm.com import NodeSwitch, SdoTimeoutRequest
+from dpm.com import CanFrame, NodeSwitch, SdoTimeoutRequest
 from dpm.commands import (
     AREA_BUS,
     AREA_EXTENDED,
@@ -77,7 +77,6 @@ from host_api.cia309.events import EventDispatcher, EventStream, Monitor, Subscr
 from host_api.cia309.link import (
     DEFAULT_ANSWER_TIMEOUT,
     RESET_TIMEOUT_MS,
-    CanFrame,
     FrameListener,
     IndicationQueue,
     Link,
@@ -514,7 +513,7 @@ class Gateway:
         waiter: queue.SimpleQueue[bytes] = queue.SimpleQueue()
         link.rtr_waiters[pdo_number] = waiter
         try:
-            link.send_frames([CanFrame(pdo.cob_id, remote=True, dlc=pdo.length)])
+            link.send_frames([CanFrame(pdo.cob_id, rtr=True, dlc=pdo.length)])
             wait = min(RTR_ANSWER_TIMEOUT, self._timeout())
             try:
                 return pdo.unpack(waiter.get(timeout=wait))

@@ -29,7 +29,7 @@ from types import TracebackType
 
 from dbm_tools.errors import DbmError
 from dbm_tools.parameters import NdFlag, NodeParameterSet
-from dpm.com import UploadRequest
+from dpm.com import CanFrame, UploadRequest, decode_layer2_frames, encode_layer2_frame
 from dpm.commands import (
     AREA_BUS,
     COM_BOOTUP_FORWARDING,
@@ -58,7 +58,7 @@ from dpm.commands import (
     Com,
 )
 from dpm.errors import F_UNKNOWN_COMMAND, F_UNKNOWN_TASK, Drv
-from dpm.message import Ext, Message, Task
+from dpm.message import Ext, Message, MessageError, Task
 from host_api import driver as d
 from host_api.board import Board, CifError
 from host_api.cia309.model import (
@@ -69,7 +69,7 @@ from host_api.cia309.model import (
     RpdoEvent,
     syntax_error,
 )
-from host_api.cia309.pdo import PDO_BYTES, Pdo
+from host_api.cia309.pdo import Pdo
 from host_api.online import download_data_set
 from host_api.registry import transaction_lock
 
@@ -122,37 +122,6 @@ def driver_error(code: int, what: str) -> Cia309Error:
 
 
 # --------------------------------------------------------------------------- layer 2
-
-
-@dataclass(frozen=True)
-class CanFrame:
-    """One 11-bit CAN frame, as layer-2 access sends and receives it."""
-
-    cob_id: int
-    data: bytes = b""
-    remote: bool = False
-    dlc: int | None = None
-    """For a remote frame, the data length asked for; None: ``len(data)``."""
-
-    def encode(self) -> bytes:
-        """The seed's layer-2 form (5.3.1): ID.10..3, then ID.2..0 | RTR | DLC, then data."""
-        dlc = len(self.data) if self.dlc is None else self.dlc
-        second = ((self.cob_id & 0x7) << 5) | (0x10 if self.remote else 0) | (dlc & 0x0F)
-        return bytes([self.cob_id >> 3, second]) + (b"" if self.remote else self.data)
-
-
-def _layer2_frames(data: bytes) -> list[CanFrame]:
-    """The frames of a COM_Rx_CAN_Layer2 indication (seed 5.3.2.2)."""
-    frames = []
-    at = 0
-    while at + 2 <= len(data):
-        cob_id = (data[at] << 3) | (data[at + 1] >> 5)
-        remote = bool(data[at + 1] & 0x10)
-        dlc = data[at + 1] & 0x0F
-        size = 0 if remote else min(dlc, PDO_BYTES)
-        frames.append(CanFrame(cob_id, bytes(data[at + 2 : at + 2 + size]), remote, dlc))
-        at += 2 + size
-    return frames
 
 
 # --------------------------------------------------------------------------- events
@@ -556,7 +525,7 @@ class Link:
                 self._indication_queues.remove(indications)
 
     def send_frames(self, frames: Sequence[CanFrame]) -> None:
-        data = b"".join(frame.encode() for frame in frames)
+        data = b"".join(encode_layer2_frame(frame) for frame in frames)
         if not frames or len(data) > 255:
             raise syntax_error(f"{len(frames)} frames do not fit one COM_Tx_CAN_Layer2")
         self.send(COM_TX_CAN_LAYER2, data)
@@ -584,20 +553,26 @@ class Link:
             queues = list(self._indication_queues)
         for indications in queues:
             indications.put(msg)
-        for frame in _layer2_frames(msg.data):
+        try:
+            frames = decode_layer2_frames(msg.data)
+        except MessageError as exc:  # the card's own indication: never expected
+            log.warning("network %d: a malformed COM_Rx_CAN_Layer2 indication: %s",
+                        self.network, exc)
+            return
+        for frame in frames:
             self._frame(frame)
 
     def _frame(self, frame: CanFrame) -> None:
         with self.pdo_lock:
-            listeners = [item for item in self._listeners if frame.cob_id in item.cob_ids]
-            rpdos = [pdo for pdo in self.rpdos.values() if pdo.cob_id == frame.cob_id]
+            listeners = [item for item in self._listeners if frame.ident in item.cob_ids]
+            rpdos = [pdo for pdo in self.rpdos.values() if pdo.cob_id == frame.ident]
             for pdo in rpdos:
-                if not frame.remote and len(frame.data) >= pdo.length:
+                if not frame.rtr and len(frame.data) >= pdo.length:
                     pdo.last = frame.data[: pdo.length]
         for listener in listeners:
             listener.put(frame)
         for pdo in rpdos:
-            if frame.remote or len(frame.data) < pdo.length:
+            if frame.rtr or len(frame.data) < pdo.length:
                 continue  # a PDO length error: nothing to unmap
             waiter = self.rtr_waiters.get(pdo.number)
             if waiter is not None:

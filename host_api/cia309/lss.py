@@ -54,45 +54,36 @@ import time
 from collections import deque
 from collections.abc import Callable, Iterable
 from enum import IntEnum
-from typing import Concatenate, NamedTuple, ParamSpec, TypeVar
+from typing import Concatenate, ParamSpec, TypeVar
 
+from dpm.cia305 import (
+    ACTIVATE_BIT_TIMING,
+    CONFIGURATION,
+    CONFIGURE_BIT_TIMING,
+    CONFIGURE_NODE_ID,
+    ERROR_IMPLEMENTATION_SPECIFIC,
+    FASTSCAN,
+    FASTSCAN_RESET,
+    IDENTIFY_NON_CONFIGURED_REMOTE,
+    IDENTIFY_NON_CONFIGURED_SLAVE,
+    IDENTIFY_REMOTE_VENDOR,
+    IDENTIFY_SLAVE,
+    INQUIRE_NODE_ID,
+    INQUIRE_VENDOR,
+    LSS_ANSWER_COB_ID,
+    LSS_REQUEST_COB_ID,
+    STORE_CONFIGURATION,
+    SWITCH_SELECTIVE_ANSWER,
+    SWITCH_SELECTIVE_VENDOR,
+    SWITCH_STATE_GLOBAL,
+    WAITING,
+    LssAddress,
+)
 from dpm.commands import COM_CFGRX_LAYER2, COM_RX_CAN_LAYER2, COM_TX_CAN_LAYER2
 from dpm.errors import Drv
 from dpm.message import Message, Task
 from host_api.board import Board, CifError
 from host_api.cia309.model import Cia309Error, ErrorCode
-
-LSS_REQUEST_COB_ID = 0x7E5
-LSS_ANSWER_COB_ID = 0x7E4
-
-WAITING = 0
-"""Switch state global: every slave to LSS waiting (an unconfigured one given a node-ID then
-starts up under it)."""
-CONFIGURATION = 1
-"""Switch state global: every slave to LSS configuration."""
-UNCONFIGURED = 0xFF
-"""The node-ID of a slave without one: inquire node-ID reports it, configure node-ID takes it
-to make a slave unconfigured."""
-
-# CiA 305 command specifiers
-SWITCH_STATE_GLOBAL = 0x04
-CONFIGURE_NODE_ID = 0x11
-CONFIGURE_BIT_TIMING = 0x13
-ACTIVATE_BIT_TIMING = 0x15
-STORE_CONFIGURATION = 0x17
-SWITCH_SELECTIVE_VENDOR = 0x40
-SWITCH_SELECTIVE_ANSWER = 0x44
-IDENTIFY_REMOTE_VENDOR = 0x46
-IDENTIFY_NON_CONFIGURED_REMOTE = 0x4C
-IDENTIFY_SLAVE = 0x4F
-IDENTIFY_NON_CONFIGURED_SLAVE = 0x50
-FASTSCAN = 0x51
-INQUIRE_VENDOR = 0x5A
-INQUIRE_NODE_ID = 0x5E
-FASTSCAN_RESET = 0x80
-"""BitChecked 80h: every unconfigured slave answers and restarts its scan."""
-ERROR_IMPLEMENTATION_SPECIFIC = 0xFF
-"""CiA 305 error code 255: the spec-error byte holds the device's own code."""
 
 DEFAULT_TIMEOUT_S = 0.5
 DEFAULT_SCAN_TIMEOUT_S = 0.05
@@ -139,15 +130,6 @@ class LssError(Cia309Error):
         elif lss_error is not None:
             text += f" (LSS error code {lss_error})"
         super().__init__(ErrorCode(code), text)
-
-
-class LssAddress(NamedTuple):
-    """The four LSS numbers: object 1018h sub 1..4 of the device."""
-
-    vendor: int
-    product: int
-    revision: int
-    serial: int
 
 
 _CONFIGURE_ERRORS = {

@@ -25,10 +25,6 @@ base64 on one 309-3 line, with room for the rest of the request."""
 MAX_NODE_ID = 127
 MAX_PDO_NUMBER = 512
 MAX_PDO_OBJECTS = 64
-LSS_UNCONFIGURED = 0xFF
-"""The LSS node-ID of a slave without one; ``lss_set_node`` and ``set id`` accept it."""
-TRANSMISSION_RTR = 0xFD
-TRANSMISSION_EVENT = 0xFF
 
 TYPE_LENGTH_MISMATCH = 0x06070010
 """CiA 301 SDO abort code: data type does not match, length of service parameter does not
@@ -377,17 +373,6 @@ class PdoMapping:
     index: int | None
     subindex: int | None
     dtype: DataType | None
-
-
-
-@dataclass(frozen=True)
-class LssAddress:
-    """The four LSS numbers: object 1018h sub 1..4."""
-
-    vendor_id: int
-    product_code: int
-    revision: int
-    serial: int
 
 
 

@@ -12,6 +12,8 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass
 
+from dpm.cia301 import ASYNC_RTR, EVENT_PROFILE
+from dpm.cia305 import UNCONFIGURED, LssAddress
 from host_api.cia309.datatypes import (
     DataTypeError,
     Dialect,
@@ -21,15 +23,11 @@ from host_api.cia309.datatypes import (
 )
 from host_api.cia309.framing import SEQUENCE
 from host_api.cia309.model import (
-    LSS_UNCONFIGURED,
     MAX_NODE_ID,
     MAX_PDO_NUMBER,
     MAX_PDO_OBJECTS,
-    TRANSMISSION_EVENT,
-    TRANSMISSION_RTR,
     DataType,
     ErrorCode,
-    LssAddress,
     PdoMapping,
 )
 from host_api.cia309.requests import (
@@ -157,7 +155,7 @@ class _Context:
         """A node-ID argument: 1..127 (or 255 where LSS allows it); others are error 107."""
         token = self.word(what)
         value = self.convert(token, what, 0, _U32, ErrorCode.UNSUPPORTED_NODE)
-        if 1 <= value <= MAX_NODE_ID or (unconfigured and value == LSS_UNCONFIGURED):
+        if 1 <= value <= MAX_NODE_ID or (unconfigured and value == UNCONFIGURED):
             return value
         raise self.fail(f"{what} {value} is not a node-ID", ErrorCode.UNSUPPORTED_NODE)
 
@@ -462,11 +460,11 @@ def _transmission(ctx: _Context, extended: bool) -> tuple[int, dict[str, int]]:
         if extended:
             extra["inhibit_time"] = ctx.convert(token[5:], "inhibit time", 0, _U16)
             extra["event_timer"] = ctx.integer("event timer", 0, _U16)
-        return TRANSMISSION_EVENT, extra
+        return EVENT_PROFILE, extra
     if lowered == "rtr":
         if extended:
             extra["event_timer"] = ctx.integer("event timer", 0, _U16)
-        return TRANSMISSION_RTR, extra
+        return ASYNC_RTR, extra
     if lowered.startswith("sync"):
         period = ctx.convert(token[4:], "SYNC period", 0, 240)
         if extended:

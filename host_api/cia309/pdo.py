@@ -8,11 +8,10 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass
 
-from dbm_tools.parameters import ASYNC_RTR, SYNC_RTR
+from dpm.cia301 import ASYNC_RTR, EVENT_MANUFACTURER, EVENT_PROFILE, SYNC_RTR, SYNC_TYPES_MAX
 from host_api.cia309.model import (
     MAX_PDO_NUMBER,
     MAX_PDO_OBJECTS,
-    TRANSMISSION_EVENT,
     Cia309Error,
     DataType,
     ErrorCode,
@@ -108,6 +107,7 @@ def check_pdo_number(number: int) -> None:
 
 
 def check_tx_type(tx_type: int) -> None:
-    if not (0 <= tx_type <= 240 or tx_type in (252, 253, 254, TRANSMISSION_EVENT)):
+    if not (0 <= tx_type <= SYNC_TYPES_MAX
+            or tx_type in (SYNC_RTR, ASYNC_RTR, EVENT_MANUFACTURER, EVENT_PROFILE)):
         raise syntax_error(f"transmission type {tx_type}")
 

@@ -2,15 +2,16 @@
 command, with the sequence number and the network and node the line named (None: the
 line left it to the client's defaults, which are the service layer's business).
 
-Arguments are typed with the model's types (``DataType``, ``PdoMapping``, ``LssAddress``),
-so the server passes them to the 309-1 services unchanged.
+Arguments are typed with the model's types (``DataType``, ``PdoMapping``) and CiA 305's
+``dpm.cia305.LssAddress``, so the server passes them to the 309-1 services unchanged.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
-from host_api.cia309.model import Cia309Error, DataType, ErrorCode, LssAddress, PdoMapping
+from dpm.cia305 import LssAddress
+from host_api.cia309.model import Cia309Error, DataType, ErrorCode, PdoMapping
 
 NO_LSS_ADDRESS = LssAddress(0, 0, 0, 0)
 """The default of ``_lss_fastscan``'s known numbers and masks: nothing known."""

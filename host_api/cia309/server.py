@@ -65,6 +65,7 @@ from dataclasses import dataclass
 from datetime import datetime
 from typing import Any, Protocol
 
+from dpm.cia305 import LssAddress
 from host_api.cia309.datatypes import Dialect
 from host_api.cia309.formatters import (
     format_abort,
@@ -82,7 +83,7 @@ from host_api.cia309.formatters import (
 )
 from host_api.cia309.framing import DEFAULT_MAX_LINE, LineFramer, OverlongLine
 from host_api.cia309.gateway import Gateway
-from host_api.cia309.model import Cia309Error, ErrorCode, Event, LssAddress
+from host_api.cia309.model import Cia309Error, ErrorCode, Event
 from host_api.cia309.parser import parse_request
 from host_api.cia309.requests import (
     ConfigureRpdo,
@@ -502,7 +503,7 @@ _LSS_SERVICES: dict[type[Request], _LssCall] = {
 
 
 def _numbers(address: LssAddress) -> LssNumbers:
-    return (address.vendor_id, address.product_code, address.revision, address.serial)
+    return (address.vendor, address.product, address.revision, address.serial)
 
 
 @dataclass(frozen=True)

@@ -13,6 +13,7 @@ import struct
 from collections.abc import Callable
 from dataclasses import dataclass
 
+from dpm import cia301, cia305
 from host_api.monitor.cia301 import NMT_COMMAND_TEXT, emcy_text, nmt_state_text, sdo_abort_text
 from host_api.network_view import NetworkView, PdoSlot
 
@@ -20,38 +21,33 @@ KINDS = ("nmt", "sync", "emcy", "time", "pdo", "sdo", "heartbeat", "guarding", "
          "other")
 """What ``--type`` filters on."""
 
-COB_ID_NMT, SYNC_ID, TIME_ID = 0x000, 0x080, 0x100
-LSS_RESPONSE_ID, LSS_REQUEST_ID = 0x7E4, 0x7E5
-SDO_RESPONSE_BASE, SDO_REQUEST_BASE, ERROR_CONTROL_BASE = 0x580, 0x600, 0x700
-TPDO_BASES = (0x180, 0x280, 0x380, 0x480)
-RPDO_BASES = (0x200, 0x300, 0x400, 0x500)
 
 LSS_TEXT: dict[int, str] = {
-    0x04: "switch state global",
-    0x11: "configure node-ID",
-    0x13: "configure bit timing",
-    0x15: "activate bit timing",
-    0x17: "store configuration",
-    0x40: "switch state selective: vendor-ID",
-    0x41: "switch state selective: product code",
-    0x42: "switch state selective: revision number",
-    0x43: "switch state selective: serial number",
-    0x44: "switch state selective: answer",
-    0x46: "identify remote slave: vendor-ID",
-    0x47: "identify remote slave: product code",
-    0x48: "identify remote slave: revision low",
-    0x49: "identify remote slave: revision high",
-    0x4A: "identify remote slave: serial low",
-    0x4B: "identify remote slave: serial high",
-    0x4C: "identify non-configured remote slave",
-    0x4F: "identify slave: answer",
-    0x50: "identify non-configured slave: answer",
-    0x51: "fastscan",
-    0x5A: "inquire vendor-ID",
-    0x5B: "inquire product code",
-    0x5C: "inquire revision number",
-    0x5D: "inquire serial number",
-    0x5E: "inquire node-ID",
+    cia305.SWITCH_STATE_GLOBAL: "switch state global",
+    cia305.CONFIGURE_NODE_ID: "configure node-ID",
+    cia305.CONFIGURE_BIT_TIMING: "configure bit timing",
+    cia305.ACTIVATE_BIT_TIMING: "activate bit timing",
+    cia305.STORE_CONFIGURATION: "store configuration",
+    cia305.SWITCH_SELECTIVE_VENDOR: "switch state selective: vendor-ID",
+    cia305.SWITCH_SELECTIVE_PRODUCT: "switch state selective: product code",
+    cia305.SWITCH_SELECTIVE_REVISION: "switch state selective: revision number",
+    cia305.SWITCH_SELECTIVE_SERIAL: "switch state selective: serial number",
+    cia305.SWITCH_SELECTIVE_ANSWER: "switch state selective: answer",
+    cia305.IDENTIFY_REMOTE_VENDOR: "identify remote slave: vendor-ID",
+    cia305.IDENTIFY_REMOTE_PRODUCT: "identify remote slave: product code",
+    cia305.IDENTIFY_REMOTE_REVISION_LOW: "identify remote slave: revision low",
+    cia305.IDENTIFY_REMOTE_REVISION_HIGH: "identify remote slave: revision high",
+    cia305.IDENTIFY_REMOTE_SERIAL_LOW: "identify remote slave: serial low",
+    cia305.IDENTIFY_REMOTE_SERIAL_HIGH: "identify remote slave: serial high",
+    cia305.IDENTIFY_NON_CONFIGURED_REMOTE: "identify non-configured remote slave",
+    cia305.IDENTIFY_SLAVE: "identify slave: answer",
+    cia305.IDENTIFY_NON_CONFIGURED_SLAVE: "identify non-configured slave: answer",
+    cia305.FASTSCAN: "fastscan",
+    cia305.INQUIRE_VENDOR: "inquire vendor-ID",
+    cia305.INQUIRE_PRODUCT: "inquire product code",
+    cia305.INQUIRE_REVISION: "inquire revision number",
+    cia305.INQUIRE_SERIAL: "inquire serial number",
+    cia305.INQUIRE_NODE_ID: "inquire node-ID",
 }
 """CiA 305 LSS command specifiers."""
 
@@ -152,35 +148,35 @@ def decode(can_id: int, data: bytes, *, extended: bool = False, remote: bool = F
     if slot is not None:
         return Meaning("pdo", slot.node, _pdo(slot, data))
     function, node = can_id & 0x780, can_id & 0x7F
-    if can_id == COB_ID_NMT:
+    if can_id == cia301.COB_ID_NMT:
         if len(data) < 2:
             return Meaning("nmt", None, f"NMT of {len(data)} bytes (CiA 301 wants 2)")
         target = data[1]
         command = NMT_COMMAND_TEXT.get(data[0], f"unknown command {data[0]:#04x}")
         return Meaning("nmt", target or None,
                        f"NMT {command}: {'all nodes' if target == 0 else f'node {target}'}")
-    if can_id == SYNC_ID:
+    if can_id == cia301.COB_ID_SYNC:
         return Meaning("sync", None, "SYNC" + (f" counter {data[0]}" if data else ""))
-    if can_id == TIME_ID:
+    if can_id == cia301.COB_ID_TIME:
         return Meaning("time", None, "TIME")
-    if can_id in (LSS_REQUEST_ID, LSS_RESPONSE_ID):
+    if can_id in (cia305.LSS_REQUEST_COB_ID, cia305.LSS_ANSWER_COB_ID):
         what = LSS_TEXT.get(data[0], f"command {data[0]:#04x}") if data else "empty"
-        side = "request" if can_id == LSS_REQUEST_ID else "response"
+        side = "request" if can_id == cia305.LSS_REQUEST_COB_ID else "response"
         return Meaning("lss", None, f"LSS {side}: {what}")
     if node == 0:
         return Meaning("other", None, "")
-    if function == SYNC_ID:  # 081h..0FFh
+    if function == cia301.COB_ID_SYNC:  # 081h..0FFh
         code = int.from_bytes(data[:2].ljust(2, b"\0"), "little")
         register = data[2] if len(data) > 2 else 0
         return Meaning("emcy", node, f"EMCY node {node} {code:04X}h {emcy_text(code)}, "
                                      f"error register {register:02X}h")
-    if function in TPDO_BASES or function in RPDO_BASES:
-        kind = "TPDO" if function in TPDO_BASES else "RPDO"
-        number = (TPDO_BASES if kind == "TPDO" else RPDO_BASES).index(function) + 1
+    if function in cia301.TPDO_BASES or function in cia301.RPDO_BASES:
+        kind = "TPDO" if function in cia301.TPDO_BASES else "RPDO"
+        number = (cia301.TPDO_BASES if kind == "TPDO" else cia301.RPDO_BASES).index(function) + 1
         return Meaning("pdo", node, f"{kind}{number} node {node}" + (" (RTR)" if remote else ""))
-    if function in (SDO_RESPONSE_BASE, SDO_REQUEST_BASE) and not remote:
-        return Meaning("sdo", node, _sdo_text(node, data, function == SDO_RESPONSE_BASE))
-    if function == ERROR_CONTROL_BASE:
+    if function in (cia301.SDO_RESPONSE_BASE, cia301.SDO_REQUEST_BASE) and not remote:
+        return Meaning("sdo", node, _sdo_text(node, data, function == cia301.SDO_RESPONSE_BASE))
+    if function == cia301.ERROR_CONTROL_BASE:
         if remote:
             return Meaning("guarding", node, f"guarding request node {node}")
         if not data:
