@@ -71,6 +71,7 @@ def test_the_examples_pass_and_a_failing_test_shows_the_card(pytester: pytest.Py
     result = pytester.runpytest_subprocess("-p", "no:cacheprovider", "--strict-markers",
                                            timeout=840)
     result.assert_outcomes(passed=EXAMPLE_TESTS, failed=1, errors=1)
+    result.stdout.fnmatch_lines([f"rootdir: {pytester.path}"])  # none of this project's
     out = result.stdout.str()
     # the failed test's report carries the card's log and its final state, once
     failure = out[out.index("_ test_the_echo_is_not_what_the_user_expected _"):]
