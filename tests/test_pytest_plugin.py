@@ -11,6 +11,7 @@ loaded here as everywhere cifemu is installed.
 from __future__ import annotations
 
 import os
+import re
 import shutil
 import tomllib
 from pathlib import Path
@@ -22,7 +23,8 @@ from host_api.board import Board
 
 pytest_plugins = ["pytester"]
 
-EXAMPLES = Path(__file__).resolve().parents[1] / "examples" / "pytest"
+ROOT = Path(__file__).resolve().parents[1]
+EXAMPLES = ROOT / "examples" / "pytest"
 EXAMPLE_TESTS = 4
 """test_host_program.py's three and test_c_program.py's one."""
 
@@ -138,3 +140,15 @@ def test_a_network_dict_is_written_as_the_toml_it_stands_for() -> None:
                           "emcy_burst": {"after_s": 1e-3}}}],
     }
     assert tomllib.loads(network_toml(description)) == description
+
+
+def test_the_guides_code_is_the_examples_code() -> None:
+    """docs/pytest-plugin.md shows the example files as they are in examples/pytest/, whose
+    run above proves them: every longer block of it is part of one of them."""
+    guide = (ROOT / "docs" / "pytest-plugin.md").read_text()
+    sources = [path.read_text() for path in EXAMPLES.glob("*.py")]
+    blocks = [block for block in re.findall(r"```python\n(.*?)```", guide, re.S)
+              if block.count("\n") > 8]
+    assert len(blocks) == 3
+    stale = [block for block in blocks if not any(block in source for source in sources)]
+    assert not stale, f"blocks of the guide that no example holds as written: {stale}"
