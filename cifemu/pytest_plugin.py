@@ -9,7 +9,7 @@ cifemu installed gets, without a conftest:
   (``--simulate --configure``). ``$CIF_DPM_DIR`` points at that directory for the test,
   so ``host_api.driver.DevOpenDriver()``, libcif programs and ``cifemu legacy`` find it
   without being told. The fixture yields a ``CifCard``;
-- the marker ``cif_network(path_or_dict, board=0)``;
+- the marker ``cif_network(path_or_dict, board=0, configure=True)``;
 - for a failed test, report sections with the card's side of it: the firmware's log and
   a final ``cifemu status --json`` snapshot.
 
@@ -91,8 +91,9 @@ class CifCard:
 
     ``board`` and ``directory`` (the image directory, also ``$CIF_DPM_DIR`` during the
     test) are what a host program needs; ``network`` is the description the card
-    simulates and is configured from (None: a card out of the box, no nodes, not
-    configured); ``log`` is the firmware's stderr.
+    simulates (None: a card out of the box, no nodes, not configured), and configures
+    itself from on line at each start when ``configure`` is true; ``log`` is the
+    firmware's stdout and stderr.
     """
 
     board: int
@@ -100,6 +101,7 @@ class CifCard:
     flash: Path
     log: Path
     network: Network | None = field(default=None, repr=False)
+    configure: bool = True
     _process: subprocess.Popen[bytes] | None = field(default=None, repr=False)
 
     @property
@@ -129,7 +131,9 @@ class CifCard:
                    "--log-level", "INFO"]
         if self.network is not None:
             assert self.network.path is not None
-            command += ["--simulate", str(self.network.path), "--configure"]
+            command += ["--simulate", str(self.network.path)]
+            if self.configure:
+                command.append("--configure")
         with self.log.open("ab") as log:
             self._process = subprocess.Popen(command, stdin=subprocess.DEVNULL, stdout=log,
                                              stderr=log, start_new_session=True)
@@ -165,8 +169,8 @@ class CifCard:
         return True
 
     def restart(self, timeout: float = START_TIMEOUT_S) -> None:
-        """Stop the card and start it again: a power cycle. A network is configured on
-        line anew, as after the first start."""
+        """Stop the card and start it again: a power cycle. With ``configure`` the card
+        configures itself on line anew, as after the first start."""
         self.stop()
         self.start(timeout)
 
@@ -283,19 +287,31 @@ def network_toml(description: Mapping[str, Any]) -> str:
                    for key, value in description.items())
 
 
-def _marked_network(item: pytest.Item, directory: Path) -> tuple[Network | None, int]:
-    """The network and board of the test's ``cif_network`` marker; a mistake in it fails
-    the test's set-up with the key it gets wrong, no traceback."""
+@dataclass(frozen=True)
+class _Marked:
+    """What a test's ``cif_network`` marker asks for (no marker: no network, board 0)."""
+
+    network: Network | None = None
+    board: int = 0
+    configure: bool = True
+
+
+def _marked(item: pytest.Item, directory: Path) -> _Marked:
+    """The test's ``cif_network`` marker read; a mistake in it fails the test's set-up
+    with the key it gets wrong, no traceback."""
     marker = item.get_closest_marker(NETWORK_MARKER)
     if marker is None:
-        return None, 0
-    usage = f"@pytest.mark.{NETWORK_MARKER}(path_or_dict, board=0)"
-    if len(marker.args) != 1 or set(marker.kwargs) - {"board"}:
+        return _Marked()
+    usage = f"@pytest.mark.{NETWORK_MARKER}(path_or_dict, board=0, configure=True)"
+    if len(marker.args) != 1 or set(marker.kwargs) - {"board", "configure"}:
         pytest.fail(f"{usage}: got args {marker.args}, kwargs {marker.kwargs}", pytrace=False)
     board = marker.kwargs.get("board", 0)
     if not isinstance(board, int) or isinstance(board, bool) or not (
             0 <= board < MAX_DEV_BOARDS):
         pytest.fail(f"{usage}: board = {board!r} is not 0..{MAX_DEV_BOARDS - 1}", pytrace=False)
+    configure = marker.kwargs.get("configure", True)
+    if not isinstance(configure, bool):
+        pytest.fail(f"{usage}: configure = {configure!r} is not True or False", pytrace=False)
     spec = marker.args[0]
     try:
         if isinstance(spec, Mapping):
@@ -306,7 +322,7 @@ def _marked_network(item: pytest.Item, directory: Path) -> tuple[Network | None,
         else:
             pytest.fail(f"{usage}: a path or a dict, not a {type(spec).__name__}",
                         pytrace=False)
-        return load_network(path), board
+        return _Marked(load_network(path), board, configure)
     except NetworkError as exc:
         pytest.fail(f"{NETWORK_MARKER}: {exc}", pytrace=False)
 
@@ -319,9 +335,10 @@ CARD = pytest.StashKey[CifCard]()
 
 def pytest_configure(config: pytest.Config) -> None:
     config.addinivalue_line(
-        "markers", f"{NETWORK_MARKER}(path_or_dict, board=0): the simulated network (a "
-        "network description file, relative to the test file, or its contents as a dict) "
-        "and the board number of the cif_card fixture's card")
+        "markers", f"{NETWORK_MARKER}(path_or_dict, board=0, configure=True): the simulated "
+        "network of the cif_card fixture's card (a network description file, relative to "
+        "the test file, or its contents as a dict), its board number, and whether the card "
+        "configures itself from it on line (False: the host program under test does)")
 
 
 @pytest.fixture
@@ -330,8 +347,9 @@ def cif_card(request: pytest.FixtureRequest, tmp_path: Path,
     """A running emulated card of the test's own; stopped afterwards, also on failure."""
     home = tmp_path / "cifemu"
     home.mkdir()
-    network, board = _marked_network(request.node, home)
-    card = CifCard(board, home / "dpm", home / "flash", home / "firmware.log", network)
+    marked = _marked(request.node, home)
+    card = CifCard(marked.board, home / "dpm", home / "flash", home / "firmware.log",
+                   marked.network, marked.configure)
     monkeypatch.setenv("CIF_DPM_DIR", str(card.directory))
     try:
         card.start()

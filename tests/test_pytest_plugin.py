@@ -13,6 +13,8 @@ from __future__ import annotations
 import os
 import re
 import shutil
+import subprocess
+import sys
 import tomllib
 from pathlib import Path
 
@@ -122,6 +124,21 @@ def test_waiting_for_a_node_that_never_answers_names_it(cif_card: CifCard) -> No
     with pytest.raises(CardError, match=r"node\(s\) \[2\] not in data exchange"):
         cif_card.wait_until_operating(timeout=5)
     assert 1 in cif_card.diagnostics().operating()
+
+
+@pytest.mark.cif_network({"node": [{"id": 4}]}, configure=False)
+def test_a_card_can_be_left_for_the_program_to_configure(cif_card: CifCard) -> None:
+    """configure=False: the nodes are simulated, but the card waits, unconfigured, for a
+    host that configures it, as legacy programs do; here `cifemu configure` is that host."""
+    diag = cif_card.diagnostics()
+    assert diag.configured() == [] and diag.can_state_name == "OFFLINE"
+    assert cif_card.network is not None and cif_card.network.path is not None
+    done = subprocess.run([sys.executable, "-m", "cifemu", "configure",
+                           str(cif_card.network.path), "--board", "0", "--wait", "0"],
+                          capture_output=True, text=True, timeout=120, check=False)
+    assert done.returncode == 0, done.stderr
+    assert cif_card.wait_until_operating().operating() == [4]
+    assert "online_configure" not in cif_card.log.read_text()  # the card's own host never ran
 
 
 def test_a_card_without_a_network_says_how_to_give_one(cif_card: CifCard) -> None:
