@@ -5,8 +5,9 @@ cifemu installed gets, without a conftest:
 
 - the fixture ``cif_card``: a firmware process of its own, on an image directory in the
   test's ``tmp_path`` (tests never share a card, also under pytest-xdist), with the
-  simulated network of the test's ``cif_network`` marker, configured on line
-  (``--simulate --configure``). ``$CIF_DPM_DIR`` points at that directory for the test,
+  simulated network of the test's ``cif_network`` marker, which the card configures
+  itself from on line (``--simulate --configure``) unless the marker leaves that to the
+  program under test. ``$CIF_DPM_DIR`` points at that directory for the test,
   so ``host_api.driver.DevOpenDriver()``, libcif programs and ``cifemu legacy`` find it
   without being told. The fixture yields a ``CifCard``;
 - the marker ``cif_network(path_or_dict, board=0, configure=True)``;
