@@ -1,0 +1,377 @@
+"""The pytest plugin ``cifemu``: the emulated card as a fixture in a user's own test suite.
+
+Installed with the package (the ``pytest11`` entry point ``cifemu``), so a suite that has
+cifemu installed gets, without a conftest:
+
+- the fixture ``cif_card``: a firmware process of its own, on an image directory in the
+  test's ``tmp_path`` (tests never share a card, also under pytest-xdist), with the
+  simulated network of the test's ``cif_network`` marker, which the card configures
+  itself from on line (``--simulate --configure``) unless the marker leaves that to the
+  program under test. ``$CIF_DPM_DIR`` points at that directory for the test,
+  so ``host_api.driver.DevOpenDriver()``, libcif programs and ``cifemu legacy`` find it
+  without being told. The fixture yields a ``CifCard``;
+- the marker ``cif_network(path_or_dict, board=0, configure=True)``;
+- for a failed test, report sections with the card's side of it: the firmware's log and
+  a final ``cifemu status --json`` snapshot.
+
+Why a process and not a thread in the test's own process: the host program under test
+must meet the card as it would meet the real one, through the image and the doorbell
+from outside, and a card that hangs or dies must not take the test process with it.
+docs/pytest-plugin.md is the user's guide.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import math
+import os
+import re
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Generator, Iterator, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from dbm_tools.network import Network, NetworkError, load_network
+from dpm import flags as fl
+from dpm.image import MAX_DEV_BOARDS, image_path
+from dpm.layout import HOST_FLAGS, TASK2_STATE
+from dpm.task2 import TASK_AREA_SIZE, ComDiagnostics
+from host_api.liveness import firmware_liveness
+from host_api.status import health, read_image, snapshot
+
+NETWORK_MARKER = "cif_network"
+START_TIMEOUT_S = 60.0
+"""How long a card may take to show READY. Generous: a loaded machine starts Python
+slowly, and the wait ends as soon as READY shows."""
+OPERATING_TIMEOUT_S = 60.0
+STOP_TIMEOUT_S = 30.0
+"""SIGTERM stops a card cleanly in milliseconds; after this the process group is killed."""
+POLL_S = 0.01
+LOG_TAIL_LINES = 200
+"""The firmware log lines a failure report shows; the whole log stays in its file."""
+
+
+class CardError(RuntimeError):
+    """The card did not do what the test asked of it (start, reach data exchange);
+    the message says what it showed instead, with the end of the firmware's log."""
+
+
+def wait_ready(process: subprocess.Popen[bytes], directory: Path, board: int,
+               timeout: float = START_TIMEOUT_S) -> None:
+    """Return once the firmware ``process`` serves board ``board`` in ``directory``.
+
+    READY alone is not enough: a killed predecessor leaves READY set in its image. The
+    card is this process's once the firmware lock names its pid (``host_api.liveness``).
+    Raises CardError when the process exits first or ``timeout`` passes.
+    """
+    deadline = time.monotonic() + timeout
+    while True:
+        code = process.poll()
+        if code is not None:
+            raise CardError(f"the firmware (pid {process.pid}) exited with status {code} "
+                            "before it was READY")
+        image = read_image(board, str(directory))
+        if (image is not None and image[HOST_FLAGS] & fl.READY
+                and firmware_liveness(directory, board).pid == process.pid):
+            return
+        if time.monotonic() > deadline:
+            raise CardError(f"the firmware (pid {process.pid}) was not READY after {timeout} s")
+        time.sleep(POLL_S)
+
+
+@dataclass
+class CifCard:
+    """One emulated card a test runs its host program against.
+
+    ``board`` and ``directory`` (the image directory, also ``$CIF_DPM_DIR`` during the
+    test) are what a host program needs; ``network`` is the description the card
+    simulates (None: a card out of the box, no nodes, not configured), and configures
+    itself from on line at each start when ``configure`` is true; ``log`` is the
+    firmware's stdout and stderr.
+    """
+
+    board: int
+    directory: Path
+    flash: Path
+    log: Path
+    network: Network | None = field(default=None, repr=False)
+    configure: bool = True
+    _process: subprocess.Popen[bytes] | None = field(default=None, repr=False)
+
+    @property
+    def image(self) -> Path:
+        return image_path(self.directory, self.board)
+
+    @property
+    def pid(self) -> int:
+        """The firmware's pid (the last one, once stopped)."""
+        if self._process is None:
+            raise CardError(f"board {self.board} was never started")
+        return self._process.pid
+
+    @property
+    def running(self) -> bool:
+        return self._process is not None and self._process.poll() is None
+
+    def start(self, timeout: float = START_TIMEOUT_S) -> None:
+        """Start the firmware and return once it is READY (not yet configured: see
+        ``wait_until_operating``). Its own session, so that ``stop`` ends everything it
+        started; its log is appended to, so a restart keeps the earlier run's lines."""
+        if self.running:
+            raise CardError(f"board {self.board} runs already (pid {self.pid})")
+        self.directory.mkdir(parents=True, exist_ok=True)
+        command = [sys.executable, "-m", "firmware", "--board", str(self.board),
+                   "--dpm-dir", str(self.directory), "--flash", str(self.flash),
+                   "--log-level", "INFO"]
+        if self.network is not None:
+            assert self.network.path is not None
+            command += ["--simulate", str(self.network.path)]
+            if self.configure:
+                command.append("--configure")
+        with self.log.open("ab") as log:
+            self._process = subprocess.Popen(command, stdin=subprocess.DEVNULL, stdout=log,
+                                             stderr=log, start_new_session=True)
+        try:
+            wait_ready(self._process, self.directory, self.board, timeout)
+        except CardError as exc:
+            self.stop()
+            raise CardError(f"board {self.board}: {exc}\n{self.log_tail()}") from None
+
+    def stop(self, timeout: float = STOP_TIMEOUT_S) -> int | None:
+        """Stop the firmware (SIGTERM, SIGKILL after ``timeout``) and whatever else runs
+        in its process group; its exit status, None when it was never started."""
+        process = self._process
+        if process is None:
+            return None
+        if process.returncode is None:  # not reaped: its pid still names its group
+            self._signal_group(signal.SIGTERM)
+            if not self._exited(timeout):
+                self._signal_group(signal.SIGKILL)
+            self._signal_group(signal.SIGKILL)  # the rest of the group, before the reaping
+        return process.wait()
+
+    def _exited(self, timeout: float) -> bool:
+        """Whether the firmware exits within ``timeout``, left unreaped (WNOWAIT): a reaped
+        pid may be reused, and a signal to its group then reaches a stranger's processes."""
+        assert self._process is not None
+        deadline = time.monotonic() + timeout
+        while os.waitid(os.P_PID, self._process.pid,
+                        os.WEXITED | os.WNOHANG | os.WNOWAIT) is None:
+            if time.monotonic() > deadline:
+                return False
+            time.sleep(POLL_S)
+        return True
+
+    def restart(self, timeout: float = START_TIMEOUT_S) -> None:
+        """Stop the card and start it again: a power cycle. With ``configure`` the card
+        configures itself on line anew, as after the first start."""
+        self.stop()
+        self.start(timeout)
+
+    def _signal_group(self, signum: int) -> None:
+        assert self._process is not None
+        with contextlib.suppress(ProcessLookupError):  # the group has ended already
+            os.killpg(self._process.pid, signum)
+
+    def diagnostics(self) -> ComDiagnostics:
+        """Task2State as the image holds it now, read without opening the board: the
+        fixture never takes a host's place (a DevOpenDriver here would be the test
+        process's one driver)."""
+        image = self._image()
+        return ComDiagnostics.decode(image[TASK2_STATE:TASK2_STATE + TASK_AREA_SIZE])
+
+    def _image(self) -> bytes:
+        image = read_image(self.board, str(self.directory))
+        if image is None:
+            raise CardError(f"board {self.board}: no image at {self.image}")
+        return image
+
+    def wait_until_operating(self, timeout: float = OPERATING_TIMEOUT_S) -> ComDiagnostics:
+        """Wait until every active node of the network is in Nd_state (data exchange)
+        and the card shows COM, and return Task2State then. COM too: the card raises it
+        a moment after the nodes' bits, and until then a host's DevExchangeIO gets -21.
+        Raises CardError naming the missing nodes and the card's Err_Event when
+        ``timeout`` passes, or at once when the firmware exits."""
+        if self.network is None:
+            raise CardError(f"board {self.board} has no network: mark the test with "
+                            f"@pytest.mark.{NETWORK_MARKER}(...)")
+        nodes = [node.id for node in self.network.nodes if node.active]
+        deadline = time.monotonic() + timeout
+        while True:
+            if not self.running:
+                raise CardError(f"board {self.board}: the firmware (pid {self.pid}) is not "
+                                f"running\n{self.log_tail()}")
+            image = self._image()
+            diag = ComDiagnostics.decode(image[TASK2_STATE:TASK2_STATE + TASK_AREA_SIZE])
+            missing = sorted(set(nodes) - set(diag.operating()))
+            if not missing and image[HOST_FLAGS] & fl.COM:
+                return diag
+            if time.monotonic() > deadline:
+                error = (f"Err_Event {diag.bErr_event} at {diag.bErr_rem_adr}: {diag.err_text}"
+                         if diag.bErr_event else "no Err_Event")
+                what = (f"node(s) {missing} not in data exchange" if missing
+                        else "every node in data exchange, but COM clear")
+                raise CardError(f"board {self.board}: after {timeout} s {what} (CAN_state "
+                                f"{diag.can_state_name}, Nd_state {diag.operating()}, {error})")
+            time.sleep(POLL_S)
+
+    def status(self) -> dict[str, Any]:
+        """What ``cifemu status --json`` prints for this card."""
+        image = read_image(self.board, str(self.directory))
+        if image is None:
+            return {"board": self.board, "error": f"no image at {self.image}"}
+        return {"board": self.board, **snapshot(image),
+                "health": health(self.directory, self.board)}
+
+    def log_tail(self, lines: int = LOG_TAIL_LINES) -> str:
+        """The end of the firmware's log, saying where the rest is."""
+        try:
+            text = self.log.read_text(errors="replace").splitlines()
+        except OSError as exc:
+            return f"(no firmware log: {exc.strerror})"
+        if len(text) <= lines:
+            return "\n".join(text)
+        return "\n".join([f"({len(text) - lines} earlier line(s) in {self.log})",
+                          *text[-lines:]])
+
+
+# --- the network of a test ---------------------------------------------------------------
+
+_BARE_KEY = re.compile(r"[A-Za-z0-9_-]+")
+
+
+def _toml_string(text: str) -> str:
+    escaped = "".join(
+        "\\" + ch if ch in '"\\' else f"\\u{ord(ch):04x}" if ord(ch) < 0x20 or ch == "\x7f"
+        else ch for ch in text)
+    return f'"{escaped}"'
+
+
+def _toml_value(value: object, where: str) -> str:
+    """A TOML value, tables inline: a network description has only strings, numbers,
+    booleans, arrays and tables (tomli-w is not a dependency for this much)."""
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, int):
+        return str(value)
+    if isinstance(value, float):
+        if math.isnan(value):
+            return "nan"
+        return repr(value) if math.isfinite(value) else ("inf" if value > 0 else "-inf")
+    if isinstance(value, str):
+        return _toml_string(value)
+    if isinstance(value, list | tuple):
+        return "[" + ", ".join(_toml_value(v, f"{where}[{n}]") for n, v in enumerate(value)) + "]"
+    if isinstance(value, Mapping):
+        return "{" + ", ".join(f"{_toml_key(k, where)} = {_toml_value(v, f'{where}.{k}')}"
+                               for k, v in value.items()) + "}"
+    raise NetworkError(f"{where}: a {type(value).__name__} has no TOML form")
+
+
+def _toml_key(key: object, where: str) -> str:
+    if not isinstance(key, str):
+        raise NetworkError(f"{where}: key {key!r} is not a string")
+    return key if _BARE_KEY.fullmatch(key) else _toml_string(key)
+
+
+def network_toml(description: Mapping[str, Any]) -> str:
+    """A network description given as a dict ({"bus": {...}, "node": [{...}, ...]}, the
+    file's own structure) as the TOML text of that file."""
+    return "".join(f"{_toml_key(key, 'file')} = {_toml_value(value, key)}\n"
+                   for key, value in description.items())
+
+
+@dataclass(frozen=True)
+class _Marked:
+    """What a test's ``cif_network`` marker asks for (no marker: no network, board 0)."""
+
+    network: Network | None = None
+    board: int = 0
+    configure: bool = True
+
+
+def _marked(item: pytest.Item, directory: Path) -> _Marked:
+    """The test's ``cif_network`` marker read; a mistake in it fails the test's set-up
+    with the key it gets wrong, no traceback."""
+    marker = item.get_closest_marker(NETWORK_MARKER)
+    if marker is None:
+        return _Marked()
+    usage = f"@pytest.mark.{NETWORK_MARKER}(path_or_dict, board=0, configure=True)"
+    if len(marker.args) != 1 or set(marker.kwargs) - {"board", "configure"}:
+        pytest.fail(f"{usage}: got args {marker.args}, kwargs {marker.kwargs}", pytrace=False)
+    board = marker.kwargs.get("board", 0)
+    if not isinstance(board, int) or isinstance(board, bool) or not (
+            0 <= board < MAX_DEV_BOARDS):
+        pytest.fail(f"{usage}: board = {board!r} is not 0..{MAX_DEV_BOARDS - 1}", pytrace=False)
+    configure = marker.kwargs.get("configure", True)
+    if not isinstance(configure, bool):
+        pytest.fail(f"{usage}: configure = {configure!r} is not True or False", pytrace=False)
+    spec = marker.args[0]
+    try:
+        if isinstance(spec, Mapping):
+            path = directory / "network.toml"
+            path.write_text(network_toml(spec))
+        elif isinstance(spec, str | os.PathLike):
+            path = Path(item.path).parent / spec  # relative to the test file; absolute kept
+        else:
+            pytest.fail(f"{usage}: a path or a dict, not a {type(spec).__name__}",
+                        pytrace=False)
+        return _Marked(load_network(path), board, configure)
+    except NetworkError as exc:
+        pytest.fail(f"{NETWORK_MARKER}: {exc}", pytrace=False)
+
+
+# --- pytest's side -----------------------------------------------------------------------
+
+CARD = pytest.StashKey[CifCard]()
+"""The test's card, for the failure report."""
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    config.addinivalue_line(
+        "markers", f"{NETWORK_MARKER}(path_or_dict, board=0, configure=True): the simulated "
+        "network of the cif_card fixture's card (a network description file, relative to "
+        "the test file, or its contents as a dict), its board number, and whether the card "
+        "configures itself from it on line (False: the host program under test does)")
+
+
+@pytest.fixture
+def cif_card(request: pytest.FixtureRequest, tmp_path: Path,
+             monkeypatch: pytest.MonkeyPatch) -> Iterator[CifCard]:
+    """A running emulated card of the test's own; stopped afterwards, also on failure."""
+    home = tmp_path / "cifemu"
+    home.mkdir()
+    marked = _marked(request.node, home)
+    card = CifCard(marked.board, home / "dpm", home / "flash", home / "firmware.log",
+                   marked.network, marked.configure)
+    monkeypatch.setenv("CIF_DPM_DIR", str(card.directory))
+    try:
+        card.start()
+    except CardError as exc:  # its message has the log: no report section to repeat it
+        pytest.fail(str(exc), pytrace=False)
+    request.node.stash[CARD] = card
+    try:
+        yield card
+    finally:
+        card.stop()
+
+
+@pytest.hookimpl(wrapper=True)
+def pytest_runtest_makereport(item: pytest.Item, call: pytest.CallInfo[None]
+                              ) -> Generator[None, pytest.TestReport, pytest.TestReport]:
+    """A failed test that had a card gets the card's side: its log and its final state."""
+    del call
+    report: pytest.TestReport = yield
+    card = item.stash.get(CARD, None)
+    if card is not None and report.failed:
+        name = f"cifemu board {card.board}"
+        report.sections.append((f"{name}: firmware log", card.log_tail()))
+        report.sections.append((f"{name}: status", json.dumps(card.status(), indent=2)))
+    return report
