@@ -72,14 +72,15 @@ from dpm.commands import (
 from dpm.errors import CanF
 from dpm.message import Ext, Message, MessageError, TelegramHeader, Tfc
 from dpm.task2 import CanState, GlobalBits
-from firmware.can.bus import INTERFACE_ERRORS
-from firmware.can.master import BusConfig, Master
+from firmware import card_info
+from firmware.can.bus import INTERFACE_ERRORS, BusConfig
+from firmware.can.master import Master
 from firmware.can.node import NodeHandler, State
 from firmware.can.sdo import HostSdoTransfer, SdoResult
 from firmware.task import Task
 
 if TYPE_CHECKING:
-    from firmware.device import Device
+    from firmware.whole_card import WholeCard
 
 log = logging.getLogger(__name__)
 
@@ -99,9 +100,11 @@ class CanTask(Task):
     number = message.Task.CAN
     name = "CAN"
 
-    def __init__(self, device: Device, config: BusConfig | None = None) -> None:
+    def __init__(self, device: WholeCard, config: BusConfig | None = None) -> None:
+        """``device`` is the whole card only for the facts the controller publishes beside
+        the image (``card_info``); the master and the handlers see a ``Card``."""
         super().__init__(device)
-        self.master = Master(device, config or BusConfig())
+        self.master = Master(device, config or BusConfig(), lambda: card_info.publish(device))
         self.node_data: dict[int, bytes] = {}
         self.bus_data: bytes | None = None
         self.from_flash = False

@@ -11,9 +11,9 @@ import logging
 import threading
 import time
 from collections import deque
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
-from pathlib import Path
 from typing import TYPE_CHECKING
 
 import can
@@ -51,8 +51,7 @@ from dpm.errors import ERR_NODE_DEVICE, DeviceEvent
 from dpm.layout import CONN_STATUS, IO_AREA_SIZE
 from dpm.message import Message, Task
 from dpm.task2 import CanState, GlobalBits
-from firmware import card_info
-from firmware.can.bus import INTERFACE_ERRORS, PERIODIC_OUTSIDE_INTERFACES, CanBus
+from firmware.can.bus import INTERFACE_ERRORS, PERIODIC_OUTSIDE_INTERFACES, BusConfig, CanBus
 from firmware.can.node import NODE_STOPPED, NodeHandler, State
 from firmware.can.sdo import HostSdoTransfer
 from firmware.frames import (
@@ -65,7 +64,7 @@ from firmware.frames import (
 )
 
 if TYPE_CHECKING:
-    from firmware.device import Device
+    from firmware.card import Card
 
 log = logging.getLogger(__name__)
 
@@ -91,26 +90,13 @@ class SdoChannel:
     lock: threading.Lock
 
 
-@dataclass
-class BusConfig:
-    """How the card reaches its CAN bus (command line of ``cifemu firmware``)."""
-
-    interface: str = "virtual"
-    channel: str = "cifemu"
-    bitrate: int | None = None
-    trace: Path | None = None
-    tap: bytes | None = None
-    """The abstract socket name of the frame tap (``firmware.can.tap``) [ours]."""
-    exit_on_error: bool = False
-    """A controller that cannot be opened ends the firmware, instead of the seed's card
-    staying up with FAT set (``cifemu firmware --exit-on-bus-error``)."""
-
-
 class Master:
-    def __init__(self, device: Device, config: BusConfig) -> None:
+    def __init__(self, device: Card, config: BusConfig, publish: Callable[[], None]) -> None:
         self.device = device
         self.image = device.plc.image
         self.config = config
+        self._publish = publish
+        """Writes the card's facts beside the image (``firmware.card_info``) anew."""
         self.bus: CanBus | None = None
         self.nodes: dict[int, NodeHandler] = {}
         self._sync_used = False
@@ -284,7 +270,7 @@ class Master:
             except INTERFACE_ERRORS as exc:
                 log.error("the controller cannot run at %d bit/s: %s", bitrate, exc)
                 self.device.report_error(ERR_NODE_DEVICE, DeviceEvent.BAUD_RATE, GlobalBits.CTRL)
-        card_info.publish(self.device)
+        self._publish()
 
     def _boot(self, handler: NodeHandler) -> None:
         if handler.state is State.INACTIVE:
