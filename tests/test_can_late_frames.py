@@ -21,7 +21,7 @@ import pytest
 
 from dbm_tools.network import parse_network
 from dpm.task2 import ComDiagnostics
-from firmware.can.node import START_GRACE
+from firmware.can.supervision import START_GRACE
 from firmware.shm.bus import ShmBus
 from host_api.board import Board
 from host_api.online import configure_online
