@@ -72,14 +72,15 @@ from dpm.commands import (
 from dpm.errors import CanF
 from dpm.message import Ext, Message, MessageError, TelegramHeader, Tfc
 from dpm.task2 import CanState, GlobalBits
-from firmware.can.bus import INTERFACE_ERRORS
-from firmware.can.master import BusConfig, Master
+from firmware import card_info
+from firmware.can.bus import INTERFACE_ERRORS, BusConfig
+from firmware.can.master import Master
 from firmware.can.node import NodeHandler, State
 from firmware.can.sdo import HostSdoTransfer, SdoResult
 from firmware.task import Task
 
 if TYPE_CHECKING:
-    from firmware.device import Device
+    from firmware.whole_card import WholeCard
 
 log = logging.getLogger(__name__)
 
@@ -99,9 +100,11 @@ class CanTask(Task):
     number = message.Task.CAN
     name = "CAN"
 
-    def __init__(self, device: Device, config: BusConfig | None = None) -> None:
+    def __init__(self, device: WholeCard, config: BusConfig | None = None) -> None:
+        """``device`` is the whole card only for the facts the controller publishes beside
+        the image (``card_info``); the master and the handlers see a ``Card``."""
         super().__init__(device)
-        self.master = Master(device, config or BusConfig())
+        self.master = Master(device, config or BusConfig(), lambda: card_info.publish(device))
         self.node_data: dict[int, bytes] = {}
         self.bus_data: bytes | None = None
         self.from_flash = False
@@ -179,13 +182,13 @@ class CanTask(Task):
 
     @property
     def configured(self) -> bool:
-        return self.master.running
+        return self.master.nmt.running
 
     def can_state(self) -> CanState:
         return self.master.can_state()
 
     def next_indication(self) -> Message | None:
-        return self.master.next_indication()
+        return self.master.layer2.next_indication()
 
     # --- the configuration entry points (also used at start-up from flash) ---------------------
 
@@ -356,7 +359,7 @@ class CanTask(Task):
             return msg.answer(f=CanF.FAULTY_PARAMETER, data=msg.data[:8])
         if head.function not in (Tfc.READ, Tfc.WRITE):
             return msg.answer(f=CanF.SDO_FUNCTION, data=msg.data[:8])
-        if not self.master.running or self.master.bus is None:
+        if not self.master.nmt.running or self.master.bus is None:
             return msg.answer(f=CanF.NOT_CONFIGURED, data=msg.data[:8])
         if head.function == Tfc.WRITE and len(head.payload) != head.data_cnt:
             return msg.answer(f=CanF.SDO_BUFFER, data=msg.data[:8])
@@ -374,7 +377,7 @@ class CanTask(Task):
         handler = self.master.nodes.get(address)
         if handler is not None and handler.state is State.BOOTING:
             return msg.answer(f=CanF.NODE_BUSY, data=msg.data[:8])
-        client = self.master.sdo_client(address)
+        client = self.master.sdo.channel(address)
         if not client.lock.acquire(blocking=False):
             return msg.answer(f=CanF.SDO_FUNCTION, data=msg.data[:8])
         if handler is not None:
@@ -386,7 +389,7 @@ class CanTask(Task):
             client.lock.release()
             self._answer_sdo(msg, head, result, long_upload)
 
-        self.master.start_host_sdo(HostSdoTransfer(
+        self.master.sdo.start_host(HostSdoTransfer(
             self.master.bus, address, head.data_adr, head.data_idx,
             None if head.function == Tfc.READ else head.payload,
             client.sdo.RESPONSE_TIMEOUT, done))
@@ -460,7 +463,7 @@ class CanTask(Task):
             return msg.answer(f=CanF.FAULTY_PARAMETER)
         if not 1 <= request.node <= 127:
             return msg.answer(f=CanF.FAULTY_PARAMETER)
-        if not self.master.running:
+        if not self.master.nmt.running:
             return msg.answer(f=CanF.NOT_CONFIGURED)
         handler = self.master.nodes.get(request.node)
         if handler is None:
@@ -476,7 +479,7 @@ class CanTask(Task):
             return msg.answer(f=CanF.FAULTY_PARAMETER)
         if request.node and self.master.bus is None:
             return msg.answer(f=CanF.NOT_CONFIGURED)
-        self.master.set_sdo_timeout(request.node, request.timeout_ms / 1000.0)
+        self.master.sdo.set_timeout(request.node, request.timeout_ms / 1000.0)
         return msg.answer()
 
     def com_set_guarding(self, msg: Message) -> Message | None:
@@ -508,7 +511,7 @@ class CanTask(Task):
     def _configure_error_control(self, msg: Message, handler: NodeHandler,
                                  writes: list[tuple[int, bytes]], heartbeat: bool,
                                  time_ms: int, factor: int) -> None:
-        channel = self.master.sdo_client(handler.address)
+        channel = self.master.sdo.channel(handler.address)
         answer = msg.answer()
         with channel.lock:
             try:
@@ -550,7 +553,7 @@ class CanTask(Task):
     def com_bootup_forwarding(self, msg: Message) -> Message:
         if msg.ln != 1 or msg.data[0] not in (0, 1):
             return msg.answer(f=CanF.FAULTY_PARAMETER)
-        self.master.bootup_forwarding = bool(msg.data[0])
+        self.master.layer2.bootup_forwarding = bool(msg.data[0])
         return msg.answer()
 
     # --- NMT, transparent CAN, layer 2 ---------------------------------------------------------
@@ -562,9 +565,9 @@ class CanTask(Task):
             return msg.answer(f=CanF.FAULTY_PARAMETER)
         if request.command not in NMT_COMMANDS or request.node > 127:
             return msg.answer(f=CanF.FAULTY_PARAMETER)
-        if not self.master.running:
+        if not self.master.nmt.running:
             return msg.answer(f=CanF.NOT_CONFIGURED)
-        self.master.host_nmt(request.command, request.node)
+        self.master.nmt.host_nmt(request.command, request.node)
         return msg.answer()
 
     def com_send_canmsg_transparent(self, msg: Message) -> Message:
@@ -585,7 +588,7 @@ class CanTask(Task):
             return msg.answer(f=CanF.FAULTY_PARAMETER)
         if any(self.master.cob_id_in_use(i) for i in idents):
             return msg.answer(f=CanF.FAULTY_PARAMETER)
-        self.master.layer2_filters.update(idents)
+        self.master.layer2.filters.update(idents)
         return msg.answer()
 
     def com_tx_can_layer2(self, msg: Message) -> Message | None:

@@ -21,8 +21,8 @@ from dbm_tools.tables import NODES, PROJEKT, ProjektRecord
 from dpm.image import IMAGE_MODE
 
 if TYPE_CHECKING:
-    from firmware.device import Device
     from firmware.flash import StoredDatabase
+    from firmware.whole_card import WholeCard
 
 log = logging.getLogger("firmware.rcs")
 
@@ -63,7 +63,7 @@ def log_database(info: dict[str, Any] | None) -> None:
                     info["date"] or "?", info["nodes"], "; ".join(info["faults"]))
 
 
-def publish(device: Device) -> None:
+def publish(device: WholeCard) -> None:
     """Log the start's database and write the card's facts beside the image."""
     database = describe_database(device.database, device.flash.stored_at())
     log_database(database)

@@ -13,8 +13,7 @@ import can
 
 from dbm_tools.network import NetworkError, load_network
 from dpm.image import DEFAULT_DPM_DIR, MAX_DEV_BOARDS, BoardBusyError, dpm_dir, image_path
-from firmware.can.bus import INTERFACE_ERRORS
-from firmware.can.master import BusConfig
+from firmware.can.bus import INTERFACE_ERRORS, BusConfig
 from firmware.can.tap import tap_address
 from firmware.device import Device
 from firmware.flash import FLASH_ENV

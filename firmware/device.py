@@ -34,7 +34,7 @@ from dpm.layout import (
 from dpm.message import MSG_MAX_SIZE, Ext, Message
 from dpm.task2 import CanState
 from firmware import info
-from firmware.can.master import BusConfig
+from firmware.can.bus import BusConfig
 from firmware.can_task import CanTask
 from firmware.flash import FlashStore, StoredDatabase, default_flash_dir
 from firmware.plc import PlcTask

@@ -90,7 +90,7 @@ from dpm.message import Ext, Message
 from dpm.task2 import ComPlcParameter, GlobalBits
 
 if TYPE_CHECKING:
-    from firmware.device import Device
+    from firmware.card import Card
 
 log = logging.getLogger(__name__)
 
@@ -418,7 +418,7 @@ class StoredDatabase:
             return None
         return {record[0]: record for record in table.records if record}
 
-    def configure(self, device: Device) -> None:
+    def configure(self, device: Card) -> None:
         """Hand the data sets to the CAN task, or report why the database is not used."""
         for node, event, what in self.faults:
             log.warning("stored database not used: %s", what)
@@ -440,7 +440,7 @@ class StoredDatabase:
             can.from_flash = True  # flash ranks above the on-line download (seed 5.2.2)
 
     @staticmethod
-    def _refused(device: Device, node: int, table: str, f: int) -> bool:
+    def _refused(device: Card, node: int, table: str, f: int) -> bool:
         if f == 0:
             return False
         log.warning("stored database not used: the CAN task refused %s (node %d) with f %d",

@@ -21,7 +21,7 @@ from firmware.flash import LoadFunction, StoredDatabase
 from firmware.task import Task
 
 if TYPE_CHECKING:
-    from firmware.device import Device
+    from firmware.whole_card import WholeCard
 
 log = logging.getLogger(__name__)
 
@@ -43,8 +43,10 @@ class Start(Enum):
 class RcsTask(Task):
     number = 0
     name = "RCS"
+    device: WholeCard
+    """A start reaches every part of the card (``WholeCard``), not a task's ``Card`` only."""
 
-    def __init__(self, device: Device, reset_delay: float = 0.0) -> None:
+    def __init__(self, device: WholeCard, reset_delay: float = 0.0) -> None:
         super().__init__(device)
         self.reset_delay = reset_delay
         self.watchdog_time = 0

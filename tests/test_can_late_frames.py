@@ -21,8 +21,8 @@ import pytest
 
 from dbm_tools.network import parse_network
 from dpm.task2 import ComDiagnostics
-from firmware.can.node import START_GRACE
-from firmware.can.shm import ShmBus
+from firmware.can.supervision import START_GRACE
+from firmware.shm.bus import ShmBus
 from host_api.board import Board
 from host_api.online import configure_online
 from tests.conftest import start_card, wait_until

@@ -538,7 +538,7 @@ transmission = 1
 
 
 def sync_timers(card: Card) -> list[int]:
-    """The card's timer processes on ``shm`` (``firmware.can.shm_cyclic`` children): the
+    """The card's timer processes on ``shm`` (``firmware.shm.cyclic`` children): the
     one sending SYNC, if any, and the spare that the controller keeps started ahead."""
     children = []  # each thread's children are listed under that thread
     for task in Path(f"/proc/{card.proc.pid}/task").iterdir():
@@ -547,7 +547,7 @@ def sync_timers(card: Card) -> list[int]:
     timers = []
     for child in children:
         with contextlib.suppress(FileNotFoundError):
-            if b"firmware.can.shm_cyclic" in Path(f"/proc/{child}/cmdline").read_bytes():
+            if b"firmware.shm.cyclic" in Path(f"/proc/{child}/cmdline").read_bytes():
                 timers.append(int(child))
     return timers
 

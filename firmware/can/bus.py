@@ -16,6 +16,7 @@ import threading
 import time
 from collections import deque
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -54,6 +55,21 @@ class _MasterNetwork(canopen.Network):
 
     def send_message(self, can_id: int, data: bytes, remote: bool = False) -> None:
         self._owner.send(can_id, bytes(data), remote=remote)
+
+
+@dataclass
+class BusConfig:
+    """How the card reaches its CAN bus (command line of ``cifemu firmware``)."""
+
+    interface: str = "virtual"
+    channel: str = "cifemu"
+    bitrate: int | None = None
+    trace: Path | None = None
+    tap: bytes | None = None
+    """The abstract socket name of the frame tap (``firmware.can.tap``) [ours]."""
+    exit_on_error: bool = False
+    """A controller that cannot be opened ends the firmware, instead of the seed's card
+    staying up with FAT set (``cifemu firmware --exit-on-bus-error``)."""
 
 
 class CanBus(can.Listener):

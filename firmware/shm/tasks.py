@@ -1,6 +1,6 @@
 """The parent's side of cyclic sending on ``shm``: the python-can task and the spare [ours].
 
-The frames are sent by a timer process of their own, ``python -m firmware.can.shm_cyclic``,
+The frames are sent by a timer process of their own, ``python -m firmware.shm.cyclic``,
 whose docstring says why. This module starts and feeds it: ``SpareTimer`` keeps one
 started ahead, ``ShmCyclicSendTask`` hands it a job (a line of JSON with the station's
 path, the period and the duration, then a line of frames, ``encode_frames``) and new
@@ -74,7 +74,7 @@ class SpareTimer:
 
 
 def _spawn() -> subprocess.Popen[str]:
-    return subprocess.Popen([sys.executable, "-m", "firmware.can.shm_cyclic"],
+    return subprocess.Popen([sys.executable, "-m", "firmware.shm.cyclic"],
                             stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
 
 

@@ -70,7 +70,7 @@ import numpy.typing as npt
 from firmware.frames import CAN_ERR_CRTL, CAN_ERR_CRTL_RX_OVERFLOW
 
 if TYPE_CHECKING:
-    from firmware.can.shm_tasks import SpareTimer
+    from firmware.shm.tasks import SpareTimer
 
 MAGIC = b"CIFCANS2"
 MAX_STATIONS = 64
@@ -117,7 +117,7 @@ class ShmBus(can.BusABC):
                  **kwargs: Any) -> None:
         """``timer_process``: ``send_periodic`` hands its frames to a timer process.
 
-        See ``shm_cyclic``; the bus keeps one started ahead from here on. Off by
+        See ``firmware.shm.cyclic``; the bus keeps one started ahead from here on. Off by
         default, because libraries call ``send_periodic`` freely (canopen for
         every heartbeat producer) and a process each is too dear; the card's
         controller turns it on for its SYNC producer.
@@ -155,7 +155,7 @@ class ShmBus(can.BusABC):
         """Per station: the records this station has taken."""
         self._timers: SpareTimer | None = None
         if timer_process:  # only once the station is open: a failed open leaves no spare
-            from firmware.can.shm_tasks import SpareTimer  # only a bus that asks pays for it
+            from firmware.shm.tasks import SpareTimer  # only a bus that asks pays for it
 
             self._timers = SpareTimer()
         super().__init__(channel=channel, **kwargs)
@@ -257,7 +257,7 @@ class ShmBus(can.BusABC):
         duration: float | None = None, autostart: bool = True,
         modifier_callback: Callable[[can.Message], None] | None = None,
     ) -> can.broadcastmanager.CyclicSendTaskABC:
-        """Cyclic frames from a timer process (see ``shm_cyclic``), as SocketCAN's BCM would.
+        """Cyclic frames from a timer process (``firmware.shm.cyclic``), as SocketCAN's BCM would.
 
         Without ``timer_process``, or with a ``modifier_callback`` (it must run
         in this process), python-can's thread sends them.
@@ -265,7 +265,7 @@ class ShmBus(can.BusABC):
         if self._timers is None or modifier_callback is not None:
             return super()._send_periodic_internal(msgs, period, duration, autostart,
                                                    modifier_callback)
-        from firmware.can.shm_tasks import ShmCyclicSendTask
+        from firmware.shm.tasks import ShmCyclicSendTask
 
         return ShmCyclicSendTask(self._timers, self._path, msgs, period, duration, autostart)
 

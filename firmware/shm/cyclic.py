@@ -16,7 +16,7 @@ It sleeps rather than spinning to the deadline: spinning measured worse,
 because the hypervisor takes the vCPU of a spinning guest.
 
 A bus opened with ``timer_process`` keeps one such process started ahead
-(``firmware.can.shm_tasks.SpareTimer``, which also holds the python-can task that
+(``firmware.shm.tasks.SpareTimer``, which also holds the python-can task that
 feeds it), so a task starts sending at once rather than an interpreter start later.
 The child ends when the task stops, after ``duration``, or when the parent dies: it
 reads its standard input, and the end of that pipe is the parent going away. Like
@@ -34,8 +34,8 @@ import time
 
 import can
 
-from firmware.can.shm import ShmBus
-from firmware.can.shm_tasks import decode_frames
+from firmware.shm.bus import ShmBus
+from firmware.shm.tasks import decode_frames
 
 REALTIME_PRIORITY = 1
 """SCHED_FIFO's lowest priority: above every normal process, below the kernel's IRQ threads."""
