@@ -24,6 +24,7 @@ process that pair raw calls can still read each other's answers;
 
 from __future__ import annotations
 
+import math
 import mmap
 import struct
 import time
@@ -309,7 +310,8 @@ def _left(deadline: float) -> float:
 
 
 def _left_ms(deadline: float) -> int:
-    return max(0, int(-(-(deadline - time.monotonic()) * 1000 // 1)))
+    """Whole milliseconds left, rounded up: a wait never ends before its time."""
+    return max(0, math.ceil((deadline - time.monotonic()) * 1000))
 
 
 def DevGetMessage(number: int, size: int, timeout: int) -> tuple[int, Message | None]:

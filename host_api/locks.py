@@ -241,6 +241,11 @@ class Transaction:
         request = Request(os.getpid(), self._owner, msg.nr, msg.b, msg.rx, msg.tx,
                           int(msg.e & Ext.SEQ_MASK == Ext.FIRST), _now_ms())
         with self._state:
+            if msg.e & Ext.SEQ_MASK in (Ext.CONT, Ext.LAST):
+                # It continues a sequence (the load function's transfers): the first request
+                # of that command, answered with a part marked FIRST, was no long upload.
+                self._own = [r for r in self._own if not (
+                    r.multi == 2 and (r.b, r.rx, r.tx) == (msg.b, msg.rx, msg.tx))]
             if len(self._own) + len(self._stale) >= LEDGER_MAX:
                 (self._stale or self._own).pop(0)
             self._own.append(request)

@@ -15,6 +15,7 @@ import signal
 import subprocess
 import sys
 import threading
+import time
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -22,9 +23,10 @@ import pytest
 
 from cifemu import libcif
 from dpm.errors import Drv
-from dpm.message import Message
+from dpm.message import Ext, Message
 from host_api import driver as d
 from host_api.board import Board
+from host_api.locks import Answer, Transaction
 from tests.conftest import Card
 from tests.libcif_host import CDriver
 from tests.test_libcif_c import C_TESTS, CC, STRICT, compile_program, run
@@ -211,6 +213,33 @@ def test_a_killed_hosts_answer_never_reaches_a_python_host(
         assert int.from_bytes(answer.data[2:4], "little") == 8  # the dead host's said 7
 
 
+PYTHON_HOST_KILLED_AFTER_PUT = """
+import signal, sys
+from host_api import driver as d
+from tests.test_libcif_hosts import tagged
+
+assert d.DevOpenDriver(sys.argv[1]) == 0 and d.DevInitBoard(0) == 0
+assert d.DevPutMessage(0, tagged(7), 5000) == 0
+print("sent", flush=True)
+signal.pause()  # until killed
+"""
+
+
+def test_a_killed_python_hosts_answer_never_reaches_the_next_c_host(
+        built: None, card: Card, tmp_path: Path) -> None:
+    program = build(tmp_path, "plain")
+    host = subprocess.Popen([sys.executable, "-c", PYTHON_HOST_KILLED_AFTER_PUT,
+                             str(card.directory)], stdout=subprocess.PIPE, cwd=ROOT)
+    assert host.stdout is not None
+    try:
+        assert host.stdout.readline() == b"sent\n"
+    finally:
+        host.send_signal(signal.SIGKILL)
+        host.wait(timeout=10)
+    assert run(program, card.directory, "pairs", "1", "20", "100") == \
+        "pairs: 20 answers, each this host's own, read once\n"
+
+
 def test_a_timed_out_gets_late_answer_reaches_no_other_host(
         built: None, card: Card, tmp_path: Path, python_host: None) -> None:
     """A C host's DevGetMessage times out on a frozen card (-18) and the host lets the
@@ -307,3 +336,91 @@ def test_a_planted_link_in_a_lock_files_place_is_not_followed(
         finally:
             driver.DevCloseDriver()
     assert victim.read_text() == "not the card's\n"
+
+
+# --- the ledger's rules, without a card -----------------------------------------------------
+
+
+def answer(request: Message, e: int = 0, f: int = 0) -> Message:
+    return Message(rx=request.tx, tx=request.rx, b=0, data=b"", nr=request.nr, a=request.b,
+                   f=f, e=e)
+
+
+def test_another_owners_requests_are_stale_and_this_owners_given_up_ones_still_its_own(
+        tmp_path: Path) -> None:
+    path = tmp_path / "board0.transaction.lock"
+    mine, other = Transaction(path), Transaction(path)
+    try:
+        assert mine.enter(0)
+        mine.sent(tagged(1))
+        mine.sent(tagged(2))
+        mine.give_up()  # a get timed out: the lock goes with the last call
+        mine.leave()
+        assert mine.enter(0)  # this process again: its late answers are its own
+        assert mine.answered(answer(tagged(1))) is Answer.OWN
+        mine.leave()
+        assert other.enter(0)  # another host: the rest is stale
+        assert other.is_stale(answer(tagged(2)))
+        assert other.answered(answer(tagged(2))) is Answer.STALE
+        assert other.answered(answer(tagged(2))) is Answer.OTHER  # discarded once only
+        other.leave()
+        assert path.read_text() == ""
+    finally:
+        mine.close()
+        other.close()
+
+
+def test_a_long_uploads_parts_belong_to_it_until_the_last(tmp_path: Path) -> None:
+    path = tmp_path / "board0.transaction.lock"
+    host, nxt = Transaction(path), Transaction(path)
+    try:
+        upload = Message(rx=3, tx=16, b=66, nr=9, e=Ext.FIRST)
+        assert host.enter(0)
+        host.sent(upload)
+        host.leave()
+        assert host.answered(answer(upload, e=Ext.FIRST)) is Answer.OWN
+        assert host.enter(0)
+        host.give_up()
+        host.leave()  # the host gives up; its remaining parts are stale for the next one
+        assert nxt.enter(0)
+        assert not nxt.is_stale(answer(upload, e=Ext.FIRST))  # a new upload's first part
+        assert nxt.answered(answer(upload, e=Ext.CONT)) is Answer.STALE
+        assert nxt.answered(answer(upload, e=Ext.LAST)) is Answer.STALE
+        assert nxt.answered(answer(upload, e=Ext.LAST)) is Answer.OTHER
+        nxt.leave()
+    finally:
+        host.close()
+        nxt.close()
+
+
+def test_a_load_function_sequence_is_no_long_upload(tmp_path: Path) -> None:
+    """The load function's upload answers its first request with a piece marked FIRST and
+    continues by the host's next request (e CONT): the first request awaits no more."""
+    path = tmp_path / "board0.transaction.lock"
+    host = Transaction(path)
+    try:
+        first = Message(rx=0, tx=16, b=6, nr=1, e=Ext.FIRST)
+        assert host.enter(0)
+        host.sent(first)
+        assert host.answered(answer(first, e=Ext.FIRST)) is Answer.OWN
+        host.sent(Message(rx=0, tx=16, b=6, nr=2, e=Ext.CONT))
+        host.leave()
+        assert path.read_text().count("\n") == 1  # the second request only
+    finally:
+        host.close()
+
+
+def test_malformed_and_expired_ledger_lines_are_dropped(tmp_path: Path) -> None:
+    path = tmp_path / "board0.transaction.lock"
+    now = time.monotonic_ns() // 1_000_000
+    path.write_text(f"1 2 3 17 2 16 0 {now}\n"  # kept
+                    f"1 2 3 17 2 16 0 {now - 31_000}\n"  # older than 30 s
+                    f"1 2 3 17 2 16 0 {now + 60_000}\n"  # another boot's clock
+                    "1 2 300 17 2 16 0 5\nnonsense\n\n")
+    host = Transaction(path)
+    try:
+        assert host.enter(0)
+        assert path.read_text() == f"1 2 3 17 2 16 0 {now}\n"
+        host.leave()
+    finally:
+        host.close()

@@ -244,6 +244,22 @@ void cifemu_txn_leave(cifemu_txn *txn) {
   pthread_mutex_unlock(&txn->lock.mutex);
 }
 
+/* A request that continues a sequence (e CONT or LAST: the load function's transfers) shows
+   that the first request of that command, answered with a part marked FIRST, was no long
+   upload: its answer is in, it awaits no more. The caller holds the mutex. */
+static void drop_sequence_start(cifemu_txn *txn, const cifemu_request *next) {
+  unsigned i = 0;
+  while (i < txn->n_own) {
+    const cifemu_request *r = &txn->own[i];
+    if (r->multi == 2 && r->b == next->b && r->rx == next->rx && r->tx == next->tx) {
+      memmove(txn->own + i, txn->own + i + 1, (txn->n_own - i - 1) * sizeof *r);
+      txn->n_own--;
+    } else {
+      i++;
+    }
+  }
+}
+
 void cifemu_txn_sent(cifemu_txn *txn, const unsigned char *header) {
   cifemu_request r;
   if (header[7] & NAK_MASK) return; /* answered only when it fails: none is awaited */
@@ -257,6 +273,8 @@ void cifemu_txn_sent(cifemu_txn *txn, const unsigned char *header) {
   r.given_up = 0;
   r.sent_ms = now_ms();
   pthread_mutex_lock(&txn->lock.mutex);
+  if ((header[7] & SEQ_MASK) == SEQ_CONT || (header[7] & SEQ_MASK) == SEQ_LAST)
+    drop_sequence_start(txn, &r);
   if (txn->n_own + txn->n_stale >= CIFEMU_LEDGER_MAX) { /* the oldest goes */
     if (txn->n_stale > 0) memmove(txn->stale, txn->stale + 1, --txn->n_stale * sizeof r);
     else memmove(txn->own, txn->own + 1, --txn->n_own * sizeof r);
