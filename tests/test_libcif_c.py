@@ -233,7 +233,7 @@ def test_a_c_host_and_a_python_host_never_read_each_others_answers(
 
     def python_host() -> None:
         """Board.transact's procedure, but an answer that is not ours is an error here."""
-        lock = d._driver.boards[0].transaction_lock
+        lock = d._driver.boards[0].transaction
         for i in range(count):
             msg = Message(rx=2, tx=16, b=17, nr=i % 255 + 1,
                           data=bytes([0, 1, 200, 0, 0, 2, 5, 1]))

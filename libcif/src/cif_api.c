@@ -97,6 +97,14 @@ static int wait_for(cifemu_board *b, condition_fn cond, int arg, unsigned long t
   }
 }
 
+/* What is left of a call's time-out that started at `start` (CLOCK_MONOTONIC ns). */
+static unsigned long remaining_ms(long long start, unsigned long timeout_ms) {
+  long long left;
+  if (timeout_ms > 2000000000UL) timeout_ms = 2000000000UL;
+  left = start + (long long)timeout_ms * 1000000LL - cifemu_now_ns();
+  return left > 0 ? (unsigned long)((left + 999999) / 1000000) : 0UL;
+}
+
 static int cond_pending(const cifemu_board *b, int channel) {
   return pending(b, (unsigned char)channel);
 }
@@ -142,32 +150,6 @@ cifemu_board *cifemu_ready_board(unsigned short number, short *rc) {
     return NULL;
   }
   return b;
-}
-
-int cifemu_txn_acquire(cifemu_board *b, unsigned long timeout_ms) {
-  int held;
-  pthread_mutex_lock(&b->txn_mutex);
-  if (!b->txn_held) b->txn_held = cifemu_flock_acquire(b->transaction_lock.fd, timeout_ms);
-  held = b->txn_held;
-  pthread_mutex_unlock(&b->txn_mutex);
-  return held;
-}
-
-void cifemu_txn_release_if_idle(cifemu_board *b) {
-  pthread_mutex_lock(&b->txn_mutex);
-  if (b->txn_held && b->txn_outstanding == 0 && b->txn_pinned == 0) {
-    flock(b->transaction_lock.fd, LOCK_UN);
-    b->txn_held = 0;
-  }
-  pthread_mutex_unlock(&b->txn_mutex);
-}
-
-void cifemu_txn_expect(cifemu_board *b, int delta) {
-  pthread_mutex_lock(&b->txn_mutex);
-  if (delta > 0) b->txn_outstanding++;
-  else if (delta < 0 && b->txn_outstanding > 0) b->txn_outstanding--;
-  else if (delta == 0) b->txn_outstanding = 0;
-  pthread_mutex_unlock(&b->txn_mutex);
 }
 
 static void image_path(char *out, size_t size, unsigned short number) {
@@ -218,9 +200,8 @@ static void board_close(cifemu_board *b) {
   cifemu_chanlock_close(&b->get_lock);
   cifemu_chanlock_close(&b->io_lock);
   cifemu_chanlock_close(&b->flags_lock);
-  cifemu_chanlock_close(&b->transaction_lock);
+  cifemu_txn_close(&b->txn);
   munmap(b->mm, DPM_SIZE);
-  pthread_mutex_destroy(&b->txn_mutex);
   free(b);
 }
 
@@ -244,11 +225,65 @@ static short check_card(unsigned char *mm) {
 
 /* ---- driver and board ----------------------------------------------------- */
 
+static void lock_path(char *out, size_t size, unsigned short number, const char *what) {
+  snprintf(out, size, "%s/board%u.%s.lock", directory, (unsigned)number, what);
+}
+
+/* What one lock of a board does with its file: open it, or reopen it in a forked child. */
+typedef int (*chanlock_fn)(cifemu_chanlock *lock, const char *path);
+typedef int (*txn_fn)(cifemu_txn *txn, const char *path);
+
+/* Every lock of board b, in turn, until one fails: 0, else -1. */
+static int each_lock(cifemu_board *b, chanlock_fn channel, txn_fn transaction) {
+  static const char *const names[4] = {"put", "get", "io", "flags"};
+  cifemu_chanlock *locks[4];
+  char path[PATH_MAX + 32];
+  int i;
+  locks[0] = &b->put_lock;
+  locks[1] = &b->get_lock;
+  locks[2] = &b->io_lock;
+  locks[3] = &b->flags_lock;
+  for (i = 0; i < 4; i++) {
+    lock_path(path, sizeof path, b->number, names[i]);
+    if (channel(locks[i], path) != 0) return -1;
+  }
+  lock_path(path, sizeof path, b->number, "transaction");
+  return transaction(&b->txn, path);
+}
+
+/* [ours] A child forked after DevInitBoard gets lock files, locks and a doorbell of its
+   own: the descriptors it inherited share their flocks (and rings) with the parent, so
+   both would be inside a channel at once and read each other's answers. The parent's
+   threads do not exist in the child: the mutexes one of them held are made anew. A board
+   whose lock files cannot be opened again is closed in the child (-32 there). */
+static void child_after_fork(void) {
+  char path[PATH_MAX + 16];
+  int n;
+  pthread_mutex_init(&driver_lock, NULL);
+  for (n = 0; n < MAX_DEV_BOARDS; n++) {
+    cifemu_board *b = boards[n];
+    if (b == NULL) continue;
+    if (each_lock(b, cifemu_chanlock_reopen, cifemu_txn_reopen) != 0) {
+      boards[n] = NULL;
+      board_close(b);
+      continue;
+    }
+    cifemu_bell_close(&b->bell);
+    image_path(path, sizeof path, b->number);
+    if (cifemu_bell_open(&b->bell, path) == 0)
+      cifemu_bell_ring(&b->bell); /* introduces the child to the device */
+  }
+}
+
+static pthread_once_t fork_handler_once = PTHREAD_ONCE_INIT;
+static void register_fork_handler(void) { pthread_atfork(NULL, NULL, child_after_fork); }
+
 CIF_API short DevOpenDriver(void) {
   const char *env = getenv("CIF_DPM_DIR");
   const char *path = env != NULL ? env : DEFAULT_DPM_DIR;
   struct stat st;
   short rc = DRV_NO_ERROR;
+  pthread_once(&fork_handler_once, register_fork_handler);
   pthread_mutex_lock(&driver_lock);
   if (strlen(path) >= sizeof directory - 16 || stat(path, &st) != 0 || !S_ISDIR(st.st_mode)) {
     rc = DRV_USR_OPEN_ERROR;
@@ -355,12 +390,6 @@ CIF_API short DevSetOpMode(unsigned short usBoard, unsigned short usMode, unsign
   return DRV_NO_ERROR;
 }
 
-static int open_lock(cifemu_chanlock *lock, unsigned short number, const char *what) {
-  char path[PATH_MAX + 32];
-  snprintf(path, sizeof path, "%s/board%u.%s.lock", directory, (unsigned)number, what);
-  return cifemu_chanlock_open(lock, path);
-}
-
 CIF_API short DevInitBoard(unsigned short usDevNumber) {
   char path[PATH_MAX + 16];
   unsigned char *mm;
@@ -401,13 +430,13 @@ CIF_API short DevInitBoard(unsigned short usDevNumber) {
     goto out;
   }
   b = (cifemu_board *)calloc(1, sizeof *b);
-  if (b != NULL) pthread_mutex_init(&b->txn_mutex, NULL);
+  if (b != NULL) { /* nothing open yet: closing it must not close descriptor 0 */
+    b->bell.fd = b->put_lock.fd = b->get_lock.fd = b->io_lock.fd = b->flags_lock.fd = -1;
+    b->txn.lock.fd = -1;
+    b->number = usDevNumber;
+  }
   if (b == NULL || cifemu_bell_open(&b->bell, path) != 0 ||
-      open_lock(&b->put_lock, usDevNumber, "put") != 0 ||
-      open_lock(&b->get_lock, usDevNumber, "get") != 0 ||
-      open_lock(&b->io_lock, usDevNumber, "io") != 0 ||
-      open_lock(&b->flags_lock, usDevNumber, "flags") != 0 ||
-      open_lock(&b->transaction_lock, usDevNumber, "transaction") != 0) {
+      each_lock(b, cifemu_chanlock_open, cifemu_txn_open) != 0) {
     /* [ours] no socket or lock file for this host: the board cannot be shared safely */
     if (b != NULL) {
       b->mm = mm;
@@ -418,7 +447,6 @@ CIF_API short DevInitBoard(unsigned short usDevNumber) {
     rc = DRV_USR_INIT_DRV_ERROR;
     goto out;
   }
-  b->number = usDevNumber;
   b->mm = mm;
   b->counters = &counters[usDevNumber];
   count(&b->counters->open);
@@ -450,65 +478,83 @@ CIF_API short DevExitBoard(unsigned short usDevNumber) {
 CIF_API short DevPutMessage(unsigned short usDevNumber, MSG_STRUC *ptMessage,
                             unsigned long ulTimeout) {
   short rc;
+  long long deadline = cifemu_now_ns();
   cifemu_board *b = cifemu_ready_board(usDevNumber, &rc);
   if (b == NULL) return rc;
   if (ptMessage == NULL) return DRV_USR_MSG_BUF_NULL_PTR;
-  if (!cifemu_txn_acquire(b, ulTimeout)) return DRV_CMD_ACTIVE;
-  if (!cifemu_chanlock_acquire(&b->put_lock, ulTimeout)) {
-    cifemu_txn_release_if_idle(b);
+  if (!cifemu_txn_enter(&b->txn, ulTimeout)) return DRV_CMD_ACTIVE;
+  if (!cifemu_chanlock_acquire(&b->put_lock, remaining_ms(deadline, ulTimeout))) {
+    cifemu_txn_leave(&b->txn);
     return DRV_CMD_ACTIVE;
   }
-  if (!wait_for(b, cond_free, CH_DEV_MBX, ulTimeout)) {
+  if (!wait_for(b, cond_free, CH_DEV_MBX, remaining_ms(deadline, ulTimeout))) {
     rc = ulTimeout == 0 ? DRV_DEV_MAILBOX_FULL : timed_out(b, DRV_DEV_PUT_TIMEOUT);
   } else {
-    /* a message with RCS_NAK_MSK is answered only when it fails: none is awaited */
-    if (!(ptMessage->e & 0x02)) cifemu_txn_expect(b, 1);
     /* the message is ln + 8 bytes; the caller's buffer may be no longer than that */
     memcpy(b->mm + OFS_DEV_MBX, ptMessage, 8u + ptMessage->ln);
+    /* recorded before the card can see it: a host killed now leaves it in the ledger */
+    cifemu_txn_sent(&b->txn, (const unsigned char *)ptMessage);
     change_dev_flags(b, 0, 0, FL_DEVCOM, 1);
     count(&b->counters->write);
     __atomic_store_n(&b->counters->last_function, FKT_WRITE, __ATOMIC_RELAXED);
     rc = DRV_NO_ERROR;
   }
   cifemu_chanlock_release(&b->put_lock);
-  cifemu_txn_release_if_idle(b);
+  cifemu_txn_leave(&b->txn);
   return rc;
 }
 
+/* [ours] Answers to another host's requests (it died, or gave the board up after a get
+   timed out) are read and discarded (with the handshake) within the caller's time-out,
+   never returned. */
 CIF_API short DevGetMessage(unsigned short usDevNumber, unsigned short usSize,
                             MSG_STRUC *ptMessage, unsigned long ulTimeout) {
   short rc;
+  long long deadline = cifemu_now_ns();
   cifemu_board *b;
   if (usSize == 0 || usSize > MSG_BUFFER_SIZE) return DRV_USR_SIZE_INVALID;
   b = cifemu_ready_board(usDevNumber, &rc);
   if (b == NULL) return rc;
   if (ptMessage == NULL) return DRV_USR_MSG_BUF_NULL_PTR;
   /* a host expecting nothing still waits for other hosts' transactions to finish */
-  if (!cifemu_txn_acquire(b, ulTimeout)) return DRV_CMD_ACTIVE;
-  if (!cifemu_chanlock_acquire(&b->get_lock, ulTimeout)) {
-    cifemu_txn_release_if_idle(b);
+  if (!cifemu_txn_enter(&b->txn, ulTimeout)) return DRV_CMD_ACTIVE;
+  if (!cifemu_chanlock_acquire(&b->get_lock, remaining_ms(deadline, ulTimeout))) {
+    cifemu_txn_leave(&b->txn);
     return DRV_CMD_ACTIVE;
   }
-  if (!wait_for(b, cond_pending, CH_HOST_MBX, ulTimeout)) {
-    rc = ulTimeout == 0 ? DRV_DEV_GET_NO_MESSAGE : timed_out(b, DRV_DEV_GET_TIMEOUT);
-    /* [ours] an answer that did not come in time frees the board for other hosts */
-    if (ulTimeout != 0) cifemu_txn_expect(b, 0);
-  } else {
-    unsigned length = 8u + b->mm[OFS_PC_MBX + 2];
-    if (length > usSize) {
-      rc = DRV_USR_MSG_BUF_TOO_SHORT; /* the message stays in the mailbox */
-    } else {
-      memcpy(ptMessage, b->mm + OFS_PC_MBX, length);
-      /* The device polls anyway; a ring only speeds up answers it has queued. */
-      change_dev_flags(b, 0, 0, FL_HOSTACK, b->bell.device_wants_ack);
-      count(&b->counters->read);
-      __atomic_store_n(&b->counters->last_function, FKT_READ, __ATOMIC_RELAXED);
-      cifemu_txn_expect(b, -1);
-      rc = DRV_NO_ERROR;
+  for (;;) {
+    unsigned char header[8];
+    unsigned length;
+    int stale;
+    if (!wait_for(b, cond_pending, CH_HOST_MBX, remaining_ms(deadline, ulTimeout))) {
+      rc = ulTimeout == 0 ? DRV_DEV_GET_NO_MESSAGE : timed_out(b, DRV_DEV_GET_TIMEOUT);
+      /* [ours] answers that did not come in time no longer keep the board from other
+         hosts: this host reads them if it holds the board when they come, another host
+         that took it meanwhile discards them */
+      if (ulTimeout != 0) cifemu_txn_give_up(&b->txn);
+      break;
     }
+    memcpy(header, b->mm + OFS_PC_MBX, sizeof header);
+    length = 8u + header[2];
+    stale = cifemu_txn_is_stale(&b->txn, header);
+    if (!stale && length > usSize) {
+      rc = DRV_USR_MSG_BUF_TOO_SHORT; /* the message stays in the mailbox */
+      break;
+    }
+    if (!stale) memcpy(ptMessage, b->mm + OFS_PC_MBX, length);
+    /* The device polls anyway; a ring only speeds up answers it has queued. */
+    change_dev_flags(b, 0, 0, FL_HOSTACK, stale || b->bell.device_wants_ack);
+    /* after the handshake: a host killed in between leaves a discarded answer's request
+       in the ledger, never an answer nobody discards */
+    cifemu_txn_answered(&b->txn, header);
+    if (stale) continue;
+    count(&b->counters->read);
+    __atomic_store_n(&b->counters->last_function, FKT_READ, __ATOMIC_RELAXED);
+    rc = DRV_NO_ERROR;
+    break;
   }
   cifemu_chanlock_release(&b->get_lock);
-  cifemu_txn_release_if_idle(b);
+  cifemu_txn_leave(&b->txn);
   return rc;
 }
 
