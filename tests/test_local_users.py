@@ -5,7 +5,8 @@ becomes ``nobody`` (os.setgid/os.setuid) and creates its directories, symlinks a
 sockets itself. The card's files live in a directory under /dev/shm (world-writable and
 sticky, as the default /dev/shm/cif's parent is); the victims are root's 0600 files with
 known bytes in a directory only root enters, and must come out byte for byte and mode
-for mode unchanged.
+for mode unchanged. tests/c/bell_ring.c shows that libcif (x86-64 and i386) rings the
+doorbell where the firmware now binds it.
 """
 
 from __future__ import annotations
@@ -33,6 +34,8 @@ import host_api as d
 from dbm_tools.builder import build_dbm
 from dbm_tools.container import data_area
 from dbm_tools.network import parse_network
+from dpm.doorbell import device_address
+from dpm.image import CardDirectory
 from firmware.can.tap import SUBSCRIBE, tap_address
 from host_api.board import Board
 from host_api.download import CONFIGURATION_DOWNLOAD
@@ -373,3 +376,40 @@ def test_a_socket_name_a_host_group_member_took_is_one_line(
     assert "frame tap not offered, monitors see no frames" in err and "Traceback" not in err
     assert done.returncode == 1
     assert done.stderr == (f"cifemu monitor: no card's frame tap at {directory / 'board0.tap'}\n")
+
+
+@pytest.mark.parametrize("bits", ["64", "32"])
+def test_libcifs_doorbell_rings_the_socket_in_the_cards_directory(
+        tmp_path: Path, bits: str) -> None:
+    """The C side names the doorbell as the firmware does; i386 too (the legacy preload)."""
+    compiler = shutil.which("cc") or shutil.which("gcc")
+    if compiler is None:
+        pytest.skip("no C compiler")
+    if bits == "32" and (ROOT / "libcif" / "build" / "i386" / "MISSING").exists():
+        pytest.skip((ROOT / "libcif" / "build" / "i386" / "MISSING").read_text().strip())
+    program = tmp_path / "bell_ring"
+    subprocess.run([compiler, f"-m{bits}", "-std=c11", "-Wall", "-Wextra", "-Werror",
+                    str(ROOT / "tests" / "c" / "bell_ring.c"), str(ROOT / "libcif" / "src"
+                                                               / "bell.c"),
+                    f"-I{ROOT / 'libcif' / 'src'}", "-o", str(program)], check=True)
+    cards = tmp_path / "cards"
+    files = CardDirectory(cards, create=True)
+    device = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    try:
+        (cards / "board0.dpm").write_bytes(bytes(IMAGE_SIZE))
+        files.bind(device, Path(device_address(cards / "board0.dpm")))
+        done = subprocess.run([str(program), str(cards / "board0.dpm")], capture_output=True,
+                              text=True, timeout=30)
+        assert done.returncode == 0, done.stderr
+        assert done.stdout == f"{device_address(cards / 'board0.dpm')}\n"
+        device.settimeout(10 * TIME_SCALE)
+        assert device.recv(16) == b"\x01"
+    finally:
+        device.close()
+        files.close()
+    deep = tmp_path / ("d" * 100)
+    deep.mkdir()
+    (deep / "board0.dpm").write_bytes(bytes(IMAGE_SIZE))
+    done = subprocess.run([str(program), str(deep / "board0.dpm")], capture_output=True,
+                          text=True, timeout=30)
+    assert (done.returncode, done.stderr) == (2, "bell_ring: File name too long\n")
