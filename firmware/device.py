@@ -141,6 +141,7 @@ class Device:
         self.mm.close()
         self._instance_lock.release()
         self.files.close()
+        self.flash.close()
 
     # --- cross-thread entry points ---------------------------------------------------
 

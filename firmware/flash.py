@@ -128,6 +128,9 @@ class FlashStore:
             self._files.close()
             raise
 
+    def close(self) -> None:
+        self._files.close()
+
     @property
     def path(self) -> Path:
         return self.directory / DATABASE_FILE
