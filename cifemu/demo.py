@@ -26,7 +26,7 @@ from dbm_tools.builder import BuildError, build_dbm
 from dbm_tools.container import write_dbm
 from dbm_tools.network import Network, NetworkError, load_network
 from dpm.flags import READY
-from dpm.image import MAX_DEV_BOARDS, dpm_dir, image_path
+from dpm.image import MAX_DEV_BOARDS, CardDirectory, UnsafePathError, dpm_dir, image_path
 from dpm.layout import HOST_FLAGS
 from host_api import driver as d
 from host_api import status as status_cli
@@ -87,7 +87,11 @@ def run(args: argparse.Namespace) -> int:
               "or --dpm-dir", file=sys.stderr)
         return 1
     created_dir = not directory.exists()
-    directory.mkdir(parents=True, exist_ok=True)
+    try:  # mode 02770 whatever the umask, and refused when another user could plant files
+        CardDirectory(directory, create=True).close()
+    except UnsafePathError as exc:
+        print(f"cifemu demo: {exc}", file=sys.stderr)
+        return 1
     before = _board_files(directory, args.board)
     signal.signal(signal.SIGTERM, _on_sigterm)
     with tempfile.TemporaryDirectory(prefix="cifemu-demo-flash-") as flash:

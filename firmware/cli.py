@@ -12,7 +12,14 @@ from types import FrameType
 import can
 
 from dbm_tools.network import NetworkError, load_network
-from dpm.image import DEFAULT_DPM_DIR, MAX_DEV_BOARDS, BoardBusyError, dpm_dir, image_path
+from dpm.image import (
+    DEFAULT_DPM_DIR,
+    MAX_DEV_BOARDS,
+    BoardBusyError,
+    UnsafePathError,
+    dpm_dir,
+    image_path,
+)
 from firmware.can.bus import INTERFACE_ERRORS, BusConfig
 from firmware.can.tap import tap_address
 from firmware.device import Device
@@ -97,7 +104,8 @@ def run(args: argparse.Namespace) -> int:
     try:
         device = Device(args.board, args.dpm_dir, reset_delay=args.reset_delay, bus=bus,
                         flash_dir=args.flash)
-    except BoardBusyError as exc:
+    except (BoardBusyError, UnsafePathError, OSError) as exc:
+        # UnsafePathError: another user could redirect the card's writes (docs/security.md)
         if simulation is not None:
             sim_bus.shutdown()
         print(f"cifemu firmware: board {args.board} refused: {exc}", file=sys.stderr)

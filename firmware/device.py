@@ -20,7 +20,14 @@ from typing import Any
 from dpm import flags as fl
 from dpm.doorbell import POLL_INTERVAL, DeviceBell
 from dpm.errors import F_UNKNOWN_TASK
-from dpm.image import ExclusiveLock, create_image, dpm_dir, image_path, lock_path
+from dpm.image import (
+    CardDirectory,
+    ExclusiveLock,
+    create_image,
+    dpm_dir,
+    image_path,
+    lock_path,
+)
 from dpm.layout import (
     DEV_FLAGS,
     DEV_MBX,
@@ -61,20 +68,26 @@ class Device:
     ) -> None:
         self.board = board
         self.directory = dpm_dir(directory)
-        self.directory.mkdir(parents=True, exist_ok=True)
+        self.files = CardDirectory(self.directory, create=True)
+        """The checked image directory: every file the firmware writes is opened in it."""
         self.path = image_path(self.directory, board)
         # Mapped before the lock (harmless beside a running card: same file, same size), so
         # that a killed predecessor's READY goes the moment this firmware holds the lock,
         # which is when hosts start to take it for a running one.
-        self.mm = create_image(self.path)
         try:
-            self._instance_lock = ExclusiveLock(lock_path(self.directory, board),
+            self.mm = create_image(self.files, self.path.name)
+        except BaseException:
+            self.files.close()
+            raise
+        try:
+            self._instance_lock = ExclusiveLock(self.files, lock_path(self.directory, board).name,
                                                 on_acquired=self._clear_host_flags)
         except BaseException:
             self.mm.close()
+            self.files.close()
             raise
         self.view: Any = image_view(self.mm)
-        self.bell = DeviceBell(self.path)
+        self.bell = DeviceBell(self.files, self.path)
         self.outbox: deque[Message] = deque()
         self._calls: deque[Callable[[], None]] = deque()
         self._turn = threading.Lock()
@@ -127,6 +140,8 @@ class Device:
         self.mm.flush()
         self.mm.close()
         self._instance_lock.release()
+        self.files.close()
+        self.flash.close()
 
     # --- cross-thread entry points ---------------------------------------------------
 

@@ -2,8 +2,11 @@
 
 python-can's ``virtual`` bus lives inside one process, so on it nothing outside
 the firmware could see the card's traffic. The controller therefore offers its
-frames on a Unix datagram socket in Linux's abstract namespace, named after the
-image path (no file to clean up after a crash). A monitor binds an automatic
+frames on a Unix datagram socket, ``board<N>.tap`` beside the image: a file
+system socket, so the directory's permissions (docs/security.md) decide who may
+subscribe. On an abstract name, any local user could take the name first (the
+card had no bus) or hold every subscription (the owner's monitor got nothing
+while that user read every frame). A monitor binds an automatic abstract
 name and sends ``SUBSCRIBE`` at least every ``RENEW_S``; the card sends each
 frame to every subscriber heard from within ``EXPIRE_S``, and drops one whose
 socket is gone. Sending never blocks: a subscriber that does not keep up loses
@@ -18,7 +21,8 @@ socket so both sides and the tests share it.
 
 from __future__ import annotations
 
-import hashlib
+import logging
+import os
 import socket
 import struct
 import threading
@@ -26,6 +30,10 @@ import time
 from pathlib import Path
 
 import can
+
+from dpm.image import CardDirectory, socket_path
+
+log = logging.getLogger(__name__)
 
 SUBSCRIBE = b"S"
 RENEW_S = 1.0
@@ -49,9 +57,8 @@ EMCY_IDS = range(0x081, 0x100)
 
 
 def tap_address(image_path: Path) -> bytes:
-    """The abstract socket name of the tap of the card serving ``image_path``."""
-    digest = hashlib.sha1(str(Path(image_path).resolve()).encode()).hexdigest()[:20]
-    return b"\0cifemu-tap-" + digest.encode()
+    """The socket of the tap of the card serving ``image_path``: ``board<N>.tap`` beside it."""
+    return os.fsencode(socket_path(image_path, "tap"))
 
 
 def encode_frame(msg: can.Message, received: bool, replay: bool = False) -> bytes:
@@ -76,18 +83,33 @@ def decode_frame(datagram: bytes, channel: str | None = None) -> tuple[can.Messa
 
 
 class TapPublisher:
-    """The card's side: a bound socket and the subscribers it has heard from."""
+    """The card's side: a bound socket and the subscribers it has heard from.
+
+    Made while the firmware holds the board's lock: a socket file already at
+    ``address`` is a killed firmware's and is replaced (``CardDirectory.bind``). A tap
+    that cannot be offered costs the card its monitors, never its bus: one line in the
+    log, and ``publish`` does nothing."""
 
     def __init__(self, address: bytes) -> None:
         self.address = address
-        self._sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
-        self._sock.setblocking(False)
-        self._sock.bind(address)
         self._subscribers: dict[bytes, float] = {}
         self._last_emcy: dict[int, bytes] = {}
         """Per EMCY identifier, the last one as a replay datagram."""
         self._lock = threading.Lock()
         self._drain_due = 0.0
+        path = Path(os.fsdecode(address))
+        self._sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+        self._sock.setblocking(False)
+        self._directory: CardDirectory | None = None
+        try:
+            self._directory = CardDirectory(path.parent)
+            self._directory.bind(self._sock, path)
+        except OSError as exc:
+            log.error("frame tap not offered, monitors see no frames: %s", exc)
+            self._sock.close()
+            if self._directory is not None:
+                self._directory.close()
+                self._directory = None
 
     def _drain(self, now: float) -> None:
         while True:
@@ -107,6 +129,8 @@ class TapPublisher:
 
     def publish(self, msg: can.Message, received: bool) -> None:
         """Offer one frame (any thread); costs a clock read while nobody listens."""
+        if self._directory is None:
+            return
         now = time.monotonic()
         with self._lock:
             if msg.arbitration_id in EMCY_IDS and not msg.is_extended_id and not (
@@ -131,6 +155,10 @@ class TapPublisher:
 
     def close(self) -> None:
         self._sock.close()
+        if self._directory is not None:
+            self._directory.unlink(os.fsdecode(os.path.basename(self.address)))
+            self._directory.close()
+            self._directory = None
 
 
 class TapSubscriber:
@@ -143,13 +171,19 @@ class TapSubscriber:
         self._sock.bind(b"")  # an automatic abstract name
         self._renew_due = 0.0
 
-    def subscribe(self) -> bool:
-        """Renew the subscription; False when no card listens on the tap."""
+    def subscribe(self) -> str | None:
+        """Renew the subscription; None when sent, else why no card's tap takes it
+        (none listens, or the directory's permissions keep this user out)."""
         try:
-            self._sock.sendto(SUBSCRIBE, self.address)
+            self._sock.sendto(SUBSCRIBE, socket.MSG_DONTWAIT, self.address)
         except (ConnectionRefusedError, FileNotFoundError):
-            return False
-        return True
+            return f"no card's frame tap at {os.fsdecode(self.address)}"
+        except PermissionError:
+            return (f"no permission to reach the card's frame tap at "
+                    f"{os.fsdecode(self.address)} (docs/security.md: join the directory's group)")
+        except OSError:
+            pass  # the card's queue is full: it drains it while frames flow, renew later
+        return None
 
     def recv(self, timeout: float | None) -> bytes | None:
         """One frame datagram, renewing the subscription as time passes; None on time-out."""

@@ -22,9 +22,10 @@ class TapBus(can.BusABC):
     def __init__(self, image_path: Path, channel: str = "cifemu", replays: bool = False,
                  **kwargs: Any) -> None:
         self._subscriber = TapSubscriber(image_path)
-        if not self._subscriber.subscribe():
+        problem = self._subscriber.subscribe()
+        if problem is not None:
             self._subscriber.close()
-            raise can.CanInitializationError(f"no card's frame tap for {image_path}")
+            raise can.CanInitializationError(problem)
         self.channel_info = f"frame tap of {image_path}"
         self._channel = channel
         self._replays = replays
