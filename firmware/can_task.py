@@ -214,8 +214,7 @@ class CanTask(Task):
 
     def download_bus(self, data: bytes) -> int:
         """The bus parameter data set; a good one starts the network."""
-        nodes = [self.master.nodes[a].params for a in sorted(self.master.nodes)]
-        errors = [f for f in check_bus_parameters(data, nodes) if f.severity == "error"]
+        errors = [f for f in check_bus_parameters(data) if f.severity == "error"]
         if errors:
             return errors[0].number
         self.bus_data = bytes(data)
