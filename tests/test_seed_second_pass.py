@@ -24,6 +24,13 @@ from dpm.com import ACCEPT_ALL_MASK, acceptance_long
 from dpm.message import Message
 from firmware.can.bus import bitrate_of_link
 from firmware.card_info import read_card_info
+from firmware.frames import (
+    CAN_ERR_CRTL,
+    CAN_ERR_CRTL_ACTIVE,
+    CAN_ERR_CRTL_RX_WARNING,
+    CAN_ERR_CRTL_TX_PASSIVE,
+    CAN_ERR_CRTL_TX_WARNING,
+)
 from host_api import driver as d
 from host_api.board import Board
 from host_api.download import CONFIGURATION_DOWNLOAD, DevDownload
@@ -233,3 +240,41 @@ def test_start_seq_error_answers_keep_the_table_layout(make_net: Callable[..., N
     net = make_net("")
     answer = net.send(67, request_data)
     assert (answer.f, answer.ln, answer.data) == (f, 1, bytes([240]))
+
+
+# --- item 12: Bus_Error_Cnt counts an overstep once (seed 4.3) --------------------------------
+
+BUS_ERROR_CNT = 0x1F44
+"""Task2State's usBus_Error_Cnt (seed 4.3)."""
+
+
+def controller_state(status: int) -> can.Message:
+    """A SocketCAN controller-state error frame (CAN_ERR_CRTL, the state in data byte 1)."""
+    return can.Message(is_error_frame=True, arbitration_id=CAN_ERR_CRTL, dlc=8,
+                       data=bytes([0, status, 0, 0, 0, 0, 0, 0]))
+
+
+@pytest.mark.xfail(strict=True, reason="needs firmware/can/master.py's _on_error_frame to count "
+                   "firmware.can.bus.ErrorEscalation (issue 23 item 12; master.py is being split)")
+def test_bus_error_cnt_counts_one_escalation_once(tmp_path: Path) -> None:
+    """Seed 4.3: Bus_Error_Cnt is the "number of detected bus error limit oversteps". The
+    controller's counters climb past the warning limit and on past the error-passive limit:
+    two error frames, one overstep, 1. Back to error-active, a new warning crossing is 2."""
+    channel = f"test-{uuid.uuid4().hex}"
+    card = start_card(tmp_path, 0, "--interface", "shm", "--channel", channel)
+    station = can.Bus(interface="shm", channel=channel)
+    image = card.map()
+    try:
+        station.send(controller_state(CAN_ERR_CRTL_TX_WARNING))
+        wait_until(lambda: struct.unpack_from("<H", image, BUS_ERROR_CNT)[0] == 1, 5,
+                   "the warning crossing counted")
+        for status in (CAN_ERR_CRTL_TX_PASSIVE, CAN_ERR_CRTL_ACTIVE, CAN_ERR_CRTL_RX_WARNING):
+            station.send(controller_state(status))
+        wait_until(lambda: struct.unpack_from("<H", image, BUS_ERROR_CNT)[0] >= 2, 5,
+                   "the second overstep counted")
+        settle(0.3)
+        assert struct.unpack_from("<H", image, BUS_ERROR_CNT)[0] == 2
+    finally:
+        image.close()
+        station.shutdown()
+        card.stop()

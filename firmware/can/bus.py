@@ -26,7 +26,16 @@ import canopen
 
 from firmware.can.tap import TapPublisher
 from firmware.errors import BusSetupError
-from firmware.frames import SDO_FRAME_LENGTH
+from firmware.frames import (
+    CAN_ERR_BUSOFF,
+    CAN_ERR_CRTL,
+    CAN_ERR_CRTL_ACTIVE,
+    CAN_ERR_CRTL_LIMITS,
+    CAN_ERR_CRTL_RX_WARNING,
+    CAN_ERR_CRTL_TX_WARNING,
+    CAN_ERR_RESTARTED,
+    SDO_FRAME_LENGTH,
+)
 
 log = logging.getLogger(__name__)
 
@@ -83,6 +92,40 @@ def socketcan_bitrate(channel: str) -> int | None:
         return bitrate_of_link(json.loads(done.stdout))
     except ValueError:
         return None
+
+
+CAN_ERR_CRTL_WARNINGS = CAN_ERR_CRTL_RX_WARNING | CAN_ERR_CRTL_TX_WARNING
+
+
+class ErrorEscalation:
+    """Which error frames are a new overstep of the controller's error limits.
+
+    Seed 4.3: Bus_Error_Cnt is the "number of detected bus error limit oversteps". A
+    controller whose error counters climb reports each limit it passes in an error frame of
+    its own (SocketCAN: warning, then error-passive), but both belong to one overstep: the
+    error-passive report right after a warning report is no new one. Every warning report is:
+    the counters were below the limit before it, whether or not the controller said so (not
+    every driver reports the return to error-active). An overstep ends when the controller
+    reports itself error-active again, goes bus-off (Bus_Off_Cnt counts that) or restarts.
+    """
+
+    def __init__(self) -> None:
+        self._beyond = False
+        """Whether the counters are past a limit since the controller last said they were not."""
+
+    def update(self, msg: can.Message) -> bool:
+        """Feed every error frame in order; True for one that is a new overstep."""
+        error_class = msg.arbitration_id
+        status = msg.data[1] if len(msg.data) > 1 else 0
+        if error_class & (CAN_ERR_BUSOFF | CAN_ERR_RESTARTED) or (
+                error_class & CAN_ERR_CRTL and status & CAN_ERR_CRTL_ACTIVE):
+            self._beyond = False
+            return False
+        if error_class & CAN_ERR_CRTL and status & CAN_ERR_CRTL_LIMITS:
+            new = bool(status & CAN_ERR_CRTL_WARNINGS) or not self._beyond
+            self._beyond = True
+            return new
+        return False
 
 
 class _MasterNetwork(canopen.Network):
