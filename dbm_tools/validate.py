@@ -9,9 +9,11 @@ behind them; those chosen here:
   usNodeParaLen above it 62;
 - node addresses 1..127 (seed 6.3.2), the master's own bNodeID 0..126
   (seed 5.2.5.3.1, 0 = none); otherwise 55;
-- COB-IDs 1..2047, the 11-bit identifiers. The seed writes "1-2048" in its
-  message tables and "0 to 2047" in prose; 0 is NMT and 2048 does not fit 11
-  bits. EMCY 73, ND_GUARD 74, SYNC 66, a PDO 55 (no number of its own);
+- COB-IDs 1..2047 everywhere [ours]: the values both of the seed's statements
+  allow. Its message tables say "1-2048" (EMCY, ND_GUARD, SYNC), its prose "0
+  to 2047" (usCobIDEmcy, usCobIDGuard) and "1 to 2048" (SYNC); 0 is NMT, which
+  no node may send on, and 2048 does not fit 11 bits. EMCY 73, ND_GUARD 74,
+  SYNC 66, a PDO 55 (no number of its own);
 - PDO length (bLength & 0x7F) 1..8: 75; transmission types of CiA 301,
   0..240 and 252..255: 63;
 - SDO bLength 1..4 (the 4-byte value field): above is 76, 0 is 55;
