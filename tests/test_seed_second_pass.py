@@ -36,7 +36,7 @@ from host_api.board import Board
 from host_api.download import CONFIGURATION_DOWNLOAD, DevDownload
 from tests import test_can_task
 from tests.conftest import start_card, wait_until
-from tests.test_can_task import Net, candump
+from tests.test_can_task import Net, candump, exchange
 
 interface = test_can_task.interface
 make_net = test_can_task.make_net
@@ -81,6 +81,9 @@ id = 1
 direction = "output"
 cob_id = 0x201
 transmission = 1
+[[node.pdo]]
+direction = "input"
+cob_id = 0x181
 """
 
 
@@ -278,3 +281,24 @@ def test_bus_error_cnt_counts_one_escalation_once(tmp_path: Path) -> None:
         image.close()
         station.shutdown()
         card.stop()
+
+
+@pytest.mark.xfail(strict=True, reason="needs firmware/can/master.py to follow a foreign SYNC "
+                   "while SYNC_Timer is 0 (issue 23 item 4; master.py is being split)")
+@pytest.mark.parametrize("interface", ["shm"], indirect=True)
+def test_synchronous_outputs_follow_another_stations_sync(make_net: Callable[..., Net]) -> None:
+    """Seed revision 16: with SYNC_Timer 0 the SYNC comes from another station, and the
+    card's synchronous RX-PDO (type 1) follows it: the host's outputs reach the node, whose
+    echo comes back into the input image."""
+    net = make_net(SYNCHRONOUS_NODE)
+    net.configure()
+    net.wait_operating([1])
+    station = can.Bus(interface="shm", channel=net.channel)
+    sync = station.send_periodic(can.Message(arbitration_id=SYNC_ID, is_extended_id=False),
+                                 0.02)
+    try:
+        wait_until(lambda: exchange(net, b"\x11" * 8) == b"\x11" * 8, 5,
+                   "node 1's echo of outputs sent at the foreign SYNC")
+    finally:
+        sync.stop()
+        station.shutdown()
