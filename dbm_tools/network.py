@@ -22,8 +22,8 @@ The whole schema, with defaults::
     master_node_id = 0          # bNodeID of the extended bus parameters, 0 = none
     heartbeat_ms = 0            # the master's own heartbeat producer time
     global_start = false        # send one global NMT start after all nodes booted
-    accept_code = 0             # 29-bit acceptance code / mask
-    accept_mask = 0
+    accept_code = 0             # 29-bit acceptance code / mask, as identifier bits; a mask
+    accept_mask = 0             # bit 1 is "don't care" (SJA1000), 0x1FFFFFFF: every frame
     extended_ids = false        # 29-bit receive filter on (bi11Bit29BitSelector)
     # Card start-up, stored in the DBM only (GLOBAL and PLC_PARAM):
     wait_for_host = false       # bSystemStart: the bus starts when the host clears NOTREADY

@@ -45,8 +45,9 @@ selected by d[0] of a message whose msg.e has no continuation bits:
 
 At every start (``StoredDatabase.load``, then ``configure``) the database
 runs through ``check_dbm``; a database that fails, or whose data sets the CAN
-task refuses, leaves the card READY without RUN with Err_Event 212 at
-Err_Node_adr 255 (or the node whose record failed) and the CTRL bit. Else
+task refuses, leaves the card READY without RUN with the CTRL bit and
+Err_Event 56 (unknown baud rate) or 60 (double node address) at Err_Node_adr
+255, else 212 at 255 or at the node whose record failed. Else
 BUS_CAN_EXT, every NODES record and BUS_CAN go to the CAN task in that
 order, and the BUS_CAN download starts the network.
 """

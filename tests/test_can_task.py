@@ -29,6 +29,7 @@ import pytest
 
 from dbm_tools.network import load_network
 from dbm_tools.parameters import NdFlag, NodeParameterSet, PdoData
+from dpm.com import acceptance_long
 from dpm.errors import Drv
 from dpm.message import Message
 from dpm.task2 import ComDiagnostics
@@ -883,7 +884,9 @@ def test_transparent_reception_of_29_bit_frames(tmp_path: Path) -> None:
     sender = can.Bus(interface="udp_multicast", channel=group)
     try:
         with Board(0, tmp_path, timeout=5000) as board:
-            ext = struct.pack("<BIIBHB", 0x01, 0x1ABC0000, 0x1FFF0000, 0, 0, 0) + bytes(28)
+            # SJA1000 layout: ID.28..16 compared, ID.15..0 "don't care" (mask bit 1)
+            ext = struct.pack("<BIIBHB", 0x01, acceptance_long(0x1ABC0000),
+                              acceptance_long(0x0000FFFF), 0, 0, 0) + bytes(28)
             assert board.transact(Message(rx=3, tx=16, b=68,
                                           data=bytes([0, 128, 0, 0]) + ext)).f == 0
             bus = bytes([2]) + struct.pack("<HH", 0x80, 0) + bytes(2)

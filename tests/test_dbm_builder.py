@@ -276,15 +276,6 @@ offset = 3580
 """, "runs past the 3584-byte area"),
     ("[[node]]\nid = 255\nlss = { vendor = 1, product = 2, revision = 3, serial = 4 }\n",
      "node 255"),
-    ("""[bus]
-sync_period_ms = 0
-[[node]]
-id = 4
-[[node.pdo]]
-direction = "input"
-cob_id = 0x184
-transmission = 1
-""", "67 .*SYNC_Timer"),
     ('[[node]]\nid = 4\neds = "missing.eds"\n', "not found"),
 ])
 def test_descriptions_the_card_would_refuse_are_build_errors(text: str, message: str) -> None:
