@@ -4,12 +4,16 @@ person pastes them, and the one-line errors they get instead of tracebacks.
 
 from __future__ import annotations
 
+import os
 import shutil
+import signal
 import subprocess
 import sys
 from pathlib import Path
 
 import pytest
+
+from tests.conftest import ROOT
 
 CC = shutil.which("cc") or shutil.which("gcc")
 
@@ -42,3 +46,95 @@ def test_cifemu_legacy_runs_a_program_of_this_directory_as_given(tmp_path: Path)
     bare = cifemu("legacy", "--", "prog", cwd=tmp_path)
     assert bare.returncode == 1 and bare.stderr.count("\n") == 1
     assert "prog: not found on $PATH" in bare.stderr and "./prog" in bare.stderr
+
+
+# --- make: the i386 build's apt-get ---------------------------------------------------------
+
+
+def fake_tools(tmp_path: Path) -> tuple[Path, Path]:
+    """A bin directory with a cc that cannot build -m32 and an apt-get that only records its
+    arguments: a machine without gcc-multilib, which this one (having it) cannot be made
+    into otherwise, and an apt-get that installs nothing for real."""
+    assert CC is not None
+    bin_dir = tmp_path / "bin"
+    bin_dir.mkdir()
+    calls = tmp_path / "apt-calls"
+    (bin_dir / "cc").write_text(
+        f'#!/bin/sh\nfor a; do [ "$a" = -m32 ] && exit 1; done\nexec {CC} "$@"\n')
+    (bin_dir / "apt-get").write_text(f'#!/bin/sh\necho "$@" >> {calls}\n')
+    for tool in ("cc", "apt-get"):
+        (bin_dir / tool).chmod(0o755)
+    return bin_dir, calls
+
+
+def make_build_legacy(tmp_path: Path, bin_dir: Path,
+                      *extra: str) -> subprocess.CompletedProcess[str]:
+    env = dict(os.environ, PATH=f"{bin_dir}{os.pathsep}{os.environ['PATH']}")
+    return subprocess.run(["make", "--no-print-directory", "-C", str(ROOT), "build-legacy",
+                           f"CC={bin_dir / 'cc'}", f"BUILD={tmp_path / 'build'}", *extra],
+                          env=env, capture_output=True, text=True, timeout=300, check=False)
+
+
+@pytest.mark.skipif(CC is None or shutil.which("make") is None, reason="no C compiler or make")
+def test_make_installs_nothing_with_cifemu_no_apt(tmp_path: Path) -> None:
+    """``make test CIFEMU_NO_APT=1`` runs no apt-get (it installed gcc-multilib as root
+    without asking); the i386 build is skipped with the reason its tests show."""
+    bin_dir, calls = fake_tools(tmp_path)
+    done = make_build_legacy(tmp_path, bin_dir, "CIFEMU_NO_APT=1")
+    assert done.returncode == 0, done.stderr
+    assert not calls.exists(), calls.read_text()
+    assert (tmp_path / "build" / "libcifdev.so").exists()
+    missing = (tmp_path / "build" / "i386" / "MISSING").read_text()
+    assert "gcc-multilib" in missing and "skipped" in missing
+
+
+@pytest.mark.skipif(CC is None or shutil.which("make") is None or os.geteuid() != 0,
+                    reason="no C compiler or make, or not root (apt-get runs only as root)")
+def test_make_says_what_it_installs_and_how_not_to(tmp_path: Path) -> None:
+    bin_dir, calls = fake_tools(tmp_path)
+    done = make_build_legacy(tmp_path, bin_dir)
+    assert done.returncode == 0, done.stderr
+    assert "install -y -qq gcc-multilib libc6-i386" in calls.read_text()
+    assert "i386 build" in done.stdout and "CIFEMU_NO_APT=1" in done.stdout
+
+
+# --- the demo's hints, pasted into a second terminal ----------------------------------------
+
+
+def test_every_command_the_demo_prints_works_in_a_second_terminal(tmp_path: Path) -> None:
+    """`make demo` runs .venv/bin/cifemu with cifemu not on $PATH; it told the user to run
+    `cifemu status`: "command not found". Each command it prints now runs, pasted into a
+    shell without cifemu on $PATH, without $CIF_DPM_DIR, in another directory."""
+    images = tmp_path / "cif"
+    plain_path = os.pathsep.join(d for d in os.environ["PATH"].split(os.pathsep)
+                                 if not (Path(d) / "cifemu").exists())
+    env = {k: v for k, v in os.environ.items() if k != "CIF_DPM_DIR"}
+    env.update(PATH=plain_path, PYTHONUNBUFFERED="1")
+    demo = subprocess.Popen([sys.executable, "-m", "cifemu", "demo", "--dpm-dir", str(images)],
+                            cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True)
+    try:
+        assert demo.stdout is not None
+        lines: list[str] = []
+        for line in demo.stdout:
+            lines.append(line)
+            if "Ctrl-C ends the demo" in line:
+                break
+        else:
+            pytest.fail(f"the demo ended: {''.join(lines)}")
+        assert "In another terminal:" in lines[-1], lines[-1]
+        hints = [demo.stdout.readline().strip() for _ in range(3)]
+        assert [h.split(" --")[0].rsplit(" ", 1)[1] for h in hints] == ["top", "status",
+                                                                       "monitor"], hints
+        second = tmp_path / "second"
+        second.mkdir()
+        limits = {"top": " --once", "status": "", "monitor": " --duration 0.5"}
+        for hint in hints:
+            sub = hint.split(" --")[0].rsplit(" ", 1)[1]
+            pasted = subprocess.run(["bash", "-c", hint + limits[sub]], cwd=second, env=env,
+                                    capture_output=True, text=True, timeout=120, check=False)
+            assert pasted.returncode == 0, (hint, pasted.stderr)
+            assert "command not found" not in pasted.stderr
+    finally:
+        demo.send_signal(signal.SIGINT)
+        assert demo.wait(timeout=20) == 0
