@@ -173,7 +173,8 @@ def _show(args: argparse.Namespace, directory: Path, network_path: Path, network
                     d.DevExchangeIO(board_no, 0, bytes([counter]) * 32, 0, 0, 100)
                     snapshot = status_cli.read_image(board_no, str(directory))
                     if snapshot is not None:
-                        live.update(status_cli.render(board_no, status_cli.snapshot(snapshot)),
+                        live.update(status_cli.render(board_no, status_cli.snapshot(
+                            snapshot, {node.id: node.error_control for node in network.nodes})),
                                     refresh=True)
                     time.sleep(0.2)
     except (CifError, ConfigurationError) as exc:

@@ -4,6 +4,7 @@ person pastes them, and the one-line errors they get instead of tracebacks.
 
 from __future__ import annotations
 
+import json
 import os
 import shutil
 import signal
@@ -13,7 +14,11 @@ from pathlib import Path
 
 import pytest
 
-from tests.conftest import ROOT
+from dpm.layout import TASK2_STATE
+from host_api.network_view import remember_network
+from tests.conftest import ROOT, start_card, wait_until
+from tests.test_top_model import image as top_image
+from tests.test_top_model import model as top_model
 
 CC = shutil.which("cc") or shutil.which("gcc")
 
@@ -138,3 +143,48 @@ def test_every_command_the_demo_prints_works_in_a_second_terminal(tmp_path: Path
     finally:
         demo.send_signal(signal.SIGINT)
         assert demo.wait(timeout=20) == 0
+
+
+# --- Err_Event 30 in the words of the node's error control ----------------------------------
+
+HEARTBEAT_FAILED = "heartbeat failed: no heartbeat within the consumer time"
+
+
+def test_top_and_status_say_heartbeat_for_a_heartbeat_node(tmp_path: Path) -> None:
+    """Err_Event 30 on a heartbeat node read "guarding failed" in top and status."""
+    card = top_model(tmp_path)  # node 1: heartbeat (the default), node 2: guarding
+    card.update_image(top_image(err=(1, 30)), 1.0)
+    rows = {row.node: row for row in card.node_rows()}
+    assert rows[1].last_error[1].startswith(HEARTBEAT_FAILED)
+    assert f"Err_Event 30 at node 1: {HEARTBEAT_FAILED}" in card.new_events(0)[0]
+
+    # status: the image of a card that reports it, and the network configure noted beside it
+    (tmp_path / "board0.dpm").write_bytes(top_image(err=(1, 30)))
+    remember_network(tmp_path, 0, tmp_path / "net.toml")
+    done = cifemu("status", "--json", "--dpm-dir", str(tmp_path))
+    assert done.stdout, done.stderr
+    assert json.loads(done.stdout)["task2state"]["err_text"].startswith(HEARTBEAT_FAILED)
+    # without the network the text names both protocols, never guarding alone
+    (tmp_path / "board0.network").unlink()
+    done = cifemu("status", "--json", "--dpm-dir", str(tmp_path))
+    assert "heartbeat or guarding" in json.loads(done.stdout)["task2state"]["err_text"]
+
+
+def test_the_firmware_log_gives_the_err_event_text(tmp_path: Path) -> None:
+    """The log said `node 5: error 30` and no more."""
+    network = tmp_path / "net.toml"
+    network.write_text("[[node]]\nid = 5\nheartbeat_ms = 200\n"
+                       "[node.sim]\nheartbeat_stop_after_s = 0.5\n")
+    card = start_card(tmp_path, 0, "--simulate", str(network), "--configure",
+                      "--log-level", "INFO")
+    try:
+        mm = card.map()
+        try:
+            wait_until(lambda: mm[TASK2_STATE + 3] == 30, 20, "Err_Event 30")
+        finally:
+            mm.close()
+    finally:
+        card.stop()
+    assert card.proc.stderr is not None
+    log = card.proc.stderr.read().decode()
+    assert f"node 5: Err_Event 30, {HEARTBEAT_FAILED}" in log, log

@@ -34,7 +34,7 @@ from dpm.com import EMCY_ENTRIES, NodeStatus
 from dpm.com import NodeDiagnosis as Diagnosis
 from dpm.commands import NMT_RESET_NODE as NMT_RESET
 from dpm.commands import NMT_START, NMT_STOP
-from dpm.errors import NodeEvent
+from dpm.errors import NodeEvent, err_event_text
 from firmware.frames import SDO_FRAME_LENGTH
 
 if TYPE_CHECKING:
@@ -442,7 +442,8 @@ class NodeHandler:
         """The node left data exchange: report it; retry or let auto-clear stop all."""
         if self.state in (State.INACTIVE, State.DISCONNECTED):
             return
-        log.info("node %d: error %d", self.address, event)
+        log.info("node %d: Err_Event %d, %s", self.address, event, err_event_text(
+            self.address, event, "heartbeat" if self.heartbeat else "guarding"))
         self.state = State.FAILED
         self.diag.actual_error = event
         self.diag.status &= ~GUARD_ACTIVE_BIT
