@@ -8,6 +8,7 @@ import json
 import os
 import shutil
 import signal
+import socket
 import subprocess
 import sys
 from pathlib import Path
@@ -188,3 +189,32 @@ def test_the_firmware_log_gives_the_err_event_text(tmp_path: Path) -> None:
     assert card.proc.stderr is not None
     log = card.proc.stderr.read().decode()
     assert f"node 5: Err_Event 30, {HEARTBEAT_FAILED}" in log, log
+
+
+# --- cifemu 309: the hints the other commands give ------------------------------------------
+
+
+def test_309_without_a_card_asks_whether_the_firmware_runs(tmp_path: Path) -> None:
+    """`cifemu 309` gave a bare -34 where the other commands ask "is `cifemu firmware
+    --board N` running?"."""
+    env = dict(os.environ, CIF_DPM_DIR=str(tmp_path))
+    done = cifemu("309", "exec", "--direct", "--board", "1", "1 read 0x1000 0 u32", env=env)
+    assert done.returncode == 1
+    assert done.stderr.count("\n") == 1 and "Traceback" not in done.stderr
+    assert "(-34)" in done.stderr and "is `cifemu firmware --board 1` running?" in done.stderr
+
+
+def test_309_serve_on_a_port_in_use_says_so_in_one_line(tmp_path: Path) -> None:
+    """It printed Python's raw `[Errno 98] error while attempting to bind ...`."""
+    card = start_card(tmp_path)
+    try:
+        with socket.socket() as taken:
+            taken.bind(("127.0.0.1", 0))
+            taken.listen()
+            port = taken.getsockname()[1]
+            done = cifemu("309", "serve", "--port", str(port), "--dpm-dir", str(tmp_path))
+    finally:
+        card.stop()
+    assert done.returncode == 1
+    assert done.stderr == (f"cifemu 309: port {port} on 127.0.0.1 is in use; choose another "
+                           "with --port\n")
