@@ -238,6 +238,13 @@ def check_bus_parameters(data: bytes, nodes: Sequence[NodeParameterSet] = ()) ->
         if node_set.active
         for pdo in node_set.atPdoCfgData
     )
+    if bus.SYNC_Timer != 0 and not synchronous and nodes:
+        # [ours] a warning: the card accepts it, and then sends no SYNC at all (seed 4.2:
+        # "activated only if at least one node uses SYNC controlled transmission types")
+        findings.append(Finding(
+            CanF.NO_ERROR, f"SYNC_Timer {bus.SYNC_Timer} ms, but no active node has a "
+            "synchronous PDO (transmission type 0..240): the card sends no SYNC",
+            field="SYNC_Timer", severity="warning"))
     if bus.SYNC_Timer == 0 and synchronous:
         findings.append(
             Finding(

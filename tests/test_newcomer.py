@@ -218,3 +218,55 @@ def test_309_serve_on_a_port_in_use_says_so_in_one_line(tmp_path: Path) -> None:
     assert done.returncode == 1
     assert done.stderr == (f"cifemu 309: port {port} on 127.0.0.1 is in use; choose another "
                            "with --port\n")
+
+
+# --- silent no-ops --------------------------------------------------------------------------
+
+NO_SYNC = """
+[bus]
+sync_period_ms = 10
+[[node]]
+id = 1
+[[node.pdo]]
+direction = "output"
+cob_id = 0x201
+transmission = 255
+"""
+
+
+def test_sync_period_without_a_synchronous_pdo_is_warned_of(tmp_path: Path) -> None:
+    """The card sends no SYNC when no node has a synchronous PDO (seed 4.2); build, check and
+    configure said nothing, and `monitor --type sync` then waited for ever."""
+    network = tmp_path / "net.toml"
+    network.write_text(NO_SYNC)
+    built = cifemu("dbm", "build", str(network), "-o", str(tmp_path / "net.dbm"))
+    assert built.returncode == 0, built.stderr
+    assert "warning" in built.stdout and "the card sends no SYNC" in " ".join(built.stdout.split())
+    checked = cifemu("dbm", "check", str(tmp_path / "net.dbm"), "--json")
+    assert checked.returncode == 0
+    assert any("the card sends no SYNC" in finding["detail"]
+               for finding in json.loads(checked.stdout)), checked.stdout
+    env = dict(os.environ, CIF_DPM_DIR=str(tmp_path / "no-card"))
+    configured = cifemu("configure", str(network), env=env)  # no card: the warning comes first
+    assert configured.stderr.startswith(
+        "cifemu configure: warning: SYNC_Timer 10 ms, but no active node has a synchronous PDO")
+    synchronous = tmp_path / "sync.toml"
+    synchronous.write_text(NO_SYNC.replace("transmission = 255", "transmission = 1"))
+    built = cifemu("dbm", "build", str(synchronous), "-o", str(tmp_path / "sync.dbm"))
+    assert built.returncode == 0 and "warning" not in built.stdout
+
+
+def test_sim_on_the_virtual_bus_says_nothing_outside_reaches_it(tmp_path: Path) -> None:
+    network = tmp_path / "net.toml"
+    network.write_text("[[node]]\nid = 1\n")
+    sim = subprocess.Popen([sys.executable, "-m", "cifemu", "sim", str(network), "--interface",
+                            "virtual", "--channel", "lonely", "--log-level", "WARNING"],
+                           stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        assert sim.stdout is not None and sim.stderr is not None
+        assert sim.stdout.readline().startswith("simulating")
+    finally:
+        sim.terminate()
+        _, err = sim.communicate(timeout=20)
+    assert "virtual bus lives in this process only" in err
+    assert "--interface shm --channel lonely" in err
