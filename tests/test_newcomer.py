@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import os
+import shlex
 import shutil
 import signal
 import socket
@@ -15,9 +16,13 @@ from pathlib import Path
 
 import pytest
 
-from dpm.layout import TASK2_STATE
+from dbm_tools.network import load_network
+from dpm.layout import TASK2_STATE, TASK_STATE_SIZE
+from dpm.task2 import ComDiagnostics
 from host_api.network_view import remember_network
 from tests.conftest import ROOT, start_card, wait_until
+from tests.test_readme import NETWORK as README_NETWORK
+from tests.test_readme import readme_blocks
 from tests.test_top_model import image as top_image
 from tests.test_top_model import model as top_model
 
@@ -270,3 +275,45 @@ def test_sim_on_the_virtual_bus_says_nothing_outside_reaches_it(tmp_path: Path) 
         _, err = sim.communicate(timeout=20)
     assert "virtual bus lives in this process only" in err
     assert "--interface shm --channel lonely" in err
+
+
+# --- the README's C example -----------------------------------------------------------------
+
+
+@pytest.mark.skipif(CC is None, reason="no C compiler")
+def test_the_readmes_card_line_and_app_c_exchange_process_data(tmp_path: Path) -> None:
+    """The README started the C example's card without --configure: every DevExchangeIO of
+    the program answered -21. Its card line, run as printed (in a directory of the test's),
+    and its app.c, built and run as printed, exchange data."""
+    blocks = readme_blocks()
+    card_line = next(line for block in blocks if "./app" in block.code
+                     and "cifemu firmware" in block.code
+                     for line in block.code.splitlines() if line.startswith("cifemu firmware"))
+    app = next(block for block in blocks if "cat > app.c" in block.code)
+    images = tmp_path / "cif"
+    (tmp_path / "net.toml").write_text(README_NETWORK)
+    words = shlex.split(card_line.split("#")[0].replace("/dev/shm/cif", str(images)))
+    assert words[-1] == "&", card_line
+    card = subprocess.Popen([sys.executable, "-m", *words[:-1], "--log-level", "WARNING"],
+                            cwd=tmp_path, stderr=subprocess.PIPE)
+    try:
+        nodes = sorted(node.id for node in load_network(tmp_path / "net.toml").nodes)
+
+        def operating() -> bool:
+            try:
+                raw = (images / "board0.dpm").read_bytes()
+            except OSError:
+                return False
+            state = ComDiagnostics.decode(raw[TASK2_STATE : TASK2_STATE + TASK_STATE_SIZE])
+            return state.operating() == nodes
+
+        wait_until(operating, 30, "the README card's nodes in data exchange")
+        env = dict(os.environ, CIF_DPM_DIR=str(images),
+                   PATH=f"{Path(sys.executable).parent}{os.pathsep}{os.environ['PATH']}")
+        done = subprocess.run(["bash", "-e", "-c", app.code], cwd=tmp_path, env=env,
+                              capture_output=True, text=True, timeout=120, check=False)
+    finally:
+        card.terminate()
+        card.wait(timeout=20)
+    assert done.returncode == 0, done.stdout + done.stderr
+    assert done.stdout.startswith("DevExchangeIO: 0,"), done.stdout
