@@ -317,3 +317,20 @@ def test_the_readmes_card_line_and_app_c_exchange_process_data(tmp_path: Path) -
         card.wait(timeout=20)
     assert done.returncode == 0, done.stdout + done.stderr
     assert done.stdout.startswith("DevExchangeIO: 0,"), done.stdout
+
+
+def test_monitor_says_it_waits_for_a_sync_that_does_not_come(tmp_path: Path) -> None:
+    """`monitor --type sync --count 3` on a card that sends no SYNC waited for ever in
+    silence; after two quiet seconds it says what it waits for, and why none may come."""
+    network = tmp_path / "net.toml"
+    network.write_text(NO_SYNC)
+    card = start_card(tmp_path, 0, "--simulate", str(network), "--configure")
+    try:
+        done = cifemu("monitor", "--dpm-dir", str(tmp_path), "--type", "sync", "--count", "3",
+                      "--duration", "4")
+    finally:
+        card.stop()
+    assert done.returncode == 0 and done.stdout == "", done.stderr
+    assert done.stderr.startswith("cifemu monitor: no sync frame in 2 s, still waiting"), \
+        done.stderr
+    assert "synchronous PDO" in done.stderr and done.stderr.count("\n") == 1
