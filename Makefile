@@ -58,13 +58,15 @@ build-libcif:
 	$(MAKE) -C libcif all sanitize
 
 # libcifdev.so (cifemu legacy) for x86-64 and i386. The i386 build needs gcc-multilib and
-# libc6-i386: installed here when missing and this runs as root with apt-get (CI);
-# otherwise libcif/build/i386/MISSING says in one line what to install, and its tests skip.
+# libc6-i386: when they are missing and this runs as root with apt-get (CI), it installs
+# them, saying so first; CIFEMU_NO_APT=1 installs nothing. Without them
+# libcif/build/i386/MISSING says in one line what to install, and the i386 tests skip.
 .PHONY: build-legacy
 build-legacy:
-	@if ! printf 'int main(void){return 0;}\n' | $(CC) -m32 -x c - -o /tmp/.cifemu-m32-probe 2>/dev/null \
+	@if [ -z "$(CIFEMU_NO_APT)" ] \
+	    && ! printf 'int main(void){return 0;}\n' | $(CC) -m32 -x c - -o /tmp/.cifemu-m32-probe 2>/dev/null \
 	    && [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null; then \
-	  echo 'installing gcc-multilib libc6-i386 for the i386 build of libcifdev.so'; \
+	  echo 'make: apt-get install gcc-multilib libc6-i386, for the i386 build of libcifdev.so (32-bit legacy binaries); make ... CIFEMU_NO_APT=1 installs nothing and skips the i386 tests'; \
 	  (apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq \
 	    gcc-multilib libc6-i386) >/dev/null || true; \
 	fi; rm -f /tmp/.cifemu-m32-probe

@@ -77,11 +77,13 @@ The whole schema, with defaults::
 
 from __future__ import annotations
 
+import re
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from dbm_tools.container import FILE_MAGIC
 from dbm_tools.errors import DbmError
 from dpm.cia305 import UNCONFIGURED, LssAddress
 
@@ -448,14 +450,47 @@ def parse_network(text: str, base: Path = Path(".")) -> Network:
     return Network(bus, nodes)
 
 
+UTF16_BOMS = (b"\xff\xfe", b"\xfe\xff")
+"""A UTF-16 (or UTF-32) file starts with one of these: what Windows editors save as "Unicode"."""
+UTF8_BOM = b"\xef\xbb\xbf"
+EDS_SECTION = re.compile(rb"^\[(FileInfo|DeviceInfo|DeviceComissioning)\]", re.M | re.I)
+"""Sections only an EDS or DCF file (CiA 306) has; one near the start names the file's kind."""
+
+
+def decode_description(data: bytes, path: Path) -> str:
+    """The text of a network description: TOML is UTF-8. A file of another kind -- the
+    SyCon DBM or EDS a SyCon user mixes up with it most easily, or UTF-16 text -- is
+    named as such, with the command that takes it, instead of a decoding traceback or a
+    TOML error about its first odd byte [ours]."""
+    name = path.name
+    if data.startswith(FILE_MAGIC):
+        raise NetworkError(
+            f"{name} is a SyCon DBM database, not a network description: use "
+            f"`cifemu dbm download {path}` for the card's flash, or `cifemu dbm show {path}`")
+    if EDS_SECTION.search(data[:4096]):
+        raise NetworkError(
+            f"{name} is an EDS/DCF device description, not a network description: name it "
+            f"in a node's eds key (eds = \"{name}\")")
+    if data.startswith(UTF16_BOMS):
+        raise NetworkError(
+            f"{name} is UTF-16 text; a network description is TOML, which is UTF-8: save it "
+            "as UTF-8")
+    try:
+        return data.removeprefix(UTF8_BOM).decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise NetworkError(
+            f"{name} is not a network description: byte {exc.start} (0x{data[exc.start]:02x}) "
+            "is not UTF-8 text; a network description is a TOML text file") from None
+
+
 def load_network(path: str | Path) -> Network:
     """Read and parse a network description file; NetworkError when it cannot be read or
     used."""
     path = Path(path)
     try:
-        text = path.read_text()
+        data = path.read_bytes()
     except OSError as exc:
         raise NetworkError(f"cannot read {path}: {exc.strerror}") from None
-    network = parse_network(text, path.parent)
+    network = parse_network(decode_description(data, path), path.parent)
     network.path = path
     return network

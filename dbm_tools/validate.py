@@ -65,6 +65,7 @@ from dbm_tools.tables import (
     ProjektRecord,
     checksum_crc,
 )
+from dpm.cia301 import SYNC_TYPES_MAX
 from dpm.commands import DOWNLOAD_AREA_SIZE
 from dpm.errors import CanF, DeviceEvent, RcsF
 from dpm.layout import IO_AREA_SIZE
@@ -374,6 +375,24 @@ def _check_nodes(table: DbmTable | None, master_node_id: int) -> list[Finding]:
     return findings
 
 
+def _sync_without_synchronous_pdo(bus_data: bytes, nodes: DbmTable | None) -> list[Finding]:
+    """[ours] a warning: SYNC_Timer set while no active node has a synchronous PDO. The card
+    accepts it and then sends no SYNC at all (seed 4.2: "activated only if at least one node
+    uses SYNC controlled transmission types"); a tool user expecting SYNC frames hears why."""
+    try:
+        bus = BusParameterSet.decode(bus_data)
+        node_sets = [NodeParameterSet.decode(data[1:]) for data in (nodes.records if nodes else [])]
+    except DbmError:
+        return []  # the data checks report it
+    synchronous = any(pdo.bTransType <= SYNC_TYPES_MAX for node_set in node_sets
+                      if node_set.active for pdo in node_set.atPdoCfgData)
+    if bus.SYNC_Timer == 0 or synchronous or not node_sets:
+        return []
+    return [Finding(CanF.NO_ERROR, f"SYNC_Timer {bus.SYNC_Timer} ms, but no active node has a "
+                    "synchronous PDO (transmission type 0..240): the card sends no SYNC",
+                    field="SYNC_Timer", severity="warning")]
+
+
 def check_dbm(dbm: DbmFile) -> list[Finding]:
     """All checks a card applies to a stored CANopen database, plus warnings for host tools.
 
@@ -397,6 +416,7 @@ def check_dbm(dbm: DbmFile) -> list[Finding]:
     findings += found
     if bus is not None:
         findings += _in_table(check_bus_parameters(bus), BUS_CAN, 1)
+        findings += _in_table(_sync_without_synchronous_pdo(bus, dbm.table(NODES)), BUS_CAN, 1)
     plc, found = _single_record(dbm, PLC_PARAM, required=False)
     findings += found
     if plc is not None:

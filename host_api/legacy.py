@@ -102,12 +102,19 @@ def preload_for(program: ElfProgram, path: Path) -> Path:
     return wanted
 
 
-def resolve(command: str) -> Path:
-    """PROGRAM as execvp would find it."""
-    found = command if "/" in command else shutil.which(command)
+def resolve(command: str) -> str:
+    """PROGRAM as execvp finds it, and as env, sudo and strace take it: a name with a slash
+    is the path itself, kept as given (a Path would make ./prog a bare name, which the
+    exec then looked up on $PATH); only a bare name is looked up on $PATH."""
+    if "/" in command:
+        if not os.path.exists(command):
+            raise LegacyError(f"{command}: No such file or directory")
+        return command
+    found = shutil.which(command)
     if found is None:
-        raise LegacyError(f"{command}: not found")
-    return Path(found)
+        raise LegacyError(f"{command}: not found on $PATH (give ./{command} for a program "
+                          "in this directory)")
+    return found
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -127,7 +134,8 @@ def run(args: argparse.Namespace) -> int:
               file=sys.stderr)
         return 2
     try:
-        path = resolve(command[0])
+        program = resolve(command[0])
+        path = Path(program)
         preload = preload_for(read_elf(path), path)
     except LegacyError as exc:
         print(f"cifemu legacy: {exc}", file=sys.stderr)
@@ -137,8 +145,8 @@ def run(args: argparse.Namespace) -> int:
     env["CIF_DPM_DIR"] = str(Path(directory).resolve())
     env["LD_PRELOAD"] = " ".join(filter(None, [str(preload), env.get("LD_PRELOAD", "")]))
     try:
-        done = subprocess.run([str(path), *command[1:]], env=env, check=False)
+        done = subprocess.run([program, *command[1:]], env=env, check=False)
     except OSError as exc:
-        print(f"cifemu legacy: {path}: {exc.strerror}", file=sys.stderr)
+        print(f"cifemu legacy: {program}: {exc.strerror}", file=sys.stderr)
         return 1
     return done.returncode if done.returncode >= 0 else 128 - done.returncode

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import time
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -17,8 +18,9 @@ from rich.console import Console, Group
 from rich.live import Live
 from rich.table import Table
 
+from dbm_tools.network import NetworkError, load_network
 from dpm import flags as fl
-from dpm.errors import ERR_NODE_DEVICE
+from dpm.errors import ERR_NODE_DEVICE, err_event_text
 from dpm.flags import DevFlag, HostFlag
 from dpm.image import dpm_dir, image_path, open_image
 from dpm.layout import image_view
@@ -34,6 +36,7 @@ from firmware.card_info import read_card_info
 from host_api.cli_options import add_card_options
 from host_api.cli_output import fail, print_json, run_guarded
 from host_api.liveness import firmware_liveness
+from host_api.network_view import remembered_network
 
 EXIT_OK = 0
 EXIT_DEAD = 3
@@ -57,8 +60,23 @@ def _text(raw: Any) -> str:
     return bytes(raw).decode("ascii", "replace").strip(" \0")
 
 
-def snapshot(image: bytes) -> dict[str, Any]:
-    """Everything ``status`` shows, decoded from one copy of the image."""
+def error_controls(directory: Path, board: int) -> dict[int, str]:
+    """Each node's error control ("heartbeat", "guarding", "none") from the network the card
+    was configured from, as configure and the demo note it beside the image; empty when
+    none is noted or it no longer loads. The image does not hold it, and Err_Event 30
+    reads differently for a heartbeat node (dpm.errors.ERROR_CONTROL_TEXT)."""
+    path = remembered_network(directory, board)
+    if path is None:
+        return {}
+    try:
+        return {node.id: node.error_control for node in load_network(path).nodes}
+    except NetworkError:
+        return {}
+
+
+def snapshot(image: bytes, error_control: Mapping[int, str] | None = None) -> dict[str, Any]:
+    """Everything ``status`` shows, decoded from one copy of the image; ``error_control``
+    (node -> "heartbeat" or "guarding", see error_controls) words Err_Event 30."""
     view: Any = image_view(bytearray(image))
     host, dev = int(view["HostFlags"]), int(view["DevFlags"])
     rcs, devinfo = view["RcsInfo"], view["DevInfo"]
@@ -107,7 +125,8 @@ def snapshot(image: bytes) -> dict[str, Any]:
             "can_state": diag.can_state_name,
             "err_node_adr": diag.bErr_rem_adr,
             "err_event": diag.bErr_event,
-            "err_text": diag.err_text,
+            "err_text": err_event_text(diag.bErr_rem_adr, diag.bErr_event,
+                                       (error_control or {}).get(diag.bErr_rem_adr)),
             "bus_error_cnt": diag.usBus_Error_Cnt,
             "bus_off_cnt": diag.usBus_Off_Cnt,
             "msg_time_out": diag.usMsg_Time_Out,
@@ -237,7 +256,7 @@ Task2State, the card's view of the network (one bit per node-ID in Nd_*)
   Nd_diag    nodes with diagnostics waiting (an error or an EMCY): the host
              reads them with COM_Node_Diag (msg.b 66)
   error      Err_Event at Err_Node_adr (device = the card itself), e.g. 30
-             guarding failed, 31 the node left OPERATIONAL, 34 no answer while
+             guarding (or heartbeat) failed, 31 the node left OPERATIONAL, 34 no answer while
              configuring it, 35/36 profile/device type (1000h) differs, 212
              faulty database, 220 host watchdog expired
   global bits  CTRL parameter error, ACLR auto-clear, NEXC a node not in data
@@ -266,7 +285,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _full_snapshot(image: bytes, directory: Path, board: int) -> dict[str, Any]:
-    return {"board": board, **snapshot(image), "health": health(directory, board)}
+    return {"board": board, **snapshot(image, error_controls(directory, board)),
+            "health": health(directory, board)}
 
 
 def run(args: argparse.Namespace) -> int:

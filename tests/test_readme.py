@@ -2,7 +2,8 @@
 
 Each fenced ``python`` and ``sh`` block of the README runs as written, in a directory of its
 own, against a running card that simulates the README's own example network (its first
-``toml`` block, saved there as ``network.toml``) and is configured with it on line. A block
+``toml`` block, saved there as ``network.toml``; ``tests/`` is the clone's, as a block pasted
+at the clone's root sees it) and is configured with it on line. A block
 that cannot run says why in an HTML comment on the line before it,
 ``<!-- not run by tests/test_readme.py: REASON -->``, and its test skips with that reason.
 """
@@ -107,6 +108,7 @@ def test_readme_block_runs_as_written(block: Block, configured_card: Card, tmp_p
     work = tmp_path / "work"
     work.mkdir()
     (work / "network.toml").write_text(NETWORK)
+    (work / "tests").symlink_to(ROOT / "tests")  # the clone's C examples, as from its root
     env = dict(os.environ, CIF_DPM_DIR=str(configured_card.directory),
                PATH=f"{Path(sys.executable).parent}{os.pathsep}{os.environ['PATH']}")
     command = ([sys.executable, "-c", block.code] if block.language == "python"

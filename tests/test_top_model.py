@@ -73,9 +73,10 @@ def test_err_event_is_logged_once_and_kept_as_the_nodes_last_error(tmp_path: Pat
     card.update_image(image(err=(2, 30)), 1.0)
     card.update_image(image(err=(2, 30)), 2.0)
     rows = {row.node: row for row in card.node_rows()}
-    assert rows[2].last_error == (30, "guarding failed")
+    guarding = "guarding failed: no answer to node guarding within the life time"
+    assert rows[2].last_error == (30, guarding)
     assert [e.split(" ", 1)[1] for e in card.new_events(0)] == [
-        "Err_Event 30 at node 2: guarding failed"]
+        f"Err_Event 30 at node 2: {guarding}"]
 
 
 def test_process_image_changes_history_and_bus_load(tmp_path: Path) -> None:

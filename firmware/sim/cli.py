@@ -91,6 +91,12 @@ def run(args: argparse.Namespace) -> int:
     except NetworkError as exc:
         return fail("sim", str(exc), args.json)
     bitrate = args.bitrate or network.bus.bitrate
+    if args.interface == "virtual":
+        # [ours] warned, not refused: the run harms nothing, and the line names what works.
+        print("cifemu sim: warning: python-can's virtual bus lives in this process only: no "
+              "card, monitor or candump outside it reaches these nodes; use --interface shm "
+              f"--channel {args.channel} (and `cifemu firmware --interface shm --channel "
+              f"{args.channel}`)", file=sys.stderr, flush=True)
     try:
         bus = can.Bus(interface=args.interface, channel=args.channel, bitrate=bitrate)
     except (can.CanError, OSError, ValueError, ImportError) as exc:

@@ -17,6 +17,7 @@ from __future__ import annotations
 import argparse
 import asyncio
 import contextlib
+import errno
 import importlib
 import json
 import math
@@ -31,8 +32,10 @@ from pathlib import Path
 
 from platformdirs import user_state_path
 
+from dpm.errors import Drv
 from dpm.image import MAX_DEV_BOARDS
 from dpm.message import Message
+from host_api.board import CifError
 from host_api.cia309.datatypes import Dialect
 from host_api.cia309.formatters import format_event
 from host_api.cia309.framing import DEFAULT_MAX_LINE, LineFramer
@@ -159,15 +162,34 @@ def _client_arguments(parser: argparse.ArgumentParser) -> None:
     _card_arguments(parser)
 
 
+NO_CARD = (Drv.DRV_USR_OPEN_ERROR, Drv.DRV_USR_DEV_NUMBER_INVALID, Drv.DRV_DEV_NOT_READY)
+"""Driver codes of a board no firmware serves: no image directory, no image, no READY."""
+
+
+def _error_text(exc: Cia309Error | OSError, args: argparse.Namespace) -> str:
+    """The one line a failed command prints, with the hint the other commands give: a
+    board no firmware serves asks whether it runs, a port in use names it (not Python's
+    ``[Errno 98]``)."""
+    if isinstance(exc, OSError) and exc.errno == errno.EADDRINUSE and hasattr(args, "port"):
+        return f"port {args.port} on {args.host} is in use; choose another with --port"
+    cause = exc.__cause__
+    if isinstance(cause, CifError) and cause.code in NO_CARD:
+        boards = _boards(args) if hasattr(args, "board") else [0]
+        board = boards[0] if len(boards) == 1 else "N"
+        return f"{exc}; is `cifemu firmware --board {board}` running?"
+    return str(exc)
+
+
 def run(args: argparse.Namespace) -> int:
     action: Callable[[argparse.Namespace], int] = args.action_func
     try:
         return action(args)
     except (Cia309Error, OSError) as exc:
+        text = _error_text(exc, args)
         if getattr(args, "json", False):
-            print(json.dumps({"ok": False, "error": {"text": str(exc)}}))
+            print(json.dumps({"ok": False, "error": {"text": text}}))
         else:
-            print(f"cifemu 309: {exc}", file=sys.stderr)
+            print(f"cifemu 309: {text}", file=sys.stderr)
         return 1
 
 
