@@ -42,6 +42,8 @@ COMMANDS = (
     Command("libcif", "cifemu.libcif", "compiler and linker flags for C programs (libcif)"),
     Command("legacy", "host_api.legacy",
             "run an unchanged legacy binary against the card (/dev/cif preloaded)"),
+    Command("replay", "cifemu.commands.replay",
+            "replay a recorded session against a card and show what differs (or --diff A B)"),
     Command("demo", "cifemu.demo", "a card, a simulated network, its live view (Ctrl-C ends)"),
 )
 """The commands, in the order ``cifemu --help`` lists them."""

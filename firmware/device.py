@@ -15,7 +15,7 @@ import time
 from collections import deque
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from dpm import flags as fl
 from dpm.doorbell import POLL_INTERVAL, DeviceBell
@@ -47,6 +47,9 @@ from firmware.flash import FlashStore, StoredDatabase, default_flash_dir
 from firmware.plc import PlcTask
 from firmware.rcs import RcsTask, Start
 from firmware.task import Task
+
+if TYPE_CHECKING:
+    from firmware.recorder import Recorder
 
 log = logging.getLogger(__name__)
 
@@ -106,6 +109,8 @@ class Device:
         self.plc = PlcTask(self)
         self.can = CanTask(self, bus)
         self.tasks: dict[int, Task] = {t.number: t for t in (self.rcs, self.plc, self.can)}
+        self.recorder: Recorder | None = None
+        """Set before ``run`` to record a session (firmware/recorder.py)."""
 
     # --- life cycle -----------------------------------------------------------------
 
@@ -135,6 +140,8 @@ class Device:
         self.can.close()
         self.write_host_flags(0)
         self._flush()
+        if self.recorder is not None:
+            self.recorder.close()
         self.bell.close()
         del self.view
         self.mm.flush()
@@ -173,6 +180,8 @@ class Device:
         self.mm[HOST_FLAGS] = 0  # a killed predecessor's READY is not this firmware's
 
     def write_host_flags(self, value: int) -> None:
+        if self.recorder is not None:
+            self.recorder.host_flags(self.mm[HOST_FLAGS], value)
         self.mm[HOST_FLAGS] = value
         self._ring = True
 
@@ -277,6 +286,8 @@ class Device:
             self._calls.popleft()()
         mm = self.mm
         dev = mm[DEV_FLAGS]
+        if self.recorder is not None:
+            self.recorder.dev_flags(dev)
         if dev & (fl.RESET | fl.INIT):
             self.rcs.start(Start.from_flags(dev))
             self._flush()
@@ -328,13 +339,18 @@ class Device:
         raw = self.mm[DEV_MBX : DEV_MBX + MSG_MAX_SIZE]
         self.toggle_host_flags(fl.DEVACK)
         msg = Message.decode(raw)
+        if self.recorder is not None:
+            self.recorder.put(msg)
         task = self.tasks.get(msg.rx)
         answer = task.handle(msg) if task else msg.answer(f=F_UNKNOWN_TASK)
         if answer is not None and not (msg.e & Ext.NAK and answer.f == 0):
             self.outbox.append(answer)
 
     def _deliver(self) -> None:
-        raw = self.outbox.popleft().encode()
+        msg = self.outbox.popleft()
+        if self.recorder is not None:
+            self.recorder.answer(msg)
+        raw = msg.encode()
         self.mm[PC_MBX : PC_MBX + len(raw)] = raw
         self.toggle_host_flags(fl.HOSTCOM)
 

@@ -1,0 +1,1 @@
+"""The ``cifemu`` commands, one module each (``cifemu.cli.COMMANDS`` lists them)."""

@@ -1,0 +1,181 @@
+"""Recording a session from inside the card [ours] (docs/recording.md).
+
+The device loop calls a ``Recorder`` at the points where it already looks: a message
+taken from DevMbx, an answer put into PcMbx, a HostFlags write, the DevFlags it read
+for its turn. Each call appends a tuple to a deque (atomic, never blocking) and
+returns; a writer thread drains the deque every ``DRAIN_S``, computes what changed and
+writes ``session.jsonl``. So recording costs the loop a few attribute lookups and, at
+a process-data handshake, one copy of the two I/O areas; never a write or a lock.
+
+The pid of a message's host is read from the transaction ledger at the moment the
+card takes the message: the ledger line is gone once the host took the answer.
+"""
+
+from __future__ import annotations
+
+import os
+import threading
+import time
+from collections import deque
+from pathlib import Path
+from typing import Any
+
+from dpm import flags as fl
+from dpm import session as s
+from dpm.image import CardDirectory, lock_path
+from dpm.layout import (
+    IO_AREA_SIZE,
+    RCV_PD,
+    SND_PD,
+    TASK2_PARAMETER,
+    TASK2_STATE,
+    TASK_STATE_SIZE,
+)
+from dpm.message import Ext, Message
+
+DRAIN_S = 0.05
+"""How often the writer drains the queue: the loop never wakes it."""
+LEDGER_BYTES = 128 * 96
+"""The ledger's largest size (host_api.locks.LEDGER_MAX lines of libcif's longest)."""
+
+_IO_END = RCV_PD + IO_AREA_SIZE
+
+
+class SessionExistsError(FileExistsError):
+    """The directory already holds a session: a recording never overwrites one."""
+
+
+class Recorder:
+    """One session being written; the hooks are called by the device loop's threads."""
+
+    def __init__(self, session: Path, board: int, can_log: bool) -> None:
+        """Create the session's files (before the card powers on: a refusal leaves no
+        card up); ``start`` then connects it to the card."""
+        self.path = session
+        self._files = CardDirectory(session, create=True)
+        try:
+            fd = self._files.open(s.EVENTS, os.O_WRONLY | os.O_CREAT | os.O_EXCL)
+        except FileExistsError:
+            self._files.close()
+            raise SessionExistsError(f"{session} already holds a session") from None
+        self._out = os.fdopen(fd, "w", encoding="ascii")
+        self._files.replace(s.META, s.encode_meta(board, time.time(), time.monotonic(),
+                                                  os.getpid(), can_log).encode())
+        self._board = board
+        self._image_files: CardDirectory | None = None
+        self._ledger_name = ""
+        self._ledger = -1
+        self._mm: Any = None
+        self._queue: deque[tuple[Any, ...]] = deque()
+        self._dev = -1
+        self._io = bytes(_IO_END)
+        self._pending: dict[tuple[int, int, int, int], int] = {}
+        """Puts awaiting their answers: (nr, b, rx, tx) -> pid."""
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._write_loop, name="recorder", daemon=True)
+
+    def start(self, image_files: CardDirectory, mm: Any) -> None:
+        """Record the card of ``mm``, whose directory ``image_files`` holds the ledger."""
+        self._image_files = image_files
+        self._ledger_name = lock_path(image_files.path, self._board, "transaction").name
+        self._mm = mm
+        self._thread.start()
+
+    # --- hooks (device loop and ``post`` threads) -------------------------------------
+
+    def put(self, msg: Message) -> None:
+        self._queue.append((s.PUT, time.monotonic(), time.time(), msg, self._read_ledger()))
+
+    def answer(self, msg: Message) -> None:
+        mm = self._mm
+        self._queue.append((s.ANSWER, time.monotonic(), time.time(), msg,
+                            mm[TASK2_STATE : TASK2_STATE + TASK_STATE_SIZE]))
+
+    def host_flags(self, before: int, after: int) -> None:
+        if before == after:
+            return
+        now, wall = time.monotonic(), time.time()
+        self._queue.append((s.HOST_FLAGS, now, wall, before, after))
+        if (before ^ after) & fl.PDACK:
+            mm = self._mm
+            self._queue.append((s.EXCHANGE, now, wall, mm[SND_PD:_IO_END],
+                                mm[TASK2_STATE : TASK2_STATE + TASK_STATE_SIZE]))
+
+    def dev_flags(self, value: int) -> None:
+        if value != self._dev:
+            starting = value & ~max(self._dev, 0) & (fl.RESET | fl.INIT)
+            parameter = (self._mm[TASK2_PARAMETER : TASK2_PARAMETER + s.PARAMETER_SIZE]
+                         if starting else b"")
+            self._queue.append((s.DEV_FLAGS, time.monotonic(), time.time(), self._dev, value,
+                                parameter))
+            self._dev = value
+
+    def _read_ledger(self) -> bytes:
+        if self._ledger < 0:
+            assert self._image_files is not None  # hooks run only after start
+            try:
+                self._ledger = self._image_files.open(self._ledger_name, os.O_RDONLY, own=False)
+            except OSError:
+                return b""  # no host has locked the board yet: nobody to name
+        return os.pread(self._ledger, LEDGER_BYTES, 0)
+
+    # --- the writer --------------------------------------------------------------------
+
+    def close(self) -> None:
+        """Write what is queued and close the session (after the loop's last turn)."""
+        self._stop.set()
+        if self._thread.is_alive():
+            self._thread.join()
+        self._drain()
+        self._out.close()
+        self._files.close()
+        if self._ledger >= 0:
+            os.close(self._ledger)
+
+    def _write_loop(self) -> None:
+        while not self._stop.wait(DRAIN_S):
+            self._drain()
+
+    def _drain(self) -> None:
+        queue = self._queue
+        lines = []
+        while queue:
+            lines.append(s.encode_record(self._record(queue.popleft())) + "\n")
+        if lines:
+            self._out.writelines(lines)
+            self._out.flush()
+
+    def _record(self, item: tuple[Any, ...]) -> s.Record:
+        kind, t, wall = item[0], item[1], item[2]
+        if kind == s.PUT:
+            msg: Message = item[3]
+            pid = s.ledger_pid(item[4], msg)
+            if pid is not None:
+                self._pending[(msg.nr, msg.b, msg.rx, msg.tx)] = pid
+            return s.Record(kind, t, wall, pid, msg=msg)
+        if kind == s.ANSWER:
+            msg = item[3]
+            key = (msg.nr, msg.a, msg.tx, msg.rx)
+            pid = self._pending.get(key)
+            more = msg.f == 0 and msg.e & Ext.SEQ_MASK in (Ext.FIRST, Ext.CONT)
+            if pid is not None and not more:  # a long upload's parts share their request
+                del self._pending[key]
+            return s.Record(kind, t, wall, pid, msg=msg, state=bytes(item[4]))
+        if kind == s.EXCHANGE:
+            io: bytes = item[3]
+            old = self._io
+            self._io = io
+            changes = {area: s.changed_runs(old[start : start + IO_AREA_SIZE],
+                                            io[start : start + IO_AREA_SIZE])
+                       for area, start in zip(s.AREAS, (SND_PD, RCV_PD - SND_PD), strict=True)}
+            return s.Record(kind, t, wall, changes={a: r for a, r in changes.items() if r},
+                            state=bytes(item[4]))
+        if kind == s.DEV_FLAGS:
+            return s.Record(kind, t, wall, before=max(item[3], 0), after=item[4],
+                            parameter=bytes(item[5]))
+        return s.Record(kind, t, wall, before=item[3], after=item[4])
+
+
+def recording_can_log(session: Path) -> Path:
+    """Where the controller's trace of a recorded session goes."""
+    return session / s.CAN_LOG
