@@ -3,14 +3,16 @@
 The comparison rule (docs/recording.md, "What replay compares"): a transcript has a
 line for each message the host put and each answer it got (header and data decoded
 with the card's codecs), each process-data exchange that changed a byte of SndPd or
-RcvPd, each reset the host asked for and each change of its NOTREADY level. Before a
-step's line come the card's levels (READY, RUN, COM) and Task2State as the image held
-them at that step, when they differ from the last ones shown. Left out, because they
-change from run to run without a host's doing: time stamps and pids, msg.nr (the
-host's own numbering), the handshake bits of the flags, levels and states the card
-passed through between two steps, Task2State's four counters, exchanges that changed
-nothing, and COM_Node_Diag's bNodeState (the state the node's last heartbeat or
-guarding answer reported: which one came last is the bus's timing).
+RcvPd, each reset the host asked for and each change of its NOTREADY level. Before an
+exchange's line come the card's levels (READY, RUN, COM) and Task2State as the image
+held them then, when they differ from the last ones shown: a host exchanges once the
+card is in the state it waits for, so these are settled. Left out, because they change
+from run to run without a host's doing: time stamps and pids, msg.nr (the host's own
+numbering), the handshake bits of the flags, levels and Task2State at answers (the CAN
+task's tick and boot threads update them beside the mailbox: an answer may come just
+before or just after a node's state changes), Task2State's four counters, exchanges
+that changed nothing, and COM_Node_Diag's bNodeState (the state the node's last
+heartbeat or guarding answer reported: which one came last is the bus's timing).
 """
 
 from __future__ import annotations
@@ -157,7 +159,7 @@ def transcript(records: list[s.Record]) -> list[Line]:
                 lines.append(Line("host not ready" if record.after & fl.NOTREADY
                                   else "host ready"))
             continue
-        if kind in (s.ANSWER, s.EXCHANGE):
+        if kind == s.EXCHANGE:
             levels = _levels_line(host_flags)
             if levels != shown_levels:
                 lines.append(levels)
@@ -201,8 +203,11 @@ def diff(a: list[Line], b: list[Line], name_a: str = "recorded",
     for op, i1, i2, j1, j2 in matcher.get_opcodes():
         if op != "replace":
             continue
-        for old, new in zip(a[i1:i2], b[j1:j2], strict=False):
-            if old.head == new.head:
+        unpaired = list(b[j1:j2])
+        for old in a[i1:i2]:  # each line with the next of its head on the other side
+            new = next((line for line in unpaired if line.head == old.head), None)
+            if new is not None:
+                unpaired.remove(new)
                 fields += field_changes(old, new)
     if fields:
         out += ["", "changed fields:", *(f"  {line}" for line in fields)]

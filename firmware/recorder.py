@@ -96,7 +96,7 @@ class Recorder:
             return
         now, wall = time.monotonic(), time.time()
         self._queue.append((s.HOST_FLAGS, now, wall, before, after))
-        if (before ^ after) & fl.PDACK:
+        if (before ^ after) & fl.PDACK and before & after & fl.READY:  # not a (re)start's
             mm = self._mm
             self._queue.append((s.EXCHANGE, now, wall, mm[SND_PD:_IO_END],
                                 mm[TASK2_STATE : TASK2_STATE + TASK_STATE_SIZE]))
