@@ -338,19 +338,18 @@ class Device:
         # that is malformed for its command with their own msg.f.
         raw = self.mm[DEV_MBX : DEV_MBX + MSG_MAX_SIZE]
         self.toggle_host_flags(fl.DEVACK)
-        msg = Message.decode(raw)
         if self.recorder is not None:
-            self.recorder.put(msg)
+            self.recorder.put(raw)
+        msg = Message.decode(raw)
         task = self.tasks.get(msg.rx)
         answer = task.handle(msg) if task else msg.answer(f=F_UNKNOWN_TASK)
         if answer is not None and not (msg.e & Ext.NAK and answer.f == 0):
             self.outbox.append(answer)
 
     def _deliver(self) -> None:
-        msg = self.outbox.popleft()
+        raw = self.outbox.popleft().encode()
         if self.recorder is not None:
-            self.recorder.answer(msg)
-        raw = msg.encode()
+            self.recorder.answer(raw)
         self.mm[PC_MBX : PC_MBX + len(raw)] = raw
         self.toggle_host_flags(fl.HOSTCOM)
 

@@ -33,7 +33,6 @@ from dpm import flags as fl
 from dpm import session as s
 from dpm.image import CardDirectory, lock_path
 from dpm.layout import IO_AREA_SIZE, RCV_PD, SND_PD, TASK2_PARAMETER, TASK2_STATE, TASK_STATE_SIZE
-from dpm.message import Message
 from firmware.session_writer import FRAME
 
 log = logging.getLogger(__name__)
@@ -82,6 +81,8 @@ class Recorder:
         self._mm: Any = None
         self._queue: deque[tuple[Any, ...]] = deque()
         self._dev = -1
+        self._io = bytes(_IO_END - SND_PD)
+        """SndPd and RcvPd as the last exchange left them."""
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._write_loop, name="recorder", daemon=True)
 
@@ -94,12 +95,15 @@ class Recorder:
 
     # --- hooks (device loop and ``post`` threads) -------------------------------------
 
-    def put(self, msg: Message) -> None:
-        self._queue.append((s.PUT, time.monotonic(), time.time(), msg, self._read_ledger()))
+    def put(self, raw: bytes) -> None:
+        """``raw``: the message slot as the card copied it (the writer decodes it: a
+        Message object costs microseconds to pickle, bytes nothing)."""
+        self._queue.append((s.PUT, time.monotonic(), time.time(), raw, self._read_ledger()))
 
-    def answer(self, msg: Message) -> None:
+    def answer(self, raw: bytes) -> None:
+        """``raw``: the encoded answer, as the card writes it into PcMbx."""
         mm = self._mm
-        self._queue.append((s.ANSWER, time.monotonic(), time.time(), msg,
+        self._queue.append((s.ANSWER, time.monotonic(), time.time(), raw,
                             mm[TASK2_STATE : TASK2_STATE + TASK_STATE_SIZE]))
 
     def host_flags(self, before: int, after: int) -> None:
@@ -109,7 +113,12 @@ class Recorder:
         self._queue.append((s.HOST_FLAGS, now, wall, before, after))
         if (before ^ after) & fl.PDACK and before & after & fl.READY:  # not a (re)start's
             mm = self._mm
-            self._queue.append((s.EXCHANGE, now, wall, mm[SND_PD:_IO_END],
+            io = mm[SND_PD:_IO_END]
+            if io == self._io:
+                io = None  # unchanged: the writer gets no 7 KiB to compare
+            else:
+                self._io = io
+            self._queue.append((s.EXCHANGE, now, wall, io,
                                 mm[TASK2_STATE : TASK2_STATE + TASK_STATE_SIZE]))
 
     def dev_flags(self, value: int) -> None:
