@@ -557,7 +557,7 @@ def test_sync_stops_while_the_host_is_not_ready(make_net: Callable[..., Net], tm
                                                 interface: str) -> None:
     """HOST_NOT_READY stops the bus: no SYNC either, until the host is ready again. On
     ``shm`` the SYNC comes from a timer process of the card (outside its interpreter,
-    README "The CAN task"), which goes with it."""
+    docs/decisions.md "The CAN task"), which goes with it."""
     trace = tmp_path / "sync.log"
     net = make_net(SYNC_5MS, "--trace", str(trace))
     net.configure()

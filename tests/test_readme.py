@@ -1,6 +1,7 @@
 """README.md stays true, and every --help text is plain text a person reads in a terminal.
 
-Each fenced ``python`` and ``sh`` block of the README runs as written, in a directory of its
+Each fenced ``python`` and ``sh`` block of the README, and of the docs pages that carry the
+README's longer examples (``RUN_PAGES``), runs as written, in a directory of its
 own, against a running card that simulates the README's own example network (its first
 ``toml`` block, saved there as ``network.toml``; ``tests/`` is the clone's, as a block pasted
 at the clone's root sees it) and is configured with it on line. A block
@@ -30,6 +31,9 @@ from host_api.online import configure_online
 from tests.conftest import ROOT, Card, start_card, wait_until
 
 README = ROOT / "README.md"
+RUN_PAGES = tuple(ROOT / "docs" / name for name in (
+    "commands.md", "host-programs.md", "network-toml.md", "buses.md", "glossary.md"))
+"""Pages whose examples were the README's before it became a ten-minute read: they run too."""
 NO_RUN = re.compile(r"^<!-- not run by tests/test_readme\.py: (.+) -->$")
 RUNNABLE = {"python", "sh"}
 BLOCK_TIMEOUT = 120
@@ -40,6 +44,8 @@ BLOCK_TIMEOUT = 120
 class Block:
     """One fenced block of the README: where it starts, its language and its text."""
 
+    page: str
+    """The file, relative to the clone: README.md or a page of RUN_PAGES."""
     line: int
     language: str
     code: str
@@ -48,7 +54,14 @@ class Block:
 
 
 def readme_blocks() -> list[Block]:
-    lines = README.read_text(encoding="utf-8").splitlines()
+    """The README's blocks first (its first toml block is the example network), then the
+    pages'."""
+    return [block for path in (README, *RUN_PAGES) for block in page_blocks(path)]
+
+
+def page_blocks(path: Path) -> list[Block]:
+    lines = path.read_text(encoding="utf-8").splitlines()
+    page = path.relative_to(ROOT).as_posix()
     blocks = []
     index = 0
     while index < len(lines):
@@ -58,7 +71,8 @@ def readme_blocks() -> list[Block]:
             continue
         end = lines.index("```", index + 1)
         comment = NO_RUN.match(lines[index - 1]) if index else None
-        blocks.append(Block(index + 1, fence[3:].strip(), "\n".join(lines[index + 1 : end]) + "\n",
+        code = "\n".join(lines[index + 1 : end]) + "\n"
+        blocks.append(Block(page, index + 1, fence[3:].strip(), code,
                             comment.group(1) if comment else None))
         index = end + 1
     return blocks
@@ -67,6 +81,12 @@ def readme_blocks() -> list[Block]:
 BLOCKS = readme_blocks()
 NETWORK = next(block.code for block in BLOCKS if block.language == "toml")
 """The README's example network, which its snippets address."""
+
+
+def test_the_readme_is_a_ten_minute_read() -> None:
+    """What the project is, a quick start, the commands, the status, links: the rest is in
+    docs/ (issue 21: 300 lines at most)."""
+    assert len(README.read_text(encoding="utf-8").splitlines()) <= 300
 
 
 def test_the_readme_has_runnable_blocks_and_marks_only_with_a_reason() -> None:
@@ -103,7 +123,7 @@ def blocks_to_run() -> list[Block]:
     return [b for b in BLOCKS if b.language in RUNNABLE and b.no_run is None]
 
 
-@pytest.mark.parametrize("block", blocks_to_run(), ids=lambda b: f"line{b.line}")
+@pytest.mark.parametrize("block", blocks_to_run(), ids=lambda b: f"{b.page}:{b.line}")
 def test_readme_block_runs_as_written(block: Block, configured_card: Card, tmp_path: Path) -> None:
     work = tmp_path / "work"
     work.mkdir()
@@ -116,15 +136,15 @@ def test_readme_block_runs_as_written(block: Block, configured_card: Card, tmp_p
     result = subprocess.run(command, cwd=work, env=env, capture_output=True, text=True,
                             timeout=BLOCK_TIMEOUT)
     assert result.returncode == 0, (
-        f"README.md line {block.line} ({block.language}) failed with exit {result.returncode}\n"
+        f"{block.page} line {block.line} ({block.language}) failed with exit {result.returncode}\n"
         f"--- stdout\n{result.stdout}--- stderr\n{result.stderr}")
 
 
 @pytest.mark.parametrize("block", [b for b in BLOCKS if b.no_run is not None],
-                         ids=lambda b: f"line{b.line}")
+                         ids=lambda b: f"{b.page}:{b.line}")
 def test_readme_block_not_run(block: Block) -> None:
     """Reports each block the README marks as not runnable, with the README's reason."""
-    pytest.skip(f"README.md line {block.line} ({block.language}) not run: {block.no_run}")
+    pytest.skip(f"{block.page} line {block.line} ({block.language}) not run: {block.no_run}")
 
 
 # --- --help ---------------------------------------------------------------------------------
