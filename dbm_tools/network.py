@@ -1,9 +1,9 @@
 """The network description: one TOML file for the DBM builder and the simulator.
 
 A file describes the bus and its nodes (docs/network-toml.md). ``cifemu dbm build``
-turns it into a DBM; ``--simulate`` turns the same file into live simulated nodes. Keys under ``[node.sim]`` are for
-the simulator only; the builder ignores them. The smallest useful file is a
-list of node-IDs, which gives generic CiA 401-style I/O modules::
+turns it into a DBM; ``--simulate`` turns the same file into live simulated nodes. Keys
+under ``[node.sim]`` are for the simulator only; the builder ignores them. The smallest
+useful file is a list of node-IDs, which gives generic CiA 401-style I/O modules::
 
     [[node]]
     id = 1
