@@ -543,7 +543,8 @@ CIF_API short DevGetMessage(unsigned short usDevNumber, unsigned short usSize,
     }
     if (!stale) memcpy(ptMessage, b->mm + OFS_PC_MBX, length);
     /* The device polls anyway; a ring only speeds up answers it has queued. */
-    change_dev_flags(b, 0, 0, FL_HOSTACK, stale || b->bell.device_wants_ack);
+    change_dev_flags(b, 0, 0, FL_HOSTACK,
+                     stale || __atomic_load_n(&b->bell.device_wants_ack, __ATOMIC_RELAXED));
     /* after the handshake: a host killed in between leaves a discarded answer's request
        in the ledger, never an answer nobody discards */
     cifemu_txn_answered(&b->txn, header);
