@@ -7,14 +7,54 @@ assert the same return codes and data, so the two implementations cannot drift a
 from __future__ import annotations
 
 import ctypes
+import fcntl
+import functools
 import os
+import shutil
 from pathlib import Path
+
+import pytest
 
 from cifemu import libcif
 from dpm.message import Message
 from host_api.driver import ComState
 
 MSG_SIZE = 288
+
+BUILD_LOCK = Path(libcif.BUILD).parent / ".build.lock"
+"""Taken around every build: two pytest-xdist workers must not compile into one directory."""
+
+
+def toolchain_missing() -> str | None:
+    """Why libcif cannot be compiled on this machine (no C compiler, no make), or None."""
+    if (shutil.which("cc") or shutil.which("gcc")) is None:
+        return "no C compiler (cc or gcc): install one to build and test libcif"
+    if shutil.which("make") is None:
+        return "no make: install it to build and test libcif"
+    return None
+
+
+def build_libcif(target: str = "all") -> None:
+    """``make -C libcif TARGET``: skips the calling test where the machine has no C toolchain
+    (the reason says what to install), and FAILS it on a compile error, which a skip would
+    hide among the machine's missing tools."""
+    missing = toolchain_missing()
+    if missing is not None:
+        pytest.skip(missing)
+    try:
+        with open(BUILD_LOCK, "w") as lock:
+            fcntl.flock(lock, fcntl.LOCK_EX)
+            libcif.build(target)
+    except libcif.LibcifError as exc:
+        pytest.fail(str(exc), pytrace=False)
+
+
+@functools.cache
+def load_libcif() -> ctypes.CDLL:
+    """libcif of this clone, brought up to date with its sources and loaded once per test
+    process (see ``build_libcif`` for when it skips and when it fails)."""
+    build_libcif("all")
+    return libcif.load()
 
 
 class PythonDriver:
@@ -34,7 +74,7 @@ class CDriver:
     """libcif's Dev* functions with host_api.driver's Python signatures."""
 
     def __init__(self) -> None:
-        self.lib = libcif.load()
+        self.lib = load_libcif()
 
     def __getattr__(self, name: str) -> object:
         # the constants (GET_IO_INFO, WARMSTART, CONFIGURATION_DOWNLOAD, ...) are the

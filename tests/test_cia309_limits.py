@@ -32,7 +32,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from tests.conftest import Card, wait_until
-from tests.test_cia309_gateway import start
+from tests.gateway_cards import start
 
 EXAMPLES = int(os.environ.get("CIFEMU_FUZZ_EXAMPLES", "60"))
 ROUNDS = max(3, EXAMPLES // 20)

@@ -20,12 +20,12 @@ from pathlib import Path
 
 import pytest
 
-from cifemu import libcif
 from dbm_tools.builder import build_dbm
 from dbm_tools.container import save_dbm
 from dbm_tools.network import parse_network
 from host_api import legacy
 from tests.conftest import Card, start_card
+from tests.libcif_host import build_libcif
 
 SOURCE = Path(__file__).with_name("c") / "legacy_ioctl.c"
 CC = shutil.which("cc") or shutil.which("gcc")
@@ -107,7 +107,7 @@ EXPECTED = {
 @pytest.fixture(scope="module")
 def preloads() -> dict[str, Path]:
     """The preload library per ABI; i386 only where gcc-multilib is installed."""
-    libcif.build("preload")
+    build_libcif("preload")
     built = {"x86-64": legacy.PRELOAD_64}
     if legacy.PRELOAD_32.exists():
         built["i386"] = legacy.PRELOAD_32

@@ -30,7 +30,7 @@ from dpm.errors import Drv
 from dpm.message import Message
 from host_api import driver as d
 from tests.conftest import Card, start_card
-from tests.libcif_host import CDriver
+from tests.libcif_host import CDriver, build_libcif
 
 C_TESTS = Path(__file__).with_name("c")
 CC = shutil.which("cc") or shutil.which("gcc")
@@ -57,8 +57,8 @@ pytestmark = pytest.mark.skipif(CC is None or shutil.which("make") is None,
 
 @pytest.fixture(scope="module")
 def built() -> None:
-    libcif.build("all")
-    libcif.build("sanitize")
+    build_libcif("all")
+    build_libcif("sanitize")
 
 
 def compile_program(source: Path, out: Path, variant: str) -> Path:
