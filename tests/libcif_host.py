@@ -21,8 +21,9 @@ from host_api.driver import ComState
 
 MSG_SIZE = 288
 
-BUILD_LOCK = Path(libcif.BUILD).parent / ".build.lock"
-"""Taken around every build: two pytest-xdist workers must not compile into one directory."""
+BUILD_LOCK = "build.lock"
+"""Taken (in libcif's build directory) around every build: two pytest-xdist workers must not
+compile into one directory."""
 
 
 def toolchain_missing() -> str | None:
@@ -42,7 +43,8 @@ def build_libcif(target: str = "all") -> None:
     if missing is not None:
         pytest.skip(missing)
     try:
-        with open(BUILD_LOCK, "w") as lock:
+        libcif.BUILD.mkdir(parents=True, exist_ok=True)
+        with open(libcif.BUILD / BUILD_LOCK, "w") as lock:
             fcntl.flock(lock, fcntl.LOCK_EX)
             libcif.build(target)
     except libcif.LibcifError as exc:
