@@ -26,6 +26,7 @@ from dbm_tools.container import save_dbm
 from dbm_tools.network import parse_network
 from host_api import legacy
 from tests.conftest import Card, start_card
+from tests.libcif_host import build_libcif
 
 SOURCE = Path(__file__).with_name("c") / "legacy_ioctl.c"
 CC = shutil.which("cc") or shutil.which("gcc")
@@ -107,7 +108,7 @@ EXPECTED = {
 @pytest.fixture(scope="module")
 def preloads() -> dict[str, Path]:
     """The preload library per ABI; i386 only where gcc-multilib is installed."""
-    libcif.build("preload")
+    build_libcif("preload")
     built = {"x86-64": legacy.PRELOAD_64}
     if legacy.PRELOAD_32.exists():
         built["i386"] = legacy.PRELOAD_32
@@ -351,7 +352,7 @@ def sanitized_preload() -> str:
     """LD_PRELOAD for libcif/build/asan/libcifdev.so: ASan's and UBSan's run-time
     libraries first, as ASan requires of a program not built with it."""
     assert CC is not None
-    libcif.build("sanitize")
+    build_libcif("sanitize")
     runtimes = [subprocess.run([CC, f"-print-file-name={name}"], capture_output=True,
                                text=True, check=True).stdout.strip()
                 for name in ("libasan.so", "libubsan.so")]

@@ -28,8 +28,7 @@ from host_api import driver as d
 from host_api.board import Board
 from host_api.locks import Answer, Transaction
 from tests.conftest import Card
-from tests.libcif_host import CDriver
-from tests.test_libcif_c import C_TESTS, CC, STRICT, compile_program, run
+from tests.libcif_host import C_TESTS, CC, STRICT, CDriver, build_libcif, compile_program, run
 
 pytestmark = pytest.mark.skipif(CC is None or shutil.which("make") is None,
                                 reason="no C compiler or make")
@@ -40,8 +39,8 @@ ROOT = Path(__file__).resolve().parents[1]
 
 @pytest.fixture(scope="module")
 def built() -> None:
-    libcif.build("all")
-    libcif.build("sanitize")
+    build_libcif("all")
+    build_libcif("sanitize")
 
 
 def compile_tsan(source: Path, out: Path, *, with_library: bool = True) -> Path:
