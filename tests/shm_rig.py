@@ -14,7 +14,7 @@ from pathlib import Path
 
 import can
 import pytest
-from firmware.can.shm import ShmBus
+from firmware.shm.bus import ShmBus
 
 from dpm.task2 import ComDiagnostics
 from host_api.board import Board
