@@ -142,7 +142,7 @@ def _card_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--network", type=int, action="append", default=[],
                         choices=range(1, MAX_DEV_BOARDS + 1), metavar="N",
                         help="network to serve, 1..4 = board N-1 (repeatable)")
-    parser.add_argument("--dpm-dir", default=None,
+    parser.add_argument("--dpm-dir", default=None, metavar="DIR",
                         help="directory of the images (default $CIF_DPM_DIR or /dev/shm/cif)")
     parser.add_argument("--dialect", type=Dialect, choices=list(Dialect),
                         default=Dialect.CANOPENNODE,
