@@ -127,7 +127,7 @@ class CifCard:
         if self.running:
             raise CardError(f"board {self.board} runs already (pid {self.pid})")
         self.directory.mkdir(parents=True, exist_ok=True)
-        command = [sys.executable, "-m", "firmware", "--board", str(self.board),
+        command = [sys.executable, "-m", "cifemu", "firmware", "--board", str(self.board),
                    "--dpm-dir", str(self.directory), "--flash", str(self.flash),
                    "--log-level", "INFO"]
         if self.network is not None:

@@ -84,8 +84,8 @@ class Card:
 
 def start_card(directory: Path, board: int = 0, *extra: str) -> Card:
     proc = subprocess.Popen(
-        [sys.executable, "-m", "firmware", "--board", str(board), "--dpm-dir", str(directory),
-         "--log-level", "WARNING", *extra],
+        [sys.executable, "-m", "cifemu", "firmware", "--board", str(board),
+         "--dpm-dir", str(directory), "--log-level", "WARNING", *extra],
         stderr=subprocess.PIPE,
     )
     card = Card(directory, board, proc)

@@ -14,9 +14,9 @@ from pathlib import Path
 
 import can
 import pytest
-from firmware.shm.bus import ShmBus
 
 from dpm.task2 import ComDiagnostics
+from firmware.shm.bus import ShmBus
 from host_api.board import Board
 from tests.can_net import start_sim
 from tests.conftest import start_card

@@ -28,7 +28,7 @@ from pathlib import Path
 
 import pytest
 
-from host_api.cia309.cli import Remote, open_lss
+from cifemu.commands.cia309 import Remote, open_lss
 from host_api.cia309.datatypes import Dialect
 from host_api.cia309.gateway import Gateway
 from host_api.cia309.server import BackgroundServer, ServerConfig

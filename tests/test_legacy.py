@@ -21,10 +21,10 @@ from pathlib import Path
 import pytest
 
 from cifemu import libcif
+from cifemu.commands import legacy
 from dbm_tools.builder import build_dbm
 from dbm_tools.container import save_dbm
 from dbm_tools.network import parse_network
-from host_api import legacy
 from tests.conftest import Card, start_card
 from tests.libcif_host import build_libcif
 
@@ -261,7 +261,7 @@ def lifecycle(tmp_path_factory: pytest.TempPathFactory,
 
 def run_legacy(program: Path, directory: Path, *args: str) -> subprocess.CompletedProcess[str]:
     """PROGRAM ARGS through `cifemu legacy`, as a user starts a legacy binary."""
-    return cifemu_legacy("--board-dir", str(directory), "--", str(program), *args)
+    return cifemu_legacy("--dpm-dir", str(directory), "--", str(program), *args)
 
 
 @pytest.mark.parametrize("abi", ["x86-64", "i386"])
@@ -398,7 +398,7 @@ def test_cifemu_legacy_preloads_the_library_of_the_programs_class(
     program = programs[abi]
     elf = legacy.read_elf(program)
     assert elf.dynamic and elf.elf_class == (1 if abi == "i386" else 2)
-    done = cifemu_legacy("--board-dir", str(card.directory), "--", str(program), "smoke")
+    done = cifemu_legacy("--dpm-dir", str(card.directory), "--", str(program), "smoke")
     assert done.returncode == 0, done.stderr
     # the real driver's INITDRV on a board it does not have: -1, through the API object
     assert parse(done.stdout) == {"open": 1, "initdrv": 0, "getinfo_firmware": 0,

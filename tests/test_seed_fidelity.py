@@ -20,8 +20,8 @@ from dbm_tools.builder import build_dbm
 from dbm_tools.container import save_dbm
 from dbm_tools.network import load_network
 from dbm_tools.parameters import NdFlag, NodeParameterSet, PdoData
+from dpm.card_info import read_card_info
 from dpm.message import Message
-from firmware.card_info import read_card_info
 from host_api import driver as d
 from host_api.board import Board
 from host_api.download import CONFIGURATION_DOWNLOAD, DevDownload, delete_database

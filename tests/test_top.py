@@ -13,11 +13,11 @@ from typing import Any
 
 from textual.widgets import DataTable, RichLog, Static
 
-from firmware.can.tap import TapSubscriber, decode_frame
+from cifemu.commands.top import build_model
+from dpm.tap import TapSubscriber, decode_frame
 from host_api.board import Board
 from host_api.status import read_image, snapshot
 from host_api.top.app import TopApp
-from host_api.top.cli import build_model
 from host_api.top.feed import CardFeed
 from host_api.top.render import pdo_cells
 from tests.conftest import ROOT, start_card, wait_until
