@@ -108,7 +108,7 @@ def make_net(tmp_path: Path, interface: str) -> Iterator[Callable[..., Net]]:
 
 def start_sim(network: Path, interface: str, channel: str) -> subprocess.Popen[bytes]:
     """``cifemu sim`` in a process of its own, returned once its nodes are on the bus."""
-    sim = subprocess.Popen([sys.executable, "-m", "firmware.sim", str(network), "--interface",
+    sim = subprocess.Popen([sys.executable, "-m", "cifemu", "sim", str(network), "--interface",
                             interface, "--channel", channel, "--log-level", "WARNING"],
                            stdin=subprocess.DEVNULL, stdout=subprocess.PIPE)
     assert sim.stdout is not None
