@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: test demo bench lint clean test-vcan bench-vcan test-soak
+.PHONY: test test-fast demo bench lint clean test-vcan bench-vcan test-soak
 
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PY) -m venv $(VENV)
@@ -12,10 +12,22 @@ $(STAMP): pyproject.toml
 	$(BIN)/python -m pip install --quiet -e '.[dev]'
 	touch $(STAMP)
 
+# The whole suite but the virtual machines' tests (make test-vcan): pytest-xdist spreads it
+# over TEST_WORKERS processes, then the tests that measure time (marker serial) run alone.
+# docs/testing.md says which test runs where.
+TEST_WORKERS ?= 2
+
 test: $(STAMP) build-libcif build-legacy
 	$(BIN)/ruff check .
 	$(BIN)/mypy
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q -n $(TEST_WORKERS) --dist worksteal --durations=10 \
+		-m 'not vcan_vm and not serial'
+	$(BIN)/python -m pytest -q -m 'serial and not vcan_vm'
+
+# The codec, parser and source tests (marker fast): no process, no socket served, no image
+# mapped; under a minute.
+test-fast: $(STAMP)
+	$(BIN)/python -m pytest -q -m fast
 
 demo: $(STAMP)
 	$(BIN)/cifemu demo
@@ -34,9 +46,11 @@ VCAN_TIMEOUT ?= 1200
 test-soak: $(STAMP)
 	CIFEMU_SOAK_MINUTES=1 $(BIN)/python -m pytest -q tests/test_soak.py
 
+# Then tools/vcan-vm's own tests on this host (marker vcan_vm: qemu without KVM, 2 minutes).
 test-vcan: $(STAMP)
 	$(VCAN_VM) --timeout $(VCAN_TIMEOUT) -- env CIFEMU_REQUIRE_SOCKETCAN=1 \
 		$(BIN)/python -m pytest -q -m vcan
+	$(BIN)/python -m pytest -q -m vcan_vm
 
 # The SocketCAN figures (bench.vcan: vcan0, the broadcast manager, the card on them, and
 # the CAN benchmark's phases with their nodes on vcan0), one JSON document on stdout. The

@@ -118,7 +118,7 @@ def running_card(board: int = 0, *, startup_timeout: float = STARTUP_TIMEOUT,
     """
     with tempfile.TemporaryDirectory(prefix="cifemu-bench-", dir=scratch_root()) as tmp:
         directory = Path(tmp)
-        command = [sys.executable, "-m", "firmware", "--board", str(board),
+        command = [sys.executable, "-m", "cifemu", "firmware", "--board", str(board),
                    "--dpm-dir", tmp, "--flash", str(directory / "flash"),
                    "--log-level", "WARNING"]
         if record:

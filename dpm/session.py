@@ -15,6 +15,7 @@ transaction ledger names it, else null.
 from __future__ import annotations
 
 import json
+import struct
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -40,6 +41,10 @@ EXCHANGE = "exchange"
 KINDS = (PUT, ANSWER, HOST_FLAGS, DEV_FLAGS, EXCHANGE)
 
 AREAS = ("SndPd", "RcvPd")
+
+BATCH_FRAME = struct.Struct("<I")
+"""The length before each pickled batch of events on the pipe from the recording firmware
+to its writer process (firmware/recorder.py, firmware/session_writer.py)."""
 
 
 class SessionError(DpmError, ValueError):

@@ -33,7 +33,6 @@ from dpm import flags as fl
 from dpm import session as s
 from dpm.image import CardDirectory, lock_path
 from dpm.layout import IO_AREA_SIZE, RCV_PD, SND_PD, TASK2_PARAMETER, TASK2_STATE, TASK_STATE_SIZE
-from firmware.session_writer import FRAME
 
 log = logging.getLogger(__name__)
 
@@ -166,7 +165,7 @@ class Recorder:
             batch.append(queue.popleft())
         if batch:
             data = pickle.dumps(batch, protocol=pickle.HIGHEST_PROTOCOL)
-            self._pipe.write(FRAME.pack(len(data)) + data)
+            self._pipe.write(s.BATCH_FRAME.pack(len(data)) + data)
             self._pipe.flush()
 
 def recording_can_log(session: Path) -> Path:

@@ -15,16 +15,12 @@ from __future__ import annotations
 
 import os
 import pickle
-import struct
 import sys
 from typing import Any, BinaryIO
 
 from dpm import session as s
 from dpm.layout import IO_AREA_SIZE, RCV_PD, SND_PD
 from dpm.message import Ext, Message
-
-FRAME = struct.Struct("<I")
-"""The length before each pickled batch."""
 
 _IO_END = RCV_PD + IO_AREA_SIZE
 
@@ -77,10 +73,10 @@ class Events:
 def batches(stream: BinaryIO) -> Any:
     """Each batch of the stream until its end."""
     while True:
-        head = stream.read(FRAME.size)
-        if len(head) < FRAME.size:
+        head = stream.read(s.BATCH_FRAME.size)
+        if len(head) < s.BATCH_FRAME.size:
             return
-        (size,) = FRAME.unpack(head)
+        (size,) = s.BATCH_FRAME.unpack(head)
         yield pickle.loads(stream.read(size))
 
 

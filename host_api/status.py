@@ -1,4 +1,4 @@
-"""cifemu status: the card's state as a person reads it.
+"""The card's state as a person reads it: the model and rendering of ``cifemu status``.
 
 It maps the image read-only, so looking never disturbs a running card, and
 works on a card whose firmware is down: it then says so (the firmware lock is
@@ -8,18 +8,16 @@ card's last start loaded from flash.
 
 from __future__ import annotations
 
-import argparse
-import time
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-from rich.console import Console, Group
-from rich.live import Live
+from rich.console import Group
 from rich.table import Table
 
 from dbm_tools.network import NetworkError, load_network
 from dpm import flags as fl
+from dpm.card_info import read_card_info
 from dpm.errors import ERR_NODE_DEVICE, err_event_text
 from dpm.flags import DevFlag, HostFlag
 from dpm.image import dpm_dir, image_path, open_image
@@ -32,15 +30,8 @@ from dpm.task2 import (
     GlobalBits,
     node_bits,
 )
-from firmware.card_info import read_card_info
-from host_api.cli_options import add_card_options
-from host_api.cli_output import fail, print_json, run_guarded
 from host_api.liveness import firmware_liveness
 from host_api.network_view import remembered_network
-
-EXIT_OK = 0
-EXIT_DEAD = 3
-"""[ours] the image is there but no firmware holds its lock (killed, crashed, stopped)."""
 
 
 def _bus_text(bus: dict[str, Any]) -> str:
@@ -273,50 +264,3 @@ Common msg.f numbers (the error in a mailbox answer; DevDownload: 1000 + f)
 The full reference: docs/dpm.md sections 1, 2 and 5.
 """
 """The ``--help`` epilog: the card's words explained for a CANopen engineer."""
-
-
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.formatter_class = argparse.RawDescriptionHelpFormatter
-    parser.epilog = GUIDE
-    add_card_options(parser)
-    parser.add_argument("--watch", action="store_true", help="refresh until Ctrl-C")
-    parser.add_argument("--interval", type=float, default=0.5, help="--watch refresh seconds")
-    parser.add_argument("--json", action="store_true", help="print the decoded state as JSON")
-
-
-def _full_snapshot(image: bytes, directory: Path, board: int) -> dict[str, Any]:
-    return {"board": board, **snapshot(image, error_controls(directory, board)),
-            "health": health(directory, board)}
-
-
-def run(args: argparse.Namespace) -> int:
-    console = Console()
-    directory = dpm_dir(args.dpm_dir)
-    image = read_image(args.board, args.dpm_dir)
-    if image is None:
-        where = image_path(directory, args.board)
-        return fail("status", f"no image at {where}: is `cifemu firmware --board {args.board}` "
-                    "running?", args.json, image=str(where))
-    snap = _full_snapshot(image, directory, args.board)
-    alive = EXIT_OK if snap["health"]["alive"] else EXIT_DEAD
-    if args.json:
-        print_json(snap)
-        return alive
-    if not args.watch:
-        console.print(render(args.board, snap))
-        return alive
-    try:
-        with Live(render(args.board, snap), console=console, auto_refresh=False) as live:
-            while True:
-                time.sleep(args.interval)
-                image = read_image(args.board, args.dpm_dir) or image
-                live.update(render(args.board, _full_snapshot(image, directory, args.board)),
-                            refresh=True)
-    except KeyboardInterrupt:
-        return 0
-
-
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m host_api", description=__doc__)
-    add_arguments(parser)
-    return run_guarded(run, parser.parse_args(argv))

@@ -36,7 +36,7 @@ from dbm_tools.container import data_area
 from dbm_tools.network import parse_network
 from dpm.doorbell import device_address
 from dpm.image import CardDirectory
-from firmware.can.tap import SUBSCRIBE, tap_address
+from dpm.tap import SUBSCRIBE, tap_address
 from host_api.board import Board
 from host_api.download import CONFIGURATION_DOWNLOAD
 from host_api.liveness import firmware_liveness
@@ -101,8 +101,9 @@ def as_nobody(where: Path, action: Callable[[], None]) -> None:
 
 
 def firmware(directory: Path, *extra: str) -> subprocess.Popen[bytes]:
-    return subprocess.Popen([sys.executable, "-m", "firmware", "--dpm-dir", str(directory),
-                             "--log-level", "WARNING", *extra], stderr=subprocess.PIPE, cwd=ROOT)
+    return subprocess.Popen([sys.executable, "-m", "cifemu", "firmware", "--dpm-dir",
+                             str(directory), "--log-level", "WARNING", *extra],
+                            stderr=subprocess.PIPE, cwd=ROOT)
 
 
 def serving(proc: subprocess.Popen[bytes], directory: Path) -> bool:

@@ -21,10 +21,10 @@ from dpm.layout import TASK2_STATE, TASK_STATE_SIZE
 from dpm.task2 import ComDiagnostics
 from host_api.network_view import remember_network
 from tests.conftest import ROOT, start_card, wait_until
-from tests.test_readme import NETWORK as README_NETWORK
-from tests.test_readme import readme_blocks
-from tests.test_top_model import image as top_image
-from tests.test_top_model import model as top_model
+from tests.readme_blocks import NETWORK as README_NETWORK
+from tests.readme_blocks import readme_blocks
+from tests.top_images import image as top_image
+from tests.top_images import model as top_model
 
 CC = shutil.which("cc") or shutil.which("gcc")
 

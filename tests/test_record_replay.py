@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import json
 import os
-import re
 import shutil
 import subprocess
 import sys
@@ -18,19 +17,29 @@ from pathlib import Path
 import can
 import pytest
 
-from cifemu import libcif
 from dbm_tools.builder import build_dbm
 from dbm_tools.container import save_dbm
 from dbm_tools.network import parse_network
 from dpm import flags as fl
 from dpm import session as s
 from dpm.commands import Com
-from dpm.message import Message
 from tests.conftest import start_card
-from tests.test_libcif_c import C_TESTS, NETWORK, compile_program
+from tests.libcif_host import C_TESTS, build_libcif, compile_program
 
-pytestmark = pytest.mark.skipif(shutil.which("cc") is None and shutil.which("gcc") is None,
-                                reason="no C compiler")
+NETWORK = """
+[bus]
+bitrate = 500000
+sync_period_ms = 10
+
+[[node]]
+id = 1
+name = "io 1"
+
+[[node]]
+id = 2
+name = "io 2"
+"""
+"""operative.c's network: the seed's 7.2 procedure configures nodes 1 and 2."""
 
 CHANGED_NODE_2 = NETWORK + "\n[node.sim]\ndevice_type = 0x000F0192\n"
 """Node 2 (the last [[node]]) reports profile 402 instead of the expected 401."""
@@ -45,7 +54,7 @@ class Recording:
 @pytest.fixture(scope="module")
 def recorded(tmp_path_factory: pytest.TempPathFactory) -> Recording:
     """operative.c run once against a card started with --record."""
-    libcif.build("all")
+    build_libcif("all")
     root = tmp_path_factory.mktemp("recorded")
     network = root / "net.toml"
     network.write_text(NETWORK)
@@ -173,68 +182,9 @@ def test_a_malformed_session_is_refused_with_its_line(recorded: Recording,
 
 
 def test_a_recording_never_overwrites_a_session(recorded: Recording, tmp_path: Path) -> None:
-    done = subprocess.run([sys.executable, "-m", "firmware", "--dpm-dir", str(tmp_path / "card"),
-                           "--record", str(recorded.session)],
+    done = subprocess.run([sys.executable, "-m", "cifemu", "firmware", "--dpm-dir",
+                           str(tmp_path / "card"), "--record", str(recorded.session)],
                           capture_output=True, text=True, timeout=60, check=False)
     assert done.returncode == 1
     assert "already holds a session" in done.stderr
     assert not (tmp_path / "card" / "board0.dpm").exists()
-
-
-# --- the codec, without a card ------------------------------------------------------------
-
-ROUND_TRIP = [
-    s.Record(s.PUT, 1.5, 1e9, 4242, msg=Message(3, 16, 74, bytes(8), nr=7)),
-    s.Record(s.ANSWER, 1.6, 1e9, None, msg=Message(16, 3, 0, b"\x01", nr=7, a=74, f=3),
-             state=bytes(range(64))),
-    s.Record(s.HOST_FLAGS, 1.7, 1e9, before=0x80, after=0x84),
-    s.Record(s.DEV_FLAGS, 1.8, 1e9, before=0, after=fl.INIT, parameter=b"\x03" + bytes(47)),
-    s.Record(s.EXCHANGE, 1.9, 1e9, changes={"SndPd": [(0, b"\xa0\xa1")], "RcvPd": [(3, b"\x01")]},
-             state=bytes(64)),
-]
-
-
-@pytest.mark.parametrize("record", ROUND_TRIP, ids=[r.kind for r in ROUND_TRIP])
-def test_every_kind_of_record_reads_back_as_written(record: s.Record) -> None:
-    line = s.encode_record(record)
-    assert json.loads(line)["kind"] == record.kind  # plain JSON, as docs/recording.md says
-    assert s.decode_record(line) == record
-
-
-@pytest.mark.parametrize(("line", "error"), [
-    ('{"kind":"put","t":1,"wall":1,"pid":null,"msg":{"rx":3,"tx":16,"ln":2,"nr":0,"a":0,'
-     '"f":0,"b":74,"e":0,"data":"00"}}', "msg.ln is not the length"),
-    ('{"kind":"put","t":1,"wall":1,"pid":null,"msg":{"rx":300,"tx":16,"ln":0,"nr":0,"a":0,'
-     '"f":0,"b":74,"e":0,"data":""}}', "'rx' is not an integer 0..255"),
-    ('{"kind":"host_flags","t":1,"wall":1,"pid":true,"before":0,"after":1}', "not a process id"),
-    ('{"kind":"host_flags","t":"x","wall":1,"pid":null,"before":0,"after":1}', "'t' is not"),
-    ('{"kind":"exchange","t":1,"wall":1,"pid":null,"changes":{"PcMbx":[]}}', "the areas"),
-    ('{"kind":"exchange","t":1,"wall":1,"pid":null,"changes":{"SndPd":[[0,"zz"]]}}',
-     "not [offset, hex]"),
-    ("[1, 2]", "not a JSON object"),
-    ("{", "not JSON"),
-])
-def test_a_malformed_record_is_refused_with_the_reason(line: str, error: str) -> None:
-    with pytest.raises(s.SessionError, match=re.escape(error)):
-        s.decode_record(line)
-
-
-def test_changed_runs_are_the_bytes_that_differ() -> None:
-    old = bytes(200)
-    new = bytearray(old)
-    new[0:2] = b"\x01\x02"  # at the start
-    new[63:66] = b"\x03\x04\x05"  # across a comparison chunk's edge
-    new[199] = 6  # at the end
-    assert s.changed_runs(old, bytes(new)) == [(0, b"\x01\x02"), (63, b"\x03\x04\x05"),
-                                               (199, b"\x06")]
-    assert s.changed_runs(old, old) == []
-    image = bytearray(old)
-    s.apply_runs(image, s.changed_runs(old, bytes(new)))
-    assert image == new
-
-
-def test_the_ledger_names_the_sender_of_a_message() -> None:
-    ledger = b"111 9 6 74 3 16 0 5\n222 8 7 74 3 16 0 6\n"
-    assert s.ledger_pid(ledger, Message(3, 16, 74, nr=7)) == 222
-    assert s.ledger_pid(ledger, Message(3, 16, 74, nr=8)) is None
-    assert s.ledger_pid(b"garbage\n", Message(3, 16, 74, nr=7)) is None

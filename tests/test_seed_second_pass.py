@@ -34,12 +34,10 @@ from firmware.frames import (
 from host_api import driver as d
 from host_api.board import Board
 from host_api.download import CONFIGURATION_DOWNLOAD, DevDownload
-from tests import test_can_task
+from tests.can_net import Net, candump, exchange
 from tests.conftest import start_card, wait_until
-from tests.test_can_task import Net, candump, exchange
 
-interface = test_can_task.interface
-make_net = test_can_task.make_net
+pytest_plugins = ["tests.can_net"]
 """The back-to-back fixtures: this module's tests run on every bus that file's run on."""
 
 SYNC_ID = 0x080

@@ -149,7 +149,7 @@ class BusConfig:
     bitrate: int | None = None
     trace: Path | None = None
     tap: bytes | None = None
-    """The abstract socket name of the frame tap (``firmware.can.tap``) [ours]."""
+    """The socket of the frame tap (``dpm.tap``), beside the image [ours]."""
     exit_on_error: bool = False
     """A controller that cannot be opened ends the firmware, instead of the seed's card
     staying up with FAT set (``cifemu firmware --exit-on-bus-error``)."""

@@ -84,7 +84,7 @@ class SyncProducer:
 
         The thread sleeps most of the period, then watches the clock for the
         rest; under PDO load it still waits for the interpreter lock behind the
-        receive and tick threads (milliseconds, see README "Benchmarks"). With an
+        receive and tick threads (milliseconds, see docs/benchmarks.md). With an
         outside timer, the synchronous PDOs follow the SYNC frame as it comes back
         from the bus, as on a real bus they follow it on the wire.
         """

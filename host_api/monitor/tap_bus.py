@@ -1,4 +1,4 @@
-"""The card's frame tap (``firmware.can.tap``) as a receive-only python-can bus [ours].
+"""The card's frame tap (``dpm.tap``) as a receive-only python-can bus [ours].
 
 With it the monitor treats the card's in-process ``virtual`` bus like ``shm``
 or ``socketcan``: python-can's ``Notifier``, loggers and filters work on it
@@ -13,7 +13,7 @@ from typing import Any
 
 import can
 
-from firmware.can.tap import TapSubscriber, decode_frame
+from dpm.tap import TapSubscriber, decode_frame
 
 
 class TapBus(can.BusABC):

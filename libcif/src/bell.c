@@ -74,7 +74,7 @@ int cifemu_bell_wait(cifemu_bell *bell, long long timeout_ns) {
   if (poll(&pfd, 1, (int)((timeout_ns + 999999) / 1000000)) <= 0) return 0;
   while ((got = recv(bell->fd, buf, sizeof buf, MSG_DONTWAIT)) > 0) {
     rung = 1;
-    bell->device_wants_ack = buf[0] == RING_WANT_ACK;
+    __atomic_store_n(&bell->device_wants_ack, buf[0] == RING_WANT_ACK, __ATOMIC_RELAXED);
   }
   return rung;
 }

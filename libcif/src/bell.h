@@ -18,7 +18,9 @@ typedef struct cifemu_bell {
   int fd;
   struct sockaddr_un device;
   socklen_t device_len;
-  volatile int device_wants_ack; /* the device's last ring asked for a ring on HOSTACK */
+  /* the device's last ring asked for a ring on HOSTACK: written by every thread that
+     waits on the bell, read by DevGetMessage; atomic (__atomic_*), a hint either way */
+  int device_wants_ack;
 } cifemu_bell;
 
 int cifemu_bell_open(cifemu_bell *bell, const char *image_path);

@@ -130,7 +130,10 @@ static short download(unsigned short number, const unsigned char *area, size_t s
   b = cifemu_ready_board(number, &rc);
   if (b == NULL) return rc;
   /* the session holds the transaction lock from its first request to its last answer */
-  if (!cifemu_txn_enter(&b->txn, LOCK_WAIT_MS)) return DRV_CMD_ACTIVE;
+  if (!cifemu_txn_enter(&b->txn, LOCK_WAIT_MS)) {
+    cifemu_board_leave(b);
+    return DRV_CMD_ACTIVE;
+  }
   first[0] = MODE_DOWNLOAD_DBM;
   memcpy(first + 1, area, ROOT_BYTES);
   memcpy(first + 1 + ROOT_BYTES, record, GLOBAL_SIZE);
@@ -143,6 +146,7 @@ static short download(unsigned short number, const unsigned char *area, size_t s
     if (rc == DRV_NO_ERROR && pdwBytes != NULL) *pdwBytes = (unsigned long)(offset + ln);
   }
   cifemu_txn_leave(&b->txn);
+  cifemu_board_leave(b);
   return rc;
 }
 

@@ -28,11 +28,21 @@ typedef struct cifemu_board {
      host's Board.transact, another C host) never takes this host's answers, nor this
      host theirs; its ledger names the answers of hosts that died or gave up waiting. */
   cifemu_txn txn;
+  char firmware_lock[PATH_MAX + 32]; /* board<N>.firmware.lock, whatever the driver does */
+  /* [ours] Guarded by the board table's lock: the calls inside on this board, and whether
+     DevExitBoard (or the last DevCloseDriver) closed it meanwhile. A closed board leaves
+     the table at once; the last call inside unmaps and frees it. */
+  unsigned users;
+  int closing;
+  struct cifemu_board *next_closing; /* the closed boards calls are still inside */
 } cifemu_board;
 
-/* The initialised board, or NULL with *rc saying why (-34, -32). */
-CIFEMU_HIDDEN cifemu_board *cifemu_board_get(unsigned short number, short *rc);
-/* As cifemu_board_get, and the card must be READY (-11). */
+/* A call enters the initialised board: NULL with *rc saying why (-34; -32 also for a
+   board DevExitBoard closed), else the board (*rc 0), mapped until cifemu_board_leave. */
+CIFEMU_HIDDEN cifemu_board *cifemu_board_enter(unsigned short number, short *rc);
+/* As cifemu_board_enter, and the card must be READY (-11; the board is left then). */
 CIFEMU_HIDDEN cifemu_board *cifemu_ready_board(unsigned short number, short *rc);
+/* The call is done with the board: the last call inside a closed board unmaps it. */
+CIFEMU_HIDDEN void cifemu_board_leave(cifemu_board *b);
 
 #endif

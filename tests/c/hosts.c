@@ -20,6 +20,13 @@
  *                           ...) each pair COUNT requests at once: each reads its own
  *   badlock                 DevInitBoard when a lock file cannot be opened: -31, and
  *                           descriptor 0 still open
+ *   exitwait TAG TIMEOUT    a daemon's shutdown: thread A waits in DevGetMessage (TIMEOUT
+ *                           ms); once it is inside, thread B calls DevExitBoard and
+ *                           DevCloseDriver, and a call after them gets -32. With TAG > 0
+ *                           the request TAG was put first to a frozen card: B then says
+ *                           "closed" and waits for a line on stdin (the card thaws), and A
+ *                           must read that answer; with TAG 0 A ends with -18. The board
+ *                           is unmapped after A's call, and opens and works again.
  */
 #ifndef _GNU_SOURCE
 #define _GNU_SOURCE
@@ -32,6 +39,7 @@
 #include <string.h>
 #include <sys/file.h>
 #include <sys/stat.h>
+#include <sys/sysmacros.h>
 #include <sys/wait.h>
 #include <time.h>
 #include <unistd.h>
@@ -295,6 +303,102 @@ static int badlock(void) {
   return 0;
 }
 
+/* ---- exitwait -------------------------------------------------------------------------- */
+
+static unsigned long waiter_timeout;
+static short waiter_rc;
+static long waiter_tag;
+static unsigned waiter_done;
+
+static void *waiter(void *unused) {
+  (void)unused;
+  waiter_tag = get_tagged(waiter_timeout, &waiter_rc);
+  __atomic_store_n(&waiter_done, 1u, __ATOMIC_RELEASE);
+  return NULL;
+}
+
+/* Whether this process holds the flock of board 0's get channel: a DevGetMessage is
+   inside its wait (it takes the flock before it waits, and keeps it). */
+static int inside_get(void) {
+  char path[4096], line[256], want[96];
+  struct stat st;
+  FILE *locks;
+  int found = 0;
+  snprintf(path, sizeof path, "%s/board0.get.lock", getenv("CIF_DPM_DIR"));
+  if (stat(path, &st) != 0 || (locks = fopen("/proc/locks", "r")) == NULL) return 0;
+  snprintf(want, sizeof want, " %ld %02x:%02x:%lu ", (long)getpid(), major(st.st_dev),
+           minor(st.st_dev), (unsigned long)st.st_ino);
+  while (!found && fgets(line, sizeof line, locks) != NULL)
+    found = strstr(line, "FLOCK") != NULL && strstr(line, "->") == NULL &&
+            strstr(line, want) != NULL;
+  fclose(locks);
+  return found;
+}
+
+/* Whether board 0's image is mapped into this process. */
+static int image_mapped(void) {
+  char line[4096];
+  int found = 0;
+  FILE *maps = fopen("/proc/self/maps", "r");
+  if (maps == NULL) return -1;
+  while (fgets(line, sizeof line, maps) != NULL)
+    if (strstr(line, "/board0.dpm") != NULL) found = 1;
+  fclose(maps);
+  return found;
+}
+
+static int exitwait(unsigned tag, unsigned long timeout) {
+  struct timespec start, now, step = {0, 1000000};
+  pthread_t thread;
+  char line[16];
+  short rc;
+  int inside = 0, bad = 0;
+  if (tag >= MAX_TAGS || open_board() != 0) return 1;
+  if (tag > 0 && (rc = put_tagged(tag)) != DRV_NO_ERROR) {
+    fail("DevPutMessage", tag, rc);
+    return 1;
+  }
+  waiter_timeout = timeout;
+  pthread_create(&thread, NULL, waiter, NULL);
+  clock_gettime(CLOCK_MONOTONIC, &start);
+  do {
+    inside = inside_get();
+    if (!inside) nanosleep(&step, NULL);
+    clock_gettime(CLOCK_MONOTONIC, &now);
+  } while (!inside && now.tv_sec - start.tv_sec < 10);
+  if (!inside) {
+    fprintf(stderr, "hosts: the waiter never entered DevGetMessage\n");
+    return 1;
+  }
+  if ((rc = DevExitBoard(0)) != DRV_NO_ERROR) bad += fprintf(stderr, "hosts: DevExitBoard %d\n", rc) > 0;
+  if ((rc = put_tagged(tag + 1)) != DRV_USR_NOT_INITIALIZED)
+    bad += fprintf(stderr, "hosts: DevPutMessage after DevExitBoard %d, expected -32\n", rc) > 0;
+  if ((rc = DevCloseDriver()) != DRV_NO_ERROR)
+    bad += fprintf(stderr, "hosts: DevCloseDriver %d\n", rc) > 0;
+  if (__atomic_load_n(&waiter_done, __ATOMIC_ACQUIRE))
+    bad += fprintf(stderr, "hosts: the waiter's call ended at DevExitBoard\n") > 0;
+  if (tag > 0) {
+    printf("closed\n");
+    fflush(stdout);
+    if (fgets(line, sizeof line, stdin) == NULL) return 1;
+  }
+  pthread_join(thread, NULL);
+  if (tag > 0 && (waiter_rc != DRV_NO_ERROR || waiter_tag != (long)tag))
+    bad += fprintf(stderr, "hosts: the waiter got %d (tag %ld), expected its answer %u\n",
+                   waiter_rc, waiter_tag, tag) > 0;
+  if (tag == 0 && waiter_rc != DRV_DEV_GET_TIMEOUT)
+    bad += fprintf(stderr, "hosts: the waiter got %d, expected -18\n", waiter_rc) > 0;
+  if (image_mapped() != 0) bad += fprintf(stderr, "hosts: still mapped after the last call\n") > 0;
+  memset(seen, 0, sizeof seen);
+  if (open_board() != 0) return 1;
+  pair_range(tag + 2, 1);
+  DevCloseDriver();
+  if (bad || check_tags(tag + 2, 1) != 0) return 1;
+  printf("exitwait: the waiter ended with %d, the board closed under it, and opens again\n",
+         waiter_rc);
+  return 0;
+}
+
 int main(int argc, char **argv) {
   unsigned a = argc > 2 ? (unsigned)strtoul(argv[2], NULL, 0) : 0;
   unsigned b = argc > 3 ? (unsigned)strtoul(argv[3], NULL, 0) : 0;
@@ -305,6 +409,7 @@ int main(int argc, char **argv) {
   if (argc >= 3 && strcmp(argv[1], "late") == 0) return late(a);
   if (argc >= 3 && strcmp(argv[1], "fork") == 0) return forked(a);
   if (argc >= 2 && strcmp(argv[1], "badlock") == 0) return badlock();
-  fprintf(stderr, "usage: hosts threads|pairs|hang|late|fork|badlock ARGS\n");
+  if (argc >= 4 && strcmp(argv[1], "exitwait") == 0) return exitwait(a, b);
+  fprintf(stderr, "usage: hosts threads|pairs|hang|late|fork|badlock|exitwait ARGS\n");
   return 2;
 }

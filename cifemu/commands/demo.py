@@ -24,6 +24,7 @@ from types import FrameType
 from rich.console import Console
 from rich.live import Live
 
+from cifemu.commands.configure import configure
 from dbm_tools.builder import BuildError, build_dbm
 from dbm_tools.container import write_dbm
 from dbm_tools.network import Network, NetworkError, load_network
@@ -40,14 +41,13 @@ from dpm.layout import HOST_FLAGS
 from host_api import driver as d
 from host_api import status as status_cli
 from host_api.board import Board, CifError
-from host_api.configure_cli import configure
 from host_api.download import CONFIGURATION_DOWNLOAD, DevDownload
 from host_api.driver import COLDSTART
 from host_api.liveness import firmware_liveness
 from host_api.network_view import remember_network
 from host_api.online import ConfigurationError
 
-EXAMPLE_NETWORK = Path(__file__).with_name("examples") / "demo.toml"
+EXAMPLE_NETWORK = Path(__file__).parents[1] / "examples" / "demo.toml"
 START_TIMEOUT_S = 15.0
 NETWORK_WAIT_S = 10.0
 
@@ -64,13 +64,13 @@ def _board_files(directory: Path, board: int) -> set[Path]:
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--board", type=int, default=0, choices=range(MAX_DEV_BOARDS),
                         metavar="N", help="board number 0..3 (default 0)")
-    parser.add_argument("--dpm-dir", default=None,
+    parser.add_argument("--dpm-dir", default=None, metavar="DIR",
                         help="image directory (default $CIF_DPM_DIR or /dev/shm/cif, where "
                              "status, top, monitor and 309 look)")
     parser.add_argument("--from-dbm", action="store_true",
                         help="build a DBM from the network, download it into the card's flash and "
                              "cold-start the card from it, instead of configuring it on line")
-    parser.add_argument("--network", type=Path, default=None,
+    parser.add_argument("--network", type=Path, default=None, metavar="NETWORK.toml",
                         help=f"network description to simulate (default: {EXAMPLE_NETWORK.name}, "
                              "four generic I/O modules)")
 
@@ -130,7 +130,7 @@ def run(args: argparse.Namespace) -> int:
     signal.signal(signal.SIGTERM, _on_sigterm)
     with tempfile.TemporaryDirectory(prefix="cifemu-demo-flash-") as flash:
         card = subprocess.Popen(
-            [sys.executable, "-m", "firmware", "--board", str(args.board),
+            [sys.executable, "-m", "cifemu", "firmware", "--board", str(args.board),
              "--dpm-dir", str(directory), "--flash", flash, "--simulate", str(network_path),
              "--log-level", "WARNING"]
         )

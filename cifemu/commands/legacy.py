@@ -1,6 +1,6 @@
 """cifemu legacy: run an unchanged legacy binary against the emulated card.
 
-  cifemu legacy [--board-dir DIR] -- PROGRAM ARGS...
+  cifemu legacy [--dpm-dir DIR] -- PROGRAM ARGS...
 
 A legacy program has Hilscher's API object linked in and reaches the card only through
 the character device /dev/cif. This command starts it with libcifdev.so preloaded
@@ -118,7 +118,7 @@ def resolve(command: str) -> str:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--board-dir", default=None,
+    parser.add_argument("--dpm-dir", default=None, metavar="DIR",
                         help=f"the cards' image directory (default $CIF_DPM_DIR or "
                              f"{DEFAULT_DPM_DIR})")
     parser.add_argument("program", nargs=argparse.REMAINDER,
@@ -140,7 +140,7 @@ def run(args: argparse.Namespace) -> int:
     except LegacyError as exc:
         print(f"cifemu legacy: {exc}", file=sys.stderr)
         return 1
-    directory = args.board_dir or os.environ.get("CIF_DPM_DIR") or str(DEFAULT_DPM_DIR)
+    directory = args.dpm_dir or os.environ.get("CIF_DPM_DIR") or str(DEFAULT_DPM_DIR)
     env = dict(os.environ)
     env["CIF_DPM_DIR"] = str(Path(directory).resolve())
     env["LD_PRELOAD"] = " ".join(filter(None, [str(preload), env.get("LD_PRELOAD", "")]))

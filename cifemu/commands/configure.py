@@ -22,6 +22,8 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from cifemu.cli_options import add_card_options
+from cifemu.cli_output import fail, print_json
 from dbm_tools.builder import BuildError, build_dbm
 from dbm_tools.network import Network, NetworkError, load_network
 from dbm_tools.validate import check_dbm
@@ -29,8 +31,6 @@ from dpm.errors import ERR_NODE_DEVICE, CanF, Drv
 from dpm.image import dpm_dir
 from dpm.task2 import ComDiagnostics
 from host_api.board import Board, CifError
-from host_api.cli_options import add_card_options
-from host_api.cli_output import fail, print_json
 from host_api.liveness import firmware_liveness
 from host_api.network_view import remember_network
 from host_api.online import ConfigurationError, configure_online

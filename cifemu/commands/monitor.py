@@ -26,12 +26,12 @@ from typing import Any
 
 import can
 
+from cifemu.cli_options import add_card_options
+from cifemu.cli_output import fail
 from dbm_tools.builder import BuildError
 from dbm_tools.network import NetworkError
+from dpm.card_info import read_card_info
 from dpm.image import dpm_dir, image_path
-from firmware.card_info import read_card_info
-from host_api.cli_options import add_card_options
-from host_api.cli_output import fail
 from host_api.liveness import firmware_liveness
 from host_api.monitor.codec import KINDS, Meaning, decode
 from host_api.monitor.tap_bus import TapBus

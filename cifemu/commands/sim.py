@@ -17,10 +17,10 @@ from types import FrameType
 
 import can
 
+from cifemu.cli_output import fail
 from dbm_tools.network import NetworkError, NodeDescription, load_network
 from firmware.interpreter import SWITCH_INTERVAL
 from firmware.sim.network import SimulatedNetwork
-from host_api.cli_output import fail
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -128,8 +128,3 @@ def run(args: argparse.Namespace) -> int:
         bus.shutdown()
     return 0
 
-
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m firmware.sim", description=__doc__)
-    add_arguments(parser)
-    return run(parser.parse_args(argv))

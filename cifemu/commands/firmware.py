@@ -11,6 +11,7 @@ from types import FrameType
 
 import can
 
+from cifemu.online_configure import OnlineConfiguration
 from dbm_tools.network import NetworkError, load_network
 from dpm.image import (
     DEFAULT_DPM_DIR,
@@ -20,12 +21,11 @@ from dpm.image import (
     dpm_dir,
     image_path,
 )
+from dpm.tap import tap_address
 from firmware.can.bus import INTERFACE_ERRORS, BusConfig
-from firmware.can.tap import tap_address
 from firmware.device import Device
 from firmware.flash import FLASH_ENV
 from firmware.interpreter import SWITCH_INTERVAL
-from firmware.online_configure import OnlineConfiguration
 from firmware.recorder import Recorder, recording_can_log
 from firmware.sim import SimulatedNetwork
 
@@ -33,7 +33,7 @@ from firmware.sim import SimulatedNetwork
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--board", type=int, default=0, choices=range(MAX_DEV_BOARDS),
                         metavar="N", help="board number 0..3 (default 0)")
-    parser.add_argument("--dpm-dir", default=None,
+    parser.add_argument("--dpm-dir", default=None, metavar="DIR",
                         help=f"directory of the image board<N>.dpm "
                              f"(default $CIF_DPM_DIR or {DEFAULT_DPM_DIR})")
     parser.add_argument("--interface", default="virtual",
@@ -179,8 +179,3 @@ def default_channel(interface: str) -> str:
         return str(UdpMulticastBus.DEFAULT_GROUP_IPv4)
     return "cifemu"
 
-
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m firmware", description=__doc__)
-    add_arguments(parser)
-    return run(parser.parse_args(argv))

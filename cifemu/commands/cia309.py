@@ -90,15 +90,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                                                 f"sets its command size (default "
                                                 f"{DEFAULT_MAX_LINE})")
     serve_parser.add_argument("--idle-timeout", type=_seconds, default=DEFAULT_IDLE_TIMEOUT,
-                              metavar="S", help=f"drop a client that sends nothing for S "
-                                                f"seconds while no request of its runs "
-                                                f"(default {DEFAULT_IDLE_TIMEOUT:g}; 0: never)")
+                              metavar="SECONDS", help=f"drop a client that sends nothing "
+                                                      f"for SECONDS while no request of its runs "
+                                                      f"(default {DEFAULT_IDLE_TIMEOUT:g}; "
+                                                      f"0: never)")
     serve_parser.add_argument("--line-timeout", type=_seconds, default=DEFAULT_LINE_TIMEOUT,
-                              metavar="S", help=f"drop a client whose request line is not "
-                                                f"ended S seconds after its first byte, or "
-                                                f"that does not read its answers for S "
-                                                f"seconds (default {DEFAULT_LINE_TIMEOUT:g}; "
-                                                f"0: never)")
+                              metavar="SECONDS", help=f"drop a client whose request line is "
+                                                      f"not ended SECONDS after its first byte, "
+                                                      f"or that does not read its answers for "
+                                                      f"SECONDS (default "
+                                                      f"{DEFAULT_LINE_TIMEOUT:g}; 0: never)")
     serve_parser.add_argument("--max-output", type=_positive, default=DEFAULT_MAX_OUTPUT,
                               metavar="N", help=f"bytes of answers and events left unread "
                                                 f"by all clients together; over it, drop the "
@@ -145,7 +146,7 @@ def _card_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--network", type=int, action="append", default=[],
                         choices=range(1, MAX_DEV_BOARDS + 1), metavar="N",
                         help="network to serve, 1..4 = board N-1 (repeatable)")
-    parser.add_argument("--dpm-dir", default=None,
+    parser.add_argument("--dpm-dir", default=None, metavar="DIR",
                         help="directory of the images (default $CIF_DPM_DIR or /dev/shm/cif)")
     parser.add_argument("--dialect", type=Dialect, choices=list(Dialect),
                         default=Dialect.CANOPENNODE,
@@ -155,7 +156,7 @@ def _card_arguments(parser: argparse.ArgumentParser) -> None:
 def _client_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--host", default=DEFAULT_HOST, help="the server's address")
     parser.add_argument("--port", type=int, default=DEFAULT_PORT, help="the server's port")
-    parser.add_argument("--timeout", type=float, default=DEFAULT_TIMEOUT, metavar="S",
+    parser.add_argument("--timeout", type=float, default=DEFAULT_TIMEOUT, metavar="SECONDS",
                         help=f"seconds to wait for an answer (default {DEFAULT_TIMEOUT:g})")
     parser.add_argument("--direct", action="store_true",
                         help="no server: run a gateway in this process on the boards below")
