@@ -16,6 +16,7 @@ so that a card nobody uses costs (almost) nothing (issue 22).
 from __future__ import annotations
 
 import logging
+import os
 import threading
 import time
 from collections import deque
@@ -62,6 +63,51 @@ wake-up exactly on it would find the watchdog still alive and sleep once more.""
 STATE_MODE_EVENT = 4
 """[ours] low nibble of bDriverType: the state field is event driven."""
 
+HOP_TRACE_ENV = "CIFEMU_HOP_TRACE"
+"""[ours] A file name: the device loop stamps (CLOCK_MONOTONIC, ns) each wake-up by a ring,
+each message it takes and each answer it hands over, and writes the stamps there at power-off,
+for ``python -m bench hops``. Unset (always, but in that benchmark), nothing is wrapped: the
+loop runs the same code as without the hook."""
+HOP_TRACE_LIMIT = 1_000_000
+"""Stamps kept at most: a forgotten trace does not grow without bound."""
+
+
+class _HopTrace:
+    """The stamps of ``HOP_TRACE_ENV``: installed by wrapping three of the device's methods."""
+
+    def __init__(self, path: str) -> None:
+        self.path = path
+        self.events: list[tuple[str, int]] = []
+
+    def _stamp(self, name: str) -> None:
+        if len(self.events) < HOP_TRACE_LIMIT:
+            self.events.append((name, time.monotonic_ns()))
+
+    def install(self, device: Device) -> None:
+        wait, receive, deliver = device.bell.wait, device._receive, device._deliver
+
+        def woke(timeout: float) -> bool:
+            rung = wait(timeout)
+            if rung:
+                self._stamp("woke")
+            return rung
+
+        def took() -> None:
+            self._stamp("took")
+            receive()
+
+        def delivered() -> None:
+            deliver()
+            self._stamp("delivered")
+
+        setattr(device.bell, "wait", woke)  # noqa: B010 (a method replaced on one instance)
+        setattr(device, "_receive", took)  # noqa: B010
+        setattr(device, "_deliver", delivered)  # noqa: B010
+
+    def write(self) -> None:
+        with open(self.path, "w", encoding="ascii") as out:
+            out.writelines(f"{name} {ns}\n" for name, ns in self.events)
+
 
 class Device:
     """Board N of one emulated card, served from the calling thread by ``run``."""
@@ -107,6 +153,10 @@ class Device:
         self.plc = PlcTask(self)
         self.can = CanTask(self, bus)
         self.tasks: dict[int, Task] = {t.number: t for t in (self.rcs, self.plc, self.can)}
+        trace = os.environ.get(HOP_TRACE_ENV)
+        self._hop_trace = _HopTrace(trace) if trace else None
+        if self._hop_trace is not None:
+            self._hop_trace.install(self)
 
     # --- life cycle -----------------------------------------------------------------
 
@@ -174,6 +224,8 @@ class Device:
         self.mm.flush()
         self.mm.close()
         self._instance_lock.release()
+        if self._hop_trace is not None:
+            self._hop_trace.write()
 
     # --- cross-thread entry points ---------------------------------------------------
 
