@@ -17,6 +17,7 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 TICK_NS = 1_000_000_000 // os.sysconf("SC_CLK_TCK")
 
@@ -42,6 +43,22 @@ def stat_cpu_ns(pid: int) -> int:
     return (int(fields[11]) + int(fields[12])) * TICK_NS  # utime, stime: fields 14 and 15
 
 
+def _wakeups(task: Path) -> int:
+    """Voluntary context switches of a thread: each one a sleep (a wait, a poll) that ended."""
+    try:
+        for line in (task / "status").read_text().splitlines():
+            if line.startswith("voluntary_ctxt_switches:"):
+                return int(line.split()[1])
+    except (OSError, ValueError):
+        pass
+    return 0
+
+
+def thread_wakeups(pid: int) -> dict[int, int]:
+    """Voluntary context switches of each live thread of ``pid`` (thread id -> count)."""
+    return {int(task.name): _wakeups(task) for task in Path(f"/proc/{pid}/task").iterdir()}
+
+
 def thread_cpu_ns(pid: int) -> dict[int, int]:
     """Nanoseconds on the CPU of each live thread of ``pid`` (thread id -> ns)."""
     threads: dict[int, int] = {}
@@ -59,16 +76,21 @@ class CpuSample:
     threads: dict[int, int]
     stat_ns: int
     wall_ns: int
+    wakeups: dict[int, int]
 
     @classmethod
     def take(cls, pid: int) -> CpuSample:
-        return cls(thread_cpu_ns(pid), stat_cpu_ns(pid), time.monotonic_ns())
+        return cls(thread_cpu_ns(pid), stat_cpu_ns(pid), time.monotonic_ns(),
+                   thread_wakeups(pid))
 
 
-def share(before: CpuSample, after: CpuSample, pid: int) -> dict[str, float]:
-    """Per cent of one core between two samples: the process, its main thread, the others.
+def share(before: CpuSample, after: CpuSample, pid: int) -> dict[str, Any]:
+    """Per cent of one core between two samples: the process, its main thread, the others,
+    and per thread (busiest first) its share and its wake-ups a second.
 
-    ``main_thread`` is the thread whose id is ``pid``: the firmware's device loop.
+    ``main_thread`` is the thread whose id is ``pid``: the firmware's device loop. The
+    other threads have no names the kernel knows; their wake-up rates tell them apart (the
+    CAN tick wakes about 1,000 times a second).
     """
     wall = after.wall_ns - before.wall_ns
     spent = {tid: ns - before.threads.get(tid, 0) for tid, ns in after.threads.items()}
@@ -78,12 +100,20 @@ def share(before: CpuSample, after: CpuSample, pid: int) -> dict[str, float]:
     def pct(ns: int) -> float:
         return round(100.0 * ns / wall, 3) if wall else 0.0
 
+    seconds = wall / 1e9 if wall else 1.0
+    per_thread = [
+        {"thread": "main (device loop)" if tid == pid else f"tid {tid}", "pct": pct(ns),
+         "wakeups_per_s": round((after.wakeups.get(tid, 0) - before.wakeups.get(tid, 0))
+                                / seconds, 1)}
+        for tid, ns in sorted(spent.items(), key=lambda item: -item[1])
+    ]
     return {
         "process_pct": pct(total),
         "main_thread_pct": pct(main),
         "other_threads_pct": pct(total - main),
         "stat_process_pct": pct(after.stat_ns - before.stat_ns),
         "threads": len(after.threads),
+        "per_thread": per_thread,
         "wall_s": round(wall / 1e9, 3),
     }
 

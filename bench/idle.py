@@ -31,14 +31,14 @@ SETTLE_S = 1.0
 """Seconds between READY (or every node operating) and the window: start-up work ends."""
 
 
-def window(pid: int, seconds: float) -> dict[str, float]:
+def window(pid: int, seconds: float) -> dict[str, Any]:
     """CPU shares of ``pid`` over ``seconds`` of wall time."""
     before = CpuSample.take(pid)
     time.sleep(seconds)  # the measurement window itself, not a wait on a condition
     return share(before, CpuSample.take(pid), pid)
 
 
-def _card_without_network(seconds: float) -> dict[str, float]:
+def _card_without_network(seconds: float) -> dict[str, Any]:
     with running_card() as card:
         time.sleep(SETTLE_S)
         return window(card.pid, seconds)
