@@ -11,7 +11,9 @@ with the offset of the two clocks measured here). No firmware change is needed.
 
 Paths: ``pdo_loop`` (DevExchangeIO output -> RPDO -> node -> TPDO -> input in the
 image, uncontrolled handshake), ``mailbox`` (a COM_Shared_Memory read), ``sdo`` (an
-expedited SDO upload by COM_SDO_Up_Download). Hop by hop:
+expedited SDO upload by COM_SDO_Up_Download), ``cia309`` (the same upload as a 309-3
+line over TCP to the server, which runs in this process as in ``bench.cia309``). Hop by
+hop:
 
 - host write: the driver call that writes the output or the message (DevExchangeIO,
   DevPutMessage);
@@ -36,6 +38,7 @@ import contextlib
 import itertools
 import mmap
 import os
+import socket
 import subprocess
 import tempfile
 import time
@@ -77,6 +80,8 @@ from dpm.commands import COM_SHARED_MEMORY
 from dpm.layout import DPM_SIZE, HOST_FLAGS, RCV_PD
 from dpm.message import Message, Task
 from firmware.device import HOP_TRACE_ENV
+from host_api.cia309.gateway import Gateway
+from host_api.cia309.server import BackgroundServer, ServerConfig
 from host_api.driver import MSG_BUFFER_SIZE, DevExchangeIO, DevGetMessage, DevPutMessage
 
 NAME = "hops"
@@ -182,7 +187,7 @@ def run_rounds(step: Callable[[], Marks], count: int, warmup: int) -> tuple[list
     return rounds, lost
 
 
-def plain_p50(step: Callable[[], None], count: int) -> float:
+def plain_p50(step: Callable[[], object], count: int) -> float:
     """p50 in µs of the unspun round trip (the driver waits on its doorbell)."""
     spans = []
     for _ in range(count):
@@ -413,8 +418,62 @@ def sdo(count: int, warmup: int, profile: bool) -> dict[str, Any]:
     return result
 
 
+CIA309_HOPS = ["client line sent -> 309-3 server -> gateway -> DevPutMessage -> card awake",
+               "card: awake -> takes the message (DEVACK)",
+               "card: -> SDO request frame sent", "node: request -> answer frame",
+               "card: answer frame -> answer in the mailbox (HOSTCOM)",
+               "gateway: DevGetMessage -> answer line -> client has it"]
+
+
+def cia309(count: int, warmup: int, profile: bool) -> dict[str, Any]:
+    """``[n] 1 read 0x1000 0 u32`` over TCP to the 309-3 server (in this process, as in
+    ``bench.cia309``) on the card: the client's stamps, the frames', the device loop's."""
+    description, bus, channel = _card([1])
+    with hop_trace() as trace_path:
+        with simulated_card(description, separate=True, bus=bus) as card:
+            configure(card, parse_network(description))
+            wait_operating(board_of(card).number, 1)
+            tap = BusTap(channel)
+            with Gateway([0], card.directory) as gateway:
+                gateway.set_default_node_id(1)
+                server = BackgroundServer(gateway, ServerConfig(port=0))
+                client = socket.create_connection(("127.0.0.1", server.port), timeout=10)
+                client.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+                sequence = itertools.count(1)
+
+                def line() -> int:
+                    client.sendall(f"[{next(sequence)}] 1 read 0x1000 0 u32\n".encode())
+                    answer = b""
+                    while not answer.endswith(b"\r\n"):
+                        chunk = client.recv(256)
+                        if not chunk:
+                            raise Lost
+                        answer += chunk
+                    return time.monotonic_ns()
+
+                def step() -> Marks:
+                    tap.drain()
+                    t0 = time.monotonic_ns()
+                    t_end = line()
+                    return [t0, tap.stamp(SDO_RX), tap.stamp(SDO_TX), t_end]
+
+                try:
+                    progress(f"{NAME} cia309: {warmup} + {count} TCP SDO reads")
+                    rounds, lost = run_rounds(step, count, warmup)
+                    plain_us = plain_p50(line, count)
+                    with profiled(card.pid, profile) as prof:
+                        _window(line, PROFILE_S)
+                finally:
+                    client.close()
+                    server.close()
+                    tap.close()
+        result = breakdown(CIA309_HOPS, with_trace(rounds, read_trace(trace_path)))
+    result.update(lost=lost, plain_round_trip_p50_us=plain_us, profile=prof)
+    return result
+
+
 PATHS: dict[str, Callable[[int, int, bool], dict[str, Any]]] = {
-    "pdo_loop": pdo_loop, "mailbox": mailbox, "sdo": sdo,
+    "pdo_loop": pdo_loop, "mailbox": mailbox, "sdo": sdo, "cia309": cia309,
 }
 
 
