@@ -2,7 +2,7 @@
 
 Everything here goes through ``mmap`` and ``struct`` with the offsets and flag bits of
 docs/dpm.md, like a legacy C program poking the card's memory: no ``dpm``, ``host_api`` or
-``firmware`` import, and no doorbell (the device polls the flags at least every ms).
+``firmware`` import, and no doorbell (the device's fallback poll serves it, docs/dpm.md 2).
 """
 
 from __future__ import annotations
