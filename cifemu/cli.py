@@ -2,7 +2,8 @@
 
 Every command is one row of ``COMMANDS``: its name, the module that implements it and a
 one-line summary. A command's module gives ``add_arguments(parser)`` and ``run(args)``;
-its ``DESCRIPTION``, else its docstring, is the command's ``--help`` text. Only the
+its ``DESCRIPTION``, else its docstring, is the command's ``--help`` text, without the
+``[ours]`` markers that are for the project's documents, not for a user. Only the
 chosen command's module is imported: ``cifemu status`` does not pay for the DBM builder,
 canopen or Textual, and ``cifemu --help`` imports none of them.
 """
@@ -36,6 +37,8 @@ COMMANDS = (
             "configure a running card on line from a network description"),
     Command("dbm", "host_api.dbm_commands",
             "DBM files (show, check, build, diff) and a card's flash (download, upload, ...)"),
+    Command("reset", "cifemu.commands.reset",
+            "restart a running card (cold, warm or boot start), as SyCon's Reset device"),
     Command("monitor", "host_api.monitor.cli", "the CAN traffic with its CANopen meaning, live"),
     Command("top", "host_api.top.cli", "a live view of one card: nodes, process image, bus"),
     Command("309", "host_api.cia309.cli", "the CiA 309-3 ASCII gateway (serve, exec, shell)"),
@@ -58,8 +61,9 @@ def build_parser(chosen: str | None = None) -> argparse.ArgumentParser:
             sub.add_parser(command.name, help=command.summary)
             continue
         module = command.load()
+        description = getattr(module, "DESCRIPTION", module.__doc__) or ""
         sub_parser = sub.add_parser(command.name, help=command.summary,
-                                    description=getattr(module, "DESCRIPTION", module.__doc__),
+                                    description=description.replace(" [ours]", ""),
                                     formatter_class=argparse.RawDescriptionHelpFormatter)
         module.add_arguments(sub_parser)
         sub_parser.set_defaults(func=module.run)

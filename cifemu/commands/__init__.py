@@ -1,0 +1,1 @@
+"""The command-line modules of ``cifemu``'s commands, one per command (``cifemu.cli``)."""
