@@ -39,6 +39,8 @@ COMMANDS = (
             "DBM files (show, check, build, diff) and a card's flash (download, upload, ...)"),
     Command("reset", "cifemu.commands.reset",
             "restart a running card (cold, warm or boot start), as SyCon's Reset device"),
+    Command("send", "cifemu.commands.send",
+            "send one CAN frame or NMT command on the card's bus, as cansend"),
     Command("monitor", "host_api.monitor.cli", "the CAN traffic with its CANopen meaning, live"),
     Command("top", "host_api.top.cli", "a live view of one card: nodes, process image, bus"),
     Command("309", "host_api.cia309.cli", "the CiA 309-3 ASCII gateway (serve, exec, shell)"),

@@ -12,6 +12,8 @@ a card's flash file database.bin):
                               (number 0) are shown but exit 0
   build NET.toml -o OUT.dbm   a DBM from a network description and EDS files
   diff A B [--json]           table, record and field differences; exit 1 if any
+  export FILE [-o NET.toml]   a DBM back to a network description (cifemu sim
+                              simulates it, cifemu dbm build builds it again)
 """
 
 from __future__ import annotations
@@ -38,6 +40,7 @@ from dbm_tools.container import (
     write_dbm,
 )
 from dbm_tools.errors import DbmError
+from dbm_tools.export import export_network
 from dbm_tools.network import BOOT_STEPS, NetworkError, load_network
 from dbm_tools.parameters import (
     BAUD_RATES_KBIT,
@@ -363,6 +366,23 @@ def build(network_path: Path, output: Path, name: str | None, console: Console) 
     return 0
 
 
+def export(path: Path, output: Path | None, console: Console) -> int:
+    try:
+        text = export_network(load_any(path), path.name)
+    except DbmError as exc:
+        raise UsageError(f"{path}: {exc}") from None
+    if output is None:
+        print(text, end="")
+        return 0
+    try:
+        output.write_text(text, encoding="utf-8")
+    except OSError as exc:
+        raise UsageError(f"cannot write {output}: {exc.strerror}") from None
+    console.print(f"{output}: the network description of {path} "
+                  f"(`cifemu dbm build {output} -o OUT.dbm` builds it again)", highlight=False)
+    return 0
+
+
 # --- diff ----------------------------------------------------------------------------------
 
 
@@ -486,6 +506,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> argparse._SubParsersAction
     p.add_argument("a", type=Path, metavar="A", help="a DBM file or a bare data area")
     p.add_argument("b", type=Path, metavar="B", help="the one to compare it with")
     p.add_argument("--json", action="store_true", help="print the differences as JSON")
+    p = sub.add_parser("export", help="a DBM back to a network description (TOML)",
+                       description="Write the network description of a DBM file: bus "
+                       "parameters, every node's device type, supervision, COB-IDs, SDO "
+                       "list and PDOs with their process-image offsets. `cifemu dbm build` "
+                       "gives the same bus and node records again; `cifemu sim` simulates "
+                       "the network. The project name and DESCRIPT's vendor and device "
+                       "names, which a description takes from --name and EDS files, are "
+                       "comments at the top.")
+    p.add_argument("file", type=Path, metavar="FILE", help="a DBM file or a bare data area")
+    p.add_argument("-o", "--output", type=Path, default=None, metavar="NETWORK.toml",
+                   help="the description to write (default: standard output)")
     return sub
 
 
@@ -498,5 +529,7 @@ def dispatch(args: argparse.Namespace, console: Console) -> int:
         return check(args.file, args.json, console)
     if command == "build":
         return build(args.network, args.output, args.name, console)
+    if command == "export":
+        return export(args.file, args.output, console)
     return diff(args.a, args.b, args.json, console)
 

@@ -12,15 +12,16 @@ from __future__ import annotations
 import argparse
 import time
 from collections.abc import Callable
+from typing import TYPE_CHECKING
 
 from dpm.errors import Drv
 from dpm.flags import COM, READY, RUN
-from host_api.board import Board, CifError
 from host_api.cli_options import add_card_options
 from host_api.cli_output import fail, print_json
-from host_api.download import flash_directory
-from host_api.driver import BOOTSTART, COLDSTART, DRIVERINFO, GET_DRIVER_INFO, WARMSTART
 from host_api.next_steps import card_options
+
+if TYPE_CHECKING:
+    from host_api.board import Board
 
 COMMAND = "reset"
 RESET_TIMEOUT_MS = 10_000
@@ -28,15 +29,15 @@ RESET_TIMEOUT_MS = 10_000
 RUN_WAIT_S = 5.0
 """[ours] How long a card with a stored database is given to start it (RUN) after READY."""
 POLL_S = 0.02
-STARTS = {"cold": COLDSTART, "warm": WARMSTART, "boot": BOOTSTART}
-"""The DevReset modes by the option that chooses them."""
+STARTS = ("cold", "warm", "boot")
+"""The DevReset modes (COLDSTART, WARMSTART, BOOTSTART) by the option that chooses them."""
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     kind = parser.add_mutually_exclusive_group()
-    for name, mode in STARTS.items():
+    for name in STARTS:
         kind.add_argument(f"--{name}", dest="start", action="store_const", const=name,
-                          help=f"DevReset {name.upper()}START ({mode})"
+                          help=f"DevReset {name.upper()}START"
                           + (" (the default)" if name == "cold" else ""))
     parser.set_defaults(start="cold")
     add_card_options(parser)
@@ -50,15 +51,21 @@ def flag_names(flags: int) -> list[str]:
 
 def host_flags(board: Board) -> int:
     """bHostFlags as the driver reads it (DRIVERINFO)."""
+    from host_api.driver import DRIVERINFO, GET_DRIVER_INFO
+
     return int(DRIVERINFO.unpack(board.info(GET_DRIVER_INFO, DRIVERINFO.size))[11])
 
 
 def restart(board: Board, start: str, progress: Callable[[str], None]) -> dict[str, object]:
     """Reset the card and wait for it to come back; what it shows then."""
+    from host_api.download import flash_directory
+    from host_api.driver import BOOTSTART, COLDSTART, WARMSTART
+
     code, entries = flash_directory(board.number)
     stored = code == Drv.DRV_NO_ERROR and bool(entries)
     progress(f"{start} start (DevReset {start.upper()}START)")
-    board.reset(STARTS[start], RESET_TIMEOUT_MS)
+    board.reset({"cold": COLDSTART, "warm": WARMSTART, "boot": BOOTSTART}[start],
+                RESET_TIMEOUT_MS)
     progress("READY")
     flags = host_flags(board)
     if stored:
@@ -84,6 +91,8 @@ def end_line(number: int, outcome: dict[str, object], options: str) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
+    from host_api.board import Board, CifError  # after parsing: --help needs no driver
+
     options = card_options(args.board, args.dpm_dir)
     progress: Callable[[str], None] = (
         (lambda text: None) if args.json
