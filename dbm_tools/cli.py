@@ -248,6 +248,23 @@ def _descript_table(records: list[bytes]) -> Table:
     return out
 
 
+def project_heading(dbm: DbmFile) -> str:
+    """The project and the date it was built (PROJEKT), where the file has them.
+
+    The file header's date is the writing tool's build date (every file our builder writes
+    carries the same one, ``container.TOOL_DATE``): not this file's, so not shown here."""
+    table = dbm.table(PROJEKT)
+    if table is None or not table.records:
+        return ""
+    try:
+        project = ProjektRecord.decode(table.records[0])
+    except DbmError:
+        return ""
+    date = f" of {project.szDate}" if project.szDate else ""
+    return f"project {project.szProjectName!r}{date}, " if project.szProjectName else (
+        f"a project{date}, " if date else "")
+
+
 def show(path: Path, as_json: bool, console: Console) -> int:
     dbm = load_any(path)
     area = data_area(dbm)
@@ -276,7 +293,7 @@ def show(path: Path, as_json: bool, console: Console) -> int:
         }
         print(json.dumps(document, indent=2))
         return 0
-    overview = Table(title=f"{path}: DBM of {dbm.date!r}, data area {len(area)} bytes, "
+    overview = Table(title=f"{path}: {project_heading(dbm)}data area {len(area)} bytes, "
                            f"w0 {int.from_bytes(area[:2], 'little'):#06x}", title_justify="left")
     for column in ("table", "name", "key", "records", "bytes", "codec"):
         overview.add_column(column)
