@@ -179,13 +179,15 @@ def _show(args: argparse.Namespace, directory: Path, network_path: Path, network
                 configure(board, network, NETWORK_WAIT_S,
                           lambda step: console.print(f"configuring: {step}"))
             command, options = command_for_another_terminal(directory, board_no)
-            console.print(f"card image {image_path(directory, board_no)}; Ctrl-C ends the demo. "
+            ends = "q in the view" if sys.stdout.isatty() else "Ctrl-C"  # Textual takes Ctrl-C
+            console.print(f"card image {image_path(directory, board_no)}; {ends} ends the demo. "
                           "In another terminal:", highlight=False, soft_wrap=True)
-            for sub in ("top", "status", "monitor"):
-                console.print(f"  {' '.join(filter(None, [command, sub, options]))}",
-                              highlight=False, markup=False, soft_wrap=True)
+            hints = [" ".join(filter(None, [command, sub, options]))
+                     for sub in ("top", "status", "monitor")]
+            for hint in hints:
+                console.print(f"  {hint}", highlight=False, markup=False, soft_wrap=True)
             sys.stdout.flush()
-            _watch(board_no, directory, network_path, network, console)
+            _watch(board_no, directory, network_path, network, console, hints)
     except (CifError, ConfigurationError) as exc:
         print(f"cifemu demo: {exc}", file=sys.stderr)
         return 1
@@ -193,7 +195,7 @@ def _show(args: argparse.Namespace, directory: Path, network_path: Path, network
 
 
 def _watch(board_no: int, directory: Path, network_path: Path, network: Network,
-           console: Console) -> None:
+           console: Console, hints: list[str]) -> None:
     """What a CANopen engineer looks at first: ``top``'s nodes (names, NMT states, EMCY
     texts), live with its keys on a terminal (c: the card's own bits); off a terminal, the
     node table once the nodes have been heard, then each event as a line. Meanwhile the
@@ -213,6 +215,8 @@ def _watch(board_no: int, directory: Path, network_path: Path, network: Network,
                 return (status_cli.render(board_no, status_cli.snapshot(image, errors))
                         if image is not None else None)
 
+            for hint in hints:  # the lines above vanish behind the view: its log keeps them
+                model.log(time.time(), f"in another terminal: {hint}")
             TopApp(model, feed, board_no, directory, card_view=card_view).run()
             return
         _print_lines(model, feed, network_path, console)
