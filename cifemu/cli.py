@@ -3,7 +3,8 @@
 Every command is one row of ``COMMANDS``: its name, the module that implements it and a
 one-line summary. A command's module is ``cifemu.commands.<name>`` and gives
 ``add_arguments(parser)`` and ``run(args)``; its ``DESCRIPTION``, else its docstring, is
-the command's ``--help`` text. Only the
+the command's ``--help`` text, without the ``[ours]`` markers that are for the
+project's documents, not for a user. Only the
 chosen command's module is imported: ``cifemu status`` does not pay for the DBM builder,
 canopen or Textual, and ``cifemu --help`` imports none of them.
 """
@@ -37,6 +38,10 @@ COMMANDS = (
             "configure a running card on line from a network description"),
     Command("dbm", "cifemu.commands.dbm",
             "DBM files (show, check, build, diff) and a card's flash (download, upload, ...)"),
+    Command("reset", "cifemu.commands.reset",
+            "restart a running card (cold, warm or boot start), as SyCon's Reset device"),
+    Command("send", "cifemu.commands.send",
+            "send one CAN frame or NMT command on the card's bus, as cansend"),
     Command("monitor", "cifemu.commands.monitor", "the CAN traffic with its CANopen meaning, live"),
     Command("top", "cifemu.commands.top", "a live view of one card: nodes, process image, bus"),
     Command("309", "cifemu.commands.cia309", "the CiA 309-3 ASCII gateway (serve, exec, shell)"),
@@ -63,8 +68,9 @@ def build_parser(chosen: str | None = None) -> argparse.ArgumentParser:
             sub.add_parser(command.name, help=command.summary)
             continue
         module = command.load()
+        description = getattr(module, "DESCRIPTION", module.__doc__) or ""
         sub_parser = sub.add_parser(command.name, help=command.summary,
-                                    description=getattr(module, "DESCRIPTION", module.__doc__),
+                                    description=description.replace(" [ours]", ""),
                                     formatter_class=argparse.RawDescriptionHelpFormatter)
         module.add_arguments(sub_parser)
         sub_parser.set_defaults(func=module.run)

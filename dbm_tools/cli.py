@@ -12,6 +12,8 @@ a card's flash file database.bin):
                               (number 0) are shown but exit 0
   build NET.toml -o OUT.dbm   a DBM from a network description and EDS files
   diff A B [--json]           table, record and field differences; exit 1 if any
+  export FILE [-o NET.toml]   a DBM back to a network description (cifemu sim
+                              simulates it, cifemu dbm build builds it again)
 """
 
 from __future__ import annotations
@@ -38,6 +40,7 @@ from dbm_tools.container import (
     write_dbm,
 )
 from dbm_tools.errors import DbmError
+from dbm_tools.export import export_network
 from dbm_tools.network import BOOT_STEPS, NetworkError, load_network
 from dbm_tools.parameters import (
     BAUD_RATES_KBIT,
@@ -245,6 +248,23 @@ def _descript_table(records: list[bytes]) -> Table:
     return out
 
 
+def project_heading(dbm: DbmFile) -> str:
+    """The project and the date it was built (PROJEKT), where the file has them.
+
+    The file header's date is the writing tool's build date (every file our builder writes
+    carries the same one, ``container.TOOL_DATE``): not this file's, so not shown here."""
+    table = dbm.table(PROJEKT)
+    if table is None or not table.records:
+        return ""
+    try:
+        project = ProjektRecord.decode(table.records[0])
+    except DbmError:
+        return ""
+    date = f" of {project.szDate}" if project.szDate else ""
+    return f"project {project.szProjectName!r}{date}, " if project.szProjectName else (
+        f"a project{date}, " if date else "")
+
+
 def show(path: Path, as_json: bool, console: Console) -> int:
     dbm = load_any(path)
     area = data_area(dbm)
@@ -273,7 +293,7 @@ def show(path: Path, as_json: bool, console: Console) -> int:
         }
         print(json.dumps(document, indent=2))
         return 0
-    overview = Table(title=f"{path}: DBM of {dbm.date!r}, data area {len(area)} bytes, "
+    overview = Table(title=f"{path}: {project_heading(dbm)}data area {len(area)} bytes, "
                            f"w0 {int.from_bytes(area[:2], 'little'):#06x}", title_justify="left")
     for column in ("table", "name", "key", "records", "bytes", "codec"):
         overview.add_column(column)
@@ -360,6 +380,23 @@ def build(network_path: Path, output: Path, name: str | None, console: Console) 
                   f"{len(nodes.records) if nodes else 0} node(s), passes the card's checks")
     for finding in check_dbm(dbm):  # build_dbm refused errors; warnings are the user's call
         console.print(f"[yellow]warning[/]: {finding.detail}", highlight=False)
+    return 0
+
+
+def export(path: Path, output: Path | None, console: Console) -> int:
+    try:
+        text = export_network(load_any(path), path.name)
+    except DbmError as exc:
+        raise UsageError(f"{path}: {exc}") from None
+    if output is None:
+        print(text, end="")
+        return 0
+    try:
+        output.write_text(text, encoding="utf-8")
+    except OSError as exc:
+        raise UsageError(f"cannot write {output}: {exc.strerror}") from None
+    console.print(f"{output}: the network description of {path} "
+                  f"(`cifemu dbm build {output} -o OUT.dbm` builds it again)", highlight=False)
     return 0
 
 
@@ -486,6 +523,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> argparse._SubParsersAction
     p.add_argument("a", type=Path, metavar="A", help="a DBM file or a bare data area")
     p.add_argument("b", type=Path, metavar="B", help="the one to compare it with")
     p.add_argument("--json", action="store_true", help="print the differences as JSON")
+    p = sub.add_parser("export", help="a DBM back to a network description (TOML)",
+                       description="Write the network description of a DBM file: bus "
+                       "parameters, every node's device type, supervision, COB-IDs, SDO "
+                       "list and PDOs with their process-image offsets. `cifemu dbm build` "
+                       "gives the same bus and node records again; `cifemu sim` simulates "
+                       "the network. The project name and DESCRIPT's vendor and device "
+                       "names, which a description takes from --name and EDS files, are "
+                       "comments at the top.")
+    p.add_argument("file", type=Path, metavar="FILE", help="a DBM file or a bare data area")
+    p.add_argument("-o", "--output", type=Path, default=None, metavar="NETWORK.toml",
+                   help="the description to write (default: standard output)")
     return sub
 
 
@@ -498,5 +546,7 @@ def dispatch(args: argparse.Namespace, console: Console) -> int:
         return check(args.file, args.json, console)
     if command == "build":
         return build(args.network, args.output, args.name, console)
+    if command == "export":
+        return export(args.file, args.output, console)
     return diff(args.a, args.b, args.json, console)
 

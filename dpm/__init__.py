@@ -9,18 +9,34 @@ channel). Every other package takes the card's numbers from here. ``DpmError`` i
 what this package raises.
 
 The names below are the ones nearly every user of the card needs; the rest are imported
-from their modules.
+from their modules. They load on first use, as does ``__version__``: a command that needs
+only ``dpm.errors`` (every ``cifemu COMMAND --help``) does not pay for numpy, which
+``layout`` and ``message`` need, nor for the package metadata.
 """
 
-from importlib.metadata import version
+from __future__ import annotations
 
-from dpm.commands import Com, LoadMode, Nmt, Plc, Rcs
-from dpm.errors import DpmError, Drv
-from dpm.flags import DevFlag, HostFlag
-from dpm.message import Ext, Message, MessageError, Task, TelegramHeader, Tfc
-from dpm.task2 import ComDiagnostics, ComPlcParameter
+from importlib import import_module
+from typing import TYPE_CHECKING, Any
 
-__version__ = version("cifemu")
+if TYPE_CHECKING:
+    from dpm.commands import Com, LoadMode, Nmt, Plc, Rcs
+    from dpm.errors import DpmError, Drv
+    from dpm.flags import DevFlag, HostFlag
+    from dpm.message import Ext, Message, MessageError, Task, TelegramHeader, Tfc
+    from dpm.task2 import ComDiagnostics, ComPlcParameter
+
+    __version__: str
+
+_HOMES = {
+    "Com": "dpm.commands", "LoadMode": "dpm.commands", "Nmt": "dpm.commands",
+    "Plc": "dpm.commands", "Rcs": "dpm.commands",
+    "DpmError": "dpm.errors", "Drv": "dpm.errors",
+    "DevFlag": "dpm.flags", "HostFlag": "dpm.flags",
+    "Ext": "dpm.message", "Message": "dpm.message", "MessageError": "dpm.message",
+    "Task": "dpm.message", "TelegramHeader": "dpm.message", "Tfc": "dpm.message",
+    "ComDiagnostics": "dpm.task2", "ComPlcParameter": "dpm.task2",
+}
 
 __all__ = [
     "Com",
@@ -42,3 +58,15 @@ __all__ = [
     "Tfc",
     "__version__",
 ]
+
+
+def __getattr__(name: str) -> Any:
+    """``dpm.Message`` and the others, imported from their module when first asked for."""
+    if name == "__version__":
+        from importlib.metadata import version
+
+        return version("cifemu")
+    home = _HOMES.get(name)
+    if home is None:
+        raise AttributeError(f"module 'dpm' has no attribute {name!r}")
+    return getattr(import_module(home), name)

@@ -3,8 +3,8 @@
 The driver codes are those of the CIF device driver's CIFUSER.H; the ``msg.f``
 numbers come as one enum per task (names and texts together), the ``Err_Event``
 numbers as one enum per kind of address. Texts are worded as in the seed manual
-so that a user can look a number up in either place. Numbers marked [ours] are
-this project's.
+so that a user can look a number up in either place. Numbers marked [ours] in their
+docstrings are this project's; the texts themselves, which users read, carry no marker.
 """
 
 from __future__ import annotations
@@ -199,11 +199,11 @@ class RcsF(MsgF):
     seed's "overstep of the buffer length"; the stored database stays as it was."""
     UNKNOWN_COMMAND = 152, "unknown command, DEVICE needs newer firmware"
     """COM_Upload's text; [ours] every task answers an unknown msg.b with it."""
-    UNKNOWN_TASK = 153, "unknown receiver task [ours]"
+    UNKNOWN_TASK = 153, "unknown receiver task"
     """[ours] the RCS answers a message whose msg.rx names no task with it."""
     NO_DATABASE = 200, "DEVICE is not configured"
     """[ours] an upload with nothing stored."""
-    INTERNAL_ERROR = 254, "internal error of the firmware [ours]"
+    INTERNAL_ERROR = 254, "internal error of the firmware"
     """[ours] a handler failed unexpectedly; the firmware stays up and says so."""
 
 
@@ -220,7 +220,8 @@ class PlcF(MsgF):
     ILLEGAL_COUNT = 165, "illegal data count"
     UNKNOWN_DATA_TYPE = 166, "unknown data type"
     UNKNOWN_FUNCTION = 167, "unknown function"
-    INTERNAL_ERROR = 254, "internal error of the firmware [ours]"
+    INTERNAL_ERROR = 254, "internal error of the firmware"
+    """[ours] as the RCS task's 254."""
 
 
 class CanF(MsgF):
@@ -272,10 +273,11 @@ class CanF(MsgF):
     UNKNOWN_COMMAND = 152, "unknown command, DEVICE needs newer firmware"
     NODE_DIAG_ADDRESS = 161, "remote address out of range"
     NOT_CONFIGURED = 200, "DEVICE is not configured"
-    FLASH_DATABASE_RUNS = 201, "a database from flash runs: no on-line download [ours]"
+    FLASH_DATABASE_RUNS = 201, "a database from flash runs: no on-line download"
     """[ours] COM_Start_Seq, COM_Download, COM_End_Seq while a database from flash runs: the
     seed (5.2.2) says the on-line download cannot be used then, but gives no number."""
-    INTERNAL_ERROR = 254, "internal error of the firmware [ours]"
+    INTERNAL_ERROR = 254, "internal error of the firmware"
+    """[ours] as the RCS task's 254."""
 
 
 def msg_f_text(f: int) -> str:

@@ -29,7 +29,6 @@ from collections.abc import Callable
 from pathlib import Path
 
 from dpm.errors import DpmError
-from dpm.layout import DPM_SIZE
 
 MAX_DEV_BOARDS = 4
 DEFAULT_DPM_DIR = "/dev/shm/cif"
@@ -284,6 +283,8 @@ class ExclusiveLock:
 def create_image(directory: CardDirectory, name: str) -> mmap.mmap:
     """The firmware's map: the file is created (or reused, if it is the firmware
     user's own regular file) with mode 0660."""
+    from dpm.layout import DPM_SIZE  # here: every --help reads this module, not numpy
+
     fd = directory.open(name, os.O_RDWR | os.O_CREAT)
     try:
         os.fchmod(fd, IMAGE_MODE)  # the umask must not widen or narrow the contract
@@ -296,6 +297,8 @@ def create_image(directory: CardDirectory, name: str) -> mmap.mmap:
 def open_image(path: Path, *, readonly: bool = False) -> mmap.mmap:
     """A host's map of an existing image; raises OSError when it is missing, short, or
     no regular file (a symlink planted there would have a host write into its target)."""
+    from dpm.layout import DPM_SIZE  # here: every --help reads this module, not numpy
+
     fd = os.open(path, (os.O_RDONLY if readonly else os.O_RDWR) | os.O_NOFOLLOW | os.O_CLOEXEC)
     try:
         st = os.fstat(fd)

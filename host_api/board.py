@@ -28,12 +28,13 @@ from host_api.registry import transaction_lock
 class CifError(HostApiError):
     """A driver call failed: ``code``, ``name`` (e.g. DRV_DEV_NOT_READY) and ``text``."""
 
-    def __init__(self, code: int, call: str = "") -> None:
+    def __init__(self, code: int, call: str = "", detail: str = "") -> None:
         self.code = int(code)
         self.name = drv_name(code)
         self.text = drv_text(code)
         where = f"{call}: " if call else ""
-        super().__init__(f"{where}{self.name} ({self.code}): {self.text}")
+        after = f"; {detail}" if detail else ""
+        super().__init__(f"{where}{self.name} ({self.code}): {self.text}{after}")
 
 
 def _check(code: int, call: str) -> None:
@@ -109,7 +110,8 @@ class Board:
             raise CifError(Drv.DRV_USR_NOT_INITIALIZED, "transact")
         wait = self._timeout(timeout)
         if not lock.acquire(wait / 1000.0):
-            raise CifError(Drv.DRV_CMD_ACTIVE, "transact")
+            raise CifError(Drv.DRV_CMD_ACTIVE, "transact",
+                           lock.holder.advice() if lock.holder is not None else "")
         try:
             self.put_message(msg, wait)
             while True:

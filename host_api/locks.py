@@ -36,6 +36,7 @@ from pathlib import Path
 from types import TracebackType
 
 from dpm.message import Ext, Message
+from host_api.holders import Holder, lock_holder
 
 _FLOCK_RETRY = 0.0002
 _OPEN_FLAGS = os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW | os.O_CLOEXEC
@@ -200,6 +201,8 @@ class Transaction:
         self._users = 0
         self._own: list[Request] = []
         self._stale: list[Request] = []
+        self.holder: Holder | None = None
+        """Who held the lock when ``acquire`` last failed (None: unknown or free)."""
 
     # --- calls ------------------------------------------------------------------------------
 
@@ -280,13 +283,26 @@ class Transaction:
     # --- sessions ---------------------------------------------------------------------------
 
     def acquire(self, timeout: float) -> bool:
-        """A session: this thread alone in the process, the flock held until ``release``."""
+        """A session: this thread alone in the process, the flock held until ``release``.
+
+        Another process's lock is waited for up to ``timeout``, except a CiA 309
+        gateway's, which it keeps while it runs: then False at once. ``holder`` names
+        the process that held it."""
         deadline = time.monotonic() + timeout
         if not (self._session.acquire(timeout=timeout) if timeout > 0
                 else self._session.acquire(False)):
             return False
-        if self.enter(max(0.0, deadline - time.monotonic())):
+        if self.enter(0.0):
+            self.holder = None
             return True
+        # [ours] Taken by another process: waiting is futile when it keeps the lock for
+        # its life (the CiA 309 gateway), so the caller hears at once, with its name.
+        self.holder = lock_holder(self.path)
+        long_lived = self.holder is not None and self.holder.long_lived
+        if not long_lived and self.enter(max(0.0, deadline - time.monotonic())):
+            self.holder = None
+            return True
+        self.holder = self.holder if long_lived else lock_holder(self.path)
         self._session.release()
         return False
 

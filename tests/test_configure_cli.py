@@ -179,7 +179,7 @@ def test_a_refusal_shows_the_msg_f_number_and_text(tmp_path: Path) -> None:
         card.stop()
     assert text.returncode == 1 and "Traceback" not in text.stderr
     assert "warm start first" in text.stdout
-    assert ("msg.f = 201 (a database from flash runs: no on-line download [ours])"
+    assert ("msg.f = 201 (a database from flash runs: no on-line download); "
             in text.stderr)
     error = json.loads(as_json.stdout)["error"]
     assert as_json.returncode == 1 and error["msg_f"] == 201

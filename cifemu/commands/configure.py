@@ -33,6 +33,7 @@ from dpm.task2 import ComDiagnostics
 from host_api.board import Board, CifError
 from host_api.liveness import firmware_liveness
 from host_api.network_view import remember_network
+from host_api.next_steps import configure_refusal
 from host_api.online import ConfigurationError, configure_online
 
 COMMAND = "configure"
@@ -179,8 +180,9 @@ def run(args: argparse.Namespace) -> int:
         return fail(COMMAND, f"board {args.board}: {exc}{hint}", args.json, code=1,
                     driver_code=exc.code, driver_name=exc.name)
     except ConfigurationError as exc:
-        return fail(COMMAND, f"{exc} ({msg_f_text(exc.f)})", args.json, msg_f=exc.f,
-                    msg_f_text=msg_f_text(exc.f))
+        step = configure_refusal(exc.f, str(args.network), args.board, args.dpm_dir)
+        return fail(COMMAND, f"{exc} ({msg_f_text(exc.f)}); {step}", args.json, msg_f=exc.f,
+                    msg_f_text=msg_f_text(exc.f), next_step=step)
     ok = not outcome["missing"] and not outcome["err_event"]
     if args.json:
         print_json({"board": args.board, "network": str(args.network), "ok": ok, **outcome})

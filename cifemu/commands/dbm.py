@@ -23,7 +23,7 @@ from dbm_tools.cli import PROG, UsageError, load_any, plain
 from dbm_tools.container import read_data_area, write_dbm
 from dbm_tools.errors import DbmError
 from dbm_tools.validate import check_dbm
-from dpm.errors import drv_name, drv_text
+from dpm.errors import Drv, drv_name, drv_text
 from dpm.flags import COM, READY, RUN
 from host_api.download import (
     CONFIGURATION_DOWNLOAD,
@@ -43,6 +43,7 @@ from host_api.driver import (
     DevOpenDriver,
     DevReset,
 )
+from host_api.holders import mailbox_advice
 
 SETTLE_SECONDS = 1.0
 """How long ``download --reset`` waits for RUN after READY before it reports the flags."""
@@ -68,6 +69,12 @@ DESCRIPTION = f"{file_commands.__doc__}{CARD_HELP}"
 def describe(rc: int) -> str:
     """A driver code as the user reads it: name, number, meaning."""
     return f"{drv_name(rc)} ({rc}): {drv_text(rc)}"
+
+
+def busy(rc: int, board: int, directory: str | None) -> str:
+    """For DRV_CMD_ACTIVE: who holds the board's mailbox and the way past it."""
+    advice = mailbox_advice(board, directory) if rc == Drv.DRV_CMD_ACTIVE else ""
+    return f"; {advice}" if advice else ""
 
 
 class _Card:
@@ -126,7 +133,7 @@ def download(path: Path, board: int, directory: str | None, reset: bool,
             rc = DevDownload(board, CONFIGURATION_DOWNLOAD, path,
                              lambda done, total: bar.update(task, completed=done, total=total))
         if rc != 0:
-            raise UsageError(f"download refused: {describe(rc)}")
+            raise UsageError(f"download refused: {describe(rc)}{busy(rc, board, directory)}")
         console.print(f"{path} stored in board {board}'s flash; it takes effect at the next start")
         if reset:
             flags = card.cold_start()
@@ -149,7 +156,7 @@ def upload(output: Path, board: int, directory: str | None, console: Console) ->
     finally:
         card.close()
     if rc != 0:
-        raise UsageError(f"upload failed: {describe(rc)}")
+        raise UsageError(f"upload failed: {describe(rc)}{busy(rc, board, directory)}")
     try:
         content = write_dbm(read_data_area(area))
     except DbmError as exc:
@@ -172,7 +179,7 @@ def delete(board: int, directory: str | None, console: Console) -> int:
     finally:
         card.close()
     if rc != 0:
-        raise UsageError(f"delete failed: {describe(rc)}")
+        raise UsageError(f"delete failed: {describe(rc)}{busy(rc, board, directory)}")
     console.print(f"board {board}: database deleted; from the next start the card waits "
                   "for an on-line configuration")
     return 0
@@ -187,7 +194,7 @@ def directory_listing(board: int, directory: str | None, as_json: bool,
     finally:
         card.close()
     if rc != 0:
-        raise UsageError(f"flash directory failed: {describe(rc)}")
+        raise UsageError(f"flash directory failed: {describe(rc)}{busy(rc, board, directory)}")
     if as_json:
         print_json([plain(e) for e in entries])
         return 0

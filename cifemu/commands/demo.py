@@ -1,4 +1,4 @@
-"""A card and a simulated network, configured on line, with its live status.
+"""A card and a simulated network, configured on line, shown as top's live view.
 
 The card's image goes where every other command looks by default ($CIF_DPM_DIR
 or /dev/shm/cif), so `cifemu status`, `cifemu top`, `cifemu monitor` and
@@ -17,12 +17,12 @@ import signal
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from pathlib import Path
 from types import FrameType
 
-from rich.console import Console
-from rich.live import Live
+from rich.console import Console, Group
 
 from cifemu.commands.configure import configure
 from dbm_tools.builder import BuildError, build_dbm
@@ -44,12 +44,19 @@ from host_api.board import Board, CifError
 from host_api.download import CONFIGURATION_DOWNLOAD, DevDownload
 from host_api.driver import COLDSTART
 from host_api.liveness import firmware_liveness
-from host_api.network_view import remember_network
+from host_api.network_view import network_view, remember_network
 from host_api.online import ConfigurationError
+from host_api.top.app import TopApp
+from host_api.top.feed import CardFeed
+from host_api.top.model import CardModel
+from host_api.top.render import natural_width, nodes_table
 
 EXAMPLE_NETWORK = Path(__file__).parents[1] / "examples" / "demo.toml"
 START_TIMEOUT_S = 15.0
 NETWORK_WAIT_S = 10.0
+FIRST_TABLE_S = 1.5
+"""How long the demo listens before its first node table off a terminal: one heartbeat
+of each of the example's nodes (1 s)."""
 
 
 def _ready(image: bytes | None) -> bool:
@@ -172,22 +179,77 @@ def _show(args: argparse.Namespace, directory: Path, network_path: Path, network
                 configure(board, network, NETWORK_WAIT_S,
                           lambda step: console.print(f"configuring: {step}"))
             command, options = command_for_another_terminal(directory, board_no)
-            console.print(f"card image {image_path(directory, board_no)}; Ctrl-C ends the demo. "
-                          "In another terminal:", highlight=False)
-            for sub in ("top", "status", "monitor"):
-                console.print(f"  {' '.join(filter(None, [command, sub, options]))}",
-                              highlight=False, markup=False, soft_wrap=True)
-            counter = 0
-            with Live(console=console, auto_refresh=False) as live:
-                while True:
-                    counter = (counter + 1) & 0xFF
-                    d.DevExchangeIO(board_no, 0, bytes([counter]) * 32, 0, 0, 100)
-                    snapshot = status_cli.read_image(board_no, str(directory))
-                    if snapshot is not None:
-                        live.update(status_cli.render(board_no, status_cli.snapshot(
-                            snapshot, {node.id: node.error_control for node in network.nodes})),
-                                    refresh=True)
-                    time.sleep(0.2)
+            ends = "q in the view" if sys.stdout.isatty() else "Ctrl-C"  # Textual takes Ctrl-C
+            console.print(f"card image {image_path(directory, board_no)}; {ends} ends the demo. "
+                          "In another terminal:", highlight=False, soft_wrap=True)
+            hints = [" ".join(filter(None, [command, sub, options]))
+                     for sub in ("top", "status", "monitor")]
+            for hint in hints:
+                console.print(f"  {hint}", highlight=False, markup=False, soft_wrap=True)
+            sys.stdout.flush()
+            _watch(board_no, directory, network_path, network, console, hints)
     except (CifError, ConfigurationError) as exc:
         print(f"cifemu demo: {exc}", file=sys.stderr)
         return 1
+    return 0
+
+
+def _watch(board_no: int, directory: Path, network_path: Path, network: Network,
+           console: Console, hints: list[str]) -> None:
+    """What a CANopen engineer looks at first: ``top``'s nodes (names, NMT states, EMCY
+    texts), live with its keys on a terminal (c: the card's own bits); off a terminal, the
+    node table once the nodes have been heard, then each event as a line. Meanwhile the
+    host writes a counter into the outputs, so the process image moves."""
+    model = CardModel(view=network_view(network), network=network)
+    feed = CardFeed(model, board_no, directory)
+    stop = threading.Event()
+    writer = threading.Thread(target=_count_outputs, args=(board_no, stop), daemon=True)
+    feed.start()
+    writer.start()
+    try:
+        if sys.stdout.isatty():
+            errors = {node.id: node.error_control for node in network.nodes}
+
+            def card_view() -> Group | None:
+                image = status_cli.read_image(board_no, str(directory))
+                return (status_cli.render(board_no, status_cli.snapshot(image, errors))
+                        if image is not None else None)
+
+            for hint in hints:  # the lines above vanish behind the view: its log keeps them
+                model.log(time.time(), f"in another terminal: {hint}")
+            TopApp(model, feed, board_no, directory, card_view=card_view).run()
+            return
+        _print_lines(model, feed, network_path, console)
+    finally:
+        stop.set()
+        writer.join(timeout=2)
+        feed.stop()
+
+
+def _count_outputs(board_no: int, stop: threading.Event) -> None:
+    counter = 0
+    while not stop.wait(0.2):
+        counter = (counter + 1) & 0xFF
+        d.DevExchangeIO(board_no, 0, bytes([counter]) * 32, 0, 0, 100)
+
+
+def _print_lines(model: CardModel, feed: CardFeed, network_path: Path,
+                 console: Console) -> None:
+    """The demo in a pipe or a file: the node table after one heartbeat period, then every
+    event (EMCY, Err_Event, boot-up, NMT) as a line of its own, each flushed."""
+    deadline = time.monotonic() + FIRST_TABLE_S
+    while time.monotonic() < deadline:
+        feed.poll_image()
+        time.sleep(0.05)
+    table = nodes_table(model, time.time())
+    table.title = f"nodes of {network_path.name}"
+    Console(width=natural_width(Group(table))).print(table)
+    sys.stdout.flush()
+    seen = 0
+    while True:
+        feed.poll_image()
+        for line in model.new_events(seen):
+            console.print(line, highlight=False, markup=False, soft_wrap=True)
+            seen += 1
+        sys.stdout.flush()
+        time.sleep(0.1)

@@ -35,6 +35,7 @@ from dpm.image import dpm_dir, image_path
 from host_api.liveness import firmware_liveness
 from host_api.monitor.codec import KINDS, Meaning, decode
 from host_api.monitor.tap_bus import TapBus
+from host_api.monitor.timestamps import FORMATS, Stamps
 from host_api.network_view import NetworkView, load_view, remembered_network
 
 COMMAND = "monitor"
@@ -67,6 +68,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="end after this many seconds")
     parser.add_argument("--json", action="store_true",
                         help="one JSON object per frame (JSON lines)")
+    parser.add_argument("-t", "--time", choices=FORMATS, default=None, metavar="a|d|z|A",
+                        help="time stamps as candump -t: a absolute, d delta to the previous "
+                             "frame, z zero-based, A absolute with date (default: seconds "
+                             "since the epoch)")
 
 
 def wanted(meaning: Meaning, nodes: list[int] | None, kinds: list[str] | None) -> bool:
@@ -101,11 +106,12 @@ def frame_record(msg: can.Message, meaning: Meaning, tapped: bool) -> dict[str, 
 
 
 def frame_line(msg: can.Message, meaning: Meaning, tapped: bool,
-               view: NetworkView | None = None) -> str:
+               view: NetworkView | None = None, stamp: str | None = None) -> str:
     name = view.name(meaning.node) if view is not None and meaning.node is not None else ""
     ident = f"{msg.arbitration_id:08X}" if msg.is_extended_id else f"{msg.arbitration_id:03X}"
     data = "remote" if msg.is_remote_frame else bytes(msg.data).hex(" ")
-    return (f"{msg.timestamp:17.6f}  {msg.channel or '-'}  {direction(msg, tapped)}  "
+    when = stamp or format(msg.timestamp, "17.6f")
+    return (f"{when}  {msg.channel or '-'}  {direction(msg, tapped)}  "
             f"{ident:>8}  [{msg.dlc}]  {data:<23}  {meaning.text}"
             + (f"  ({name})" if name else ""))
 
@@ -173,6 +179,7 @@ def _quiet_note(kinds: list[str]) -> str:
 def _listen(bus: can.BusABC, tapped: bool, view: NetworkView, args: argparse.Namespace,
             logger: can.Listener | None) -> None:
     shown = 0
+    stamps = Stamps(args.time) if args.time else None
     end = None if args.duration is None else time.monotonic() + args.duration
     quiet_until: float | None = time.monotonic() + QUIET_NOTE_S if args.type else None
     while args.count is None or shown < args.count:
@@ -192,6 +199,7 @@ def _listen(bus: can.BusABC, tapped: bool, view: NetworkView, args: argparse.Nam
         if logger is not None:
             logger.on_message_received(msg)
         line = (json.dumps(frame_record(msg, meaning, tapped)) if args.json
-                else frame_line(msg, meaning, tapped, view))
+                else frame_line(msg, meaning, tapped, view,
+                                stamps.stamp(msg.timestamp) if stamps else None))
         sys.stdout.write(line + "\n")
         sys.stdout.flush()

@@ -21,6 +21,7 @@ The network file defaults to the one the card was last configured from with
 from __future__ import annotations
 
 import argparse
+import sys
 import time
 from pathlib import Path
 
@@ -35,7 +36,7 @@ from host_api.liveness import firmware_liveness
 from host_api.network_view import network_view, remembered_network
 from host_api.top.feed import CardFeed
 from host_api.top.model import CardModel
-from host_api.top.render import snapshot
+from host_api.top.render import natural_width, snapshot
 
 COMMAND = "top"
 
@@ -84,10 +85,13 @@ def run(args: argparse.Namespace) -> int:
                 time.sleep(0.05)
             feed.poll_image()
             live = firmware_liveness(directory, args.board)
-            title = (f"board {args.board} in {directory}: firmware pid {live.pid}" if live.alive
-                     else f"board {args.board} in {directory}: firmware DEAD (last pid "
-                          f"{live.pid})")
-            Console().print(snapshot(model, time.time(), title))
+            gone = (f"DEAD (last pid {live.pid})" if live.pid is not None
+                    else "not running (it stopped cleanly)")
+            title = (f"board {args.board} in {directory}: firmware "
+                     + (f"pid {live.pid}" if live.alive else gone))
+            view = snapshot(model, time.time(), title, stale=not live.alive)
+            wide = None if sys.stdout.isatty() else natural_width(view)  # a pipe cuts nothing
+            Console(width=wide).print(view)
             return 0 if live.alive else 3
         from host_api.top.app import TopApp  # Textual's import cost only for the live view
 

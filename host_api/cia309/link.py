@@ -301,8 +301,9 @@ class Link:
         self._holding = self._transaction.acquire(TRANSACTION_LOCK_WAIT_S)
         if not self._holding:
             self.board.close()
-            raise Cia309Error(ErrorCode.INTERNAL_STATE,
-                              f"board {number}: another host holds its mailbox")
+            holder = self._transaction.holder
+            raise Cia309Error(ErrorCode.INTERNAL_STATE, f"board {number}: " + (
+                holder.advice() if holder is not None else "another host holds its mailbox"))
         self._closing = threading.Event()
         self._pending: dict[int, _Pending] = {}
         self._pending_lock = threading.Lock()

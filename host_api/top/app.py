@@ -3,7 +3,8 @@
 Keys act on the node selected in the nodes table: s start, t stop,
 p pre-operational, r reset node (NMT through the card's mailbox), o read an
 object by SDO (type its index and subindex in hex), v follow the next PDO's
-value in the sparkline, q quit. Actions run in worker threads, so a node that
+value in the sparkline, c the card's own state (flags, info areas, Task2State; where
+the caller gives it, as ``cifemu demo`` does), q quit. Actions run in worker threads, so a node that
 does not answer never freezes the screen; their outcome goes to the event log.
 """
 
@@ -14,6 +15,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import ClassVar
 
+from rich.console import RenderableType
 from textual.app import App, ComposeResult
 from textual.binding import Binding, BindingType
 from textual.widgets import DataTable, Footer, Header, Input, RichLog, Sparkline, Static
@@ -34,6 +36,8 @@ class TopApp(App[None]):
     #events { height: 1fr; min-height: 5; }
     #sdo { display: none; }
     #sdo.visible { display: block; }
+    #card { display: none; height: auto; }
+    #card.visible { display: block; }
     """
     BINDINGS: ClassVar[list[BindingType]] = [
         Binding("s", "nmt('start')", "start"),
@@ -42,6 +46,7 @@ class TopApp(App[None]):
         Binding("r", "nmt('reset')", "reset node"),
         Binding("o", "ask_sdo", "SDO read"),
         Binding("v", "next_value", "next value"),
+        Binding("c", "card", "card bits"),
         Binding("q", "quit", "quit"),
     ]
     NMT_KEYS: ClassVar[dict[str, Nmt]] = {
@@ -50,8 +55,11 @@ class TopApp(App[None]):
     }
 
     def __init__(self, model: CardModel, feed: CardFeed, board: int, directory: Path,
-                 interval: float = 0.25) -> None:
+                 interval: float = 0.25,
+                 card_view: Callable[[], RenderableType | None] | None = None) -> None:
         super().__init__()
+        self.card_view = card_view
+        """What the c key shows: the card's flags and areas (None: the key says so)."""
         self.model = model
         self.feed = feed
         self.board = board
@@ -63,6 +71,7 @@ class TopApp(App[None]):
     def compose(self) -> ComposeResult:
         yield Header()
         yield Static(id="bus")
+        yield Static(id="card")
         yield DataTable(id="nodes", cursor_type="row", zebra_stripes=True)
         yield Static(id="pdos")
         yield Static(id="spark-label")
@@ -83,6 +92,11 @@ class TopApp(App[None]):
 
     def refresh_view(self) -> None:
         now = time.time()
+        card = self.query_one("#card", Static)
+        if card.has_class("visible") and self.card_view is not None:
+            view = self.card_view()
+            if view is not None:
+                card.update(view)
         if not self.feed.poll_image():
             self.query_one("#bus", Static).update(f"board {self.board}: no image")
             return
@@ -160,6 +174,14 @@ class TopApp(App[None]):
             return
         self.model.log(time.time(), f"host: SDO read node {node} {index:04X}h/{subindex:02X}h")
         self._in_background(lambda: sdo_read(self.board, self.directory, node, index, subindex))
+
+    def action_card(self) -> None:
+        """Show or hide the card's own state above the nodes."""
+        if self.card_view is None:
+            self.model.log(time.time(), "c: `cifemu status` shows the card's flags and areas")
+            return
+        self.query_one("#card", Static).toggle_class("visible")
+        self.refresh_view()
 
     def action_next_value(self) -> None:
         self.model.select_next_value()

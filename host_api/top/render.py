@@ -2,7 +2,8 @@
 
 from __future__ import annotations
 
-from rich.console import Group
+from rich.console import Console, Group
+from rich.measure import Measurement
 from rich.table import Table
 from rich.text import Text
 
@@ -56,20 +57,37 @@ def process_table(model: CardModel, now: float) -> Table:
     return table
 
 
-def bus_text(figures: BusFigures) -> str:
+STALE_NOTE = ("stale: no firmware serves this image; every value below is the last one it "
+              "wrote, not the card's now")
+"""[ours] What ``--once`` prints above the values of a card whose firmware is gone."""
+
+
+def bus_text(figures: BusFigures, stale: bool = False) -> str:
     load = (f"{figures.load_percent:.1f} % of {figures.bitrate} bit/s"
             if figures.load_percent is not None else "bit rate unknown")
     counters = "  ".join(f"{name} {value}" for name, value in figures.counters.items())
-    return (f"CAN_state {figures.can_state}  {figures.frames_per_s:.0f} frames/s ({load})  "
+    state = f"{figures.can_state} (stale)" if stale else figures.can_state
+    return (f"CAN_state {state}  {figures.frames_per_s:.0f} frames/s ({load})  "
             f"{counters}")
 
 
-def snapshot(model: CardModel, now: float, title: str) -> Group:
-    """Everything at once, for ``--once``."""
+def snapshot(model: CardModel, now: float, title: str, stale: bool = False) -> Group:
+    """Everything at once, for ``--once``; ``stale``: the firmware is gone, and what the
+    image shows is its last word (marked as such, never as the card's state)."""
     figures = model.bus(now)
     events = Table(title="events", show_header=False, expand=True)
     events.add_column()
     for line in list(model.events)[-10:]:
         events.add_row(line)
-    return Group(Text(title, style="bold"), Text(bus_text(figures)), nodes_table(model, now),
+    head = [Text(title, style="bold")] + ([Text(STALE_NOTE, style="yellow")] if stale else [])
+    return Group(*head, Text(bus_text(figures, stale)), nodes_table(model, now),
                  process_table(model, now), events)
+
+
+def natural_width(renderable: Group, limit: int = 1000) -> int:
+    """The columns ``renderable`` needs to show every cell whole (tables that expand
+    measured at their content), for output that goes to no terminal [ours]."""
+    console = Console(width=limit)
+    widths = [Measurement.get(console, console.options, part).maximum
+              for part in renderable.renderables]
+    return max([80, *widths])
