@@ -28,8 +28,10 @@ from firmware.frames import SDO_FRAME_LENGTH
 
 log = logging.getLogger(__name__)
 
-INTERFACE_ERRORS = (can.CanError, OSError, ValueError, ImportError, NotImplementedError)
-"""What python-can raises when an interface or channel cannot be opened."""
+INTERFACE_ERRORS = (can.CanError, OSError, ValueError, ImportError, NotImplementedError,
+                    TypeError)
+"""What python-can raises when an interface or channel cannot be opened (TypeError: an
+option, ``--bus-option``, that the interface's class does not take)."""
 
 SEND_TIMEOUT = 0.020
 """Seed 4.3: each CAN message is supervised to be sent within 20 ms."""
