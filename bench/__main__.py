@@ -10,7 +10,7 @@ import argparse
 from collections.abc import Callable
 from typing import Any
 
-from bench import can, cia309, dbm, exchange_io, lss, mailbox, soak
+from bench import can, cia309, dbm, exchange_io, lss, mailbox, remote, soak
 from bench.common import add_size_arguments, emit, help_text, progress
 
 Runner = Callable[[int | None, int | None], dict[str, Any]]
@@ -22,6 +22,7 @@ BENCHMARKS: dict[str, Runner] = {
     can.NAME: can.run,
     cia309.NAME: cia309.run,
     lss.NAME: lss.run,
+    remote.NAME: remote.run,
 }
 
 
