@@ -52,18 +52,22 @@ class Remote:
     proc: subprocess.Popen[bytes]
     url: str
 
+    @property
+    def port(self) -> int:
+        return int(self.url.rstrip("/").rsplit(":", 1)[1])
+
     def stop(self) -> None:
         if self.proc.poll() is None:
             self.proc.terminate()
         self.proc.wait(timeout=10)
 
 
-def start_remote_server(channel: str) -> Remote:
-    """``python -m can_remote`` on 127.0.0.1 and a port the kernel picks (``-p 0``): the
-    URL is read from its log, so no port is guessed and none is raced for."""
+def start_remote_server(channel: str, port: int = 0) -> Remote:
+    """``python -m can_remote`` on 127.0.0.1 and ``port``, by default one the kernel picks
+    (``-p 0``): the URL is read from its log, so no port is guessed and none is raced for."""
     proc = subprocess.Popen(
         [sys.executable, "-m", "can_remote", "-i", "shm", "-c", channel, "-H", "127.0.0.1",
-         "-p", "0"], stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
+         "-p", str(port)], stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
         stderr=subprocess.PIPE)
     assert proc.stderr is not None
     lines: queue.Queue[bytes] = queue.Queue()
@@ -152,7 +156,7 @@ def bench(tmp_path: Path) -> Iterator[Bench]:
             made.card.stop()
             if made.sim is not None:
                 _stop(made.sim)
-        server.stop()
+        (made.server if made is not None else server).stop()
 
 
 def _stop(proc: subprocess.Popen[bytes]) -> None:
@@ -195,3 +199,28 @@ def test_heartbeat_loss_behind_the_bridge_is_err_event_30_and_recovers(bench: Be
     assert not diag.bGlobalBits & GlobalBits.NEXC
     wait_until(lambda: bench.board.exchange_io(b"\x33", receive_size=1) == b"\x33", 3,
                "node 1 to echo the outputs again")
+
+
+def test_a_lost_link_is_a_bus_off_and_the_card_reconnects(bench: Bench) -> None:
+    """The server killed: no error frame comes, but the controller's transport fails; the
+    card counts a bus-off (Bus_Off_Cnt, EVE [ours]) and the nodes' heartbeats are lost
+    (Err_Event 30). The server back on its port: the controller reopens the interface and the
+    nodes return to data exchange without a host's reset."""
+    configure_online(bench.board, load_network(bench.network))
+    wait_until(lambda: bench.board.diagnostics().operating() == NODES, 15,
+               "the nodes in data exchange")
+    bus_off = bench.board.diagnostics().usBus_Off_Cnt
+    port = bench.server.port
+    bench.server.proc.send_signal(signal.SIGKILL)
+    bench.server.proc.wait(timeout=10)
+    wait_until(lambda: bench.board.diagnostics().operating() == [], 5,
+               "every node's heartbeat lost with the link")
+    diag = bench.board.diagnostics()
+    assert diag.bErr_event == 30
+    assert diag.usBus_Off_Cnt == bus_off + 1
+    assert diag.bGlobalBits & GlobalBits.EVE
+    bench.server = start_remote_server(bench.channel, port)
+    wait_until(lambda: bench.board.diagnostics().operating() == NODES, 20,
+               "the nodes back in data exchange over the reopened link")
+    wait_until(lambda: bench.board.exchange_io(b"\x66", receive_size=1) == b"\x66", 3,
+               "node 1 to echo the outputs over the reopened link")
