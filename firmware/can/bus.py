@@ -162,7 +162,9 @@ class CanBus(can.Listener):
 
     def on_error(self, exc: Exception) -> None:
         """The transport failed under the receive or a sending thread: a bridge's link closed
-        (python-can-remote and socketcand raise from ``recv`` and ``send``, no error frame).
+        (python-can-remote raises from ``recv`` and ``send``; python-can's socketcand client
+        only from ``send``, its ``recv`` returns nothing from a closed connection). No error
+        frame tells it.
 
         [ours] The host sees a bus-off (Bus_Off_Cnt, EVE): the controller is off the bus.
         The interface is opened again every ``REOPEN_S`` until it is back, and the nodes'
