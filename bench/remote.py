@@ -125,7 +125,7 @@ def start_server(channel: str, port: int = 0) -> Server:
 
 
 def start_sim(toml: Path, channel: str) -> subprocess.Popen[bytes]:
-    sim = subprocess.Popen([sys.executable, "-m", "firmware.sim", str(toml), "--interface",
+    sim = subprocess.Popen([sys.executable, "-m", "cifemu", "sim", str(toml), "--interface",
                             "shm", "--channel", channel, "--log-level", "WARNING"],
                            stdin=subprocess.DEVNULL, stdout=subprocess.PIPE)
     assert sim.stdout is not None
@@ -166,9 +166,9 @@ def rig(bridge: str) -> Iterator[Rig]:
             stderr_path = directory / "firmware.stderr"
             with stderr_path.open("wb") as stderr:
                 proc = subprocess.Popen(
-                    [sys.executable, "-m", "firmware", "--board", str(BOARD), "--dpm-dir", tmp,
-                     "--log-level", "WARNING", "--interface", interface, "--channel",
-                     card_channel, "--flash", str(directory / "flash")],
+                    [sys.executable, "-m", "cifemu", "firmware", "--board", str(BOARD),
+                     "--dpm-dir", tmp, "--log-level", "WARNING", "--interface", interface,
+                     "--channel", card_channel, "--flash", str(directory / "flash")],
                     stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=stderr)
             card = SimCard(directory, proc, None, stderr_path, sim=sim)
             made = Rig(bridge, card, channel, toml, server)

@@ -2,15 +2,15 @@
 
 - ``Device`` (``firmware.device``): one card serving its image, with the RCS, PLC and
   CAN tasks (``rcs``, ``plc``, ``can_task``);
-- ``firmware.can``: the CANopen master (controller, node handlers, SDO, SYNC) and the
-  ``shm`` python-can interface;
+- ``firmware.can``: the CANopen master (controller, node handlers, SDO, SYNC);
+- ``firmware.shm``: the ``shm`` python-can interface;
 - ``FlashStore`` (``firmware.flash``): the card's flash directory;
 - ``firmware.sim``: simulated CANopen nodes;
 - ``FirmwareError`` (``firmware.errors``): the root of what the firmware raises.
 
 The names load on first use: python-can's interface registry and the SYNC timer process
-(``python -m firmware.can.shm_cyclic``, which must start within a fraction of a second)
-import ``firmware.can.shm`` and must not pay for the device and its tasks.
+(``python -m firmware.shm.cyclic``, which must start within a fraction of a second)
+import ``firmware.shm.bus`` and must not pay for the device and its tasks.
 """
 
 from __future__ import annotations

@@ -72,14 +72,15 @@ from dpm.commands import (
 from dpm.errors import CanF
 from dpm.message import Ext, Message, MessageError, TelegramHeader, Tfc
 from dpm.task2 import CanState, GlobalBits
-from firmware.can.bus import INTERFACE_ERRORS
-from firmware.can.master import BusConfig, Master
+from firmware import card_info
+from firmware.can.bus import INTERFACE_ERRORS, BusConfig
+from firmware.can.master import Master
 from firmware.can.node import NodeHandler, State
 from firmware.can.sdo import HostSdoTransfer, SdoResult
 from firmware.task import Task
 
 if TYPE_CHECKING:
-    from firmware.device import Device
+    from firmware.whole_card import WholeCard
 
 log = logging.getLogger(__name__)
 
@@ -94,14 +95,20 @@ class _Sequence:
     last: float
     length: int = 0
 
+    def expired(self, now: float) -> bool:
+        """Seed 5.2.3: more than Timeout ms since the sequence's last message (0: never)."""
+        return bool(self.timeout_ms) and (now - self.last) * 1000 > self.timeout_ms
+
 
 class CanTask(Task):
     number = message.Task.CAN
     name = "CAN"
 
-    def __init__(self, device: Device, config: BusConfig | None = None) -> None:
+    def __init__(self, device: WholeCard, config: BusConfig | None = None) -> None:
+        """``device`` is the whole card only for the facts the controller publishes beside
+        the image (``card_info``); the master and the handlers see a ``Card``."""
         super().__init__(device)
-        self.master = Master(device, config or BusConfig())
+        self.master = Master(device, config or BusConfig(), lambda: card_info.publish(device))
         self.node_data: dict[int, bytes] = {}
         self.bus_data: bytes | None = None
         self.from_flash = False
@@ -179,13 +186,13 @@ class CanTask(Task):
 
     @property
     def configured(self) -> bool:
-        return self.master.running
+        return self.master.nmt.running
 
     def can_state(self) -> CanState:
         return self.master.can_state()
 
     def next_indication(self) -> Message | None:
-        return self.master.next_indication()
+        return self.master.layer2.next_indication()
 
     # --- the configuration entry points (also used at start-up from flash) ---------------------
 
@@ -214,8 +221,7 @@ class CanTask(Task):
 
     def download_bus(self, data: bytes) -> int:
         """The bus parameter data set; a good one starts the network."""
-        nodes = [self.master.nodes[a].params for a in sorted(self.master.nodes)]
-        errors = [f for f in check_bus_parameters(data, nodes) if f.severity == "error"]
+        errors = [f for f in check_bus_parameters(data) if f.severity == "error"]
         if errors:
             return errors[0].number
         self.bus_data = bytes(data)
@@ -226,18 +232,22 @@ class CanTask(Task):
     # --- COM_Start_Seq / COM_Download / COM_End_Seq / COM_Upload -----------------------------
 
     def com_start_seq(self, msg: Message) -> Message:
+        """Seed 5.2.3. Every answer, an error too, has the table's msg.ln 1 with
+        Max_Len_Data_Unit 240: the table gives ln and d[0] as fixed values and only f as
+        variable, so a host that reads d[0] whatever f says finds 240 there."""
+        confirm = encode_start_seq_confirm(MAX_LEN_DATA_UNIT)
         if self.from_flash:
-            return msg.answer(f=CanF.FLASH_DATABASE_RUNS)
+            return msg.answer(f=CanF.FLASH_DATABASE_RUNS, data=confirm)
         try:
             request = StartSeqRequest.decode(msg.data)
         except MessageError:
-            return msg.answer(f=CanF.FAULTY_PARAMETER)
+            return msg.answer(f=CanF.FAULTY_PARAMETER, data=confirm)
         area = request.area
         if not 1 <= area <= 126:
-            return msg.answer(f=CanF.AREA_CODE)
+            return msg.answer(f=CanF.AREA_CODE, data=confirm)
         self._sequence = _Sequence(area, request.timeout_ms, bytearray(DOWNLOAD_AREA_SIZE),
                                    time.monotonic())
-        return msg.answer(data=encode_start_seq_confirm(MAX_LEN_DATA_UNIT))
+        return msg.answer(data=confirm)
 
     def com_download(self, msg: Message) -> Message:
         if self.from_flash:
@@ -254,6 +264,14 @@ class CanTask(Task):
         if not 1 <= area <= 126:
             return msg.answer(f=CanF.AREA_CODE)
         seq = self._sequence
+        now = time.monotonic()
+        if seq is not None and seq.expired(now):
+            # Seed 5.2.3: the time-out ends the sequence; what comes after it for another
+            # node is a download of its own, not a sequence error. Its own node hears 48.
+            self._sequence = None
+            if area == seq.area:
+                return msg.answer(f=CanF.TIMEOUT)
+            seq = None
         if seq is None:
             if offset:
                 return msg.answer(f=CanF.SEQUENCE)  # an offset needs COM_Start_Seq first
@@ -262,10 +280,6 @@ class CanTask(Task):
             return msg.answer(f=self.download_node(area, data))
         if area != seq.area:
             return msg.answer(f=CanF.SEQUENCE)
-        now = time.monotonic()
-        if seq.timeout_ms and (now - seq.last) * 1000 > seq.timeout_ms:
-            self._sequence = None
-            return msg.answer(f=CanF.TIMEOUT)
         if offset + len(data) > DOWNLOAD_AREA_SIZE:
             return msg.answer(f=CanF.BUFFER_LENGTH)
         seq.buffer[offset : offset + len(data)] = data
@@ -279,7 +293,7 @@ class CanTask(Task):
         seq, self._sequence = self._sequence, None
         if seq is None:
             return msg.answer(f=CanF.SEQUENCE)
-        if seq.timeout_ms and (time.monotonic() - seq.last) * 1000 > seq.timeout_ms:
+        if seq.expired(time.monotonic()):
             return msg.answer(f=CanF.TIMEOUT)  # it expires with no message at all, too
         if seq.length < 2:
             return msg.answer(f=CanF.INCOMPLETE)
@@ -356,7 +370,7 @@ class CanTask(Task):
             return msg.answer(f=CanF.FAULTY_PARAMETER, data=msg.data[:8])
         if head.function not in (Tfc.READ, Tfc.WRITE):
             return msg.answer(f=CanF.SDO_FUNCTION, data=msg.data[:8])
-        if not self.master.running or self.master.bus is None:
+        if not self.master.nmt.running or self.master.bus is None:
             return msg.answer(f=CanF.NOT_CONFIGURED, data=msg.data[:8])
         if head.function == Tfc.WRITE and len(head.payload) != head.data_cnt:
             return msg.answer(f=CanF.SDO_BUFFER, data=msg.data[:8])
@@ -374,7 +388,7 @@ class CanTask(Task):
         handler = self.master.nodes.get(address)
         if handler is not None and handler.state is State.BOOTING:
             return msg.answer(f=CanF.NODE_BUSY, data=msg.data[:8])
-        client = self.master.sdo_client(address)
+        client = self.master.sdo.channel(address)
         if not client.lock.acquire(blocking=False):
             return msg.answer(f=CanF.SDO_FUNCTION, data=msg.data[:8])
         if handler is not None:
@@ -386,7 +400,7 @@ class CanTask(Task):
             client.lock.release()
             self._answer_sdo(msg, head, result, long_upload)
 
-        self.master.start_host_sdo(HostSdoTransfer(
+        self.master.sdo.start_host(HostSdoTransfer(
             self.master.bus, address, head.data_adr, head.data_idx,
             None if head.function == Tfc.READ else head.payload,
             client.sdo.RESPONSE_TIMEOUT, done))
@@ -460,7 +474,7 @@ class CanTask(Task):
             return msg.answer(f=CanF.FAULTY_PARAMETER)
         if not 1 <= request.node <= 127:
             return msg.answer(f=CanF.FAULTY_PARAMETER)
-        if not self.master.running:
+        if not self.master.nmt.running:
             return msg.answer(f=CanF.NOT_CONFIGURED)
         handler = self.master.nodes.get(request.node)
         if handler is None:
@@ -476,7 +490,7 @@ class CanTask(Task):
             return msg.answer(f=CanF.FAULTY_PARAMETER)
         if request.node and self.master.bus is None:
             return msg.answer(f=CanF.NOT_CONFIGURED)
-        self.master.set_sdo_timeout(request.node, request.timeout_ms / 1000.0)
+        self.master.sdo.set_timeout(request.node, request.timeout_ms / 1000.0)
         return msg.answer()
 
     def com_set_guarding(self, msg: Message) -> Message | None:
@@ -508,7 +522,7 @@ class CanTask(Task):
     def _configure_error_control(self, msg: Message, handler: NodeHandler,
                                  writes: list[tuple[int, bytes]], heartbeat: bool,
                                  time_ms: int, factor: int) -> None:
-        channel = self.master.sdo_client(handler.address)
+        channel = self.master.sdo.channel(handler.address)
         answer = msg.answer()
         with channel.lock:
             try:
@@ -550,7 +564,7 @@ class CanTask(Task):
     def com_bootup_forwarding(self, msg: Message) -> Message:
         if msg.ln != 1 or msg.data[0] not in (0, 1):
             return msg.answer(f=CanF.FAULTY_PARAMETER)
-        self.master.bootup_forwarding = bool(msg.data[0])
+        self.master.layer2.bootup_forwarding = bool(msg.data[0])
         return msg.answer()
 
     # --- NMT, transparent CAN, layer 2 ---------------------------------------------------------
@@ -562,9 +576,9 @@ class CanTask(Task):
             return msg.answer(f=CanF.FAULTY_PARAMETER)
         if request.command not in NMT_COMMANDS or request.node > 127:
             return msg.answer(f=CanF.FAULTY_PARAMETER)
-        if not self.master.running:
+        if not self.master.nmt.running:
             return msg.answer(f=CanF.NOT_CONFIGURED)
-        self.master.host_nmt(request.command, request.node)
+        self.master.nmt.host_nmt(request.command, request.node)
         return msg.answer()
 
     def com_send_canmsg_transparent(self, msg: Message) -> Message:
@@ -585,7 +599,7 @@ class CanTask(Task):
             return msg.answer(f=CanF.FAULTY_PARAMETER)
         if any(self.master.cob_id_in_use(i) for i in idents):
             return msg.answer(f=CanF.FAULTY_PARAMETER)
-        self.master.layer2_filters.update(idents)
+        self.master.layer2.filters.update(idents)
         return msg.answer()
 
     def com_tx_can_layer2(self, msg: Message) -> Message | None:

@@ -20,7 +20,7 @@ from firmware.process_image import ProcessImage
 from firmware.task import Task
 
 if TYPE_CHECKING:
-    from firmware.device import Device
+    from firmware.card import Card
 
 # Per data type: maximum address and count (seed 5.1.1).
 _MAX_ADDRESS: dict[int, int] = {Tdt.UINT16: 1791, Tdt.UINT8: 3583, Tdt.STRING: 3583, Tdt.BIT: 1791}
@@ -34,7 +34,7 @@ class PlcTask(Task):
     number = message.Task.PLC
     name = "PLC"
 
-    def __init__(self, device: Device) -> None:
+    def __init__(self, device: Card) -> None:
         super().__init__(device)
         self.image = ProcessImage(device.mm)
         self.parameter = ComPlcParameter()

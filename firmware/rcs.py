@@ -21,7 +21,7 @@ from firmware.flash import LoadFunction, StoredDatabase
 from firmware.task import Task
 
 if TYPE_CHECKING:
-    from firmware.device import Device
+    from firmware.whole_card import WholeCard
 
 log = logging.getLogger(__name__)
 
@@ -43,8 +43,10 @@ class Start(Enum):
 class RcsTask(Task):
     number = 0
     name = "RCS"
+    device: WholeCard
+    """A start reaches every part of the card (``WholeCard``), not a task's ``Card`` only."""
 
-    def __init__(self, device: Device, reset_delay: float = 0.0) -> None:
+    def __init__(self, device: WholeCard, reset_delay: float = 0.0) -> None:
         super().__init__(device)
         self.reset_delay = reset_delay
         self.watchdog_time = 0
@@ -112,6 +114,13 @@ class RcsTask(Task):
         if not_ready != self.host_not_ready:
             self._follow_not_ready(not_ready)
         self._watchdog(now)
+
+    def watchdog_due(self) -> float | None:
+        """When the host watchdog expires unless triggered (monotonic seconds), or None
+        while it is off, stopped, untriggered or expired: the device loop sleeps until then."""
+        if not self.watchdog_time or self.watchdog_expired or not self._last_dev_watchdog:
+            return None
+        return self._watchdog_deadline
 
     def _follow_not_ready(self, not_ready: bool) -> None:
         self.host_not_ready = not_ready

@@ -15,13 +15,13 @@ from dpm.errors import F_INTERNAL_ERROR, F_UNKNOWN_COMMAND
 from dpm.message import Message
 
 if TYPE_CHECKING:
-    from firmware.device import Device
+    from firmware.card import Card
 
 log = logging.getLogger(__name__)
 
 Handler = Callable[[Message], Message | None]
 """A command handler returns the answer, or None when the answer comes later
-(posted with ``Device.post``) or when the command has no answer at all."""
+(posted with ``Card.post``) or when the command has no answer at all."""
 
 class Task:
     """One task of the card, addressed by ``msg.rx == number``."""
@@ -30,7 +30,7 @@ class Task:
     name: str
     version: int = 0x0100
 
-    def __init__(self, device: Device) -> None:
+    def __init__(self, device: Card) -> None:
         self.device = device
         self.handlers: dict[int, Handler] = {}
 

@@ -75,7 +75,7 @@ def _spawn(command: list[str]) -> subprocess.Popen[bytes]:
 
 
 def _sim(network: Path, channel: str) -> subprocess.Popen[bytes]:
-    sim = subprocess.Popen([sys.executable, "-m", "firmware.sim", str(network), "--interface",
+    sim = subprocess.Popen([sys.executable, "-m", "cifemu", "sim", str(network), "--interface",
                             "socketcan", "--channel", channel, "--log-level", "WARNING"],
                            stdin=subprocess.DEVNULL, stdout=subprocess.PIPE)
     assert sim.stdout is not None

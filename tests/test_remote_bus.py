@@ -92,7 +92,7 @@ def start_remote_server(channel: str, port: int = 0) -> Remote:
 
 def start_sim(network: Path, channel: str) -> subprocess.Popen[bytes]:
     """``cifemu sim`` on the server's side, returned once its nodes are on the bus."""
-    sim = subprocess.Popen([sys.executable, "-m", "firmware.sim", str(network), "--interface",
+    sim = subprocess.Popen([sys.executable, "-m", "cifemu", "sim", str(network), "--interface",
                             "shm", "--channel", channel, "--log-level", "WARNING"],
                            stdin=subprocess.DEVNULL, stdout=subprocess.PIPE)
     assert sim.stdout is not None

@@ -35,7 +35,7 @@ from typing import Any
 import can
 import pytest
 
-from firmware.can.shm import (
+from firmware.shm.bus import (
     CAPACITY,
     FILE_SIZE,
     MAGIC,
@@ -45,7 +45,7 @@ from firmware.can.shm import (
     ShmBus,
     channel_path,
 )
-from firmware.can.shm_tasks import ShmCyclicSendTask
+from firmware.shm.tasks import ShmCyclicSendTask
 
 ROOT = Path(__file__).resolve().parents[1]
 CAN_ERR_CRTL = 0x004

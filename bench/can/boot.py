@@ -99,7 +99,7 @@ def baseline_boot(count: int) -> dict[str, Any]:
         clients = {node: sdo_client(client, node) for node in nodes}
 
         def boot_node(node: int) -> None:
-            """The card's boot steps (firmware.can.node.NodeHandler._boot_steps)."""
+            """The card's boot steps (firmware.can.boot.BootSequence._steps)."""
             sdo = clients[node]
             bootups[node].clear()
             client.send_message(COB_ID_NMT, bytes([NMT_RESET_NODE, node]))

@@ -42,7 +42,7 @@ from bench.common import (
     ratio,
 )
 from dbm_tools.network import parse_network
-from firmware.can.shm_cyclic import REALTIME_PRIORITY
+from firmware.shm.cyclic import REALTIME_PRIORITY
 from host_api.errors import HostApiError
 
 SYNC_NODES = 16

@@ -1,82 +1,46 @@
-"""One node handler per configured node: boot-up, supervision, diagnosis, PDOs.
+"""One node handler per configured node: its state machine over boot-up, error control, EMCY, PDOs.
 
 The seed calls them node handlers: "for every node station one state machine
-is implemented" (seed 5.2). The boot sequence runs in a worker thread because
-it waits on SDO answers; supervision, PDO output and the connection bits are
-served from the master's tick; received frames arrive on the bus thread.
+is implemented" (seed 5.2). The handler holds that state machine and the node's
+diagnosis; the services it composes each own their frames and their state: the
+boot-up (``boot``, in a worker thread, since it waits on SDO answers), error control
+(``supervision``, from the master's tick), EMCY (``emcy``) and the PDOs (``pdo``).
+They report back an Err_Event; only the handler changes the node's state and tells
+the network (``Network``, ``NodeEvents``), which the master implements.
 """
 
 from __future__ import annotations
 
-import contextlib
 import enum
 import logging
-import struct
-import threading
 import time
-from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from concurrent.futures import Executor
+from typing import Protocol
 
 import can
-from canopen.sdo.client import SdoClient
-from canopen.sdo.exceptions import SdoAbortedError, SdoCommunicationError
 
-from dbm_tools.parameters import (
-    MSK_WORD_PDO,
-    ConfigNdState,
-    NdFlag,
-    NodeParameterSet,
-    PdoData,
-)
-from dpm.cia301 import ASYNC_RTR, SYNC_RTR
-from dpm.com import EMCY_ENTRIES, NodeStatus
+from dbm_tools.parameters import ConfigNdState, NodeParameterSet
 from dpm.com import NodeDiagnosis as Diagnosis
-from dpm.commands import NMT_RESET_NODE as NMT_RESET
-from dpm.commands import NMT_START, NMT_STOP
-from dpm.errors import NodeEvent
-from firmware.frames import SDO_FRAME_LENGTH
-
-if TYPE_CHECKING:
-    from firmware.can.master import Master
+from dpm.com import NodeStatus
+from dpm.commands import NMT_STOP
+from dpm.errors import NodeEvent, err_event_text
+from firmware.can.boot import BootFailure, BootLink, BootSequence
+from firmware.can.bus import CanBus
+from firmware.can.emcy import EmcyConsumer
+from firmware.can.pdo import NodePdos, PdoLink
+from firmware.can.sdo import SdoChannels
+from firmware.can.supervision import ErrorControl
 
 log = logging.getLogger(__name__)
 
-BOOTUP_TIMEOUT = 3.0
-"""[ours] seconds a reset node has to answer: its boot-up message, or 1000h read."""
-RESET_GRACE = 1.0
-"""[ours] seconds the card waits after a reset for a boot-up message before it reads 1000h."""
 RETRY_DELAY = 1.0
 """[ours] seconds before a lost node is booted again when auto-clear is off."""
-RTR_PERIOD = 0.1
-"""[ours] seconds between remote requests of an RTR-only (253) input PDO without SYNC."""
-START_GRACE = 0.5
-"""[ours] seconds after the NMT start in which a node may still report its old state: an
-error-control frame it sent before the start can reach the master after it."""
 FOREIGN_CLOCK_S = 60.0
 """[ours] A frame stamped further than this from the wall clock is stamped by the adapter's
 own clock: its stamp says nothing about when it was on the bus relative to the card's
 resets and starts (``wall_stamp``)."""
 
-# Err_Event numbers for nodes (seed 4.3)
-GUARDING_FAILED = NodeEvent.GUARDING_FAILED
-LEFT_OPERATIONAL = NodeEvent.LEFT_OPERATIONAL
-GUARD_SEQUENCE = NodeEvent.GUARD_SEQUENCE
-NO_RTR_RESPONSE = NodeEvent.NO_RTR_RESPONSE
-NO_RESPONSE = NodeEvent.NO_RESPONSE
-PROFILE_MISMATCH = NodeEvent.PROFILE_MISMATCH
-DEVICE_TYPE_MISMATCH = NodeEvent.DEVICE_TYPE_MISMATCH
-UNKNOWN_SDO_RESPONSE = NodeEvent.UNKNOWN_SDO_RESPONSE
-SDO_LENGTH = NodeEvent.SDO_LENGTH
-NODE_STOPPED = NodeEvent.NODE_STOPPED
-
-# Nodestatus_1 bits (seed 5.2.7)
-NO_RESPONSE_BIT = NodeStatus.NO_RESPONSE
-EMCY_OVERFLOW_BIT = NodeStatus.EMCY_BUFFER_OVERFLOW
-PRM_FAULT_BIT = NodeStatus.PRM_FAULT
-GUARD_ACTIVE_BIT = NodeStatus.GUARD_ACTIVE
-DEACTIVATED_BIT = NodeStatus.DEACTIVATED
-
-OPERATIONAL, STOPPED, PRE_OPERATIONAL, BOOT_UP = 5, 4, 127, 0
+OPERATIONAL, BOOT_UP = 5, 0
 
 
 class State(enum.Enum):
@@ -91,29 +55,32 @@ class State(enum.Enum):
     """The host cleared its connection-status bit."""
 
 
-@dataclass
-class OutputPdo:
-    pdo: PdoData
-    offset: int
-    last: bytes | None = None
-    last_time: float = 0.0
-    syncs: int = 0
+class Network(BootLink, PdoLink, Protocol):
+    """What a node handler uses of the network (the master): the bus and its services."""
+
+    @property
+    def bus(self) -> CanBus | None: ...
+
+    @property
+    def executor(self) -> Executor: ...
+
+    @property
+    def auto_clear(self) -> bool: ...
+
+    @property
+    def sdo(self) -> SdoChannels: ...
 
 
-@dataclass
-class InputPdo:
-    pdo: PdoData
-    offset: int
-    requested: float = 0.0
-    """When the last remote request went out, 0 when answered."""
+class NodeEvents(Protocol):
+    """Whom a node handler tells of its state: the network management (``firmware.can.nmt``)."""
 
+    def node_booted(self, handler: NodeHandler) -> None: ...
 
-def swap_words(data: bytes) -> bytes:
-    """Motorola order for a word-oriented PDO: swap the bytes of each word."""
-    out = bytearray(data)
-    for i in range(0, len(out) - 1, 2):
-        out[i], out[i + 1] = out[i + 1], out[i]
-    return bytes(out)
+    def node_failed(self, handler: NodeHandler, event: int) -> None: ...
+
+    def set_node_state(self, address: int, on: bool) -> None: ...
+
+    def set_node_diag(self, address: int, on: bool) -> None: ...
 
 
 def wall_stamp(msg: can.Message) -> float | None:
@@ -125,22 +92,18 @@ def wall_stamp(msg: can.Message) -> float | None:
 
 
 class NodeHandler:
-    def __init__(self, master: Master, address: int, params: NodeParameterSet) -> None:
-        self.master = master
+    def __init__(self, network: Network, events: NodeEvents, address: int,
+                 params: NodeParameterSet) -> None:
+        self.network = network
+        self.events = events
         self.address = address
         self.params = params
         self.active = params.active
         """Configured to run (the parameters of a handler never change)."""
-        self.heartbeat = bool(params.bNd_Flag & NdFlag.HRTBT)
-        self.guard_time = params.usGuardTime
-        """Supervision time in ms (guard time or heartbeat consumer time); 0 = none."""
-        self.life_time_factor = params.bLifeTimeFactor
-        self.emcy_cob_id: int | None = params.usCobIDEmcy
-        """EMCY COB-ID collected for COM_Node_Diag; None while the EMCY consumer is off."""
         self.state = State.WAITING if params.active else State.INACTIVE
         self.diag = Diagnosis()
         if not params.active:
-            self.diag.status |= DEACTIVATED_BIT
+            self.diag.status |= NodeStatus.DEACTIVATED
         self.operational_expected = True
         """False after the host stopped or pre-operated the node with NMT."""
         self.awaiting_start = False
@@ -151,63 +114,37 @@ class NodeHandler:
         """Nodestatus_1 and Actual_Error as the host last read them (COM_Node_Diag)."""
         self.host_sdo = False
         """A host SDO transfer runs: the node's RPDOs are suppressed (seed 5.2.8)."""
-        self._bootup = threading.Event()
-        self._reset_at = 0.0
-        """Wall-clock time (as frames are stamped) of the last NMT reset the card sent it."""
-        self._last_heartbeat = 0.0
-        self._next_guard = 0.0
-        self._guard_pending = False
-        self._guard_misses = 0
-        self._toggle: int | None = None
-        self._started_at = 0.0
-        self._start_stamp = 0.0
-        """[ours] Wall-clock time (as frames are stamped) of the node's last start: an
-        error-control frame stamped before it is no answer to it, however late it is read."""
-        self._confirmed = False
-        """The node reported OPERATIONAL since its start."""
-        self._sdo_length_error = False
-        """An SDO response of another length than 8 came since the boot-up began. The
-        controller keeps it from canopen's client, which then times out: Err_Event 38."""
         self._retry_at = 0.0
         self._generation = 0
         """Bumped on every (re)boot so a stale boot thread gives up."""
-        self.outputs = [OutputPdo(p, o) for p, o in zip(
-            [p for p in params.atPdoCfgData if not p.is_input], params.ausOutputOffsets,
-            strict=False)]
-        self.inputs = [InputPdo(p, o) for p, o in zip(
-            [p for p in params.atPdoCfgData if p.is_input], params.ausInputOffsets,
-            strict=False)]
-        self._polled = [e for e in self.inputs if e.pdo.bTransType in (SYNC_RTR, ASYNC_RTR)]
-        """Inputs that come only when asked by a remote frame (252, 253)."""
-        self._synchronous = [e for e in self.outputs if e.pdo.bTransType <= 240]
-        """Outputs a SYNC may send: at 1,000 SYNCs/s the others are not even read then
-        (the master's tick sends a changed event-driven output)."""
+        self.control = ErrorControl(params, network.bus_send)
+        self.boot = BootSequence(address, params, self.diag, network,
+                                 lambda: self.control.heartbeat)
+        self.emcy = EmcyConsumer(self.diag, params.usCobIDEmcy,
+                                 lambda: events.set_node_diag(address, True))
+        self.pdos = NodePdos(network, params, lambda: self.state is State.OPERATING)
 
     # --- wiring to the bus -----------------------------------------------------------------
 
     def attach(self) -> None:
-        bus = self.master.bus
+        bus = self.network.bus
         assert bus is not None
         bus.subscribe(0x700 + self.address, self._on_error_control)
-        bus.subscribe(0x580 + self.address, self._on_sdo_response)
+        self.boot.attach(bus)
         if self.params.usCobIDGuard and self.params.usCobIDGuard != 0x700 + self.address:
             bus.subscribe(self.params.usCobIDGuard, self._on_error_control)
-        if self.emcy_cob_id is not None:
-            bus.subscribe(self.emcy_cob_id, self._on_emcy)
-        for entry in self.inputs:
-            bus.subscribe(entry.pdo.usPdoCOBId, self._on_input)
+        self.emcy.attach(bus)
+        self.pdos.attach(bus)
 
     def detach(self) -> None:
-        bus = self.master.bus
+        bus = self.network.bus
         if bus is None:
             return
         bus.unsubscribe(0x700 + self.address, self._on_error_control)
-        bus.unsubscribe(0x580 + self.address, self._on_sdo_response)
+        self.boot.detach(bus)
         bus.unsubscribe(self.params.usCobIDGuard, self._on_error_control)
-        if self.emcy_cob_id is not None:
-            bus.unsubscribe(self.emcy_cob_id, self._on_emcy)
-        for entry in self.inputs:
-            bus.unsubscribe(entry.pdo.usPdoCOBId, self._on_input)
+        self.emcy.detach(bus)
+        self.pdos.detach(bus)
 
     # --- boot-up ------------------------------------------------------------------------------
 
@@ -221,11 +158,11 @@ class NodeHandler:
         if self.state is State.INACTIVE:
             return
         self._generation += 1
-        self._bootup.clear()
+        self.boot.arm()
         self.state = State.BOOTING
         self.operational_expected = True
-        self.master.set_node_state(self.address, False)
-        self.master.executor.submit(self._boot, self._generation, reset_sent)
+        self.events.set_node_state(self.address, False)
+        self.network.executor.submit(self._boot, self._generation, reset_sent)
 
     def _boot(self, generation: int, reset_sent: bool) -> None:
         """The boot-up in its worker thread, which nobody joins.
@@ -239,15 +176,14 @@ class NodeHandler:
         try:
             self._run_boot(generation, reset_sent)
         except Exception:
-            if self.master.closing:
+            if self.network.closing:
                 return
             log.exception("node %d: boot-up failed unexpectedly", self.address)
-            self._fail_boot(generation, NO_RESPONSE)
+            self._fail_boot(generation, NodeEvent.NO_RESPONSE)
 
     def _run_boot(self, generation: int, reset_sent: bool) -> None:
-        skip = self.params.bitConfigNdState
         try:
-            channel = self.master.sdo_client(self.address)
+            channel = self.network.sdo.channel(self.address)
             with channel.lock:
                 if generation != self._generation:
                     # A newer start of the node came while this one waited for the channel:
@@ -255,107 +191,36 @@ class NodeHandler:
                     # after stale boot (up to 3 s each), and a new configuration waited
                     # behind all of them.
                     return
-                self._sdo_length_error = False
-                self._boot_steps(skip, channel.sdo, reset_sent)
-        except SdoAbortedError as exc:
-            log.info("node %d: configuration aborted 0x%08X", self.address, exc.code)
-            self.diag.status |= PRM_FAULT_BIT
-            self._fail_boot(generation, NO_RESPONSE)
-            return
-        except SdoCommunicationError as exc:
-            message = str(exc)
-            log.info("node %d: no configuration answer: %s", self.address, message)
-            unknown = "Unexpected response" in message or "unexpected" in message.lower()
-            if self._sdo_length_error and not unknown:
-                # The node did answer, with a frame the controller kept from canopen.
-                self._fail_boot(generation, SDO_LENGTH)
-                return
-            self.diag.status |= 0 if unknown else NO_RESPONSE_BIT
-            self._fail_boot(generation, UNKNOWN_SDO_RESPONSE if unknown else NO_RESPONSE)
-            return
-        except _BootFailure as failure:
+                self.boot.run(channel.sdo, reset_sent)
+        except BootFailure as failure:
             self._fail_boot(generation, failure.event)
             return
         if generation != self._generation or self.state is not State.BOOTING:
             return
+        self._operate()
+
+    def _operate(self) -> None:
+        """The boot-up succeeded: the node exchanges data from now on (Nd_state)."""
+        skip = self.params.bitConfigNdState
         recovered = self.diag.actual_error != 0
-        self.diag.status &= ~(NO_RESPONSE_BIT | PRM_FAULT_BIT)
+        self.diag.status &= ~(NodeStatus.NO_RESPONSE | NodeStatus.PRM_FAULT)
         self.diag.actual_error = 0  # the online error is over (seed 5.2.7 Actual_Error)
         now = time.monotonic()
-        self._last_heartbeat = now
-        self._next_guard = now
-        self._guard_pending = False
-        self._guard_misses = 0
-        self._toggle = None
-        self._started_at = now
-        self._start_stamp = time.time()
-        self._confirmed = False
-        self.awaiting_start = bool(skip & ConfigNdState.START) or self.master.global_start
-        for output in self.outputs:
-            output.last = None
+        self.control.restart(now)
+        self.control.started(now)
+        self.awaiting_start = bool(skip & ConfigNdState.START) or self.network.global_start
+        self.pdos.forget_sent()
         self.state = State.OPERATING
-        if self.supervised:
-            self.diag.status |= GUARD_ACTIVE_BIT
+        if self.control.supervised:
+            self.diag.status |= NodeStatus.GUARD_ACTIVE
         if recovered:  # before Nd_state, as above
             self.note_diag()
         else:  # [ours] a first boot is the normal state (seed 4.3: Nd_state 1, Nd_diag 0)
             self._diag_seen = (self.diag.status, self.diag.actual_error)
-        self.master.node_booted(self)
+        self.events.node_booted(self)
         if not skip & ConfigNdState.TXRXPDO:
             self.send_outputs(force=True)
-            for entry in self._polled:
-                self._request(entry, now)
-
-    def _boot_steps(self, skip: int, sdo: SdoClient, reset_sent: bool) -> None:
-        params = self.params
-        if self.master.closing:
-            raise _BootFailure(NO_RESPONSE)
-        if reset_sent or not skip & ConfigNdState.RESET:
-            if not reset_sent:
-                self._bootup.clear()
-                self._reset_at = time.time()
-                self.master.nmt(NMT_RESET, self.address)
-            deadline = time.monotonic() + BOOTUP_TIMEOUT
-            if not self.master.wait_for(self._bootup, RESET_GRACE):
-                self._identify(sdo, deadline)
-        if not skip & ConfigNdState.DEVICE:
-            raw = sdo.upload(0x1000, 0)
-            if len(raw) < 4:
-                raise _BootFailure(UNKNOWN_SDO_RESPONSE)
-            device_type = int.from_bytes(raw[:4], "little")
-            self.diag.profile = device_type & 0xFFFF
-            self.diag.add_info = device_type >> 16
-            # [ours] a configured 0 means "any": a host may not know one of the two.
-            if params.usDevProfNum and params.usDevProfNum != self.diag.profile:
-                self.diag.status |= PRM_FAULT_BIT
-                raise _BootFailure(PROFILE_MISMATCH)
-            if params.usAddTypeInfo and params.usAddTypeInfo != self.diag.add_info:
-                self.diag.status |= PRM_FAULT_BIT
-                raise _BootFailure(DEVICE_TYPE_MISMATCH)
-        if not skip & ConfigNdState.GUARD:
-            if self.heartbeat:
-                if params.usGuardTime:
-                    # [ours] the node produces at half the master's consumer time
-                    sdo.download(0x1017, 0, struct.pack("<H", max(1, params.usGuardTime // 2)))
-            else:
-                if params.usGuardTime:
-                    # CiA 301: a node that produces heartbeats does not answer guarding;
-                    # switch its producer off (a node without 1017h may refuse: fine).
-                    with contextlib.suppress(SdoAbortedError):
-                        sdo.download(0x1017, 0, b"\0\0")
-                sdo.download(0x100C, 0, struct.pack("<H", params.usGuardTime))
-                sdo.download(0x100D, 0, struct.pack("<B", params.bLifeTimeFactor))
-                self._write_guard_cob_id(sdo)
-        if not skip & ConfigNdState.SYNC:
-            sdo.download(0x1005, 0, struct.pack("<I", self.master.sync_cob_id))
-        if not skip & ConfigNdState.EMCY:
-            sdo.download(0x1014, 0, struct.pack("<I", params.usCobIDEmcy))
-        if not skip & ConfigNdState.SDO:
-            for entry in params.atSdoCfgData:
-                sdo.download(entry.usIndex, entry.bSubindex,
-                                  bytes(entry.abSdoValue[: entry.bLength]))
-        if not skip & ConfigNdState.START and not self.master.global_start:
-            self.master.nmt(NMT_START, self.address)
+            self.pdos.request_polled(now)
 
     def start_sent(self, now: float, by_host: bool) -> None:
         """A Start_Node went to the node (the global one, or the host's): from now on it must
@@ -366,41 +231,9 @@ class NodeHandler:
         if not by_host and self.params.bitConfigNdState & ConfigNdState.START:
             return
         self.awaiting_start = False
-        self._started_at = now
-        self._start_stamp = time.time()
-        self._confirmed = False
+        self.control.started(now)
         if not self.params.bitConfigNdState & ConfigNdState.TXRXPDO:
             self.send_outputs(force=True)  # the first RX-PDO, now that the node takes it
-
-    def _identify(self, sdo: SdoClient, deadline: float) -> None:
-        """A reset node that sent no boot-up message: read 1000h until it answers.
-
-        The seed's card does not react to boot-up events (appendix: "Bootup Protocol, no
-        reaction on Bootup Events of a Node"); its boot-up is "simple, reading object 1000H".
-        So a node of CiA 301 before 4.0, which sends none, boots as well; a boot-up message
-        only spares the wait. No answer within ``BOOTUP_TIMEOUT`` of the reset: 34.
-        """
-        while True:
-            if self.master.closing:
-                raise _BootFailure(NO_RESPONSE)
-            try:
-                sdo.upload(0x1000, 0)
-                return
-            except SdoCommunicationError:
-                if time.monotonic() >= deadline:
-                    self.diag.status |= NO_RESPONSE_BIT
-                    raise _BootFailure(NO_RESPONSE) from None
-
-    def _write_guard_cob_id(self, sdo: SdoClient) -> None:
-        """usCobIDGuard into the node's COB-ID guarding object 100Eh (seed 4.2: written into
-        the node's object directory during its start-up; CiA 301 before 4.0 defines 100Eh).
-        [ours] A node without 100Eh may refuse the default 700h + node-ID, which it uses
-        anyway; it must take any other value, or its configuration fails (34, Prm_Fault)."""
-        try:
-            sdo.download(0x100E, 0, struct.pack("<I", self.params.usCobIDGuard))
-        except SdoAbortedError:
-            if self.params.usCobIDGuard != 0x700 + self.address:
-                raise
 
     def _fail_boot(self, generation: int, event: int) -> None:
         if generation == self._generation:
@@ -408,55 +241,39 @@ class NodeHandler:
 
     # --- steady operation ---------------------------------------------------------------------
 
-    @property
-    def supervised(self) -> bool:
-        return self.guard_time > 0
-
     def set_emcy_consumer(self, cob_id: int | None) -> None:
         """COM_Set_Emcy_Consumer: collect EMCY frames of ``cob_id``, or none."""
-        bus = self.master.bus
-        if bus is not None and self.emcy_cob_id is not None:
-            bus.unsubscribe(self.emcy_cob_id, self._on_emcy)
-        self.emcy_cob_id = cob_id
-        if bus is not None and cob_id is not None:
-            bus.subscribe(cob_id, self._on_emcy)
+        self.emcy.move(self.network.bus, cob_id)
 
     def set_supervision(self, heartbeat: bool, time_ms: int, life_time_factor: int) -> None:
         """Switch error control at run time (COM_Set_Guarding, COM_Set_Heartbeat_Consumer)."""
-        self.heartbeat = heartbeat
-        self.guard_time = time_ms
-        self.life_time_factor = life_time_factor
-        now = time.monotonic()
-        self._last_heartbeat = now
-        self._next_guard = now
-        self._guard_pending = False
-        self._guard_misses = 0
-        self._toggle = None
-        if self.supervised:
-            self.diag.status |= GUARD_ACTIVE_BIT
+        self.control.configure(heartbeat, time_ms, life_time_factor)
+        if self.control.supervised:
+            self.diag.status |= NodeStatus.GUARD_ACTIVE
         else:
-            self.diag.status &= ~GUARD_ACTIVE_BIT
+            self.diag.status &= ~NodeStatus.GUARD_ACTIVE
 
     def fail(self, event: int) -> None:
         """The node left data exchange: report it; retry or let auto-clear stop all."""
         if self.state in (State.INACTIVE, State.DISCONNECTED):
             return
-        log.info("node %d: error %d", self.address, event)
+        log.info("node %d: Err_Event %d, %s", self.address, event, err_event_text(
+            self.address, event, "heartbeat" if self.control.heartbeat else "guarding"))
         self.state = State.FAILED
         self.diag.actual_error = event
-        self.diag.status &= ~GUARD_ACTIVE_BIT
-        if event == GUARDING_FAILED:  # guarding or heartbeat: the node no longer answers
-            self.diag.status |= NO_RESPONSE_BIT
+        self.diag.status &= ~NodeStatus.GUARD_ACTIVE
+        if event == NodeEvent.GUARDING_FAILED:  # guarding or heartbeat: no answer any more
+            self.diag.status |= NodeStatus.NO_RESPONSE
         self._retry_at = time.monotonic() + RETRY_DELAY
         self.note_diag()  # before Err_Event: a host that sees the event sees Nd_diag too
-        self.master.node_failed(self, event)
+        self.events.node_failed(self, event)
 
     def note_diag(self) -> None:
         """Nd_diag: set when Nodestatus_1 or Actual_Error differ from what the host last
         read (seed 4.3), so a node that fails its restarts the same way again and again
         raises it once, and its recovery from a failure raises it again."""
         if (self.diag.status, self.diag.actual_error) != self._diag_seen:
-            self.master.set_node_diag(self.address, True)
+            self.events.set_node_diag(self.address, True)
 
     def disconnect(self) -> None:
         """The host cleared the node's connection bit: stop it and leave it alone."""
@@ -464,74 +281,39 @@ class NodeHandler:
             return
         self._generation += 1
         self.state = State.DISCONNECTED
-        self.master.set_node_state(self.address, False)
-        self.master.nmt(NMT_STOP, self.address)
+        self.events.set_node_state(self.address, False)
+        self.network.send_nmt(NMT_STOP, self.address)
 
     def idle(self) -> None:
         """The network stopped (host not ready, watchdog, auto-clear)."""
         if self.state is not State.INACTIVE:
             self._generation += 1
             self.state = State.WAITING
-            self.master.set_node_state(self.address, False)
+            self.events.set_node_state(self.address, False)
 
     def tick(self, now: float) -> None:
         """Supervision and retries; called from the master's tick."""
         if self.state is State.FAILED:
-            if not self.master.auto_clear and now >= self._retry_at:
+            if not self.network.auto_clear and now >= self._retry_at:
                 self.start_boot()
             return
         if self.state is not State.OPERATING:
             return
-        params = self.params
-        if self.supervised:
-            period = self.guard_time / 1000.0
-            if self.heartbeat:
-                if now - self._last_heartbeat > period:
-                    self.fail(GUARDING_FAILED)
-                    return
-            elif now >= self._next_guard:
-                if self._guard_pending:
-                    self._guard_misses += 1
-                    if self._guard_misses >= max(1, self.life_time_factor):
-                        self.fail(GUARDING_FAILED)
-                        return
-                self._guard_pending = True
-                self._next_guard = now + period
-                self.master.bus_send(params.usCobIDGuard, remote=True, dlc=1)
-        for entry in self._polled:
-            if entry.pdo.bTransType == ASYNC_RTR or not self.master.sync_period:
-                if entry.requested and now - entry.requested > RTR_PERIOD:
-                    self.fail(NO_RTR_RESPONSE)
-                    return
-                if not entry.requested:
-                    self._request(entry, now)
-
-    def _request(self, entry: InputPdo, now: float) -> None:
-        entry.requested = now
-        self.master.bus_send(entry.pdo.usPdoCOBId, remote=True, dlc=entry.pdo.data_length)
+        event = self.control.check(now) or self.pdos.poll(now)
+        if event:
+            self.fail(event)
 
     def on_sync(self, now: float) -> None:
         """At each SYNC: synchronous outputs, and remote requests of 252 inputs."""
         if self.state is not State.OPERATING:
             return
         self.send_outputs(sync=True)
-        for entry in self._polled:
-            if entry.pdo.bTransType == SYNC_RTR:
-                if entry.requested and now - entry.requested > 2 * self.master.sync_period:
-                    self.fail(NO_RTR_RESPONSE)
-                    return
-                self._request(entry, now)
-
-    def outputs_changed(self, now: bytes, before: bytes) -> bool:
-        """Whether any of this node's output PDOs reads differently in ``now``."""
-        for entry in self.outputs:
-            end = entry.offset + entry.pdo.data_length
-            if now[entry.offset : end] != before[entry.offset : end]:
-                return True
-        return False
+        event = self.pdos.on_sync(now)
+        if event:
+            self.fail(event)
 
     def send_outputs(self, sync: bool = False, force: bool = False) -> bool:
-        """Send the RX-PDOs that are due: synchronous ones at SYNC, the rest on change.
+        """Send the RX-PDOs that are due (``NodePdos.send_outputs``) while the node runs.
 
         Returns True while a changed event-driven PDO waits for its inhibit time
         (or for a host SDO transfer to end), so the master asks again.
@@ -540,34 +322,7 @@ class NodeHandler:
             return False
         if self.host_sdo:
             return True
-        waiting = False
-        image = self.master.image
-        now = time.monotonic()
-        for entry in self._synchronous if sync and not force else self.outputs:
-            pdo = entry.pdo
-            data = image.read_outputs(entry.offset, pdo.data_length)
-            if pdo.bLength & MSK_WORD_PDO and self.master.motorola:
-                data = swap_words(data)
-            kind = pdo.bTransType
-            if kind <= 240:
-                if not sync and not force:
-                    continue
-                entry.syncs += 1
-                due = force or (data != entry.last if kind == 0 else entry.syncs >= kind)
-                if not due:
-                    continue
-                entry.syncs = 0
-            else:
-                if data == entry.last and not force:
-                    continue
-                inhibit = pdo.usInhibitCycle / 10000.0  # CiA 301: multiples of 100 us
-                if not force and now - entry.last_time < inhibit:
-                    waiting = True
-                    continue
-            if self.master.bus_send(pdo.usPdoCOBId, data):
-                entry.last = data
-                entry.last_time = now
-        return waiting
+        return self.pdos.send_outputs(sync, force)
 
     # --- frames from the node -------------------------------------------------------------------
 
@@ -579,73 +334,30 @@ class NodeHandler:
         value = msg.data[0]
         state = value & 0x7F
         if state == BOOT_UP and msg.arbitration_id == 0x700 + self.address:
-            # One sent before our reset (at power-on, say) must not pass for its answer:
-            # the node would still be resetting when the first SDO request comes.
-            if stamp is None or stamp >= self._reset_at:
-                self._bootup.set()
+            self.boot.booted_up(stamp)
             if self.state is State.OPERATING:
                 log.info("node %d: unexpected boot-up", self.address)
-                self.fail(LEFT_OPERATIONAL)
+                self.fail(NodeEvent.LEFT_OPERATIONAL)
             return
         self.diag.node_state = state
         if self.state is not State.OPERATING:
             return
-        if self.heartbeat:
-            self._last_heartbeat = now
-        elif self.supervised:  # guarding; [ours] unsupervised: the node's own heartbeat
-            self._guard_pending = False
-            self._guard_misses = 0
-            toggle = value & 0x80
-            if self._toggle is not None and toggle == self._toggle:
-                self.fail(GUARD_SEQUENCE)
-                return
-            self._toggle = toggle
+        event = self.control.answered(value, now)
+        if event:
+            self.fail(event)
+            return
         operating = state == OPERATIONAL
-        self._confirmed |= operating
+        self.control.reported(operating)
         if self.operational_expected and not self.awaiting_start and not operating:
-            if not self._confirmed and now - self._started_at < START_GRACE:
-                return  # sent before the start reached it
-            if stamp is not None and stamp < self._start_stamp:
-                return  # [ours] on the bus before the start, read late by a busy card
-            self.fail(LEFT_OPERATIONAL)
+            if not self.control.predates_start(now, stamp):
+                self.fail(NodeEvent.LEFT_OPERATIONAL)
             return
-        self.master.set_node_state(self.address, operating)
-
-    def _on_sdo_response(self, msg: can.Message) -> None:
-        """Notes a response of the wrong length; canopen's client never sees it (``CanBus``)."""
-        if not msg.is_remote_frame and len(msg.data) != SDO_FRAME_LENGTH:
-            log.info("node %d: SDO response of %d bytes", self.address, len(msg.data))
-            self._sdo_length_error = True
-
-    def _on_emcy(self, msg: can.Message) -> None:
-        if msg.is_remote_frame:
-            return
-        if len(self.diag.emcy) == EMCY_ENTRIES:
-            self.diag.status |= EMCY_OVERFLOW_BIT
-        self.diag.emcy.append(bytes(msg.data).ljust(8, b"\0")[:8])
-        self.master.set_node_diag(self.address, True)
-
-    def _on_input(self, msg: can.Message) -> None:
-        if msg.is_remote_frame or self.state is not State.OPERATING:
-            return
-        for entry in self.inputs:
-            if entry.pdo.usPdoCOBId == msg.arbitration_id:
-                entry.requested = 0.0
-                data = bytes(msg.data[: entry.pdo.data_length])
-                if entry.pdo.bLength & MSK_WORD_PDO and self.master.motorola:
-                    data = swap_words(data)
-                self.master.image.write_inputs(entry.offset, data)
+        self.events.set_node_state(self.address, operating)
 
     def read_diagnosis(self) -> bytes:
         """COM_Node_Diag: the 48-byte structure; reading clears the EMCY buffer."""
         raw = self.diag.encode()
         self._diag_seen = (self.diag.status, self.diag.actual_error)
         self.diag.emcy.clear()
-        self.diag.status &= ~EMCY_OVERFLOW_BIT
+        self.diag.status &= ~NodeStatus.EMCY_BUFFER_OVERFLOW
         return raw
-
-
-class _BootFailure(Exception):
-    def __init__(self, event: int) -> None:
-        super().__init__(event)
-        self.event = event

@@ -1,24 +1,36 @@
-"""Host SDO transfers driven by frames, not by a waiting thread.
+"""SDO of the master: one channel per node, and host transfers driven by frames.
 
-canopen's SdoClient blocks its caller until each answer arrives, so a host
-request would need a worker thread, and the hand-over to it costs more than
-the transfer itself. This client sends a request from the caller and advances
-on each answer in the bus thread, so a host's COM_SDO_Up_Download is answered
-from the frame that completes it. It speaks CiA 301 expedited and segmented
-transfers (the card's boot-up keeps canopen's client; the seed's card has no
-block transfers). Time-outs are checked by the master's tick.
+Each node has one SDO channel (``SdoChannels``): canopen's blocking client, which the
+boot-up and the error-control commands use from worker threads, and a lock, which a host
+transfer takes as well, so the node's one SDO server sees one transfer at a time.
+
+Host transfers are driven by frames, not by a waiting thread (``HostSdoTransfer``):
+canopen's SdoClient blocks its caller until each answer arrives, so a host request
+would need a worker thread, and the hand-over to it costs more than the transfer
+itself. This client sends a request from the caller and advances on each answer in
+the bus thread, so a host's COM_SDO_Up_Download is answered from the frame that
+completes it. It speaks CiA 301 expedited and segmented transfers (the card's boot-up
+keeps canopen's client; the seed's card has no block transfers). Time-outs are checked
+by the master's tick.
 """
 
 from __future__ import annotations
 
 import struct
+import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
 
 import can
+from canopen.objectdictionary import ObjectDictionary
+from canopen.sdo.client import SdoClient
 
 from firmware.can.bus import CanBus
+
+DEFAULT_SDO_TIMEOUT = 0.5
+"""[ours] seconds an SDO request waits for its answer until COM_Set_SDO_Timeout; canopen's
+0.3 s lets a busy 2-core machine abort boot-ups that would have succeeded."""
 
 ABORT_TIMEOUT = 0x05040000
 ABORT_UNKNOWN_COMMAND = 0x05040001
@@ -156,3 +168,58 @@ class HostSdoTransfer:
         last = 1 if self._sent >= len(self.data) else 0
         header = (self._toggle << 4) | ((7 - len(chunk)) << 1) | last
         self._send(bytes([header]) + chunk.ljust(7, b"\0"))
+
+
+@dataclass
+class SdoChannel:
+    """A node's SDO channel: one client, taken in turn by boot-up and host transfers."""
+
+    sdo: SdoClient
+    lock: threading.Lock
+
+
+class SdoChannels:
+    """The nodes' SDO channels, created on first use and kept for the card's life, with
+    the host transfers under way, whose time-outs the master's tick checks."""
+
+    def __init__(self) -> None:
+        self._bus: CanBus | None = None
+        self._channels: dict[int, SdoChannel] = {}
+        self._host_transfers: list[HostSdoTransfer] = []
+        self.timeout = DEFAULT_SDO_TIMEOUT
+        """Seconds a new channel waits for an answer (COM_Set_SDO_Timeout node 0)."""
+
+    def open(self, bus: CanBus) -> None:
+        self._bus = bus
+
+    def channel(self, address: int) -> SdoChannel:
+        """The SDO channel to ``address``."""
+        channel = self._channels.get(address)
+        if channel is None:
+            assert self._bus is not None
+            client = SdoClient(  # type: ignore[no-untyped-call]
+                0x600 + address, 0x580 + address, ObjectDictionary()  # type: ignore[no-untyped-call]
+            )
+            client.network = self._bus.network
+            client.RESPONSE_TIMEOUT = self.timeout
+            self._bus.network.subscribe(0x580 + address, client.on_response)
+            channel = self._channels[address] = SdoChannel(client, threading.Lock())
+        return channel
+
+    def set_timeout(self, node: int, seconds: float) -> None:
+        """COM_Set_SDO_Timeout: one node's channel, or (node 0) every channel and the default."""
+        if node == 0:
+            self.timeout = seconds
+            for channel in self._channels.values():
+                channel.sdo.RESPONSE_TIMEOUT = seconds
+        else:
+            self.channel(node).sdo.RESPONSE_TIMEOUT = seconds
+
+    def start_host(self, transfer: HostSdoTransfer) -> None:
+        """A host SDO transfer; the tick watches its time-out (``check``)."""
+        self._host_transfers = [t for t in self._host_transfers if not t.finished] + [transfer]
+        transfer.start()
+
+    def check(self, now: float) -> None:
+        for transfer in self._host_transfers:
+            transfer.check(now)

@@ -1,0 +1,213 @@
+"""cifemu firmware: run one emulated card in the foreground."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import signal
+import sys
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from types import FrameType
+
+import can
+
+from cifemu.online_configure import OnlineConfiguration
+from dbm_tools.bus_options import BusOptionError, add_bus_arguments, select_bus, with_options
+from dbm_tools.network import Network, NetworkError, load_network
+from dpm.image import (
+    DEFAULT_DPM_DIR,
+    MAX_DEV_BOARDS,
+    BoardBusyError,
+    UnsafePathError,
+    dpm_dir,
+    image_path,
+)
+from dpm.tap import tap_address
+from firmware.can.bus import INTERFACE_ERRORS, BusConfig
+from firmware.device import Device
+from firmware.flash import FLASH_ENV
+from firmware.interpreter import SWITCH_INTERVAL
+from firmware.recorder import Recorder, recording_can_log
+from firmware.sim import SimulatedNetwork
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--board", type=int, default=0, choices=range(MAX_DEV_BOARDS),
+                        metavar="N", help="board number 0..3 (default 0)")
+    parser.add_argument("--dpm-dir", default=None, metavar="DIR",
+                        help=f"directory of the image board<N>.dpm "
+                             f"(default $CIF_DPM_DIR or {DEFAULT_DPM_DIR})")
+    parser.add_argument("--interface", default=None,
+                        help="python-can interface: virtual (default; in this process only), "
+                             "shm (cifemu's shared-memory bus: processes on this machine, no "
+                             "frame lost unread), socketcan (vcan or real hardware), "
+                             "udp_multicast, or any other python-can offers")
+    parser.add_argument("--channel", default=None,
+                        help="python-can channel (default: 'cifemu' for virtual and shm, vcan0 "
+                             "for socketcan, the default group for udp_multicast)")
+    add_bus_arguments(parser)
+    parser.add_argument("--bitrate", type=int, default=None, metavar="BPS",
+                        help="the controller's bit rate until the bus parameters come; their "
+                             "Baud_rate then sets it, on interfaces whose rate the card sets "
+                             "(not virtual, shm, udp_multicast, or socketcan, whose link rate "
+                             "is the kernel's). Default: the interface's own")
+    parser.add_argument("--exit-on-bus-error", action="store_true",
+                        help="end with one line and exit status 1 when the CAN interface "
+                             "cannot be opened; by default the card stays up with FAT set in "
+                             "Task2State, as the seed's card does, so hosts see a faulty card")
+    parser.add_argument("--trace", type=Path, default=None, metavar="FILE",
+                        help="log every frame the card sends or receives; the format follows "
+                             "the suffix: .blf, .asc, .log (candump), .csv, .trc ...")
+    parser.add_argument("--record", type=Path, default=None, metavar="SESSION",
+                        help="record a session from the start into the directory SESSION "
+                             "(created; docs/recording.md): every mailbox message, flag "
+                             "change, process-data exchange, and every frame in SESSION/can.log")
+    parser.add_argument("--simulate", type=Path, default=None, metavar="NETWORK.toml",
+                        help="also run the simulated nodes of a network description on the "
+                             "same bus, in this process")
+    parser.add_argument("--flash", type=Path, default=None, metavar="DIR",
+                        help="the board's flash directory, where a downloaded DBM is kept "
+                             f"(default ${FLASH_ENV}/board<N>, else "
+                             "<user data dir>/cifemu/flash/board<N>)")
+    parser.add_argument("--configure", nargs="?", const=True, default=None, type=Path,
+                        metavar="NETWORK.toml",
+                        help="once the card is up, configure it on line from a network "
+                             "description (default: the --simulate file), as `cifemu "
+                             "configure` does; a refusal stops the card with exit status 1")
+    parser.add_argument("--reset-delay", type=float, default=0.0, metavar="SECONDS",
+                        help="emulate a real card's slow start (default 0: milliseconds)")
+    parser.add_argument("--log-level", default="INFO",
+                        choices=["DEBUG", "INFO", "WARNING", "ERROR"])
+
+
+def run(args: argparse.Namespace) -> int:
+    sys.setswitchinterval(SWITCH_INTERVAL)
+    logging.basicConfig(level=args.log_level, format="%(asctime)s %(name)s: %(message)s")
+    if args.log_level != "DEBUG":  # canopen narrates every transfer at INFO
+        logging.getLogger("canopen").setLevel(logging.WARNING)
+    network = None
+    if args.simulate is not None:
+        try:
+            network = load_network(args.simulate)
+        except NetworkError as exc:
+            print(f"cifemu firmware: {args.simulate}: {exc}", file=sys.stderr)
+            return 1
+    configure_path = args.simulate if args.configure is True else args.configure
+    if configure_path is None and args.configure is True:
+        print("cifemu firmware: --configure needs a network description (or --simulate)",
+              file=sys.stderr)
+        return 1
+    if args.record is not None and args.trace is not None:
+        print("cifemu firmware: --record writes its own trace (SESSION/can.log): "
+              "give --record or --trace", file=sys.stderr)
+        return 1
+    trace = recording_can_log(args.record) if args.record is not None else args.trace
+    try:
+        selected = select_bus(args.interface, args.channel, args.bitrate, args.bus_option,
+                              args.bus_config)
+    except BusOptionError as exc:
+        print(f"cifemu firmware: {exc}", file=sys.stderr)
+        return 1
+    interface = selected.interface or "virtual"
+    with python_can_options(selected.options):
+        return _serve(args, network, configure_path, selected.options, BusConfig(
+            interface, selected.channel or default_channel(interface), selected.bitrate,
+            trace, tap_address(image_path(dpm_dir(args.dpm_dir), args.board)),
+            exit_on_error=args.exit_on_bus_error))
+
+
+@contextmanager
+def python_can_options(options: dict[str, object]) -> Iterator[None]:
+    """Hand ``--bus-option``/``--bus-config`` to every bus this process opens, through
+    ``can.rc`` (python-can's in-code configuration, merged under each ``can.Bus``'s own
+    arguments): the controller is opened deep inside the card, and reopened on a new
+    Baud_rate, from a ``BusConfig`` that carries no options. The simulated nodes of
+    ``--simulate`` share the interface, so they take them too."""
+    saved = dict(can.rc)
+    can.rc.update(options)
+    try:
+        yield
+    finally:
+        can.rc.clear()
+        can.rc.update(saved)
+
+
+def _serve(args: argparse.Namespace, network: Network | None, configure_path: Path | None,
+           options: dict[str, object], bus: BusConfig) -> int:
+    recorder = None
+    if args.record is not None:  # before the card, as the bus: a refusal leaves no image
+        try:
+            recorder = Recorder(args.record, args.board, can_log=True)
+        except (UnsafePathError, OSError) as exc:  # SessionExistsError is an OSError
+            print(f"cifemu firmware: --record {args.record}: {exc}", file=sys.stderr)
+            return 1
+    simulation = None
+    if network is not None:  # before the card: a bus that cannot open leaves no image
+        try:
+            sim_bus = can.Bus(interface=bus.interface, channel=bus.channel)
+        except INTERFACE_ERRORS as exc:
+            if recorder is not None:
+                recorder.close()
+            return _interface_error(bus, exc, options)
+        simulation = SimulatedNetwork(network, sim_bus)
+    try:
+        device = Device(args.board, args.dpm_dir, reset_delay=args.reset_delay, bus=bus,
+                        flash_dir=args.flash)
+    except (BoardBusyError, UnsafePathError, OSError) as exc:
+        # UnsafePathError: another user could redirect the card's writes (docs/security.md)
+        if simulation is not None:
+            sim_bus.shutdown()
+        if recorder is not None:
+            recorder.close()
+        print(f"cifemu firmware: board {args.board} refused: {exc}", file=sys.stderr)
+        return 1
+    if recorder is not None:
+        recorder.start(device.files, device.mm)
+        device.recorder = recorder
+    if simulation is not None:
+        simulation.start()
+
+    def on_signal(signum: int, frame: FrameType | None) -> None:
+        del signum, frame
+        device.stop()
+
+    signal.signal(signal.SIGTERM, on_signal)
+    signal.signal(signal.SIGINT, on_signal)
+    logging.getLogger("firmware").info("board %d serving %s", args.board, device.path)
+    configuring = None
+    if configure_path is not None:
+        configuring = OnlineConfiguration(device, configure_path)
+        configuring.start()
+    try:
+        device.run()
+    except INTERFACE_ERRORS as exc:
+        if device.can.master.bus is not None:
+            raise  # the controller was up: not an interface error
+        device.path.unlink(missing_ok=True)
+        return _interface_error(bus, exc, options)
+    finally:
+        if simulation is not None:
+            simulation.stop()
+            sim_bus.shutdown()
+    return 1 if configuring is not None and configuring.failed else 0
+
+
+
+
+def _interface_error(bus: BusConfig, exc: BaseException, options: dict[str, object]) -> int:
+    print(f"cifemu firmware: cannot open CAN interface {bus.interface!r} channel "
+          f"{bus.channel!r}{with_options(options)}: {exc}", file=sys.stderr)
+    return 1
+
+
+def default_channel(interface: str) -> str:
+    if interface == "socketcan":
+        return "vcan0"
+    if interface == "udp_multicast":
+        from can.interfaces.udp_multicast import UdpMulticastBus
+
+        return str(UdpMulticastBus.DEFAULT_GROUP_IPv4)
+    return "cifemu"
+

@@ -1,0 +1,210 @@
+"""The boot-up of one node: reset, identify, configure by SDO (seed 4.2, bitConfigNdState).
+
+Why a module of its own: the boot-up is the one part of a node handler that waits (on
+SDO answers, on the boot-up message), so it runs in a worker thread, and the one part
+that writes the node's object dictionary. It decides nothing about the node's state: it
+either returns, and the handler puts the node into operation, or raises ``BootFailure``
+with the seed's Err_Event, and the handler reports it. The frames it owns are the
+node's boot-up message (as an answer to its reset) and the SDO responses whose length
+canopen's client never sees.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import struct
+import threading
+import time
+from collections.abc import Callable
+from typing import Protocol
+
+import can
+from canopen.sdo.client import SdoClient
+from canopen.sdo.exceptions import SdoAbortedError, SdoCommunicationError
+
+from dbm_tools.parameters import ConfigNdState, NodeParameterSet
+from dpm.com import NodeDiagnosis, NodeStatus
+from dpm.commands import NMT_RESET_NODE as NMT_RESET
+from dpm.commands import NMT_START
+from dpm.errors import NodeEvent
+from firmware.can.bus import CanBus
+from firmware.frames import SDO_FRAME_LENGTH
+
+log = logging.getLogger("firmware.can.node")
+"""The node handler's log, as before the boot-up had a module of its own."""
+
+BOOTUP_TIMEOUT = 3.0
+"""[ours] seconds a reset node has to answer: its boot-up message, or 1000h read."""
+RESET_GRACE = 1.0
+"""[ours] seconds the card waits after a reset for a boot-up message before it reads 1000h."""
+
+
+class BootLink(Protocol):
+    """What a boot-up uses of the network besides the node's SDO client."""
+
+    @property
+    def closing(self) -> bool: ...
+
+    @property
+    def sync_cob_id(self) -> int: ...
+
+    @property
+    def global_start(self) -> bool: ...
+
+    def wait_for(self, event: threading.Event, timeout: float) -> bool: ...
+
+    def send_nmt(self, command: int, node: int) -> None: ...
+
+
+class BootFailure(Exception):
+    """The boot-up ended with the seed's Err_Event ``event`` (seed 4.3)."""
+
+    def __init__(self, event: int) -> None:
+        super().__init__(event)
+        self.event = event
+
+
+class BootSequence:
+    """The boot steps of one node, as its bitConfigNdState leaves them to the card."""
+
+    def __init__(self, address: int, params: NodeParameterSet, diag: NodeDiagnosis,
+                 link: BootLink, heartbeat: Callable[[], bool]) -> None:
+        self.address = address
+        self.params = params
+        self.diag = diag
+        self.link = link
+        self._heartbeat = heartbeat
+        """Whether the node is supervised by heartbeat now (the host may switch it)."""
+        self._bootup = threading.Event()
+        self._reset_at = 0.0
+        """Wall-clock time (as frames are stamped) of the last NMT reset the card sent it."""
+        self._sdo_length_error = False
+        """An SDO response of another length than 8 came since the boot-up began. The
+        controller keeps it from canopen's client, which then times out: Err_Event 38."""
+
+    def attach(self, bus: CanBus) -> None:
+        bus.subscribe(0x580 + self.address, self._on_sdo_response)
+
+    def detach(self, bus: CanBus) -> None:
+        bus.unsubscribe(0x580 + self.address, self._on_sdo_response)
+
+    def arm(self) -> None:
+        """A boot-up begins: a boot-up message from now on may answer its reset."""
+        self._bootup.clear()
+
+    def booted_up(self, stamp: float | None) -> None:
+        """The node's boot-up message. One sent before our reset (at power-on, say) must
+        not pass for its answer: the node would still be resetting when the first SDO
+        request comes."""
+        if stamp is None or stamp >= self._reset_at:
+            self._bootup.set()
+
+    def run(self, sdo: SdoClient, reset_sent: bool) -> None:
+        """Every step the node's bitConfigNdState does not skip; ``BootFailure`` when one
+        fails, with the Err_Event the seed gives it."""
+        self._sdo_length_error = False
+        try:
+            self._steps(self.params.bitConfigNdState, sdo, reset_sent)
+        except SdoAbortedError as exc:
+            log.info("node %d: configuration aborted 0x%08X", self.address, exc.code)
+            self.diag.status |= NodeStatus.PRM_FAULT
+            raise BootFailure(NodeEvent.NO_RESPONSE) from exc
+        except SdoCommunicationError as exc:
+            message = str(exc)
+            log.info("node %d: no configuration answer: %s", self.address, message)
+            unknown = "Unexpected response" in message or "unexpected" in message.lower()
+            if self._sdo_length_error and not unknown:
+                # The node did answer, with a frame the controller kept from canopen.
+                raise BootFailure(NodeEvent.SDO_LENGTH) from exc
+            self.diag.status |= 0 if unknown else NodeStatus.NO_RESPONSE
+            raise BootFailure(NodeEvent.UNKNOWN_SDO_RESPONSE if unknown
+                              else NodeEvent.NO_RESPONSE) from exc
+
+    def _steps(self, skip: int, sdo: SdoClient, reset_sent: bool) -> None:
+        params = self.params
+        link = self.link
+        if link.closing:
+            raise BootFailure(NodeEvent.NO_RESPONSE)
+        if reset_sent or not skip & ConfigNdState.RESET:
+            if not reset_sent:
+                self._bootup.clear()
+                self._reset_at = time.time()
+                link.send_nmt(NMT_RESET, self.address)
+            deadline = time.monotonic() + BOOTUP_TIMEOUT
+            if not link.wait_for(self._bootup, RESET_GRACE):
+                self._identify(sdo, deadline)
+        if not skip & ConfigNdState.DEVICE:
+            raw = sdo.upload(0x1000, 0)
+            if len(raw) < 4:
+                raise BootFailure(NodeEvent.UNKNOWN_SDO_RESPONSE)
+            device_type = int.from_bytes(raw[:4], "little")
+            self.diag.profile = device_type & 0xFFFF
+            self.diag.add_info = device_type >> 16
+            # [ours] a configured 0 means "any": a host may not know one of the two.
+            if params.usDevProfNum and params.usDevProfNum != self.diag.profile:
+                self.diag.status |= NodeStatus.PRM_FAULT
+                raise BootFailure(NodeEvent.PROFILE_MISMATCH)
+            if params.usAddTypeInfo and params.usAddTypeInfo != self.diag.add_info:
+                self.diag.status |= NodeStatus.PRM_FAULT
+                raise BootFailure(NodeEvent.DEVICE_TYPE_MISMATCH)
+        if not skip & ConfigNdState.GUARD:
+            if self._heartbeat():
+                if params.usGuardTime:
+                    # [ours] the node produces at half the master's consumer time
+                    sdo.download(0x1017, 0, struct.pack("<H", max(1, params.usGuardTime // 2)))
+            else:
+                if params.usGuardTime:
+                    # CiA 301: a node that produces heartbeats does not answer guarding;
+                    # switch its producer off (a node without 1017h may refuse: fine).
+                    with contextlib.suppress(SdoAbortedError):
+                        sdo.download(0x1017, 0, b"\0\0")
+                sdo.download(0x100C, 0, struct.pack("<H", params.usGuardTime))
+                sdo.download(0x100D, 0, struct.pack("<B", params.bLifeTimeFactor))
+                self._write_guard_cob_id(sdo)
+        if not skip & ConfigNdState.SYNC:
+            sdo.download(0x1005, 0, struct.pack("<I", link.sync_cob_id))
+        if not skip & ConfigNdState.EMCY:
+            sdo.download(0x1014, 0, struct.pack("<I", params.usCobIDEmcy))
+        if not skip & ConfigNdState.SDO:
+            for entry in params.atSdoCfgData:
+                sdo.download(entry.usIndex, entry.bSubindex,
+                             bytes(entry.abSdoValue[: entry.bLength]))
+        if not skip & ConfigNdState.START and not link.global_start:
+            link.send_nmt(NMT_START, self.address)
+
+    def _identify(self, sdo: SdoClient, deadline: float) -> None:
+        """A reset node that sent no boot-up message: read 1000h until it answers.
+
+        The seed's card does not react to boot-up events (appendix: "Bootup Protocol, no
+        reaction on Bootup Events of a Node"); its boot-up is "simple, reading object 1000H".
+        So a node of CiA 301 before 4.0, which sends none, boots as well; a boot-up message
+        only spares the wait. No answer within ``BOOTUP_TIMEOUT`` of the reset: 34.
+        """
+        while True:
+            if self.link.closing:
+                raise BootFailure(NodeEvent.NO_RESPONSE)
+            try:
+                sdo.upload(0x1000, 0)
+                return
+            except SdoCommunicationError:
+                if time.monotonic() >= deadline:
+                    self.diag.status |= NodeStatus.NO_RESPONSE
+                    raise BootFailure(NodeEvent.NO_RESPONSE) from None
+
+    def _write_guard_cob_id(self, sdo: SdoClient) -> None:
+        """usCobIDGuard into the node's COB-ID guarding object 100Eh (seed 4.2: written into
+        the node's object directory during its start-up; CiA 301 before 4.0 defines 100Eh).
+        [ours] A node without 100Eh may refuse the default 700h + node-ID, which it uses
+        anyway; it must take any other value, or its configuration fails (34, Prm_Fault)."""
+        try:
+            sdo.download(0x100E, 0, struct.pack("<I", self.params.usCobIDGuard))
+        except SdoAbortedError:
+            if self.params.usCobIDGuard != 0x700 + self.address:
+                raise
+
+    def _on_sdo_response(self, msg: can.Message) -> None:
+        """Notes a response of the wrong length; canopen's client never sees it (``CanBus``)."""
+        if not msg.is_remote_frame and len(msg.data) != SDO_FRAME_LENGTH:
+            log.info("node %d: SDO response of %d bytes", self.address, len(msg.data))
+            self._sdo_length_error = True

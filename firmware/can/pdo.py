@@ -1,0 +1,268 @@
+"""PDO communication of the master: the RX-PDOs it sends, the TX-PDOs it takes in.
+
+Why a module of its own: the PDOs are the one service that runs at bus speed on every
+tick and every SYNC, and it shares nothing with boot-up or supervision but the node's
+state, which it is asked about (``operating``) and never changes; a PDO that goes wrong
+is reported back as an Err_Event for the node handler to act on. The network-wide part,
+which nodes the host's outputs changed (``OutputWatch``), sits here too: it exists only
+to call ``NodePdos.send_outputs`` seldom enough.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+from typing import Protocol
+
+import can
+import numpy as np
+import numpy.typing as npt
+
+from dbm_tools.parameters import MSK_WORD_PDO, NodeParameterSet, PdoData
+from dpm.cia301 import ASYNC_RTR, SYNC_RTR
+from dpm.errors import NodeEvent
+from dpm.layout import IO_AREA_SIZE
+from firmware.can.bus import CanBus
+from firmware.process_image import ProcessImage
+
+RTR_PERIOD = 0.1
+"""[ours] seconds between remote requests of an RTR-only (253) input PDO without SYNC."""
+
+
+class PdoLink(Protocol):
+    """What PDOs use of the network: the process data, the byte order, SYNC, the bus."""
+
+    @property
+    def image(self) -> ProcessImage: ...
+
+    @property
+    def motorola(self) -> bool: ...
+
+    @property
+    def sync_period(self) -> float: ...
+
+    def bus_send(self, can_id: int, data: bytes = b"", remote: bool = False,
+                 dlc: int | None = None) -> bool: ...
+
+
+@dataclass
+class OutputPdo:
+    pdo: PdoData
+    offset: int
+    last: bytes | None = None
+    last_time: float = 0.0
+    syncs: int = 0
+
+
+@dataclass
+class InputPdo:
+    pdo: PdoData
+    offset: int
+    requested: float = 0.0
+    """When the last remote request went out, 0 when answered."""
+
+
+def swap_words(data: bytes) -> bytes:
+    """Motorola order for a word-oriented PDO: swap the bytes of each word."""
+    out = bytearray(data)
+    for i in range(0, len(out) - 1, 2):
+        out[i], out[i + 1] = out[i + 1], out[i]
+    return bytes(out)
+
+
+class NodePdos:
+    """One node's PDOs, as its node parameter data set configures them (seed 4.2)."""
+
+    def __init__(self, link: PdoLink, params: NodeParameterSet,
+                 operating: Callable[[], bool]) -> None:
+        self.link = link
+        self._operating = operating
+        """Whether the node exchanges data: its TX-PDOs count only then."""
+        self.outputs = [OutputPdo(p, o) for p, o in zip(
+            [p for p in params.atPdoCfgData if not p.is_input], params.ausOutputOffsets,
+            strict=False)]
+        self.inputs = [InputPdo(p, o) for p, o in zip(
+            [p for p in params.atPdoCfgData if p.is_input], params.ausInputOffsets,
+            strict=False)]
+        self._polled = [e for e in self.inputs if e.pdo.bTransType in (SYNC_RTR, ASYNC_RTR)]
+        """Inputs that come only when asked by a remote frame (252, 253)."""
+        self._synchronous = [e for e in self.outputs if e.pdo.bTransType <= 240]
+        """Outputs a SYNC may send: at 1,000 SYNCs/s the others are not even read then
+        (the master's tick sends a changed event-driven output)."""
+
+    def attach(self, bus: CanBus) -> None:
+        for entry in self.inputs:
+            bus.subscribe(entry.pdo.usPdoCOBId, self._on_input)
+
+    def detach(self, bus: CanBus) -> None:
+        for entry in self.inputs:
+            bus.unsubscribe(entry.pdo.usPdoCOBId, self._on_input)
+
+    def forget_sent(self) -> None:
+        """A (re)booted node has none of the card's outputs yet."""
+        for output in self.outputs:
+            output.last = None
+
+    def request_polled(self, now: float) -> None:
+        """The first remote request of every RTR-only input, once the node runs."""
+        for entry in self._polled:
+            self._request(entry, now)
+
+    def poll(self, now: float) -> int:
+        """RTR-only inputs without SYNC: ask again, or NO_RTR_RESPONSE (0: all well)."""
+        for entry in self._polled:
+            if entry.pdo.bTransType == ASYNC_RTR or not self.link.sync_period:
+                if entry.requested and now - entry.requested > RTR_PERIOD:
+                    return NodeEvent.NO_RTR_RESPONSE
+                if not entry.requested:
+                    self._request(entry, now)
+        return 0
+
+    def on_sync(self, now: float) -> int:
+        """Remote requests of 252 inputs at a SYNC, or NO_RTR_RESPONSE (0: all well)."""
+        for entry in self._polled:
+            if entry.pdo.bTransType == SYNC_RTR:
+                if entry.requested and now - entry.requested > 2 * self.link.sync_period:
+                    return NodeEvent.NO_RTR_RESPONSE
+                self._request(entry, now)
+        return 0
+
+    def _request(self, entry: InputPdo, now: float) -> None:
+        entry.requested = now
+        self.link.bus_send(entry.pdo.usPdoCOBId, remote=True, dlc=entry.pdo.data_length)
+
+    def outputs_changed(self, now: bytes, before: bytes) -> bool:
+        """Whether any of this node's output PDOs reads differently in ``now``."""
+        for entry in self.outputs:
+            end = entry.offset + entry.pdo.data_length
+            if now[entry.offset : end] != before[entry.offset : end]:
+                return True
+        return False
+
+    def send_outputs(self, sync: bool, force: bool) -> bool:
+        """Send the RX-PDOs that are due: synchronous ones at SYNC, the rest on change.
+
+        Returns True while a changed event-driven PDO waits for its inhibit time.
+        """
+        waiting = False
+        link = self.link
+        image = link.image
+        now = time.monotonic()
+        for entry in self._synchronous if sync and not force else self.outputs:
+            pdo = entry.pdo
+            data = image.read_outputs(entry.offset, pdo.data_length)
+            if pdo.bLength & MSK_WORD_PDO and link.motorola:
+                data = swap_words(data)
+            kind = pdo.bTransType
+            if kind <= 240:
+                if not sync and not force:
+                    continue
+                entry.syncs += 1
+                due = force or (data != entry.last if kind == 0 else entry.syncs >= kind)
+                if not due:
+                    continue
+                entry.syncs = 0
+            else:
+                if data == entry.last and not force:
+                    continue
+                inhibit = pdo.usInhibitCycle / 10000.0  # CiA 301: multiples of 100 us
+                if not force and now - entry.last_time < inhibit:
+                    waiting = True
+                    continue
+            if link.bus_send(pdo.usPdoCOBId, data):
+                entry.last = data
+                entry.last_time = now
+        return waiting
+
+    def _on_input(self, msg: can.Message) -> None:
+        if msg.is_remote_frame or not self._operating():
+            return
+        for entry in self.inputs:
+            if entry.pdo.usPdoCOBId == msg.arbitration_id:
+                entry.requested = 0.0
+                data = bytes(msg.data[: entry.pdo.data_length])
+                if entry.pdo.bLength & MSK_WORD_PDO and self.link.motorola:
+                    data = swap_words(data)
+                self.link.image.write_inputs(entry.offset, data)
+
+
+class OutputSender(Protocol):
+    """A node as ``OutputWatch`` sees it: its address, its PDOs, and its gate to the bus."""
+
+    @property
+    def address(self) -> int: ...
+
+    @property
+    def pdos(self) -> NodePdos: ...
+
+    def send_outputs(self, sync: bool = False, force: bool = False) -> bool: ...
+
+
+class OutputWatch:
+    """Which nodes' RX-PDOs the host's outputs changed, asked a thousand times a second.
+
+    It keeps the outputs as the last tick saw them and the nodes whose PDO still waits
+    (inhibit time, a host SDO transfer), and asks only those nodes to send.
+    """
+
+    def __init__(self) -> None:
+        self._owners: npt.NDArray[np.uint8] | None = None
+        """Which node's output PDO each output byte belongs to (0: none); see ``_owner_map``."""
+        self._waiting: set[OutputSender] = set()
+        self._last = b""
+
+    def nodes_changed(self) -> None:
+        """A node came or went: the owner map is built again at the next look."""
+        self._owners = None
+
+    def follow(self, outputs: bytes, nodes: Mapping[int, OutputSender]) -> None:
+        """Send the PDOs of the nodes whose outputs changed since the last call, or wait."""
+        last = self._last
+        changed = outputs != last
+        if changed or self._waiting:
+            due = self._changed_nodes(outputs, last, nodes) if changed else set()
+            due |= self._waiting
+            self._waiting = {h for h in sorted(due, key=_address) if h.send_outputs()}
+        self._last = outputs
+
+    def _changed_nodes(self, outputs: bytes, before: bytes,
+                       nodes: Mapping[int, OutputSender]) -> set[OutputSender]:
+        """The nodes whose output PDOs read differently in ``outputs`` than in ``before``.
+
+        One vectorised comparison of the whole area instead of every node's
+        slices: at full bus load this runs a thousand times a second.
+        """
+        owners = self._owner_map(nodes)
+        if owners is None or len(before) != len(outputs):
+            return {h for h in nodes.values() if h.pdos.outputs_changed(outputs, before)}
+        diff = np.frombuffer(outputs, np.uint8) != np.frombuffer(before, np.uint8)
+        return {nodes[a] for a in np.unique(owners[diff]).tolist() if a in nodes}
+
+    def _owner_map(self, nodes: Mapping[int, OutputSender]) -> npt.NDArray[np.uint8] | None:
+        """Output byte -> node address; None when two nodes share output bytes."""
+        if self._owners is None:
+            owners = np.zeros(IO_AREA_SIZE, np.uint8)
+            for address, handler in list(nodes.items()):
+                for entry in handler.pdos.outputs:
+                    span = owners[entry.offset:entry.offset + entry.pdo.data_length]
+                    if np.any((span != 0) & (span != address)):
+                        return None
+                    span[:] = address
+            self._owners = owners
+        return self._owners
+
+
+def zero_outputs(image: ProcessImage, nodes: Mapping[int, OutputSender]) -> None:
+    """Drive every RX-PDO to zero once (seed 5.2.1.2), then stop PDO traffic."""
+    driving = image.driving
+    image.driving = False  # read_outputs answers zeros now
+    try:
+        for handler in nodes.values():
+            handler.send_outputs(force=True)
+    finally:
+        image.driving = driving
+
+
+def _address(handler: OutputSender) -> int:
+    return handler.address

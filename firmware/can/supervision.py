@@ -1,0 +1,121 @@
+"""Error control of one node: node guarding or heartbeat consumption (CiA 301 7.2.8.3).
+
+Why a module of its own: error control has its own clock (the guard time, the consumer
+time), its own frames (the guarding remote request and the node's answers on 700h + ID)
+and its own settings, which the host changes at run time (COM_Set_Guarding,
+COM_Set_Heartbeat_Consumer). It decides only whether the node still answers in time
+and whether a state it reports may predate the card's start command; what a failure
+means for the node and the network (Err_Event, Nd_state, auto-clear) stays with the
+node handler, which hears it as an Err_Event number.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+
+from dbm_tools.parameters import NdFlag, NodeParameterSet
+from dpm.errors import NodeEvent
+
+START_GRACE = 0.5
+"""[ours] seconds after the NMT start in which a node may still report its old state: an
+error-control frame it sent before the start can reach the master after it."""
+
+Send = Callable[..., bool]
+"""The network's ``bus_send(can_id, data=b"", remote=False, dlc=None)``."""
+
+
+class ErrorControl:
+    """Guarding or heartbeat for one node, from its node parameters (seed 4.2)."""
+
+    def __init__(self, params: NodeParameterSet, send: Send) -> None:
+        self._guard_cob_id = params.usCobIDGuard
+        self._send = send
+        self.heartbeat = bool(params.bNd_Flag & NdFlag.HRTBT)
+        self.guard_time = params.usGuardTime
+        """Supervision time in ms (guard time or heartbeat consumer time); 0 = none."""
+        self.life_time_factor = params.bLifeTimeFactor
+        self._last_heartbeat = 0.0
+        self._next_guard = 0.0
+        self._guard_pending = False
+        self._guard_misses = 0
+        self._toggle: int | None = None
+        self._started_at = 0.0
+        self._start_stamp = 0.0
+        """[ours] Wall-clock time (as frames are stamped) of the node's last start: an
+        error-control frame stamped before it is no answer to it, however late it is read."""
+        self._confirmed = False
+        """The node reported OPERATIONAL since its start."""
+
+    @property
+    def supervised(self) -> bool:
+        return self.guard_time > 0
+
+    def configure(self, heartbeat: bool, time_ms: int, life_time_factor: int) -> None:
+        """Switch error control at run time (COM_Set_Guarding, COM_Set_Heartbeat_Consumer)."""
+        self.heartbeat = heartbeat
+        self.guard_time = time_ms
+        self.life_time_factor = life_time_factor
+        self.restart(time.monotonic())
+
+    def restart(self, now: float) -> None:
+        """Supervise from ``now`` on, as if the node had just answered."""
+        self._last_heartbeat = now
+        self._next_guard = now
+        self._guard_pending = False
+        self._guard_misses = 0
+        self._toggle = None
+
+    def started(self, now: float) -> None:
+        """A start command went to the node: from now on it must report OPERATIONAL."""
+        self._started_at = now
+        self._start_stamp = time.time()
+        self._confirmed = False
+
+    def check(self, now: float) -> int:
+        """The deadlines, from the master's supervision tick: GUARDING_FAILED or 0.
+
+        Guarding sends the next remote request here when its time has come.
+        """
+        if not self.supervised:
+            return 0
+        period = self.guard_time / 1000.0
+        if self.heartbeat:
+            if now - self._last_heartbeat > period:
+                return NodeEvent.GUARDING_FAILED
+        elif now >= self._next_guard:
+            if self._guard_pending:
+                self._guard_misses += 1
+                if self._guard_misses >= max(1, self.life_time_factor):
+                    return NodeEvent.GUARDING_FAILED
+            self._guard_pending = True
+            self._next_guard = now + period
+            self._send(self._guard_cob_id, remote=True, dlc=1)
+        return 0
+
+    def answered(self, value: int, now: float) -> int:
+        """An error-control frame of an operating node (its first byte): GUARD_SEQUENCE
+        when guarding sees the toggle bit repeated, else 0."""
+        if self.heartbeat:
+            self._last_heartbeat = now
+        elif self.supervised:  # guarding; [ours] unsupervised: the node's own heartbeat
+            self._guard_pending = False
+            self._guard_misses = 0
+            toggle = value & 0x80
+            if self._toggle is not None and toggle == self._toggle:
+                return NodeEvent.GUARD_SEQUENCE
+            self._toggle = toggle
+        return 0
+
+    def reported(self, operating: bool) -> None:
+        """The node reported its NMT state (OPERATIONAL or not) in an error-control frame."""
+        self._confirmed |= operating
+
+    def predates_start(self, now: float, stamp: float | None) -> bool:
+        """Whether a state other than OPERATIONAL may have left the node before the card's
+        start did: until the node first reports OPERATIONAL, a report within
+        ``START_GRACE`` of the start; [ours] and one stamped before the start, read late
+        by a busy card."""
+        if not self._confirmed and now - self._started_at < START_GRACE:
+            return True
+        return stamp is not None and stamp < self._start_stamp

@@ -1,0 +1,103 @@
+"""The card as its tasks see it: the narrow interface ``Device`` implements.
+
+Why a protocol and not the device: the tasks (RCS, PLC, CAN), the CANopen master and the
+flash's start-up configuration all took ``firmware.device.Device`` for their type, and
+the device imports every one of them, so nine modules stood in one import circle. What
+they use of the card is small: the image, the flag and Task2State bits the card writes,
+the errors and counters it reports, ``post`` to answer from another thread, and
+``sleep`` to wait inside the device loop. ``Card`` names just that, and ``Device``
+implements it structurally, without naming it; no task imports the device.
+
+Every member is read-only here (a property), so a device may hold a narrower type
+(``plc`` is its ``PlcTask``, which has an ``image``). What a start needs beyond this, the
+flash and every task, is ``firmware.whole_card.WholeCard``; it lives apart because the
+flash's start-up takes a ``Card`` and ``WholeCard`` names the flash.
+"""
+
+from __future__ import annotations
+
+import mmap
+from typing import Any, Protocol
+
+from dpm.doorbell import DeviceBell
+from dpm.message import Message
+from firmware.process_image import ProcessImage
+
+
+class HasImage(Protocol):
+    """The PLC task as the CAN master sees it: the process data the PDOs carry."""
+
+    @property
+    def image(self) -> ProcessImage: ...
+
+
+class HostReadiness(Protocol):
+    """The RCS task as the CAN master sees it: whether the host's NOTREADY holds (seed 4.3)."""
+
+    @property
+    def host_not_ready(self) -> bool: ...
+
+
+class Configurable(Protocol):
+    """The CAN task's configuration entry points: 0 or the seed's msg.f for each data set.
+
+    The stored database hands its data sets to the same three the host's downloads take
+    (``StoredDatabase.configure``), so a database in flash is checked as a download is.
+    """
+
+    from_flash: bool
+
+    def download_extended(self, data: bytes) -> int: ...
+
+    def download_node(self, address: int, data: bytes) -> int: ...
+
+    def download_bus(self, data: bytes) -> int: ...
+
+
+class Card(Protocol):
+    """What the card's tasks use of it; see the module's docstring for why so little."""
+
+    @property
+    def mm(self) -> mmap.mmap: ...
+
+    @property
+    def view(self) -> Any:
+        """The image as numpy structured views (``dpm.layout.image_view``)."""
+
+    @property
+    def bell(self) -> DeviceBell: ...
+
+    @property
+    def plc(self) -> HasImage: ...
+
+    @property
+    def rcs(self) -> HostReadiness: ...
+
+    @property
+    def can(self) -> Configurable: ...
+
+    def post(self, msg: Message) -> None:
+        """Answer later, from any thread (``Device.post``)."""
+
+    def sleep(self, seconds: float) -> bool:
+        """Wait inside the device loop; True when the card is told to stop."""
+
+    def write_host_flags(self, value: int) -> None: ...
+
+    def toggle_host_flags(self, bits: int) -> None: ...
+
+    def set_exchange_mode(self, mode: int) -> None: ...
+
+    def set_global_bit(self, bit: int, on: bool) -> None: ...
+
+    def set_node_bit(self, field: str, address: int, on: bool) -> None: ...
+
+    def report_error(self, node: int, event: int, bits: int = 0) -> None: ...
+
+    def clear_error(self, node: int) -> None: ...
+
+    def count(self, counter: str, by: int = 1) -> None: ...
+
+    def reset_counters(self) -> None: ...
+
+    def descript_records(self) -> dict[int, bytes] | None: ...

@@ -1,0 +1,430 @@
+"""``shm``: a python-can interface whose bus is shared memory between processes [ours].
+
+Why it exists: python-can's ``virtual`` bus lives inside one process, and this
+machine (like many CI runners) has no SocketCAN, so a card and a simulated
+network in *another* process could only meet over ``udp_multicast``, which
+loses frames under load. This interface is a vcan for any Linux machine:
+every bus object ("station") opened on the same channel, in any process, sees
+every frame the others send, or learns that it lost some.
+
+The medium is a file (``/dev/shm/cifemu-can-<channel>``, mode 0660): a header,
+a table of stations, and one ring of fixed 32-byte frame records per station.
+A station writes only its own ring and publishes the record by advancing its
+ring's counter; readers copy what is new from every other ring. Neither side
+makes a system call on that path, and that is the point: a system call lets
+go of CPython's interpreter lock, and in a busy multi-threaded process such
+as the firmware, getting it back costs up to a switch interval (measured
+here: 1.5 µs for an flock pair alone, 100 µs with one busy thread beside it).
+The ring protocol needs the stores of a record to become visible before its
+counter's, which x86-64 guarantees (TSO); on other CPUs a reader may find
+late a frame it was woken for, never a torn one (see ``_read``).
+
+Order: the frames of one station keep their order; frames of different
+stations that a reader picks up together are delivered by time stamp. (On a
+real bus, arbitration orders them; this bus does not model arbitration.)
+
+A reader falling more than a ring behind a station has lost frames: it gets
+one SocketCAN-style controller error frame (``CAN_ERR_CRTL`` with
+``CAN_ERR_CRTL_RX_OVERFLOW``) and ``rx_overflows`` grows by the number lost,
+as when a CAN controller's receive FIFO overflows. Writers never wait.
+
+A reader with nothing to read marks itself waiting and sleeps on a datagram
+socket in Linux's abstract namespace; a writer rings only the waiting ones.
+Mark and publish are each followed by a memory fence, so one of the two
+always sees the other (Dekker); the sleep is bounded anyway.
+
+Use it as any python-can interface (the package's entry point registers it)::
+
+    bus = can.Bus(interface="shm", channel="bench")
+
+Opening and closing a station take an ``flock`` on the file. The file stays
+while a station is open on it; the last one to shut down removes it. A
+station killed without shutting down is reclaimed by the next one that opens
+the channel once its process is gone.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import fcntl
+import hashlib
+import heapq
+import mmap
+import os
+import re
+import select
+import socket
+import struct
+import tempfile
+import threading
+import time
+from collections import deque
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import can
+import numpy as np
+import numpy.typing as npt
+
+from firmware.frames import CAN_ERR_CRTL, CAN_ERR_CRTL_RX_OVERFLOW
+
+if TYPE_CHECKING:
+    from firmware.shm.tasks import SpareTimer
+
+MAGIC = b"CIFCANS2"
+MAX_STATIONS = 64
+CAPACITY = 1 << 13
+"""Records per station ring: 8,192, almost a second of 1 Mbit/s at full load from one station."""
+MAX_SLEEP_S = 0.05
+"""The longest a reader sleeps before it looks again, whatever its time-out."""
+
+_HEADER = struct.Struct("<8sIII")  # magic, stations, capacity, record size
+_BITRATE_AT = _HEADER.size
+_BITRATE_SIZE = 4
+"""After the header: the channel's bit rate in bit/s, a little-endian u32, 0: none given
+(see ``ShmBus.bitrate``). The spare bytes of a file from before it read 0."""
+_SEQS_AT = 64
+"""Per station: records ever written (u64, written only by the station)."""
+_WAITING_AT = _SEQS_AT + 8 * MAX_STATIONS
+"""Per station: 1 while it sleeps on its bell."""
+_STATIONS_AT = _WAITING_AT + MAX_STATIONS
+_STATION = struct.Struct("<IIQ")  # in use, pid, opened (ns; part of the bell's name)
+_RINGS_AT = 4096
+_RECORD = struct.Struct("<dIBBH8s8x")  # time stamp, identifier, flags, dlc, (spare), data
+RECORD_SIZE = _RECORD.size
+_RING_BYTES = CAPACITY * RECORD_SIZE
+FILE_SIZE = _RINGS_AT + MAX_STATIONS * _RING_BYTES
+
+_EXTENDED, _REMOTE, _ERROR = 0x01, 0x02, 0x04
+
+_CLEAN_CHANNEL = re.compile(r"[A-Za-z0-9._-]{1,64}")
+
+
+def channel_path(channel: str) -> Path:
+    """The file behind ``channel``: a path as given, else a name in /dev/shm (or the temp dir)."""
+    if "/" in channel:
+        return Path(channel)
+    name = channel if _CLEAN_CHANNEL.fullmatch(channel) else (
+        hashlib.sha1(channel.encode()).hexdigest()[:24])
+    root = Path("/dev/shm")
+    if not root.is_dir():
+        root = Path(tempfile.gettempdir())
+    return root / f"cifemu-can-{name}"
+
+
+class ShmBus(can.BusABC):
+    """One station on a shared-memory CAN channel."""
+
+    def __init__(self, channel: Any = "cifemu", receive_own_messages: bool = False,
+                 preserve_timestamps: bool = False, timer_process: bool = False,
+                 **kwargs: Any) -> None:
+        """``timer_process``: ``send_periodic`` hands its frames to a timer process.
+
+        See ``firmware.shm.cyclic``; the bus keeps one started ahead from here on. Off by
+        default, because libraries call ``send_periodic`` freely (canopen for
+        every heartbeat producer) and a process each is too dear; the card's
+        controller turns it on for its SYNC producer.
+        """
+        self.channel = "cifemu" if channel is None else str(channel)
+        self.channel_info = f"shared-memory channel {self.channel!r}"
+        self.receive_own_messages = receive_own_messages
+        self.preserve_timestamps = preserve_timestamps
+        self.rx_overflows = 0
+        """Frames this station lost because it fell a whole ring behind a sender."""
+        self._path = channel_path(self.channel)
+        digest = hashlib.sha1(str(self._path.resolve()).encode()).hexdigest()[:16]
+        self._bell_prefix = f"\0cifemu-can-{digest}-"
+        self._send_lock = threading.Lock()
+        """The threads of one station take turns at its ring."""
+        self._read_lock = threading.Lock()
+        self._fence = threading.Lock()
+        """Taking an uncontended lock is an atomic instruction: a full memory fence."""
+        self._pending: deque[can.Message] = deque()
+        self._fd, self._map = self._open(int(kwargs.get("bitrate") or 0))
+        self._seqs: npt.NDArray[np.uint64] = np.ndarray(
+            (MAX_STATIONS,), np.uint64, buffer=self._map, offset=_SEQS_AT)
+        self._closed = False
+        self._bell = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+        self._bell.setblocking(False)
+        self._ringer = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+        self._ringer.setblocking(False)
+        try:
+            self._index = self._register()
+        except BaseException:
+            self._release()
+            raise
+        self._ring_at = _RINGS_AT + self._index * _RING_BYTES
+        self._cursors = self._seqs.copy()
+        """Per station: the records this station has taken."""
+        self._timers: SpareTimer | None = None
+        if timer_process:  # only once the station is open: a failed open leaves no spare
+            from firmware.shm.tasks import SpareTimer  # only a bus that asks pays for it
+
+            self._timers = SpareTimer()
+        super().__init__(channel=channel, **kwargs)
+
+    # --- the file and the station table ----------------------------------------------------
+
+    def _open(self, bitrate: int) -> tuple[int, mmap.mmap]:
+        while True:
+            fd = os.open(self._path, os.O_RDWR | os.O_CREAT, 0o660)
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX)
+                if os.fstat(fd).st_nlink == 0:  # removed by its last station meanwhile
+                    os.close(fd)
+                    continue
+                if os.fstat(fd).st_size == 0:
+                    os.fchmod(fd, 0o660)  # whatever the umask
+                    os.ftruncate(fd, FILE_SIZE)
+                    os.pwrite(fd, _HEADER.pack(MAGIC, MAX_STATIONS, CAPACITY, RECORD_SIZE), 0)
+                header = os.pread(fd, _HEADER.size, 0)
+                if (os.fstat(fd).st_size != FILE_SIZE or len(header) != _HEADER.size
+                        or _HEADER.unpack(header) != (MAGIC, MAX_STATIONS, CAPACITY,
+                                                      RECORD_SIZE)):
+                    raise can.CanInitializationError(
+                        f"{self._path} is not a cifemu shared-memory CAN channel of this version")
+                if bitrate and not any(os.pread(fd, _BITRATE_SIZE, _BITRATE_AT)):
+                    os.pwrite(fd, bitrate.to_bytes(_BITRATE_SIZE, "little"), _BITRATE_AT)
+                mapped = mmap.mmap(fd, FILE_SIZE)
+                fcntl.flock(fd, fcntl.LOCK_UN)
+                return fd, mapped
+            except BaseException:
+                os.close(fd)
+                raise
+
+    @property
+    def bitrate(self) -> int | None:
+        """The channel's bit rate, or None [ours].
+
+        The first station opened with a ``bitrate`` (``cifemu sim`` always gives its
+        network's) fixes it for as long as the channel exists; later stations join at
+        it whatever they ask, as a SocketCAN link's rate is the kernel's and not a
+        socket's. The bus does not model bit timing: the rate is there for a card to
+        compare its Baud_rate with (``firmware.can.bus``).
+        """
+        rate = int.from_bytes(self._map[_BITRATE_AT:_BITRATE_AT + _BITRATE_SIZE], "little")
+        return rate or None
+
+    def _station(self, index: int) -> tuple[int, int, int]:
+        return _STATION.unpack_from(self._map, _STATIONS_AT + index * _STATION.size)
+
+    def _bell_name(self, index: int, opened: int) -> bytes:
+        """A station's bell: unique per opening, so a reused entry never gets an old ring."""
+        return f"{self._bell_prefix}{index}-{opened}".encode()
+
+    def _register(self) -> int:
+        fcntl.flock(self._fd, fcntl.LOCK_EX)
+        try:
+            self._reclaim_dead()
+            for index in range(MAX_STATIONS):
+                if not self._station(index)[0]:
+                    break
+            else:
+                raise can.CanInitializationError(
+                    f"{MAX_STATIONS} stations are open on {self._path} already")
+            opened = time.monotonic_ns()
+            self._bell.bind(self._bell_name(index, opened))
+            # The ring's counter runs on from its last owner: readers' positions stay valid.
+            self._set_station(index, 1, os.getpid(), opened)
+            return index
+        finally:
+            fcntl.flock(self._fd, fcntl.LOCK_UN)
+
+    def _reclaim_dead(self) -> None:
+        """Free the entries of stations whose process is gone (under the exclusive lock)."""
+        for index in range(MAX_STATIONS):
+            in_use, pid, _ = self._station(index)
+            if in_use and not _alive(pid):
+                self._set_station(index, 0, 0, 0)
+
+    def _set_station(self, index: int, in_use: int, pid: int, opened: int) -> None:
+        """Write a station's entry, not waiting (under the exclusive lock)."""
+        _STATION.pack_into(self._map, _STATIONS_AT + index * _STATION.size, in_use, pid, opened)
+        self._map[_WAITING_AT + index] = 0
+
+    # --- sending -----------------------------------------------------------------------------
+
+    def send(self, msg: can.Message, timeout: float | None = None) -> None:
+        """Append ``msg`` to this station's ring; never waits for readers."""
+        del timeout
+        if msg.is_fd or len(msg.data) > 8:
+            raise can.CanOperationError("the shared-memory bus carries classic CAN frames only")
+        flags = ((_EXTENDED if msg.is_extended_id else 0) | (_REMOTE if msg.is_remote_frame else 0)
+                 | (_ERROR if msg.is_error_frame else 0))
+        stamp = msg.timestamp if self.preserve_timestamps else time.time()
+        record = _RECORD.pack(stamp, msg.arbitration_id, flags, msg.dlc, 0, bytes(msg.data))
+        with self._send_lock:
+            if self._closed:
+                raise can.CanOperationError("the bus is shut down")
+            mapped, seqs, index = self._map, self._seqs, self._index
+            seq = int(seqs[index])
+            at = self._ring_at + (seq % CAPACITY) * RECORD_SIZE
+            mapped[at:at + RECORD_SIZE] = record
+            seqs[index] = seq + 1  # publishes the record (one aligned 8-byte store)
+            with self._fence:
+                pass
+            sleeper = mapped.find(b"\x01", _WAITING_AT, _WAITING_AT + MAX_STATIONS)
+            while sleeper >= 0:
+                station = sleeper - _WAITING_AT
+                mapped[sleeper] = 0
+                self._ring(self._bell_name(station, self._station(station)[2]))
+                sleeper = mapped.find(b"\x01", sleeper + 1, _WAITING_AT + MAX_STATIONS)
+
+    def _send_periodic_internal(
+        self, msgs: Sequence[can.Message] | can.Message, period: float,
+        duration: float | None = None, autostart: bool = True,
+        modifier_callback: Callable[[can.Message], None] | None = None,
+    ) -> can.broadcastmanager.CyclicSendTaskABC:
+        """Cyclic frames from a timer process (``firmware.shm.cyclic``), as SocketCAN's BCM would.
+
+        Without ``timer_process``, or with a ``modifier_callback`` (it must run
+        in this process), python-can's thread sends them.
+        """
+        if self._timers is None or modifier_callback is not None:
+            return super()._send_periodic_internal(msgs, period, duration, autostart,
+                                                   modifier_callback)
+        from firmware.shm.tasks import ShmCyclicSendTask
+
+        return ShmCyclicSendTask(self._timers, self._path, msgs, period, duration, autostart)
+
+    def _ring(self, bell: bytes) -> None:
+        # OSError: gone (reclaimed when a station opens next), or its queue is full: awake.
+        with contextlib.suppress(OSError):
+            self._ringer.sendto(b"\x01", bell)
+
+    # --- receiving ---------------------------------------------------------------------------
+
+    def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
+        if self._pending:
+            return self._pending.popleft(), False
+        deadline = None if timeout is None else time.monotonic() + timeout
+        while not self._closed:
+            if self._read():
+                return self._pending.popleft(), False
+            self._mark_waiting(True)
+            if self._read():  # published between the first look and the mark
+                self._mark_waiting(False)
+                return self._pending.popleft(), False
+            remaining = MAX_SLEEP_S if deadline is None else min(
+                MAX_SLEEP_S, deadline - time.monotonic())
+            if remaining <= 0:
+                self._mark_waiting(False)
+                return None, False
+            try:
+                rung = select.select((self._bell,), (), (), remaining)[0]
+            except (OSError, ValueError):  # shut down by another thread meanwhile
+                return None, False
+            if rung:
+                try:
+                    while True:
+                        self._bell.recv(16)
+                except OSError:
+                    pass
+        return None, False
+
+    def _mark_waiting(self, waiting: bool) -> None:
+        with self._read_lock:
+            if not self._closed:
+                self._map[_WAITING_AT + self._index] = waiting
+                with self._fence:
+                    pass
+
+    def _read(self) -> bool:
+        """Take every new record of the other stations into ``_pending``; True when any.
+
+        A ring's counter is read before its records and again after copying
+        them: records a writer may have overwritten meanwhile (the reader was a
+        whole ring behind) are dropped and counted as lost, never delivered torn.
+        """
+        with self._read_lock:
+            if self._closed:
+                return False
+            mapped, seqs, cursors = self._map, self._seqs, self._cursors
+            changed = np.flatnonzero(seqs != cursors)
+            batches: list[tuple[int, bytes]] = []
+            lost = 0
+            for station in changed.tolist():
+                if station == self._index and not self.receive_own_messages:
+                    cursors[station] = seqs[station]
+                    continue
+                cursor, seq = int(cursors[station]), int(seqs[station])
+                first = max(cursor, seq - CAPACITY)
+                raw = _copy(mapped, _RINGS_AT + station * _RING_BYTES, first, seq)
+                overwritten = int(seqs[station]) - CAPACITY - first
+                if overwritten > 0:
+                    raw = raw[overwritten * RECORD_SIZE:]
+                    first += overwritten
+                lost += first - cursor
+                cursors[station] = seq
+                batches.append((station, raw))
+        if lost:
+            self.rx_overflows += lost
+            self._pending.append(can.Message(
+                timestamp=time.time(), arbitration_id=CAN_ERR_CRTL, is_error_frame=True,
+                is_extended_id=False, dlc=8, channel=self.channel,
+                data=bytes([0, CAN_ERR_CRTL_RX_OVERFLOW, 0, 0, 0, 0, 0, 0])))
+        # Each station's records stay in their order whatever their time stamps say.
+        records = heapq.merge(*(_RECORD.iter_unpack(raw) for _, raw in batches), key=_stamp)
+        channel = self.channel
+        for stamp, ident, flags, dlc, _, data in records:
+            remote = bool(flags & _REMOTE)
+            self._pending.append(can.Message(
+                timestamp=stamp, arbitration_id=ident, is_extended_id=bool(flags & _EXTENDED),
+                is_remote_frame=remote, is_error_frame=bool(flags & _ERROR), dlc=dlc,
+                data=None if remote else data[:dlc], channel=channel, check=False))
+        return bool(self._pending)
+
+    # --- closing -----------------------------------------------------------------------------
+
+    def shutdown(self) -> None:
+        if self._closed:
+            return
+        with self._send_lock, self._read_lock:
+            self._closed = True
+            fcntl.flock(self._fd, fcntl.LOCK_EX)
+            try:
+                self._set_station(self._index, 0, 0, 0)
+                self._reclaim_dead()
+                if not any(self._station(index)[0] for index in range(MAX_STATIONS)):
+                    self._path.unlink(missing_ok=True)
+            finally:
+                fcntl.flock(self._fd, fcntl.LOCK_UN)
+        with contextlib.suppress(OSError):  # wake a receive thread of this station
+            self._ringer.sendto(b"\x01", self._bell.getsockname())
+        del self._cursors
+        self._release()
+        super().shutdown()  # stops the cyclic tasks
+        if self._timers is not None:
+            self._timers.close()
+
+    def _release(self) -> None:
+        del self._seqs  # a numpy view pins the mapping
+        self._map.close()
+        os.close(self._fd)
+        self._bell.close()
+        self._ringer.close()
+
+
+def _copy(mapped: mmap.mmap, ring_at: int, first: int, end: int) -> bytes:
+    """Records ``first`` to ``end`` (counters) of the ring at ``ring_at``, unwrapped."""
+    start = first % CAPACITY
+    count = end - first
+    if start + count <= CAPACITY:
+        return mapped[ring_at + start * RECORD_SIZE:ring_at + (start + count) * RECORD_SIZE]
+    return (mapped[ring_at + start * RECORD_SIZE:ring_at + _RING_BYTES]
+            + mapped[ring_at:ring_at + (start + count - CAPACITY) * RECORD_SIZE])
+
+
+def _stamp(record: tuple[Any, ...]) -> float:
+    return float(record[0])
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
