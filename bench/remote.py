@@ -54,6 +54,7 @@ from bench.can.card import (
 )
 from bench.common import (
     STARTUP_TIMEOUT,
+    STOP_TIMEOUT,
     latency_stats,
     machine_info,
     measure,
@@ -69,6 +70,7 @@ from dbm_tools.network import parse_network
 from dpm.commands import COM_SDO_UP_DOWNLOAD
 from dpm.message import Message, Task
 from dpm.task2 import ComDiagnostics
+from firmware.shm.bus import channel_path
 from host_api.board import Board, CifError
 from host_api.driver import DevExchangeIO, DevGetTaskState
 
@@ -122,6 +124,16 @@ def start_server(channel: str, port: int = 0) -> Server:
                 return Server(proc, url, int(url.rstrip("/").rsplit(":", 1)[1]))
     stop_process(proc)
     raise RuntimeError("python -m can_remote did not say where it listens")
+
+
+def stop_server(server: Server) -> None:
+    """SIGINT, the server's only clean end (KeyboardInterrupt): after SIGTERM its side of the
+    shm channel would stay in /dev/shm. SIGTERM and SIGKILL follow if it does not end."""
+    if server.proc.poll() is None:
+        server.proc.send_signal(signal.SIGINT)
+        with contextlib.suppress(subprocess.TimeoutExpired):
+            server.proc.wait(STOP_TIMEOUT)
+    stop_process(server.proc)
 
 
 def start_sim(toml: Path, channel: str) -> subprocess.Popen[bytes]:
@@ -180,7 +192,9 @@ def rig(bridge: str) -> Iterator[Rig]:
                 made.card.stop()
                 server = made.server
             if server is not None:
-                stop_process(server.proc)
+                stop_server(server)
+            # Hygiene: the server's threads may end before its side of the channel closes.
+            channel_path(channel).unlink(missing_ok=True)
 
 
 def diagnostics(board: int) -> ComDiagnostics:

@@ -30,6 +30,7 @@ from dbm_tools.network import GENERIC_DEVICE_TYPE, load_network
 from dpm.commands import COM_SDO_UP_DOWNLOAD
 from dpm.message import Message, Task
 from dpm.task2 import CanState, GlobalBits
+from firmware.shm.bus import channel_path
 from host_api.board import Board
 from host_api.online import configure_online
 from tests.conftest import TIME_SCALE, Card, start_card, wait_until
@@ -57,8 +58,10 @@ class Remote:
         return int(self.url.rstrip("/").rsplit(":", 1)[1])
 
     def stop(self) -> None:
+        """SIGINT: the server's only clean end (KeyboardInterrupt); SIGTERM would leave its
+        side of the shm channel behind in /dev/shm."""
         if self.proc.poll() is None:
-            self.proc.terminate()
+            self.proc.send_signal(signal.SIGINT)
         self.proc.wait(timeout=10)
 
 
@@ -157,6 +160,8 @@ def bench(tmp_path: Path) -> Iterator[Bench]:
             if made.sim is not None:
                 _stop(made.sim)
         (made.server if made is not None else server).stop()
+        # Hygiene for /dev/shm only: the server's threads may end before its buses close.
+        channel_path(channel).unlink(missing_ok=True)
 
 
 def _stop(proc: subprocess.Popen[bytes]) -> None:
