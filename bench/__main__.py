@@ -13,7 +13,7 @@ from collections.abc import Callable
 from contextlib import nullcontext
 from typing import Any
 
-from bench import can, cia309, dbm, exchange_io, hops, idle, lss, mailbox, soak
+from bench import can, cia309, dbm, exchange_io, hops, idle, lss, mailbox, remote, soak
 from bench.common import add_size_arguments, emit, help_text, progress
 from bench.load import DEFAULT_BUSY, busy_load, describe
 
@@ -28,6 +28,7 @@ BENCHMARKS: dict[str, Runner] = {
     lss.NAME: lss.run,
     idle.NAME: idle.run,
     hops.NAME: hops.run,
+    remote.NAME: remote.run,
 }
 
 

@@ -6,13 +6,16 @@ import argparse
 import logging
 import signal
 import sys
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from types import FrameType
 
 import can
 
 from cifemu.online_configure import OnlineConfiguration
-from dbm_tools.network import NetworkError, load_network
+from dbm_tools.bus_options import BusOptionError, add_bus_arguments, select_bus, with_options
+from dbm_tools.network import Network, NetworkError, load_network
 from dpm.image import (
     DEFAULT_DPM_DIR,
     MAX_DEV_BOARDS,
@@ -36,7 +39,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--dpm-dir", default=None, metavar="DIR",
                         help=f"directory of the image board<N>.dpm "
                              f"(default $CIF_DPM_DIR or {DEFAULT_DPM_DIR})")
-    parser.add_argument("--interface", default="virtual",
+    parser.add_argument("--interface", default=None,
                         help="python-can interface: virtual (default; in this process only), "
                              "shm (cifemu's shared-memory bus: processes on this machine, no "
                              "frame lost unread), socketcan (vcan or real hardware), "
@@ -44,6 +47,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--channel", default=None,
                         help="python-can channel (default: 'cifemu' for virtual and shm, vcan0 "
                              "for socketcan, the default group for udp_multicast)")
+    add_bus_arguments(parser)
     parser.add_argument("--bitrate", type=int, default=None, metavar="BPS",
                         help="the controller's bit rate until the bus parameters come; their "
                              "Baud_rate then sets it, on interfaces whose rate the card sets "
@@ -100,10 +104,38 @@ def run(args: argparse.Namespace) -> int:
               "give --record or --trace", file=sys.stderr)
         return 1
     trace = recording_can_log(args.record) if args.record is not None else args.trace
-    bus = BusConfig(args.interface, args.channel or default_channel(args.interface),
-                    args.bitrate, trace,
-                    tap_address(image_path(dpm_dir(args.dpm_dir), args.board)),
-                    exit_on_error=args.exit_on_bus_error)
+    try:
+        selected = select_bus(args.interface, args.channel, args.bitrate, args.bus_option,
+                              args.bus_config)
+    except BusOptionError as exc:
+        print(f"cifemu firmware: {exc}", file=sys.stderr)
+        return 1
+    interface = selected.interface or "virtual"
+    with python_can_options(selected.options):
+        return _serve(args, network, configure_path, selected.options, BusConfig(
+            interface, selected.channel or default_channel(interface), selected.bitrate,
+            trace, tap_address(image_path(dpm_dir(args.dpm_dir), args.board)),
+            exit_on_error=args.exit_on_bus_error))
+
+
+@contextmanager
+def python_can_options(options: dict[str, object]) -> Iterator[None]:
+    """Hand ``--bus-option``/``--bus-config`` to every bus this process opens, through
+    ``can.rc`` (python-can's in-code configuration, merged under each ``can.Bus``'s own
+    arguments): the controller is opened deep inside the card, and reopened on a new
+    Baud_rate, from a ``BusConfig`` that carries no options. The simulated nodes of
+    ``--simulate`` share the interface, so they take them too."""
+    saved = dict(can.rc)
+    can.rc.update(options)
+    try:
+        yield
+    finally:
+        can.rc.clear()
+        can.rc.update(saved)
+
+
+def _serve(args: argparse.Namespace, network: Network | None, configure_path: Path | None,
+           options: dict[str, object], bus: BusConfig) -> int:
     recorder = None
     if args.record is not None:  # before the card, as the bus: a refusal leaves no image
         try:
@@ -118,7 +150,7 @@ def run(args: argparse.Namespace) -> int:
         except INTERFACE_ERRORS as exc:
             if recorder is not None:
                 recorder.close()
-            return _interface_error(bus, exc)
+            return _interface_error(bus, exc, options)
         simulation = SimulatedNetwork(network, sim_bus)
     try:
         device = Device(args.board, args.dpm_dir, reset_delay=args.reset_delay, bus=bus,
@@ -154,7 +186,7 @@ def run(args: argparse.Namespace) -> int:
         if device.can.master.bus is not None:
             raise  # the controller was up: not an interface error
         device.path.unlink(missing_ok=True)
-        return _interface_error(bus, exc)
+        return _interface_error(bus, exc, options)
     finally:
         if simulation is not None:
             simulation.stop()
@@ -164,9 +196,9 @@ def run(args: argparse.Namespace) -> int:
 
 
 
-def _interface_error(bus: BusConfig, exc: BaseException) -> int:
+def _interface_error(bus: BusConfig, exc: BaseException, options: dict[str, object]) -> int:
     print(f"cifemu firmware: cannot open CAN interface {bus.interface!r} channel "
-          f"{bus.channel!r}: {exc}", file=sys.stderr)
+          f"{bus.channel!r}{with_options(options)}: {exc}", file=sys.stderr)
     return 1
 
 

@@ -29,6 +29,7 @@ import can
 from cifemu.cli_options import add_card_options
 from cifemu.cli_output import fail
 from dbm_tools.builder import BuildError
+from dbm_tools.bus_options import BusOptionError, add_bus_arguments, select_bus, with_options
 from dbm_tools.network import NetworkError
 from dpm.card_info import read_card_info
 from dpm.image import dpm_dir, image_path
@@ -50,6 +51,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--channel", default=None,
                         help="the python-can channel of --interface (default: cifemu, vcan0 "
                              "for socketcan)")
+    add_bus_arguments(parser)
     parser.add_argument("--network", type=Path, default=None, metavar="NETWORK.toml",
                         help="name nodes and map PDOs to the process image and their objects "
                              "(default on the tap: the file the card was last configured from)")
@@ -118,12 +120,25 @@ def frame_line(msg: can.Message, meaning: Meaning, tapped: bool,
 
 def _open(args: argparse.Namespace) -> tuple[can.BusABC, bool] | str:
     """The bus to listen to and whether it is the card's tap, or why there is none."""
-    if args.interface is not None:
-        channel = args.channel or ("vcan0" if args.interface == "socketcan" else "cifemu")
+    try:
+        selected = select_bus(args.interface, args.channel, None, args.bus_option,
+                              args.bus_config)
+    except BusOptionError as exc:
+        return str(exc)
+    if selected.interface is not None:
+        interface = selected.interface
+        channel = selected.channel or ("vcan0" if interface == "socketcan" else "cifemu")
         try:
-            return can.Bus(interface=args.interface, channel=channel), False
-        except (can.CanError, OSError, ValueError, ImportError, NotImplementedError) as exc:
-            return f"cannot open CAN interface {args.interface!r} channel {channel!r}: {exc}"
+            kwargs: dict[str, Any] = dict(selected.options)
+            if selected.bitrate is not None:
+                kwargs["bitrate"] = selected.bitrate
+            return can.Bus(interface=interface, channel=channel, **kwargs), False
+        except (can.CanError, OSError, ValueError, ImportError, NotImplementedError,
+                TypeError) as exc:
+            return (f"cannot open CAN interface {interface!r} channel {channel!r}"
+                    f"{with_options(selected.options)}: {exc}")
+    if selected.options:
+        return "--bus-option and --bus-config need a bus (--interface or the file's interface)"
     directory = dpm_dir(args.dpm_dir)
     path = image_path(directory, args.board)
     if not firmware_liveness(directory, args.board).alive:
@@ -139,7 +154,7 @@ def _open(args: argparse.Namespace) -> tuple[can.BusABC, bool] | str:
 
 def run(args: argparse.Namespace) -> int:
     network = args.network
-    if network is None and args.interface is None:
+    if network is None and args.interface is None and args.bus_config is None:
         network = remembered_network(dpm_dir(args.dpm_dir), args.board)
     try:
         view = load_view(network)

@@ -18,6 +18,7 @@ from types import FrameType
 import can
 
 from cifemu.cli_output import fail
+from dbm_tools.bus_options import BusOptionError, add_bus_arguments, select_bus, with_options
 from dbm_tools.network import NetworkError, NodeDescription, load_network
 from firmware.interpreter import SWITCH_INTERVAL
 from firmware.sim.network import SimulatedNetwork
@@ -25,11 +26,14 @@ from firmware.sim.network import SimulatedNetwork
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("network", metavar="NETWORK.toml", help="the network description")
-    parser.add_argument("--interface", required=True,
+    parser.add_argument("--interface", default=None,
                         help="python-can interface that crosses processes: shm (cifemu's "
-                             "shared-memory bus), socketcan, udp_multicast ...")
-    parser.add_argument("--channel", required=True,
-                        help="python-can channel, e.g. the card's shm channel or vcan0")
+                             "shared-memory bus), socketcan, udp_multicast ... (required, "
+                             "here or in --bus-config)")
+    parser.add_argument("--channel", default=None,
+                        help="python-can channel, e.g. the card's shm channel or vcan0 "
+                             "(required, here or in --bus-config)")
+    add_bus_arguments(parser)
     parser.add_argument("--bitrate", type=int, default=None, metavar="BPS",
                         help="bit rate (default: the description's bus.bitrate)")
     parser.add_argument("--log-level", default="INFO",
@@ -90,7 +94,16 @@ def run(args: argparse.Namespace) -> int:
         network = load_network(args.network)
     except NetworkError as exc:
         return fail("sim", str(exc), args.json)
-    bitrate = args.bitrate or network.bus.bitrate
+    try:
+        selected = select_bus(args.interface, args.channel, args.bitrate, args.bus_option,
+                              args.bus_config)
+    except BusOptionError as exc:
+        return fail("sim", str(exc), args.json)
+    if selected.interface is None or selected.channel is None:
+        return fail("sim", "give --interface and --channel (or a --bus-config that names "
+                           "them)", args.json)
+    args.interface, args.channel = selected.interface, selected.channel
+    bitrate = selected.bitrate or network.bus.bitrate
     if args.interface == "virtual":
         # [ours] warned, not refused: the run harms nothing, and the line names what works.
         print("cifemu sim: warning: python-can's virtual bus lives in this process only: no "
@@ -98,10 +111,11 @@ def run(args: argparse.Namespace) -> int:
               f"--channel {args.channel} (and `cifemu firmware --interface shm --channel "
               f"{args.channel}`)", file=sys.stderr, flush=True)
     try:
-        bus = can.Bus(interface=args.interface, channel=args.channel, bitrate=bitrate)
-    except (can.CanError, OSError, ValueError, ImportError) as exc:
-        return fail("sim", f"cannot open {args.interface} channel {args.channel}: {exc}",
-                    args.json)
+        bus = can.Bus(interface=args.interface, channel=args.channel, bitrate=bitrate,
+                      **selected.options)
+    except (can.CanError, OSError, ValueError, ImportError, TypeError) as exc:
+        return fail("sim", f"cannot open {args.interface} channel {args.channel}"
+                           f"{with_options(selected.options)}: {exc}", args.json)
     done = threading.Event()
 
     def on_signal(signum: int, frame: FrameType | None) -> None:

@@ -11,6 +11,7 @@ canopen's network for its SDO clients.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import subprocess
@@ -40,12 +41,16 @@ from firmware.frames import (
 
 log = logging.getLogger(__name__)
 
-INTERFACE_ERRORS = (can.CanError, OSError, ValueError, ImportError, NotImplementedError)
-"""What python-can raises when an interface or channel cannot be opened."""
+INTERFACE_ERRORS = (can.CanError, OSError, ValueError, ImportError, NotImplementedError,
+                    TypeError)
+"""What python-can raises when an interface or channel cannot be opened (TypeError: an
+option, ``--bus-option``, that the interface's class does not take)."""
 
 SEND_TIMEOUT = 0.020
 """Seed 4.3: each CAN message is supervised to be sent within 20 ms."""
 FrameCallback = Callable[[can.Message], None]
+REOPEN_S = 1.0
+"""[ours] How often a controller whose transport failed tries to open it again."""
 
 PERIODIC_OUTSIDE_INTERFACES = ("socketcan", "shm")
 """Interfaces whose ``send_periodic`` keeps time outside this interpreter: SocketCAN's
@@ -190,6 +195,9 @@ class CanBus(can.Listener):
         self.on_send_timeout: Callable[[], None] = lambda: None
         self._trace: can.Listener | None = can.Logger(str(trace)) if trace else None
         self._tap = TapPublisher(tap) if tap else None
+        self._lost = threading.Event()
+        """The transport failed; a thread is opening it again (``on_error``)."""
+        self._closed = threading.Event()
         listeners: list[can.Listener] = [self]
         self._notifier = can.Notifier(self.bus, listeners, timeout=0.1)
 
@@ -250,6 +258,42 @@ class CanBus(can.Listener):
                 and len(msg.data) == SDO_FRAME_LENGTH and not held):
             self.network.notify(ident, msg.data, msg.timestamp)
 
+    def on_error(self, exc: Exception) -> None:
+        """The transport failed under the receive or a sending thread: a bridge's link closed
+        (python-can-remote raises from ``recv`` and ``send``; python-can's socketcand client
+        only from ``send``, its ``recv`` returns nothing from a closed connection). No error
+        frame tells it.
+
+        [ours] The host sees a bus-off (Bus_Off_Cnt, EVE): the controller is off the bus.
+        The interface is opened again every ``REOPEN_S`` until it is back, and the nodes'
+        supervision does the rest. python-can's receive thread would call ``recv`` again at
+        once; the reopening thread stops it (it cannot stop itself)."""
+        with self._lock:  # the receive thread and every sending thread may get here
+            if self._lost.is_set() or self._closed.is_set():
+                return
+            self._lost.set()
+        log.warning("CAN interface %s channel %s failed (%s: %s); opening it again every "
+                    "%.0f s", self.interface, self.channel, type(exc).__name__, exc, REOPEN_S)
+        self.on_error_frame(can.Message(is_error_frame=True, arbitration_id=CAN_ERR_BUSOFF))
+        threading.Thread(target=self._reopen, name="can-reopen", daemon=True).start()
+
+    def _reopen(self) -> None:
+        self._notifier.stop()
+        with contextlib.suppress(Exception):  # the transport is gone: closing it may fail too
+            self.bus.shutdown()
+        while not self._closed.wait(REOPEN_S):
+            try:
+                bus = can.Bus(interface=self.interface, channel=self.channel,
+                              **self._open_kwargs)
+            except Exception as exc:  # whatever the transport raises while it is away
+                log.debug("CAN interface %s still away: %s", self.interface, exc)
+                continue
+            self.bus = bus
+            self._notifier = can.Notifier(bus, [self], timeout=0.1)
+            self._lost.clear()
+            log.warning("CAN interface %s channel %s is back", self.interface, self.channel)
+            return
+
     def _is_echo(self, msg: can.Message) -> bool:
         """A frame this controller sent itself, looped back by the transport."""
         assert self._echoes is not None
@@ -282,6 +326,10 @@ class CanBus(can.Listener):
             self.bus.send(msg, timeout=SEND_TIMEOUT)
         except can.CanError as exc:
             log.warning("frame 0x%X not sent: %s", can_id, exc)
+            self.on_send_timeout()
+            return False
+        except Exception as exc:  # a bridge's transport gone (WebsocketClosed, OSError ...)
+            self.on_error(exc)
             self.on_send_timeout()
             return False
         if self._trace is not None:
@@ -370,6 +418,7 @@ class CanBus(can.Listener):
         self._bitrate = bitrate
 
     def shutdown(self) -> None:
+        self._closed.set()
         self._notifier.stop()
         if self._trace is not None:
             self._trace.stop()

@@ -1,0 +1,113 @@
+"""``--bus-option`` and ``--bus-config``: any python-can interface, with its options.
+
+What a user notices: the values arrive typed as python-can types its own
+configuration files, a file's section fills in what the flags leave open, the
+flags win, and a mistake is one line that names it (no traceback, exit 1). The
+end-to-end test proves the options reach the card's CAN controller: the card dials
+the socketcand host and port given as options (a real TCP listener of the test's).
+"""
+
+from __future__ import annotations
+
+import socket
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from dbm_tools.bus_options import BusOptionError, parse_option, select_bus
+from tests.conftest import TIME_SCALE
+
+
+def test_values_are_typed_as_python_can_types_its_files() -> None:
+    assert parse_option("port=29536") == ("port", 29536)
+    assert parse_option("fd=true") == ("fd", True)
+    assert parse_option("sleep_after_open=0.5") == ("sleep_after_open", 0.5)
+    assert parse_option("host=10.0.0.2") == ("host", "10.0.0.2")
+    assert parse_option("url=ws://h:1/a=b") == ("url", "ws://h:1/a=b")
+
+
+@pytest.mark.parametrize(("text", "named"), [
+    ("port", "'port'"), ("=1", "'=1'"), ("my-key=1", "'my-key=1'"),
+    ("channel=can0", "--channel"), ("interface=x", "--interface"), ("bitrate=1", "--bitrate")])
+def test_a_malformed_option_is_refused_by_name(text: str, named: str) -> None:
+    with pytest.raises(BusOptionError, match=named):
+        parse_option(text)
+
+
+def test_a_file_section_fills_in_and_the_command_line_wins(tmp_path: Path) -> None:
+    ini = tmp_path / "can.ini"
+    ini.write_text("[default]\ninterface = virtual\n"
+                   "[rack]\nbustype = socketcand\nchannel = can0\nbitrate = 250000\n"
+                   "host = 10.0.0.2\nport = 29536\ntcp_tune = True\n")
+    rack = select_bus(None, None, None, [], f"{ini}:rack")
+    assert (rack.interface, rack.channel, rack.bitrate) == ("socketcand", "can0", 250000)
+    assert rack.options == {"host": "10.0.0.2", "port": 29536, "tcp_tune": True}
+    mine = select_bus("socketcand", "vcan0", 500000, ["port=1234"], f"{ini}:rack")
+    assert (mine.channel, mine.bitrate, mine.options["port"]) == ("vcan0", 500000, 1234)
+    assert select_bus(None, None, None, [], str(ini)).interface == "virtual"  # [default]
+
+
+@pytest.mark.parametrize(("spec", "message"), [
+    ("missing.ini", "no such file"), ("can.ini:nowhere", r"no section \[nowhere\]"),
+    ("bad.ini", "--bus-config bad.ini")])
+def test_a_config_file_that_cannot_be_used_is_named(tmp_path: Path, spec: str,
+                                                    message: str,
+                                                    monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "can.ini").write_text("[default]\ninterface = virtual\n")
+    (tmp_path / "bad.ini").write_text("interface = no section header\n")
+    with pytest.raises(BusOptionError, match=message):
+        select_bus(None, None, None, [], spec)
+
+
+def _cli(*argv: str, cwd: Path) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([sys.executable, "-m", "cifemu", *argv], capture_output=True,
+                          text=True, timeout=60 * TIME_SCALE, cwd=cwd, check=False)
+
+
+@pytest.mark.parametrize("command", [["firmware"], ["sim", "net.toml"], ["monitor"]])
+@pytest.mark.parametrize(("flags", "named"), [
+    (["--interface", "nosuchbus"], 'Unknown interface type "nosuchbus"'),
+    (["--interface", "virtual", "--bus-option", "port"], "--bus-option 'port'"),
+    (["--interface", "virtual", "--bus-config", "none.ini"], "--bus-config none.ini")])
+def test_every_command_refuses_in_one_line(tmp_path: Path, command: list[str],
+                                           flags: list[str], named: str) -> None:
+    (tmp_path / "net.toml").write_text("[[node]]\nid = 1\n")
+    card = ["--dpm-dir", str(tmp_path)] if command[0] != "sim" else ["--channel", "c"]
+    if command[0] == "firmware":  # else a card whose interface cannot open stays up (FAT)
+        card += ["--exit-on-bus-error", "--log-level", "WARNING"]
+    done = _cli(*command, *flags, *card, cwd=tmp_path)
+    assert done.returncode == 1
+    lines = done.stderr.strip().splitlines()
+    assert len(lines) == 1 and named in lines[0], done.stderr
+
+
+def test_the_cards_controller_dials_the_host_and_port_given_as_options(tmp_path: Path) -> None:
+    """socketcand's host and port exist only as options: the card's controller connects to
+    the test's listener, which hangs up at once (it is no socketcand), and the card ends
+    with one line naming the interface and its options (--exit-on-bus-error)."""
+    with socket.socket() as listener:
+        listener.bind(("127.0.0.1", 0))
+        listener.listen(1)
+        listener.settimeout(30 * TIME_SCALE)
+        port = listener.getsockname()[1]
+        card = subprocess.Popen(
+            [sys.executable, "-m", "cifemu", "firmware", "--dpm-dir", str(tmp_path),
+             "--interface", "socketcand", "--channel", "can0", "--bus-option",
+             "host=127.0.0.1", "--bus-option", f"port={port}", "--exit-on-bus-error"],
+            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+        try:
+            connection, _ = listener.accept()
+            connection.close()
+            _, stderr = card.communicate(timeout=30 * TIME_SCALE)
+        finally:
+            if card.poll() is None:
+                card.kill()
+                card.wait(timeout=10)
+    assert card.returncode == 1
+    last = stderr.strip().splitlines()[-1]
+    assert last.startswith("cifemu firmware: cannot open CAN interface 'socketcand' channel "
+                           f"'can0' with options host=127.0.0.1 port={port}: "), stderr
+    assert "Traceback" not in stderr

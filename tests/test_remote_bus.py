@@ -1,0 +1,231 @@
+"""The card on a CAN bus across a network: python-can-remote's websocket bridge, loopback only.
+
+Three real processes, as on a bench whose CAN network is on another machine: the
+card (``--interface remote``, the server's URL as its channel), python-can-remote's
+server (``python -m can_remote``) on an ``shm`` channel, and ``cifemu sim`` on that
+same channel, the server's side. The host sees the nodes only through the image:
+their boot-up in Nd_state, an SDO through the mailbox, a PDO loop through
+DevExchangeIO, and a lost heartbeat as Err_Event 30 in Task2State.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import queue
+import re
+import signal
+import struct
+import subprocess
+import sys
+import threading
+import time
+import uuid
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import pytest
+
+from dbm_tools.network import GENERIC_DEVICE_TYPE, load_network
+from dpm.commands import COM_SDO_UP_DOWNLOAD
+from dpm.message import Message, Task
+from dpm.task2 import CanState, GlobalBits
+from firmware.shm.bus import channel_path
+from host_api.board import Board
+from host_api.online import configure_online
+from tests.conftest import TIME_SCALE, Card, start_card, wait_until
+
+pytestmark = pytest.mark.skipif(
+    importlib.util.find_spec("can_remote") is None,
+    reason="python-can-remote is not installed: pip install -e '.[remote]' (or '.[dev]')")
+
+NODES = [1, 2]
+NETWORK = "".join(f"[[node]]\nid = {n}\nheartbeat_ms = 600\n" for n in NODES)
+"""Heartbeat consumers of 600 ms: lost quickly after a kill, not by a busy machine."""
+SERVER_START_S = 20.0
+LISTENING = re.compile(rb"Connect using channel '(ws://[^']+)'")
+
+
+@dataclass
+class Remote:
+    """python-can-remote's server on an shm channel: its process and the URL it serves."""
+
+    proc: subprocess.Popen[bytes]
+    url: str
+
+    @property
+    def port(self) -> int:
+        return int(self.url.rstrip("/").rsplit(":", 1)[1])
+
+    def stop(self) -> None:
+        """SIGINT: the server's only clean end (KeyboardInterrupt); SIGTERM would leave its
+        side of the shm channel behind in /dev/shm."""
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGINT)
+        self.proc.wait(timeout=10)
+
+
+def start_remote_server(channel: str, port: int = 0) -> Remote:
+    """``python -m can_remote`` on 127.0.0.1 and ``port``, by default one the kernel picks
+    (``-p 0``): the URL is read from its log, so no port is guessed and none is raced for."""
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "can_remote", "-i", "shm", "-c", channel, "-H", "127.0.0.1",
+         "-p", str(port)], stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE)
+    assert proc.stderr is not None
+    lines: queue.Queue[bytes] = queue.Queue()
+    threading.Thread(target=lambda: [lines.put(line) for line in proc.stderr],  # type: ignore[union-attr]
+                     daemon=True).start()  # also keeps the pipe from filling
+    deadline = time.monotonic() + SERVER_START_S * TIME_SCALE
+    while time.monotonic() < deadline:
+        try:
+            line = lines.get(timeout=0.1)
+        except queue.Empty:
+            if proc.poll() is not None:
+                break
+            continue
+        found = LISTENING.search(line)
+        if found:
+            url = found.group(1).decode().replace("localhost", "127.0.0.1")
+            return Remote(proc, url)
+    proc.kill()
+    proc.wait(timeout=10)
+    pytest.fail("python -m can_remote did not say where it listens")
+
+
+def start_sim(network: Path, channel: str) -> subprocess.Popen[bytes]:
+    """``cifemu sim`` on the server's side, returned once its nodes are on the bus."""
+    sim = subprocess.Popen([sys.executable, "-m", "cifemu", "sim", str(network), "--interface",
+                            "shm", "--channel", channel, "--log-level", "WARNING"],
+                           stdin=subprocess.DEVNULL, stdout=subprocess.PIPE)
+    assert sim.stdout is not None
+    first = sim.stdout.readline()
+    if not first.startswith(b"simulating"):
+        sim.kill()
+        sim.wait(timeout=10)
+        pytest.fail(f"cifemu sim did not start: {first!r}")
+    threading.Thread(target=sim.stdout.read, daemon=True).start()  # the pipe must not fill
+    return sim
+
+
+@dataclass
+class Bench:
+    card: Card
+    server: Remote
+    sim: subprocess.Popen[bytes] | None
+    board: Board
+    network: Path
+    channel: str
+
+    def sdo_read(self, node: int, index: int, sub: int) -> int:
+        head = struct.pack("<BBHBBBB", node, 0, index, sub, 0, 0, 1)
+        answer = self.board.transact(Message(rx=Task.CAN, tx=Task.USER, b=COM_SDO_UP_DOWNLOAD,
+                                             data=head))
+        assert answer.f == 0, f"SDO read of node {node}: msg.f {answer.f}"
+        return int.from_bytes(answer.data[8:], "little")
+
+    def kill_sim(self) -> None:
+        assert self.sim is not None
+        self.sim.send_signal(signal.SIGKILL)
+        self.sim.wait(timeout=10)
+        self.sim = None
+
+
+@pytest.fixture
+def bench(tmp_path: Path) -> Iterator[Bench]:
+    network = tmp_path / "network.toml"
+    network.write_text(NETWORK)
+    channel = f"remote-{uuid.uuid4().hex}"
+    server = start_remote_server(channel)
+    made: Bench | None = None
+    try:
+        sim = start_sim(network, channel)
+        try:
+            card = start_card(tmp_path, 0, "--interface", "remote", "--channel", server.url)
+        except BaseException:
+            _stop(sim)
+            raise
+        try:
+            board = Board(0, tmp_path, timeout=5000).open()
+        except BaseException:
+            card.stop()
+            _stop(sim)
+            raise
+        made = Bench(card, server, sim, board, network, channel)
+        yield made
+    finally:
+        if made is not None:
+            made.board.close()
+            made.card.stop()
+            if made.sim is not None:
+                _stop(made.sim)
+        (made.server if made is not None else server).stop()
+        # Hygiene for /dev/shm only: the server's threads may end before its buses close.
+        channel_path(channel).unlink(missing_ok=True)
+
+
+def _stop(proc: subprocess.Popen[bytes]) -> None:
+    if proc.poll() is None:
+        proc.terminate()
+    proc.wait(timeout=10)
+
+
+def test_card_boots_the_nodes_across_the_bridge_and_serves_sdo_and_pdo(bench: Bench) -> None:
+    """Boot-up (Nd_state), an SDO upload through the mailbox and a PDO loop
+    (DevExchangeIO output -> node 1 -> its TPDO -> input), all over the websocket."""
+    configure_online(bench.board, load_network(bench.network))
+    wait_until(lambda: bench.board.diagnostics().operating() == NODES, 15,
+               "the nodes in data exchange through python-can-remote")
+    diag = bench.board.diagnostics()
+    assert diag.bCAN_State == CanState.OPERATE and diag.bErr_event == 0
+    assert bench.sdo_read(1, 0x1000, 0) == GENERIC_DEVICE_TYPE
+    for value in (b"\x5a", b"\xa5"):
+        wait_until(lambda v=value: bench.board.exchange_io(v, receive_size=1) == v, 3,  # type: ignore[misc]
+                   f"node 1 to echo {value.hex()} through the bridge")
+
+
+def test_heartbeat_loss_behind_the_bridge_is_err_event_30_and_recovers(bench: Bench) -> None:
+    """The nodes' process killed behind the server: the card reports the seed's 30 with
+    NEXC; the nodes back, data exchange resumes with no error left."""
+    configure_online(bench.board, load_network(bench.network))
+    wait_until(lambda: bench.board.diagnostics().operating() == NODES, 15,
+               "the nodes in data exchange")
+    bench.kill_sim()
+    wait_until(lambda: bench.board.diagnostics().operating() == [], 5,
+               "every node's heartbeat lost")
+    diag = bench.board.diagnostics()
+    assert (diag.bErr_rem_adr, diag.bErr_event) == (1, 30)
+    assert diag.bGlobalBits & GlobalBits.NEXC
+    bench.sim = start_sim(bench.network, bench.channel)
+    wait_until(lambda: bench.board.diagnostics().operating() == NODES, 15,
+               "the nodes back in data exchange")
+    diag = bench.board.diagnostics()
+    assert (diag.bErr_event, diag.bErr_rem_adr) == (0, 0)
+    assert not diag.bGlobalBits & GlobalBits.NEXC
+    wait_until(lambda: bench.board.exchange_io(b"\x33", receive_size=1) == b"\x33", 3,
+               "node 1 to echo the outputs again")
+
+
+def test_a_lost_link_is_a_bus_off_and_the_card_reconnects(bench: Bench) -> None:
+    """The server killed: no error frame comes, but the controller's transport fails; the
+    card counts a bus-off (Bus_Off_Cnt, EVE [ours]) and the nodes' heartbeats are lost
+    (Err_Event 30). The server back on its port: the controller reopens the interface and the
+    nodes return to data exchange without a host's reset."""
+    configure_online(bench.board, load_network(bench.network))
+    wait_until(lambda: bench.board.diagnostics().operating() == NODES, 15,
+               "the nodes in data exchange")
+    bus_off = bench.board.diagnostics().usBus_Off_Cnt
+    port = bench.server.port
+    bench.server.proc.send_signal(signal.SIGKILL)
+    bench.server.proc.wait(timeout=10)
+    wait_until(lambda: bench.board.diagnostics().operating() == [], 5,
+               "every node's heartbeat lost with the link")
+    diag = bench.board.diagnostics()
+    assert diag.bErr_event == 30
+    assert diag.usBus_Off_Cnt == bus_off + 1
+    assert diag.bGlobalBits & GlobalBits.EVE
+    bench.server = start_remote_server(bench.channel, port)
+    wait_until(lambda: bench.board.diagnostics().operating() == NODES, 20,
+               "the nodes back in data exchange over the reopened link")
+    wait_until(lambda: bench.board.exchange_io(b"\x66", receive_size=1) == b"\x66", 3,
+               "node 1 to echo the outputs over the reopened link")
