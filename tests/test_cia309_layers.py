@@ -11,7 +11,8 @@ from pathlib import Path
 
 PACKAGE = Path(__file__).parent.parent / "host_api" / "cia309"
 TYPED = {"model", "link", "events", "pdo", "gateway"}
-TEXT = {"framing", "parser", "requests", "formatters", "datatypes", "server", "cli"}
+TEXT = {"framing", "parser", "requests", "formatters", "datatypes", "server"}
+"""The command line over them is ``cifemu.commands.cia309``, a layer above both."""
 
 
 def _imports(module: str) -> set[str]:

@@ -20,10 +20,10 @@ from dbm_tools.builder import build_dbm
 from dbm_tools.container import save_dbm
 from dbm_tools.network import load_network
 from dbm_tools.parameters import NdFlag, NodeParameterSet, PdoData
+from dpm.card_info import read_card_info
 from dpm.com import ACCEPT_ALL_MASK, acceptance_long
 from dpm.message import Message
 from firmware.can.bus import bitrate_of_link
-from firmware.card_info import read_card_info
 from firmware.frames import (
     CAN_ERR_CRTL,
     CAN_ERR_CRTL_ACTIVE,
