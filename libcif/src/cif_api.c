@@ -4,7 +4,7 @@
  * The behaviour of host_api/driver.py, in C and without Python in the host
  * process: the same return codes in the same order of checks, the same channel
  * locks (so C and Python hosts serialise on one card), the same doorbell with the
- * polling fallback. DPM.md section 3 is the table both follow. What only the C API
+ * polling fallback. docs/dpm.md section 4 is the table both follow. What only the C API
  * has (null pointers, DevGetBoardInfoEx, DevSetOpMode, DevGetMBXData,
  * DevReadWriteDPMData, DevExtendedData) is marked [ours] where the real driver's
  * behaviour is not documented.
@@ -33,7 +33,7 @@
 #define DRIVER_VERSION "cifemu V0.1.0"
 #define DEFAULT_DPM_DIR "/dev/shm/cif"
 #define SPIN_NS 100000LL          /* watch the flags this long before sleeping on the bell */
-#define POLL_INTERVAL_NS 1000000LL /* the 1 ms of DPM.md 5 */
+#define POLL_INTERVAL_NS 1000000LL /* a waiting host's 1 ms poll, docs/dpm.md section 2 */
 #define SPECIAL_CONTROL_WAIT_MS 100UL
 #define STATE_FLAG_UNKNOWN 0xFF
 
@@ -1008,7 +1008,7 @@ CIF_API short DevReadWriteDPMRaw(unsigned short usDevNumber, unsigned short usMo
   return rc;
 }
 
-/* Offsets from the image's start; the whole image is reachable (LIBCIF.md 5). */
+/* Offsets from the image's start; the whole image is reachable (docs/libcif.md). */
 CIF_API short DevReadWriteDPMData(unsigned short usDevNumber, unsigned short usMode,
                                   unsigned short usOffset, unsigned short usSize, void *pvData) {
   short rc;

@@ -1,5 +1,5 @@
 /*
- * dbm_embd.c - see dbm_embd.h. The container is that of DBM.md section 1 (and
+ * dbm_embd.c - see dbm_embd.h. The container is that of docs/dbm.md section 1 (and
  * dbm_tools/container.py): root block of 208 words, then per table a key index (keyed
  * tables), a directory, a descriptor and the record blocks; every pointer a word index.
  * Every pointer and length is checked against the data area before it is followed, so a

@@ -1,7 +1,7 @@
 /*
  * download.c - DevDownload: a DBM configuration into the card's flash (libcif).
  *
- * The procedure of DBM.md section 4 and host_api/download.py: a first message
+ * The procedure of docs/dbm.md section 3 and host_api/download.py: a first message
  * (RCS_B_LOADFKT, e = RCS_FIRST_MSK, d = MODE_DOWNLOAD_DBM, the 16 root bytes, the
  * 34-byte GLOBAL record), then the whole data area in 240-byte messages (e =
  * RCS_CONT_MSK, the last RCS_LAST_MSK), each answered by the card. The file header

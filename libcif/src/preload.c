@@ -76,7 +76,7 @@ enum {
 };
 
 /* The five numbers that carry a size: driver 2.6 encodes the array it names, driver
-   2.100 sizeof(int) (LIBCIF.md 6). */
+   2.100 sizeof(int) (docs/legacy.md). */
 static unsigned expected_cmd(unsigned nr, int generation_26) {
   switch (nr) {
     case NR_BOARDINFO: return generation_26 ? 0xc1006301u : 0xc0046301u;
