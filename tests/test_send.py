@@ -64,10 +64,10 @@ def test_a_malformed_frame_or_an_idle_card_says_what_to_do(tmp_path: Path) -> No
     assert f"`cifemu configure NETWORK.toml --dpm-dir {tmp_path}`" in idle.stderr
 
 
-def test_help_of_send_and_reset_loads_neither_numpy_nor_the_driver() -> None:
+def test_help_of_send_reset_and_status_loads_neither_numpy_nor_the_driver() -> None:
     """Start-up: what parsing needs, no more (numpy alone costs 0.1 s of CPU)."""
     probe = ("import sys\nfrom cifemu.cli import main\n"
-             "for command in ('send', 'reset'):\n"
+             "for command in ('send', 'reset', 'status'):\n"
              "    try:\n        main([command, '--help'])\n    except SystemExit:\n        pass\n"
              "heavy = {'numpy', 'host_api.driver', 'host_api.board', 'importlib.metadata', "
              "'rich'}\nprint(sorted(heavy & set(sys.modules)))\n")
