@@ -1,0 +1,70 @@
+"""Seed fidelity, second pass (issue 23): what a legacy host still noticed of the node handlers.
+
+Each test brings a card up with simulated nodes, provokes one behaviour through the mailbox or
+the image, and asserts what the seed manual gives the host to see (Err_Event, Nd_state, NEXC,
+frames in the card's trace). Like ``tests/test_seed_fidelity.py`` it runs on every bus of
+``tests/test_can_task.py``'s back-to-back fixture; the test of a boot-up message injects its
+frames on the ``shm`` bus (``tests/test_can_late_frames.py``'s rig).
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+
+from dpm.task2 import GlobalBits
+from tests import test_can_task
+from tests.conftest import wait_until
+from tests.test_can_late_frames import rig
+from tests.test_can_task import Net
+from tests.test_seed_fidelity import actual_error
+
+interface = test_can_task.interface
+make_net = test_can_task.make_net
+"""The back-to-back fixtures: this module's tests run on every bus that file's run on."""
+__all__ = ["rig"]  # the fixture, shared with test_can_late_frames
+
+NMT_START, NMT_STOP = 0x01, 0x02
+
+
+def settle(seconds: float) -> None:
+    """Let ``seconds`` pass (traffic to record, supervision to act), as a bounded wait."""
+    until = time.monotonic() + seconds
+    wait_until(lambda: time.monotonic() > until, seconds + 1, f"{seconds} s to pass")
+
+
+def nexc(net: Net) -> bool:
+    return bool(net.diag().global_bits & GlobalBits.NEXC)
+
+
+# --- 1: a 252 input whose node never answers the remote request ---------------------------
+
+
+def test_an_unanswered_252_remote_request_is_err_event_33(make_net: Callable[..., Net]) -> None:
+    """Seed 4.3, Err_Event 33 "no response to a configured remote frame PDO". Node 1's TPDO1
+    is of type 252 but refuses remote frames (1800h:1 bit 30, written by the card from the
+    SDO list): the card asks at every SYNC and never gets it. [ours] No answer within two
+    SYNC periods of the first unanswered request is 33, however punctual the SYNCs are."""
+    net = make_net("""[bus]
+sync_period_ms = 100
+[[node]]
+id = 1
+[[node.sdo]]
+index = 0x1800
+subindex = 2
+value = 252
+size = 1
+[[node.sdo]]
+index = 0x1800
+subindex = 1
+value = 0x40000181
+size = 4
+[[node.pdo]]
+direction = "input"
+cob_id = 0x181
+transmission = 252
+""")
+    net.configure()
+    wait_until(lambda: net.diag().bErr_event == 33, 10, "Err_Event 33 of node 1")
+    assert net.diag().bErr_rem_adr == 1
+    assert actual_error(net, 1) == 33
