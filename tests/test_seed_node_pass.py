@@ -11,12 +11,13 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
+from pathlib import Path
 
 from dpm.task2 import GlobalBits
 from tests import test_can_task
 from tests.conftest import wait_until
 from tests.test_can_late_frames import rig
-from tests.test_can_task import Net
+from tests.test_can_task import Net, candump
 from tests.test_seed_fidelity import actual_error
 
 interface = test_can_task.interface
@@ -68,3 +69,34 @@ transmission = 252
     wait_until(lambda: net.diag().bErr_event == 33, 10, "Err_Event 33 of node 1")
     assert net.diag().bErr_rem_adr == 1
     assert actual_error(net, 1) == 33
+
+
+# --- 2: a node that finishes its boot-up after auto-clear ---------------------------------
+
+
+def test_a_node_booting_after_auto_clear_is_stopped_on_the_bus(make_net: Callable[..., Net],
+                                                                tmp_path: Path) -> None:
+    """Seed 4.3 (39, "node in stop") and 5.2.5.4.1 (Auto_Clear): node 2 finishes its boot-up
+    after auto-clear stopped the network. The card reports it stopped, so it must be stopped:
+    its heartbeat reads STOPPED (04) to the end, not OPERATIONAL."""
+    trace = tmp_path / "trace.log"
+    net = make_net("""[bus]
+auto_clear = true
+[[node]]
+id = 1
+heartbeat_ms = 200
+[node.sim]
+heartbeat_stop_after_s = 0.3
+[[node]]
+id = 2
+heartbeat_ms = 200
+[node.sim]
+boot_delay_s = 2.0
+""", "--trace", str(trace))
+    net.configure()
+    wait_until(lambda: net.diag().can_state_name == "CLEAR" and actual_error(net, 2) == 39, 10,
+               "node 2 stopped by auto-clear after its boot-up")
+    settle(0.6)  # several of node 2's heartbeats (100 ms)
+    net.card.stop()
+    beats = [data for _, ident, data in candump(trace) if ident == 0x702]
+    assert beats and beats[-1] == "04"

@@ -108,7 +108,11 @@ class NmtMaster:
     def node_booted(self, handler: NodeHandler) -> None:
         self._booting.discard(handler.address)
         if self.cleared or (self.halted and self._card.rcs.host_not_ready):
-            # auto-clear or HOST_NOT_READY came first: they stop this node too (seed 4.3)
+            # Auto-clear or HOST_NOT_READY came first: they stop this node too (seed 4.3,
+            # 39 "node in stop"). Their broadcast Stop went out before its boot-up ended with
+            # Start_Node, so it gets a Stop of its own: the field device must not run while
+            # the card reports it stopped.
+            self.nmt(NMT_STOP, handler.address)
             self._stop_node(handler)
             self.update_nexc()
             return
