@@ -100,3 +100,48 @@ boot_delay_s = 2.0
     net.card.stop()
     beats = [data for _, ident, data in candump(trace) if ident == 0x702]
     assert beats and beats[-1] == "04"
+
+
+# --- 3: Nd_state of a node without supervision after a start its boot did not send --------
+
+
+def test_unsupervised_nodes_show_in_nd_state_after_the_global_start(
+        make_net: Callable[..., Net]) -> None:
+    """Seed 4.3 (Nd_state) and 5.2.9: nodes without error control, started by the global
+    Start_Node (biNoGobalStartNode), are in data exchange: their Nd_state bits come."""
+    net = make_net("""[bus]
+global_start = true
+[[node]]
+id = 1
+error_control = "none"
+[[node]]
+id = 2
+error_control = "none"
+""")
+    net.configure()
+    net.wait_operating([1, 2])
+    assert net.diag().bErr_event == 0
+
+
+def test_an_unsupervised_node_started_by_the_host_shows_in_nd_state(
+        make_net: Callable[..., Net]) -> None:
+    """Seed 5.2.5.3 (START skipped) and 5.2.9 (COM_NMT_Module_Protocol): node 1, whose boot
+    leaves the start to the host, comes into Nd_state when the host starts it; node 2,
+    stopped by the host, leaves it and comes back when the host starts it again."""
+    net = make_net("""[[node]]
+id = 1
+error_control = "none"
+boot = ["reset", "device", "guard", "sync", "emcy", "sdo", "pdo"]
+[[node]]
+id = 2
+error_control = "none"
+""")
+    net.configure()
+    net.wait_operating([2])
+    assert net.send(96, bytes([NMT_START, 1])).f == 0
+    net.wait_operating([1, 2])
+    assert net.send(96, bytes([NMT_STOP, 2])).f == 0
+    net.wait_operating([1])
+    assert net.send(96, bytes([NMT_START, 2])).f == 0
+    net.wait_operating([1, 2])
+    assert net.diag().bErr_event == 0

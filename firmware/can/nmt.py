@@ -181,8 +181,15 @@ class NmtMaster:
         self.nmt(command, node)
         if command == NMT_START:
             now = time.monotonic()
-            for handler in targets:
-                handler.start_sent(now, by_host=True)
+            self._started([h for h in targets if h.start_sent(now, by_host=True)])
+
+    def _started(self, handlers: list[NodeHandler]) -> None:
+        """Nodes a start put into data exchange that report no state (``start_sent``):
+        NEXC first, then their Nd_state, as after a boot-up."""
+        if handlers:
+            self.update_nexc()
+        for handler in handlers:
+            self.set_node_state(handler.address, True)
 
     # --- from the master's tick ---------------------------------------------------------------
 
@@ -194,8 +201,8 @@ class NmtMaster:
         if self._global_start_due:
             self._global_start_due = False
             self.nmt(NMT_START, 0)
-            for handler in list(self._nodes.values()):
-                handler.start_sent(now, by_host=False)
+            self._started([h for h in list(self._nodes.values())
+                           if h.start_sent(now, by_host=False)])
         self._follow_connection_bits()
         return True
 

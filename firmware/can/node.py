@@ -222,18 +222,31 @@ class NodeHandler:
             self.send_outputs(force=True)
             self.pdos.request_polled(now)
 
-    def start_sent(self, now: float, by_host: bool) -> None:
+    def start_sent(self, now: float, by_host: bool) -> bool:
         """A Start_Node went to the node (the global one, or the host's): from now on it must
         be OPERATIONAL, after the usual grace for the command to arrive. A node with START set
-        in bitConfigNdState waits only for the host's."""
-        if self.state is not State.OPERATING or not self.awaiting_start:
-            return
-        if not by_host and self.params.bitConfigNdState & ConfigNdState.START:
-            return
-        self.awaiting_start = False
-        self.control.started(now)
-        if not self.params.bitConfigNdState & ConfigNdState.TXRXPDO:
-            self.send_outputs(force=True)  # the first RX-PDO, now that the node takes it
+        in bitConfigNdState waits only for the host's.
+
+        Returns True when the start put the node into data exchange and nothing will report
+        it: a node without error control sends no state, so [ours] the card takes its own
+        start for the node's state and sets Nd_state (seed 4.3, 5.2.9), as it does after a
+        boot-up that ends with its Start_Node. A supervised node's state comes with its next
+        heartbeat or guarding answer.
+        """
+        if self.state is not State.OPERATING:
+            return False
+        if self.awaiting_start:
+            if not by_host and self.params.bitConfigNdState & ConfigNdState.START:
+                return False
+            self.awaiting_start = False
+            self.control.started(now)
+            if not self.params.bitConfigNdState & ConfigNdState.TXRXPDO:
+                self.send_outputs(force=True)  # the first RX-PDO, now that the node takes it
+        elif by_host:  # a node the host had stopped, or one running already
+            self.control.started(now)
+        else:
+            return False
+        return not self.control.supervised
 
     def _fail_boot(self, generation: int, event: int) -> None:
         if generation == self._generation:
