@@ -145,3 +145,39 @@ error_control = "none"
     assert net.send(96, bytes([NMT_START, 2])).f == 0
     net.wait_operating([1, 2])
     assert net.diag().bErr_event == 0
+
+
+# --- 6: the first TX-PDO is requested at boot, whatever its type --------------------------
+
+
+def test_the_first_tx_pdo_of_every_type_is_requested_after_the_boot(
+        make_net: Callable[..., Net], tmp_path: Path) -> None:
+    """Seed 5.2.5.1.1, bitConfigNdState TXRXPDO: "Request first TX or send first RX PDO after
+    initialization sequence is finished". Node 1's input is event-driven (255), node 2's
+    synchronous (1): each gets a remote request once its boot-up is through."""
+    trace = tmp_path / "trace.log"
+    net = make_net("""[bus]
+sync_period_ms = 100
+[[node]]
+id = 1
+[[node.pdo]]
+direction = "input"
+cob_id = 0x181
+transmission = 255
+[[node]]
+id = 2
+[[node.pdo]]
+direction = "input"
+cob_id = 0x182
+transmission = 1
+""", "--trace", str(trace))
+    net.configure()
+    net.wait_operating([1, 2])
+    settle(0.3)
+    net.card.stop()
+    frames = candump(trace)
+    for node in (1, 2):
+        start = min(t for t, ident, data in frames if ident == 0 and data in (
+            f"01{node:02X}", "0100"))
+        assert [t for t, ident, data in frames if ident == 0x180 + node and data == "R"
+                and t >= start], f"no remote request of node {node}'s TX-PDO"

@@ -220,7 +220,8 @@ class NodeHandler:
         self.events.node_booted(self)
         if not skip & ConfigNdState.TXRXPDO:
             self.send_outputs(force=True)
-            self.pdos.request_polled(now)
+            if not self.awaiting_start:  # else when the start goes out (``start_sent``)
+                self.pdos.request_first(now)
 
     def start_sent(self, now: float, by_host: bool) -> bool:
         """A Start_Node went to the node (the global one, or the host's): from now on it must
@@ -239,13 +240,13 @@ class NodeHandler:
             if not by_host and self.params.bitConfigNdState & ConfigNdState.START:
                 return False
             self.awaiting_start = False
-            self.control.started(now)
-            if not self.params.bitConfigNdState & ConfigNdState.TXRXPDO:
-                self.send_outputs(force=True)  # the first RX-PDO, now that the node takes it
-        elif by_host:  # a node the host had stopped, or one running already
-            self.control.started(now)
-        else:
+        elif not by_host:
             return False
+        # else a node the host had stopped, or one running already
+        self.control.started(now)
+        if not self.params.bitConfigNdState & ConfigNdState.TXRXPDO:
+            self.send_outputs(force=True)  # the first RX-PDO, now that the node takes it
+            self.pdos.request_first(now)  # and the first TX-PDO
         return not self.control.supervised
 
     def _fail_boot(self, generation: int, event: int) -> None:
@@ -311,7 +312,7 @@ class NodeHandler:
             return
         if self.state is not State.OPERATING:
             return
-        event = self.control.check(now) or self.pdos.poll(now)
+        event = self.control.check(now) or (self.pdos.poll(now) if self._exchanging else 0)
         if event:
             self.fail(event)
 
@@ -320,9 +321,15 @@ class NodeHandler:
         if self.state is not State.OPERATING:
             return
         self.send_outputs(sync=True)
-        event = self.pdos.on_sync(now)
+        event = self.pdos.on_sync(now) if self._exchanging else 0
         if event:
             self.fail(event)
+
+    @property
+    def _exchanging(self) -> bool:
+        """Operating and started: only then must the node answer remote requests of its
+        TX-PDOs (a node waiting for its start, or stopped by the host, sends none)."""
+        return not self.awaiting_start and self.operational_expected
 
     def send_outputs(self, sync: bool = False, force: bool = False) -> bool:
         """Send the RX-PDOs that are due (``NodePdos.send_outputs``) while the node runs.

@@ -108,10 +108,19 @@ class NodePdos:
         for entry in self.inputs:
             entry.requested = 0.0
 
-    def request_polled(self, now: float) -> None:
-        """The first remote request of every RTR-only input, once the node runs."""
-        for entry in self._polled:
-            self._request(entry, now)
+    def request_first(self, now: float) -> None:
+        """Seed 5.2.5.1.1, TXRXPDO: "Request first TX ... PDO after initialization sequence is
+        finished": one remote request of every input, whatever its type, once the node runs,
+        so the input image holds the node's data before it next sends on its own. Only the
+        RTR-only inputs (252, 253) must answer (Err_Event 33); [ours] a node may refuse remote
+        frames of the others (1800h bit 30), which come anyway. Requests from before a stop
+        are forgotten: a stopped node owes no answer."""
+        for entry in self.inputs:
+            entry.requested = 0.0
+            if entry in self._polled:
+                self._request(entry, now)
+            else:
+                self.link.bus_send(entry.pdo.usPdoCOBId, remote=True, dlc=entry.pdo.data_length)
 
     def poll(self, now: float) -> int:
         """RTR-only inputs without SYNC: ask again, or NO_RTR_RESPONSE (0: all well)."""
