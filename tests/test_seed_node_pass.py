@@ -14,6 +14,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 from dpm.task2 import GlobalBits
+from host_api import driver as d
 from tests import test_can_task
 from tests.conftest import wait_until
 from tests.test_can_late_frames import rig
@@ -181,3 +182,28 @@ transmission = 1
             f"01{node:02X}", "0100"))
         assert [t for t, ident, data in frames if ident == 0x180 + node and data == "R"
                 and t >= start], f"no remote request of node {node}'s TX-PDO"
+
+
+# --- 8: NEXC while nodes do not exchange data --------------------------------------------
+
+
+def test_nexc_while_a_node_waits_for_its_start_and_while_the_host_is_not_ready(
+        make_net: Callable[..., Net]) -> None:
+    """Seed 4.3 NEXC: "At least one node has not reached the data exchange state". Node 1
+    skips START and sits in PRE-OPERATIONAL: NEXC set; the host starts it: clear; the host
+    goes NOT_READY and every node is stopped (39): set again."""
+    net = make_net("""[[node]]
+id = 1
+boot = ["reset", "device", "guard", "sync", "emcy", "sdo", "pdo"]
+[[node]]
+id = 2
+""")
+    net.configure()
+    net.wait_operating([2])
+    wait_until(lambda: nexc(net), 5, "NEXC while node 1 waits for its start")
+    assert net.send(96, bytes([NMT_START, 1])).f == 0
+    net.wait_operating([1, 2])
+    wait_until(lambda: not nexc(net), 5, "NEXC clear with both nodes in data exchange")
+    assert d.DevSetHostState(0, d.HOST_NOT_READY, 1000) == 0
+    wait_until(lambda: net.diag().bErr_event == 39, 5, "Err_Event 39")
+    wait_until(lambda: nexc(net), 5, "NEXC with the nodes stopped")

@@ -156,6 +156,7 @@ class NmtMaster:
         for handler in list(self._nodes.values()):
             if handler.state is State.OPERATING:
                 self._stop_node(handler)
+        self.update_nexc()  # the tick, which would, stops while the network is halted
 
     def _stop_node(self, handler: NodeHandler) -> None:
         handler.idle()
@@ -244,11 +245,15 @@ class NmtMaster:
     def update_nexc(self) -> None:
         """NEXC from every node's state; called by boot threads, the bus thread and the tick.
 
+        Seed 4.3: "At least one node has not reached the data exchange state and no process
+        data are exchanged with it": a node that waits for its start (START skipped) or that
+        the host stopped counts, as does every node HOST_NOT_READY or auto-clear stopped.
+
         Under a lock: two boot threads finishing together could otherwise write
         their answers in the wrong order, the stale one last.
         """
         with self._nexc_lock:
-            missing = any(h.state is not State.OPERATING for h in list(self._nodes.values())
+            missing = any(not h.exchanging for h in list(self._nodes.values())
                           if h.active and h.state is not State.DISCONNECTED)
             self._card.set_global_bit(GlobalBits.NEXC, missing)
 

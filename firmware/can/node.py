@@ -312,7 +312,7 @@ class NodeHandler:
             return
         if self.state is not State.OPERATING:
             return
-        event = self.control.check(now) or (self.pdos.poll(now) if self._exchanging else 0)
+        event = self.control.check(now) or (self.pdos.poll(now) if self.exchanging else 0)
         if event:
             self.fail(event)
 
@@ -321,15 +321,17 @@ class NodeHandler:
         if self.state is not State.OPERATING:
             return
         self.send_outputs(sync=True)
-        event = self.pdos.on_sync(now) if self._exchanging else 0
+        event = self.pdos.on_sync(now) if self.exchanging else 0
         if event:
             self.fail(event)
 
     @property
-    def _exchanging(self) -> bool:
-        """Operating and started: only then must the node answer remote requests of its
-        TX-PDOs (a node waiting for its start, or stopped by the host, sends none)."""
-        return not self.awaiting_start and self.operational_expected
+    def exchanging(self) -> bool:
+        """In data exchange: operating and started. Only then must the node answer remote
+        requests of its TX-PDOs (a node waiting for its start, or stopped by the host, sends
+        none), and only then is it no NEXC (seed 4.3)."""
+        return (self.state is State.OPERATING and not self.awaiting_start
+                and self.operational_expected)
 
     def send_outputs(self, sync: bool = False, force: bool = False) -> bool:
         """Send the RX-PDOs that are due (``NodePdos.send_outputs``) while the node runs.
