@@ -9,15 +9,18 @@ frames on the ``shm`` bus (``tests/test_can_late_frames.py``'s rig).
 
 from __future__ import annotations
 
+import struct
 import time
 from collections.abc import Callable
 from pathlib import Path
 
+from dbm_tools.network import parse_network
 from dpm.task2 import GlobalBits
 from host_api import driver as d
+from host_api.online import configure_online
 from tests import test_can_task
 from tests.conftest import wait_until
-from tests.test_can_late_frames import rig
+from tests.test_can_late_frames import NODE, Rig, rig
 from tests.test_can_task import Net, candump
 from tests.test_seed_fidelity import actual_error
 
@@ -207,3 +210,20 @@ id = 2
     assert d.DevSetHostState(0, d.HOST_NOT_READY, 1000) == 0
     wait_until(lambda: net.diag().bErr_event == 39, 5, "Err_Event 39")
     wait_until(lambda: nexc(net), 5, "NEXC with the nodes stopped")
+
+
+# --- 10: no reaction on the boot-up message of an unsupervised node -----------------------
+
+
+def test_the_boot_up_message_of_an_unsupervised_node_gets_no_reaction(rig: Rig) -> None:
+    """Seed 8.1: "Bootup Protocol, no reaction on Bootup Events of a Node". A node without
+    error control sends a boot-up message while in data exchange: no Err_Event, it stays in
+    Nd_state."""
+    configure_online(rig.board, parse_network(f'[[node]]\nid = {NODE}\nerror_control = "none"\n'))
+    wait_until(lambda: rig.diag().operating() == [NODE], 10, "the node in data exchange")
+    rig.send(0x700 + NODE, b"\x00", time.time())
+    # An EMCY behind it: once it shows in Nd_diag, the boot-up before it has been judged.
+    rig.send(0x80 + NODE, struct.pack("<HB5x", 0x1000, 1), time.time())
+    wait_until(lambda: NODE in rig.diag().diagnostic(), 5, "the EMCY in Nd_diag")
+    assert rig.diag().bErr_event == 0
+    assert rig.diag().operating() == [NODE]

@@ -355,8 +355,12 @@ class NodeHandler:
         value = msg.data[0]
         state = value & 0x7F
         if state == BOOT_UP and msg.arbitration_id == 0x700 + self.address:
+            # Seed 8.1: "Bootup Protocol, no reaction on Bootup Events of a Node": a node
+            # without error control stays as it is. [ours] A supervised node's boot-up is its
+            # state report as well (CiA 301: state 0), which its next heartbeat or guarding
+            # answer would give a moment later: it left OPERATIONAL (31).
             self.boot.booted_up(stamp)
-            if self.state is State.OPERATING:
+            if self.state is State.OPERATING and self.control.supervised:
                 log.info("node %d: unexpected boot-up", self.address)
                 self.fail(NodeEvent.LEFT_OPERATIONAL)
             return
