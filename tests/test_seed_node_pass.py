@@ -23,6 +23,7 @@ from tests.conftest import wait_until
 from tests.test_can_late_frames import NODE, Rig, rig
 from tests.test_can_task import Net, candump
 from tests.test_seed_fidelity import actual_error
+from tests.test_seed_untested import BUS_PARAMETERS, node_set
 
 interface = test_can_task.interface
 make_net = test_can_task.make_net
@@ -227,3 +228,27 @@ def test_the_boot_up_message_of_an_unsupervised_node_gets_no_reaction(rig: Rig) 
     wait_until(lambda: NODE in rig.diag().diagnostic(), 5, "the EMCY in Nd_diag")
     assert rig.diag().bErr_event == 0
     assert rig.diag().operating() == [NODE]
+
+
+# --- 11: a heartbeat node that refuses the write of 1017h ----------------------------------
+
+
+def test_a_heartbeat_node_refusing_1017h_still_boots(make_net: Callable[..., Net]) -> None:
+    """Seed 5.2.5.1.1: the card consumes heartbeats; a node whose producer time 1017h is not
+    writable (it produces at its own rate, here 500 ms) boots as one that takes it: no 34,
+    no Prm_Fault, in data exchange and supervised (consumer time 1000 ms). The data set comes
+    by COM_Download, as a host sends it: a heartbeat node without 1017h in its SDO list."""
+    net = make_net("""[[node]]
+id = 1
+heartbeat_ms = 1000
+[node.sim]
+sdo_abort = { "1017:0" = 0x06010002 }
+""")
+    assert net.send(68, bytes([0, 1, 0, 0]) + node_set(1)).f == 0
+    assert net.send(68, BUS_PARAMETERS).f == 0
+    net.wait_operating([1])
+    settle(1.5)  # supervision: its own heartbeat keeps it there
+    assert net.diag().operating() == [1]
+    assert net.diag().bErr_event == 0
+    answer = net.send(66, struct.pack("<BBHBBBB", 1, 0, 0, 0, 0, 0, 1))
+    assert answer.f == 0 and not answer.data[8] & 0x04  # Nodestatus_1: no Prm_Fault

@@ -151,8 +151,13 @@ class BootSequence:
         if not skip & ConfigNdState.GUARD:
             if self._heartbeat():
                 if params.usGuardTime:
-                    # [ours] the node produces at half the master's consumer time
-                    sdo.download(0x1017, 0, struct.pack("<H", max(1, params.usGuardTime // 2)))
+                    # [ours] the node produces at half the master's consumer time. The card
+                    # only consumes heartbeats (seed 5.2.5.1.1): a node whose 1017h is not
+                    # writable produces at its own rate, and supervision judges that: too
+                    # slow is 30, none at all too.
+                    with contextlib.suppress(SdoAbortedError):
+                        sdo.download(0x1017, 0,
+                                     struct.pack("<H", max(1, params.usGuardTime // 2)))
             else:
                 if params.usGuardTime:
                     # CiA 301: a node that produces heartbeats does not answer guarding;
