@@ -252,3 +252,29 @@ sdo_abort = { "1017:0" = 0x06010002 }
     assert net.diag().bErr_event == 0
     answer = net.send(66, struct.pack("<BBHBBBB", 1, 0, 0, 0, 0, 0, 1))
     assert answer.f == 0 and not answer.data[8] & 0x04  # Nodestatus_1: no Prm_Fault
+
+
+# --- 12: auto-clear and a node that never booted ---------------------------------------------
+
+
+def test_auto_clear_leaves_the_network_running_when_a_node_fails_its_first_boot(
+        make_net: Callable[..., Net]) -> None:
+    """Seed 5.2.5.4.1: auto-clear stops all "if one as active classified node has been
+    disconnected". [ours] A node that never reached data exchange was never connected: its
+    failed boot is reported (34) and retried, the others keep running (OPERATE, no ACLR)."""
+    net = make_net("""[bus]
+auto_clear = true
+[[node]]
+id = 1
+[node.sim]
+silent = true
+[[node]]
+id = 2
+""")
+    net.configure()
+    wait_until(lambda: actual_error(net, 1) == 34, 15, "node 1's boot-up failing with 34")
+    net.wait_operating([2])
+    settle(0.5)
+    diag = net.diag()
+    assert diag.can_state_name == "OPERATE" and not diag.global_bits & GlobalBits.ACLR
+    assert diag.operating() == [2]

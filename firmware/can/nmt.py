@@ -127,7 +127,12 @@ class NmtMaster:
         self.set_node_state(handler.address, False)
         self.update_nexc()  # with Err_Event, not a supervision tick later
         self._card.report_error(handler.address, event)
-        if self._settings.auto_clear and not self.cleared and self.running:
+        # Seed 5.2.5.4.1: auto-clear stops all "if one as active classified node has been
+        # disconnected". [ours] A node that has not reached data exchange since the network
+        # started it was never connected: its failed boot-up is reported and retried, as with
+        # auto-clear off, and the others run on.
+        if (self._settings.auto_clear and handler.connected and not self.cleared
+                and self.running):
             self._auto_clear()
         elif self._settings.global_start and not self._booting:
             self._global_start_due = True

@@ -114,6 +114,9 @@ class NodeHandler:
         """Nodestatus_1 and Actual_Error as the host last read them (COM_Node_Diag)."""
         self.host_sdo = False
         """A host SDO transfer runs: the node's RPDOs are suppressed (seed 5.2.8)."""
+        self.connected = False
+        """The node reached data exchange since the network last started it: only then can
+        losing it be auto-clear's "disconnected" (``NmtMaster.node_failed``)."""
         self._retry_at = 0.0
         self._generation = 0
         """Bumped on every (re)boot so a stale boot thread gives up."""
@@ -211,6 +214,7 @@ class NodeHandler:
         self.awaiting_start = bool(skip & ConfigNdState.START) or self.network.global_start
         self.pdos.forget_sent()
         self.state = State.OPERATING
+        self.connected = True
         if self.control.supervised:
             self.diag.status |= NodeStatus.GUARD_ACTIVE
         if recovered:  # before Nd_state, as above
@@ -302,12 +306,13 @@ class NodeHandler:
         if self.state is not State.INACTIVE:
             self._generation += 1
             self.state = State.WAITING
+            self.connected = False
             self.events.set_node_state(self.address, False)
 
     def tick(self, now: float) -> None:
         """Supervision and retries; called from the master's tick."""
         if self.state is State.FAILED:
-            if not self.network.auto_clear and now >= self._retry_at:
+            if (not self.network.auto_clear or not self.connected) and now >= self._retry_at:
                 self.start_boot()
             return
         if self.state is not State.OPERATING:
