@@ -20,6 +20,7 @@ from typing import Protocol
 import can
 
 from dbm_tools.parameters import ConfigNdState, NodeParameterSet
+from dpm.cia301 import BOOT_UP, OPERATIONAL
 from dpm.com import NodeDiagnosis as Diagnosis
 from dpm.com import NodeStatus
 from dpm.commands import NMT_STOP
@@ -39,8 +40,6 @@ FOREIGN_CLOCK_S = 60.0
 """[ours] A frame stamped further than this from the wall clock is stamped by the adapter's
 own clock: its stamp says nothing about when it was on the bus relative to the card's
 resets and starts (``wall_stamp``)."""
-
-OPERATIONAL, BOOT_UP = 5, 0
 
 
 class State(enum.Enum):
