@@ -83,7 +83,8 @@ def test_a_node_booting_after_auto_clear_is_stopped_on_the_bus(make_net: Callabl
                                                                 tmp_path: Path) -> None:
     """Seed 4.3 (39, "node in stop") and 5.2.5.4.1 (Auto_Clear): node 2 finishes its boot-up
     after auto-clear stopped the network. The card reports it stopped, so it must be stopped:
-    its heartbeat reads STOPPED (04) to the end, not OPERATIONAL."""
+    no Start_Node for it after the broadcast Stop, and its heartbeat reads STOPPED (04) to the
+    end, not OPERATIONAL."""
     trace = tmp_path / "trace.log"
     net = make_net("""[bus]
 auto_clear = true
@@ -103,7 +104,10 @@ boot_delay_s = 2.0
                "node 2 stopped by auto-clear after its boot-up")
     settle(0.6)  # several of node 2's heartbeats (100 ms)
     net.card.stop()
-    beats = [data for _, ident, data in candump(trace) if ident == 0x702]
+    frames = candump(trace)
+    cleared = min(t for t, ident, data in frames if ident == 0 and data == "0200")
+    assert "0102" not in [data for t, ident, data in frames if ident == 0 and t > cleared]
+    beats = [data for _, ident, data in frames if ident == 0x702]
     assert beats and beats[-1] == "04"
 
 

@@ -52,6 +52,10 @@ class BootLink(Protocol):
     @property
     def global_start(self) -> bool: ...
 
+    @property
+    def nodes_stopped(self) -> bool:
+        """Auto-clear or HOST_NOT_READY stopped the network: a boot-up starts no node."""
+
     def wait_for(self, event: threading.Event, timeout: float) -> bool: ...
 
     def send_nmt(self, command: int, node: int) -> None: ...
@@ -175,7 +179,7 @@ class BootSequence:
             for entry in params.atSdoCfgData:
                 sdo.download(entry.usIndex, entry.bSubindex,
                              bytes(entry.abSdoValue[: entry.bLength]))
-        if not skip & ConfigNdState.START and not link.global_start:
+        if not skip & ConfigNdState.START and not link.global_start and not link.nodes_stopped:
             link.send_nmt(NMT_START, self.address)
 
     def _identify(self, sdo: SdoClient, deadline: float) -> None:

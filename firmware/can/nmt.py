@@ -91,6 +91,12 @@ class NmtMaster:
         self.halted = not self._card.plc.image.driving
         self._card.set_global_bit(GlobalBits.ACLR, False)
 
+    @property
+    def nodes_stopped(self) -> bool:
+        """Auto-clear or HOST_NOT_READY hold every node in STOPPED (seed 4.3, 39); the
+        watchdog's halt (220) leaves them running."""
+        return self.cleared or (self.halted and self._card.rcs.host_not_ready)
+
     def nmt(self, command: int, node: int) -> None:
         self._send(0x000, bytes([command, node]))
 
@@ -107,11 +113,12 @@ class NmtMaster:
 
     def node_booted(self, handler: NodeHandler) -> None:
         self._booting.discard(handler.address)
-        if self.cleared or (self.halted and self._card.rcs.host_not_ready):
+        if self.nodes_stopped:
             # Auto-clear or HOST_NOT_READY came first: they stop this node too (seed 4.3,
-            # 39 "node in stop"). Their broadcast Stop went out before its boot-up ended with
-            # Start_Node, so it gets a Stop of its own: the field device must not run while
-            # the card reports it stopped.
+            # 39 "node in stop"). Their broadcast Stop went out before its boot-up ended;
+            # the boot-up sends no Start_Node then (``BootLink.nodes_stopped``), but one
+            # that came just before them did: it gets a Stop of its own, so the field device
+            # does not run while the card reports it stopped.
             self.nmt(NMT_STOP, handler.address)
             self._stop_node(handler)
             self.update_nexc()
