@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: test demo bench lint clean test-vcan bench-vcan test-soak
+.PHONY: test test-fast demo bench lint clean test-vcan bench-vcan test-soak
 
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PY) -m venv $(VENV)
@@ -12,10 +12,22 @@ $(STAMP): pyproject.toml
 	$(BIN)/python -m pip install --quiet -e '.[dev]'
 	touch $(STAMP)
 
+# The whole suite but the virtual machines' tests (make test-vcan): pytest-xdist spreads it
+# over TEST_WORKERS processes, then the tests that measure time (marker serial) run alone.
+# docs/testing.md says which test runs where.
+TEST_WORKERS ?= 2
+
 test: $(STAMP) build-libcif build-legacy
 	$(BIN)/ruff check .
 	$(BIN)/mypy
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q -n $(TEST_WORKERS) --dist worksteal --durations=10 \
+		-m 'not vcan_vm and not serial'
+	$(BIN)/python -m pytest -q -m 'serial and not vcan_vm'
+
+# The codec, parser and source tests (marker fast): no process, no socket served, no image
+# mapped; under a minute.
+test-fast: $(STAMP)
+	$(BIN)/python -m pytest -q -m fast
 
 demo: $(STAMP)
 	$(BIN)/cifemu demo
@@ -34,9 +46,11 @@ VCAN_TIMEOUT ?= 1200
 test-soak: $(STAMP)
 	CIFEMU_SOAK_MINUTES=1 $(BIN)/python -m pytest -q tests/test_soak.py
 
+# Then tools/vcan-vm's own tests on this host (marker vcan_vm: qemu without KVM, 2 minutes).
 test-vcan: $(STAMP)
 	$(VCAN_VM) --timeout $(VCAN_TIMEOUT) -- env CIFEMU_REQUIRE_SOCKETCAN=1 \
 		$(BIN)/python -m pytest -q -m vcan
+	$(BIN)/python -m pytest -q -m vcan_vm
 
 # The SocketCAN figures (bench.vcan: vcan0, the broadcast manager, the card on them, and
 # the CAN benchmark's phases with their nodes on vcan0), one JSON document on stdout. The
@@ -58,13 +72,15 @@ build-libcif:
 	$(MAKE) -C libcif all sanitize
 
 # libcifdev.so (cifemu legacy) for x86-64 and i386. The i386 build needs gcc-multilib and
-# libc6-i386: installed here when missing and this runs as root with apt-get (CI);
-# otherwise libcif/build/i386/MISSING says in one line what to install, and its tests skip.
+# libc6-i386: when they are missing and this runs as root with apt-get (CI), it installs
+# them, saying so first; CIFEMU_NO_APT=1 installs nothing. Without them
+# libcif/build/i386/MISSING says in one line what to install, and the i386 tests skip.
 .PHONY: build-legacy
 build-legacy:
-	@if ! printf 'int main(void){return 0;}\n' | $(CC) -m32 -x c - -o /tmp/.cifemu-m32-probe 2>/dev/null \
+	@if [ -z "$(CIFEMU_NO_APT)" ] \
+	    && ! printf 'int main(void){return 0;}\n' | $(CC) -m32 -x c - -o /tmp/.cifemu-m32-probe 2>/dev/null \
 	    && [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null; then \
-	  echo 'installing gcc-multilib libc6-i386 for the i386 build of libcifdev.so'; \
+	  echo 'make: apt-get install gcc-multilib libc6-i386, for the i386 build of libcifdev.so (32-bit legacy binaries); make ... CIFEMU_NO_APT=1 installs nothing and skips the i386 tests'; \
 	  (apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq \
 	    gcc-multilib libc6-i386) >/dev/null || true; \
 	fi; rm -f /tmp/.cifemu-m32-probe

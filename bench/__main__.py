@@ -1,17 +1,21 @@
 """``python -m bench [NAME ...]``: run benchmarks, print one JSON list of their results.
 
 Without a name every benchmark runs, in the order below. ``--count`` and
-``--warmup`` override each benchmark's own defaults.
+``--warmup`` override each benchmark's own defaults. ``--load`` runs them beside
+two busy processes (``bench.load``; ``--busy N`` for another number), and each
+result then says so under ``"load"``.
 """
 
 from __future__ import annotations
 
 import argparse
 from collections.abc import Callable
+from contextlib import nullcontext
 from typing import Any
 
-from bench import can, cia309, dbm, exchange_io, lss, mailbox, soak
+from bench import can, cia309, dbm, exchange_io, hops, idle, lss, mailbox, soak
 from bench.common import add_size_arguments, emit, help_text, progress
+from bench.load import DEFAULT_BUSY, busy_load, describe
 
 Runner = Callable[[int | None, int | None], dict[str, Any]]
 
@@ -22,6 +26,8 @@ BENCHMARKS: dict[str, Runner] = {
     can.NAME: can.run,
     cia309.NAME: cia309.run,
     lss.NAME: lss.run,
+    idle.NAME: idle.run,
+    hops.NAME: hops.run,
 }
 
 
@@ -32,15 +38,22 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("names", nargs="*", metavar="NAME",
                         help=f"benchmarks to run: {', '.join(BENCHMARKS)} (default: all)")
     add_size_arguments(parser, "default: each benchmark's own", "default: each benchmark's own")
+    parser.add_argument("--load", action="store_true",
+                        help=f"run beside {DEFAULT_BUSY} busy processes (issue 22's load)")
+    parser.add_argument("--busy", type=int, default=DEFAULT_BUSY, metavar="N",
+                        help=f"busy processes for --load (default {DEFAULT_BUSY})")
     args = parser.parse_args(argv)
     unknown = [name for name in args.names if name not in BENCHMARKS]
     if unknown:
         parser.error(f"unknown benchmark {', '.join(unknown)}; choose from {', '.join(BENCHMARKS)}")
     names = args.names or list(BENCHMARKS)
     results = []
-    for name in names:
-        progress(f"running {name}")
-        results.append(BENCHMARKS[name](args.count, args.warmup))
+    with busy_load(args.busy) if args.load else nullcontext([]) as busy:
+        for name in names:
+            progress(f"running {name}")
+            result = BENCHMARKS[name](args.count, args.warmup)
+            result["load"] = describe(busy) if args.load else None
+            results.append(result)
     emit(results)
     return 0
 

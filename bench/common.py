@@ -107,8 +107,10 @@ def stop_process(proc: subprocess.Popen[bytes]) -> None:
 
 
 @contextmanager
-def running_card(board: int = 0, *, startup_timeout: float = STARTUP_TIMEOUT) -> Iterator[Card]:
-    """A firmware subprocess serving ``board`` in a temporary directory, READY on entry.
+def running_card(board: int = 0, *, startup_timeout: float = STARTUP_TIMEOUT,
+                 record: bool = False) -> Iterator[Card]:
+    """A firmware subprocess serving ``board`` in a temporary directory, READY on entry;
+    ``record``: recording a session there (``--record``), to measure what that costs.
 
     The firmware's stdout is discarded (it must not mix with the JSON); its stderr
     (log lines at WARNING and above) goes to ours. On exit it gets SIGTERM, and is
@@ -116,9 +118,11 @@ def running_card(board: int = 0, *, startup_timeout: float = STARTUP_TIMEOUT) ->
     """
     with tempfile.TemporaryDirectory(prefix="cifemu-bench-", dir=scratch_root()) as tmp:
         directory = Path(tmp)
-        command = [sys.executable, "-m", "firmware", "--board", str(board),
+        command = [sys.executable, "-m", "cifemu", "firmware", "--board", str(board),
                    "--dpm-dir", tmp, "--flash", str(directory / "flash"),
                    "--log-level", "WARNING"]
+        if record:
+            command += ["--record", str(directory / "session")]
         proc = subprocess.Popen(command, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL)
         try:
             card = Card(directory, board, proc.pid)
@@ -145,6 +149,17 @@ def host_session(card: Card) -> Iterator[int]:
             DevExitBoard(card.board)
     finally:
         DevCloseDriver()
+
+
+def recording_cost(plain: dict[str, Any], recording: dict[str, Any],
+                   rate_name: str) -> dict[str, Any]:
+    """What recording a session costs, in percent of the plain card's figures (issue 25
+    allows 10 %): the p50 latency's rise and the rate's fall."""
+    p50, rate = plain["latency_us"]["p50"], plain[rate_name]
+    return {"cost_pct": {
+        "p50": round(100.0 * (recording["latency_us"]["p50"] - p50) / p50, 1) if p50 else None,
+        rate_name: round(100.0 * (rate - recording[rate_name]) / rate, 1) if rate else None,
+    }}
 
 
 # --- timing and statistics ------------------------------------------------------------------

@@ -92,8 +92,8 @@ def simulated_card(description: str) -> Iterator[Board]:
     with tempfile.TemporaryDirectory(prefix="cifemu-bench-lss-", dir=scratch_root()) as tmp:
         toml = Path(tmp) / "network.toml"
         toml.write_text(description)
-        command = [sys.executable, "-m", "firmware", "--board", str(BOARD), "--dpm-dir", tmp,
-                   "--log-level", "WARNING", "--simulate", str(toml),
+        command = [sys.executable, "-m", "cifemu", "firmware", "--board", str(BOARD),
+                   "--dpm-dir", tmp, "--log-level", "WARNING", "--simulate", str(toml),
                    "--flash", str(Path(tmp) / "flash")]
         proc = subprocess.Popen(command, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL)
         try:

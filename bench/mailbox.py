@@ -22,6 +22,7 @@ from bench.common import (
     pipe_echo,
     progress,
     ratio,
+    recording_cost,
     running_card,
     sized_main,
     source_fingerprint,
@@ -63,8 +64,8 @@ def _drain(board: int) -> None:
         pass
 
 
-def measure_card(count: int, warmup: int) -> Measured:
-    with running_card() as card, host_session(card) as board:
+def measure_card(count: int, warmup: int, record: bool = False) -> Measured:
+    with running_card(record=record) as card, host_session(card) as board:
         requests = _requests()
         sequence = 0
 
@@ -84,7 +85,8 @@ def measure_card(count: int, warmup: int) -> Measured:
                 return BAD_ANSWER
             return 0
 
-        progress(f"mailbox: {warmup} warm-up + 2 x {count} round trips")
+        progress(f"mailbox{' (recording)' if record else ''}: {warmup} warm-up + 2 x {count} "
+                 "round trips")
         return measure(round_trip, count, warmup, frozenset({0}))
 
 
@@ -121,6 +123,7 @@ def run(count: int | None = None, warmup: int | None = None) -> dict[str, Any]:
     source = source_fingerprint()
     pipe = measure_pipe(count, warmup)
     card = measure_card(count, warmup)
+    recording = measure_card(count, warmup, record=True).summary("round_trips_per_s")
     card_result = card.summary("round_trips_per_s")
     pipe_result = pipe.summary("round_trips_per_s")
     p50 = card_result["latency_us"]["p50"]
@@ -144,6 +147,9 @@ def run(count: int | None = None, warmup: int | None = None) -> dict[str, Any]:
             "round_trips_per_s": rate >= TARGET_ROUND_TRIPS_PER_S,
         },
         "cif_mailbox": card_result,
+        "recording": {"name": "the same card recording a session (cifemu firmware --record)",
+                      **recording, **recording_cost(card_result, recording,
+                                                    "round_trips_per_s")},
         "baseline": {"name": "multiprocessing.Pipe send_bytes/recv_bytes ping-pong", **pipe_result},
         "ratio_to_baseline": {
             "definition": "cif_mailbox / baseline",

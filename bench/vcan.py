@@ -200,7 +200,7 @@ def card_sync_run(period_ms: int) -> dict[str, Any]:
         directory = Path(tmp)
         toml = directory / "network.toml"
         toml.write_text(text)
-        sim = subprocess.Popen([sys.executable, "-m", "firmware.sim", str(toml), "--interface",
+        sim = subprocess.Popen([sys.executable, "-m", "cifemu", "sim", str(toml), "--interface",
                                 "socketcan", "--channel", CHANNEL, "--log-level", "WARNING"],
                                stdin=subprocess.DEVNULL, stdout=subprocess.PIPE)
         assert sim.stdout is not None
@@ -211,9 +211,9 @@ def card_sync_run(period_ms: int) -> dict[str, Any]:
         stderr_path = directory / "firmware.stderr"
         with stderr_path.open("wb") as stderr:
             proc = subprocess.Popen(
-                [sys.executable, "-m", "firmware", "--board", str(BOARD), "--dpm-dir", tmp,
-                 "--log-level", "WARNING", "--interface", "socketcan", "--channel", CHANNEL,
-                 "--flash", str(directory / "flash")],
+                [sys.executable, "-m", "cifemu", "firmware", "--board", str(BOARD),
+                 "--dpm-dir", tmp, "--log-level", "WARNING", "--interface", "socketcan",
+                 "--channel", CHANNEL, "--flash", str(directory / "flash")],
                 stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=stderr)
         card = SimCard(directory, proc, None, stderr_path, sim=sim)
         receiver = bus()

@@ -1,8 +1,9 @@
 """cifemu: one command for the emulated CIF CANopen master card.
 
 Every command is one row of ``COMMANDS``: its name, the module that implements it and a
-one-line summary. A command's module gives ``add_arguments(parser)`` and ``run(args)``;
-its ``DESCRIPTION``, else its docstring, is the command's ``--help`` text. Only the
+one-line summary. A command's module is ``cifemu.commands.<name>`` and gives
+``add_arguments(parser)`` and ``run(args)``; its ``DESCRIPTION``, else its docstring, is
+the command's ``--help`` text. Only the
 chosen command's module is imported: ``cifemu status`` does not pay for the DBM builder,
 canopen or Textual, and ``cifemu --help`` imports none of them.
 """
@@ -29,20 +30,24 @@ class Command:
 
 
 COMMANDS = (
-    Command("firmware", "firmware.cli", "run one emulated card in the foreground"),
-    Command("sim", "firmware.sim.cli", "run a network description's simulated nodes on a bus"),
-    Command("status", "host_api.status", "show a card's flags, info areas and Task2State"),
-    Command("configure", "host_api.configure_cli",
+    Command("firmware", "cifemu.commands.firmware", "run one emulated card in the foreground"),
+    Command("sim", "cifemu.commands.sim", "run a network description's simulated nodes on a bus"),
+    Command("status", "cifemu.commands.status", "show a card's flags, info areas and Task2State"),
+    Command("configure", "cifemu.commands.configure",
             "configure a running card on line from a network description"),
-    Command("dbm", "host_api.dbm_commands",
+    Command("dbm", "cifemu.commands.dbm",
             "DBM files (show, check, build, diff) and a card's flash (download, upload, ...)"),
-    Command("monitor", "host_api.monitor.cli", "the CAN traffic with its CANopen meaning, live"),
-    Command("top", "host_api.top.cli", "a live view of one card: nodes, process image, bus"),
-    Command("309", "host_api.cia309.cli", "the CiA 309-3 ASCII gateway (serve, exec, shell)"),
-    Command("libcif", "cifemu.libcif", "compiler and linker flags for C programs (libcif)"),
-    Command("legacy", "host_api.legacy",
+    Command("monitor", "cifemu.commands.monitor", "the CAN traffic with its CANopen meaning, live"),
+    Command("top", "cifemu.commands.top", "a live view of one card: nodes, process image, bus"),
+    Command("309", "cifemu.commands.cia309", "the CiA 309-3 ASCII gateway (serve, exec, shell)"),
+    Command("libcif", "cifemu.commands.libcif",
+            "compiler and linker flags for C programs (libcif)"),
+    Command("legacy", "cifemu.commands.legacy",
             "run an unchanged legacy binary against the card (/dev/cif preloaded)"),
-    Command("demo", "cifemu.demo", "a card, a simulated network, its live view (Ctrl-C ends)"),
+    Command("replay", "cifemu.commands.replay",
+            "replay a recorded session against a card and show what differs (or --diff A B)"),
+    Command("demo", "cifemu.commands.demo",
+            "a card, a simulated network, its live view (Ctrl-C ends)"),
 )
 """The commands, in the order ``cifemu --help`` lists them."""
 
@@ -71,7 +76,7 @@ def main(argv: list[str] | None = None) -> int:
     # the command is the first word: ``cifemu`` itself takes no option but --help
     chosen = words[0] if words and words[0] in {c.name for c in COMMANDS} else ""
     args = build_parser(chosen).parse_args(words)
-    from host_api.cli_output import run_guarded  # after parsing: --help imports nothing
+    from cifemu.cli_output import run_guarded  # after parsing: --help imports nothing
 
     result: int = run_guarded(args.func, args)
     return result

@@ -1,20 +1,16 @@
-"""cifemu libcif: compiler and linker flags for C programs, and libcif loaded into Python.
+"""libcif for C programs and for Python: its build, its flags, the library loaded.
 
-  cifemu libcif --cflags --libs     flags that compile a legacy program against libcif:
-                                    cc app.c $(cifemu libcif --cflags --libs)
-
-The library is built from libcif/ of this clone (make -C libcif) when it is
-missing. load() gives the shared library to Python (ctypes) with every Dev*
-function's argument and return types set: the tests run the driver behaviour tests
-through it, and the benchmarks measure it beside the Python host.
+``cifemu libcif`` (``cifemu.commands.libcif``) prints the flags. The library is built
+from libcif/ of this clone (make -C libcif) when it is missing. load() gives the shared
+library to Python (ctypes) with every Dev* function's argument and return types set: the
+tests run the driver behaviour tests through it, and the benchmarks measure it beside the
+Python host.
 """
 
 from __future__ import annotations
 
-import argparse
 import ctypes
 import subprocess
-import sys
 from pathlib import Path
 
 SOURCE = Path(__file__).resolve().parents[1] / "libcif"
@@ -99,18 +95,3 @@ def load() -> ctypes.CDLL:
         function.restype = ctypes.c_short
     return lib
 
-
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--cflags", action="store_true", help="print the compiler flags")
-    parser.add_argument("--libs", action="store_true", help="print the linker flags")
-
-
-def run(args: argparse.Namespace) -> int:
-    try:
-        if not SHARED.exists():
-            build()
-    except LibcifError as exc:
-        print(f"cifemu libcif: {exc}", file=sys.stderr)
-        return 1
-    print(flags(args.cflags, args.libs) if args.cflags or args.libs else SHARED)
-    return 0

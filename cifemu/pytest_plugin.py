@@ -3,8 +3,9 @@
 Installed with the package (the ``pytest11`` entry point ``cifemu``), so a suite that has
 cifemu installed gets, without a conftest:
 
-- the fixture ``cif_card``: a firmware process of its own, on an image directory in the
-  test's ``tmp_path`` (tests never share a card, also under pytest-xdist), with the
+- the fixture ``cif_card``: a firmware process of its own, on an image directory of its
+  own (a short temporary directory, since the card's sockets live there; its log and
+  flash are in the test's ``tmp_path``: tests never share a card, also under xdist), with the
   simulated network of the test's ``cif_network`` marker, which the card configures
   itself from on line (``--simulate --configure``) unless the marker leaves that to the
   program under test. ``$CIF_DPM_DIR`` points at that directory for the test,
@@ -27,9 +28,11 @@ import json
 import math
 import os
 import re
+import shutil
 import signal
 import subprocess
 import sys
+import tempfile
 import time
 from collections.abc import Generator, Iterator, Mapping
 from dataclasses import dataclass, field
@@ -127,7 +130,7 @@ class CifCard:
         if self.running:
             raise CardError(f"board {self.board} runs already (pid {self.pid})")
         self.directory.mkdir(parents=True, exist_ok=True)
-        command = [sys.executable, "-m", "firmware", "--board", str(self.board),
+        command = [sys.executable, "-m", "cifemu", "firmware", "--board", str(self.board),
                    "--dpm-dir", str(self.directory), "--flash", str(self.flash),
                    "--log-level", "INFO"]
         if self.network is not None:
@@ -349,7 +352,11 @@ def cif_card(request: pytest.FixtureRequest, tmp_path: Path,
     home = tmp_path / "cifemu"
     home.mkdir()
     marked = _marked(request.node, home)
-    card = CifCard(marked.board, home / "dpm", home / "flash", home / "firmware.log",
+    # The image directory holds the card's sockets, whose paths may not pass 107 bytes: a
+    # short directory of its own, not one under pytest's deep tmp_path.
+    images = Path(tempfile.mkdtemp(prefix="cifemu-"))
+    request.addfinalizer(lambda: shutil.rmtree(images, ignore_errors=True))
+    card = CifCard(marked.board, images, home / "flash", home / "firmware.log",
                    marked.network, marked.configure)
     monkeypatch.setenv("CIF_DPM_DIR", str(card.directory))
     try:

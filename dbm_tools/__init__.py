@@ -7,7 +7,7 @@
 - tables: the other CANopen table records (GLOBAL, PLC_PARAM, PROJEKT, DESCRIPT, NODES);
 - validate: the COM_Download data checks and the whole-database check;
 - network, eds, builder: the network description, EDS files and the DBM builder;
-- cli: the file commands of ``cifemu dbm`` (the card commands are host_api's).
+- cli: the file commands of ``cifemu dbm`` (the card commands are ``cifemu.commands.dbm``'s).
 
 Nothing here talks to a card: the package never imports host_api or firmware.
 """

@@ -93,6 +93,7 @@ from dbm_tools.tables import (
 )
 from dbm_tools.validate import PROCESS_IMAGE_SIZE, check_dbm
 from dpm.cia305 import UNCONFIGURED
+from dpm.com import acceptance_long
 
 HEARTBEAT_PRODUCER = 0x1017
 DESCRIPT_INPUT = 0x10
@@ -325,8 +326,8 @@ def build_dbm(
         DbmTable(DESCRIPT, [_descript(node, bus.master_node_id).encode() for node in nodes]),
         DbmTable(BUS_CAN_EXT, [ExtendedBusParameterSet(
             bExtendedState=int(state),
-            ulAcceptCode=bus.accept_code,
-            ulAcceptMask=bus.accept_mask,
+            ulAcceptCode=acceptance_long(bus.accept_code),
+            ulAcceptMask=acceptance_long(bus.accept_mask),
             bNodeID=bus.master_node_id,
             usProducerHeartbeatTime=bus.heartbeat_ms,
         ).encode()]),

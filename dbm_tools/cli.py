@@ -358,6 +358,8 @@ def build(network_path: Path, output: Path, name: str | None, console: Console) 
     nodes = dbm.table(NODES)
     console.print(f"{output}: {len(write_dbm(dbm))} bytes, "
                   f"{len(nodes.records) if nodes else 0} node(s), passes the card's checks")
+    for finding in check_dbm(dbm):  # build_dbm refused errors; warnings are the user's call
+        console.print(f"[yellow]warning[/]: {finding.detail}", highlight=False)
     return 0
 
 

@@ -1,87 +1,27 @@
 """The network description: one TOML file for the DBM builder and the simulator.
 
-A file describes the bus and its nodes (ARCHITECTURE.md, "The network
-description"). ``cifemu dbm build`` turns it into a DBM; ``--simulate`` turns
-the same file into live simulated nodes. Keys under ``[node.sim]`` are for
-the simulator only; the builder ignores them. The smallest useful file is a
-list of node-IDs, which gives generic CiA 401-style I/O modules::
+A file describes the bus and its nodes (docs/network-toml.md). ``cifemu dbm build``
+turns it into a DBM; ``--simulate`` turns the same file into live simulated nodes. Keys
+under ``[node.sim]`` are for the simulator only; the builder ignores them. The smallest
+useful file is a list of node-IDs, which gives generic CiA 401-style I/O modules::
 
     [[node]]
     id = 1
     [[node]]
     id = 2
 
-The whole schema, with defaults::
-
-    [bus]
-    bitrate = 500000            # bit/s, one of the card's nine rates
-    sync_cob_id = 0x80
-    sync_period_ms = 0          # SYNC_Timer, 0 = no SYNC
-    auto_clear = false
-    byte_order = "intel"        # or "motorola": word-oriented PDO data
-    master_node_id = 0          # bNodeID of the extended bus parameters, 0 = none
-    heartbeat_ms = 0            # the master's own heartbeat producer time
-    global_start = false        # send one global NMT start after all nodes booted
-    accept_code = 0             # 29-bit acceptance code / mask
-    accept_mask = 0
-    extended_ids = false        # 29-bit receive filter on (bi11Bit29BitSelector)
-    # Card start-up, stored in the DBM only (GLOBAL and PLC_PARAM):
-    wait_for_host = false       # bSystemStart: the bus starts when the host clears NOTREADY
-    host_watchdog_ms = 1000     # usHostWatchdogValue (SyCon's default), 0 = no supervision
-    handshake = "buffered-host-controlled"  # PLC_PARAM bMode: or "buffered-device-controlled",
-                                            # "uncontrolled"
-
-    [[node]]
-    id = 5                      # 1..127; 255 = an unconfigured LSS slave (needs lss)
-    eds = "io.eds"              # EDS or DCF, relative to this file; none = generic I/O module
-    name = "valve block"
-    active = true
-    error_control = "heartbeat" # "heartbeat", "guarding" or "none"
-    heartbeat_ms = 1000         # consumer time (heartbeat); node's producer time = 1/2 of it
-    guard_time_ms = 0           # guarding: guard time; life_time_factor multiplies it
-    life_time_factor = 3
-    emcy_cob_id = 0x85          # default 0x80 + id
-    guard_cob_id = 0x705        # default 0x700 + id
-    device_type = 0x000F0191    # expected object 1000h; default from the EDS or the generic
-    boot = ["reset", "device", "guard", "sync", "emcy", "sdo", "start", "pdo"]  # steps run
-    lss = { vendor = 0x1234, product = 1, revision = 1, serial = 42 }
-    [[node.sdo]]                # written at boot-up (the SDO list)
-    index = 0x6200
-    subindex = 1
-    value = 0x10
-    size = 1                    # 1..4 bytes
-    [[node.pdo]]                # the PDOs the master maps; none given: from the EDS mapping
-    direction = "output"        # "output" = master -> node (the node's RPDO), "input" = TPDO
-    cob_id = 0x205
-    length = 8
-    transmission = 255
-    inhibit = 0
-    word = false                # MSK_WORD_PDO
-    offset = 16                 # process-image byte offset; omitted: assigned automatically
-    [node.sim]                  # simulation only (faults)
-    silent = false
-    device_type = 0x000F0192    # what the simulated node reports instead
-    sdo_abort = { "6200:1" = 0x06090011 }
-    heartbeat_stop_after_s = 5.0
-    guarding_fail_after_s = 5.0
-    guard_toggle_stuck = false  # true: guarding answers never alternate the toggle bit
-    sdo_response = "unknown"    # every SDO response broken: command byte 0xE0, or "short":
-                                # cut to its first 4 bytes; omitted: correct responses
-    emcy_burst = { after_s = 1.0, count = 5, code = 0x1000, interval_s = 0.01 }
-    boot_delay_s = 0.5
-    no_bootup = false           # sends no boot-up message (a CiA 301 node before 4.0)
-    leave_operational_after_s = 3.0
-    bus_errors = { after_s = 1.0, count = 3, kind = "warning" }  # or "bus_off", "ack",
-                                # "rx_overflow", "protocol"
+The whole schema, with defaults, is docs/network-toml.md.
 """
 
 from __future__ import annotations
 
+import re
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from dbm_tools.container import FILE_MAGIC
 from dbm_tools.errors import DbmError
 from dpm.cia305 import UNCONFIGURED, LssAddress
 
@@ -448,14 +388,47 @@ def parse_network(text: str, base: Path = Path(".")) -> Network:
     return Network(bus, nodes)
 
 
+UTF16_BOMS = (b"\xff\xfe", b"\xfe\xff")
+"""A UTF-16 (or UTF-32) file starts with one of these: what Windows editors save as "Unicode"."""
+UTF8_BOM = b"\xef\xbb\xbf"
+EDS_SECTION = re.compile(rb"^\[(FileInfo|DeviceInfo|DeviceComissioning)\]", re.M | re.I)
+"""Sections only an EDS or DCF file (CiA 306) has; one near the start names the file's kind."""
+
+
+def decode_description(data: bytes, path: Path) -> str:
+    """The text of a network description: TOML is UTF-8. A file of another kind -- the
+    SyCon DBM or EDS a SyCon user mixes up with it most easily, or UTF-16 text -- is
+    named as such, with the command that takes it, instead of a decoding traceback or a
+    TOML error about its first odd byte [ours]."""
+    name = path.name
+    if data.startswith(FILE_MAGIC):
+        raise NetworkError(
+            f"{name} is a SyCon DBM database, not a network description: use "
+            f"`cifemu dbm download {path}` for the card's flash, or `cifemu dbm show {path}`")
+    if EDS_SECTION.search(data[:4096]):
+        raise NetworkError(
+            f"{name} is an EDS/DCF device description, not a network description: name it "
+            f"in a node's eds key (eds = \"{name}\")")
+    if data.startswith(UTF16_BOMS):
+        raise NetworkError(
+            f"{name} is UTF-16 text; a network description is TOML, which is UTF-8: save it "
+            "as UTF-8")
+    try:
+        return data.removeprefix(UTF8_BOM).decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise NetworkError(
+            f"{name} is not a network description: byte {exc.start} (0x{data[exc.start]:02x}) "
+            "is not UTF-8 text; a network description is a TOML text file") from None
+
+
 def load_network(path: str | Path) -> Network:
     """Read and parse a network description file; NetworkError when it cannot be read or
     used."""
     path = Path(path)
     try:
-        text = path.read_text()
+        data = path.read_bytes()
     except OSError as exc:
         raise NetworkError(f"cannot read {path}: {exc.strerror}") from None
-    network = parse_network(text, path.parent)
+    network = parse_network(decode_description(data, path), path.parent)
     network.path = path
     return network

@@ -9,16 +9,20 @@ behind them; those chosen here:
   usNodeParaLen above it 62;
 - node addresses 1..127 (seed 6.3.2), the master's own bNodeID 0..126
   (seed 5.2.5.3.1, 0 = none); otherwise 55;
-- COB-IDs 1..2047, the 11-bit identifiers. The seed writes "1-2048" in its
-  message tables and "0 to 2047" in prose; 0 is NMT and 2048 does not fit 11
-  bits. EMCY 73, ND_GUARD 74, SYNC 66, a PDO 55 (no number of its own);
+- COB-IDs 1..2047 everywhere [ours]: the values both of the seed's statements
+  allow. Its message tables say "1-2048" (EMCY, ND_GUARD, SYNC), its prose "0
+  to 2047" (usCobIDEmcy, usCobIDGuard) and "1 to 2048" (SYNC); 0 is NMT, which
+  no node may send on, and 2048 does not fit 11 bits. EMCY 73, ND_GUARD 74,
+  SYNC 66, a PDO 55 (no number of its own);
 - PDO length (bLength & 0x7F) 1..8: 75; transmission types of CiA 301,
   0..240 and 252..255: 63;
 - SDO bLength 1..4 (the 4-byte value field): above is 76, 0 is 55;
 - process image 3584 bytes each way: input offset + length above is 68,
   output 69;
-- SYNC_Timer is any u16, so 67 means: 0 (no SYNC sent) while an active node
-  has a synchronous PDO (transmission type 0..240);
+- SYNC_Timer is any u16, so 67 never comes: 0 is valid with synchronous PDOs
+  too. Revision 16 of the seed ("SYNC timer can be configured to value 0
+  also") and 5.2.5.4.1 ("A value of 0 disables the timer"): the SYNC then
+  comes from another station;
 - 60: two NODES records for one address, or a node on the master's bNodeID;
 - Auto_Clear and Intel_Motorola 0/1, bExtendedState bits 0..1 only: 55.
 
@@ -29,7 +33,6 @@ decoder in dbm_tools.parameters, so the firmware and this module agree.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from contextlib import suppress
 from dataclasses import dataclass, replace
 from typing import Literal
 
@@ -62,6 +65,7 @@ from dbm_tools.tables import (
     ProjektRecord,
     checksum_crc,
 )
+from dpm.cia301 import SYNC_TYPES_MAX
 from dpm.commands import DOWNLOAD_AREA_SIZE
 from dpm.errors import CanF, DeviceEvent, RcsF
 from dpm.layout import IO_AREA_SIZE
@@ -73,7 +77,6 @@ MASTER_NODE_IDS = range(127)
 COB_IDS = range(1, 2048)
 PDO_LENGTHS = range(1, 9)
 SDO_LENGTH_MAX = 4
-SYNCHRONOUS_TRANSMISSION = range(241)
 TRANSMISSION_TYPES = frozenset(range(241)) | frozenset(range(252, 256))
 
 
@@ -216,8 +219,8 @@ def check_node_parameters(data: bytes, node: int) -> list[Finding]:
     return findings + _check_node_values(node_set)
 
 
-def check_bus_parameters(data: bytes, nodes: Sequence[NodeParameterSet] = ()) -> list[Finding]:
-    """Check a bus parameter data set; `nodes` are the configured node sets, for the SYNC check."""
+def check_bus_parameters(data: bytes) -> list[Finding]:
+    """Check a bus parameter data set (it stands alone: no check looks at the nodes)."""
     findings = _size_findings(data)
     try:
         bus = BusParameterSet.decode(data)
@@ -230,20 +233,6 @@ def check_bus_parameters(data: bytes, nodes: Sequence[NodeParameterSet] = ()) ->
             Finding(
                 CanF.SYNC_COB_ID, f"COB_ID_SYNC {bus.COB_ID_SYNC} not in 1..2047",
                 field="COB_ID_SYNC"
-            )
-        )
-    synchronous = any(
-        pdo.bTransType in SYNCHRONOUS_TRANSMISSION
-        for node_set in nodes
-        if node_set.active
-        for pdo in node_set.atPdoCfgData
-    )
-    if bus.SYNC_Timer == 0 and synchronous:
-        findings.append(
-            Finding(
-                CanF.SYNC_TIMER,
-                "SYNC_Timer 0 but an active node has a synchronous PDO",
-                field="SYNC_Timer",
             )
         )
     for value, allowed, what in (
@@ -259,8 +248,9 @@ def check_bus_parameters(data: bytes, nodes: Sequence[NodeParameterSet] = ()) ->
 def check_extended_bus_parameters(data: bytes) -> list[Finding]:
     """Check an extended bus parameter data set.
 
-    ulAcceptCode/ulAcceptMask are not checked: the seed's stated range
-    0-0xF8FFFFFF matches no 29-bit rule, and only their low 29 bits are used.
+    ulAcceptCode/ulAcceptMask are not checked [ours]: revision 17's range 0-0xF8FFFFFF
+    is the SJA1000 register layout (``dpm.com.acceptance_identifier_bits``), whose three
+    bits outside it (RTR, unused) the filter ignores, so a value there harms nothing.
     """
     findings = _size_findings(data)
     try:
@@ -369,25 +359,38 @@ def _check_global(dbm: DbmFile) -> list[Finding]:
     return findings
 
 
-def _check_nodes(
-    table: DbmTable | None, master_node_id: int
-) -> tuple[list[Finding], list[NodeParameterSet]]:
+def _check_nodes(table: DbmTable | None, master_node_id: int) -> list[Finding]:
     if table is None:
-        return [], []
+        return []
     if table.key_length != NODES_KEY_LENGTH or not all(table.records):
         return [
             Finding(DeviceEvent.FAULTY_DATABASE, "NODES must be keyed on its 1-byte address",
                     table=NODES)
-        ], []
+        ]
     findings = []
-    node_sets = []
     for record, data in enumerate(table.records, start=1):
         findings += _in_table(check_node_parameters(data[1:], data[0]), NODES, record)
-        with suppress(DbmError):  # already reported by check_node_parameters
-            node_sets.append(NodeParameterSet.decode(data[1:]))
     addresses = [data[0] for data in table.records]
     findings += _in_table(check_node_addresses(addresses, master_node_id), NODES)
-    return findings, node_sets
+    return findings
+
+
+def _sync_without_synchronous_pdo(bus_data: bytes, nodes: DbmTable | None) -> list[Finding]:
+    """[ours] a warning: SYNC_Timer set while no active node has a synchronous PDO. The card
+    accepts it and then sends no SYNC at all (seed 4.2: "activated only if at least one node
+    uses SYNC controlled transmission types"); a tool user expecting SYNC frames hears why."""
+    try:
+        bus = BusParameterSet.decode(bus_data)
+        node_sets = [NodeParameterSet.decode(data[1:]) for data in (nodes.records if nodes else [])]
+    except DbmError:
+        return []  # the data checks report it
+    synchronous = any(pdo.bTransType <= SYNC_TYPES_MAX for node_set in node_sets
+                      if node_set.active for pdo in node_set.atPdoCfgData)
+    if bus.SYNC_Timer == 0 or synchronous or not node_sets:
+        return []
+    return [Finding(CanF.NO_ERROR, f"SYNC_Timer {bus.SYNC_Timer} ms, but no active node has a "
+                    "synchronous PDO (transmission type 0..240): the card sends no SYNC",
+                    field="SYNC_Timer", severity="warning")]
 
 
 def check_dbm(dbm: DbmFile) -> list[Finding]:
@@ -408,12 +411,12 @@ def check_dbm(dbm: DbmFile) -> list[Finding]:
         findings += _in_table(ext_findings, BUS_CAN_EXT, 1)
         if not ext_findings:
             master_node_id = ExtendedBusParameterSet.decode(ext).bNodeID
-    node_findings, node_sets = _check_nodes(dbm.table(NODES), master_node_id)
-    findings += node_findings
+    findings += _check_nodes(dbm.table(NODES), master_node_id)
     bus, found = _single_record(dbm, BUS_CAN, required=True)
     findings += found
     if bus is not None:
-        findings += _in_table(check_bus_parameters(bus, node_sets), BUS_CAN, 1)
+        findings += _in_table(check_bus_parameters(bus), BUS_CAN, 1)
+        findings += _in_table(_sync_without_synchronous_pdo(bus, dbm.table(NODES)), BUS_CAN, 1)
     plc, found = _single_record(dbm, PLC_PARAM, required=False)
     findings += found
     if plc is not None:

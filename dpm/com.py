@@ -294,6 +294,50 @@ def decode_transparent(data: bytes) -> CanFrame:
     raise MessageError(f"a transparent CAN message has 10, 11 or 13 data bytes, not {len(data)}")
 
 
+# --- the 29-bit acceptance filter (seed 5.2.5.3, 5.2.11.1, revision 17) -----------------------
+
+ACCEPT_RANGE_MAX = 0xF8FFFFFF
+"""Seed 5.2.5.3.1 (revision 17): ulAcceptCode and ulAcceptMask are 0..0xF8FFFFFF."""
+ACCEPT_ALL_MASK = ACCEPT_RANGE_MAX
+"""The mask every bit of which is "don't care": every 29-bit frame passes."""
+_ACCEPT_ID_SHIFT = 3
+"""ID.4..0 sit in bits 7..3 of the fourth register byte (bit 2 RTR, bits 1..0 unused)."""
+_EXTENDED_ID = 0x1FFFFFFF
+
+
+def acceptance_identifier_bits(value: int) -> int:
+    """The 29 identifier bits of a ulAcceptCode or ulAcceptMask long.
+
+    The long holds the SJA1000's four acceptance registers in their order, ACR0..ACR3
+    (AMR0..AMR3), read as an Intel long: byte 0 ID.28..21, byte 1 ID.20..13, byte 2
+    ID.12..5, byte 3 ID.4..0 in its bits 7..3 - the layout of the Rx-Identifier bytes of
+    COM_Receive_CANMsg_Transparent (5.2.11.1). Byte 3's low three bits (RTR and two unused
+    ones) are no identifier bits; revision 17's range 0xF8FFFFFF keeps them 0.
+    """
+    registers = (value & 0xFFFFFFFF).to_bytes(4, "little")
+    return int.from_bytes(registers, "big") >> _ACCEPT_ID_SHIFT
+
+
+def acceptance_long(identifier_bits: int) -> int:
+    """The ulAcceptCode / ulAcceptMask long for 29 identifier bits (the inverse)."""
+    registers = ((identifier_bits & _EXTENDED_ID) << _ACCEPT_ID_SHIFT).to_bytes(4, "big")
+    return int.from_bytes(registers, "little")
+
+
+def accepts_extended(code: int, mask: int, ident: int) -> bool:
+    """Whether the card passes a 29-bit frame to the host (seed 5.2.11.1).
+
+    The SJA1000's single-filter rule for an extended frame: every identifier bit whose
+    mask bit is 0 must equal the code's bit; a mask bit 1 is "don't care". ``code`` and
+    ``mask`` are the data set's longs (``acceptance_identifier_bits``). [ours] The RTR bit
+    is not compared: the range leaves it 0 in both, which on the chip would let no remote
+    frame through, yet the indication carries an RTR bit; a remote frame passes as a data
+    frame of its identifier does.
+    """
+    relevant = ~acceptance_identifier_bits(mask) & _EXTENDED_ID
+    return (ident ^ acceptance_identifier_bits(code)) & relevant == 0
+
+
 # --- layer 2 (seed 5.3): COM_Tx_CAN_Layer2, COM_CfgRx_Layer2, COM_Rx_CAN_Layer2 --------------
 
 LAYER2_MAX_FRAMES = 127

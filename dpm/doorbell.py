@@ -1,25 +1,40 @@
 """The event channel beside the image [ours] (docs/dpm.md section 2).
 
 A real card raises an interrupt when it writes HostFlags. Here the writer of a
-flag byte rings the other side with a one-byte datagram on a Unix socket in
-Linux's abstract namespace (no file to clean up after a crash). The device
-listens on a name derived from the image path; each host binds an automatic
-name, and the device learns it from the host's rings. A ring is only a hint:
+flag byte rings the other side with a one-byte datagram on a Unix socket. The
+device listens on ``board<N>.bell`` beside the image, a file system socket: the
+directory's permissions (docs/security.md) keep other users from ringing it or
+taking its name first, as anyone could an abstract name. Each host binds an
+automatic abstract name, and the device learns it from the host's rings. A ring is only a hint:
 both sides re-read the flags after every wake-up and also poll, so a lost ring
 (a full queue, a host that writes the image directly) costs at most one poll
-interval, never correctness.
+interval, never correctness. The device polls adaptively (``AdaptivePoll``): every
+millisecond while the flags move, backing off to ``DEVICE_POLL_IDLE`` when nothing
+happens, so an idle card sleeps instead of waking a thousand times a second.
 """
 
 from __future__ import annotations
 
-import hashlib
+import os
 import select
 import socket
 from collections import OrderedDict
 from pathlib import Path
 
+from dpm.image import CardDirectory, socket_path
+
 POLL_INTERVAL = 0.001
-"""Seconds between flag polls when no ring arrives (the 1 ms of docs/dpm.md 2)."""
+"""Seconds between a waiting host's flag polls when no ring arrives, and the device's poll
+while the flags move (the 1 ms of docs/dpm.md 2)."""
+
+DEVICE_POLL_IDLE = 0.05
+"""[ours] The device's longest poll interval, reached when the flags have not moved for a
+while: the latency a host that never rings sees for its first request after a pause
+(docs/dpm.md 2). 20 turns a second cost an idle card about 0.1-0.3 % of a core."""
+
+DEVICE_FAST_WINDOW = 0.05
+"""Seconds after the last flag change during which the device keeps polling every
+``POLL_INTERVAL``: a raw host's next step of a handshake usually follows within that."""
 
 MAX_HOSTS = 64
 """Hosts the device keeps ringing; the longest silent one is dropped first."""
@@ -29,10 +44,9 @@ _RING_WANT_ACK = b"\x02"
 """A device ring that also says: more answers wait, ring me when you acknowledge."""
 
 
-def device_address(image_path: Path) -> bytes:
-    """The abstract socket name of the device serving ``image_path``."""
-    digest = hashlib.sha1(str(Path(image_path).resolve()).encode()).hexdigest()[:20]
-    return b"\0cifemu-dpm-" + digest.encode()
+def device_address(image_path: Path) -> str:
+    """The socket of the device serving ``image_path``: ``board<N>.bell`` beside it."""
+    return os.fspath(socket_path(image_path, "bell"))
 
 
 class _Endpoint:
@@ -46,19 +60,19 @@ class _Endpoint:
     def close(self) -> None:
         self.sock.close()
 
-    def _send(self, address: bytes, payload: bytes = _RING) -> bool:
+    def _send(self, address: str | bytes, payload: bytes = _RING) -> bool:
         """Ring ``address``; False when nobody listens there any more."""
         try:
             self.sock.sendto(payload, address)
-        except (ConnectionRefusedError, FileNotFoundError):
+        except (ConnectionRefusedError, FileNotFoundError, PermissionError):
             return False
-        except (BlockingIOError, OSError):
+        except OSError:
             return True  # queue full: the peer is awake anyway, or will poll
         return True
 
-    def _drain(self) -> list[tuple[bytes, bytes]]:
+    def _drain(self) -> list[tuple[bytes, str | bytes]]:
         # Asking select is cheaper than ending the loop on a raised BlockingIOError.
-        rings: list[tuple[bytes, bytes]] = []
+        rings: list[tuple[bytes, str | bytes]] = []
         while select.select((self.sock,), (), (), 0)[0]:
             try:
                 rings.append(self.sock.recvfrom(16))
@@ -78,20 +92,57 @@ class _Endpoint:
             return True
         return False
 
-    def _on_rings(self, rings: list[tuple[bytes, bytes]]) -> None:
+    def _on_rings(self, rings: list[tuple[bytes, str | bytes]]) -> None:
         del rings
 
 
-class DeviceBell(_Endpoint):
-    """The firmware's side: rung by hosts, rings every host it has heard from."""
+class AdaptivePoll:
+    """The device's fallback poll interval: short while things happen, long when idle.
 
-    def __init__(self, image_path: Path) -> None:
+    A ring wakes the device at once whatever the interval; the poll only serves a host
+    that writes the flags without ringing. ``POLL_INTERVAL`` holds for
+    ``DEVICE_FAST_WINDOW`` after the last activity, then the interval doubles each quiet
+    turn up to ``DEVICE_POLL_IDLE``: a raw host in the middle of its exchanges keeps the
+    1 ms service, and one that starts after a pause waits at most ``DEVICE_POLL_IDLE``.
+    """
+
+    def __init__(self) -> None:
+        self.interval = POLL_INTERVAL
+        self._fast_until = 0.0
+
+    def next_interval(self, active: bool, now: float) -> float:
+        """The interval until the next poll, after a turn at ``now`` (``active``: it saw
+        a ring or a flag change)."""
+        if active:
+            self._fast_until = now + DEVICE_FAST_WINDOW
+            self.interval = POLL_INTERVAL
+        elif now >= self._fast_until:
+            self.interval = min(self.interval * 2, DEVICE_POLL_IDLE)
+        return self.interval
+
+
+class DeviceBell(_Endpoint):
+    """The firmware's side: rung by hosts, rings every host it has heard from.
+
+    Made while the firmware holds the board's lock, so a socket file already there is
+    a killed firmware's and is replaced (``CardDirectory.bind``)."""
+
+    def __init__(self, directory: CardDirectory, image_path: Path) -> None:
         super().__init__()
         self.address = device_address(image_path)
-        self.sock.bind(self.address)
-        self._hosts: OrderedDict[bytes, None] = OrderedDict()
+        self._directory = directory
+        try:
+            directory.bind(self.sock, Path(self.address))
+        except BaseException:
+            self.sock.close()
+            raise
+        self._hosts: OrderedDict[str | bytes, None] = OrderedDict()
 
-    def _on_rings(self, rings: list[tuple[bytes, bytes]]) -> None:
+    def close(self) -> None:
+        super().close()
+        self._directory.unlink(Path(self.address).name)
+
+    def _on_rings(self, rings: list[tuple[bytes, str | bytes]]) -> None:
         for _, address in rings:
             if not address or address == self.address:
                 continue
@@ -123,7 +174,7 @@ class HostBell(_Endpoint):
         """Whether the device's last ring asked for a ring on HOSTACK (it has
         more answers queued); starts True so nothing waits on a missed hint."""
 
-    def _on_rings(self, rings: list[tuple[bytes, bytes]]) -> None:
+    def _on_rings(self, rings: list[tuple[bytes, str | bytes]]) -> None:
         if rings:
             self.device_wants_ack = rings[-1][0] == _RING_WANT_ACK
 

@@ -343,7 +343,26 @@ ERR_EVENT_OF_DATA_CHECK: dict[int, DeviceEvent] = {
 node address) shows the device's own Err_Event at address 255 (seed 4.3), not 212."""
 
 
-def err_event_text(err_node_adr: int, err_event: int) -> str:
-    """The seed's text for an Err_Event, looked up in the table its address selects."""
-    table: type[MsgF] = DeviceEvent if err_node_adr == ERR_NODE_DEVICE else NodeEvent
-    return table.text_of(err_event, "unknown error event")
+ERROR_CONTROL_TEXT: dict[str | None, str] = {
+    "heartbeat": "heartbeat failed: no heartbeat within the consumer time (the seed's "
+                 "\"guarding failed\")",
+    "guarding": "guarding failed: no answer to node guarding within the life time",
+    None: "guarding failed: no heartbeat or guarding answer in time (the node's error control)",
+}
+"""Err_Event 30 by the node's error control [ours]. The seed has one text, "guarding
+failed", for both protocols (the node's HRTBT bit, seed 5.2.5.3, chooses): on a heartbeat
+node it sent its user looking for a guarding fault. Each text keeps the seed's words, so a
+number looked up in either place reads the same; None: the node's kind is not known."""
+
+
+def err_event_text(err_node_adr: int, err_event: int, error_control: str | None = None) -> str:
+    """The seed's text for an Err_Event, looked up in the table its address selects.
+
+    ``error_control`` is the node's supervision, "heartbeat" or "guarding" (its network
+    description's error_control, or the card's HRTBT bit), where the caller knows it: the
+    one set of texts the firmware's log, status, top and the gateway show."""
+    if err_node_adr == ERR_NODE_DEVICE:
+        return DeviceEvent.text_of(err_event, "unknown error event")
+    if err_event == NodeEvent.GUARDING_FAILED:
+        return ERROR_CONTROL_TEXT.get(error_control, ERROR_CONTROL_TEXT[None])
+    return NodeEvent.text_of(err_event, "unknown error event")

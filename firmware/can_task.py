@@ -95,6 +95,10 @@ class _Sequence:
     last: float
     length: int = 0
 
+    def expired(self, now: float) -> bool:
+        """Seed 5.2.3: more than Timeout ms since the sequence's last message (0: never)."""
+        return bool(self.timeout_ms) and (now - self.last) * 1000 > self.timeout_ms
+
 
 class CanTask(Task):
     number = message.Task.CAN
@@ -217,8 +221,7 @@ class CanTask(Task):
 
     def download_bus(self, data: bytes) -> int:
         """The bus parameter data set; a good one starts the network."""
-        nodes = [self.master.nodes[a].params for a in sorted(self.master.nodes)]
-        errors = [f for f in check_bus_parameters(data, nodes) if f.severity == "error"]
+        errors = [f for f in check_bus_parameters(data) if f.severity == "error"]
         if errors:
             return errors[0].number
         self.bus_data = bytes(data)
@@ -229,18 +232,22 @@ class CanTask(Task):
     # --- COM_Start_Seq / COM_Download / COM_End_Seq / COM_Upload -----------------------------
 
     def com_start_seq(self, msg: Message) -> Message:
+        """Seed 5.2.3. Every answer, an error too, has the table's msg.ln 1 with
+        Max_Len_Data_Unit 240: the table gives ln and d[0] as fixed values and only f as
+        variable, so a host that reads d[0] whatever f says finds 240 there."""
+        confirm = encode_start_seq_confirm(MAX_LEN_DATA_UNIT)
         if self.from_flash:
-            return msg.answer(f=CanF.FLASH_DATABASE_RUNS)
+            return msg.answer(f=CanF.FLASH_DATABASE_RUNS, data=confirm)
         try:
             request = StartSeqRequest.decode(msg.data)
         except MessageError:
-            return msg.answer(f=CanF.FAULTY_PARAMETER)
+            return msg.answer(f=CanF.FAULTY_PARAMETER, data=confirm)
         area = request.area
         if not 1 <= area <= 126:
-            return msg.answer(f=CanF.AREA_CODE)
+            return msg.answer(f=CanF.AREA_CODE, data=confirm)
         self._sequence = _Sequence(area, request.timeout_ms, bytearray(DOWNLOAD_AREA_SIZE),
                                    time.monotonic())
-        return msg.answer(data=encode_start_seq_confirm(MAX_LEN_DATA_UNIT))
+        return msg.answer(data=confirm)
 
     def com_download(self, msg: Message) -> Message:
         if self.from_flash:
@@ -257,6 +264,14 @@ class CanTask(Task):
         if not 1 <= area <= 126:
             return msg.answer(f=CanF.AREA_CODE)
         seq = self._sequence
+        now = time.monotonic()
+        if seq is not None and seq.expired(now):
+            # Seed 5.2.3: the time-out ends the sequence; what comes after it for another
+            # node is a download of its own, not a sequence error. Its own node hears 48.
+            self._sequence = None
+            if area == seq.area:
+                return msg.answer(f=CanF.TIMEOUT)
+            seq = None
         if seq is None:
             if offset:
                 return msg.answer(f=CanF.SEQUENCE)  # an offset needs COM_Start_Seq first
@@ -265,10 +280,6 @@ class CanTask(Task):
             return msg.answer(f=self.download_node(area, data))
         if area != seq.area:
             return msg.answer(f=CanF.SEQUENCE)
-        now = time.monotonic()
-        if seq.timeout_ms and (now - seq.last) * 1000 > seq.timeout_ms:
-            self._sequence = None
-            return msg.answer(f=CanF.TIMEOUT)
         if offset + len(data) > DOWNLOAD_AREA_SIZE:
             return msg.answer(f=CanF.BUFFER_LENGTH)
         seq.buffer[offset : offset + len(data)] = data
@@ -282,7 +293,7 @@ class CanTask(Task):
         seq, self._sequence = self._sequence, None
         if seq is None:
             return msg.answer(f=CanF.SEQUENCE)
-        if seq.timeout_ms and (time.monotonic() - seq.last) * 1000 > seq.timeout_ms:
+        if seq.expired(time.monotonic()):
             return msg.answer(f=CanF.TIMEOUT)  # it expires with no message at all, too
         if seq.length < 2:
             return msg.answer(f=CanF.INCOMPLETE)

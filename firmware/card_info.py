@@ -3,8 +3,10 @@
 The image has no room for the facts a person operating the card asks first:
 which database the last start loaded from flash, which bus the controller is
 on, where its frame tap is. At every start the firmware writes them to
-``<dir>/board<N>.card.json`` (mode 0660, replaced atomically) and logs the
-database; ``cifemu status``, ``top`` and ``monitor`` read the file.
+``<dir>/board<N>.card.json`` (mode 0660, replaced atomically through a new file
+of an unpredictable name, so nothing planted in the directory is followed:
+docs/security.md) and logs the database; ``cifemu status``, ``top`` and
+``monitor`` read the file through ``dpm.card_info``, where its name and keys are.
 """
 
 from __future__ import annotations
@@ -12,12 +14,12 @@ from __future__ import annotations
 import json
 import logging
 import os
-from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from dbm_tools.errors import DbmError
 from dbm_tools.parameters import BAUD_RATES_KBIT
 from dbm_tools.tables import NODES, PROJEKT, ProjektRecord
+from dpm.card_info import card_info_path
 from dpm.image import IMAGE_MODE
 
 if TYPE_CHECKING:
@@ -25,10 +27,6 @@ if TYPE_CHECKING:
     from firmware.whole_card import WholeCard
 
 log = logging.getLogger("firmware.rcs")
-
-
-def card_info_path(directory: Path, board: int) -> Path:
-    return directory / f"board{board}.card.json"
 
 
 def describe_database(database: StoredDatabase | None, stored_at: float | None
@@ -82,20 +80,8 @@ def publish(device: WholeCard) -> None:
                 "sets_bitrate": bus is not None and bus.takes_bitrate,
                 "baud_rate": BAUD_RATES_KBIT[params.Baud_rate] * 1000 if params else None,
                 "fatal": device.can.fatal},
-        "tap": "@" + config.tap[1:].decode() if config.tap else None,
+        "tap": os.fsdecode(config.tap) if config.tap else None,
     }
-    path = card_info_path(device.directory, device.board)
-    temporary = path.with_suffix(".tmp")
-    fd = os.open(temporary, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, IMAGE_MODE)
-    with os.fdopen(fd, "w") as file:
-        json.dump(info, file, indent=2)
-    os.replace(temporary, path)
+    name = card_info_path(device.directory, device.board).name
+    device.files.replace(name, json.dumps(info, indent=2).encode(), IMAGE_MODE)
 
-
-def read_card_info(directory: Path, board: int) -> dict[str, Any] | None:
-    """The facts of the last start, or None when no firmware published any."""
-    try:
-        data = json.loads(card_info_path(directory, board).read_text())
-    except (OSError, ValueError):
-        return None
-    return data if isinstance(data, dict) else None

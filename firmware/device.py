@@ -1,29 +1,44 @@
 """The emulated card: one image, one device loop, the tasks behind it.
 
 The device loop is the only writer of HostFlags, as the card's firmware is the
-only writer of its flag byte: it wakes on a host's ring or every poll
-interval, looks at DevFlags, and serves the mailboxes, the process-data and
-state handshakes, special control, NOTREADY and the watchdog. Tasks that work
-in threads of their own (the CAN task) hand answers over with ``post``.
+only writer of its flag byte: it wakes on a host's ring, on a wake-up from
+another thread of the card, when a timer is due (the host watchdog) or at the
+next fallback poll, looks at DevFlags, and serves the mailboxes, the
+process-data and state handshakes, special control, NOTREADY and the watchdog.
+Tasks that work in threads of their own (the CAN task) hand answers over with
+``post``; their Task2State writes wake the loop, which shows them (STATECOM).
+
+The fallback poll (``AdaptivePoll``) serves a host that writes the flags without
+ringing: every millisecond while the flags move, backing off to 50 ms when idle,
+so that a card nobody uses costs (almost) nothing (issue 22).
 """
 
 from __future__ import annotations
 
 import logging
+import os
 import threading
 import time
 from collections import deque
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from dpm import flags as fl
-from dpm.doorbell import POLL_INTERVAL, DeviceBell
+from dpm.doorbell import POLL_INTERVAL, AdaptivePoll, DeviceBell
 from dpm.errors import F_UNKNOWN_TASK
-from dpm.image import ExclusiveLock, create_image, dpm_dir, image_path, lock_path
+from dpm.image import (
+    CardDirectory,
+    ExclusiveLock,
+    create_image,
+    dpm_dir,
+    image_path,
+    lock_path,
+)
 from dpm.layout import (
     DEV_FLAGS,
     DEV_MBX,
+    DEV_WATCHDOG,
     DRIVER_TYPE,
     HOST_FLAGS,
     PC_MBX,
@@ -41,6 +56,9 @@ from firmware.plc import PlcTask
 from firmware.rcs import RcsTask, Start
 from firmware.task import Task
 
+if TYPE_CHECKING:
+    from firmware.recorder import Recorder
+
 log = logging.getLogger(__name__)
 
 OUTBOX_LIMIT = 64
@@ -48,8 +66,57 @@ OUTBOX_LIMIT = 64
 so a host that never reads its answers sees a full mailbox (-16/-17) instead
 of the card silently dropping answers."""
 
+WATCHDOG_WAKE_LATE = 0.0002
+"""Seconds the loop wakes after a watchdog deadline: the expiry is ``now > deadline``, and a
+wake-up exactly on it would find the watchdog still alive and sleep once more."""
+
 STATE_MODE_EVENT = 4
 """[ours] low nibble of bDriverType: the state field is event driven."""
+
+HOP_TRACE_ENV = "CIFEMU_HOP_TRACE"
+"""[ours] A file name: the device loop stamps (CLOCK_MONOTONIC, ns) each wake-up by a ring,
+each message it takes and each answer it hands over, and writes the stamps there at power-off,
+for ``python -m bench hops``. Unset (always, but in that benchmark), nothing is wrapped: the
+loop runs the same code as without the hook."""
+HOP_TRACE_LIMIT = 1_000_000
+"""Stamps kept at most: a forgotten trace does not grow without bound."""
+
+
+class _HopTrace:
+    """The stamps of ``HOP_TRACE_ENV``: installed by wrapping three of the device's methods."""
+
+    def __init__(self, path: str) -> None:
+        self.path = path
+        self.events: list[tuple[str, int]] = []
+
+    def _stamp(self, name: str) -> None:
+        if len(self.events) < HOP_TRACE_LIMIT:
+            self.events.append((name, time.monotonic_ns()))
+
+    def install(self, device: Device) -> None:
+        wait, receive, deliver = device.bell.wait, device._receive, device._deliver
+
+        def woke(timeout: float) -> bool:
+            rung = wait(timeout)
+            if rung:
+                self._stamp("woke")
+            return rung
+
+        def took() -> None:
+            self._stamp("took")
+            receive()
+
+        def delivered() -> None:
+            deliver()
+            self._stamp("delivered")
+
+        setattr(device.bell, "wait", woke)  # noqa: B010 (a method replaced on one instance)
+        setattr(device, "_receive", took)  # noqa: B010
+        setattr(device, "_deliver", delivered)  # noqa: B010
+
+    def write(self) -> None:
+        with open(self.path, "w", encoding="ascii") as out:
+            out.writelines(f"{name} {ns}\n" for name, ns in self.events)
 
 
 class Device:
@@ -61,26 +128,35 @@ class Device:
     ) -> None:
         self.board = board
         self.directory = dpm_dir(directory)
-        self.directory.mkdir(parents=True, exist_ok=True)
+        self.files = CardDirectory(self.directory, create=True)
+        """The checked image directory: every file the firmware writes is opened in it."""
         self.path = image_path(self.directory, board)
         # Mapped before the lock (harmless beside a running card: same file, same size), so
         # that a killed predecessor's READY goes the moment this firmware holds the lock,
         # which is when hosts start to take it for a running one.
-        self.mm = create_image(self.path)
         try:
-            self._instance_lock = ExclusiveLock(lock_path(self.directory, board),
+            self.mm = create_image(self.files, self.path.name)
+        except BaseException:
+            self.files.close()
+            raise
+        try:
+            self._instance_lock = ExclusiveLock(self.files, lock_path(self.directory, board).name,
                                                 on_acquired=self._clear_host_flags)
         except BaseException:
             self.mm.close()
+            self.files.close()
             raise
         self.view: Any = image_view(self.mm)
-        self.bell = DeviceBell(self.path)
+        self.bell = DeviceBell(self.files, self.path)
         self.outbox: deque[Message] = deque()
         self._calls: deque[Callable[[], None]] = deque()
         self._turn = threading.Lock()
         """Held by the device loop for each turn; ``post`` takes it to answer at once."""
         self._stop = threading.Event()
         self._ring = False
+        self._loop_thread: int | None = None
+        self._wake_pending = False
+        """A wake-up from another thread is on its way (one ring per turn is enough)."""
         self._state_sent = b""
         self._shown_can_state = -1
         self.state_lock = threading.RLock()
@@ -93,21 +169,60 @@ class Device:
         self.plc = PlcTask(self)
         self.can = CanTask(self, bus)
         self.tasks: dict[int, Task] = {t.number: t for t in (self.rcs, self.plc, self.can)}
+        self.recorder: Recorder | None = None
+        """Set before ``run`` to record a session (firmware/recorder.py)."""
+        trace = os.environ.get(HOP_TRACE_ENV)
+        self._hop_trace = _HopTrace(trace) if trace else None
+        if self._hop_trace is not None:
+            self._hop_trace.install(self)
 
     # --- life cycle -----------------------------------------------------------------
 
     def run(self) -> None:
         """Power on (a cold start), then serve the image until ``stop``."""
+        self._loop_thread = threading.get_ident()
         try:
             self.can.open()
             self.rcs.start(Start.COLD)
             self._flush()
+            poll = AdaptivePoll()
+            seen = self._flag_bytes()
+            timeout = POLL_INTERVAL
             while not self._stop.is_set():
-                self.bell.wait(POLL_INTERVAL)
+                rung = self.bell.wait(timeout)
                 with self._turn:
-                    self.service(time.monotonic())
+                    self._wake_pending = False  # before service reads what woke it
+                    now = time.monotonic()
+                    self.service(now)
+                current = self._flag_bytes()
+                interval = poll.next_interval(rung or current != seen, now)
+                seen = current
+                timeout = self._until_due(now, interval)
         finally:
             self._power_off()
+
+    def _flag_bytes(self) -> tuple[int, int, int]:
+        """What a host that never rings changes: its flags and its watchdog trigger; and
+        what the card changed in a turn: its flags."""
+        mm = self.mm
+        return mm[DEV_FLAGS], mm[HOST_FLAGS], mm[DEV_WATCHDOG]
+
+    def _until_due(self, now: float, interval: float) -> float:
+        """Seconds to sleep: the poll ``interval``, or less when the host watchdog is due."""
+        due = self.rcs.watchdog_due()
+        if due is None:
+            return interval
+        return max(0.0, min(interval, due + WATCHDOG_WAKE_LATE - now))
+
+    def _wake(self) -> None:
+        """Wake the loop after another thread changed what it shows (Task2State).
+
+        The loop's own writes need no ring: it looks at the state field at the end of the
+        turn it is in. One ring per turn: further changes before that turn are seen by it.
+        """
+        if threading.get_ident() != self._loop_thread and not self._wake_pending:
+            self._wake_pending = True
+            self.bell.ring_self()
 
     def stop(self) -> None:
         """Ask the loop to end; safe from signal handlers and other threads."""
@@ -122,11 +237,17 @@ class Device:
         self.can.close()
         self.write_host_flags(0)
         self._flush()
+        if self.recorder is not None:
+            self.recorder.close()
         self.bell.close()
         del self.view
         self.mm.flush()
         self.mm.close()
         self._instance_lock.release()
+        self.files.close()
+        self.flash.close()
+        if self._hop_trace is not None:
+            self._hop_trace.write()
 
     # --- cross-thread entry points ---------------------------------------------------
 
@@ -158,6 +279,8 @@ class Device:
         self.mm[HOST_FLAGS] = 0  # a killed predecessor's READY is not this firmware's
 
     def write_host_flags(self, value: int) -> None:
+        if self.recorder is not None:
+            self.recorder.host_flags(self.mm[HOST_FLAGS], value)
         self.mm[HOST_FLAGS] = value
         self._ring = True
 
@@ -190,6 +313,7 @@ class Device:
             new = value | bit if on else value & ~bit
             if new != value:
                 state["bGlobalBits"] = new
+                self._wake()
 
     def set_node_bit(self, field: str, address: int, on: bool) -> None:
         """One node's bit in Nd_cfg, Nd_state or Nd_diag (bit n = node n)."""
@@ -198,13 +322,17 @@ class Device:
         bit = 1 << (address & 7)
         with self.state_lock:
             value = self.mm[offset]
-            self.mm[offset] = value | bit if on else value & ~bit
+            new = value | bit if on else value & ~bit
+            if new != value:
+                self.mm[offset] = new
+                self._wake()
 
     def report_error(self, node: int, event: int, bits: int = 0) -> None:
         """Report an error; Err_Node_adr shows the lowest faulty address (seed 4.3)."""
         with self.state_lock:
             self._errors[node] = event
             self._show_error()
+            self._wake()
             if bits:
                 self.set_global_bit(bits, True)
 
@@ -212,6 +340,7 @@ class Device:
         with self.state_lock:
             if self._errors.pop(node, None) is not None:
                 self._show_error()
+                self._wake()
 
     def _show_error(self) -> None:
         state = self.view["Task2State"]
@@ -228,6 +357,7 @@ class Device:
         with self.state_lock:
             state = self.view["Task2State"]
             state[counter] = min(0xFFFF, int(state[counter]) + by)
+        self._wake()
 
     def reset_counters(self) -> None:
         with self.state_lock:
@@ -235,6 +365,7 @@ class Device:
             for counter in ("usBus_Error_Cnt", "usBus_Off_Cnt", "usMsg_Time_Out",
                             "usRx_Overflow"):
                 state[counter] = 0
+        self._wake()
 
     def descript_records(self) -> dict[int, bytes] | None:
         """DESCRIPT records of the stored database by station address; None: no table."""
@@ -262,6 +393,8 @@ class Device:
             self._calls.popleft()()
         mm = self.mm
         dev = mm[DEV_FLAGS]
+        if self.recorder is not None:
+            self.recorder.dev_flags(dev)
         if dev & (fl.RESET | fl.INIT):
             self.rcs.start(Start.from_flags(dev))
             self._flush()
@@ -312,6 +445,8 @@ class Device:
         # that is malformed for its command with their own msg.f.
         raw = self.mm[DEV_MBX : DEV_MBX + MSG_MAX_SIZE]
         self.toggle_host_flags(fl.DEVACK)
+        if self.recorder is not None:
+            self.recorder.put(raw)
         msg = Message.decode(raw)
         task = self.tasks.get(msg.rx)
         answer = task.handle(msg) if task else msg.answer(f=F_UNKNOWN_TASK)
@@ -320,6 +455,8 @@ class Device:
 
     def _deliver(self) -> None:
         raw = self.outbox.popleft().encode()
+        if self.recorder is not None:
+            self.recorder.answer(raw)
         self.mm[PC_MBX : PC_MBX + len(raw)] = raw
         self.toggle_host_flags(fl.HOSTCOM)
 

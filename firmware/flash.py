@@ -6,7 +6,10 @@ The flash is a directory, one per board (default
 one file, ``database.bin``: the DBM data area exactly as the host sent it (no
 44-byte file header; ``cifemu dbm show`` reads it as it is). A new database is
 written to a temporary file, fsync'ed and renamed over the old one, so a card
-killed at any moment keeps either the old database or the new one, whole.
+killed at any moment keeps either the old database or the new one, whole. The
+directory is the firmware's alone (docs/security.md): created mode 0750, refused
+when another user owns it or any other user can write to it; the temporary file
+has an unpredictable name and is made with O_EXCL, so nothing planted is followed.
 
 The load function (docs/dbm.md section 3; answers rx/tx swapped, a = 6, same nr),
 selected by d[0] of a message whose msg.e has no continuation bits:
@@ -42,8 +45,9 @@ selected by d[0] of a message whose msg.e has no continuation bits:
 
 At every start (``StoredDatabase.load``, then ``configure``) the database
 runs through ``check_dbm``; a database that fails, or whose data sets the CAN
-task refuses, leaves the card READY without RUN with Err_Event 212 at
-Err_Node_adr 255 (or the node whose record failed) and the CTRL bit. Else
+task refuses, leaves the card READY without RUN with the CTRL bit and
+Err_Event 56 (unknown baud rate) or 60 (double node address) at Err_Node_adr
+255, else 212 at 255 or at the node whose record failed. Else
 BUS_CAN_EXT, every NODES record and BUS_CAN go to the CAN task in that
 order, and the BUS_CAN download starts the network.
 """
@@ -86,6 +90,7 @@ from dpm.commands import (
     MODE_UPLOAD,
 )
 from dpm.errors import ERR_EVENT_OF_DATA_CHECK, ERR_NODE_DEVICE, DeviceEvent, RcsF
+from dpm.image import CardDirectory
 from dpm.message import Ext, Message
 from dpm.task2 import ComPlcParameter, GlobalBits
 
@@ -96,7 +101,7 @@ log = logging.getLogger(__name__)
 
 FLASH_ENV = "CIFEMU_FLASH_DIR"
 DATABASE_FILE = "database.bin"
-_TEMP_SUFFIX = ".tmp"
+DATABASE_MODE = 0o640
 
 
 def default_flash_dir(board: int) -> Path:
@@ -107,59 +112,46 @@ def default_flash_dir(board: int) -> Path:
 
 
 class FlashStore:
-    """One board's flash directory: read, replace atomically, erase."""
+    """One board's flash directory: read, replace atomically, erase.
+
+    ``UnsafePathError`` when the directory or the stored database is not the
+    firmware user's own (docs/security.md)."""
 
     def __init__(self, directory: Path) -> None:
         self.directory = directory
-        directory.mkdir(parents=True, exist_ok=True)
-        for stale in directory.glob(f".{DATABASE_FILE}.*{_TEMP_SUFFIX}"):
-            stale.unlink(missing_ok=True)  # a store interrupted by a kill: never renamed
+        self._files = CardDirectory(directory, create=True, private=True)
+        try:
+            for name in self._files.names():
+                if name.startswith(f".{DATABASE_FILE}.") and name.endswith(".tmp"):
+                    self._files.unlink(name)  # a store interrupted by a kill: never renamed
+            self.read()  # a database that is no regular file of ours is refused at the start
+        except BaseException:
+            self._files.close()
+            raise
+
+    def close(self) -> None:
+        self._files.close()
 
     @property
     def path(self) -> Path:
         return self.directory / DATABASE_FILE
 
     def read(self) -> bytes | None:
-        try:
-            return self.path.read_bytes()
-        except FileNotFoundError:
-            return None
+        return self._files.read(DATABASE_FILE)
 
     def stored_at(self) -> float | None:
         try:
-            return self.path.stat().st_mtime
+            return os.stat(DATABASE_FILE, dir_fd=self._files.fd, follow_symlinks=False).st_mtime
         except FileNotFoundError:
             return None
 
     def store(self, area: bytes) -> None:
         """Replace the database: the old one stays whole until the new one is on disk."""
-        temp = self.directory / f".{DATABASE_FILE}.{os.getpid()}{_TEMP_SUFFIX}"
-        fd = os.open(temp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o640)
-        try:
-            try:
-                view = memoryview(area)
-                while view:
-                    view = view[os.write(fd, view) :]
-                os.fsync(fd)
-            finally:
-                os.close(fd)
-        except OSError:
-            temp.unlink(missing_ok=True)  # a full disk keeps no half database to fill it
-            raise
-        os.replace(temp, self.path)
-        self._sync_directory()
+        self._files.replace(DATABASE_FILE, area, DATABASE_MODE, durable=True)
 
     def erase(self) -> None:
-        self.path.unlink(missing_ok=True)
-        self._sync_directory()
-
-    def _sync_directory(self) -> None:
-        """Make the rename or unlink itself durable."""
-        fd = os.open(self.directory, os.O_RDONLY)
-        try:
-            os.fsync(fd)
-        finally:
-            os.close(fd)
+        self._files.unlink(DATABASE_FILE)
+        self._files.sync()
 
 
 def _segment_name(area: bytes) -> str | None:

@@ -26,3 +26,7 @@ CAN_ERR_CRTL_TX_PASSIVE = 0x20
 CAN_ERR_CRTL_LIMITS = (CAN_ERR_CRTL_RX_WARNING | CAN_ERR_CRTL_TX_WARNING
                        | CAN_ERR_CRTL_RX_PASSIVE | CAN_ERR_CRTL_TX_PASSIVE)
 """The controller's error counter crossed the warning or the error-passive limit."""
+CAN_ERR_CRTL_ACTIVE = 0x40
+"""The controller is back to error-active (its counters below the warning limit again)."""
+CAN_ERR_RESTARTED = 0x100
+"""The controller restarted after bus-off."""

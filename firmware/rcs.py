@@ -115,6 +115,13 @@ class RcsTask(Task):
             self._follow_not_ready(not_ready)
         self._watchdog(now)
 
+    def watchdog_due(self) -> float | None:
+        """When the host watchdog expires unless triggered (monotonic seconds), or None
+        while it is off, stopped, untriggered or expired: the device loop sleeps until then."""
+        if not self.watchdog_time or self.watchdog_expired or not self._last_dev_watchdog:
+            return None
+        return self._watchdog_deadline
+
     def _follow_not_ready(self, not_ready: bool) -> None:
         self.host_not_ready = not_ready
         self.device.set_global_bit(GlobalBits.NRDY, not_ready)

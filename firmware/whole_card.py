@@ -20,6 +20,7 @@ from firmware.card import Card, Configurable, HasImage
 
 if TYPE_CHECKING:
     from dbm_tools.parameters import BusParameterSet
+    from dpm.image import CardDirectory
     from dpm.message import Message
     from dpm.task2 import ComPlcParameter
     from firmware.can.bus import BusConfig, CanBus
@@ -76,6 +77,10 @@ class WholeCard(Card, Protocol):
 
     @property
     def directory(self) -> Path: ...
+
+    @property
+    def files(self) -> CardDirectory:
+        """The checked image directory: files beside the image are written through it."""
 
     @property
     def flash(self) -> FlashStore: ...

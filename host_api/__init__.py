@@ -8,7 +8,8 @@
   returning codes; ``HostApiError`` (``host_api.errors``), the root of what host_api raises;
 - ``host_api.registry``: the boards this process has initialised;
 - ``host_api.online``, ``host_api.cia309``, ``host_api.status``: the on-line
-  configuration, the CiA 309 gateway and ``cifemu status``, imported by their own names.
+  configuration, the CiA 309 gateway and the card state ``cifemu status`` shows,
+  imported by their own names.
 
 Every name here is also importable from its module.
 """

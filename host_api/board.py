@@ -13,6 +13,7 @@ name and its meaning; RCS errors (1000 + msg.f) read with the task's text.
 from __future__ import annotations
 
 import itertools
+import secrets
 from pathlib import Path
 from types import TracebackType
 
@@ -53,7 +54,10 @@ class Board:
         self.directory = directory
         self.timeout = timeout
         """Default timeout in milliseconds for calls that wait."""
-        self._nr = itertools.count(1)
+        self._nr = itertools.count(secrets.randbelow(255))
+        """[ours] From a random start: a process's first request rarely has the number of
+        another process's, which only a host outside the transaction discipline needs
+        (the ledger discards a dead host's answers, whatever their numbers)."""
 
     def open(self) -> Board:
         _check(d.DevOpenDriver(self.directory), "DevOpenDriver")
@@ -90,10 +94,13 @@ class Board:
         return msg
 
     def transact(self, msg: Message, timeout: int | None = None) -> Message:
-        """Send a command and return its answer, atomically against other hosts.
+        """Send a command and return its answer, atomically against other hosts and
+        this process's other threads.
 
         A message number is assigned when ``msg.nr`` is 0; answers with another
-        number (indications, late answers) are skipped.
+        number (indications) are skipped. An answer to another host's request, or to
+        an earlier request that timed out, is never returned, even with this number:
+        the driver discards it (``host_api.locks.Transaction``).
         """
         if msg.nr == 0:
             msg.nr = next(self._nr) % 255 + 1

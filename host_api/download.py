@@ -62,7 +62,7 @@ from dpm.commands import LOAD_SEGMENT as SEGMENT
 from dpm.errors import Drv
 from dpm.message import Ext, Message, Task
 from host_api.driver import MSG_BUFFER_SIZE, DevGetMessage, DevPutMessage
-from host_api.locks import ChannelLock
+from host_api.locks import Transaction
 from host_api.registry import MappedBoard, ready_board
 
 FIRMWARE_DOWNLOAD = 1
@@ -141,15 +141,15 @@ class _Session:
     def __init__(self, number: int) -> None:
         self.number = number
         self.nr = 0
-        self.lock: ChannelLock | None = None
+        self.lock: Transaction | None = None
 
     def __enter__(self) -> int:
         board = ready_board(self.number)
         if not isinstance(board, MappedBoard):
             return int(board)
-        if not board.transaction_lock.acquire(LOCK_WAIT_MS / 1000.0):
+        if not board.transaction.acquire(LOCK_WAIT_MS / 1000.0):
             return Drv.DRV_CMD_ACTIVE
-        self.lock = board.transaction_lock
+        self.lock = board.transaction
         return Drv.DRV_NO_ERROR
 
     def __exit__(self, *exc: object) -> None:

@@ -13,16 +13,22 @@ them into ``CifError``).
 Concurrency [ours]: DevPutMessage, DevGetMessage and the process-data
 exchange are each atomic across threads and processes. A call waits for its
 channel up to its own timeout and returns DRV_CMD_ACTIVE (-4) when another
-caller holds it longer. A request/answer pair is atomic only through
-``Board.transact``; two processes that pair raw DevPutMessage/DevGetMessage
-calls concurrently can read each other's answers, as on the real card.
+caller holds it longer. A DevPutMessage takes the board's transaction lock for
+this process until its answer is read (``host_api.locks.Transaction``, the
+lock libcif takes), so processes that pair raw DevPutMessage/DevGetMessage
+calls, Python or C, never read each other's answers, and the answers of a host
+that died or gave up waiting are discarded, never returned. Threads of one
+process that pair raw calls can still read each other's answers;
+``Board.transact`` pairs them atomically.
 """
 
 from __future__ import annotations
 
+import math
 import mmap
 import struct
 import time
+from contextlib import ExitStack
 from dataclasses import dataclass
 from importlib.metadata import version
 from pathlib import Path
@@ -59,7 +65,7 @@ from dpm.layout import (
 )
 from dpm.message import Message, MessageError
 from host_api.liveness import firmware_liveness
-from host_api.locks import ChannelLock
+from host_api.locks import Answer, ChannelLock, Transaction
 from host_api.registry import Counters as _Counters
 from host_api.registry import MappedBoard as _Board
 from host_api.registry import lookup as _board
@@ -196,18 +202,38 @@ def DevInitBoard(number: int) -> int:
         if rc != Drv.DRV_NO_ERROR:
             mm.close()
             return rc
-        def lock(what: str) -> ChannelLock:
-            assert _driver.directory is not None
-            return ChannelLock(lock_path(_driver.directory, number, what))
-
-        board = _Board(number, path, mm, HostBell(path), lock("put"), lock("get"), lock("io"),
-                       lock("flags"), lock("transaction"),
-                       _driver.counters.setdefault(number, _Counters()))
+        board = _open_board(number, path, mm)
+        if board is None:
+            mm.close()
+            return Drv.DRV_USR_INIT_DRV_ERROR
         board.counters.open += 1
         board.counters.last_function = FKT_OPEN
         board.bell.ring_device()  # introduces this host to the device
         _driver.boards[number] = board
         return Drv.DRV_NO_ERROR
+
+
+def _open_board(number: int, path: Path, mm: mmap.mmap) -> _Board | None:
+    """The board with its doorbell and lock files; None when one cannot be had [ours]
+    (a directory or a link planted in a lock file's place): the board cannot be shared
+    safely, and what was opened is closed again."""
+    assert _driver.directory is not None
+    directory = _driver.directory
+    try:
+        with ExitStack() as opened:
+            bell = HostBell(path)
+            opened.callback(bell.close)
+            locks: list[ChannelLock] = []
+            for what in ("put", "get", "io", "flags"):
+                locks.append(ChannelLock(lock_path(directory, number, what)))
+                opened.callback(locks[-1].close)
+            transaction = Transaction(lock_path(directory, number, "transaction"))
+            opened.pop_all()
+    except OSError:
+        return None
+    put, get, io, flags = locks
+    return _Board(number, path, mm, bell, put, get, io, flags, transaction,
+                  _driver.counters.setdefault(number, _Counters()))
 
 
 def _check_card(mm: mmap.mmap) -> int:
@@ -248,58 +274,100 @@ def DevPutMessage(number: int, msg: Message | bytes, timeout: int) -> int:
     if not isinstance(board, _Board):
         return board
     try:
-        raw = msg.encode() if isinstance(msg, Message) else Message.decode(msg).encode()
+        message = msg if isinstance(msg, Message) else Message.decode(msg)
+        raw = message.encode()
     except MessageError:
         return Drv.DRV_USR_SIZE_INVALID
-    if not board.put_lock.acquire(timeout / 1000.0):
+    deadline = time.monotonic() + timeout / 1000.0
+    if not board.transaction.enter(timeout / 1000.0):
         return Drv.DRV_CMD_ACTIVE
     try:
-        free = board.wait_for(
-            lambda: not fl.pending(board.host(), board.dev(), fl.DEV_MBX), timeout
-        )
-        if not free:
-            return (Drv.DRV_DEV_MAILBOX_FULL if timeout <= 0
-                    else board.timed_out(Drv.DRV_DEV_PUT_TIMEOUT))
-        board.mm[DEV_MBX : DEV_MBX + len(raw)] = raw
-        board.change_dev_flags(toggle=fl.DEVCOM)
-        board.counters.write += 1
-        board.counters.last_function = FKT_WRITE
-        return Drv.DRV_NO_ERROR
+        if not board.put_lock.acquire(_left(deadline)):
+            return Drv.DRV_CMD_ACTIVE
+        try:
+            free = board.wait_for(
+                lambda: not fl.pending(board.host(), board.dev(), fl.DEV_MBX),
+                _left_ms(deadline))
+            if not free:
+                return (Drv.DRV_DEV_MAILBOX_FULL if timeout <= 0
+                        else board.timed_out(Drv.DRV_DEV_PUT_TIMEOUT))
+            board.mm[DEV_MBX : DEV_MBX + len(raw)] = raw
+            # recorded before the card can see it: a host killed now leaves it in the ledger
+            board.transaction.sent(message)
+            board.change_dev_flags(toggle=fl.DEVCOM)
+            board.counters.write += 1
+            board.counters.last_function = FKT_WRITE
+            return Drv.DRV_NO_ERROR
+        finally:
+            board.put_lock.release()
     finally:
-        board.put_lock.release()
+        board.transaction.leave()
+
+
+def _left(deadline: float) -> float:
+    """Seconds left of a call's time-out."""
+    return max(0.0, deadline - time.monotonic())
+
+
+def _left_ms(deadline: float) -> int:
+    """Whole milliseconds left, rounded up: a wait never ends before its time."""
+    return max(0, math.ceil((deadline - time.monotonic()) * 1000))
 
 
 def DevGetMessage(number: int, size: int, timeout: int) -> tuple[int, Message | None]:
     """Take the waiting message from the host mailbox (-19 none, -18 timeout).
 
     A message longer than ``size`` stays in the mailbox (-39), so it is not lost.
+    [ours] Answers to requests of a host that died, or whose DevGetMessage timed out, are
+    read and discarded (with the handshake) within the time-out, never returned.
     """
     if not 0 < size <= MSG_BUFFER_SIZE:
         return Drv.DRV_USR_SIZE_INVALID, None
     board = _ready_board(number)
     if not isinstance(board, _Board):
         return board, None
-    if not board.get_lock.acquire(timeout / 1000.0):
+    deadline = time.monotonic() + timeout / 1000.0
+    # a host expecting nothing still waits for other hosts' transactions to finish
+    if not board.transaction.enter(timeout / 1000.0):
         return Drv.DRV_CMD_ACTIVE, None
     try:
-        waiting = board.wait_for(
-            lambda: fl.pending(board.host(), board.dev(), fl.HOST_MBX), timeout
-        )
-        if not waiting:
-            return (Drv.DRV_DEV_GET_NO_MESSAGE if timeout <= 0
-                    else board.timed_out(Drv.DRV_DEV_GET_TIMEOUT)), None
-        mm = board.mm
+        if not board.get_lock.acquire(_left(deadline)):
+            return Drv.DRV_CMD_ACTIVE, None
+        try:
+            return _take_message(board, size, timeout, deadline)
+        finally:
+            board.get_lock.release()
+    finally:
+        board.transaction.leave()
+
+
+def _take_message(board: _Board, size: int, timeout: int,
+                  deadline: float) -> tuple[int, Message | None]:
+    """DevGetMessage with its locks held."""
+    mm = board.mm
+    while True:
+        if not board.wait_for(lambda: fl.pending(board.host(), board.dev(), fl.HOST_MBX),
+                              _left_ms(deadline)):
+            if timeout <= 0:
+                return Drv.DRV_DEV_GET_NO_MESSAGE, None
+            # [ours] an answer that did not come in time frees the board for other hosts,
+            # and is discarded by whichever host reads it later
+            board.transaction.give_up()
+            return board.timed_out(Drv.DRV_DEV_GET_TIMEOUT), None
         length = 8 + mm[PC_MBX + 2]
-        if length > size:
-            return Drv.DRV_USR_MSG_BUF_TOO_SHORT, None
         msg = Message.decode(mm[PC_MBX : PC_MBX + length])
+        stale = board.transaction.is_stale(msg)
+        if not stale and length > size:
+            return Drv.DRV_USR_MSG_BUF_TOO_SHORT, None
         # The device polls anyway; a ring only speeds up answers it has queued.
-        board.change_dev_flags(toggle=fl.HOSTACK, ring=board.bell.device_wants_ack)
+        board.change_dev_flags(toggle=fl.HOSTACK, ring=stale or board.bell.device_wants_ack)
+        # after the handshake: a host killed in between leaves a discarded answer's
+        # request in the ledger, never an answer nobody discards
+        if board.transaction.answered(msg) is Answer.STALE:
+            continue
         board.counters.read += 1
         board.counters.last_function = FKT_READ
         return Drv.DRV_NO_ERROR, msg
-    finally:
-        board.get_lock.release()
 
 
 def DevGetMBXState(number: int) -> tuple[int, int, int]:

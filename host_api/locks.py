@@ -5,6 +5,21 @@ second one with DRV_CMD_ACTIVE. Across processes sharing an image we do the
 same with a lock per channel (a thread lock plus an flock on a file beside
 the image): a call waits for the channel up to its own timeout and gets -4
 when another caller holds it longer than that.
+
+[ours] The transaction lock (``Transaction``) keeps request and answer
+together: a host process holds its flock from a DevPutMessage until that
+request is answered. Its file is the ledger of the requests whose answers are
+awaited, one line each (``pid owner nr b rx tx multi sent_ms``; owner: a random
+number per process and board), the same as libcif's (libcif/src/chanlock.c).
+The kernel frees the flock of a host that dies; the next holder finds the dead
+host's requests in the ledger and discards their answers when they come. A host
+whose DevGetMessage timed out lets the lock go when no other call of it is
+inside: its late answers are its own while it holds the lock again, and
+another host's to discard once that host has taken it. So a host never reads an
+answer to a request it did not send.
+
+After ``os.fork`` the child has lock files of its own (``reopen_after_fork``):
+an inherited descriptor would share its flocks with the parent.
 """
 
 from __future__ import annotations
@@ -12,31 +27,53 @@ from __future__ import annotations
 import errno
 import fcntl
 import os
+import secrets
 import threading
 import time
+from dataclasses import dataclass, replace
+from enum import Enum
 from pathlib import Path
 from types import TracebackType
 
+from dpm.message import Ext, Message
+
 _FLOCK_RETRY = 0.0002
+_OPEN_FLAGS = os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW | os.O_CLOEXEC
+
+LEDGER_MAX = 128
+"""Requests the ledger keeps at most; beyond that the oldest goes."""
+STALE_MS = 30_000
+"""A dead host's request is forgotten this long after it was sent: a card answers within
+it or never (the driver's longest wait is DevDownload's 15 s)."""
+
+
+def _open(path: Path) -> int:
+    """The lock file, opened or created; a planted symbolic link is refused (ELOOP)."""
+    return os.open(path, _OPEN_FLAGS, 0o660)
 
 
 class ChannelLock:
     def __init__(self, path: Path) -> None:
+        self.path = path
         self._thread = threading.Lock()
-        self._fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o660)
+        self._fd = _open(path)
 
     def acquire(self, timeout: float) -> bool:
-        """Take the channel within ``timeout`` seconds (0: only if free now)."""
+        """Take the channel within ``timeout`` seconds (0: only if free now), in all.
+
+        The thread lock stays held while the flock is awaited: the flock belongs to the
+        open file description, which every thread shares."""
         if self._thread.acquire(False):  # the uncontended case, without clocks
             try:
                 fcntl.flock(self._fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
                 return True
             except BlockingIOError:
-                self._thread.release()
-        deadline = time.monotonic() + timeout
-        got = self._thread.acquire(timeout=timeout) if timeout > 0 else self._thread.acquire(False)
-        if not got:
-            return False
+                deadline = time.monotonic() + timeout
+        else:
+            deadline = time.monotonic() + timeout
+            got = self._thread.acquire(timeout=timeout) if timeout > 0 else False
+            if not got:
+                return False
         while True:
             try:
                 fcntl.flock(self._fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
@@ -64,6 +101,236 @@ class ChannelLock:
         self, t: type[BaseException] | None, v: BaseException | None, tb: TracebackType | None
     ) -> None:
         self.release()
+
+    def reopen_after_fork(self) -> None:
+        """In a forked child: a file description of its own (the parent's flocks stay the
+        parent's) and a new thread lock (a parent's thread that held it is not here)."""
+        self._thread = threading.Lock()
+        fd = _open(self.path)
+        os.dup2(fd, self._fd, inheritable=False)
+        os.close(fd)
+
+    def close(self) -> None:
+        os.close(self._fd)
+
+
+class Answer(Enum):
+    """Whose an answer read from the host mailbox was."""
+
+    OTHER = 0
+    """No awaited request's: an indication, or a request's that nobody recorded."""
+    OWN = 1
+    STALE = 2
+    """A dead host's, or one whose DevGetMessage gave up: to be discarded."""
+
+
+@dataclass(frozen=True, slots=True)
+class Request:
+    """A request whose answer is awaited, as a ledger line records it."""
+
+    pid: int
+    owner: int
+    nr: int
+    b: int
+    rx: int
+    tx: int
+    multi: int
+    """0: one answer ends it. Sent with e FIRST, a long upload's parts may follow its
+    first answer: 1 before the first part, 2 after it (then only a part marked CONT or
+    LAST continues it)."""
+    sent_ms: int
+    """CLOCK_MONOTONIC, as every process on the machine reads it."""
+    given_up: bool = False
+    """In memory: a get timed out waiting for it (it keeps the lock no more)."""
+
+    def line(self) -> str:
+        return (f"{self.pid} {self.owner} {self.nr} {self.b} {self.rx} {self.tx} {self.multi} "
+                f"{self.sent_ms}\n")
+
+    @classmethod
+    def parse(cls, line: str, now_ms: int) -> Request | None:
+        """The request of one ledger line; None when malformed or past ``STALE_MS``."""
+        fields = line.split()
+        if len(fields) != 8 or not all(f.lstrip("-").isdigit() for f in fields):
+            return None
+        pid, owner, nr, b, rx, tx, multi, sent = (int(f) for f in fields)
+        if not all(0 <= v <= 255 for v in (nr, b, rx, tx)) or multi not in (0, 1, 2):
+            return None
+        if sent > now_ms or now_ms - sent > STALE_MS:
+            return None
+        return cls(pid, owner, nr, b, rx, tx, multi, sent, given_up=True)
+
+    def answered_by(self, msg: Message) -> bool:
+        if self.multi == 2 and msg.e & Ext.SEQ_MASK not in (Ext.CONT, Ext.LAST):
+            return False
+        return msg.nr == self.nr and msg.a == self.b and msg.rx == self.tx and msg.tx == self.rx
+
+    def after(self, msg: Message) -> Request | None:
+        """The request once ``msg`` answered it: None when that was its last answer, a
+        long upload's part (f 0, e FIRST or CONT) has more after it."""
+        sequence = msg.e & Ext.SEQ_MASK
+        if self.multi and msg.f == 0 and sequence in (Ext.FIRST, Ext.CONT):
+            return replace(self, multi=2)
+        return None
+
+
+def _now_ms() -> int:
+    return time.monotonic_ns() // 1_000_000
+
+
+class Transaction:
+    """The board's transaction lock as this process holds it across calls.
+
+    ``enter``/``leave`` bracket each DevPutMessage and DevGetMessage: the process holds
+    the flock while a call is inside or an answer awaited. ``acquire``/``release`` (the
+    ``ChannelLock`` face that ``Board.transact``, DevDownload's session and the CiA 309
+    gateway use) make a session: one thread of the process at a time, and the flock held
+    from acquire to release.
+    """
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        self._fd = _open(path)
+        self._state = threading.Lock()
+        """Guards the fields below; held for one attempt at the flock at a time."""
+        self._session = threading.Lock()
+        self._owner = secrets.randbits(63)
+        """This process's number in the ledger (a new one after a fork)."""
+        self._held = False
+        self._users = 0
+        self._own: list[Request] = []
+        self._stale: list[Request] = []
+
+    # --- calls ------------------------------------------------------------------------------
+
+    def enter(self, timeout: float) -> bool:
+        """A call starts: True when the process holds the lock within ``timeout`` s."""
+        deadline = time.monotonic() + timeout
+        while True:
+            with self._state:
+                if not self._held:
+                    try:
+                        fcntl.flock(self._fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                        self._held = True
+                        self._load()
+                    except BlockingIOError:
+                        pass
+                if self._held:
+                    self._users += 1
+                    return True
+            if time.monotonic() >= deadline:
+                return False
+            time.sleep(_FLOCK_RETRY)
+
+    def leave(self) -> None:
+        """The call ends: the lock goes back when no call is inside and no answer is
+        awaited (answers a timed-out get gave up on do not keep it)."""
+        with self._state:
+            self._users = max(0, self._users - 1)
+            if (self._held and self._users == 0
+                    and all(r.given_up for r in self._own)):
+                fcntl.flock(self._fd, fcntl.LOCK_UN)
+                self._held = False
+                self._own, self._stale = [], []  # the file keeps them for the next holder
+
+    def sent(self, msg: Message) -> None:
+        """Before the request reaches the card: recorded in the ledger (one with the NAK
+        bit is answered only when it fails: none is awaited)."""
+        if msg.e & Ext.NAK:
+            return
+        request = Request(os.getpid(), self._owner, msg.nr, msg.b, msg.rx, msg.tx,
+                          int(msg.e & Ext.SEQ_MASK == Ext.FIRST), _now_ms())
+        with self._state:
+            if msg.e & Ext.SEQ_MASK in (Ext.CONT, Ext.LAST):
+                # It continues a sequence (the load function's transfers): the first request
+                # of that command, answered with a part marked FIRST, was no long upload.
+                self._own = [r for r in self._own if not (
+                    r.multi == 2 and (r.b, r.rx, r.tx) == (msg.b, msg.rx, msg.tx))]
+            if len(self._own) + len(self._stale) >= LEDGER_MAX:
+                (self._stale or self._own).pop(0)
+            self._own.append(request)
+            self._store()
+
+    def is_stale(self, msg: Message) -> bool:
+        """Whether the answer waiting in the mailbox is one to discard."""
+        with self._state:
+            return any(r.answered_by(msg) for r in self._stale)
+
+    def answered(self, msg: Message) -> Answer:
+        """After the answer was taken from the mailbox: whose it was. Stale requests were
+        sent first, so the card answers them first."""
+        with self._state:
+            for kind, requests in ((Answer.STALE, self._stale), (Answer.OWN, self._own)):
+                for i, request in enumerate(requests):
+                    if request.answered_by(msg):
+                        rest = request.after(msg)
+                        if rest is None:
+                            del requests[i]
+                        else:
+                            requests[i] = rest
+                        self._store()
+                        return kind
+            return Answer.OTHER
+
+    def give_up(self) -> None:
+        """A get timed out: the answers awaited keep the lock no more."""
+        with self._state:
+            self._own = [replace(r, given_up=True) for r in self._own]
+
+    # --- sessions ---------------------------------------------------------------------------
+
+    def acquire(self, timeout: float) -> bool:
+        """A session: this thread alone in the process, the flock held until ``release``."""
+        deadline = time.monotonic() + timeout
+        if not (self._session.acquire(timeout=timeout) if timeout > 0
+                else self._session.acquire(False)):
+            return False
+        if self.enter(max(0.0, deadline - time.monotonic())):
+            return True
+        self._session.release()
+        return False
+
+    def release(self) -> None:
+        """The session ends; answers it did not read keep the lock no more."""
+        self.give_up()
+        self.leave()
+        self._session.release()
+
+    # --- the ledger -------------------------------------------------------------------------
+
+    def _load(self) -> None:
+        """The file's requests as a new holder sees them: another owner's are stale (its
+        sender died, or gave up waiting and let the lock go), this process's own ones are
+        given up. Malformed and expired lines are dropped."""
+        raw = os.pread(self._fd, LEDGER_MAX * 96, 0)  # 96: libcif's longest line
+        lines = raw.decode("ascii", "replace").splitlines()
+        now = _now_ms()
+        kept = [r for r in (Request.parse(line, now) for line in lines) if r is not None]
+        kept = kept[:LEDGER_MAX]
+        self._own = [r for r in kept if r.owner == self._owner]
+        self._stale = [r for r in kept if r.owner != self._owner]
+        if len(kept) != len(lines):
+            self._store()
+
+    def _store(self) -> None:
+        text = "".join(r.line() for r in (*self._stale, *self._own)).encode("ascii")
+        if text:
+            os.pwrite(self._fd, text, 0)
+        os.ftruncate(self._fd, len(text))
+
+    def reopen_after_fork(self) -> None:
+        """In a forked child: its own flock and owner number, an empty ledger in memory
+        (the requests in the file are the parent's)."""
+        self._state = threading.Lock()
+        self._session = threading.Lock()
+        self._owner = secrets.randbits(63)
+        self._held = False
+        self._users = 0
+        self._own = []
+        self._stale = []
+        fd = _open(self.path)
+        os.dup2(fd, self._fd, inheritable=False)
+        os.close(fd)
 
     def close(self) -> None:
         os.close(self._fd)

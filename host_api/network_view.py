@@ -12,6 +12,7 @@ nothing by name: its PDO shows as bytes.
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -21,12 +22,15 @@ from dbm_tools.eds import import_od
 from dbm_tools.network import Network, NodeDescription, load_network
 from dbm_tools.parameters import NodeParameterSet
 from dbm_tools.tables import NODES
+from dpm.image import CardDirectory, UnsafePathError
 
 RPDO_MAPPING = 0x1600
 TPDO_MAPPING = 0x1A00
 """CiA 301: the mapping parameter objects of the first RPDO and TPDO."""
 PREDEFINED_BASES = {"input": (0x180, 0x280, 0x380, 0x480), "output": (0x200, 0x300, 0x400, 0x500)}
 """CiA 301's predefined connection set: TPDO1..4 and RPDO1..4 at these COB-IDs + node-ID."""
+
+log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -183,8 +187,21 @@ def _remembered_path(directory: Path, board: int) -> Path:
 
 def remember_network(directory: Path, board: int, network: Path) -> None:
     """Note beside the image which file the card was configured from [ours], so that
-    ``cifemu top`` and ``cifemu monitor`` name its nodes without being told."""
-    _remembered_path(directory, board).write_text(f"{network.resolve()}\n")
+    ``cifemu top`` and ``cifemu monitor`` name its nodes without being told.
+
+    Written through a new file of an unpredictable name (``CardDirectory.replace``): a
+    host tool run as root follows no symlink another user planted (docs/security.md).
+    A directory a host may not trust gets no note, and a one-line warning: the
+    configuration itself stands."""
+    try:
+        files = CardDirectory(directory, host=True)
+    except UnsafePathError as exc:
+        log.warning("no note of the network file beside the image: %s", exc)
+        return
+    try:
+        files.replace(_remembered_path(directory, board).name, f"{network.resolve()}\n".encode())
+    finally:
+        files.close()
 
 
 def remembered_network(directory: Path, board: int) -> Path | None:

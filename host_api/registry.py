@@ -12,11 +12,16 @@ part of host_api that needs an open board asks it: the ``Dev*`` functions
   board, or the driver's return code that says why there is none;
 - ``transaction_lock(number)``: the lock that makes a request and its answer one
   transaction across threads and processes.
+
+A child forked after DevInitBoard gets lock files, thread locks and a doorbell of its own
+[ours]: inherited descriptors would share their flocks with the parent, so both would be
+inside a channel at once and read each other's answers.
 """
 
 from __future__ import annotations
 
 import mmap
+import os
 import threading
 import time
 from collections.abc import Callable
@@ -29,7 +34,7 @@ from dpm.errors import Drv
 from dpm.image import MAX_DEV_BOARDS
 from dpm.layout import DEV_FLAGS, HOST_FLAGS
 from host_api.liveness import firmware_liveness
-from host_api.locks import ChannelLock
+from host_api.locks import ChannelLock, Transaction
 
 SPIN_SECONDS = 100e-6
 """How long a waiting call watches the flags before it sleeps on the bell."""
@@ -60,7 +65,7 @@ class MappedBoard:
     get_lock: ChannelLock
     io_lock: ChannelLock
     flags_lock: ChannelLock
-    transaction_lock: ChannelLock
+    transaction: Transaction
     counters: Counters
     """The registry's for this board number (``Registry.counters``), kept past DevExitBoard."""
 
@@ -115,11 +120,23 @@ class MappedBoard:
             if condition():
                 return True
 
+    def channel_locks(self) -> tuple[ChannelLock, ...]:
+        return self.put_lock, self.get_lock, self.io_lock, self.flags_lock
+
+    def after_fork(self) -> None:
+        """In a forked child: its own lock files, thread locks and doorbell."""
+        for lock in self.channel_locks():
+            lock.reopen_after_fork()
+        self.transaction.reopen_after_fork()
+        self.bell.close()
+        self.bell = HostBell(self.path)
+        self.bell.ring_device()  # introduces the child to the device
+
     def close(self) -> None:
         self.bell.close()
-        for lock in (self.put_lock, self.get_lock, self.io_lock, self.flags_lock,
-                     self.transaction_lock):
+        for lock in self.channel_locks():
             lock.close()
+        self.transaction.close()
         self.mm.close()
 
 
@@ -137,6 +154,19 @@ class Registry:
 
 
 registry = Registry()
+
+
+def _after_fork_in_child() -> None:
+    registry.lock = threading.RLock()  # a parent's thread may have held it
+    for number, board in list(registry.boards.items()):
+        try:
+            board.after_fork()
+        except OSError:  # the lock files are gone: the board is closed here (-32)
+            del registry.boards[number]
+            board.close()
+
+
+os.register_at_fork(after_in_child=_after_fork_in_child)
 
 
 def lookup(number: int) -> MappedBoard | int:
@@ -159,7 +189,7 @@ def ready_board(number: int) -> MappedBoard | int:
     return board
 
 
-def transaction_lock(number: int) -> ChannelLock | None:
+def transaction_lock(number: int) -> Transaction | None:
     """The board's transaction lock (request + answer as one), None when not initialised."""
     board = registry.boards.get(number)
-    return None if board is None else board.transaction_lock
+    return None if board is None else board.transaction

@@ -1,4 +1,4 @@
-"""cifemu status: the card's state as a person reads it.
+"""The card's state as a person reads it: the model and rendering of ``cifemu status``.
 
 It maps the image read-only, so looking never disturbs a running card, and
 works on a card whose firmware is down: it then says so (the firmware lock is
@@ -8,17 +8,17 @@ card's last start loaded from flash.
 
 from __future__ import annotations
 
-import argparse
-import time
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-from rich.console import Console, Group
-from rich.live import Live
+from rich.console import Group
 from rich.table import Table
 
+from dbm_tools.network import NetworkError, load_network
 from dpm import flags as fl
-from dpm.errors import ERR_NODE_DEVICE
+from dpm.card_info import read_card_info
+from dpm.errors import ERR_NODE_DEVICE, err_event_text
 from dpm.flags import DevFlag, HostFlag
 from dpm.image import dpm_dir, image_path, open_image
 from dpm.layout import image_view
@@ -30,14 +30,8 @@ from dpm.task2 import (
     GlobalBits,
     node_bits,
 )
-from firmware.card_info import read_card_info
-from host_api.cli_options import add_card_options
-from host_api.cli_output import fail, print_json, run_guarded
 from host_api.liveness import firmware_liveness
-
-EXIT_OK = 0
-EXIT_DEAD = 3
-"""[ours] the image is there but no firmware holds its lock (killed, crashed, stopped)."""
+from host_api.network_view import remembered_network
 
 
 def _bus_text(bus: dict[str, Any]) -> str:
@@ -57,8 +51,23 @@ def _text(raw: Any) -> str:
     return bytes(raw).decode("ascii", "replace").strip(" \0")
 
 
-def snapshot(image: bytes) -> dict[str, Any]:
-    """Everything ``status`` shows, decoded from one copy of the image."""
+def error_controls(directory: Path, board: int) -> dict[int, str]:
+    """Each node's error control ("heartbeat", "guarding", "none") from the network the card
+    was configured from, as configure and the demo note it beside the image; empty when
+    none is noted or it no longer loads. The image does not hold it, and Err_Event 30
+    reads differently for a heartbeat node (dpm.errors.ERROR_CONTROL_TEXT)."""
+    path = remembered_network(directory, board)
+    if path is None:
+        return {}
+    try:
+        return {node.id: node.error_control for node in load_network(path).nodes}
+    except NetworkError:
+        return {}
+
+
+def snapshot(image: bytes, error_control: Mapping[int, str] | None = None) -> dict[str, Any]:
+    """Everything ``status`` shows, decoded from one copy of the image; ``error_control``
+    (node -> "heartbeat" or "guarding", see error_controls) words Err_Event 30."""
     view: Any = image_view(bytearray(image))
     host, dev = int(view["HostFlags"]), int(view["DevFlags"])
     rcs, devinfo = view["RcsInfo"], view["DevInfo"]
@@ -107,7 +116,8 @@ def snapshot(image: bytes) -> dict[str, Any]:
             "can_state": diag.can_state_name,
             "err_node_adr": diag.bErr_rem_adr,
             "err_event": diag.bErr_event,
-            "err_text": diag.err_text,
+            "err_text": err_event_text(diag.bErr_rem_adr, diag.bErr_event,
+                                       (error_control or {}).get(diag.bErr_rem_adr)),
             "bus_error_cnt": diag.usBus_Error_Cnt,
             "bus_off_cnt": diag.usBus_Off_Cnt,
             "msg_time_out": diag.usMsg_Time_Out,
@@ -237,7 +247,7 @@ Task2State, the card's view of the network (one bit per node-ID in Nd_*)
   Nd_diag    nodes with diagnostics waiting (an error or an EMCY): the host
              reads them with COM_Node_Diag (msg.b 66)
   error      Err_Event at Err_Node_adr (device = the card itself), e.g. 30
-             guarding failed, 31 the node left OPERATIONAL, 34 no answer while
+             guarding (or heartbeat) failed, 31 the node left OPERATIONAL, 34 no answer while
              configuring it, 35/36 profile/device type (1000h) differs, 212
              faulty database, 220 host watchdog expired
   global bits  CTRL parameter error, ACLR auto-clear, NEXC a node not in data
@@ -254,49 +264,3 @@ Common msg.f numbers (the error in a mailbox answer; DevDownload: 1000 + f)
 The full reference: docs/dpm.md sections 1, 2 and 5.
 """
 """The ``--help`` epilog: the card's words explained for a CANopen engineer."""
-
-
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.formatter_class = argparse.RawDescriptionHelpFormatter
-    parser.epilog = GUIDE
-    add_card_options(parser)
-    parser.add_argument("--watch", action="store_true", help="refresh until Ctrl-C")
-    parser.add_argument("--interval", type=float, default=0.5, help="--watch refresh seconds")
-    parser.add_argument("--json", action="store_true", help="print the decoded state as JSON")
-
-
-def _full_snapshot(image: bytes, directory: Path, board: int) -> dict[str, Any]:
-    return {"board": board, **snapshot(image), "health": health(directory, board)}
-
-
-def run(args: argparse.Namespace) -> int:
-    console = Console()
-    directory = dpm_dir(args.dpm_dir)
-    image = read_image(args.board, args.dpm_dir)
-    if image is None:
-        where = image_path(directory, args.board)
-        return fail("status", f"no image at {where}: is `cifemu firmware --board {args.board}` "
-                    "running?", args.json, image=str(where))
-    snap = _full_snapshot(image, directory, args.board)
-    alive = EXIT_OK if snap["health"]["alive"] else EXIT_DEAD
-    if args.json:
-        print_json(snap)
-        return alive
-    if not args.watch:
-        console.print(render(args.board, snap))
-        return alive
-    try:
-        with Live(render(args.board, snap), console=console, auto_refresh=False) as live:
-            while True:
-                time.sleep(args.interval)
-                image = read_image(args.board, args.dpm_dir) or image
-                live.update(render(args.board, _full_snapshot(image, directory, args.board)),
-                            refresh=True)
-    except KeyboardInterrupt:
-        return 0
-
-
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m host_api", description=__doc__)
-    add_arguments(parser)
-    return run_guarded(run, parser.parse_args(argv))

@@ -16,13 +16,14 @@ import pytest
 
 from host_api import driver
 from host_api.liveness import firmware_liveness
+from tests.selection import HELPER_MODULES, forbid_processes, marks_of_module
 
 REQUIRE_SOCKETCAN = "CIFEMU_REQUIRE_SOCKETCAN"
 """Set by ``make test-vcan``: there a SocketCAN test that skips is a failure."""
 
-# test_sim.py loads tests.buses as a plugin, but test_can_task.py imports it first:
-# registered here, it is rewritten on that first import, as its plugin use expects.
-pytest.register_assert_rewrite("tests.buses")
+# The helper modules hold asserts and fixtures; test modules import them, and some also load
+# them as plugins: registered here, they are rewritten on the first import, whichever it is.
+pytest.register_assert_rewrite(*HELPER_MODULES)
 
 ROOT = Path(__file__).resolve().parents[1]
 IMAGE_SIZE = 8192
@@ -83,8 +84,8 @@ class Card:
 
 def start_card(directory: Path, board: int = 0, *extra: str) -> Card:
     proc = subprocess.Popen(
-        [sys.executable, "-m", "firmware", "--board", str(board), "--dpm-dir", str(directory),
-         "--log-level", "WARNING", *extra],
+        [sys.executable, "-m", "cifemu", "firmware", "--board", str(board),
+         "--dpm-dir", str(directory), "--log-level", "WARNING", *extra],
         stderr=subprocess.PIPE,
     )
     card = Card(directory, board, proc)
@@ -107,15 +108,43 @@ def start_card(directory: Path, board: int = 0, *extra: str) -> Card:
 
 def pytest_configure(config: pytest.Config) -> None:
     config.addinivalue_line("markers", "vcan: needs SocketCAN with vcan0 (make test-vcan)")
+    config.addinivalue_line("markers", "fast: starts no process and opens no socket: a codec, "
+                            "parser or source check (make test-fast; tests/selection.py)")
+    config.addinivalue_line("markers", "vcan_vm: starts a virtual machine through "
+                            "tools/vcan-vm (make test-vcan, not make test)")
+    config.addinivalue_line("markers", "serial: measures time; make test runs it after the "
+                            "parallel pass, alone on the machine")
 
 
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
-    """Marks the ``socketcan`` variants of the back-to-back fixtures ``vcan``, so that
-    ``-m vcan`` selects them (``test_vcan_tools.py``, SocketCAN only, marks itself)."""
+    """The markers by module (tests/selection.py), and ``vcan`` on the ``socketcan`` variants
+    of the back-to-back fixtures, so that ``-m vcan`` selects them (``test_vcan_tools.py``,
+    SocketCAN only, marks itself)."""
     for item in items:
+        for mark in marks_of_module(item.path.stem):
+            item.add_marker(mark)
         callspec = getattr(item, "callspec", None)
         if callspec is not None and "socketcan" in callspec.params.values():
             item.add_marker(pytest.mark.vcan)
+
+
+@pytest.fixture(scope="session", autouse=True)
+def fast_stays_fast(request: pytest.FixtureRequest) -> None:
+    """Under ``-m fast`` (make test-fast) starting a process or opening a socket fails the
+    test that does it: the selection cannot grow a firmware unnoticed."""
+    if request.config.option.markexpr.strip() == "fast":
+        forbid_processes()
+
+
+@pytest.fixture(scope="session", autouse=True)
+def private_image_directory(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Path]:
+    """$CIF_DPM_DIR of this test process (each pytest-xdist worker has its own): a test or
+    a command it runs that takes the default image directory never meets another worker's
+    card, nor the user's in /dev/shm/cif."""
+    directory = tmp_path_factory.mktemp("default-images")
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setenv("CIF_DPM_DIR", str(directory))
+        yield directory
 
 
 @pytest.hookimpl(hookwrapper=True)

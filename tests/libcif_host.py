@@ -7,14 +7,57 @@ assert the same return codes and data, so the two implementations cannot drift a
 from __future__ import annotations
 
 import ctypes
+import fcntl
+import functools
 import os
+import shutil
+import subprocess
 from pathlib import Path
+
+import pytest
 
 from cifemu import libcif
 from dpm.message import Message
 from host_api.driver import ComState
 
 MSG_SIZE = 288
+
+BUILD_LOCK = "build.lock"
+"""Taken (in libcif's build directory) around every build: two pytest-xdist workers must not
+compile into one directory."""
+
+
+def toolchain_missing() -> str | None:
+    """Why libcif cannot be compiled on this machine (no C compiler, no make), or None."""
+    if (shutil.which("cc") or shutil.which("gcc")) is None:
+        return "no C compiler (cc or gcc): install one to build and test libcif"
+    if shutil.which("make") is None:
+        return "no make: install it to build and test libcif"
+    return None
+
+
+def build_libcif(target: str = "all") -> None:
+    """``make -C libcif TARGET``: skips the calling test where the machine has no C toolchain
+    (the reason says what to install), and FAILS it on a compile error, which a skip would
+    hide among the machine's missing tools."""
+    missing = toolchain_missing()
+    if missing is not None:
+        pytest.skip(missing)
+    try:
+        libcif.BUILD.mkdir(parents=True, exist_ok=True)
+        with open(libcif.BUILD / BUILD_LOCK, "w") as lock:
+            fcntl.flock(lock, fcntl.LOCK_EX)
+            libcif.build(target)
+    except libcif.LibcifError as exc:
+        pytest.fail(str(exc), pytrace=False)
+
+
+@functools.cache
+def load_libcif() -> ctypes.CDLL:
+    """libcif of this clone, brought up to date with its sources and loaded once per test
+    process (see ``build_libcif`` for when it skips and when it fails)."""
+    build_libcif("all")
+    return libcif.load()
 
 
 class PythonDriver:
@@ -34,7 +77,7 @@ class CDriver:
     """libcif's Dev* functions with host_api.driver's Python signatures."""
 
     def __init__(self) -> None:
-        self.lib = libcif.load()
+        self.lib = load_libcif()
 
     def __getattr__(self, name: str) -> object:
         # the constants (GET_IO_INFO, WARMSTART, CONFIGURATION_DOWNLOAD, ...) are the
@@ -168,3 +211,33 @@ class CDriver:
     def DevDownload(self, number: int, mode: int, source: str | Path) -> int:
         count = ctypes.c_ulong()
         return int(self.lib.DevDownload(number, mode, os.fsencode(source), ctypes.byref(count)))
+
+
+# --- C programs built against libcif and run against a card ---------------------------
+
+C_TESTS = Path(__file__).with_name("c")
+CC = shutil.which("cc") or shutil.which("gcc")
+STRICT = ["-std=c99", "-Wall", "-Wextra", "-Werror", "-g"]
+SANITIZE = ["-fsanitize=address,undefined", "-fno-sanitize-recover=all",
+            "-fno-omit-frame-pointer"]
+
+
+def compile_program(source: Path, out: Path, variant: str) -> Path:
+    assert CC is not None
+    if variant == "sanitized":
+        command = [CC, *STRICT, *SANITIZE, str(source), f"-I{libcif.INCLUDE}",
+                   str(libcif.BUILD / "asan" / "libcif.a"), "-pthread"]
+    else:
+        command = [CC, *STRICT, str(source), *libcif.flags(True, True).split()]
+    subprocess.run([*command, "-o", str(out)], check=True)
+    return out
+
+
+def run(program: Path, directory: Path, *args: str, timeout: float = 120) -> str:
+    env = {**os.environ, "CIF_DPM_DIR": str(directory),
+           "ASAN_OPTIONS": "detect_leaks=1:abort_on_error=0",
+           "UBSAN_OPTIONS": "print_stacktrace=1:halt_on_error=1"}
+    done = subprocess.run([str(program), *args], env=env, capture_output=True, text=True,
+                          timeout=timeout, check=False)
+    assert done.returncode == 0, f"{program.name} failed:\n{done.stdout}\n{done.stderr}"
+    return done.stdout

@@ -12,58 +12,17 @@ from __future__ import annotations
 
 import struct
 import time
-import uuid
-from collections.abc import Iterator
-from pathlib import Path
-
-import can
-import pytest
 
 from dbm_tools.network import parse_network
-from dpm.task2 import ComDiagnostics
 from firmware.can.supervision import START_GRACE
 from firmware.shm.bus import ShmBus
-from host_api.board import Board
 from host_api.online import configure_online
-from tests.conftest import start_card, wait_until
-from tests.test_can_task import start_sim
+from tests.conftest import wait_until
+from tests.shm_rig import NETWORK, NODE, Rig
 
-NODE = 2
-NETWORK = f'[[node]]\nid = {NODE}\nerror_control = "none"\n'
-"""A node without heartbeat: every error-control frame the card sees is the test's."""
+pytest_plugins = ["tests.shm_rig"]
+
 PRE_OPERATIONAL, TOGGLE, NMT_START = 0x7F, 0x80, 0x01
-
-
-class Rig:
-    def __init__(self, board: Board, station: ShmBus) -> None:
-        self.board = board
-        self.station = station
-
-    def diag(self) -> ComDiagnostics:
-        return self.board.diagnostics()
-
-    def send(self, ident: int, data: bytes, stamp: float) -> None:
-        self.station.send(can.Message(timestamp=stamp, arbitration_id=ident, data=data,
-                                      is_extended_id=False))
-
-
-@pytest.fixture
-def rig(tmp_path: Path) -> Iterator[Rig]:
-    channel = f"test-{uuid.uuid4().hex}"
-    toml = tmp_path / "network.toml"
-    toml.write_text(NETWORK)
-    card = start_card(tmp_path, 0, "--interface", "shm", "--channel", channel)
-    sim = start_sim(toml, "shm", channel)
-    station = ShmBus(channel, preserve_timestamps=True)
-    board = Board(0, tmp_path, timeout=5000).open()
-    try:
-        yield Rig(board, station)
-    finally:
-        board.close()
-        station.shutdown()
-        card.stop()
-        sim.terminate()
-        sim.wait(timeout=10)
 
 
 def start_stamp(station: ShmBus, deadline: float) -> float:

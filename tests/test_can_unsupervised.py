@@ -14,9 +14,9 @@ import time
 from dbm_tools.network import parse_network
 from host_api.online import configure_online
 from tests.conftest import wait_until
-from tests.test_can_late_frames import NETWORK, NODE, Rig, rig
+from tests.shm_rig import NETWORK, NODE, Rig
 
-__all__ = ["rig"]  # the fixture, shared with test_can_late_frames
+pytest_plugins = ["tests.shm_rig"]
 OPERATIONAL, PRE_OPERATIONAL = 0x05, 0x7F
 
 

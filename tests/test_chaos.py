@@ -21,6 +21,7 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
+import can
 import pytest
 
 from dbm_tools.builder import build_dbm
@@ -28,7 +29,7 @@ from dbm_tools.container import write_dbm
 from dbm_tools.network import load_network
 from dpm import flags as fl
 from dpm.cia305 import WAITING
-from dpm.commands import COM_NODE_DIAG
+from dpm.commands import COM_NODE_DIAG, NMT_RESET_NODE
 from dpm.errors import Drv
 from dpm.message import Message, Task
 from dpm.task2 import CanState, GlobalBits
@@ -38,8 +39,8 @@ from host_api.cia309.gateway import Cia309Error, Gateway
 from host_api.cia309.lss import LssError, LssMaster
 from host_api.download import CONFIGURATION_DOWNLOAD, DevDownload, upload_database
 from host_api.online import ConfigurationError, configure_online
+from tests.can_net import start_sim
 from tests.conftest import ROOT, Card, start_card, wait_until
-from tests.test_can_task import start_sim
 
 NO_RESPONSE_BIT = 0x01
 GUARD_ACTIVE_BIT = 0x08
@@ -80,6 +81,20 @@ class Bench:
         self.sim.send_signal(signal.SIGKILL)
         self.sim.wait(timeout=10)
         self.sim = None
+
+
+def _reset_counter(station: can.BusABC) -> Callable[[list[int]], list[int]]:
+    """Counts the NMT Reset_Node frames ``station`` has received per node since it was opened;
+    each call reads what arrived and returns the counts of the nodes asked for."""
+    seen: dict[int, int] = {}
+
+    def counts(nodes: list[int]) -> list[int]:
+        while (frame := station.recv(0)) is not None:
+            if frame.arbitration_id == 0 and bytes(frame.data[:1]) == bytes([NMT_RESET_NODE]):
+                seen[frame.data[1]] = seen.get(frame.data[1], 0) + 1
+        return [seen.get(node, 0) for node in nodes]
+
+    return counts
 
 
 def _gone(path: Path) -> Callable[[], bool]:
@@ -146,7 +161,12 @@ def test_sim_killed_heartbeat_nodes_report_the_seed_errors_and_recover(
     wait_until(lambda: bench.board.diagnostics().bErr_event == 34, 8, "Err_Event 34")
     wait_until(lambda: all(bench.diag_bits(node)[6] == 34 for node in HEARTBEAT_NODES), 3,
                "Actual_Error 34 at every node (read, so Nd_diag clear)")
-    time.sleep(4.5)  # one more restart attempt of every node fails the same way
+    with can.Bus(interface="shm", channel=bench.channel) as station:
+        # One more restart attempt of every node fails the same way: each attempt begins with
+        # a Reset_Node, so the second one heard from here on shows the first one has failed.
+        resets = _reset_counter(station)
+        wait_until(lambda: all(n >= 2 for n in resets(HEARTBEAT_NODES)), 15,
+                   "two more restart attempts of every node")
     assert bench.board.diagnostics().diagnostic() == []
     bench.start_sim()
     wait_until(lambda: bench.board.diagnostics().operating() == HEARTBEAT_NODES, 8,

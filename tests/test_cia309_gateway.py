@@ -10,7 +10,6 @@ tests (faults injected at power-on; store, restore, initialise, controller).
 
 from __future__ import annotations
 
-import dataclasses
 import os
 import struct
 import threading
@@ -20,13 +19,10 @@ from pathlib import Path
 
 import pytest
 
-from dbm_tools.network import load_network
 from dpm.com import CanFrame
 from dpm.commands import AREA_BUS, COM_UPLOAD, MAX_LEN_DATA_UNIT
 from dpm.message import Message, Task
-from dpm.task2 import CanState, ComDiagnostics
-from host_api import driver as d
-from host_api.board import Board
+from dpm.task2 import CanState
 from host_api.cia309.gateway import VENDOR_ID, Gateway
 from host_api.cia309.model import (
     ALL_NODES,
@@ -44,42 +40,10 @@ from host_api.cia309.model import (
     SdoProgressEvent,
     decode_value,
 )
-from host_api.online import configure_online
-from tests.conftest import Card, start_card, wait_until
+from tests.conftest import wait_until
+from tests.gateway_cards import EDS, diagnostics, start, wait_operating
 
-EDS = Path(__file__).with_name("data") / "cia309_node.eds"
 MAIN = f'[[node]]\nid = 1\n[[node]]\nid = 2\neds = "{EDS}"\n[[node]]\nid = 3\n[[node]]\nid = 9\n'
-NOT_IN_CARD = {9, 255}
-"""Simulated, but not configured in the card: node 9 leaves its identifiers free for layer-2
-access; 255 (an unconfigured LSS slave) cannot be configured."""
-
-
-def start(directory: Path, board: int, toml: str | None) -> Card:
-    """A card on ``board``; with ``toml`` it simulates that network and is configured on line."""
-    args = ["--flash", str(directory / f"flash{board}")]
-    if toml is not None:
-        path = directory / f"network{board}.toml"
-        path.write_text(toml)
-        args += ["--simulate", str(path)]
-    card = start_card(directory, board, *args)
-    if toml is not None:
-        network = load_network(directory / f"network{board}.toml")
-        network = dataclasses.replace(
-            network, nodes=[node for node in network.nodes if node.id not in NOT_IN_CARD])
-        with Board(board, directory, timeout=5000) as opened:
-            configure_online(opened, network)
-    return card
-
-
-def diagnostics(board: int) -> ComDiagnostics:
-    code, raw = d.DevGetTaskState(board, 2, 64)
-    assert code == 0
-    return ComDiagnostics.decode(raw)
-
-
-def wait_operating(board: int, nodes: list[int], timeout: float = 10) -> None:
-    wait_until(lambda: diagnostics(board).operating() == nodes, timeout,
-               f"nodes {nodes} of board {board} in data exchange")
 
 
 def reason(call: Callable[[], object]) -> Cia309Error:

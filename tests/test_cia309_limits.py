@@ -24,15 +24,14 @@ import threading
 import time
 from collections.abc import Iterator
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field
-from pathlib import Path
 
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from tests.cia309_clients import ANSWER_1000, READ_1000, Server, Steady, read_line
 from tests.conftest import Card, wait_until
-from tests.test_cia309_gateway import start
+from tests.gateway_cards import start
 
 EXAMPLES = int(os.environ.get("CIFEMU_FUZZ_EXAMPLES", "60"))
 ROUNDS = max(3, EXAMPLES // 20)
@@ -43,26 +42,7 @@ MEMORY_GROWTH = 8 << 20
 """Bytes the server's resident memory may grow over a test after its first round."""
 FIRST_RSS: dict[str, int] = {}
 """The server's resident memory after the first generated example."""
-READ_1000 = "1 1 read 0x1000 0 u32"
-ANSWER_1000 = "983441"
-"""1000h of the simulator's generic module."""
-STEADY_PERIOD = 0.05
-STEADY_WORST = 2.0
-"""Seconds the well-behaved client may wait for one answer on a loaded two-core machine."""
 REFUSED = b"[0] ERROR:600 #Running out of memory.\r\n"
-
-
-@dataclass
-class Server:
-    proc: subprocess.Popen[str]
-    port: int
-
-    def rss(self) -> int:
-        """The server's resident memory in bytes."""
-        status = Path(f"/proc/{self.proc.pid}/status").read_text()
-        match = re.search(r"VmRSS:\s+(\d+) kB", status)
-        assert match is not None
-        return int(match.group(1)) * 1024
 
 
 @pytest.fixture(scope="module")
@@ -99,17 +79,7 @@ def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Server]:
 def _ask_once(port: int, request: str) -> str:
     with socket.create_connection(("127.0.0.1", port), timeout=10) as sock:
         sock.sendall(f"[1] {request}\n".encode())
-        return _line(sock).rstrip("\r\n")
-
-
-def _line(sock: socket.socket) -> str:
-    data = b""
-    while not data.endswith(b"\n"):
-        chunk = sock.recv(1)
-        if not chunk:
-            break
-        data += chunk
-    return data.decode("latin-1")
+        return read_line(sock).rstrip("\r\n")
 
 
 def _closed_by_server(sock: socket.socket, timeout: float) -> bool:
@@ -126,51 +96,6 @@ def _closed_by_server(sock: socket.socket, timeout: float) -> bool:
     except TimeoutError:
         return False
     return False
-
-
-@dataclass
-class Steady:
-    """A well-behaved client: one SDO read every STEADY_PERIOD, each answer checked."""
-
-    port: int
-    answered: int = 0
-    worst: float = 0.0
-    failures: list[str] = field(default_factory=list)
-    _stop: threading.Event = field(default_factory=threading.Event)
-    _thread: threading.Thread | None = None
-
-    def start(self) -> None:
-        self._thread = threading.Thread(target=self._run, daemon=True)
-        self._thread.start()
-        wait_until(lambda: self.answered > 0 or self.failures, 10,
-                   "the steady client's first answer")
-
-    def _run(self) -> None:
-        try:
-            with socket.create_connection(("127.0.0.1", self.port), timeout=10) as sock:
-                sequence = 0
-                while not self._stop.is_set():
-                    sequence += 1
-                    began = time.monotonic()
-                    sock.sendall(f"[{sequence}] {READ_1000}\n".encode())
-                    answer = _line(sock)
-                    self.worst = max(self.worst, time.monotonic() - began)
-                    if answer != f"[{sequence}] {ANSWER_1000}\r\n":
-                        self.failures.append(answer)
-                        return
-                    self.answered += 1
-                    self._stop.wait(STEADY_PERIOD)
-        except OSError as exc:
-            self.failures.append(repr(exc))
-
-    def stop(self, seconds: float) -> None:
-        """End it and check it kept its rate over the last ``seconds``."""
-        self._stop.set()
-        assert self._thread is not None
-        self._thread.join(10)
-        assert not self.failures
-        assert self.worst < STEADY_WORST
-        assert self.answered >= seconds / (STEADY_PERIOD + STEADY_WORST / 10)
 
 
 @pytest.fixture
@@ -300,7 +225,7 @@ def test_200_connections_at_once(server: Server, steady: Steady) -> None:
             for _ in range(200):  # each asks at once: a slot's idle time-out is 1 s
                 sockets.append(socket.create_connection(("127.0.0.1", server.port), timeout=10))
                 sockets[-1].sendall(f"[7] {READ_1000}\n".encode())
-            outcomes = {_line(sock).encode() for sock in sockets}
+            outcomes = {read_line(sock).encode() for sock in sockets}
         finally:
             for sock in sockets:
                 sock.close()

@@ -28,12 +28,12 @@ from pathlib import Path
 
 import pytest
 
-from host_api.cia309.cli import Remote, open_lss
+from cifemu.commands.cia309 import Remote, open_lss
 from host_api.cia309.datatypes import Dialect
 from host_api.cia309.gateway import Gateway
 from host_api.cia309.server import BackgroundServer, ServerConfig
 from tests.conftest import wait_until
-from tests.test_cia309_gateway import EDS, start, wait_operating
+from tests.gateway_cards import EDS, start, wait_operating
 
 NETWORK = f"""[[node]]
 id = 1

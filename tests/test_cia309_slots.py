@@ -26,9 +26,9 @@ from pathlib import Path
 
 import pytest
 
+from tests.cia309_clients import ANSWER_1000, READ_1000, Server, Steady, read_line
 from tests.conftest import Card, wait_until
-from tests.test_cia309_gateway import start
-from tests.test_cia309_limits import ANSWER_1000, READ_1000, Server, Steady, _line
+from tests.gateway_cards import start
 
 MAX_CLIENTS = 8
 """The default of ``--max-clients``."""
@@ -78,7 +78,7 @@ def _ask(port: int, sequence: int, sock: socket.socket | None = None) -> str:
         if sock is None:
             sock = stack.enter_context(socket.create_connection(("127.0.0.1", port), timeout=10))
         sock.sendall(f"[{sequence}] {READ_1000}\n".encode())
-        return _line(sock)
+        return read_line(sock)
 
 
 def _at_eof(sock: socket.socket, timeout: float) -> bool:

@@ -202,7 +202,7 @@ def test_a_description_the_card_would_refuse_never_reaches_it(tmp_path: Path) ->
 
 
 def test_configure_waits_for_a_card_that_is_still_starting(tmp_path: Path) -> None:
-    card = subprocess.Popen([sys.executable, "-m", "firmware", "--dpm-dir", str(tmp_path),
+    card = subprocess.Popen([sys.executable, "-m", "cifemu", "firmware", "--dpm-dir", str(tmp_path),
                              "--simulate", str(DEMO), "--reset-delay", "1.5",
                              "--log-level", "WARNING"])
     try:

@@ -32,10 +32,9 @@ boot = ["start", "pdo"]
 """
 
 
-def cli(*args: str | Path, module: str = "dbm_tools") -> subprocess.CompletedProcess[str]:
-    """``python -m dbm_tools ARGS`` (quick to start), or ``python -m cifemu dbm ARGS``."""
-    command = [sys.executable, "-m", module, *(["dbm"] if module == "cifemu" else []),
-               *map(str, args)]
+def cli(*args: str | Path) -> subprocess.CompletedProcess[str]:
+    """``python -m cifemu dbm ARGS``."""
+    command = [sys.executable, "-m", "cifemu", "dbm", *map(str, args)]
     env = {**os.environ, "COLUMNS": "200"}  # rich wraps at 80 columns without a terminal
     return subprocess.run(command, cwd=ROOT, capture_output=True, text=True, timeout=60,
                           env=env)
@@ -52,8 +51,7 @@ def built(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """One build for the module's tests, which only read it."""
     directory = tmp_path_factory.mktemp("built")
     out = directory / "plant.dbm"
-    result = cli("build", write_network(directory), "-o", out, "--name", "Plant 1",
-                 module="cifemu")
+    result = cli("build", write_network(directory), "-o", out, "--name", "Plant 1")
     assert result.returncode == 0, result.stderr
     assert "2 node(s), passes the card's checks" in result.stdout
     return out
@@ -64,7 +62,7 @@ def test_help_explains_every_command() -> None:
     assert result.returncode == 0
     for command in ("show", "check", "build", "diff", "download", "upload", "delete", "dir"):
         assert f"  {command}" in result.stdout
-    result = cli("check", "--help", module="cifemu")
+    result = cli("check", "--help")
     assert result.returncode == 0 and "212" in result.stdout and "Exit status 1" in result.stdout
 
 
@@ -123,7 +121,7 @@ def test_show_json_gives_unknown_records_in_hex() -> None:
 
 @needs_real_dbm
 def test_check_of_a_foreign_database() -> None:
-    result = cli("check", FIXTURE, module="cifemu")
+    result = cli("check", FIXTURE)
     assert result.returncode == 1
     assert ("error 20 (database not valid for this device) in table GLOBAL, record 1, field "
             "szSegmentName: segment name 'PB_COMBI'") in result.stdout
@@ -188,7 +186,7 @@ def test_diff_names_a_table_only_one_side_has(built: Path) -> None:
 def test_json_errors_are_objects_and_a_closed_pipe_ends_quietly(tmp_path: Path,
                                                                 built: Path) -> None:
     missing = tmp_path / "missing.dbm"
-    result = cli("check", "--json", missing, module="cifemu")
+    result = cli("check", "--json", missing)
     assert (result.returncode, result.stderr) == (1, "")
     assert json.loads(result.stdout) == {"error": {
         "command": "dbm check", "message": f"cannot read {missing}: No such file or directory"}}
@@ -196,23 +194,22 @@ def test_json_errors_are_objects_and_a_closed_pipe_ends_quietly(tmp_path: Path,
     error = json.loads(result.stdout)["error"]
     assert result.returncode == 1 and error["command"] == "dbm dir"
     assert "is `cifemu firmware --board 1` running?" in error["message"]
-    for module in ("dbm_tools", "cifemu"):  # the reader is gone before the first line
-        command = [sys.executable, "-m", module, *(["dbm"] if module == "cifemu" else []),
-                   "show", "--json", str(built)]
-        reader = subprocess.Popen(command, cwd=ROOT, stdout=subprocess.PIPE,
-                                  stderr=subprocess.PIPE, text=True)
-        assert reader.stdout is not None and reader.stderr is not None
-        reader.stdout.close()
-        errors = reader.stderr.read()
-        assert reader.wait(60) == 1
-        assert errors == "", errors
+    # the reader is gone before the first line
+    command = [sys.executable, "-m", "cifemu", "dbm", "show", "--json", str(built)]
+    reader = subprocess.Popen(command, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                              text=True)
+    assert reader.stdout is not None and reader.stderr is not None
+    reader.stdout.close()
+    errors = reader.stderr.read()
+    assert reader.wait(60) == 1
+    assert errors == "", errors
 
 
 def test_card_commands(card: Card, tmp_path: Path, built: Path) -> None:
     where = ("--dpm-dir", card.directory)
-    result = cli("upload", "-o", tmp_path / "none.dbm", *where, module="cifemu")
+    result = cli("upload", "-o", tmp_path / "none.dbm", *where)
     assert result.returncode == 1 and "1200" in result.stderr
-    result = cli("download", built, "--reset", *where, module="cifemu")
+    result = cli("download", built, "--reset", *where)
     assert result.returncode == 0, result.stderr
     assert "stored in board 0's flash" in result.stdout
     assert "cold start done: READY RUN COM" in result.stdout
@@ -225,7 +222,7 @@ def test_card_commands(card: Card, tmp_path: Path, built: Path) -> None:
     assert flash_file.read_bytes() == built.read_bytes()[44:]
     assert cli("show", flash_file).returncode == 0  # the flash holds a bare data area
 
-    result = cli("delete", *where, module="cifemu")
+    result = cli("delete", *where)
     assert result.returncode == 0 and "database deleted" in result.stdout
     result = cli("dir", "--json", *where)
     assert result.returncode == 0 and json.loads(result.stdout) == []

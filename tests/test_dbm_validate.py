@@ -47,7 +47,9 @@ from tests.fixtures import real_dbm_bytes
 
 DBM_DOC = Path(__file__).resolve().parents[1] / "docs" / "dbm.md"
 
-DATA_SET_NUMBERS = {53, 55, 59, 60, 61, 62, 63, 64, 65, 66, 67, 68, 69, 70, 71, 72, 73, 74, 75, 76}
+DATA_SET_NUMBERS = {53, 55, 59, 60, 61, 62, 63, 64, 65, 66, 68, 69, 70, 71, 72, 73, 74, 75, 76}
+"""Every data-check number the card answers with; 67 is not one: every SYNC_Timer is valid
+(seed revision 16)."""
 
 
 def valid_node(**changes: Any) -> NodeParameterSet:
@@ -155,13 +157,6 @@ CASES: list[tuple[int, str, Callable[[], list[Finding]]]] = [
         "COB_ID_SYNC 2048",
         lambda: check_bus_parameters(BusParameterSet(COB_ID_SYNC=2048).encode()),
     ),
-    (
-        67,
-        "no SYNC for a synchronous PDO",
-        lambda: check_bus_parameters(
-            BusParameterSet(SYNC_Timer=0).encode(), [valid_node(), sync_node()]
-        ),
-    ),
     (68, "input offset + length > 3584", lambda: nodes_check(valid_node(ausInputOffsets=[3583]))),
     (69, "output offset + length > 3584", lambda: nodes_check(valid_node(ausOutputOffsets=[3583]))),
     (70, "an input offset too many", lambda: nodes_check(valid_node(ausInputOffsets=[0, 2]))),
@@ -235,11 +230,10 @@ def test_oversized_declared_length_reports_both() -> None:
     assert numbers(nodes_check(patched(0, 1001))) == {59, 62}
 
 
-def test_sync_timer_check_needs_an_active_synchronous_node() -> None:
-    no_sync = BusParameterSet(SYNC_Timer=0).encode()
-    assert check_bus_parameters(no_sync, [valid_node()]) == []
-    assert check_bus_parameters(no_sync, [sync_node(active=False)]) == []
-    assert check_bus_parameters(BusParameterSet(SYNC_Timer=10).encode(), [sync_node()]) == []
+def test_every_sync_timer_is_valid() -> None:
+    """Seed revision 16: SYNC_Timer 0 (no SYNC from the card) is valid, 67 never comes."""
+    for timer in (0, 10, 0xFFFF):
+        assert check_bus_parameters(BusParameterSet(SYNC_Timer=timer).encode()) == []
 
 
 def test_double_address_findings_point_at_the_record() -> None:
@@ -386,14 +380,10 @@ def test_node_on_master_node_id() -> None:
     assert (finding.number, finding.table, finding.record) == (60, NODES, 1)
 
 
-def test_sync_timer_across_tables() -> None:
+def test_sync_timer_0_with_a_synchronous_node() -> None:
+    """Seed revision 16: a database whose SYNC comes from another station is valid."""
     nodes = [NodesRecord(4, sync_node()).encode()]
-    (finding,) = check_dbm(canopen_dbm(nodes, bus=BusParameterSet(SYNC_Timer=0)))
-    assert (finding.number, finding.table) == (67, BUS_CAN)
-    # a node whose set fails its own checks still counts for the SYNC check
-    bad_sync = NodesRecord(4, replace(sync_node(), usCobIDGuard=0)).encode()
-    found = check_dbm(canopen_dbm([bad_sync], bus=BusParameterSet(SYNC_Timer=0)))
-    assert numbers(found) == {67, 74}
+    assert check_dbm(canopen_dbm(nodes, bus=BusParameterSet(SYNC_Timer=0))) == []
     assert check_dbm(canopen_dbm(nodes, bus=BusParameterSet(SYNC_Timer=10))) == []
 
 

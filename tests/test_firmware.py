@@ -49,7 +49,8 @@ def test_identification_areas(card: Card) -> None:
 
 def test_a_second_firmware_for_the_same_board_refuses(card: Card) -> None:
     second = subprocess.run(
-        [sys.executable, "-m", "firmware", "--board", "0", "--dpm-dir", str(card.directory)],
+        [sys.executable, "-m", "cifemu", "firmware", "--board", "0", "--dpm-dir",
+         str(card.directory)],
         capture_output=True, text=True, timeout=30,
     )
     assert second.returncode == 1

@@ -39,8 +39,8 @@ from host_api import driver
 from host_api.board import Board
 from host_api.driver import COLDSTART
 from host_api.online import configure_online
+from tests.can_net import start_sim
 from tests.conftest import Card, start_card, wait_until
-from tests.test_can_task import start_sim
 
 SOAK_SECONDS = max(1.0, float(os.environ.get("CIFEMU_SOAK_SECONDS", "5")))
 COM_SHARED_MEMORY = 17

@@ -156,9 +156,9 @@ def test_each_package_facade_gives_what_it_lists_and_the_distributions_version()
         assert package.__version__ == expected, name
 
 
-def test_the_readme_names_every_modules_job() -> None:
-    """README's architecture table lists every module of every package with its one job."""
-    text = (ROOT / "README.md").read_text()
+def test_the_architecture_page_names_every_modules_job() -> None:
+    """docs/architecture.md's module table lists every module of every package with its job."""
+    text = (ROOT / "docs" / "architecture.md").read_text()
     rows = {line.split("`", 2)[1].rstrip("/"): line for line in text.splitlines()
             if line.startswith("| `") and "`: " in line}
     missing = []
@@ -168,4 +168,4 @@ def test_the_readme_names_every_modules_job() -> None:
         package, module = str(path.parent.relative_to(ROOT)), path.stem
         if f"`{module}`: " not in rows.get(package, ""):
             missing.append(name)
-    assert not missing, f"modules without their job in README's architecture section: {missing}"
+    assert not missing, f"modules without their job in docs/architecture.md: {missing}"

@@ -21,11 +21,12 @@ from pathlib import Path
 import pytest
 
 from cifemu import libcif
+from cifemu.commands import legacy
 from dbm_tools.builder import build_dbm
 from dbm_tools.container import save_dbm
 from dbm_tools.network import parse_network
-from host_api import legacy
 from tests.conftest import Card, start_card
+from tests.libcif_host import build_libcif
 
 SOURCE = Path(__file__).with_name("c") / "legacy_ioctl.c"
 CC = shutil.which("cc") or shutil.which("gcc")
@@ -107,7 +108,7 @@ EXPECTED = {
 @pytest.fixture(scope="module")
 def preloads() -> dict[str, Path]:
     """The preload library per ABI; i386 only where gcc-multilib is installed."""
-    libcif.build("preload")
+    build_libcif("preload")
     built = {"x86-64": legacy.PRELOAD_64}
     if legacy.PRELOAD_32.exists():
         built["i386"] = legacy.PRELOAD_32
@@ -260,7 +261,7 @@ def lifecycle(tmp_path_factory: pytest.TempPathFactory,
 
 def run_legacy(program: Path, directory: Path, *args: str) -> subprocess.CompletedProcess[str]:
     """PROGRAM ARGS through `cifemu legacy`, as a user starts a legacy binary."""
-    return cifemu_legacy("--board-dir", str(directory), "--", str(program), *args)
+    return cifemu_legacy("--dpm-dir", str(directory), "--", str(program), *args)
 
 
 @pytest.mark.parametrize("abi", ["x86-64", "i386"])
@@ -317,12 +318,41 @@ def test_a_close_all_loop_never_makes_the_device_write_into_a_program_file(
     assert simulated_card.proc.poll() is None
 
 
+CLOSE_LEDGER = {
+    "open": 1, "initdrv": 0, "round_trip": 0, "waiter_inside": 1, "ledger_found": 1,
+    "scratch_on_ledger_number": 1, "putmsg": 0, "waiter": 0, "waiter_read_the_answer": 1,
+    "round_trip_after": 0, "exitdrv": 0, "close": 0, "scratch_fds_open": 1,
+    "scratch_unchanged": 1}
+
+
+@pytest.mark.parametrize("abi", ["x86-64", "i386"])
+def test_a_ledger_write_never_goes_into_a_program_file_on_the_ledgers_number(
+        preloads: dict[str, Path], lifecycle: dict[str, Path], simulated_card: Card,
+        tmp_path: Path, abi: str) -> None:
+    """The window a close-all loop leaves inside a call, made deterministic: while a
+    thread waits in GETMSG (no call starts, so the preload does not check its descriptors
+    before the next one), the program closes the transaction ledger's descriptor with a raw
+    system call and its own file lands on that number. The PUTMSG then wrote its ledger
+    line into the program's file (pwrite) and cut it to the line's length (ftruncate).
+    Now every call libcif makes on a descriptor is checked: the file stays as it was,
+    the waiter reads its answer, the board is opened anew after the call."""
+    need(preloads, abi)
+    scratch = tmp_path / "scratch.dat"
+    content = bytes(range(256)) * 4
+    scratch.write_bytes(content)
+    done = run_legacy(lifecycle[abi], simulated_card.directory, "close_ledger", str(scratch))
+    assert done.returncode == 0, f"exit status {done.returncode}\n{done.stdout}{done.stderr}"
+    assert parse(done.stdout) == CLOSE_LEDGER, done.stdout + done.stderr
+    assert scratch.read_bytes() == content
+    assert simulated_card.proc.poll() is None
+
+
 @pytest.fixture(scope="module")
 def sanitized_preload() -> str:
     """LD_PRELOAD for libcif/build/asan/libcifdev.so: ASan's and UBSan's run-time
     libraries first, as ASan requires of a program not built with it."""
     assert CC is not None
-    libcif.build("sanitize")
+    build_libcif("sanitize")
     runtimes = [subprocess.run([CC, f"-print-file-name={name}"], capture_output=True,
                                text=True, check=True).stdout.strip()
                 for name in ("libasan.so", "libubsan.so")]
@@ -332,7 +362,7 @@ def sanitized_preload() -> str:
 
 
 @pytest.mark.parametrize("args", [["exit_while_waiting"], ["close_all", "close_table"],
-                                  ["close_all", "raw"]])
+                                  ["close_all", "raw"], ["close_ledger"]])
 def test_lifecycle_under_the_sanitizers(sanitized_preload: str, lifecycle: dict[str, Path],
                                         simulated_card: Card, tmp_path: Path,
                                         args: list[str]) -> None:
@@ -342,12 +372,13 @@ def test_lifecycle_under_the_sanitizers(sanitized_preload: str, lifecycle: dict[
     scratch.write_bytes(b"the program's own log\n")
     env = {**os.environ, "CIF_DPM_DIR": str(simulated_card.directory),
            "LD_PRELOAD": sanitized_preload, "ASAN_OPTIONS": "detect_leaks=0"}
-    extra = [str(scratch)] if args[0] == "close_all" else []
+    extra = [] if args[0] == "exit_while_waiting" else [str(scratch)]
     done = subprocess.run([str(lifecycle["x86-64"]), *args, *extra], env=env,
                           capture_output=True, text=True, timeout=180, check=False)
     assert done.returncode == 0, done.stdout + done.stderr
-    assert parse(done.stdout) == (EXIT_WHILE_WAITING if extra == [] else CLOSE_ALL), \
-        done.stdout + done.stderr
+    expected = {"exit_while_waiting": EXIT_WHILE_WAITING, "close_all": CLOSE_ALL,
+                "close_ledger": CLOSE_LEDGER}[args[0]]
+    assert parse(done.stdout) == expected, done.stdout + done.stderr
     assert scratch.read_bytes() == b"the program's own log\n"
     assert "runtime error" not in done.stderr and "AddressSanitizer" not in done.stderr
 
@@ -367,7 +398,7 @@ def test_cifemu_legacy_preloads_the_library_of_the_programs_class(
     program = programs[abi]
     elf = legacy.read_elf(program)
     assert elf.dynamic and elf.elf_class == (1 if abi == "i386" else 2)
-    done = cifemu_legacy("--board-dir", str(card.directory), "--", str(program), "smoke")
+    done = cifemu_legacy("--dpm-dir", str(card.directory), "--", str(program), "smoke")
     assert done.returncode == 0, done.stderr
     # the real driver's INITDRV on a board it does not have: -1, through the API object
     assert parse(done.stdout) == {"open": 1, "initdrv": 0, "getinfo_firmware": 0,

@@ -30,13 +30,15 @@ from dpm.errors import Drv
 from dpm.message import Message
 from host_api import driver as d
 from tests.conftest import Card, start_card
-from tests.libcif_host import CDriver
+from tests.libcif_host import (
+    C_TESTS,
+    CC,
+    CDriver,
+    build_libcif,
+    compile_program,
+    run,
+)
 
-C_TESTS = Path(__file__).with_name("c")
-CC = shutil.which("cc") or shutil.which("gcc")
-STRICT = ["-std=c99", "-Wall", "-Wextra", "-Werror", "-g"]
-SANITIZE = ["-fsanitize=address,undefined", "-fno-sanitize-recover=all",
-            "-fno-omit-frame-pointer"]
 NETWORK = """
 [bus]
 bitrate = 500000
@@ -57,29 +59,8 @@ pytestmark = pytest.mark.skipif(CC is None or shutil.which("make") is None,
 
 @pytest.fixture(scope="module")
 def built() -> None:
-    libcif.build("all")
-    libcif.build("sanitize")
-
-
-def compile_program(source: Path, out: Path, variant: str) -> Path:
-    assert CC is not None
-    if variant == "sanitized":
-        command = [CC, *STRICT, *SANITIZE, str(source), f"-I{libcif.INCLUDE}",
-                   str(libcif.BUILD / "asan" / "libcif.a"), "-pthread"]
-    else:
-        command = [CC, *STRICT, str(source), *libcif.flags(True, True).split()]
-    subprocess.run([*command, "-o", str(out)], check=True)
-    return out
-
-
-def run(program: Path, directory: Path, *args: str, timeout: float = 120) -> str:
-    env = {**os.environ, "CIF_DPM_DIR": str(directory),
-           "ASAN_OPTIONS": "detect_leaks=1:abort_on_error=0",
-           "UBSAN_OPTIONS": "print_stacktrace=1:halt_on_error=1"}
-    done = subprocess.run([str(program), *args], env=env, capture_output=True, text=True,
-                          timeout=timeout, check=False)
-    assert done.returncode == 0, f"{program.name} failed:\n{done.stdout}\n{done.stderr}"
-    return done.stdout
+    build_libcif("all")
+    build_libcif("sanitize")
 
 
 @pytest.fixture
@@ -233,7 +214,7 @@ def test_a_c_host_and_a_python_host_never_read_each_others_answers(
 
     def python_host() -> None:
         """Board.transact's procedure, but an answer that is not ours is an error here."""
-        lock = d._driver.boards[0].transaction_lock
+        lock = d._driver.boards[0].transaction
         for i in range(count):
             msg = Message(rx=2, tx=16, b=17, nr=i % 255 + 1,
                           data=bytes([0, 1, 200, 0, 0, 2, 5, 1]))

@@ -20,6 +20,7 @@ from cifemu import libcif
 from dbm_tools.builder import build_dbm
 from dbm_tools.container import read_dbm, write_dbm
 from dbm_tools.network import load_network, parse_network
+from tests.libcif_host import build_libcif, load_libcif
 
 DBM_OK, DBM_NO_DAT, DBM_NO_SET, DBM_DAT_DIR_FULL, DBM_NOT_ENOUGH_FREESPACE, DBM_SET_DEL = range(6)
 DEMO = Path(libcif.SOURCE).parent / "cifemu" / "examples" / "demo.toml"
@@ -31,10 +32,7 @@ CC = shutil.which("cc") or shutil.which("gcc")
 
 @pytest.fixture(scope="module")
 def lib() -> ctypes.CDLL:
-    try:
-        return libcif.load()
-    except libcif.LibcifError as exc:
-        pytest.skip(str(exc))
+    return load_libcif()
 
 
 def files() -> dict[str, bytes]:
@@ -169,7 +167,7 @@ def test_a_corrupt_checksum_is_refused(lib: ctypes.CDLL) -> None:
 @pytest.mark.skipif(CC is None, reason="no C compiler")
 def test_mutated_files_never_crash_under_the_sanitizers(tmp_path: Path) -> None:
     assert CC is not None
-    libcif.build("sanitize")
+    build_libcif("sanitize")
     program = tmp_path / "fuzz_dbm"
     subprocess.run([CC, "-std=c99", "-Wall", "-Wextra", "-Werror", "-g", "-O1",
                     "-fsanitize=address,undefined", "-fno-sanitize-recover=all",

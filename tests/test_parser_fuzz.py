@@ -19,8 +19,9 @@ from hypothesis import strategies as st
 
 from cifemu.cli import main as cifemu_main
 from dbm_tools.builder import build_dbm
+from dbm_tools.container import write_dbm
 from dbm_tools.errors import DbmError
-from dbm_tools.network import load_network
+from dbm_tools.network import NetworkError, load_network
 from tests.conftest import ROOT
 
 EXAMPLES = int(os.environ.get("CIFEMU_FUZZ_EXAMPLES", "300"))
@@ -83,6 +84,54 @@ def test_any_text_as_a_network_description(tmp_path: Path, text: str) -> None:
     path.write_text(text)
     with contextlib.suppress(DbmError):
         build(path)
+
+
+@FUZZ
+@given(data=st.one_of(st.binary(max_size=400),
+                      st.builds(lambda head, tail: head + tail,
+                                st.sampled_from([b"DBMFILE  \0", b"\xff\xfe", b"\xfe\xff",
+                                                 b"\xef\xbb\xbf", b"[FileInfo]\n", b""]),
+                                st.binary(max_size=200)),
+                      st.text(max_size=200).map(lambda text: text.encode("utf-16"))))
+@example(data=b"\xd2")
+def test_any_bytes_as_a_network_description(tmp_path: Path, data: bytes) -> None:
+    """A file of any bytes -- a DBM, UTF-16 text, an EDS, junk -- loads or raises
+    NetworkError with a reason; never UnicodeDecodeError or another exception."""
+    path = tmp_path / "net.toml"
+    path.write_bytes(data)
+    try:
+        load_network(path)
+    except NetworkError as exc:
+        assert str(exc)
+
+
+def test_a_dbm_given_as_a_network_description_is_named_by_every_command(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The SyCon user's most natural mix-up: plant.dbm where NETWORK.toml goes. Each command
+    that takes a description says what the file is and which command takes it (it ended
+    in a UnicodeDecodeError traceback)."""
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setenv("CIF_DPM_DIR", str(tmp_path / "no-card"))
+    dbm = tmp_path / "plant.dbm"
+    dbm.write_bytes(write_dbm(build_dbm(load_network(ROOT / "cifemu" / "examples" / "demo.toml"))))
+    for command in (["configure", str(dbm)],
+                    ["sim", str(dbm), "--interface", "virtual", "--channel", "x"],
+                    ["firmware", "--simulate", str(dbm), "--dpm-dir", str(tmp_path / "dpm")],
+                    ["dbm", "build", str(dbm), "-o", str(tmp_path / "out.dbm")]):
+        err = io.StringIO()
+        with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
+            status = cifemu_main(command)
+        assert status == 1, command
+        text = err.getvalue()
+        assert "SyCon DBM database" in text and f"cifemu dbm download {dbm}" in text, text
+        assert len(text.strip().splitlines()) == 1, text
+
+
+def test_a_utf16_description_says_to_save_it_as_utf8(tmp_path: Path) -> None:
+    path = tmp_path / "net.toml"
+    path.write_bytes("[[node]]\nid = 5\n".encode("utf-16"))
+    with pytest.raises(NetworkError, match=r"UTF-16.*save it as UTF-8"):
+        load_network(path)
 
 
 @settings(FUZZ, max_examples=max(EXAMPLES // 3, 20))

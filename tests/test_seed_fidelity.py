@@ -1,7 +1,7 @@
 """Behaviour a host written for the real card notices: each test provokes one item of the seed
 manual through the mailbox or the image and asserts what the host sees (msg.f, Task2State
 fields, frames on the bus). The card runs as a real firmware process with simulated nodes, on
-every bus of ``tests/test_can_task.py``'s back-to-back fixture.
+every bus of the back-to-back network fixture (``tests/can_net.py``).
 """
 
 from __future__ import annotations
@@ -20,18 +20,16 @@ from dbm_tools.builder import build_dbm
 from dbm_tools.container import save_dbm
 from dbm_tools.network import load_network
 from dbm_tools.parameters import NdFlag, NodeParameterSet, PdoData
+from dpm.card_info import read_card_info
 from dpm.message import Message
-from firmware.card_info import read_card_info
 from host_api import driver as d
 from host_api.board import Board
 from host_api.download import CONFIGURATION_DOWNLOAD, DevDownload, delete_database
-from tests import test_can_task
+from tests.can_net import Net, candump, exchange
 from tests.conftest import start_card, wait_until
-from tests.test_can_task import Net, candump, exchange
 
-interface = test_can_task.interface
-make_net = test_can_task.make_net
-"""The back-to-back fixtures: this module's tests run on every bus that file's run on."""
+pytest_plugins = ["tests.can_net"]
+"""The back-to-back network fixture: every test here runs on each interface."""
 
 SYNC_ID = 0x080
 

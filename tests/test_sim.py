@@ -30,10 +30,10 @@ import pytest
 from canopen.sdo.exceptions import SdoAbortedError, SdoCommunicationError
 
 from cifemu.cli import build_parser
+from cifemu.commands.sim import describe
 from dbm_tools.network import GENERIC_DEVICE_TYPE, NetworkError, parse_network
 from dpm.cia305 import LssAddress
 from firmware.sim import SimulatedNetwork
-from firmware.sim.cli import describe
 from firmware.sim.generic import GENERIC_PRODUCT_CODE, GENERIC_REVISION, GENERIC_VENDOR_ID
 
 if TYPE_CHECKING:
@@ -747,7 +747,7 @@ def test_sim_command_runs_until_sigterm(tmp_path: Path) -> None:
     description = tmp_path / "net.toml"
     description.write_text(GENERIC + "name = \"valve block\"\nsim = { silent = true }\n")
     with subprocess.Popen(
-        [sys.executable, "-m", "firmware.sim", str(description), "--interface", "virtual",
+        [sys.executable, "-m", "cifemu", "sim", str(description), "--interface", "virtual",
          "--channel", "cli-test", "--log-level", "WARNING"],
         stdout=subprocess.PIPE, text=True, cwd=ROOT, env={**os.environ, "PYTHONPATH": str(ROOT)},
     ) as proc:
@@ -765,7 +765,7 @@ def test_sim_command_reports_a_bad_description(tmp_path: Path) -> None:
     description = tmp_path / "net.toml"
     description.write_text("[[node]]\nid = 300\n")
     done = subprocess.run(
-        [sys.executable, "-m", "firmware.sim", str(description), "--interface", "virtual",
+        [sys.executable, "-m", "cifemu", "sim", str(description), "--interface", "virtual",
          "--channel", "cli-test"], capture_output=True, text=True, cwd=ROOT, timeout=30)
     assert done.returncode == 1
     assert done.stderr == "cifemu sim: node 300: id = 300 is outside 1..127\n"

@@ -13,10 +13,11 @@ from typing import Any
 
 from textual.widgets import DataTable, RichLog, Static
 
+from cifemu.commands.top import build_model
+from dpm.tap import TapSubscriber, decode_frame
 from host_api.board import Board
 from host_api.status import read_image, snapshot
 from host_api.top.app import TopApp
-from host_api.top.cli import build_model
 from host_api.top.feed import CardFeed
 from host_api.top.render import pdo_cells
 from tests.conftest import ROOT, start_card, wait_until
@@ -47,6 +48,21 @@ def test_once_without_a_card_is_one_line(tmp_path: Path) -> None:
                           str(tmp_path)], capture_output=True, text=True, timeout=60, cwd=ROOT)
     assert out.returncode == 1 and out.stderr.startswith("cifemu top: no image")
     assert out.stderr.count("\n") == 1
+
+
+def emcy_counter(tap: TapSubscriber, node: int) -> Callable[[], int]:
+    """Counts the EMCYs of ``node`` the card's tap shows from now on (replays left out);
+    each call reads what arrived."""
+    seen = 0
+
+    def count() -> int:
+        nonlocal seen
+        while (datagram := tap.recv(0.001)) is not None:
+            frame, replay = decode_frame(datagram)
+            seen += frame.arbitration_id == 0x80 + node and not replay
+        return seen
+
+    return count
 
 
 def snapshot_of(directory: Path) -> dict[str, Any]:
@@ -135,10 +151,11 @@ def test_live_view_keys_act_on_the_selected_node(tmp_path: Path) -> None:
 def test_a_view_started_after_an_emcy_still_shows_it_and_a_trace_does_not(
         tmp_path: Path) -> None:
     card = start_card(tmp_path, 0, "--simulate", str(DEMO), "--configure")
+    tap = TapSubscriber(card.path)
     try:
-        wait_until(lambda: 4 in (snapshot_of(tmp_path)["task2state"]["nd_diag"]), 20,
-                   "node 4's EMCY burst in Nd_diag")
-        time.sleep(1.0)  # the burst (3 EMCYs, 0.2 s apart) is over
+        emcys = emcy_counter(tap, 4)
+        wait_until(lambda: emcys() == 3, 20, "node 4's EMCY burst (3 EMCYs) on the tap")
+        assert 4 in snapshot_of(tmp_path)["task2state"]["nd_diag"]
         out = subprocess.run([sys.executable, "-m", "cifemu", "top", "--once", "--dpm-dir",
                               str(tmp_path), "--sample", "0.5"], capture_output=True, text=True,
                              timeout=60, cwd=ROOT, env={**os.environ, "COLUMNS": "220"})
@@ -146,6 +163,7 @@ def test_a_view_started_after_an_emcy_still_shows_it_and_a_trace_does_not(
                                 str(tmp_path), "--type", "emcy", "--duration", "1.5"],
                                capture_output=True, text=True, timeout=60, cwd=ROOT)
     finally:
+        tap.close()
         card.stop()
     row = next(line for line in out.stdout.splitlines() if "sensor box" in line)
     assert "4210h Temperature: device temperature" in row

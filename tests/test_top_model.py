@@ -4,41 +4,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from dbm_tools.network import load_network
-from dpm.layout import DPM_SIZE, RCV_PD, TASK2_STATE
 from host_api.monitor.framebits import frame_bits
-from host_api.network_view import network_view
-from host_api.top.model import CardModel
-
-NETWORK = """
-[bus]
-bitrate = 125000
-[[node]]
-id = 1
-name = "pump"
-[[node]]
-id = 2
-error_control = "guarding"
-guard_time_ms = 100
-life_time_factor = 2
-"""
-
-
-def model(tmp_path: Path) -> CardModel:
-    path = tmp_path / "net.toml"
-    path.write_text(NETWORK)
-    network = load_network(path)
-    return CardModel(view=network_view(network), network=network)
-
-
-def image(inputs: bytes = b"", err: tuple[int, int] = (0, 0), nd_state: int = 0) -> bytes:
-    raw = bytearray(DPM_SIZE)
-    raw[RCV_PD : RCV_PD + len(inputs)] = inputs
-    raw[TASK2_STATE + 1] = 0xC0  # OPERATE
-    raw[TASK2_STATE + 2], raw[TASK2_STATE + 3] = err
-    raw[TASK2_STATE + 16] = 0x06  # Nd_cfg: nodes 1, 2
-    raw[TASK2_STATE + 32] = nd_state
-    return bytes(raw)
+from tests.top_images import image, model
 
 
 def test_nodes_come_from_the_file_and_the_card_bits(tmp_path: Path) -> None:
@@ -73,9 +40,10 @@ def test_err_event_is_logged_once_and_kept_as_the_nodes_last_error(tmp_path: Pat
     card.update_image(image(err=(2, 30)), 1.0)
     card.update_image(image(err=(2, 30)), 2.0)
     rows = {row.node: row for row in card.node_rows()}
-    assert rows[2].last_error == (30, "guarding failed")
+    guarding = "guarding failed: no answer to node guarding within the life time"
+    assert rows[2].last_error == (30, guarding)
     assert [e.split(" ", 1)[1] for e in card.new_events(0)] == [
-        "Err_Event 30 at node 2: guarding failed"]
+        f"Err_Event 30 at node 2: {guarding}"]
 
 
 def test_process_image_changes_history_and_bus_load(tmp_path: Path) -> None:

@@ -30,8 +30,8 @@ from host_api import driver as d
 from host_api.board import Board
 from host_api.online import configure_online
 from tests.buses import HOW_TO_RUN, SOCKETCAN_CHANNEL, socketcan_missing
+from tests.can_net import start_sim
 from tests.conftest import Card, start_card, wait_until
-from tests.test_can_task import start_sim
 
 pytestmark = pytest.mark.vcan
 

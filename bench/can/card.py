@@ -141,9 +141,9 @@ def simulated_card(description: str, *, trace: bool = False, separate: bool = Fa
         stderr_path = directory / "firmware.stderr"
         interface, channel = (bus or SeparateBus()).for_card() if separate else (
             "virtual", CHANNEL)
-        command = [sys.executable, "-m", "firmware", "--board", str(BOARD), "--dpm-dir", tmp,
-                   "--log-level", "WARNING", "--interface", interface, "--channel", channel,
-                   "--flash", str(directory / "flash")]
+        command = [sys.executable, "-m", "cifemu", "firmware", "--board", str(BOARD),
+                   "--dpm-dir", tmp, "--log-level", "WARNING", "--interface", interface,
+                   "--channel", channel, "--flash", str(directory / "flash")]
         if not separate:
             command += ["--simulate", str(toml)]
         if trace_path is not None:
@@ -151,7 +151,7 @@ def simulated_card(description: str, *, trace: bool = False, separate: bool = Fa
         sim = None
         if separate:
             sim = subprocess.Popen(
-                [sys.executable, "-m", "firmware.sim", str(toml), "--interface", interface,
+                [sys.executable, "-m", "cifemu", "sim", str(toml), "--interface", interface,
                  "--channel", channel, "--log-level", "WARNING"],
                 stdin=subprocess.DEVNULL, stdout=subprocess.PIPE)
             assert sim.stdout is not None

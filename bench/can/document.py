@@ -13,7 +13,7 @@ python-can talking straight to the same simulated nodes in this process:
 --nodes N caps every phase's network at N nodes. Where os.cpu_count() is 1 (inside
 tools/vcan-vm, say) the phases default to 16 nodes (SMALL_NODES): the full configuration's 126
 booting nodes saturate one CPU there, and the card's time-outs then fail nodes that did
-answer (README "SocketCAN under User-Mode Linux"). --interface socketcan --channel vcan0
+answer (docs/benchmarks.md "SocketCAN under User-Mode Linux"). --interface socketcan --channel vcan0
 runs the phases whose nodes are a process of their own (throughput, boot, sync) on that
 link instead of a fresh shm channel. The JSON's params say which configuration ran.
 

@@ -11,7 +11,9 @@ canopen's network for its SDO clients.
 
 from __future__ import annotations
 
+import json
 import logging
+import subprocess
 import threading
 import time
 from collections import deque
@@ -25,7 +27,16 @@ import canopen
 
 from firmware.can.tap import TapPublisher
 from firmware.errors import BusSetupError
-from firmware.frames import SDO_FRAME_LENGTH
+from firmware.frames import (
+    CAN_ERR_BUSOFF,
+    CAN_ERR_CRTL,
+    CAN_ERR_CRTL_ACTIVE,
+    CAN_ERR_CRTL_LIMITS,
+    CAN_ERR_CRTL_RX_WARNING,
+    CAN_ERR_CRTL_TX_WARNING,
+    CAN_ERR_RESTARTED,
+    SDO_FRAME_LENGTH,
+)
 
 log = logging.getLogger(__name__)
 
@@ -40,10 +51,82 @@ PERIODIC_OUTSIDE_INTERFACES = ("socketcan", "shm")
 """Interfaces whose ``send_periodic`` keeps time outside this interpreter: SocketCAN's
 broadcast manager in the kernel, ``shm``'s timer process. Elsewhere it is a thread."""
 ECHOING_INTERFACES = ("udp_multicast",)
-FIXED_RATE_INTERFACES = ("virtual", "shm", "udp_multicast", "socketcan")
-"""Interfaces whose bit rate the card cannot set: the in-memory buses have none, and a
-SocketCAN link's is the kernel's (``ip link set can0 type can bitrate N``, as root)."""
 """Transports that hand a sender its own frames back; the controller drops them."""
+FIXED_RATE_INTERFACES = ("virtual", "shm", "udp_multicast", "socketcan")
+"""Interfaces whose bit rate the card cannot set: a SocketCAN link's is the kernel's (``ip
+link set can0 type can bitrate N``, as root), an ``shm`` channel's its first station's, and
+``virtual`` and ``udp_multicast`` have none. Where the link's rate is known, the card
+compares its Baud_rate with it (``link_bitrate``)."""
+IP_TIMEOUT_S = 2.0
+"""How long reading a SocketCAN link's rate from ``ip`` may take."""
+
+
+def bitrate_of_link(details: object) -> int | None:
+    """``bittiming.bitrate`` of ``ip -details -json link show dev X``'s answer.
+
+    The kernel reports a CAN link's bit timing over netlink (``IFLA_CAN_BITTIMING``) and
+    ``ip`` prints it under ``linkinfo.info_data.bittiming``. None for a link without bit
+    timing (``vcan``, whose info_kind is "vcan") or an answer of another shape.
+    """
+    try:
+        rate = details[0]["linkinfo"]["info_data"]["bittiming"]["bitrate"]  # type: ignore[index]
+    except (KeyError, IndexError, TypeError):
+        return None
+    return rate if isinstance(rate, int) and rate > 0 else None
+
+
+def socketcan_bitrate(channel: str) -> int | None:
+    """The rate the kernel runs SocketCAN link ``channel`` at; None where it reports none.
+
+    Read through iproute2's ``ip -json`` rather than a netlink library: one well-kept
+    program every SocketCAN machine has, for one number. No ``ip``, or an ``ip`` that
+    fails, is "unknown", never an error: the card then has nothing to compare.
+    """
+    try:
+        done = subprocess.run(["ip", "-details", "-json", "link", "show", "dev", channel],
+                              capture_output=True, text=True, timeout=IP_TIMEOUT_S, check=False)
+    except (OSError, subprocess.TimeoutExpired):
+        return None
+    if done.returncode != 0:
+        return None
+    try:
+        return bitrate_of_link(json.loads(done.stdout))
+    except ValueError:
+        return None
+
+
+CAN_ERR_CRTL_WARNINGS = CAN_ERR_CRTL_RX_WARNING | CAN_ERR_CRTL_TX_WARNING
+
+
+class ErrorEscalation:
+    """Which error frames are a new overstep of the controller's error limits.
+
+    Seed 4.3: Bus_Error_Cnt is the "number of detected bus error limit oversteps". A
+    controller whose error counters climb reports each limit it passes in an error frame of
+    its own (SocketCAN: warning, then error-passive), but both belong to one overstep: the
+    error-passive report right after a warning report is no new one. Every warning report is:
+    the counters were below the limit before it, whether or not the controller said so (not
+    every driver reports the return to error-active). An overstep ends when the controller
+    reports itself error-active again, goes bus-off (Bus_Off_Cnt counts that) or restarts.
+    """
+
+    def __init__(self) -> None:
+        self._beyond = False
+        """Whether the counters are past a limit since the controller last said they were not."""
+
+    def update(self, msg: can.Message) -> bool:
+        """Feed every error frame in order; True for one that is a new overstep."""
+        error_class = msg.arbitration_id
+        status = msg.data[1] if len(msg.data) > 1 else 0
+        if error_class & (CAN_ERR_BUSOFF | CAN_ERR_RESTARTED) or (
+                error_class & CAN_ERR_CRTL and status & CAN_ERR_CRTL_ACTIVE):
+            self._beyond = False
+            return False
+        if error_class & CAN_ERR_CRTL and status & CAN_ERR_CRTL_LIMITS:
+            new = bool(status & CAN_ERR_CRTL_WARNINGS) or not self._beyond
+            self._beyond = True
+            return new
+        return False
 
 
 class _MasterNetwork(canopen.Network):
@@ -66,7 +149,7 @@ class BusConfig:
     bitrate: int | None = None
     trace: Path | None = None
     tap: bytes | None = None
-    """The abstract socket name of the frame tap (``firmware.can.tap``) [ours]."""
+    """The socket of the frame tap (``dpm.tap``), beside the image [ours]."""
     exit_on_error: bool = False
     """A controller that cannot be opened ends the firmware, instead of the seed's card
     staying up with FAT set (``cifemu firmware --exit-on-bus-error``)."""
@@ -79,16 +162,15 @@ class CanBus(can.Listener):
                  bitrate: int | None = None, trace: Path | None = None,
                  tap: bytes | None = None, **config: Any) -> None:
         kwargs: dict[str, Any] = dict(config)
-        self.takes_bitrate = interface not in FIXED_RATE_INTERFACES
-        """Whether ``set_bitrate`` reaches the controller (the seed's Baud_rate)."""
-        if bitrate is not None and self.takes_bitrate:
-            kwargs["bitrate"] = bitrate
+        self.sets_bitrate = interface not in FIXED_RATE_INTERFACES
+        """Whether ``set_bitrate`` changes the controller's rate (else it compares)."""
+        if bitrate is not None and (self.sets_bitrate or interface == "shm"):
+            kwargs["bitrate"] = bitrate  # on shm: the channel's rate, if the card opens it first
         if interface == "shm":
             kwargs.setdefault("timer_process", True)  # see send_periodic
         self.bus = can.Bus(interface=interface, channel=channel, **kwargs)
         self._open_kwargs = kwargs
-        self.bitrate = bitrate if self.takes_bitrate else None
-        """The rate the controller runs at, where the card sets it; None: not the card's."""
+        self._bitrate = bitrate if self.sets_bitrate else None
         self.interface = interface
         self.channel = channel
         self.network = _MasterNetwork(self)
@@ -233,11 +315,48 @@ class CanBus(can.Listener):
         lost, self._rx_overflows_seen = total - self._rx_overflows_seen, total
         return max(1, lost)
 
+    @property
+    def bitrate(self) -> int | None:
+        """The rate the controller runs at: the card's where it sets it, else the link's
+        where that is known (``link_bitrate``); None: unknown."""
+        return self._bitrate if self.sets_bitrate else self.link_bitrate()
+
+    @property
+    def takes_bitrate(self) -> bool:
+        """Whether the seed's Baud_rate means something here: the controller takes it, or
+        the link's rate is known, so that ``set_bitrate`` can tell a rate it does not run."""
+        return self.sets_bitrate or self.link_bitrate() is not None
+
+    def link_bitrate(self) -> int | None:
+        """The rate of a link whose rate the card cannot set, where it is known.
+
+        SocketCAN: what the kernel reports for the link (None for ``vcan``, which has no
+        bit timing). ``shm``: the channel's rate [ours], set by its first station opened
+        with one. ``virtual`` and ``udp_multicast``: None, they have no rate.
+        """
+        if self.interface == "socketcan":
+            return socketcan_bitrate(self.channel)
+        rate = getattr(self.bus, "bitrate", None) if self.interface == "shm" else None
+        return rate if isinstance(rate, int) else None
+
     def set_bitrate(self, bitrate: int) -> None:
         """Run the controller at ``bitrate``: live where the interface can (slcan's
         ``set_bitrate``), else by closing it and opening it again. Only where
         ``takes_bitrate``; raises what python-can raises for a rate it cannot set, and the
-        controller keeps its old one then."""
+        controller keeps its old one then.
+
+        On a link whose rate the card cannot set (``FIXED_RATE_INTERFACES``), a rate other
+        than the link's raises ``CanOperationError``: the host asked for a rate the bus
+        does not run, which the seed reports as Err_Event 56 (5.2.5.4.1, "baudrate out of
+        range"), not as every node's failure to answer a few seconds later.
+        """
+        if not self.sets_bitrate:
+            link = self.link_bitrate()
+            if link is not None and link != bitrate:
+                raise can.CanOperationError(
+                    f"{self.interface} channel {self.channel} runs at {link} bit/s, which the "
+                    f"card cannot change")
+            return
         setter = getattr(self.bus, "set_bitrate", None)
         if callable(setter):
             setter(bitrate)
@@ -248,7 +367,7 @@ class CanBus(can.Listener):
             self.bus = can.Bus(interface=self.interface, channel=self.channel, **kwargs)
             self._open_kwargs = kwargs
             self._notifier = can.Notifier(self.bus, [self], timeout=0.1)
-        self.bitrate = bitrate
+        self._bitrate = bitrate
 
     def shutdown(self) -> None:
         self._notifier.stop()

@@ -17,7 +17,13 @@ from collections.abc import Callable
 import can
 
 from dbm_tools.parameters import ExtendedBusParameterSet, ExtendedState
-from dpm.com import CanFrame, encode_bootup_indication, encode_layer2_frame, encode_transparent_2b
+from dpm.com import (
+    CanFrame,
+    accepts_extended,
+    encode_bootup_indication,
+    encode_layer2_frame,
+    encode_transparent_2b,
+)
 from dpm.commands import COM_BOOTUP_INDICATION, COM_RECEIVE_TRANSPARENT, COM_RX_CAN_LAYER2
 from dpm.message import Message, Task
 from firmware.card import Card
@@ -55,8 +61,7 @@ class Layer2:
             ext = self._ext()
             if not ext.bExtendedState & ExtendedState.bi11Bit29BitSelector:
                 return
-            mask = ext.ulAcceptMask & 0x1FFFFFFF
-            if (msg.arbitration_id & mask) != (ext.ulAcceptCode & mask):
+            if not accepts_extended(ext.ulAcceptCode, ext.ulAcceptMask, msg.arbitration_id):
                 return
             self._queue(COM_RECEIVE_TRANSPARENT, msg)
         elif msg.arbitration_id in self.filters:

@@ -30,7 +30,7 @@ from dbm_tools.parameters import (
 )
 from dpm.errors import ERR_NODE_DEVICE, DeviceEvent
 from dpm.task2 import CanState, GlobalBits
-from firmware.can.bus import INTERFACE_ERRORS, BusConfig, CanBus
+from firmware.can.bus import INTERFACE_ERRORS, BusConfig, CanBus, ErrorEscalation
 from firmware.can.layer2 import Layer2
 from firmware.can.nmt import NmtMaster
 from firmware.can.node import NodeHandler
@@ -41,7 +41,6 @@ from firmware.frames import (
     CAN_ERR_ACK,
     CAN_ERR_BUSOFF,
     CAN_ERR_CRTL,
-    CAN_ERR_CRTL_LIMITS,
     CAN_ERR_CRTL_RX_OVERFLOW,
     CAN_ERR_TX_TIMEOUT,
 )
@@ -65,6 +64,8 @@ class Master:
         self._publish = publish
         """Writes the card's facts beside the image (``firmware.card_info``) anew."""
         self.bus: CanBus | None = None
+        self._escalation = ErrorEscalation()
+        """Which error frames are a new overstep of the error limits (Bus_Error_Cnt)."""
         self.nodes: dict[int, NodeHandler] = {}
         self._sync_used = False
         """Whether a configured node has a SYNC controlled PDO (see ``sync_period``)."""
@@ -80,7 +81,7 @@ class Master:
         self.nmt = NmtMaster(device, self, self.nodes, self.bus_send,
                              lambda: zero_outputs(self.image, self.nodes), self._sync_changed)
         self.sync = SyncProducer(self._stop, lambda: self.sync_cob_id, lambda: self.sync_period,
-                                 lambda: self.nmt.exchanging, self._on_sync)
+                                 lambda: self.nmt.exchanging, self._foreign_sync, self._on_sync)
 
     # --- life cycle ---------------------------------------------------------------------
 
@@ -154,6 +155,11 @@ class Master:
         if not self.bus_params or not self._sync_used:
             return 0.0
         return self.bus_params.SYNC_Timer / 1000.0
+
+    def _foreign_sync(self) -> bool:
+        """SYNC_Timer 0 while a node has a SYNC controlled PDO: another station's SYNC
+        drives them (seed revision 16)."""
+        return bool(self.bus_params and self._sync_used and self.bus_params.SYNC_Timer == 0)
 
     @property
     def motorola(self) -> bool:
@@ -298,6 +304,7 @@ class Master:
 
     def _on_error_frame(self, msg: can.Message) -> None:
         """Error frames in SocketCAN's layout: the class bits are in the identifier."""
+        overstep = self._escalation.update(msg)
         error_class = msg.arbitration_id
         if error_class & (CAN_ERR_TX_TIMEOUT | CAN_ERR_ACK):
             self._on_send_timeout()
@@ -310,10 +317,9 @@ class Master:
             return
         if error_class & CAN_ERR_BUSOFF:
             self.device.count("usBus_Off_Cnt")
-        elif (error_class & CAN_ERR_CRTL and len(msg.data) > 1
-              and msg.data[1] & CAN_ERR_CRTL_LIMITS):
-            # Seed 4.3: Bus_Error_Cnt counts the times the controller's error counter reached
-            # the warning limit, not each error frame (a protocol error alone is no event).
+        elif overstep:
+            # Seed 4.3: Bus_Error_Cnt counts the oversteps of the controller's error limits,
+            # not each error frame (a protocol error alone is no event; bus.ErrorEscalation).
             self.device.count("usBus_Error_Cnt")
         else:
             return

@@ -24,7 +24,7 @@ from dpm.cia301 import BOOT_UP, OPERATIONAL
 from dpm.com import NodeDiagnosis as Diagnosis
 from dpm.com import NodeStatus
 from dpm.commands import NMT_STOP
-from dpm.errors import NodeEvent
+from dpm.errors import NodeEvent, err_event_text
 from firmware.can.boot import BootFailure, BootLink, BootSequence
 from firmware.can.bus import CanBus
 from firmware.can.emcy import EmcyConsumer
@@ -274,7 +274,8 @@ class NodeHandler:
         """The node left data exchange: report it; retry or let auto-clear stop all."""
         if self.state in (State.INACTIVE, State.DISCONNECTED):
             return
-        log.info("node %d: error %d", self.address, event)
+        log.info("node %d: Err_Event %d, %s", self.address, event, err_event_text(
+            self.address, event, "heartbeat" if self.control.heartbeat else "guarding"))
         self.state = State.FAILED
         self.diag.actual_error = event
         self.diag.status &= ~NodeStatus.GUARD_ACTIVE

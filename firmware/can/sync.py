@@ -5,6 +5,10 @@ and the one with a process of its own on ``shm`` (``firmware.shm.cyclic``). All 
 of the network is whether SYNC is due and at which period (``period``), and all it tells
 is that a SYNC went out (``on_sync``, which drives the synchronous PDOs). The master
 rings ``wake`` when either answer may have changed (a start, a halt, a reset).
+
+SYNC_Timer 0 with synchronous PDOs configured means another station produces SYNC (seed
+revision 16: 0 "disables the timer"): the producer then sends nothing and the synchronous
+PDOs follow that station's SYNC frames as they arrive (``foreign``).
 """
 
 from __future__ import annotations
@@ -31,17 +35,21 @@ class SyncProducer:
 
     ``cob_id`` gives COB_ID_SYNC, ``period`` SYNC_Timer in seconds (0: no SYNC),
     ``active`` whether the network exchanges data now (running, not halted, not
-    cleared), ``on_sync`` is called with the time of each SYNC.
+    cleared), ``foreign`` whether another station's SYNC drives the synchronous PDOs
+    (SYNC_Timer 0 while they exist), ``on_sync`` is called with the time of each SYNC.
     """
 
     def __init__(self, stop: threading.Event, cob_id: Callable[[], int],
                  period: Callable[[], float], active: Callable[[], bool],
-                 on_sync: Callable[[float], None]) -> None:
+                 foreign: Callable[[], bool], on_sync: Callable[[float], None]) -> None:
         self._stop = stop
         self._cob_id = cob_id
         self._period = period
         self._active = active
+        self._foreign = foreign
         self._on_sync = on_sync
+        self._followed: int | None = None
+        """The COB-ID of another station's SYNC that the synchronous PDOs follow now."""
         self._bus: CanBus | None = None
         self._thread: threading.Thread | None = None
         self._wakeup = threading.Event()
@@ -76,7 +84,7 @@ class SyncProducer:
 
         The thread sleeps most of the period, then watches the clock for the
         rest; under PDO load it still waits for the interpreter lock behind the
-        receive and tick threads (milliseconds, see README "Benchmarks"). With an
+        receive and tick threads (milliseconds, see docs/benchmarks.md). With an
         outside timer, the synchronous PDOs follow the SYNC frame as it comes back
         from the bus, as on a real bus they follow it on the wire.
         """
@@ -88,9 +96,11 @@ class SyncProducer:
             period = self._period()
             if not (self._active() and period):
                 self._stop_timer()
+                self._follow(self._active() and self._foreign())
                 self._await_change()
                 next_sync = time.perf_counter()
                 continue
+            self._follow(False)
             if outside:
                 self._run_timer(self._cob_id(), period)
                 self._await_change()
@@ -106,6 +116,7 @@ class SyncProducer:
             bus.send(self._cob_id())
             self._on_sync(time.monotonic())
         self._stop_timer()
+        self._follow(False)
 
     def _await_change(self) -> None:
         """Until a start, halt or reset rings, or 50 ms pass (a timer may have died)."""
@@ -160,6 +171,23 @@ class SyncProducer:
         task.stop()
         if self._bus is not None:
             self._bus.unsubscribe(cob_id, self._on_frame)
+
+    def _follow(self, on: bool) -> None:
+        """Follow another station's SYNC on the configured COB-ID, or stop following."""
+        cob_id = self._cob_id() if on else None
+        if cob_id == self._followed or self._bus is None:
+            return
+        if self._followed is not None:
+            self._bus.unsubscribe(self._followed, self._on_foreign)
+        self._followed = cob_id
+        if cob_id is not None:
+            self._bus.subscribe(cob_id, self._on_foreign)
+
+    def _on_foreign(self, msg: can.Message) -> None:
+        """Another station's SYNC, while SYNC_Timer is 0 (not after a halt the thread has
+        yet to hear of)."""
+        if self._followed is not None and not msg.data and self._active():
+            self._on_sync(time.monotonic())
 
     def _on_frame(self, msg: can.Message) -> None:
         """The outside timer's SYNC as it comes back; not after a halt the timer has yet

@@ -1,93 +1,61 @@
-"""The controller's frame tap: every frame the card sends or receives, for a monitor [ours].
+"""The controller's frame tap, the card's serving side [ours].
 
-python-can's ``virtual`` bus lives inside one process, so on it nothing outside
-the firmware could see the card's traffic. The controller therefore offers its
-frames on a Unix datagram socket in Linux's abstract namespace, named after the
-image path (no file to clean up after a crash). A monitor binds an automatic
-name and sends ``SUBSCRIBE`` at least every ``RENEW_S``; the card sends each
-frame to every subscriber heard from within ``EXPIRE_S``, and drops one whose
-socket is gone. Sending never blocks: a subscriber that does not keep up loses
-frames, the card never waits for it. A new subscriber first gets the last EMCY of
-each node again, marked as a replay, so a state view started after a node's
-emergency still shows it; a trace drops replays.
-
-A frame datagram is ``FRAME_HEAD`` (time stamp, identifier, flags, DLC) and the
-data bytes. The codec (``encode_frame`` / ``decode_frame``) is apart from the
-socket so both sides and the tests share it.
+The wire format, the socket's place and a monitor's side are the contract in
+``dpm.tap``; here the card binds ``board<N>.tap``, learns its subscribers and sends
+each frame to them without ever blocking.
 """
 
 from __future__ import annotations
 
-import hashlib
+import logging
+import os
 import socket
-import struct
 import threading
 import time
 from pathlib import Path
 
 import can
 
-SUBSCRIBE = b"S"
-RENEW_S = 1.0
-EXPIRE_S = 5.0
+from dpm.image import CardDirectory
+from dpm.tap import EXPIRE_S, SUBSCRIBE, encode_frame
+
+log = logging.getLogger(__name__)
+
 DRAIN_INTERVAL_S = 0.1
 """How often the publisher looks for new subscribers (only while frames flow)."""
 MAX_SUBSCRIBERS = 8
-
-FRAME_HEAD = struct.Struct("<dIBB")
-FLAG_EXTENDED = 0x01
-FLAG_REMOTE = 0x02
-FLAG_ERROR = 0x04
-FLAG_RX = 0x08
-"""Set for a frame the card received, clear for one it sent."""
-FLAG_FD = 0x10
-FLAG_REPLAY = 0x20
-"""A frame sent again to a new subscriber: the last EMCY of each node, so a view
-started after a node's emergency still shows it [ours]."""
 EMCY_IDS = range(0x081, 0x100)
 """CiA 301's predefined EMCY identifiers (080h + node-ID)."""
 
 
-def tap_address(image_path: Path) -> bytes:
-    """The abstract socket name of the tap of the card serving ``image_path``."""
-    digest = hashlib.sha1(str(Path(image_path).resolve()).encode()).hexdigest()[:20]
-    return b"\0cifemu-tap-" + digest.encode()
-
-
-def encode_frame(msg: can.Message, received: bool, replay: bool = False) -> bytes:
-    flags = ((FLAG_EXTENDED if msg.is_extended_id else 0) | (FLAG_REMOTE if msg.is_remote_frame
-             else 0) | (FLAG_ERROR if msg.is_error_frame else 0) | (FLAG_RX if received else 0)
-             | (FLAG_FD if msg.is_fd else 0) | (FLAG_REPLAY if replay else 0))
-    return FRAME_HEAD.pack(msg.timestamp, msg.arbitration_id, flags, msg.dlc) + bytes(msg.data)
-
-
-def decode_frame(datagram: bytes, channel: str | None = None) -> tuple[can.Message, bool]:
-    """A frame datagram back into a python-can message and whether it is a replay;
-    ValueError when it is malformed."""
-    if len(datagram) < FRAME_HEAD.size:
-        raise ValueError(f"tap datagram of {len(datagram)} bytes is shorter than its head")
-    timestamp, ident, flags, dlc = FRAME_HEAD.unpack_from(datagram)
-    msg = can.Message(
-        timestamp=timestamp, arbitration_id=ident, is_extended_id=bool(flags & FLAG_EXTENDED),
-        is_remote_frame=bool(flags & FLAG_REMOTE), is_error_frame=bool(flags & FLAG_ERROR),
-        is_rx=bool(flags & FLAG_RX), is_fd=bool(flags & FLAG_FD), dlc=dlc,
-        data=datagram[FRAME_HEAD.size:], channel=channel, check=False)
-    return msg, bool(flags & FLAG_REPLAY)
-
-
 class TapPublisher:
-    """The card's side: a bound socket and the subscribers it has heard from."""
+    """The card's side: a bound socket and the subscribers it has heard from.
+
+    Made while the firmware holds the board's lock: a socket file already at
+    ``address`` is a killed firmware's and is replaced (``CardDirectory.bind``). A tap
+    that cannot be offered costs the card its monitors, never its bus: one line in the
+    log, and ``publish`` does nothing."""
 
     def __init__(self, address: bytes) -> None:
         self.address = address
-        self._sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
-        self._sock.setblocking(False)
-        self._sock.bind(address)
         self._subscribers: dict[bytes, float] = {}
         self._last_emcy: dict[int, bytes] = {}
         """Per EMCY identifier, the last one as a replay datagram."""
         self._lock = threading.Lock()
         self._drain_due = 0.0
+        path = Path(os.fsdecode(address))
+        self._sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+        self._sock.setblocking(False)
+        self._directory: CardDirectory | None = None
+        try:
+            self._directory = CardDirectory(path.parent)
+            self._directory.bind(self._sock, path)
+        except OSError as exc:
+            log.error("frame tap not offered, monitors see no frames: %s", exc)
+            self._sock.close()
+            if self._directory is not None:
+                self._directory.close()
+                self._directory = None
 
     def _drain(self, now: float) -> None:
         while True:
@@ -107,6 +75,8 @@ class TapPublisher:
 
     def publish(self, msg: can.Message, received: bool) -> None:
         """Offer one frame (any thread); costs a clock read while nobody listens."""
+        if self._directory is None:
+            return
         now = time.monotonic()
         with self._lock:
             if msg.arbitration_id in EMCY_IDS and not msg.is_extended_id and not (
@@ -131,38 +101,7 @@ class TapPublisher:
 
     def close(self) -> None:
         self._sock.close()
-
-
-class TapSubscriber:
-    """A monitor's side: receives the frames of the card serving ``image_path``."""
-
-    def __init__(self, image_path: Path) -> None:
-        self.address = tap_address(image_path)
-        self._sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
-        self._sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1 << 20)
-        self._sock.bind(b"")  # an automatic abstract name
-        self._renew_due = 0.0
-
-    def subscribe(self) -> bool:
-        """Renew the subscription; False when no card listens on the tap."""
-        try:
-            self._sock.sendto(SUBSCRIBE, self.address)
-        except (ConnectionRefusedError, FileNotFoundError):
-            return False
-        return True
-
-    def recv(self, timeout: float | None) -> bytes | None:
-        """One frame datagram, renewing the subscription as time passes; None on time-out."""
-        now = time.monotonic()
-        if now >= self._renew_due:
-            self._renew_due = now + RENEW_S
-            self.subscribe()
-        wait = RENEW_S if timeout is None else min(timeout, max(0.0, self._renew_due - now))
-        self._sock.settimeout(wait)
-        try:
-            return self._sock.recv(128)
-        except TimeoutError:
-            return None
-
-    def close(self) -> None:
-        self._sock.close()
+        if self._directory is not None:
+            self._directory.unlink(os.fsdecode(os.path.basename(self.address)))
+            self._directory.close()
+            self._directory = None

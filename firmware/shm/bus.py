@@ -80,6 +80,10 @@ MAX_SLEEP_S = 0.05
 """The longest a reader sleeps before it looks again, whatever its time-out."""
 
 _HEADER = struct.Struct("<8sIII")  # magic, stations, capacity, record size
+_BITRATE_AT = _HEADER.size
+_BITRATE_SIZE = 4
+"""After the header: the channel's bit rate in bit/s, a little-endian u32, 0: none given
+(see ``ShmBus.bitrate``). The spare bytes of a file from before it read 0."""
 _SEQS_AT = 64
 """Per station: records ever written (u64, written only by the station)."""
 _WAITING_AT = _SEQS_AT + 8 * MAX_STATIONS
@@ -137,7 +141,7 @@ class ShmBus(can.BusABC):
         self._fence = threading.Lock()
         """Taking an uncontended lock is an atomic instruction: a full memory fence."""
         self._pending: deque[can.Message] = deque()
-        self._fd, self._map = self._open()
+        self._fd, self._map = self._open(int(kwargs.get("bitrate") or 0))
         self._seqs: npt.NDArray[np.uint64] = np.ndarray(
             (MAX_STATIONS,), np.uint64, buffer=self._map, offset=_SEQS_AT)
         self._closed = False
@@ -162,7 +166,7 @@ class ShmBus(can.BusABC):
 
     # --- the file and the station table ----------------------------------------------------
 
-    def _open(self) -> tuple[int, mmap.mmap]:
+    def _open(self, bitrate: int) -> tuple[int, mmap.mmap]:
         while True:
             fd = os.open(self._path, os.O_RDWR | os.O_CREAT, 0o660)
             try:
@@ -180,12 +184,27 @@ class ShmBus(can.BusABC):
                                                       RECORD_SIZE)):
                     raise can.CanInitializationError(
                         f"{self._path} is not a cifemu shared-memory CAN channel of this version")
+                if bitrate and not any(os.pread(fd, _BITRATE_SIZE, _BITRATE_AT)):
+                    os.pwrite(fd, bitrate.to_bytes(_BITRATE_SIZE, "little"), _BITRATE_AT)
                 mapped = mmap.mmap(fd, FILE_SIZE)
                 fcntl.flock(fd, fcntl.LOCK_UN)
                 return fd, mapped
             except BaseException:
                 os.close(fd)
                 raise
+
+    @property
+    def bitrate(self) -> int | None:
+        """The channel's bit rate, or None [ours].
+
+        The first station opened with a ``bitrate`` (``cifemu sim`` always gives its
+        network's) fixes it for as long as the channel exists; later stations join at
+        it whatever they ask, as a SocketCAN link's rate is the kernel's and not a
+        socket's. The bus does not model bit timing: the rate is there for a card to
+        compare its Baud_rate with (``firmware.can.bus``).
+        """
+        rate = int.from_bytes(self._map[_BITRATE_AT:_BITRATE_AT + _BITRATE_SIZE], "little")
+        return rate or None
 
     def _station(self, index: int) -> tuple[int, int, int]:
         return _STATION.unpack_from(self._map, _STATIONS_AT + index * _STATION.size)

@@ -1,7 +1,7 @@
 """The built-in generic node: a CiA 401-style 8-byte digital I/O module.
 
 A network description that names no EDS for a node gets this one
-(ARCHITECTURE.md, "The network description"). Its object dictionary is built
+(docs/network-toml.md). Its object dictionary is built
 here in code, so no data file has to travel with the package, and its
 defaults follow the description so the node works even when the master skips
 boot steps: 1017h is half the master's heartbeat consumer time, 100Ch/100Dh

@@ -1,1 +1,2 @@
-"""``cifemu monitor``: the CAN traffic with its CANopen meaning (a candump with CANopen)."""
+"""What ``cifemu monitor`` knows: the CAN traffic's CANopen meaning (its command line is
+``cifemu.commands.monitor``)."""

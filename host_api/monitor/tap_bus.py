@@ -1,4 +1,4 @@
-"""The card's frame tap (``firmware.can.tap``) as a receive-only python-can bus [ours].
+"""The card's frame tap (``dpm.tap``) as a receive-only python-can bus [ours].
 
 With it the monitor treats the card's in-process ``virtual`` bus like ``shm``
 or ``socketcan``: python-can's ``Notifier``, loggers and filters work on it
@@ -13,7 +13,7 @@ from typing import Any
 
 import can
 
-from firmware.can.tap import TapSubscriber, decode_frame
+from dpm.tap import TapSubscriber, decode_frame
 
 
 class TapBus(can.BusABC):
@@ -22,9 +22,10 @@ class TapBus(can.BusABC):
     def __init__(self, image_path: Path, channel: str = "cifemu", replays: bool = False,
                  **kwargs: Any) -> None:
         self._subscriber = TapSubscriber(image_path)
-        if not self._subscriber.subscribe():
+        problem = self._subscriber.subscribe()
+        if problem is not None:
             self._subscriber.close()
-            raise can.CanInitializationError(f"no card's frame tap for {image_path}")
+            raise can.CanInitializationError(problem)
         self.channel_info = f"frame tap of {image_path}"
         self._channel = channel
         self._replays = replays

@@ -14,8 +14,8 @@ from pathlib import Path
 
 import can
 
+from dpm.card_info import read_card_info
 from dpm.image import image_path
-from firmware.card_info import read_card_info
 from host_api.monitor.tap_bus import TapBus
 from host_api.status import read_image
 from host_api.top.model import CardModel

@@ -15,7 +15,7 @@ from collections import deque
 from dataclasses import dataclass, field
 
 from dbm_tools.network import Network
-from dpm.errors import ERR_NODE_DEVICE
+from dpm.errors import ERR_NODE_DEVICE, err_event_text
 from dpm.layout import IO_AREA_SIZE, RCV_PD, SND_PD, TASK2_STATE, TASK_STATE_SIZE
 from dpm.task2 import ComDiagnostics
 from host_api.monitor.cia301 import emcy_text, nmt_state_text
@@ -85,10 +85,13 @@ class CardModel:
         self._pdos: dict[int, _Pdo] = {}
         self._frames: deque[tuple[float, int]] = deque()
         self._last_error = (0, 0)
+        self._error_control: dict[int, str] = {}
+        """Node -> "heartbeat" or "guarding": the words of its Err_Event 30."""
         if self.network is not None:
             if self.bitrate is None:
                 self.bitrate = self.network.bus.bitrate
             for node in self.network.nodes:
+                self._error_control[node.id] = node.error_control
                 row = self._node(node.id)
                 row.control = (f"guarding {node.guard_time_ms} ms x{node.life_time_factor}"
                                if node.error_control == "guarding"
@@ -125,9 +128,11 @@ class CardModel:
             if error != self._last_error and diag.bErr_event:
                 where = ("device" if diag.bErr_rem_adr == ERR_NODE_DEVICE
                          else f"node {diag.bErr_rem_adr}")
-                self.log(now, f"Err_Event {diag.bErr_event} at {where}: {diag.err_text}")
+                text = err_event_text(diag.bErr_rem_adr, diag.bErr_event,
+                                      self._error_control.get(diag.bErr_rem_adr))
+                self.log(now, f"Err_Event {diag.bErr_event} at {where}: {text}")
                 if diag.bErr_rem_adr != ERR_NODE_DEVICE:
-                    self._node(diag.bErr_rem_adr).last_error = (diag.bErr_event, diag.err_text)
+                    self._node(diag.bErr_rem_adr).last_error = (diag.bErr_event, text)
             self._last_error = error
             for number, slot in enumerate(self.view.slots):
                 base = RCV_PD if slot.direction == "input" else SND_PD

@@ -40,6 +40,10 @@
 CIF_API int hDevDrv = -1;
 
 static pthread_mutex_t driver_lock = PTHREAD_MUTEX_INITIALIZER;
+/* The board table's lock: boards[], each board's users and closing, closing_boards.
+   Taken for a moment by every call; under driver_lock where both are held. */
+static pthread_mutex_t table_lock = PTHREAD_MUTEX_INITIALIZER;
+static cifemu_board *closing_boards; /* closed, still mapped for the calls inside */
 static unsigned int open_count;
 static char directory[PATH_MAX];
 static cifemu_board *boards[MAX_DEV_BOARDS];
@@ -97,6 +101,14 @@ static int wait_for(cifemu_board *b, condition_fn cond, int arg, unsigned long t
   }
 }
 
+/* What is left of a call's time-out that started at `start` (CLOCK_MONOTONIC ns). */
+static unsigned long remaining_ms(long long start, unsigned long timeout_ms) {
+  long long left;
+  if (timeout_ms > 2000000000UL) timeout_ms = 2000000000UL;
+  left = start + (long long)timeout_ms * 1000000LL - cifemu_now_ns();
+  return left > 0 ? (unsigned long)((left + 999999) / 1000000) : 0UL;
+}
+
 static int cond_pending(const cifemu_board *b, int channel) {
   return pending(b, (unsigned char)channel);
 }
@@ -121,53 +133,67 @@ static int cond_host_bit(const cifemu_board *b, int bit_and_level) {
 
 /* ---- boards --------------------------------------------------------------- */
 
-cifemu_board *cifemu_board_get(unsigned short number, short *rc) {
+static void board_close(cifemu_board *b);
+
+/* [ours] The real driver's board lived in the kernel, and a call waiting in it when the
+   program closed the board finished on it. So here: a call counts itself in the board
+   (users) while it is inside; DevExitBoard takes the board out of the table (later calls
+   get -32) and the last call inside unmaps it. No call waits for another. */
+cifemu_board *cifemu_board_enter(unsigned short number, short *rc) {
   cifemu_board *b;
   if (number >= MAX_DEV_BOARDS) {
     *rc = DRV_USR_DEV_NUMBER_INVALID;
     return NULL;
   }
-  b = __atomic_load_n(&boards[number], __ATOMIC_ACQUIRE);
-  if (open_count == 0 || b == NULL) {
-    *rc = DRV_USR_NOT_INITIALIZED;
-    return NULL;
-  }
+  pthread_mutex_lock(&table_lock);
+  b = boards[number]; /* none while the driver is closed: DevCloseDriver empties the table */
+  if (b != NULL) b->users++;
+  pthread_mutex_unlock(&table_lock);
+  *rc = b != NULL ? DRV_NO_ERROR : DRV_USR_NOT_INITIALIZED;
   return b;
 }
 
 cifemu_board *cifemu_ready_board(unsigned short number, short *rc) {
-  cifemu_board *b = cifemu_board_get(number, rc);
+  cifemu_board *b = cifemu_board_enter(number, rc);
   if (b != NULL && !ready(b)) {
+    cifemu_board_leave(b);
     *rc = DRV_DEV_NOT_READY;
     return NULL;
   }
   return b;
 }
 
-int cifemu_txn_acquire(cifemu_board *b, unsigned long timeout_ms) {
-  int held;
-  pthread_mutex_lock(&b->txn_mutex);
-  if (!b->txn_held) b->txn_held = cifemu_flock_acquire(b->transaction_lock.fd, timeout_ms);
-  held = b->txn_held;
-  pthread_mutex_unlock(&b->txn_mutex);
-  return held;
-}
-
-void cifemu_txn_release_if_idle(cifemu_board *b) {
-  pthread_mutex_lock(&b->txn_mutex);
-  if (b->txn_held && b->txn_outstanding == 0 && b->txn_pinned == 0) {
-    flock(b->transaction_lock.fd, LOCK_UN);
-    b->txn_held = 0;
+void cifemu_board_leave(cifemu_board *b) {
+  cifemu_board **link;
+  int last;
+  pthread_mutex_lock(&table_lock);
+  last = --b->users == 0 && b->closing;
+  if (last) {
+    for (link = &closing_boards; *link != b; link = &(*link)->next_closing) {
+    }
+    *link = b->next_closing;
   }
-  pthread_mutex_unlock(&b->txn_mutex);
+  pthread_mutex_unlock(&table_lock);
+  if (last) board_close(b);
 }
 
-void cifemu_txn_expect(cifemu_board *b, int delta) {
-  pthread_mutex_lock(&b->txn_mutex);
-  if (delta > 0) b->txn_outstanding++;
-  else if (delta < 0 && b->txn_outstanding > 0) b->txn_outstanding--;
-  else if (delta == 0) b->txn_outstanding = 0;
-  pthread_mutex_unlock(&b->txn_mutex);
+/* Takes board `number` out of the table (the caller holds driver_lock): unmapped now when
+   no call is inside, else by the last one to leave. 0, or -32 when it was not there. */
+static short board_remove(unsigned short number) {
+  cifemu_board *b;
+  int idle;
+  pthread_mutex_lock(&table_lock);
+  b = boards[number];
+  boards[number] = NULL;
+  idle = b != NULL && b->users == 0;
+  if (b != NULL && !idle) {
+    b->closing = 1;
+    b->next_closing = closing_boards;
+    closing_boards = b;
+  }
+  pthread_mutex_unlock(&table_lock);
+  if (idle) board_close(b);
+  return b != NULL ? DRV_NO_ERROR : DRV_USR_NOT_INITIALIZED;
 }
 
 static void image_path(char *out, size_t size, unsigned short number) {
@@ -179,12 +205,11 @@ static void image_path(char *out, size_t size, unsigned short number) {
  * in the image, so only its lock tells. Read from /proc/locks, since a probing flock
  * could make a firmware starting in that instant refuse itself; without /proc, a shared
  * non-blocking flock that fails means a holder. */
-static int firmware_alive(unsigned short number) {
-  char path[PATH_MAX + 32], line[256], device[64];
+static int firmware_alive(const char *path) {
+  char line[256], device[64];
   struct stat st;
   FILE *locks;
   int alive = 0, fd;
-  snprintf(path, sizeof path, "%s/board%u.firmware.lock", directory, (unsigned)number);
   if (stat(path, &st) != 0) return 0;
   snprintf(device, sizeof device, "%02x:%02x:%lu", major(st.st_dev), minor(st.st_dev),
            (unsigned long)st.st_ino);
@@ -209,7 +234,11 @@ static int firmware_alive(unsigned short number) {
 
 /* A wait's time-out code, or DRV_DEV_NOT_READY when the firmware died meanwhile. */
 static short timed_out(const cifemu_board *b, short code) {
-  return firmware_alive(b->number) ? code : DRV_DEV_NOT_READY;
+  return firmware_alive(b->firmware_lock) ? code : DRV_DEV_NOT_READY;
+}
+
+static void lock_path(char *out, size_t size, unsigned short number, const char *what) {
+  snprintf(out, size, "%s/board%u.%s.lock", directory, (unsigned)number, what);
 }
 
 static void board_close(cifemu_board *b) {
@@ -218,9 +247,8 @@ static void board_close(cifemu_board *b) {
   cifemu_chanlock_close(&b->get_lock);
   cifemu_chanlock_close(&b->io_lock);
   cifemu_chanlock_close(&b->flags_lock);
-  cifemu_chanlock_close(&b->transaction_lock);
+  cifemu_txn_close(&b->txn);
   munmap(b->mm, DPM_SIZE);
-  pthread_mutex_destroy(&b->txn_mutex);
   free(b);
 }
 
@@ -244,11 +272,70 @@ static short check_card(unsigned char *mm) {
 
 /* ---- driver and board ----------------------------------------------------- */
 
+
+/* What one lock of a board does with its file: open it, or reopen it in a forked child. */
+typedef int (*chanlock_fn)(cifemu_chanlock *lock, const char *path);
+typedef int (*txn_fn)(cifemu_txn *txn, const char *path);
+
+/* Every lock of board b, in turn, until one fails: 0, else -1. */
+static int each_lock(cifemu_board *b, chanlock_fn channel, txn_fn transaction) {
+  static const char *const names[4] = {"put", "get", "io", "flags"};
+  cifemu_chanlock *locks[4];
+  char path[PATH_MAX + 32];
+  int i;
+  locks[0] = &b->put_lock;
+  locks[1] = &b->get_lock;
+  locks[2] = &b->io_lock;
+  locks[3] = &b->flags_lock;
+  for (i = 0; i < 4; i++) {
+    lock_path(path, sizeof path, b->number, names[i]);
+    if (channel(locks[i], path) != 0) return -1;
+  }
+  lock_path(path, sizeof path, b->number, "transaction");
+  return transaction(&b->txn, path);
+}
+
+/* [ours] A child forked after DevInitBoard gets lock files, locks and a doorbell of its
+   own: the descriptors it inherited share their flocks (and rings) with the parent, so
+   both would be inside a channel at once and read each other's answers. The parent's
+   threads do not exist in the child: the mutexes one of them held are made anew. A board
+   whose lock files cannot be opened again is closed in the child (-32 there). */
+static void child_after_fork(void) {
+  char path[PATH_MAX + 16];
+  int n;
+  pthread_mutex_init(&driver_lock, NULL);
+  pthread_mutex_init(&table_lock, NULL);
+  /* the calls inside a closed board were the parent's threads': it goes now */
+  while (closing_boards != NULL) {
+    cifemu_board *b = closing_boards;
+    closing_boards = b->next_closing;
+    board_close(b);
+  }
+  for (n = 0; n < MAX_DEV_BOARDS; n++) {
+    cifemu_board *b = boards[n];
+    if (b == NULL) continue;
+    b->users = 0;
+    if (each_lock(b, cifemu_chanlock_reopen, cifemu_txn_reopen) != 0) {
+      boards[n] = NULL;
+      board_close(b);
+      continue;
+    }
+    cifemu_bell_close(&b->bell);
+    image_path(path, sizeof path, b->number);
+    if (cifemu_bell_open(&b->bell, path) == 0)
+      cifemu_bell_ring(&b->bell); /* introduces the child to the device */
+  }
+}
+
+static pthread_once_t fork_handler_once = PTHREAD_ONCE_INIT;
+static void register_fork_handler(void) { pthread_atfork(NULL, NULL, child_after_fork); }
+
 CIF_API short DevOpenDriver(void) {
   const char *env = getenv("CIF_DPM_DIR");
   const char *path = env != NULL ? env : DEFAULT_DPM_DIR;
   struct stat st;
   short rc = DRV_NO_ERROR;
+  pthread_once(&fork_handler_once, register_fork_handler);
   pthread_mutex_lock(&driver_lock);
   if (strlen(path) >= sizeof directory - 16 || stat(path, &st) != 0 || !S_ISDIR(st.st_mode)) {
     rc = DRV_USR_OPEN_ERROR;
@@ -273,13 +360,17 @@ CIF_API short DevCloseDriver(void) {
     rc = DRV_USR_NOT_INITIALIZED;
   } else if (--open_count == 0) {
     for (n = 0; n < MAX_DEV_BOARDS; n++) {
-      if (boards[n] != NULL) {
-        cifemu_board *b = boards[n];
-        __atomic_store_n(&boards[n], NULL, __ATOMIC_RELEASE);
-        board_close(b);
-      }
+      cifemu_counters *c = &counters[n];
+      board_remove((unsigned short)n);
+      /* a call still inside a closed board may count: atomically, as it does */
+      __atomic_store_n(&c->open, 0u, __ATOMIC_RELAXED);
+      __atomic_store_n(&c->close, 0u, __ATOMIC_RELAXED);
+      __atomic_store_n(&c->read, 0u, __ATOMIC_RELAXED);
+      __atomic_store_n(&c->write, 0u, __ATOMIC_RELAXED);
+      __atomic_store_n(&c->irq, 0u, __ATOMIC_RELAXED);
+      __atomic_store_n(&c->io, 0u, __ATOMIC_RELAXED);
+      __atomic_store_n(&c->last_function, 0, __ATOMIC_RELAXED);
     }
-    memset(counters, 0, sizeof counters);
     if (hDevDrv >= 0) close(hDevDrv);
     hDevDrv = -1;
   }
@@ -349,20 +440,16 @@ CIF_API short DevGetBoardInfoEx(void *pvData) {
    doorbell with polling beside it, so both modes are accepted and usIrq reads 0. */
 CIF_API short DevSetOpMode(unsigned short usBoard, unsigned short usMode, unsigned short *usIrq) {
   short rc;
-  if (cifemu_board_get(usBoard, &rc) == NULL) return rc;
+  cifemu_board *b = cifemu_board_enter(usBoard, &rc);
+  if (b == NULL) return rc;
+  cifemu_board_leave(b);
   if (usMode != POLLING_MODE && usMode != INTERRUPT_MODE) return DRV_USR_MODE_INVALID;
   if (usIrq != NULL) *usIrq = 0;
   return DRV_NO_ERROR;
 }
 
-static int open_lock(cifemu_chanlock *lock, unsigned short number, const char *what) {
-  char path[PATH_MAX + 32];
-  snprintf(path, sizeof path, "%s/board%u.%s.lock", directory, (unsigned)number, what);
-  return cifemu_chanlock_open(lock, path);
-}
-
 CIF_API short DevInitBoard(unsigned short usDevNumber) {
-  char path[PATH_MAX + 16];
+  char path[PATH_MAX + 16], firmware_lock[PATH_MAX + 32];
   unsigned char *mm;
   cifemu_board *b;
   struct stat st;
@@ -394,20 +481,22 @@ CIF_API short DevInitBoard(unsigned short usDevNumber) {
     goto out;
   }
   rc = check_card(mm);
-  if (rc == DRV_NO_ERROR && !firmware_alive(usDevNumber))
+  lock_path(firmware_lock, sizeof firmware_lock, usDevNumber, "firmware");
+  if (rc == DRV_NO_ERROR && !firmware_alive(firmware_lock))
     rc = DRV_DEV_NOT_READY; /* [ours] READY left behind by a killed firmware */
   if (rc != DRV_NO_ERROR) {
     munmap(mm, DPM_SIZE);
     goto out;
   }
   b = (cifemu_board *)calloc(1, sizeof *b);
-  if (b != NULL) pthread_mutex_init(&b->txn_mutex, NULL);
+  if (b != NULL) { /* nothing open yet: closing it must not close descriptor 0 */
+    b->bell.fd = b->put_lock.fd = b->get_lock.fd = b->io_lock.fd = b->flags_lock.fd = -1;
+    b->txn.lock.fd = -1;
+    b->number = usDevNumber;
+    memcpy(b->firmware_lock, firmware_lock, sizeof firmware_lock);
+  }
   if (b == NULL || cifemu_bell_open(&b->bell, path) != 0 ||
-      open_lock(&b->put_lock, usDevNumber, "put") != 0 ||
-      open_lock(&b->get_lock, usDevNumber, "get") != 0 ||
-      open_lock(&b->io_lock, usDevNumber, "io") != 0 ||
-      open_lock(&b->flags_lock, usDevNumber, "flags") != 0 ||
-      open_lock(&b->transaction_lock, usDevNumber, "transaction") != 0) {
+      each_lock(b, cifemu_chanlock_open, cifemu_txn_open) != 0) {
     /* [ours] no socket or lock file for this host: the board cannot be shared safely */
     if (b != NULL) {
       b->mm = mm;
@@ -418,28 +507,30 @@ CIF_API short DevInitBoard(unsigned short usDevNumber) {
     rc = DRV_USR_INIT_DRV_ERROR;
     goto out;
   }
-  b->number = usDevNumber;
   b->mm = mm;
   b->counters = &counters[usDevNumber];
   count(&b->counters->open);
   __atomic_store_n(&b->counters->last_function, FKT_OPEN, __ATOMIC_RELAXED);
   cifemu_bell_ring(&b->bell); /* introduces this host to the device */
-  __atomic_store_n(&boards[usDevNumber], b, __ATOMIC_RELEASE);
+  pthread_mutex_lock(&table_lock);
+  boards[usDevNumber] = b;
+  pthread_mutex_unlock(&table_lock);
 out:
   pthread_mutex_unlock(&driver_lock);
   return rc;
 }
 
+/* Returns at once: the calls inside the board end as they would have (their message or
+   their time-out), calls after it get -32, the last one out unmaps the board. */
 CIF_API short DevExitBoard(unsigned short usDevNumber) {
-  cifemu_board *b;
-  short rc = DRV_NO_ERROR;
+  short rc;
+  if (usDevNumber >= MAX_DEV_BOARDS) return DRV_USR_DEV_NUMBER_INVALID;
   pthread_mutex_lock(&driver_lock);
-  b = cifemu_board_get(usDevNumber, &rc);
-  if (b != NULL) {
-    count(&b->counters->close);
-    __atomic_store_n(&b->counters->last_function, FKT_CLOSE, __ATOMIC_RELAXED);
-    __atomic_store_n(&boards[usDevNumber], NULL, __ATOMIC_RELEASE);
-    board_close(b);
+  rc = boards[usDevNumber] != NULL ? DRV_NO_ERROR : DRV_USR_NOT_INITIALIZED;
+  if (rc == DRV_NO_ERROR) {
+    count(&counters[usDevNumber].close);
+    __atomic_store_n(&counters[usDevNumber].last_function, FKT_CLOSE, __ATOMIC_RELAXED);
+    rc = board_remove(usDevNumber);
   }
   pthread_mutex_unlock(&driver_lock);
   return rc;
@@ -447,31 +538,90 @@ CIF_API short DevExitBoard(unsigned short usDevNumber) {
 
 /* ---- mailboxes ------------------------------------------------------------ */
 
-CIF_API short DevPutMessage(unsigned short usDevNumber, MSG_STRUC *ptMessage,
-                            unsigned long ulTimeout) {
+static short put_message(cifemu_board *b, MSG_STRUC *ptMessage, unsigned long ulTimeout) {
   short rc;
-  cifemu_board *b = cifemu_ready_board(usDevNumber, &rc);
-  if (b == NULL) return rc;
+  long long deadline = cifemu_now_ns();
   if (ptMessage == NULL) return DRV_USR_MSG_BUF_NULL_PTR;
-  if (!cifemu_txn_acquire(b, ulTimeout)) return DRV_CMD_ACTIVE;
-  if (!cifemu_chanlock_acquire(&b->put_lock, ulTimeout)) {
-    cifemu_txn_release_if_idle(b);
+  if (!cifemu_txn_enter(&b->txn, ulTimeout)) return DRV_CMD_ACTIVE;
+  if (!cifemu_chanlock_acquire(&b->put_lock, remaining_ms(deadline, ulTimeout))) {
+    cifemu_txn_leave(&b->txn);
     return DRV_CMD_ACTIVE;
   }
-  if (!wait_for(b, cond_free, CH_DEV_MBX, ulTimeout)) {
+  if (!wait_for(b, cond_free, CH_DEV_MBX, remaining_ms(deadline, ulTimeout))) {
     rc = ulTimeout == 0 ? DRV_DEV_MAILBOX_FULL : timed_out(b, DRV_DEV_PUT_TIMEOUT);
   } else {
-    /* a message with RCS_NAK_MSK is answered only when it fails: none is awaited */
-    if (!(ptMessage->e & 0x02)) cifemu_txn_expect(b, 1);
     /* the message is ln + 8 bytes; the caller's buffer may be no longer than that */
     memcpy(b->mm + OFS_DEV_MBX, ptMessage, 8u + ptMessage->ln);
+    /* recorded before the card can see it: a host killed now leaves it in the ledger */
+    cifemu_txn_sent(&b->txn, (const unsigned char *)ptMessage);
     change_dev_flags(b, 0, 0, FL_DEVCOM, 1);
     count(&b->counters->write);
     __atomic_store_n(&b->counters->last_function, FKT_WRITE, __ATOMIC_RELAXED);
     rc = DRV_NO_ERROR;
   }
   cifemu_chanlock_release(&b->put_lock);
-  cifemu_txn_release_if_idle(b);
+  cifemu_txn_leave(&b->txn);
+  return rc;
+}
+
+CIF_API short DevPutMessage(unsigned short usDevNumber, MSG_STRUC *ptMessage,
+                            unsigned long ulTimeout) {
+  short rc;
+  cifemu_board *b = cifemu_ready_board(usDevNumber, &rc);
+  if (b == NULL) return rc;
+  rc = put_message(b, ptMessage, ulTimeout);
+  cifemu_board_leave(b);
+  return rc;
+}
+
+/* [ours] Answers to another host's requests (it died, or gave the board up after a get
+   timed out) are read and discarded (with the handshake) within the caller's time-out,
+   never returned. */
+static short get_message(cifemu_board *b, unsigned short usSize, MSG_STRUC *ptMessage,
+                         unsigned long ulTimeout) {
+  short rc;
+  long long deadline = cifemu_now_ns();
+  if (ptMessage == NULL) return DRV_USR_MSG_BUF_NULL_PTR;
+  /* a host expecting nothing still waits for other hosts' transactions to finish */
+  if (!cifemu_txn_enter(&b->txn, ulTimeout)) return DRV_CMD_ACTIVE;
+  if (!cifemu_chanlock_acquire(&b->get_lock, remaining_ms(deadline, ulTimeout))) {
+    cifemu_txn_leave(&b->txn);
+    return DRV_CMD_ACTIVE;
+  }
+  for (;;) {
+    unsigned char header[8];
+    unsigned length;
+    int stale;
+    if (!wait_for(b, cond_pending, CH_HOST_MBX, remaining_ms(deadline, ulTimeout))) {
+      rc = ulTimeout == 0 ? DRV_DEV_GET_NO_MESSAGE : timed_out(b, DRV_DEV_GET_TIMEOUT);
+      /* [ours] answers that did not come in time no longer keep the board from other
+         hosts: this host reads them if it holds the board when they come, another host
+         that took it meanwhile discards them */
+      if (ulTimeout != 0) cifemu_txn_give_up(&b->txn);
+      break;
+    }
+    memcpy(header, b->mm + OFS_PC_MBX, sizeof header);
+    length = 8u + header[2];
+    stale = cifemu_txn_is_stale(&b->txn, header);
+    if (!stale && length > usSize) {
+      rc = DRV_USR_MSG_BUF_TOO_SHORT; /* the message stays in the mailbox */
+      break;
+    }
+    if (!stale) memcpy(ptMessage, b->mm + OFS_PC_MBX, length);
+    /* The device polls anyway; a ring only speeds up answers it has queued. */
+    change_dev_flags(b, 0, 0, FL_HOSTACK,
+                     stale || __atomic_load_n(&b->bell.device_wants_ack, __ATOMIC_RELAXED));
+    /* after the handshake: a host killed in between leaves a discarded answer's request
+       in the ledger, never an answer nobody discards */
+    cifemu_txn_answered(&b->txn, header);
+    if (stale) continue;
+    count(&b->counters->read);
+    __atomic_store_n(&b->counters->last_function, FKT_READ, __ATOMIC_RELAXED);
+    rc = DRV_NO_ERROR;
+    break;
+  }
+  cifemu_chanlock_release(&b->get_lock);
+  cifemu_txn_leave(&b->txn);
   return rc;
 }
 
@@ -482,33 +632,8 @@ CIF_API short DevGetMessage(unsigned short usDevNumber, unsigned short usSize,
   if (usSize == 0 || usSize > MSG_BUFFER_SIZE) return DRV_USR_SIZE_INVALID;
   b = cifemu_ready_board(usDevNumber, &rc);
   if (b == NULL) return rc;
-  if (ptMessage == NULL) return DRV_USR_MSG_BUF_NULL_PTR;
-  /* a host expecting nothing still waits for other hosts' transactions to finish */
-  if (!cifemu_txn_acquire(b, ulTimeout)) return DRV_CMD_ACTIVE;
-  if (!cifemu_chanlock_acquire(&b->get_lock, ulTimeout)) {
-    cifemu_txn_release_if_idle(b);
-    return DRV_CMD_ACTIVE;
-  }
-  if (!wait_for(b, cond_pending, CH_HOST_MBX, ulTimeout)) {
-    rc = ulTimeout == 0 ? DRV_DEV_GET_NO_MESSAGE : timed_out(b, DRV_DEV_GET_TIMEOUT);
-    /* [ours] an answer that did not come in time frees the board for other hosts */
-    if (ulTimeout != 0) cifemu_txn_expect(b, 0);
-  } else {
-    unsigned length = 8u + b->mm[OFS_PC_MBX + 2];
-    if (length > usSize) {
-      rc = DRV_USR_MSG_BUF_TOO_SHORT; /* the message stays in the mailbox */
-    } else {
-      memcpy(ptMessage, b->mm + OFS_PC_MBX, length);
-      /* The device polls anyway; a ring only speeds up answers it has queued. */
-      change_dev_flags(b, 0, 0, FL_HOSTACK, b->bell.device_wants_ack);
-      count(&b->counters->read);
-      __atomic_store_n(&b->counters->last_function, FKT_READ, __ATOMIC_RELAXED);
-      cifemu_txn_expect(b, -1);
-      rc = DRV_NO_ERROR;
-    }
-  }
-  cifemu_chanlock_release(&b->get_lock);
-  cifemu_txn_release_if_idle(b);
+  rc = get_message(b, usSize, ptMessage, ulTimeout);
+  cifemu_board_leave(b);
   return rc;
 }
 
@@ -518,9 +643,10 @@ CIF_API short DevGetMBXState(unsigned short usDevNumber, unsigned short *pusDevM
   unsigned char host, dev;
   cifemu_board *b = cifemu_ready_board(usDevNumber, &rc);
   if (b == NULL) return rc;
-  if (pusDevMBXState == NULL || pusHostMBXState == NULL) return DRV_USR_BUF_PTR_NULL;
   host = host_flags(b);
   dev = dev_flags(b);
+  cifemu_board_leave(b);
+  if (pusDevMBXState == NULL || pusHostMBXState == NULL) return DRV_USR_BUF_PTR_NULL;
   *pusDevMBXState = (host ^ dev) & CH_DEV_MBX ? DEVICE_MBX_FULL : DEVICE_MBX_EMPTY;
   *pusHostMBXState = (host ^ dev) & CH_HOST_MBX ? HOST_MBX_FULL : HOST_MBX_EMPTY;
   return DRV_NO_ERROR;
@@ -534,12 +660,16 @@ CIF_API short DevGetMBXData(unsigned short usDevNumber, unsigned short usHostSiz
   short rc;
   cifemu_board *b = cifemu_ready_board(usDevNumber, &rc);
   if (b == NULL) return rc;
-  if (usHostSize == 0 || usDevSize == 0) return DRV_USR_SIZE_ZERO;
-  if (usHostSize > MSG_BUFFER_SIZE || usDevSize > MSG_BUFFER_SIZE) return DRV_USR_SIZE_TOO_LONG;
-  if (pvHostData == NULL || pvDevData == NULL) return DRV_USR_BUF_PTR_NULL;
-  memcpy(pvHostData, b->mm + OFS_PC_MBX, usHostSize);
-  memcpy(pvDevData, b->mm + OFS_DEV_MBX, usDevSize);
-  return DRV_NO_ERROR;
+  if (usHostSize == 0 || usDevSize == 0) rc = DRV_USR_SIZE_ZERO;
+  else if (usHostSize > MSG_BUFFER_SIZE || usDevSize > MSG_BUFFER_SIZE) rc = DRV_USR_SIZE_TOO_LONG;
+  else if (pvHostData == NULL || pvDevData == NULL) rc = DRV_USR_BUF_PTR_NULL;
+  else {
+    memcpy(pvHostData, b->mm + OFS_PC_MBX, usHostSize);
+    memcpy(pvDevData, b->mm + OFS_DEV_MBX, usDevSize);
+    rc = DRV_NO_ERROR;
+  }
+  cifemu_board_leave(b);
+  return rc;
 }
 
 /* ---- process data --------------------------------------------------------- */
@@ -592,10 +722,12 @@ CIF_API short DevExchangeIO(unsigned short usDevNumber, unsigned short usSendOff
                             unsigned short usReceiveOffset, unsigned short usReceiveSize,
                             void *pvReceiveData, unsigned long ulTimeout) {
   short rc;
-  cifemu_board *b = cifemu_board_get(usDevNumber, &rc);
+  cifemu_board *b = cifemu_board_enter(usDevNumber, &rc);
   if (b == NULL) return rc;
-  return exchange(b, driver_mode(b), usSendOffset, usSendSize, pvSendData, usReceiveOffset,
-                  usReceiveSize, pvReceiveData, ulTimeout);
+  rc = exchange(b, driver_mode(b), usSendOffset, usSendSize, pvSendData, usReceiveOffset,
+                usReceiveSize, pvReceiveData, ulTimeout);
+  cifemu_board_leave(b);
+  return rc;
 }
 
 CIF_API short DevExchangeIOEx(unsigned short usDevNumber, unsigned short usMode,
@@ -604,11 +736,13 @@ CIF_API short DevExchangeIOEx(unsigned short usDevNumber, unsigned short usMode,
                               unsigned short usReceiveSize, void *pvReceiveData,
                               unsigned long ulTimeout) {
   short rc;
-  cifemu_board *b = cifemu_board_get(usDevNumber, &rc);
+  cifemu_board *b = cifemu_board_enter(usDevNumber, &rc);
   if (b == NULL) return rc;
-  if (usMode > 4) return DRV_USR_MODE_INVALID;
-  return exchange(b, usMode + 1u, usSendOffset, usSendSize, pvSendData, usReceiveOffset,
-                  usReceiveSize, pvReceiveData, ulTimeout);
+  rc = usMode > 4 ? DRV_USR_MODE_INVALID
+                  : exchange(b, usMode + 1u, usSendOffset, usSendSize, pvSendData,
+                             usReceiveOffset, usReceiveSize, pvReceiveData, ulTimeout);
+  cifemu_board_leave(b);
+  return rc;
 }
 
 CIF_API short DevExchangeIOErr(unsigned short usDevNumber, unsigned short usSendOffset,
@@ -618,12 +752,15 @@ CIF_API short DevExchangeIOErr(unsigned short usDevNumber, unsigned short usSend
                                unsigned long ulTimeout) {
   short rc;
   unsigned state_mode;
-  cifemu_board *b = cifemu_board_get(usDevNumber, &rc);
+  cifemu_board *b = cifemu_board_enter(usDevNumber, &rc);
   if (b == NULL) {
     if (ptState != NULL) memset(ptState, 0, sizeof *ptState);
     return rc;
   }
-  if (ptState == NULL) return DRV_USR_BUF_PTR_NULL;
+  if (ptState == NULL) {
+    cifemu_board_leave(b);
+    return DRV_USR_BUF_PTR_NULL;
+  }
   rc = DevExchangeIO(usDevNumber, usSendOffset, usSendSize, pvSendData, usReceiveOffset,
                      usReceiveSize, pvReceiveData, ulTimeout);
   memset(ptState, 0, sizeof *ptState);
@@ -641,6 +778,7 @@ CIF_API short DevExchangeIOErr(unsigned short usDevNumber, unsigned short usSend
   } else {
     ptState->usStateFlag = STATE_FLAG_UNKNOWN;
   }
+  cifemu_board_leave(b);
   return rc;
 }
 
@@ -649,22 +787,23 @@ CIF_API short DevReadSendData(unsigned short usDevNumber, unsigned short usOffse
   short rc;
   cifemu_board *b = cifemu_ready_board(usDevNumber, &rc);
   if (b == NULL) return rc;
-  if ((unsigned)usOffset + usSize > IO_AREA_SIZE) return DRV_USR_SIZE_TOO_LONG;
-  if (!(host_flags(b) & FL_COM)) return DRV_DEV_NO_COM_FLAG;
-  if (usSize && pvData == NULL) return DRV_USR_BUF_PTR_NULL;
-  if (usSize) memcpy(pvData, b->mm + OFS_SND_PD + usOffset, usSize);
-  return DRV_NO_ERROR;
+  if ((unsigned)usOffset + usSize > IO_AREA_SIZE) rc = DRV_USR_SIZE_TOO_LONG;
+  else if (!(host_flags(b) & FL_COM)) rc = DRV_DEV_NO_COM_FLAG;
+  else if (usSize && pvData == NULL) rc = DRV_USR_BUF_PTR_NULL;
+  else {
+    if (usSize) memcpy(pvData, b->mm + OFS_SND_PD + usOffset, usSize);
+    rc = DRV_NO_ERROR;
+  }
+  cifemu_board_leave(b);
+  return rc;
 }
 
 /* ---- control -------------------------------------------------------------- */
 
-CIF_API short DevReset(unsigned short usDevNumber, unsigned short usMode, unsigned long ulTimeout) {
-  short rc;
+static short reset(cifemu_board *b, unsigned short usMode, unsigned long ulTimeout) {
   unsigned char request;
   long long deadline;
   long long remaining;
-  cifemu_board *b = cifemu_board_get(usDevNumber, &rc);
-  if (b == NULL) return rc;
   switch (usMode) {
     case COLDSTART: request = FL_RESET; break;
     case WARMSTART: request = FL_INIT; break;
@@ -681,11 +820,16 @@ CIF_API short DevReset(unsigned short usDevNumber, unsigned short usMode, unsign
   return DRV_NO_ERROR;
 }
 
-CIF_API short DevSetHostState(unsigned short usDevNumber, unsigned short usMode,
-                              unsigned long ulTimeout) {
+CIF_API short DevReset(unsigned short usDevNumber, unsigned short usMode, unsigned long ulTimeout) {
   short rc;
-  cifemu_board *b = cifemu_ready_board(usDevNumber, &rc);
+  cifemu_board *b = cifemu_board_enter(usDevNumber, &rc);
   if (b == NULL) return rc;
+  rc = reset(b, usMode, ulTimeout);
+  cifemu_board_leave(b);
+  return rc;
+}
+
+static short set_host_state(cifemu_board *b, unsigned short usMode, unsigned long ulTimeout) {
   if (usMode == HOST_READY) change_dev_flags(b, 0, FL_NOTREADY, 0, 1);
   else if (usMode == HOST_NOT_READY) change_dev_flags(b, FL_NOTREADY, 0, 0, 1);
   else return DRV_USR_MODE_INVALID;
@@ -695,19 +839,34 @@ CIF_API short DevSetHostState(unsigned short usDevNumber, unsigned short usMode,
   return DRV_NO_ERROR;
 }
 
+CIF_API short DevSetHostState(unsigned short usDevNumber, unsigned short usMode,
+                              unsigned long ulTimeout) {
+  short rc;
+  cifemu_board *b = cifemu_ready_board(usDevNumber, &rc);
+  if (b == NULL) return rc;
+  rc = set_host_state(b, usMode, ulTimeout);
+  cifemu_board_leave(b);
+  return rc;
+}
+
 CIF_API short DevTriggerWatchDog(unsigned short usDevNumber, unsigned short usFunction,
                                  unsigned short *usDevWatchDog) {
   short rc;
   unsigned char value;
   cifemu_board *b = cifemu_ready_board(usDevNumber, &rc);
   if (b == NULL) return rc;
-  if (usFunction != WATCHDOG_START && usFunction != WATCHDOG_STOP) return DRV_USR_MODE_INVALID;
-  if (usDevWatchDog == NULL) return DRV_USR_BUF_PTR_NULL;
-  value = usFunction == WATCHDOG_START ? flag_get(b, OFS_HOST_WATCHDOG) : 0;
-  __atomic_store_n(b->mm + OFS_DEV_WATCHDOG, value, __ATOMIC_RELEASE);
-  cifemu_bell_ring(&b->bell);
-  *usDevWatchDog = value;
-  return DRV_NO_ERROR;
+  if (usFunction != WATCHDOG_START && usFunction != WATCHDOG_STOP) {
+    rc = DRV_USR_MODE_INVALID;
+  } else if (usDevWatchDog == NULL) {
+    rc = DRV_USR_BUF_PTR_NULL;
+  } else {
+    value = usFunction == WATCHDOG_START ? flag_get(b, OFS_HOST_WATCHDOG) : 0;
+    __atomic_store_n(b->mm + OFS_DEV_WATCHDOG, value, __ATOMIC_RELEASE);
+    cifemu_bell_ring(&b->bell);
+    *usDevWatchDog = value;
+  }
+  cifemu_board_leave(b);
+  return rc;
 }
 
 /* Set (1) or clear (0) SPCCOM; returns the SPCACK level once the card mirrored it.
@@ -717,15 +876,19 @@ CIF_API short DevSpecialControl(unsigned short usDevNumber, unsigned short usMod
   short rc;
   cifemu_board *b = cifemu_ready_board(usDevNumber, &rc);
   if (b == NULL) return rc;
-  if (usMode != SPECIAL_CONTROL_SET && usMode != SPECIAL_CONTROL_CLEAR)
-    return DRV_USR_MODE_INVALID;
-  if (pusCtrlAck == NULL) return DRV_USR_BUF_PTR_NULL;
-  if (usMode == SPECIAL_CONTROL_SET) change_dev_flags(b, FL_SPCCOM, 0, 0, 1);
-  else change_dev_flags(b, 0, FL_SPCCOM, 0, 1);
-  wait_for(b, cond_host_bit, FL_SPCACK | (usMode == SPECIAL_CONTROL_SET) << 8,
-           SPECIAL_CONTROL_WAIT_MS);
-  *pusCtrlAck = (host_flags(b) & FL_SPCACK) ? 1 : 0;
-  return DRV_NO_ERROR;
+  if (usMode != SPECIAL_CONTROL_SET && usMode != SPECIAL_CONTROL_CLEAR) {
+    rc = DRV_USR_MODE_INVALID;
+  } else if (pusCtrlAck == NULL) {
+    rc = DRV_USR_BUF_PTR_NULL;
+  } else {
+    if (usMode == SPECIAL_CONTROL_SET) change_dev_flags(b, FL_SPCCOM, 0, 0, 1);
+    else change_dev_flags(b, 0, FL_SPCCOM, 0, 1);
+    wait_for(b, cond_host_bit, FL_SPCACK | (usMode == SPECIAL_CONTROL_SET) << 8,
+             SPECIAL_CONTROL_WAIT_MS);
+    *pusCtrlAck = (host_flags(b) & FL_SPCACK) ? 1 : 0;
+  }
+  cifemu_board_leave(b);
+  return rc;
 }
 
 /* ---- information and parameters ------------------------------------------- */
@@ -756,14 +919,14 @@ CIF_API short DevGetInfo(unsigned short usDevNumber, unsigned short usFunction,
                                             OFS_TASK_INFO, OFS_RCS_INFO, OFS_DEV_INFO, 0,
                                             OFS_SND_PD};
   short rc;
-  cifemu_board *b = cifemu_board_get(usDevNumber, &rc);
+  cifemu_board *b = cifemu_board_enter(usDevNumber, &rc);
   if (b == NULL) return rc;
-  if (usSize == 0) return DRV_USR_SIZE_ZERO;
-  if (usFunction < GET_DRIVER_INFO || usFunction > GET_IO_SEND_DATA)
-    return DRV_USR_INFO_AREA_INVALID;
-  if (usSize > sizes[usFunction]) return DRV_USR_SIZE_TOO_LONG;
-  if (pvData == NULL) return DRV_USR_BUF_PTR_NULL;
-  if (usFunction == GET_DRIVER_INFO) {
+  if (usSize == 0) rc = DRV_USR_SIZE_ZERO;
+  else if (usFunction < GET_DRIVER_INFO || usFunction > GET_IO_SEND_DATA)
+    rc = DRV_USR_INFO_AREA_INVALID;
+  else if (usSize > sizes[usFunction]) rc = DRV_USR_SIZE_TOO_LONG;
+  else if (pvData == NULL) rc = DRV_USR_BUF_PTR_NULL;
+  else if (usFunction == GET_DRIVER_INFO) {
     DRIVERINFO info;
     fill_driver_info(b, &info);
     memcpy(pvData, &info, usSize);
@@ -776,7 +939,8 @@ CIF_API short DevGetInfo(unsigned short usDevNumber, unsigned short usFunction,
   } else {
     memcpy(pvData, b->mm + offsets[usFunction], usSize);
   }
-  return DRV_NO_ERROR;
+  cifemu_board_leave(b);
+  return rc;
 }
 
 enum task_copy { READ_STATE, READ_PARAMETER, WRITE_PARAMETER };
@@ -786,17 +950,20 @@ static short task_area(unsigned short usDevNumber, unsigned short usNumber,
                        unsigned short usSize, void *pvData, enum task_copy copy) {
   unsigned offset;
   short rc;
-  cifemu_board *b = cifemu_board_get(usDevNumber, &rc);
+  cifemu_board *b = cifemu_board_enter(usDevNumber, &rc);
   if (b == NULL) return rc;
-  if (usNumber != 1 && usNumber != 2) return DRV_USR_NUMBER_INVALID;
-  if (usSize == 0) return DRV_USR_SIZE_ZERO;
-  if (usSize > TASK_AREA_SIZE) return DRV_USR_SIZE_TOO_LONG;
-  if (pvData == NULL) return DRV_USR_BUF_PTR_NULL;
-  if (copy == READ_STATE) offset = usNumber == 1 ? OFS_TASK1_STATE : OFS_TASK2_STATE;
-  else offset = usNumber == 1 ? OFS_TASK1_PARAMETER : OFS_TASK2_PARAMETER;
-  if (copy == WRITE_PARAMETER) memcpy(b->mm + offset, pvData, usSize);
-  else memcpy(pvData, b->mm + offset, usSize);
-  return DRV_NO_ERROR;
+  if (usNumber != 1 && usNumber != 2) rc = DRV_USR_NUMBER_INVALID;
+  else if (usSize == 0) rc = DRV_USR_SIZE_ZERO;
+  else if (usSize > TASK_AREA_SIZE) rc = DRV_USR_SIZE_TOO_LONG;
+  else if (pvData == NULL) rc = DRV_USR_BUF_PTR_NULL;
+  else {
+    if (copy == READ_STATE) offset = usNumber == 1 ? OFS_TASK1_STATE : OFS_TASK2_STATE;
+    else offset = usNumber == 1 ? OFS_TASK1_PARAMETER : OFS_TASK2_PARAMETER;
+    if (copy == WRITE_PARAMETER) memcpy(b->mm + offset, pvData, usSize);
+    else memcpy(pvData, b->mm + offset, usSize);
+  }
+  cifemu_board_leave(b);
+  return rc;
 }
 
 CIF_API short DevGetTaskState(unsigned short usDevNumber, unsigned short usNumber,
@@ -832,22 +999,26 @@ static short read_write(cifemu_board *b, unsigned short usMode, unsigned start,
 CIF_API short DevReadWriteDPMRaw(unsigned short usDevNumber, unsigned short usMode,
                                  unsigned short usOffset, unsigned short usSize, void *pvData) {
   short rc;
-  cifemu_board *b = cifemu_board_get(usDevNumber, &rc);
+  cifemu_board *b = cifemu_board_enter(usDevNumber, &rc);
   if (b == NULL) return rc;
-  if (usMode != PARAMETER_READ && usMode != PARAMETER_WRITE) return DRV_USR_MODE_INVALID;
-  if ((unsigned)usOffset + usSize > RAW_AREA_LIMIT) return DRV_USR_SIZE_TOO_LONG;
-  return read_write(b, usMode, LAST_KB + usOffset, usSize, pvData);
+  if (usMode != PARAMETER_READ && usMode != PARAMETER_WRITE) rc = DRV_USR_MODE_INVALID;
+  else if ((unsigned)usOffset + usSize > RAW_AREA_LIMIT) rc = DRV_USR_SIZE_TOO_LONG;
+  else rc = read_write(b, usMode, LAST_KB + usOffset, usSize, pvData);
+  cifemu_board_leave(b);
+  return rc;
 }
 
 /* Offsets from the image's start; the whole image is reachable (LIBCIF.md 5). */
 CIF_API short DevReadWriteDPMData(unsigned short usDevNumber, unsigned short usMode,
                                   unsigned short usOffset, unsigned short usSize, void *pvData) {
   short rc;
-  cifemu_board *b = cifemu_board_get(usDevNumber, &rc);
+  cifemu_board *b = cifemu_board_enter(usDevNumber, &rc);
   if (b == NULL) return rc;
-  if (usMode != PARAMETER_READ && usMode != PARAMETER_WRITE) return DRV_USR_MODE_INVALID;
-  if ((unsigned)usOffset + usSize > DPM_SIZE) return DRV_USR_SIZE_TOO_LONG;
-  return read_write(b, usMode, usOffset, usSize, pvData);
+  if (usMode != PARAMETER_READ && usMode != PARAMETER_WRITE) rc = DRV_USR_MODE_INVALID;
+  else if ((unsigned)usOffset + usSize > DPM_SIZE) rc = DRV_USR_SIZE_TOO_LONG;
+  else rc = read_write(b, usMode, usOffset, usSize, pvData);
+  cifemu_board_leave(b);
+  return rc;
 }
 
 /* [ours] the extended data areas belong to other protocols' cards; the CANopen master
@@ -855,9 +1026,11 @@ CIF_API short DevReadWriteDPMData(unsigned short usDevNumber, unsigned short usM
 CIF_API short DevExtendedData(unsigned short usDevNumber, unsigned short usMode,
                               unsigned short usSize, void *pvData) {
   short rc;
+  cifemu_board *b = cifemu_board_enter(usDevNumber, &rc);
   (void)usMode;
   (void)usSize;
   (void)pvData;
-  if (cifemu_board_get(usDevNumber, &rc) == NULL) return rc;
+  if (b == NULL) return rc;
+  cifemu_board_leave(b);
   return DRV_USR_MODE_INVALID;
 }

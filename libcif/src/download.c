@@ -129,10 +129,11 @@ static short download(unsigned short number, const unsigned char *area, size_t s
   if (record == NULL || size < ROOT_BYTES) return DRV_USR_INVALID_FILETYPE;
   b = cifemu_ready_board(number, &rc);
   if (b == NULL) return rc;
-  if (!cifemu_txn_acquire(b, LOCK_WAIT_MS)) return DRV_CMD_ACTIVE;
-  pthread_mutex_lock(&b->txn_mutex);
-  b->txn_pinned++;
-  pthread_mutex_unlock(&b->txn_mutex);
+  /* the session holds the transaction lock from its first request to its last answer */
+  if (!cifemu_txn_enter(&b->txn, LOCK_WAIT_MS)) {
+    cifemu_board_leave(b);
+    return DRV_CMD_ACTIVE;
+  }
   first[0] = MODE_DOWNLOAD_DBM;
   memcpy(first + 1, area, ROOT_BYTES);
   memcpy(first + 1 + ROOT_BYTES, record, GLOBAL_SIZE);
@@ -144,11 +145,8 @@ static short download(unsigned short number, const unsigned char *area, size_t s
                     last ? LAST_TIMEOUT_MS : CONT_TIMEOUT_MS);
     if (rc == DRV_NO_ERROR && pdwBytes != NULL) *pdwBytes = (unsigned long)(offset + ln);
   }
-  cifemu_txn_expect(b, 0);
-  pthread_mutex_lock(&b->txn_mutex);
-  b->txn_pinned--;
-  pthread_mutex_unlock(&b->txn_mutex);
-  cifemu_txn_release_if_idle(b);
+  cifemu_txn_leave(&b->txn);
+  cifemu_board_leave(b);
   return rc;
 }
 

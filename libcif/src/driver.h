@@ -21,29 +21,28 @@ typedef struct cifemu_board {
   unsigned short number;
   unsigned char *mm; /* the map; flag bytes are read through flag_get (volatile) */
   cifemu_bell bell;
-  cifemu_chanlock put_lock, get_lock, io_lock, flags_lock, transaction_lock;
+  cifemu_chanlock put_lock, get_lock, io_lock, flags_lock;
   cifemu_counters *counters;
   /* The board's transaction lock as this process holds it across calls [ours]: from a
-     DevPutMessage until its answer is read, so that another host's atomic transaction
-     (a Python host's Board.transact, another C host) never takes this host's answers,
-     nor this host theirs. Only the flock is used here: a thread mutex may not be held
-     from one call (thread) to the next. */
-  pthread_mutex_t txn_mutex;
-  int txn_held;               /* this process holds the flock */
-  unsigned txn_outstanding;   /* answers this process still expects */
-  unsigned txn_pinned;        /* DevDownload holds it for its whole sequence */
+     DevPutMessage until its answer is read, so that another host's transaction (a Python
+     host's Board.transact, another C host) never takes this host's answers, nor this
+     host theirs; its ledger names the answers of hosts that died or gave up waiting. */
+  cifemu_txn txn;
+  char firmware_lock[PATH_MAX + 32]; /* board<N>.firmware.lock, whatever the driver does */
+  /* [ours] Guarded by the board table's lock: the calls inside on this board, and whether
+     DevExitBoard (or the last DevCloseDriver) closed it meanwhile. A closed board leaves
+     the table at once; the last call inside unmaps and frees it. */
+  unsigned users;
+  int closing;
+  struct cifemu_board *next_closing; /* the closed boards calls are still inside */
 } cifemu_board;
 
-/* The initialised board, or NULL with *rc saying why (-34, -32). */
-CIFEMU_HIDDEN cifemu_board *cifemu_board_get(unsigned short number, short *rc);
-/* As cifemu_board_get, and the card must be READY (-11). */
+/* A call enters the initialised board: NULL with *rc saying why (-34; -32 also for a
+   board DevExitBoard closed), else the board (*rc 0), mapped until cifemu_board_leave. */
+CIFEMU_HIDDEN cifemu_board *cifemu_board_enter(unsigned short number, short *rc);
+/* As cifemu_board_enter, and the card must be READY (-11; the board is left then). */
 CIFEMU_HIDDEN cifemu_board *cifemu_ready_board(unsigned short number, short *rc);
-
-/* Take the board's transaction lock for this process within timeout_ms (1), else 0. */
-CIFEMU_HIDDEN int cifemu_txn_acquire(cifemu_board *b, unsigned long timeout_ms);
-/* One more answer awaited (1), one received (-1), none any more (0). */
-CIFEMU_HIDDEN void cifemu_txn_expect(cifemu_board *b, int delta);
-/* Give it back when no answer is outstanding and nothing pins it. */
-CIFEMU_HIDDEN void cifemu_txn_release_if_idle(cifemu_board *b);
+/* The call is done with the board: the last call inside a closed board unmaps it. */
+CIFEMU_HIDDEN void cifemu_board_leave(cifemu_board *b);
 
 #endif

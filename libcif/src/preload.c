@@ -43,6 +43,7 @@
 #include <string.h>
 #include <sys/file.h>
 #include <sys/ioctl.h>
+#include <sys/mman.h>
 #include <sys/resource.h>
 #include <sys/socket.h>
 #include <sys/stat.h>
@@ -262,12 +263,18 @@ static int real_fcntl(int fd, int cmd, void *arg) {
      the preload opens a new one (the pipe at once, a board at the next ioctl that
      finds no other call in flight, see board_maintenance).
    libcif's calls reach these through the linker's --wrap (libcif/Makefile), so libcif's
-   sources stay as they are. */
+   sources stay as they are: every call libcif makes on a descriptor (open, socket, bind,
+   close, dup2, fcntl, flock, sendto, recv, poll, fstat, mmap, pread, pwrite, ftruncate)
+   checks it first and answers EBADF for a stale one, so that a ledger line or a lock
+   never goes into a program's file that took the number. The preload's own fstat calls
+   below go to libc's (__real_fstat): they are the check. */
 
 #define PRIVATE_TOP 64     /* slots kept at the top of the table */
 #define MAX_PRIVATE_FDS 128
 
 typedef struct { int fd, stale; dev_t dev; ino_t ino; } private_fd;
+
+int __real_fstat(int fd, struct stat *st);
 
 static pthread_mutex_t private_lock = PTHREAD_MUTEX_INITIALIZER;
 static private_fd private_fds[MAX_PRIVATE_FDS];
@@ -295,7 +302,7 @@ static void private_remove_locked(private_fd *entry) {
 static int private_valid_locked(private_fd *entry) {
   struct stat st;
   if (entry->stale) return 0;
-  if (fstat(entry->fd, &st) != 0 || st.st_dev != entry->dev || st.st_ino != entry->ino)
+  if (__real_fstat(entry->fd, &st) != 0 || st.st_dev != entry->dev || st.st_ino != entry->ino)
     entry->stale = 1;
   return !entry->stale;
 }
@@ -318,7 +325,7 @@ static int private_adopt_locked(int fd) {
       fd = moved;
     }
   }
-  if (private_count == MAX_PRIVATE_FDS || fstat(fd, &st) != 0) {
+  if (private_count == MAX_PRIVATE_FDS || __real_fstat(fd, &st) != 0) {
     syscall(SYS_close, fd);
     errno = EMFILE;
     return -1;
@@ -392,7 +399,12 @@ static int private_refuses_close(int fd) {
 
 /* libcif's descriptor calls (-Wl,--wrap in libcif/Makefile). __real_* is libc's. */
 int __real_socket(int domain, int type, int protocol);
+int __real_bind(int fd, const struct sockaddr *address, socklen_t length);
 int __real_flock(int fd, int operation);
+void *__real_mmap(void *address, size_t length, int protection, int flags, int fd, off_t offset);
+ssize_t __real_pread(int fd, void *buf, size_t count, off_t offset);
+ssize_t __real_pwrite(int fd, const void *buf, size_t count, off_t offset);
+int __real_ftruncate(int fd, off_t length);
 ssize_t __real_sendto(int fd, const void *buf, size_t len, int flags,
                       const struct sockaddr *to, socklen_t to_len);
 ssize_t __real_recv(int fd, void *buf, size_t len, int flags);
@@ -406,6 +418,21 @@ ssize_t __wrap_sendto(int fd, const void *buf, size_t len, int flags,
                       const struct sockaddr *to, socklen_t to_len);
 ssize_t __wrap_recv(int fd, void *buf, size_t len, int flags);
 int __wrap_poll(struct pollfd *fds, nfds_t count, int timeout);
+int __wrap_bind(int fd, const struct sockaddr *address, socklen_t length);
+int __wrap_dup2(int oldfd, int newfd);
+int __wrap_fcntl(int fd, int cmd, ...);
+int __wrap_fstat(int fd, struct stat *st);
+void *__wrap_mmap(void *address, size_t length, int protection, int flags, int fd, off_t offset);
+ssize_t __wrap_pread(int fd, void *buf, size_t count, off_t offset);
+ssize_t __wrap_pwrite(int fd, const void *buf, size_t count, off_t offset);
+int __wrap_ftruncate(int fd, off_t length);
+
+/* EBADF unless fd is the preload's and still its own file. */
+static int refuse_stale(int fd) {
+  if (private_verified(fd)) return 0;
+  errno = EBADF;
+  return 1;
+}
 
 /* Held across libc's open and the move: the program's close of the fresh low number
    waits until it is the preload's at the top (or nobody's). */
@@ -433,28 +460,75 @@ int __wrap_socket(int domain, int type, int protocol) {
 int __wrap_close(int fd) { return private_close(fd); }
 
 int __wrap_flock(int fd, int operation) {
-  if (!private_verified(fd)) {
-    errno = EBADF;
-    return -1;
-  }
-  return __real_flock(fd, operation);
+  return refuse_stale(fd) ? -1 : __real_flock(fd, operation);
 }
 
 ssize_t __wrap_sendto(int fd, const void *buf, size_t len, int flags,
                       const struct sockaddr *to, socklen_t to_len) {
-  if (!private_verified(fd)) {
-    errno = EBADF;
-    return -1;
-  }
-  return __real_sendto(fd, buf, len, flags, to, to_len);
+  return refuse_stale(fd) ? -1 : __real_sendto(fd, buf, len, flags, to, to_len);
 }
 
 ssize_t __wrap_recv(int fd, void *buf, size_t len, int flags) {
-  if (!private_verified(fd)) {
+  return refuse_stale(fd) ? -1 : __real_recv(fd, buf, len, flags);
+}
+
+int __wrap_bind(int fd, const struct sockaddr *address, socklen_t length) {
+  return refuse_stale(fd) ? -1 : __real_bind(fd, address, length);
+}
+
+int __wrap_fstat(int fd, struct stat *st) {
+  return refuse_stale(fd) ? -1 : __real_fstat(fd, st);
+}
+
+/* The image's map: a program's file that took the image's number is never mapped. */
+void *__wrap_mmap(void *address, size_t length, int protection, int flags, int fd,
+                  off_t offset) {
+  if (!(flags & MAP_ANONYMOUS) && refuse_stale(fd)) return MAP_FAILED;
+  return __real_mmap(address, length, protection, flags, fd, offset);
+}
+
+/* The ledger (chanlock.c): read, written and cut only while the lock file is its own. */
+ssize_t __wrap_pread(int fd, void *buf, size_t count, off_t offset) {
+  return refuse_stale(fd) ? -1 : __real_pread(fd, buf, count, offset);
+}
+
+ssize_t __wrap_pwrite(int fd, const void *buf, size_t count, off_t offset) {
+  return refuse_stale(fd) ? -1 : __real_pwrite(fd, buf, count, offset);
+}
+
+int __wrap_ftruncate(int fd, off_t length) {
+  return refuse_stale(fd) ? -1 : __real_ftruncate(fd, length);
+}
+
+/* A forked child's lock files (cifemu_chanlock_reopen): the new description goes onto the
+   lock's number only while that number is still the preload's; the entry then names
+   the file the new description is. */
+int __wrap_dup2(int oldfd, int newfd) {
+  private_fd *from, *to;
+  int done = -1;
+  pthread_mutex_lock(&private_lock);
+  from = private_find_locked(oldfd);
+  to = private_find_locked(newfd);
+  if (from == NULL || to == NULL || !private_valid_locked(from) || !private_valid_locked(to)) {
     errno = EBADF;
-    return -1;
+  } else {
+    done = (int)syscall(SYS_dup3, oldfd, newfd, O_CLOEXEC);
+    if (done >= 0) {
+      to->dev = from->dev;
+      to->ino = from->ino;
+    }
   }
-  return __real_recv(fd, buf, len, flags);
+  pthread_mutex_unlock(&private_lock);
+  return done;
+}
+
+int __wrap_fcntl(int fd, int cmd, ...) {
+  va_list args;
+  void *arg;
+  va_start(args, cmd);
+  arg = va_arg(args, void *);
+  va_end(args);
+  return refuse_stale(fd) ? -1 : real_fcntl(fd, cmd, arg);
 }
 
 /* A stale descriptor is left out (fd -1): the wait still lasts its time, as a bell
@@ -483,6 +557,7 @@ int __wrap_poll(struct pollfd *fds, nfds_t count, int timeout) {
    descriptors) may be taken under either. */
 static pthread_mutex_t state_lock = PTHREAD_MUTEX_INITIALIZER;
 static pthread_mutex_t board_lock = PTHREAD_MUTEX_INITIALIZER;
+static pthread_mutex_t pipe_lock = PTHREAD_MUTEX_INITIALIZER; /* the copy pipe, below */
 static int device_fds[MAX_DEVICE_FDS];
 static int device_fd_count;
 static dev_t device_dev; /* what a device descriptor is underneath: /dev/null's st_dev/st_ino */
@@ -505,7 +580,8 @@ static int is_device_fd(int fd) {
   if (fd < 0 || __atomic_load_n(&device_fd_count, __ATOMIC_ACQUIRE) == 0) return 0;
   pthread_mutex_lock(&state_lock);
   for (i = 0; i < device_fd_count && !found; i++) found = device_fds[i] == fd;
-  if (found && (fstat(fd, &st) != 0 || st.st_dev != device_dev || st.st_ino != device_ino)) {
+  if (found &&
+      (__real_fstat(fd, &st) != 0 || st.st_dev != device_dev || st.st_ino != device_ino)) {
     forget_fd_locked(fd);
     found = 0;
   }
@@ -564,8 +640,16 @@ static int any_board(void) {
 }
 
 /* A child of fork has only the thread that forked: none of its device calls is in
-   flight, whatever the parent's other threads were doing. */
-static void child_after_fork(void) { calls_in_flight = 0; }
+   flight, whatever the parent's other threads were doing, and a lock one of them held
+   would stay locked (libcif's fork handler, which runs next, opens files through
+   __wrap_open and __wrap_dup2). */
+static void child_after_fork(void) {
+  calls_in_flight = 0;
+  pthread_mutex_init(&private_lock, NULL);
+  pthread_mutex_init(&state_lock, NULL);
+  pthread_mutex_init(&board_lock, NULL);
+  pthread_mutex_init(&pipe_lock, NULL);
+}
 static pthread_once_t forks_watched = PTHREAD_ONCE_INIT;
 static void watch_forks(void) { pthread_atfork(NULL, NULL, child_after_fork); }
 
@@ -593,7 +677,7 @@ static int device_open(int flags) {
   fd = real_open("/dev/null", (flags & (O_ACCMODE | O_CLOEXEC | O_NONBLOCK | O_APPEND)), 0);
   if (fd < 0) return -1;
   pthread_mutex_lock(&state_lock);
-  if (fstat(fd, &st) != 0) st.st_ino = 0;
+  if (__real_fstat(fd, &st) != 0) st.st_ino = 0;
   device_dev = st.st_dev;
   device_ino = st.st_ino;
   if (st.st_ino == 0 || remember_fd_locked(fd) != 0) {
@@ -608,7 +692,6 @@ static int device_open(int flags) {
 
 /* ---- user memory, read and written without trusting it ---------------------------------- */
 
-static pthread_mutex_t pipe_lock = PTHREAD_MUTEX_INITIALIZER;
 static int copy_pipe[2] = {-1, -1};
 
 static void drain(size_t count) {
@@ -730,8 +813,8 @@ static short dpm_access(unsigned board, int write, unsigned offset, unsigned len
   snprintf(path, sizeof path, "%s/board%u.dpm", image_directory(), board);
   fd = __wrap_open(path, (write ? O_RDWR : O_RDONLY) | O_CLOEXEC);
   if (fd < 0) return DRV_BOARD_NOT_INIT;
-  done = !private_verified(fd) ? -1
-         : write ? (long)pwrite(fd, data, length, offset) : (long)pread(fd, data, length, offset);
+  /* checked by __wrap_pwrite and __wrap_pread */
+  done = write ? (long)pwrite(fd, data, length, offset) : (long)pread(fd, data, length, offset);
   private_close(fd);
   return done == (long)length ? DRV_NO_ERROR : DRV_BOARD_NOT_INIT;
 }

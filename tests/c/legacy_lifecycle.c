@@ -17,6 +17,13 @@
  *       call, as a program's own descriptors would land there), opens /dev/cif again
  *       and talks to the card.
  *       SCRATCH must stay byte for byte as it was, and its descriptors open.
+ *   legacy_lifecycle close_ledger SCRATCH
+ *       The window a close-all loop leaves inside a call: while thread A waits in GETMSG
+ *       (so no call starts with the preload's check of its descriptors), the program
+ *       closes the transaction ledger's descriptor with a raw system call and its own
+ *       SCRATCH lands on that number (dup3 by system call). Its PUTMSG then writes the
+ *       ledger (libcif/src/chanlock.c: pwrite, ftruncate) and A reads the answer (the
+ *       ledger again). SCRATCH must stay as it was, and the card must go on working.
  *
  * Prints one "name=value" line per step; tests/test_legacy.py compares them.
  */
@@ -31,6 +38,7 @@
 #include <sys/ioctl.h>
 #include <sys/stat.h>
 #include <sys/syscall.h>
+#include <sys/sysmacros.h>
 #include <sys/wait.h>
 #include <time.h>
 #include <unistd.h>
@@ -144,12 +152,13 @@ static int image_mapped(void) {
 static int device;
 static volatile int waiter_tid, waiter_done;
 static short waiter_rc;
+static unsigned long waiter_timeout = 4000;
+static msg_t waiter_msg;
 
 static void *waiter(void *unused) {
-  msg_t msg;
   (void)unused;
   __atomic_store_n(&waiter_tid, (int)syscall(SYS_gettid), __ATOMIC_RELEASE);
-  waiter_rc = get_msg(device, &msg, 4000);
+  waiter_rc = get_msg(device, &waiter_msg, waiter_timeout);
   __atomic_store_n(&waiter_done, 1, __ATOMIC_RELEASE);
   return NULL;
 }
@@ -319,12 +328,103 @@ static int close_all(const char *how, const char *scratch) {
   return 0;
 }
 
+/* ---- close_ledger ------------------------------------------------------------------------- */
+
+/* The descriptor whose file's path ends with `suffix`, or -1; its path in `path`. */
+static int find_fd(const char *suffix, char *path, size_t size) {
+  int fds[MAX_FDS], count = open_descriptors(fds), i;
+  for (i = 0; i < count; i++) {
+    char link[64];
+    ssize_t got;
+    snprintf(link, sizeof link, "/proc/self/fd/%d", fds[i]);
+    got = readlink(link, path, size - 1);
+    if (got <= 0) continue;
+    path[got] = '\0';
+    if (got >= (ssize_t)strlen(suffix) && strcmp(path + got - strlen(suffix), suffix) == 0)
+      return fds[i];
+  }
+  return -1;
+}
+
+/* Whether this process holds an flock on the file at `path` (/proc/locks). */
+static int flocked_here(const char *path) {
+  char line[256], want[96];
+  struct stat st;
+  FILE *locks;
+  int found = 0;
+  if (stat(path, &st) != 0 || (locks = fopen("/proc/locks", "r")) == NULL) return 0;
+  snprintf(want, sizeof want, " %ld %02x:%02x:%lu ", (long)getpid(), major(st.st_dev),
+           minor(st.st_dev), (unsigned long)st.st_ino);
+  while (!found && fgets(line, sizeof line, locks) != NULL)
+    found = strstr(line, "FLOCK") != NULL && strstr(line, "->") == NULL &&
+            strstr(line, want) != NULL;
+  fclose(locks);
+  return found;
+}
+
+static int close_ledger(const char *scratch) {
+  unsigned char original[4096], now[4096];
+  char get_lock[4096], ledger_path[4096];
+  int original_size, ledger, scratch_fd, moved = -1, inside = 0;
+  struct stat scratch_st;
+  pthread_t thread;
+  long long deadline;
+  msg_t msg;
+
+  original_size = read_file(scratch, original, sizeof original);
+  device = open("/dev/cif", O_RDWR);
+  SHOW("open", device >= 0);
+  SHOW("initdrv", init_board(device));
+  SHOW("round_trip", round_trip(device));
+  /* A waits in GETMSG until the answer to the PUTMSG below comes */
+  waiter_timeout = 20000;
+  if (find_fd("/board0.get.lock", get_lock, sizeof get_lock) < 0) return 1;
+  if (pthread_create(&thread, NULL, waiter, NULL) != 0) return 1;
+  deadline = now_ms() + 10000;
+  while (now_ms() < deadline && !(inside = flocked_here(get_lock))) sched_yield();
+  SHOW("waiter_inside", inside);
+
+  ledger = find_fd("/board0.transaction.lock", ledger_path, sizeof ledger_path);
+  SHOW("ledger_found", ledger >= 0);
+  syscall(SYS_close, ledger);
+  scratch_fd = open(scratch, O_RDWR);
+  if (scratch_fd >= 0 && scratch_fd != ledger)
+    moved = (int)syscall(SYS_dup3, scratch_fd, ledger, O_CLOEXEC);
+  SHOW("scratch_on_ledger_number", moved == ledger || scratch_fd == ledger);
+  fstat(scratch_fd, &scratch_st);
+
+  memset(&msg, 0, sizeof msg); /* round_trip's request: a shared-memory read */
+  msg.rx = 2;
+  msg.tx = 16;
+  msg.ln = 8;
+  msg.nr = 1;
+  msg.b = 17;
+  msg.data[1] = 1;
+  msg.data[2] = 200;
+  msg.data[5] = 2;
+  msg.data[6] = 5;
+  msg.data[7] = 1;
+  SHOW("putmsg", put_msg(device, &msg, 1000));
+  pthread_join(thread, NULL);
+  SHOW("waiter", waiter_rc);
+  SHOW("waiter_read_the_answer", waiter_msg.a == 17 && waiter_msg.nr == 1);
+  SHOW("round_trip_after", round_trip(device));
+  SHOW("exitdrv", exit_board(device));
+  SHOW("close", close(device));
+
+  SHOW("scratch_fds_open", same_file(scratch_fd, &scratch_st) && same_file(ledger, &scratch_st));
+  SHOW("scratch_unchanged", read_file(scratch, now, sizeof now) == original_size &&
+                                memcmp(now, original, (size_t)original_size) == 0);
+  return 0;
+}
+
 int main(int argc, char **argv) {
   setvbuf(stdout, NULL, _IONBF, 0);
   if (argc == 2 && strcmp(argv[1], "exit_while_waiting") == 0) return exit_while_waiting();
   if (argc == 2 && strcmp(argv[1], "fork_while_waiting") == 0) return fork_while_waiting();
   if (argc == 4 && strcmp(argv[1], "close_all") == 0) return close_all(argv[2], argv[3]);
+  if (argc == 3 && strcmp(argv[1], "close_ledger") == 0) return close_ledger(argv[2]);
   fprintf(stderr, "usage: legacy_lifecycle exit_while_waiting | fork_while_waiting | "
-                  "close_all HOW SCRATCH\n");
+                  "close_all HOW SCRATCH | close_ledger SCRATCH\n");
   return 2;
 }

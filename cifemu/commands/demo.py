@@ -11,6 +11,8 @@ flash in a temporary directory, and removes every file it created when it ends
 from __future__ import annotations
 
 import argparse
+import shlex
+import shutil
 import signal
 import subprocess
 import sys
@@ -22,23 +24,30 @@ from types import FrameType
 from rich.console import Console
 from rich.live import Live
 
+from cifemu.commands.configure import configure
 from dbm_tools.builder import BuildError, build_dbm
 from dbm_tools.container import write_dbm
 from dbm_tools.network import Network, NetworkError, load_network
 from dpm.flags import READY
-from dpm.image import MAX_DEV_BOARDS, dpm_dir, image_path
+from dpm.image import (
+    DEFAULT_DPM_DIR,
+    MAX_DEV_BOARDS,
+    CardDirectory,
+    UnsafePathError,
+    dpm_dir,
+    image_path,
+)
 from dpm.layout import HOST_FLAGS
 from host_api import driver as d
 from host_api import status as status_cli
 from host_api.board import Board, CifError
-from host_api.configure_cli import configure
 from host_api.download import CONFIGURATION_DOWNLOAD, DevDownload
 from host_api.driver import COLDSTART
 from host_api.liveness import firmware_liveness
 from host_api.network_view import remember_network
 from host_api.online import ConfigurationError
 
-EXAMPLE_NETWORK = Path(__file__).with_name("examples") / "demo.toml"
+EXAMPLE_NETWORK = Path(__file__).parents[1] / "examples" / "demo.toml"
 START_TIMEOUT_S = 15.0
 NETWORK_WAIT_S = 10.0
 
@@ -55,15 +64,40 @@ def _board_files(directory: Path, board: int) -> set[Path]:
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--board", type=int, default=0, choices=range(MAX_DEV_BOARDS),
                         metavar="N", help="board number 0..3 (default 0)")
-    parser.add_argument("--dpm-dir", default=None,
+    parser.add_argument("--dpm-dir", default=None, metavar="DIR",
                         help="image directory (default $CIF_DPM_DIR or /dev/shm/cif, where "
                              "status, top, monitor and 309 look)")
     parser.add_argument("--from-dbm", action="store_true",
                         help="build a DBM from the network, download it into the card's flash and "
                              "cold-start the card from it, instead of configuring it on line")
-    parser.add_argument("--network", type=Path, default=None,
+    parser.add_argument("--network", type=Path, default=None, metavar="NETWORK.toml",
                         help=f"network description to simulate (default: {EXAMPLE_NETWORK.name}, "
                              "four generic I/O modules)")
+
+
+def command_for_another_terminal(directory: Path, board: int) -> tuple[str, str]:
+    """The cifemu command and the options that reach this demo's card from a second terminal.
+
+    `make demo` runs .venv/bin/cifemu without putting .venv/bin on $PATH, so a bare
+    `cifemu` there is "command not found": the hint names the script by its absolute path
+    unless $PATH finds this very one. The board and a directory other than the default go
+    along, since the second terminal has neither this one's options nor its $CIF_DPM_DIR.
+    """
+    script = Path(sys.executable).parent / "cifemu"
+    found = shutil.which("cifemu")
+    if found is not None and script.exists() and Path(found).resolve() == script.resolve():
+        words = ["cifemu"]
+    elif script.exists():
+        words = [str(script.absolute())]
+    else:
+        words = [sys.executable, "-m", "cifemu"]
+    command = shlex.join(words)
+    options = []
+    if board != 0:
+        options += ["--board", str(board)]
+    if directory.absolute() != Path(DEFAULT_DPM_DIR):
+        options += ["--dpm-dir", str(directory.absolute())]
+    return command, shlex.join(options)
 
 
 def _on_sigterm(signum: int, frame: FrameType | None) -> None:
@@ -87,12 +121,16 @@ def run(args: argparse.Namespace) -> int:
               "or --dpm-dir", file=sys.stderr)
         return 1
     created_dir = not directory.exists()
-    directory.mkdir(parents=True, exist_ok=True)
+    try:  # mode 02770 whatever the umask, and refused when another user could plant files
+        CardDirectory(directory, create=True).close()
+    except UnsafePathError as exc:
+        print(f"cifemu demo: {exc}", file=sys.stderr)
+        return 1
     before = _board_files(directory, args.board)
     signal.signal(signal.SIGTERM, _on_sigterm)
     with tempfile.TemporaryDirectory(prefix="cifemu-demo-flash-") as flash:
         card = subprocess.Popen(
-            [sys.executable, "-m", "firmware", "--board", str(args.board),
+            [sys.executable, "-m", "cifemu", "firmware", "--board", str(args.board),
              "--dpm-dir", str(directory), "--flash", flash, "--simulate", str(network_path),
              "--log-level", "WARNING"]
         )
@@ -133,8 +171,12 @@ def _show(args: argparse.Namespace, directory: Path, network_path: Path, network
             else:
                 configure(board, network, NETWORK_WAIT_S,
                           lambda step: console.print(f"configuring: {step}"))
-            console.print(f"card image {image_path(directory, board_no)}: `cifemu status`, "
-                          "`cifemu top` and `cifemu monitor` see it; Ctrl-C ends the demo")
+            command, options = command_for_another_terminal(directory, board_no)
+            console.print(f"card image {image_path(directory, board_no)}; Ctrl-C ends the demo. "
+                          "In another terminal:", highlight=False)
+            for sub in ("top", "status", "monitor"):
+                console.print(f"  {' '.join(filter(None, [command, sub, options]))}",
+                              highlight=False, markup=False, soft_wrap=True)
             counter = 0
             with Live(console=console, auto_refresh=False) as live:
                 while True:
@@ -142,7 +184,8 @@ def _show(args: argparse.Namespace, directory: Path, network_path: Path, network
                     d.DevExchangeIO(board_no, 0, bytes([counter]) * 32, 0, 0, 100)
                     snapshot = status_cli.read_image(board_no, str(directory))
                     if snapshot is not None:
-                        live.update(status_cli.render(board_no, status_cli.snapshot(snapshot)),
+                        live.update(status_cli.render(board_no, status_cli.snapshot(
+                            snapshot, {node.id: node.error_control for node in network.nodes})),
                                     refresh=True)
                     time.sleep(0.2)
     except (CifError, ConfigurationError) as exc:

@@ -1,6 +1,6 @@
 """cifemu legacy: run an unchanged legacy binary against the emulated card.
 
-  cifemu legacy [--board-dir DIR] -- PROGRAM ARGS...
+  cifemu legacy [--dpm-dir DIR] -- PROGRAM ARGS...
 
 A legacy program has Hilscher's API object linked in and reaches the card only through
 the character device /dev/cif. This command starts it with libcifdev.so preloaded
@@ -102,16 +102,23 @@ def preload_for(program: ElfProgram, path: Path) -> Path:
     return wanted
 
 
-def resolve(command: str) -> Path:
-    """PROGRAM as execvp would find it."""
-    found = command if "/" in command else shutil.which(command)
+def resolve(command: str) -> str:
+    """PROGRAM as execvp finds it, and as env, sudo and strace take it: a name with a slash
+    is the path itself, kept as given (a Path would make ./prog a bare name, which the
+    exec then looked up on $PATH); only a bare name is looked up on $PATH."""
+    if "/" in command:
+        if not os.path.exists(command):
+            raise LegacyError(f"{command}: No such file or directory")
+        return command
+    found = shutil.which(command)
     if found is None:
-        raise LegacyError(f"{command}: not found")
-    return Path(found)
+        raise LegacyError(f"{command}: not found on $PATH (give ./{command} for a program "
+                          "in this directory)")
+    return found
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--board-dir", default=None,
+    parser.add_argument("--dpm-dir", default=None, metavar="DIR",
                         help=f"the cards' image directory (default $CIF_DPM_DIR or "
                              f"{DEFAULT_DPM_DIR})")
     parser.add_argument("program", nargs=argparse.REMAINDER,
@@ -127,18 +134,19 @@ def run(args: argparse.Namespace) -> int:
               file=sys.stderr)
         return 2
     try:
-        path = resolve(command[0])
+        program = resolve(command[0])
+        path = Path(program)
         preload = preload_for(read_elf(path), path)
     except LegacyError as exc:
         print(f"cifemu legacy: {exc}", file=sys.stderr)
         return 1
-    directory = args.board_dir or os.environ.get("CIF_DPM_DIR") or str(DEFAULT_DPM_DIR)
+    directory = args.dpm_dir or os.environ.get("CIF_DPM_DIR") or str(DEFAULT_DPM_DIR)
     env = dict(os.environ)
     env["CIF_DPM_DIR"] = str(Path(directory).resolve())
     env["LD_PRELOAD"] = " ".join(filter(None, [str(preload), env.get("LD_PRELOAD", "")]))
     try:
-        done = subprocess.run([str(path), *command[1:]], env=env, check=False)
+        done = subprocess.run([program, *command[1:]], env=env, check=False)
     except OSError as exc:
-        print(f"cifemu legacy: {path}: {exc.strerror}", file=sys.stderr)
+        print(f"cifemu legacy: {program}: {exc.strerror}", file=sys.stderr)
         return 1
     return done.returncode if done.returncode >= 0 else 128 - done.returncode

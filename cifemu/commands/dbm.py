@@ -2,8 +2,8 @@
 
 ``dbm_tools.cli`` holds the file commands (show, check, build, diff), which need no
 card; this module adds the commands that go through the driver (``CARD_HELP``), so that
-dbm_tools stays a codec layer that never imports host_api. ``cifemu dbm`` and
-``python -m dbm_tools`` are this module's parser: both kinds of command under one name.
+dbm_tools stays a codec layer that never imports host_api. ``cifemu dbm`` is this
+module's parser: both kinds of command under one name.
 """
 
 from __future__ import annotations
@@ -16,6 +16,8 @@ from pathlib import Path
 from rich.console import Console
 from rich.progress import BarColumn, DownloadColumn, Progress, TextColumn, TransferSpeedColumn
 
+from cifemu.cli_options import add_card_options
+from cifemu.cli_output import fail, print_json, quiet_broken_pipe
 from dbm_tools import cli as file_commands
 from dbm_tools.cli import PROG, UsageError, load_any, plain
 from dbm_tools.container import read_data_area, write_dbm
@@ -23,8 +25,6 @@ from dbm_tools.errors import DbmError
 from dbm_tools.validate import check_dbm
 from dpm.errors import drv_name, drv_text
 from dpm.flags import COM, READY, RUN
-from dpm.image import DEFAULT_DPM_DIR, MAX_DEV_BOARDS
-from host_api.cli_output import fail, print_json, quiet_broken_pipe, run_guarded
 from host_api.download import (
     CONFIGURATION_DOWNLOAD,
     DevDownload,
@@ -207,12 +207,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     """The file commands of ``dbm_tools.cli`` and the card commands, under one parser."""
     sub = file_commands.add_arguments(parser)
 
-    def card_options(p: argparse.ArgumentParser) -> None:
-        p.add_argument("--board", type=int, default=0, choices=range(MAX_DEV_BOARDS),
-                       metavar="N", help="board number 0..3 (default 0)")
-        p.add_argument("--dpm-dir", default=None,
-                       help=f"image directory (default $CIF_DPM_DIR or {DEFAULT_DPM_DIR})")
-
     p = sub.add_parser("download", help="put a DBM into a card's flash (DevDownload)",
                        description="Download a DBM into a running card's flash with "
                        "DevDownload. Failures show the driver's code: -100..-105 for file "
@@ -220,22 +214,22 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                        "1022 wrong message number, 1023 wrong size, 1024 wrong sequence, "
                        "1025 checksum). The database takes effect at the next start.")
     p.add_argument("file", type=Path, metavar="FILE", help="the DBM file (*.dbm)")
-    card_options(p)
+    add_card_options(p)
     p.add_argument("--reset", action="store_true", help="cold-start the card afterwards")
     p = sub.add_parser("upload", help="read a card's stored database into a DBM file",
                        description="Upload the database stored in a running card's flash.")
     p.add_argument("-o", "--output", type=Path, required=True, metavar="FILE",
                    help="the DBM file to write")
-    card_options(p)
+    add_card_options(p)
     p = sub.add_parser("delete", help="erase a card's stored database",
                        description="Delete the database in a running card's flash (seed "
                        "5.2.2). From its next start the card comes up READY without RUN and "
                        "takes an on-line configuration.")
-    card_options(p)
+    add_card_options(p)
     p = sub.add_parser("dir", help="list a card's flash directory",
                        description="What a running card's flash holds: segment, segment "
                        "name, size, checksum and when it was stored.")
-    card_options(p)
+    add_card_options(p)
     p.add_argument("--json", action="store_true", help="print the entries as JSON")
 
 
@@ -252,7 +246,7 @@ def _run_card_command(args: argparse.Namespace, console: Console) -> int:
 
 def run(args: argparse.Namespace) -> int:
     """One command of ``cifemu dbm``, reported by the commands' JSON convention
-    (``host_api.cli_output``): a user's mistake is one line on stderr, or with ``--json``
+    (``cifemu.cli_output``): a user's mistake is one line on stderr, or with ``--json``
     an error object on stdout, and exit status 1; a reader that leaves early
     (``--json | head``) ends the command without a traceback."""
     console = Console()
@@ -268,9 +262,3 @@ def run(args: argparse.Namespace) -> int:
         return quiet_broken_pipe()
     return result
 
-
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m dbm_tools", description=DESCRIPTION,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
-    add_arguments(parser)
-    return run_guarded(run, parser.parse_args(argv))  # `| head` ends it quietly

@@ -26,11 +26,11 @@ from pathlib import Path
 
 from rich.console import Console
 
+from cifemu.cli_options import add_card_options
+from cifemu.cli_output import fail
 from dbm_tools.builder import BuildError
 from dbm_tools.network import NetworkError, load_network
 from dpm.image import dpm_dir, image_path
-from host_api.cli_options import add_card_options
-from host_api.cli_output import fail
 from host_api.liveness import firmware_liveness
 from host_api.network_view import network_view, remembered_network
 from host_api.top.feed import CardFeed

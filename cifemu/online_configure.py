@@ -14,13 +14,13 @@ import logging
 import threading
 from pathlib import Path
 
+from cifemu.commands.configure import configure, msg_f_text
 from dbm_tools.builder import BuildError, build_dbm
 from dbm_tools.network import NetworkError, load_network
 from dpm import flags as fl
 from dpm.layout import HOST_FLAGS
 from firmware.device import Device
 from host_api.board import Board, CifError
-from host_api.configure_cli import configure, msg_f_text
 from host_api.online import ConfigurationError
 
 log = logging.getLogger(__name__)

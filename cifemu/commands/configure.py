@@ -16,19 +16,21 @@ it; a card error with its Err_Event number and text.
 from __future__ import annotations
 
 import argparse
+import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from cifemu.cli_options import add_card_options
+from cifemu.cli_output import fail, print_json
 from dbm_tools.builder import BuildError, build_dbm
 from dbm_tools.network import Network, NetworkError, load_network
+from dbm_tools.validate import check_dbm
 from dpm.errors import ERR_NODE_DEVICE, CanF, Drv
 from dpm.image import dpm_dir
 from dpm.task2 import ComDiagnostics
 from host_api.board import Board, CifError
-from host_api.cli_options import add_card_options
-from host_api.cli_output import fail, print_json
 from host_api.liveness import firmware_liveness
 from host_api.network_view import remember_network
 from host_api.online import ConfigurationError, configure_online
@@ -158,9 +160,11 @@ def configure(board: Board, network: Network, wait_s: float,
 def run(args: argparse.Namespace) -> int:
     try:
         network = load_network(args.network)
-        build_dbm(network)  # a description the card would refuse never reaches it
+        warnings = check_dbm(build_dbm(network))  # one the card would refuse never reaches it
     except (NetworkError, BuildError, OSError) as exc:
         return fail(COMMAND, f"{args.network}: {exc}", args.json)
+    for finding in warnings:  # e.g. SYNC_Timer without a synchronous PDO: no SYNC at all
+        print(f"cifemu {COMMAND}: warning: {finding.detail}", file=sys.stderr)
     progress: Callable[[str], None] = (
         (lambda text: None) if args.json else (lambda text: print(f"configuring: {text}")))
     try:

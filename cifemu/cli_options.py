@@ -11,5 +11,5 @@ def add_card_options(parser: argparse.ArgumentParser,
                      board_help: str = "board number 0..3 (default 0)") -> None:
     parser.add_argument("--board", type=int, default=0, choices=range(MAX_DEV_BOARDS),
                         metavar="N", help=board_help)
-    parser.add_argument("--dpm-dir", default=None,
+    parser.add_argument("--dpm-dir", default=None, metavar="DIR",
                         help=f"image directory (default $CIF_DPM_DIR or {DEFAULT_DPM_DIR})")

@@ -26,12 +26,12 @@ from typing import Any
 
 import can
 
+from cifemu.cli_options import add_card_options
+from cifemu.cli_output import fail
 from dbm_tools.builder import BuildError
 from dbm_tools.network import NetworkError
+from dpm.card_info import read_card_info
 from dpm.image import dpm_dir, image_path
-from firmware.card_info import read_card_info
-from host_api.cli_options import add_card_options
-from host_api.cli_output import fail
 from host_api.liveness import firmware_liveness
 from host_api.monitor.codec import KINDS, Meaning, decode
 from host_api.monitor.tap_bus import TapBus
@@ -155,13 +155,32 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
+QUIET_NOTE_S = 2.0
+"""Seconds without a frame of the --type asked for before monitor says it is waiting."""
+
+
+def _quiet_note(kinds: list[str]) -> str:
+    """[ours] A filter that shows nothing looks like a hung command: say what it waits for,
+    and for SYNC why none may come at all."""
+    note = (f"cifemu {COMMAND}: no {'/'.join(kinds)} frame in {QUIET_NOTE_S:g} s, still "
+            "waiting (Ctrl-C ends)")
+    if "sync" in kinds:
+        note += ("; the card sends SYNC only when sync_period_ms is set and a node has a "
+                 "synchronous PDO (transmission 0..240): see `cifemu dbm check`")
+    return note
+
+
 def _listen(bus: can.BusABC, tapped: bool, view: NetworkView, args: argparse.Namespace,
             logger: can.Listener | None) -> None:
     shown = 0
     end = None if args.duration is None else time.monotonic() + args.duration
+    quiet_until: float | None = time.monotonic() + QUIET_NOTE_S if args.type else None
     while args.count is None or shown < args.count:
         if end is not None and time.monotonic() >= end:
             return
+        if quiet_until is not None and not shown and time.monotonic() >= quiet_until:
+            quiet_until = None
+            print(_quiet_note(args.type), file=sys.stderr, flush=True)
         msg = bus.recv(RECEIVE_TIMEOUT_S)
         if msg is None:
             continue

@@ -17,10 +17,10 @@ from types import FrameType
 
 import can
 
+from cifemu.cli_output import fail
 from dbm_tools.network import NetworkError, NodeDescription, load_network
 from firmware.interpreter import SWITCH_INTERVAL
 from firmware.sim.network import SimulatedNetwork
-from host_api.cli_output import fail
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -91,6 +91,12 @@ def run(args: argparse.Namespace) -> int:
     except NetworkError as exc:
         return fail("sim", str(exc), args.json)
     bitrate = args.bitrate or network.bus.bitrate
+    if args.interface == "virtual":
+        # [ours] warned, not refused: the run harms nothing, and the line names what works.
+        print("cifemu sim: warning: python-can's virtual bus lives in this process only: no "
+              "card, monitor or candump outside it reaches these nodes; use --interface shm "
+              f"--channel {args.channel} (and `cifemu firmware --interface shm --channel "
+              f"{args.channel}`)", file=sys.stderr, flush=True)
     try:
         bus = can.Bus(interface=args.interface, channel=args.channel, bitrate=bitrate)
     except (can.CanError, OSError, ValueError, ImportError) as exc:
@@ -122,8 +128,3 @@ def run(args: argparse.Namespace) -> int:
         bus.shutdown()
     return 0
 
-
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m firmware.sim", description=__doc__)
-    add_arguments(parser)
-    return run(parser.parse_args(argv))

@@ -11,21 +11,29 @@ from types import FrameType
 
 import can
 
+from cifemu.online_configure import OnlineConfiguration
 from dbm_tools.network import NetworkError, load_network
-from dpm.image import DEFAULT_DPM_DIR, MAX_DEV_BOARDS, BoardBusyError, dpm_dir, image_path
+from dpm.image import (
+    DEFAULT_DPM_DIR,
+    MAX_DEV_BOARDS,
+    BoardBusyError,
+    UnsafePathError,
+    dpm_dir,
+    image_path,
+)
+from dpm.tap import tap_address
 from firmware.can.bus import INTERFACE_ERRORS, BusConfig
-from firmware.can.tap import tap_address
 from firmware.device import Device
 from firmware.flash import FLASH_ENV
 from firmware.interpreter import SWITCH_INTERVAL
-from firmware.online_configure import OnlineConfiguration
+from firmware.recorder import Recorder, recording_can_log
 from firmware.sim import SimulatedNetwork
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--board", type=int, default=0, choices=range(MAX_DEV_BOARDS),
                         metavar="N", help="board number 0..3 (default 0)")
-    parser.add_argument("--dpm-dir", default=None,
+    parser.add_argument("--dpm-dir", default=None, metavar="DIR",
                         help=f"directory of the image board<N>.dpm "
                              f"(default $CIF_DPM_DIR or {DEFAULT_DPM_DIR})")
     parser.add_argument("--interface", default="virtual",
@@ -48,6 +56,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--trace", type=Path, default=None, metavar="FILE",
                         help="log every frame the card sends or receives; the format follows "
                              "the suffix: .blf, .asc, .log (candump), .csv, .trc ...")
+    parser.add_argument("--record", type=Path, default=None, metavar="SESSION",
+                        help="record a session from the start into the directory SESSION "
+                             "(created; docs/recording.md): every mailbox message, flag "
+                             "change, process-data exchange, and every frame in SESSION/can.log")
     parser.add_argument("--simulate", type=Path, default=None, metavar="NETWORK.toml",
                         help="also run the simulated nodes of a network description on the "
                              "same bus, in this process")
@@ -83,25 +95,45 @@ def run(args: argparse.Namespace) -> int:
         print("cifemu firmware: --configure needs a network description (or --simulate)",
               file=sys.stderr)
         return 1
+    if args.record is not None and args.trace is not None:
+        print("cifemu firmware: --record writes its own trace (SESSION/can.log): "
+              "give --record or --trace", file=sys.stderr)
+        return 1
+    trace = recording_can_log(args.record) if args.record is not None else args.trace
     bus = BusConfig(args.interface, args.channel or default_channel(args.interface),
-                    args.bitrate, args.trace,
+                    args.bitrate, trace,
                     tap_address(image_path(dpm_dir(args.dpm_dir), args.board)),
                     exit_on_error=args.exit_on_bus_error)
+    recorder = None
+    if args.record is not None:  # before the card, as the bus: a refusal leaves no image
+        try:
+            recorder = Recorder(args.record, args.board, can_log=True)
+        except (UnsafePathError, OSError) as exc:  # SessionExistsError is an OSError
+            print(f"cifemu firmware: --record {args.record}: {exc}", file=sys.stderr)
+            return 1
     simulation = None
     if network is not None:  # before the card: a bus that cannot open leaves no image
         try:
             sim_bus = can.Bus(interface=bus.interface, channel=bus.channel)
         except INTERFACE_ERRORS as exc:
+            if recorder is not None:
+                recorder.close()
             return _interface_error(bus, exc)
         simulation = SimulatedNetwork(network, sim_bus)
     try:
         device = Device(args.board, args.dpm_dir, reset_delay=args.reset_delay, bus=bus,
                         flash_dir=args.flash)
-    except BoardBusyError as exc:
+    except (BoardBusyError, UnsafePathError, OSError) as exc:
+        # UnsafePathError: another user could redirect the card's writes (docs/security.md)
         if simulation is not None:
             sim_bus.shutdown()
+        if recorder is not None:
+            recorder.close()
         print(f"cifemu firmware: board {args.board} refused: {exc}", file=sys.stderr)
         return 1
+    if recorder is not None:
+        recorder.start(device.files, device.mm)
+        device.recorder = recorder
     if simulation is not None:
         simulation.start()
 
@@ -147,8 +179,3 @@ def default_channel(interface: str) -> str:
         return str(UdpMulticastBus.DEFAULT_GROUP_IPv4)
     return "cifemu"
 
-
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m firmware", description=__doc__)
-    add_arguments(parser)
-    return run(parser.parse_args(argv))

@@ -17,6 +17,7 @@ from __future__ import annotations
 import argparse
 import asyncio
 import contextlib
+import errno
 import importlib
 import json
 import math
@@ -31,8 +32,10 @@ from pathlib import Path
 
 from platformdirs import user_state_path
 
+from dpm.errors import Drv
 from dpm.image import MAX_DEV_BOARDS
 from dpm.message import Message
+from host_api.board import CifError
 from host_api.cia309.datatypes import Dialect
 from host_api.cia309.formatters import format_event
 from host_api.cia309.framing import DEFAULT_MAX_LINE, LineFramer
@@ -87,15 +90,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                                                 f"sets its command size (default "
                                                 f"{DEFAULT_MAX_LINE})")
     serve_parser.add_argument("--idle-timeout", type=_seconds, default=DEFAULT_IDLE_TIMEOUT,
-                              metavar="S", help=f"drop a client that sends nothing for S "
-                                                f"seconds while no request of its runs "
-                                                f"(default {DEFAULT_IDLE_TIMEOUT:g}; 0: never)")
+                              metavar="SECONDS", help=f"drop a client that sends nothing "
+                                                      f"for SECONDS while no request of its runs "
+                                                      f"(default {DEFAULT_IDLE_TIMEOUT:g}; "
+                                                      f"0: never)")
     serve_parser.add_argument("--line-timeout", type=_seconds, default=DEFAULT_LINE_TIMEOUT,
-                              metavar="S", help=f"drop a client whose request line is not "
-                                                f"ended S seconds after its first byte, or "
-                                                f"that does not read its answers for S "
-                                                f"seconds (default {DEFAULT_LINE_TIMEOUT:g}; "
-                                                f"0: never)")
+                              metavar="SECONDS", help=f"drop a client whose request line is "
+                                                      f"not ended SECONDS after its first byte, "
+                                                      f"or that does not read its answers for "
+                                                      f"SECONDS (default "
+                                                      f"{DEFAULT_LINE_TIMEOUT:g}; 0: never)")
     serve_parser.add_argument("--max-output", type=_positive, default=DEFAULT_MAX_OUTPUT,
                               metavar="N", help=f"bytes of answers and events left unread "
                                                 f"by all clients together; over it, drop the "
@@ -142,7 +146,7 @@ def _card_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--network", type=int, action="append", default=[],
                         choices=range(1, MAX_DEV_BOARDS + 1), metavar="N",
                         help="network to serve, 1..4 = board N-1 (repeatable)")
-    parser.add_argument("--dpm-dir", default=None,
+    parser.add_argument("--dpm-dir", default=None, metavar="DIR",
                         help="directory of the images (default $CIF_DPM_DIR or /dev/shm/cif)")
     parser.add_argument("--dialect", type=Dialect, choices=list(Dialect),
                         default=Dialect.CANOPENNODE,
@@ -152,11 +156,29 @@ def _card_arguments(parser: argparse.ArgumentParser) -> None:
 def _client_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--host", default=DEFAULT_HOST, help="the server's address")
     parser.add_argument("--port", type=int, default=DEFAULT_PORT, help="the server's port")
-    parser.add_argument("--timeout", type=float, default=DEFAULT_TIMEOUT, metavar="S",
+    parser.add_argument("--timeout", type=float, default=DEFAULT_TIMEOUT, metavar="SECONDS",
                         help=f"seconds to wait for an answer (default {DEFAULT_TIMEOUT:g})")
     parser.add_argument("--direct", action="store_true",
                         help="no server: run a gateway in this process on the boards below")
     _card_arguments(parser)
+
+
+NO_CARD = (Drv.DRV_USR_OPEN_ERROR, Drv.DRV_USR_DEV_NUMBER_INVALID, Drv.DRV_DEV_NOT_READY)
+"""Driver codes of a board no firmware serves: no image directory, no image, no READY."""
+
+
+def _error_text(exc: Cia309Error | OSError, args: argparse.Namespace) -> str:
+    """The one line a failed command prints, with the hint the other commands give: a
+    board no firmware serves asks whether it runs, a port in use names it (not Python's
+    ``[Errno 98]``)."""
+    if isinstance(exc, OSError) and exc.errno == errno.EADDRINUSE and hasattr(args, "port"):
+        return f"port {args.port} on {args.host} is in use; choose another with --port"
+    cause = exc.__cause__
+    if isinstance(cause, CifError) and cause.code in NO_CARD:
+        boards = _boards(args) if hasattr(args, "board") else [0]
+        board = boards[0] if len(boards) == 1 else "N"
+        return f"{exc}; is `cifemu firmware --board {board}` running?"
+    return str(exc)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -164,10 +186,11 @@ def run(args: argparse.Namespace) -> int:
     try:
         return action(args)
     except (Cia309Error, OSError) as exc:
+        text = _error_text(exc, args)
         if getattr(args, "json", False):
-            print(json.dumps({"ok": False, "error": {"text": str(exc)}}))
+            print(json.dumps({"ok": False, "error": {"text": text}}))
         else:
-            print(f"cifemu 309: {exc}", file=sys.stderr)
+            print(f"cifemu 309: {text}", file=sys.stderr)
         return 1
 
 

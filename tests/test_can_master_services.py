@@ -1,8 +1,10 @@
-"""Seed behaviour that was implemented but never shown working (issue "seed fidelity", "Done,
-but never tested"): each test brings a card up with simulated nodes, provokes the behaviour
+"""The CAN master's node services as the seed describes them (chapters 5.2 and 7): the skip
+bits of bitConfigNdState, PDO transmission types, supervision, COM_Node_Diag, Msg_Time_Out,
+the RX-PDO hold, transparent sends, the error answers of the seed's tables. Each test brings a
+card up with simulated nodes, provokes the behaviour
 through the mailbox or the image, and asserts what a host notices (msg.f, Task2State, the
 diagnosis, frames in the card's trace). Like ``tests/test_seed_fidelity.py`` it runs on every
-bus of ``tests/test_can_task.py``'s back-to-back fixture.
+bus of the back-to-back network fixture (``tests/can_net.py``).
 
 The last two tests run the seed manual's chapter 7 procedures ("how to get the DEVICE
 operative without SyCon") end to end: 7.1 with the driver functions, 7.2 through the image.
@@ -31,13 +33,12 @@ from dpm.message import Ext, Message
 from firmware.can.bus import CanBus
 from host_api import driver as d
 from host_api.download import CONFIGURATION_DOWNLOAD, DevDownload
-from tests import test_can_task, test_raw_dpm
+from tests import raw_mailbox
+from tests.can_net import Net, candump, exchange
 from tests.conftest import wait_until
-from tests.test_can_task import Net, candump, exchange
 
-interface = test_can_task.interface
-make_net = test_can_task.make_net
-"""The back-to-back fixtures: this module's tests run on every bus that file's run on."""
+pytest_plugins = ["tests.can_net"]
+"""The back-to-back network fixture: every test here runs on each interface."""
 
 SYNC_ID = 0x080
 MSG_TIME_OUT = 0x1F48
@@ -487,7 +488,7 @@ def seed_7_1_steps_2_to_8(net: Net) -> None:
 
 def delete_database_by_message(mm: mmap.mmap, nr: int) -> None:
     """Seed 5.2.2's delete message (RCS task, b 6, mode 4, start segment 8), raw."""
-    answer = test_raw_dpm.transact(mm, 0, 6, bytes([4, 8]), nr)
+    answer = raw_mailbox.transact(mm, 0, 6, bytes([4, 8]), nr)
     assert (answer.a, answer.f) == (6, 0)
 
 
@@ -502,7 +503,7 @@ def test_seed_7_2_with_direct_access_to_the_image(make_net: Callable[..., Net],
     net = make_net("[[node]]\nid = 1\n[[node]]\nid = 2\n")
     stored_database(net, tmp_path)
     mm = net.card.map()
-    raw = test_raw_dpm
+    raw = raw_mailbox
     nr = itertools.count(1)
     assert mm[raw.HOST_FLAGS] & (raw.READY | raw.RUN) == raw.READY | raw.RUN  # SyCon's
     deletes = 0
@@ -535,7 +536,7 @@ def test_the_delete_takes_run_not_the_network(make_net: Callable[..., Net]) -> N
     net.configure()
     net.wait_operating([1, 2])
     mm = net.card.map()
-    raw = test_raw_dpm
+    raw = raw_mailbox
     try:
         assert mm[raw.HOST_FLAGS] & raw.RUN
         delete_database_by_message(mm, 1)

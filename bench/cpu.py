@@ -1,0 +1,142 @@
+"""CPU time of another process and of its threads, from /proc (Linux).
+
+CPU time, unlike wall time, hardly moves when the machine is loaded: a shared box
+with a load average of 15 still gives a fair figure of what a process costs.
+``/proc/PID/task/TID/schedstat`` counts nanoseconds on the CPU per thread;
+``/proc/PID/stat`` (utime + stime, clock ticks) counts the whole process including
+threads that have ended, at a resolution of 10 ms, as a cross-check.
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+TICK_NS = 1_000_000_000 // os.sysconf("SC_CLK_TCK")
+
+
+def _schedstat_ns(path: Path) -> int | None:
+    try:
+        return int(path.read_text().split()[0])
+    except (OSError, ValueError, IndexError):
+        return None
+
+
+def _comm(task: Path) -> str:
+    try:
+        return (task / "comm").read_text().strip()
+    except OSError:
+        return "?"
+
+
+def stat_cpu_ns(pid: int) -> int:
+    """utime + stime of the whole process (every thread, also ended ones), in ns."""
+    raw = Path(f"/proc/{pid}/stat").read_text()
+    fields = raw[raw.rindex(")") + 2 :].split()
+    return (int(fields[11]) + int(fields[12])) * TICK_NS  # utime, stime: fields 14 and 15
+
+
+def _wakeups(task: Path) -> int:
+    """Voluntary context switches of a thread: each one a sleep (a wait, a poll) that ended."""
+    try:
+        for line in (task / "status").read_text().splitlines():
+            if line.startswith("voluntary_ctxt_switches:"):
+                return int(line.split()[1])
+    except (OSError, ValueError):
+        pass
+    return 0
+
+
+def thread_wakeups(pid: int) -> dict[int, int]:
+    """Voluntary context switches of each live thread of ``pid`` (thread id -> count)."""
+    return {int(task.name): _wakeups(task) for task in Path(f"/proc/{pid}/task").iterdir()}
+
+
+def thread_cpu_ns(pid: int) -> dict[int, int]:
+    """Nanoseconds on the CPU of each live thread of ``pid`` (thread id -> ns)."""
+    threads: dict[int, int] = {}
+    for task in Path(f"/proc/{pid}/task").iterdir():
+        ns = _schedstat_ns(task / "schedstat")
+        if ns is not None:
+            threads[int(task.name)] = ns
+    return threads
+
+
+@dataclass(frozen=True, slots=True)
+class CpuSample:
+    """One reading of a process: per-thread ns, the whole-process ticks, the wall clock."""
+
+    threads: dict[int, int]
+    stat_ns: int
+    wall_ns: int
+    wakeups: dict[int, int]
+
+    @classmethod
+    def take(cls, pid: int) -> CpuSample:
+        return cls(thread_cpu_ns(pid), stat_cpu_ns(pid), time.monotonic_ns(),
+                   thread_wakeups(pid))
+
+
+def share(before: CpuSample, after: CpuSample, pid: int) -> dict[str, Any]:
+    """Per cent of one core between two samples: the process, its main thread, the others,
+    and per thread (busiest first) its share and its wake-ups a second.
+
+    ``main_thread`` is the thread whose id is ``pid``: the firmware's device loop. The
+    other threads have no names the kernel knows; their wake-up rates tell them apart (the
+    CAN tick wakes about 1,000 times a second).
+    """
+    wall = after.wall_ns - before.wall_ns
+    spent = {tid: ns - before.threads.get(tid, 0) for tid, ns in after.threads.items()}
+    total = sum(spent.values())
+    main = spent.get(pid, 0)
+
+    def pct(ns: int) -> float:
+        return round(100.0 * ns / wall, 3) if wall else 0.0
+
+    seconds = wall / 1e9 if wall else 1.0
+    per_thread = [
+        {"thread": "main (device loop)" if tid == pid else f"tid {tid}", "pct": pct(ns),
+         "wakeups_per_s": round((after.wakeups.get(tid, 0) - before.wakeups.get(tid, 0))
+                                / seconds, 1)}
+        for tid, ns in sorted(spent.items(), key=lambda item: -item[1])
+    ]
+    return {
+        "process_pct": pct(total),
+        "main_thread_pct": pct(main),
+        "other_threads_pct": pct(total - main),
+        "stat_process_pct": pct(after.stat_ns - before.stat_ns),
+        "threads": len(after.threads),
+        "per_thread": per_thread,
+        "wall_s": round(wall / 1e9, 3),
+    }
+
+
+BLOCKED_SOURCE = (
+    "import socket\n"
+    "s = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)\n"
+    "s.bind(b'')\n"
+    "print('ready', flush=True)\n"
+    "s.recv(1)\n"
+)
+"""The baseline: a Python process asleep on its doorbell, as an idle card could be."""
+
+
+@contextmanager
+def blocked_process() -> Iterator[int]:
+    """A Python process blocked on a Unix datagram socket; yields its pid, kills it at exit."""
+    proc = subprocess.Popen([sys.executable, "-c", BLOCKED_SOURCE], stdin=subprocess.DEVNULL,
+                            stdout=subprocess.PIPE)
+    try:
+        assert proc.stdout is not None
+        proc.stdout.readline()  # bound: it sleeps from here on
+        yield proc.pid
+    finally:
+        proc.kill()
+        proc.wait()

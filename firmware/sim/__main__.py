@@ -1,5 +1,0 @@
-import sys
-
-from firmware.sim.cli import main
-
-sys.exit(main())

@@ -1,5 +1,0 @@
-import sys
-
-from host_api.status import main
-
-sys.exit(main())

@@ -1,0 +1,146 @@
+"""A card with simulated CANopen nodes on every bus: the back-to-back network fixture.
+
+``make_net`` starts ``cifemu firmware --simulate NETWORK.toml`` and opens it through
+``Board``: on ``virtual`` the card and the simulated nodes share one python-can bus inside
+the firmware process; on ``shm`` the nodes run in a ``cifemu sim`` process of their own (as on
+a real bus, the card then shares nothing but the bus with them); on ``socketcan`` both are on
+``vcan0``, skipped with the reason where the machine has none (``tests/buses.py``).
+
+Use it from a test module with ``pytest_plugins = ["tests.can_net"]`` and a ``make_net``
+argument: every test of the module then runs on each interface. The helpers (``Net``,
+``exchange``, ``candump``, ``start_sim``) are imported as usual. A helper module, not a test
+module: no test module imports another (tests/test_suite_rules.py).
+"""
+
+from __future__ import annotations
+
+import struct
+import subprocess
+import sys
+import threading
+import uuid
+from collections.abc import Callable, Iterator
+from pathlib import Path
+
+import pytest
+
+from dbm_tools.network import load_network
+from dpm.errors import Drv
+from dpm.message import Message
+from dpm.task2 import ComDiagnostics
+from host_api import driver as d
+from host_api.board import Board
+from host_api.online import configure_online
+from tests.buses import SOCKETCAN_CHANNEL, socketcan_missing
+from tests.conftest import Card, start_card, wait_until
+
+GENERIC = "\n".join(f"[[node]]\nid = {n}" for n in (1, 2, 3))
+
+
+@pytest.fixture(params=["virtual", "shm", "socketcan"])
+def interface(request: pytest.FixtureRequest) -> str:
+    """The card's interface; on ``shm`` the nodes run as ``cifemu sim`` in another process."""
+    if request.param == "socketcan":
+        reason = socketcan_missing()
+        if reason is not None:
+            pytest.skip(reason)
+    return str(request.param)
+
+
+class Net:
+    """A card with a simulated network, opened through ``Board``."""
+
+    def __init__(self, card: Card, board: Board, toml: Path, channel: str) -> None:
+        self.card = card
+        self.board = board
+        self.toml = toml
+        self.channel = channel
+
+    def diag(self) -> ComDiagnostics:
+        return self.board.diagnostics()
+
+    def send(self, b: int, data: bytes, rx: int = 3, e: int = 0) -> Message:
+        return self.board.transact(Message(rx=rx, tx=16, b=b, e=e, data=data))
+
+    def configure(self) -> None:
+        configure_online(self.board, load_network(self.toml))
+
+    def wait_operating(self, nodes: list[int], timeout: float = 10) -> None:
+        wait_until(lambda: self.diag().operating() == nodes, timeout,
+                   f"nodes {nodes} in data exchange (now {self.diag().operating()})")
+
+    def sdo(self, node: int, index: int, sub: int, data: bytes | None = None) -> Message:
+        head = struct.pack("<BBHBBBB", node, 0, index, sub, len(data or b""), 0,
+                           2 if data is not None else 1)
+        return self.send(74, head + (data or b""))
+
+
+@pytest.fixture
+def make_net(tmp_path: Path, interface: str) -> Iterator[Callable[..., Net]]:
+    opened: list[Net] = []
+    sims: list[subprocess.Popen[bytes]] = []
+
+    def make(toml: str = GENERIC, *extra: str) -> Net:
+        path = tmp_path / "network.toml"
+        path.write_text(toml)
+        if interface == "shm":  # the card first: it must hear the nodes from power-on
+            channel = f"test-{uuid.uuid4().hex}"
+            card = start_card(tmp_path, 0, "--interface", interface, "--channel", channel,
+                              *extra)
+            sims.append(start_sim(path, interface, channel))
+        else:
+            channel = SOCKETCAN_CHANNEL if interface == "socketcan" else "card"
+            card = start_card(tmp_path, 0, "--simulate", str(path), "--interface", interface,
+                              "--channel", channel, *extra)
+        board = Board(0, tmp_path, timeout=5000).open()
+        net = Net(card, board, path, channel)
+        opened.append(net)
+        return net
+
+    yield make
+    for net in opened:
+        net.board.close()
+        net.card.stop()
+    for sim in sims:
+        sim.terminate()
+        sim.wait(timeout=10)
+
+
+def start_sim(network: Path, interface: str, channel: str) -> subprocess.Popen[bytes]:
+    """``cifemu sim`` in a process of its own, returned once its nodes are on the bus."""
+    sim = subprocess.Popen([sys.executable, "-m", "cifemu", "sim", str(network), "--interface",
+                            interface, "--channel", channel, "--log-level", "WARNING"],
+                           stdin=subprocess.DEVNULL, stdout=subprocess.PIPE)
+    assert sim.stdout is not None
+    first = sim.stdout.readline()
+    if not first.startswith(b"simulating"):
+        sim.kill()
+        pytest.fail(f"cifemu sim did not start: {first!r}")
+    threading.Thread(target=sim.stdout.read, daemon=True).start()  # the pipe must not fill
+    return sim
+
+
+def exchange(net: Net, outputs: bytes, offset: int = 0, size: int = 8) -> bytes:
+    """One DevExchangeIO; b"" while COM is not up yet (-21), so a wait on it tries again: the
+    device loop raises COM with the network's state, a moment after the nodes' Nd_state bits
+    when a loaded machine (User-Mode Linux) delays it. Any other code fails the test."""
+    rc, data = d.DevExchangeIO(0, offset, outputs, offset, size, 2000)
+    if rc == Drv.DRV_DEV_NO_COM_FLAG:
+        return b""
+    assert rc == 0
+    return data
+
+
+
+def candump(trace: Path) -> list[tuple[float, int, str]]:
+    """(time, identifier, data) of every frame in a candump-format trace.
+
+    Whole lines only: a running card's trace may end in one half written.
+    """
+    frames = []
+    written = trace.read_text()
+    for line in written[: written.rfind("\n") + 1].splitlines():
+        stamp, _, frame = line.split()[:3]
+        ident, _, data = frame.partition("#")
+        frames.append((float(stamp.strip("()")), int(ident, 16), data))
+    return frames

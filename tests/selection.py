@@ -1,0 +1,84 @@
+"""Which tests run in which target, by module: make test-fast, make test, make test-vcan.
+
+A module is ``fast`` unless it is listed in ``PROCESS_MODULES``: a new test module of codecs
+or parsers joins ``make test-fast`` by itself, and one that starts a process or opens a
+socket fails there (``forbid_processes``) with a message that says to list it, so the
+selection neither shrinks nor grows a firmware unnoticed. ``tests/test_suite_rules.py``
+checks that every name listed here is a test module that exists.
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import pytest
+
+TESTS = Path(__file__).resolve().parent
+
+PROCESS_MODULES = frozenset({
+    "test_bench_can", "test_can_bus", "test_can_late_frames", "test_can_task",
+    "test_can_unsupervised", "test_chaos", "test_cia309_gateway", "test_cia309_limits",
+    "test_cia309_server", "test_configure_cli", "test_dbm_by_hand", "test_dbm_cli",
+    "test_download", "test_suite_guards", "test_firmware", "test_fuzz_mailbox",
+    "test_health", "test_host_restart", "test_hostile_image", "test_json_convention",
+    "test_legacy", "test_libcif_c", "test_libcif_dbm", "test_libcif_driver",
+    "test_libcif_headers", "test_lss", "test_monitor", "test_online_download",
+    "test_raw_dpm", "test_readme", "test_seed_fidelity", "test_can_master_services", "test_shm_bus",
+    "test_sim", "test_soak", "test_top", "test_vcan_tools", "test_vcan_vm",
+    "test_cia309_slots", "test_libcif_hosts", "test_local_users", "test_newcomer",
+    "test_pytest_plugin", "test_seed_second_pass", "test_record_replay",
+})
+"""Modules whose tests start a process (a firmware, ``cifemu sim``, a command, a compiler),
+open a socket or a shared-memory bus, or wait for a card's timers: not ``fast``."""
+
+VCAN_VM_MODULES = frozenset({"test_vcan_vm"})
+"""Modules that start a virtual machine (tools/vcan-vm's qemu, 2 minutes): ``make test-vcan``."""
+
+SERIAL_MODULES = frozenset({"test_soak"})
+"""Modules that measure the machine's time (the soak's invariants): alone on it, never beside
+another pytest-xdist worker."""
+
+HELPER_MODULES = tuple(
+    f"tests.{path.stem}" for path in sorted(TESTS.glob("*.py"))
+    if not path.stem.startswith("test_") and path.stem not in ("__init__", "conftest",
+                                                                "selection"))
+"""The fixtures and helpers the test modules import (``tests/buses.py``, ...): never a test
+module, which no other module imports."""
+
+
+def marks_of_module(module: str) -> list[pytest.MarkDecorator]:
+    """The markers every test of ``module`` (a file name without ``.py``) carries."""
+    marks = []
+    if module not in PROCESS_MODULES:
+        marks.append(pytest.mark.fast)
+    if module in VCAN_VM_MODULES:
+        marks.append(pytest.mark.vcan_vm)
+    if module in SERIAL_MODULES:
+        marks.append(pytest.mark.serial)
+    return marks
+
+
+FORBIDDEN_EVENTS = frozenset({
+    "subprocess.Popen", "os.fork", "os.forkpty", "os.posix_spawn", "os.system", "os.exec",
+    "socket.bind", "mmap.__new__",
+})
+"""The audit events of a test that is not ``fast``: a child process, a socket that serves, a
+mapped image (a card's or a shared-memory bus's). A connect stays allowed: with nothing started
+there is nobody to answer it (the command-line fuzz tries ``cifemu 309 exec --port``)."""
+
+NOT_FAST = ("make test-fast runs only tests that start no process, serve no socket and map "
+            "no image: {event} here, so add this module to PROCESS_MODULES in "
+            "tests/selection.py")
+
+
+def _audit(event: str, args: tuple[object, ...]) -> None:
+    del args
+    if event in FORBIDDEN_EVENTS:
+        raise RuntimeError(NOT_FAST.format(event=event))
+
+
+def forbid_processes() -> None:
+    """From now on, this process raises at every ``FORBIDDEN_EVENTS`` event. An audit hook
+    cannot be removed: call it only in a process that runs nothing but fast tests."""
+    sys.addaudithook(_audit)
