@@ -4,7 +4,7 @@ Each test brings a card up with simulated nodes, provokes one behaviour through 
 the image, and asserts what the seed manual gives the host to see (Err_Event, Nd_state, NEXC,
 frames in the card's trace). Like ``tests/test_seed_fidelity.py`` it runs on every bus of
 ``tests/test_can_task.py``'s back-to-back fixture; the test of a boot-up message injects its
-frames on the ``shm`` bus (``tests/test_can_late_frames.py``'s rig).
+frames on the ``shm`` bus (``tests/shm_rig.py``).
 """
 
 from __future__ import annotations
@@ -15,20 +15,16 @@ from collections.abc import Callable
 from pathlib import Path
 
 from dbm_tools.network import parse_network
+from dbm_tools.parameters import NdFlag, NodeParameterSet, PdoData
 from dpm.task2 import GlobalBits
 from host_api import driver as d
 from host_api.online import configure_online
-from tests import test_can_task
+from tests.can_net import Net, candump
 from tests.conftest import wait_until
-from tests.test_can_late_frames import NODE, Rig, rig
-from tests.test_can_task import Net, candump
-from tests.test_seed_fidelity import actual_error
-from tests.test_seed_untested import BUS_PARAMETERS, node_set
+from tests.shm_rig import NODE, Rig
 
-interface = test_can_task.interface
-make_net = test_can_task.make_net
-"""The back-to-back fixtures: this module's tests run on every bus that file's run on."""
-__all__ = ["rig"]  # the fixture, shared with test_can_late_frames
+pytest_plugins = ["tests.can_net", "tests.shm_rig"]
+"""The back-to-back fixtures (make_net on every bus) and the shm rig."""
 
 NMT_START, NMT_STOP = 0x01, 0x02
 
@@ -37,6 +33,27 @@ def settle(seconds: float) -> None:
     """Let ``seconds`` pass (traffic to record, supervision to act), as a bounded wait."""
     until = time.monotonic() + seconds
     wait_until(lambda: time.monotonic() > until, seconds + 1, f"{seconds} s to pass")
+
+
+def actual_error(net: Net, node: int) -> int:
+    """Octet 7 of the node's COM_Node_Diag answer (seed 5.2.7): its error now."""
+    answer = net.send(66, struct.pack("<BBHBBBB", node, 0, 0, 0, 0, 0, 1))
+    assert answer.f == 0
+    return answer.data[8 + 6]
+
+
+def node_set(address: int) -> bytes:
+    """A generic node's data set as COM_Download carries it (seed 5.2.5.1.1): heartbeat
+    consumer at 1000 ms, no SDO list."""
+    return NodeParameterSet(
+        bNd_Flag=NdFlag.ACTIVE | NdFlag.HRTBT, usAddTypeInfo=0x000F, usDevProfNum=0x191,
+        usCobIDEmcy=0x80 + address, usCobIDGuard=0x700 + address, usGuardTime=1000,
+        atPdoCfgData=[PdoData(0, 8, 0x200 + address, 255), PdoData(1, 8, 0x180 + address, 255)],
+        ausInputOffsets=[0], ausOutputOffsets=[0]).encode()
+
+
+BUS_PARAMETERS = bytes([0, 127, 0, 0, 2]) + struct.pack("<HH", 0x080, 0) + bytes(2)
+"""COM_Download of the bus parameters (Area_Code 127, 500 kbit/s, no SYNC): starts the bus."""
 
 
 def nexc(net: Net) -> bool:
