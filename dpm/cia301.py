@@ -23,6 +23,16 @@ SDO_REQUEST_BASE = 0x600
 ERROR_CONTROL_BASE = 0x700
 """Heartbeat, node guarding and boot-up messages."""
 
+# NMT states, as a node reports them: the low 7 bits of its heartbeat or guarding answer
+# (CiA 301 7.2.8.3.2). Here once for the card's node handlers, the simulated nodes and the
+# bus monitor.
+INITIALISING = 0
+BOOT_UP = INITIALISING
+"""The one byte of a boot-up message: the node leaves INITIALISING (CiA 301 7.2.8.3.3)."""
+STOPPED = 4
+OPERATIONAL = 5
+PRE_OPERATIONAL = 127
+
 # PDO transmission types (1400h/1800h sub 2)
 SYNC_ACYCLIC = 0
 """Synchronous, sent at a SYNC only when the data changed (TPDO)."""

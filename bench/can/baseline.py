@@ -13,10 +13,9 @@ from canopen.objectdictionary import ObjectDictionary
 from canopen.sdo.client import SdoClient
 
 from dbm_tools.network import Network
-from dpm.cia301 import COB_ID_NMT
+from dpm.cia301 import COB_ID_NMT, INITIALISING, OPERATIONAL
 from dpm.commands import NMT_START
 from firmware.sim import SimulatedNetwork
-from firmware.sim.nmt import INITIALISING, OPERATIONAL
 
 
 @contextmanager

@@ -52,6 +52,10 @@ class BootLink(Protocol):
     @property
     def global_start(self) -> bool: ...
 
+    @property
+    def nodes_stopped(self) -> bool:
+        """Auto-clear or HOST_NOT_READY stopped the network: a boot-up starts no node."""
+
     def wait_for(self, event: threading.Event, timeout: float) -> bool: ...
 
     def send_nmt(self, command: int, node: int) -> None: ...
@@ -151,8 +155,13 @@ class BootSequence:
         if not skip & ConfigNdState.GUARD:
             if self._heartbeat():
                 if params.usGuardTime:
-                    # [ours] the node produces at half the master's consumer time
-                    sdo.download(0x1017, 0, struct.pack("<H", max(1, params.usGuardTime // 2)))
+                    # [ours] the node produces at half the master's consumer time. The card
+                    # only consumes heartbeats (seed 5.2.5.1.1): a node whose 1017h is not
+                    # writable produces at its own rate, and supervision judges that: too
+                    # slow is 30, none at all too.
+                    with contextlib.suppress(SdoAbortedError):
+                        sdo.download(0x1017, 0,
+                                     struct.pack("<H", max(1, params.usGuardTime // 2)))
             else:
                 if params.usGuardTime:
                     # CiA 301: a node that produces heartbeats does not answer guarding;
@@ -170,7 +179,7 @@ class BootSequence:
             for entry in params.atSdoCfgData:
                 sdo.download(entry.usIndex, entry.bSubindex,
                              bytes(entry.abSdoValue[: entry.bLength]))
-        if not skip & ConfigNdState.START and not link.global_start:
+        if not skip & ConfigNdState.START and not link.global_start and not link.nodes_stopped:
             link.send_nmt(NMT_START, self.address)
 
     def _identify(self, sdo: SdoClient, deadline: float) -> None:

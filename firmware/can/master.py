@@ -170,6 +170,10 @@ class Master:
         return bool(self.bus_params and self.bus_params.Auto_Clear == ACLR_ACTIVE)
 
     @property
+    def nodes_stopped(self) -> bool:
+        return self.nmt.nodes_stopped
+
+    @property
     def global_start(self) -> bool:
         return bool(self.ext.bExtendedState & ExtendedState.biNoGobalStartNode)
 

@@ -91,6 +91,12 @@ class NmtMaster:
         self.halted = not self._card.plc.image.driving
         self._card.set_global_bit(GlobalBits.ACLR, False)
 
+    @property
+    def nodes_stopped(self) -> bool:
+        """Auto-clear or HOST_NOT_READY hold every node in STOPPED (seed 4.3, 39); the
+        watchdog's halt (220) leaves them running."""
+        return self.cleared or (self.halted and self._card.rcs.host_not_ready)
+
     def nmt(self, command: int, node: int) -> None:
         self._send(0x000, bytes([command, node]))
 
@@ -107,8 +113,13 @@ class NmtMaster:
 
     def node_booted(self, handler: NodeHandler) -> None:
         self._booting.discard(handler.address)
-        if self.cleared or (self.halted and self._card.rcs.host_not_ready):
-            # auto-clear or HOST_NOT_READY came first: they stop this node too (seed 4.3)
+        if self.nodes_stopped:
+            # Auto-clear or HOST_NOT_READY came first: they stop this node too (seed 4.3,
+            # 39 "node in stop"). Their broadcast Stop went out before its boot-up ended;
+            # the boot-up sends no Start_Node then (``BootLink.nodes_stopped``), but one
+            # that came just before them did: it gets a Stop of its own, so the field device
+            # does not run while the card reports it stopped.
+            self.nmt(NMT_STOP, handler.address)
             self._stop_node(handler)
             self.update_nexc()
             return
@@ -123,7 +134,12 @@ class NmtMaster:
         self.set_node_state(handler.address, False)
         self.update_nexc()  # with Err_Event, not a supervision tick later
         self._card.report_error(handler.address, event)
-        if self._settings.auto_clear and not self.cleared and self.running:
+        # Seed 5.2.5.4.1: auto-clear stops all "if one as active classified node has been
+        # disconnected". [ours] A node that has not reached data exchange since the network
+        # started it was never connected: its failed boot-up is reported and retried, as with
+        # auto-clear off, and the others run on.
+        if (self._settings.auto_clear and handler.connected and not self.cleared
+                and self.running):
             self._auto_clear()
         elif self._settings.global_start and not self._booting:
             self._global_start_due = True
@@ -152,6 +168,7 @@ class NmtMaster:
         for handler in list(self._nodes.values()):
             if handler.state is State.OPERATING:
                 self._stop_node(handler)
+        self.update_nexc()  # the tick, which would, stops while the network is halted
 
     def _stop_node(self, handler: NodeHandler) -> None:
         handler.idle()
@@ -177,8 +194,15 @@ class NmtMaster:
         self.nmt(command, node)
         if command == NMT_START:
             now = time.monotonic()
-            for handler in targets:
-                handler.start_sent(now, by_host=True)
+            self._started([h for h in targets if h.start_sent(now, by_host=True)])
+
+    def _started(self, handlers: list[NodeHandler]) -> None:
+        """Nodes a start put into data exchange that report no state (``start_sent``):
+        NEXC first, then their Nd_state, as after a boot-up."""
+        if handlers:
+            self.update_nexc()
+        for handler in handlers:
+            self.set_node_state(handler.address, True)
 
     # --- from the master's tick ---------------------------------------------------------------
 
@@ -190,8 +214,8 @@ class NmtMaster:
         if self._global_start_due:
             self._global_start_due = False
             self.nmt(NMT_START, 0)
-            for handler in list(self._nodes.values()):
-                handler.start_sent(now, by_host=False)
+            self._started([h for h in list(self._nodes.values())
+                           if h.start_sent(now, by_host=False)])
         self._follow_connection_bits()
         return True
 
@@ -233,11 +257,15 @@ class NmtMaster:
     def update_nexc(self) -> None:
         """NEXC from every node's state; called by boot threads, the bus thread and the tick.
 
+        Seed 4.3: "At least one node has not reached the data exchange state and no process
+        data are exchanged with it": a node that waits for its start (START skipped) or that
+        the host stopped counts, as does every node HOST_NOT_READY or auto-clear stopped.
+
         Under a lock: two boot threads finishing together could otherwise write
         their answers in the wrong order, the stale one last.
         """
         with self._nexc_lock:
-            missing = any(h.state is not State.OPERATING for h in list(self._nodes.values())
+            missing = any(not h.exchanging for h in list(self._nodes.values())
                           if h.active and h.state is not State.DISCONNECTED)
             self._card.set_global_bit(GlobalBits.NEXC, missing)
 

@@ -20,6 +20,7 @@ from typing import Protocol
 import can
 
 from dbm_tools.parameters import ConfigNdState, NodeParameterSet
+from dpm.cia301 import BOOT_UP, OPERATIONAL
 from dpm.com import NodeDiagnosis as Diagnosis
 from dpm.com import NodeStatus
 from dpm.commands import NMT_STOP
@@ -39,8 +40,6 @@ FOREIGN_CLOCK_S = 60.0
 """[ours] A frame stamped further than this from the wall clock is stamped by the adapter's
 own clock: its stamp says nothing about when it was on the bus relative to the card's
 resets and starts (``wall_stamp``)."""
-
-OPERATIONAL, BOOT_UP = 5, 0
 
 
 class State(enum.Enum):
@@ -114,6 +113,9 @@ class NodeHandler:
         """Nodestatus_1 and Actual_Error as the host last read them (COM_Node_Diag)."""
         self.host_sdo = False
         """A host SDO transfer runs: the node's RPDOs are suppressed (seed 5.2.8)."""
+        self.connected = False
+        """The node reached data exchange since the network last started it: only then can
+        losing it be auto-clear's "disconnected" (``NmtMaster.node_failed``)."""
         self._retry_at = 0.0
         self._generation = 0
         """Bumped on every (re)boot so a stale boot thread gives up."""
@@ -211,6 +213,7 @@ class NodeHandler:
         self.awaiting_start = bool(skip & ConfigNdState.START) or self.network.global_start
         self.pdos.forget_sent()
         self.state = State.OPERATING
+        self.connected = True
         if self.control.supervised:
             self.diag.status |= NodeStatus.GUARD_ACTIVE
         if recovered:  # before Nd_state, as above
@@ -220,20 +223,34 @@ class NodeHandler:
         self.events.node_booted(self)
         if not skip & ConfigNdState.TXRXPDO:
             self.send_outputs(force=True)
-            self.pdos.request_polled(now)
+            if not self.awaiting_start:  # else when the start goes out (``start_sent``)
+                self.pdos.request_first(now)
 
-    def start_sent(self, now: float, by_host: bool) -> None:
+    def start_sent(self, now: float, by_host: bool) -> bool:
         """A Start_Node went to the node (the global one, or the host's): from now on it must
         be OPERATIONAL, after the usual grace for the command to arrive. A node with START set
-        in bitConfigNdState waits only for the host's."""
-        if self.state is not State.OPERATING or not self.awaiting_start:
-            return
-        if not by_host and self.params.bitConfigNdState & ConfigNdState.START:
-            return
-        self.awaiting_start = False
+        in bitConfigNdState waits only for the host's.
+
+        Returns True when the start put the node into data exchange and nothing will report
+        it: a node without error control sends no state, so [ours] the card takes its own
+        start for the node's state and sets Nd_state (seed 4.3, 5.2.9), as it does after a
+        boot-up that ends with its Start_Node. A supervised node's state comes with its next
+        heartbeat or guarding answer.
+        """
+        if self.state is not State.OPERATING:
+            return False
+        if self.awaiting_start:
+            if not by_host and self.params.bitConfigNdState & ConfigNdState.START:
+                return False
+            self.awaiting_start = False
+        elif not by_host:
+            return False
+        # else a node the host had stopped, or one running already
         self.control.started(now)
         if not self.params.bitConfigNdState & ConfigNdState.TXRXPDO:
             self.send_outputs(force=True)  # the first RX-PDO, now that the node takes it
+            self.pdos.request_first(now)  # and the first TX-PDO
+        return not self.control.supervised
 
     def _fail_boot(self, generation: int, event: int) -> None:
         if generation == self._generation:
@@ -289,17 +306,18 @@ class NodeHandler:
         if self.state is not State.INACTIVE:
             self._generation += 1
             self.state = State.WAITING
+            self.connected = False
             self.events.set_node_state(self.address, False)
 
     def tick(self, now: float) -> None:
         """Supervision and retries; called from the master's tick."""
         if self.state is State.FAILED:
-            if not self.network.auto_clear and now >= self._retry_at:
+            if (not self.network.auto_clear or not self.connected) and now >= self._retry_at:
                 self.start_boot()
             return
         if self.state is not State.OPERATING:
             return
-        event = self.control.check(now) or self.pdos.poll(now)
+        event = self.control.check(now) or (self.pdos.poll(now) if self.exchanging else 0)
         if event:
             self.fail(event)
 
@@ -308,9 +326,17 @@ class NodeHandler:
         if self.state is not State.OPERATING:
             return
         self.send_outputs(sync=True)
-        event = self.pdos.on_sync(now)
+        event = self.pdos.on_sync(now) if self.exchanging else 0
         if event:
             self.fail(event)
+
+    @property
+    def exchanging(self) -> bool:
+        """In data exchange: operating and started. Only then must the node answer remote
+        requests of its TX-PDOs (a node waiting for its start, or stopped by the host, sends
+        none), and only then is it no NEXC (seed 4.3)."""
+        return (self.state is State.OPERATING and not self.awaiting_start
+                and self.operational_expected)
 
     def send_outputs(self, sync: bool = False, force: bool = False) -> bool:
         """Send the RX-PDOs that are due (``NodePdos.send_outputs``) while the node runs.
@@ -334,8 +360,12 @@ class NodeHandler:
         value = msg.data[0]
         state = value & 0x7F
         if state == BOOT_UP and msg.arbitration_id == 0x700 + self.address:
+            # Seed 8.1: "Bootup Protocol, no reaction on Bootup Events of a Node": a node
+            # without error control stays as it is. [ours] A supervised node's boot-up is its
+            # state report as well (CiA 301: state 0), which its next heartbeat or guarding
+            # answer would give a moment later: it left OPERATIONAL (31).
             self.boot.booted_up(stamp)
-            if self.state is State.OPERATING:
+            if self.state is State.OPERATING and self.control.supervised:
                 log.info("node %d: unexpected boot-up", self.address)
                 self.fail(NodeEvent.LEFT_OPERATIONAL)
             return

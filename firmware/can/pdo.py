@@ -27,7 +27,8 @@ from firmware.can.bus import CanBus
 from firmware.process_image import ProcessImage
 
 RTR_PERIOD = 0.1
-"""[ours] seconds between remote requests of an RTR-only (253) input PDO without SYNC."""
+"""[ours] seconds between remote requests of an RTR-only (253) input PDO without SYNC, and
+the least time a node has to answer a remote request of a 252 input (``on_sync``)."""
 
 
 class PdoLink(Protocol):
@@ -60,7 +61,7 @@ class InputPdo:
     pdo: PdoData
     offset: int
     requested: float = 0.0
-    """When the last remote request went out, 0 when answered."""
+    """When the first remote request still unanswered went out, 0 when answered."""
 
 
 def swap_words(data: bytes) -> bytes:
@@ -100,14 +101,26 @@ class NodePdos:
             bus.unsubscribe(entry.pdo.usPdoCOBId, self._on_input)
 
     def forget_sent(self) -> None:
-        """A (re)booted node has none of the card's outputs yet."""
+        """A (re)booted node has none of the card's outputs yet, and owes no answer to a
+        remote request sent before its boot-up."""
         for output in self.outputs:
             output.last = None
+        for entry in self.inputs:
+            entry.requested = 0.0
 
-    def request_polled(self, now: float) -> None:
-        """The first remote request of every RTR-only input, once the node runs."""
-        for entry in self._polled:
-            self._request(entry, now)
+    def request_first(self, now: float) -> None:
+        """Seed 5.2.5.1.1, TXRXPDO: "Request first TX ... PDO after initialization sequence is
+        finished": one remote request of every input, whatever its type, once the node runs,
+        so the input image holds the node's data before it next sends on its own. Only the
+        RTR-only inputs (252, 253) must answer (Err_Event 33); [ours] a node may refuse remote
+        frames of the others (1800h bit 30), which come anyway. Requests from before a stop
+        are forgotten: a stopped node owes no answer."""
+        for entry in self.inputs:
+            entry.requested = 0.0
+            if entry in self._polled:
+                self._request(entry, now)
+            else:
+                self.link.bus_send(entry.pdo.usPdoCOBId, remote=True, dlc=entry.pdo.data_length)
 
     def poll(self, now: float) -> int:
         """RTR-only inputs without SYNC: ask again, or NO_RTR_RESPONSE (0: all well)."""
@@ -120,16 +133,25 @@ class NodePdos:
         return 0
 
     def on_sync(self, now: float) -> int:
-        """Remote requests of 252 inputs at a SYNC, or NO_RTR_RESPONSE (0: all well)."""
+        """Remote requests of 252 inputs at a SYNC, or NO_RTR_RESPONSE (0: all well).
+
+        Seed 4.3, Err_Event 33: "no response to a configured remote frame PDO". The seed
+        gives no time; [ours] a request unanswered for two SYNC periods (at least
+        ``RTR_PERIOD``) is 33. The clock runs from the first unanswered request: the
+        requests at the SYNCs between do not restart it, or a node that never answers
+        would be reported only when a SYNC happened to come late.
+        """
+        limit = max(2 * self.link.sync_period, RTR_PERIOD)
         for entry in self._polled:
             if entry.pdo.bTransType == SYNC_RTR:
-                if entry.requested and now - entry.requested > 2 * self.link.sync_period:
+                if entry.requested and now - entry.requested > limit:
                     return NodeEvent.NO_RTR_RESPONSE
                 self._request(entry, now)
         return 0
 
     def _request(self, entry: InputPdo, now: float) -> None:
-        entry.requested = now
+        if not entry.requested:
+            entry.requested = now
         self.link.bus_send(entry.pdo.usPdoCOBId, remote=True, dlc=entry.pdo.data_length)
 
     def outputs_changed(self, now: bytes, before: bytes) -> bool:

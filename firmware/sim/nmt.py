@@ -15,15 +15,11 @@ from typing import TYPE_CHECKING
 
 from canopen.nmt import NMT_COMMANDS, NmtSlave
 
+from dpm.cia301 import INITIALISING
 from firmware.sim.scheduler import Timer
 
 if TYPE_CHECKING:
     from firmware.sim.node import SimulatedNode
-
-INITIALISING = 0
-STOPPED = 4
-OPERATIONAL = 5
-PRE_OPERATIONAL = 127
 
 # NMT command specifiers, as canopen names them: the simulated nodes take nothing from the
 # card's modules (the card's own copy is dpm.commands.Nmt)

@@ -24,6 +24,7 @@ from canopen.objectdictionary.datatypes import UNSIGNED32
 from canopen.sdo.exceptions import SdoAbortedError
 
 from dbm_tools.network import NodeDescription
+from dpm.cia301 import INITIALISING, OPERATIONAL, PRE_OPERATIONAL, STOPPED
 from firmware.frames import (
     CAN_ERR_ACK,
     CAN_ERR_BUSOFF,
@@ -36,14 +37,10 @@ from firmware.frames import (
 from firmware.sim.generic import INPUTS, OUTPUTS
 from firmware.sim.nmt import (
     ENTER_PRE_OPERATIONAL,
-    INITIALISING,
-    OPERATIONAL,
-    PRE_OPERATIONAL,
     RESET_COMMUNICATION,
     RESET_NODE,
     START,
     STOP,
-    STOPPED,
     NodeGuarding,
     SimNmt,
 )

@@ -35,8 +35,7 @@ from typing import TYPE_CHECKING
 from canopen.network import Callback
 from canopen.pdo import PdoMap, PdoMaps
 
-from dpm.cia301 import EVENT_TYPES, SYNC_RTR, SYNC_TYPES_MAX
-from firmware.sim.nmt import OPERATIONAL
+from dpm.cia301 import EVENT_TYPES, OPERATIONAL, SYNC_RTR, SYNC_TYPES_MAX
 from firmware.sim.scheduler import Timer
 
 if TYPE_CHECKING:

@@ -12,6 +12,7 @@ from canopen.emcy import EmcyError
 from canopen.nmt import NMT_STATES
 from canopen.sdo.exceptions import SdoAbortedError
 
+from dpm.cia301 import BOOT_UP
 from dpm.commands import Nmt
 
 NMT_COMMAND_TEXT: dict[int, str] = {
@@ -21,9 +22,6 @@ NMT_COMMAND_TEXT: dict[int, str] = {
     Nmt.RESET_NODE: "reset node",
     Nmt.RESET_COMMUNICATION: "reset communication",
 }
-
-BOOT_UP = 0x00
-"""The heartbeat/guarding state byte of a boot-up message."""
 
 
 EMCY_DETAIL_TEXT: dict[int, str] = {

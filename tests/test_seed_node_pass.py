@@ -1,0 +1,301 @@
+"""Seed fidelity, second pass (issue 23): what a legacy host still noticed of the node handlers.
+
+Each test brings a card up with simulated nodes, provokes one behaviour through the mailbox or
+the image, and asserts what the seed manual gives the host to see (Err_Event, Nd_state, NEXC,
+frames in the card's trace). Like ``tests/test_seed_fidelity.py`` it runs on every bus of
+``tests/test_can_task.py``'s back-to-back fixture; the test of a boot-up message injects its
+frames on the ``shm`` bus (``tests/shm_rig.py``).
+"""
+
+from __future__ import annotations
+
+import struct
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+from dbm_tools.network import parse_network
+from dbm_tools.parameters import NdFlag, NodeParameterSet, PdoData
+from dpm.task2 import GlobalBits
+from host_api import driver as d
+from host_api.online import configure_online
+from tests.can_net import Net, candump
+from tests.conftest import wait_until
+from tests.shm_rig import NODE, Rig
+
+pytest_plugins = ["tests.can_net", "tests.shm_rig"]
+"""The back-to-back fixtures (make_net on every bus) and the shm rig."""
+
+NMT_START, NMT_STOP = 0x01, 0x02
+
+
+def settle(seconds: float) -> None:
+    """Let ``seconds`` pass (traffic to record, supervision to act), as a bounded wait."""
+    until = time.monotonic() + seconds
+    wait_until(lambda: time.monotonic() > until, seconds + 1, f"{seconds} s to pass")
+
+
+def actual_error(net: Net, node: int) -> int:
+    """Octet 7 of the node's COM_Node_Diag answer (seed 5.2.7): its error now."""
+    answer = net.send(66, struct.pack("<BBHBBBB", node, 0, 0, 0, 0, 0, 1))
+    assert answer.f == 0
+    return answer.data[8 + 6]
+
+
+def node_set(address: int) -> bytes:
+    """A generic node's data set as COM_Download carries it (seed 5.2.5.1.1): heartbeat
+    consumer at 1000 ms, no SDO list."""
+    return NodeParameterSet(
+        bNd_Flag=NdFlag.ACTIVE | NdFlag.HRTBT, usAddTypeInfo=0x000F, usDevProfNum=0x191,
+        usCobIDEmcy=0x80 + address, usCobIDGuard=0x700 + address, usGuardTime=1000,
+        atPdoCfgData=[PdoData(0, 8, 0x200 + address, 255), PdoData(1, 8, 0x180 + address, 255)],
+        ausInputOffsets=[0], ausOutputOffsets=[0]).encode()
+
+
+BUS_PARAMETERS = bytes([0, 127, 0, 0, 2]) + struct.pack("<HH", 0x080, 0) + bytes(2)
+"""COM_Download of the bus parameters (Area_Code 127, 500 kbit/s, no SYNC): starts the bus."""
+
+
+def nexc(net: Net) -> bool:
+    return bool(net.diag().global_bits & GlobalBits.NEXC)
+
+
+# --- 1: a 252 input whose node never answers the remote request ---------------------------
+
+
+def test_an_unanswered_252_remote_request_is_err_event_33(make_net: Callable[..., Net]) -> None:
+    """Seed 4.3, Err_Event 33 "no response to a configured remote frame PDO". Node 1's TPDO1
+    is of type 252 but refuses remote frames (1800h:1 bit 30, written by the card from the
+    SDO list): the card asks at every SYNC and never gets it. [ours] No answer within two
+    SYNC periods of the first unanswered request is 33, however punctual the SYNCs are."""
+    net = make_net("""[bus]
+sync_period_ms = 100
+[[node]]
+id = 1
+[[node.sdo]]
+index = 0x1800
+subindex = 2
+value = 252
+size = 1
+[[node.sdo]]
+index = 0x1800
+subindex = 1
+value = 0x40000181
+size = 4
+[[node.pdo]]
+direction = "input"
+cob_id = 0x181
+transmission = 252
+""")
+    net.configure()
+    wait_until(lambda: net.diag().bErr_event == 33, 10, "Err_Event 33 of node 1")
+    assert net.diag().bErr_rem_adr == 1
+    assert actual_error(net, 1) == 33
+
+
+# --- 2: a node that finishes its boot-up after auto-clear ---------------------------------
+
+
+def test_a_node_booting_after_auto_clear_is_stopped_on_the_bus(make_net: Callable[..., Net],
+                                                                tmp_path: Path) -> None:
+    """Seed 4.3 (39, "node in stop") and 5.2.5.4.1 (Auto_Clear): node 2 finishes its boot-up
+    after auto-clear stopped the network. The card reports it stopped, so it must be stopped:
+    no Start_Node for it after the broadcast Stop, and its heartbeat reads STOPPED (04) to the
+    end, not OPERATIONAL."""
+    trace = tmp_path / "trace.log"
+    net = make_net("""[bus]
+auto_clear = true
+[[node]]
+id = 1
+heartbeat_ms = 200
+[node.sim]
+heartbeat_stop_after_s = 0.3
+[[node]]
+id = 2
+heartbeat_ms = 200
+[node.sim]
+boot_delay_s = 2.0
+""", "--trace", str(trace))
+    net.configure()
+    wait_until(lambda: net.diag().can_state_name == "CLEAR" and actual_error(net, 2) == 39, 10,
+               "node 2 stopped by auto-clear after its boot-up")
+    settle(0.6)  # several of node 2's heartbeats (100 ms)
+    net.card.stop()
+    frames = candump(trace)
+    cleared = min(t for t, ident, data in frames if ident == 0 and data == "0200")
+    assert "0102" not in [data for t, ident, data in frames if ident == 0 and t > cleared]
+    beats = [data for _, ident, data in frames if ident == 0x702]
+    assert beats and beats[-1] == "04"
+
+
+# --- 3: Nd_state of a node without supervision after a start its boot did not send --------
+
+
+def test_unsupervised_nodes_show_in_nd_state_after_the_global_start(
+        make_net: Callable[..., Net]) -> None:
+    """Seed 4.3 (Nd_state) and 5.2.9: nodes without error control, started by the global
+    Start_Node (biNoGobalStartNode), are in data exchange: their Nd_state bits come."""
+    net = make_net("""[bus]
+global_start = true
+[[node]]
+id = 1
+error_control = "none"
+[[node]]
+id = 2
+error_control = "none"
+""")
+    net.configure()
+    net.wait_operating([1, 2])
+    assert net.diag().bErr_event == 0
+
+
+def test_an_unsupervised_node_started_by_the_host_shows_in_nd_state(
+        make_net: Callable[..., Net]) -> None:
+    """Seed 5.2.5.3 (START skipped) and 5.2.9 (COM_NMT_Module_Protocol): node 1, whose boot
+    leaves the start to the host, comes into Nd_state when the host starts it; node 2,
+    stopped by the host, leaves it and comes back when the host starts it again."""
+    net = make_net("""[[node]]
+id = 1
+error_control = "none"
+boot = ["reset", "device", "guard", "sync", "emcy", "sdo", "pdo"]
+[[node]]
+id = 2
+error_control = "none"
+""")
+    net.configure()
+    net.wait_operating([2])
+    assert net.send(96, bytes([NMT_START, 1])).f == 0
+    net.wait_operating([1, 2])
+    assert net.send(96, bytes([NMT_STOP, 2])).f == 0
+    net.wait_operating([1])
+    assert net.send(96, bytes([NMT_START, 2])).f == 0
+    net.wait_operating([1, 2])
+    assert net.diag().bErr_event == 0
+
+
+# --- 6: the first TX-PDO is requested at boot, whatever its type --------------------------
+
+
+def test_the_first_tx_pdo_of_every_type_is_requested_after_the_boot(
+        make_net: Callable[..., Net], tmp_path: Path) -> None:
+    """Seed 5.2.5.1.1, bitConfigNdState TXRXPDO: "Request first TX or send first RX PDO after
+    initialization sequence is finished". Node 1's input is event-driven (255), node 2's
+    synchronous (1): each gets a remote request once its boot-up is through."""
+    trace = tmp_path / "trace.log"
+    net = make_net("""[bus]
+sync_period_ms = 100
+[[node]]
+id = 1
+[[node.pdo]]
+direction = "input"
+cob_id = 0x181
+transmission = 255
+[[node]]
+id = 2
+[[node.pdo]]
+direction = "input"
+cob_id = 0x182
+transmission = 1
+""", "--trace", str(trace))
+    net.configure()
+    net.wait_operating([1, 2])
+    settle(0.3)
+    net.card.stop()
+    frames = candump(trace)
+    for node in (1, 2):
+        start = min(t for t, ident, data in frames if ident == 0 and data in (
+            f"01{node:02X}", "0100"))
+        assert [t for t, ident, data in frames if ident == 0x180 + node and data == "R"
+                and t >= start], f"no remote request of node {node}'s TX-PDO"
+
+
+# --- 8: NEXC while nodes do not exchange data --------------------------------------------
+
+
+def test_nexc_while_a_node_waits_for_its_start_and_while_the_host_is_not_ready(
+        make_net: Callable[..., Net]) -> None:
+    """Seed 4.3 NEXC: "At least one node has not reached the data exchange state". Node 1
+    skips START and sits in PRE-OPERATIONAL: NEXC set; the host starts it: clear; the host
+    goes NOT_READY and every node is stopped (39): set again."""
+    net = make_net("""[[node]]
+id = 1
+boot = ["reset", "device", "guard", "sync", "emcy", "sdo", "pdo"]
+[[node]]
+id = 2
+""")
+    net.configure()
+    net.wait_operating([2])
+    wait_until(lambda: nexc(net), 5, "NEXC while node 1 waits for its start")
+    assert net.send(96, bytes([NMT_START, 1])).f == 0
+    net.wait_operating([1, 2])
+    wait_until(lambda: not nexc(net), 5, "NEXC clear with both nodes in data exchange")
+    assert d.DevSetHostState(0, d.HOST_NOT_READY, 1000) == 0
+    wait_until(lambda: net.diag().bErr_event == 39, 5, "Err_Event 39")
+    wait_until(lambda: nexc(net), 5, "NEXC with the nodes stopped")
+
+
+# --- 10: no reaction on the boot-up message of an unsupervised node -----------------------
+
+
+def test_the_boot_up_message_of_an_unsupervised_node_gets_no_reaction(rig: Rig) -> None:
+    """Seed 8.1: "Bootup Protocol, no reaction on Bootup Events of a Node". A node without
+    error control sends a boot-up message while in data exchange: no Err_Event, it stays in
+    Nd_state."""
+    configure_online(rig.board, parse_network(f'[[node]]\nid = {NODE}\nerror_control = "none"\n'))
+    wait_until(lambda: rig.diag().operating() == [NODE], 10, "the node in data exchange")
+    rig.send(0x700 + NODE, b"\x00", time.time())
+    # An EMCY behind it: once it shows in Nd_diag, the boot-up before it has been judged.
+    rig.send(0x80 + NODE, struct.pack("<HB5x", 0x1000, 1), time.time())
+    wait_until(lambda: NODE in rig.diag().diagnostic(), 5, "the EMCY in Nd_diag")
+    assert rig.diag().bErr_event == 0
+    assert rig.diag().operating() == [NODE]
+
+
+# --- 11: a heartbeat node that refuses the write of 1017h ----------------------------------
+
+
+def test_a_heartbeat_node_refusing_1017h_still_boots(make_net: Callable[..., Net]) -> None:
+    """Seed 5.2.5.1.1: the card consumes heartbeats; a node whose producer time 1017h is not
+    writable (it produces at its own rate, here 500 ms) boots as one that takes it: no 34,
+    no Prm_Fault, in data exchange and supervised (consumer time 1000 ms). The data set comes
+    by COM_Download, as a host sends it: a heartbeat node without 1017h in its SDO list."""
+    net = make_net("""[[node]]
+id = 1
+heartbeat_ms = 1000
+[node.sim]
+sdo_abort = { "1017:0" = 0x06010002 }
+""")
+    assert net.send(68, bytes([0, 1, 0, 0]) + node_set(1)).f == 0
+    assert net.send(68, BUS_PARAMETERS).f == 0
+    net.wait_operating([1])
+    settle(1.5)  # supervision: its own heartbeat keeps it there
+    assert net.diag().operating() == [1]
+    assert net.diag().bErr_event == 0
+    answer = net.send(66, struct.pack("<BBHBBBB", 1, 0, 0, 0, 0, 0, 1))
+    assert answer.f == 0 and not answer.data[8] & 0x04  # Nodestatus_1: no Prm_Fault
+
+
+# --- 12: auto-clear and a node that never booted ---------------------------------------------
+
+
+def test_auto_clear_leaves_the_network_running_when_a_node_fails_its_first_boot(
+        make_net: Callable[..., Net]) -> None:
+    """Seed 5.2.5.4.1: auto-clear stops all "if one as active classified node has been
+    disconnected". [ours] A node that never reached data exchange was never connected: its
+    failed boot is reported (34) and retried, the others keep running (OPERATE, no ACLR)."""
+    net = make_net("""[bus]
+auto_clear = true
+[[node]]
+id = 1
+[node.sim]
+silent = true
+[[node]]
+id = 2
+""")
+    net.configure()
+    wait_until(lambda: actual_error(net, 1) == 34, 15, "node 1's boot-up failing with 34")
+    net.wait_operating([2])
+    settle(0.5)
+    diag = net.diag()
+    assert diag.can_state_name == "OPERATE" and not diag.global_bits & GlobalBits.ACLR
+    assert diag.operating() == [2]
