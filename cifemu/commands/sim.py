@@ -12,14 +12,13 @@ import json
 import logging
 import signal
 import sys
-import threading
-from types import FrameType
+from typing import Any
 
 import can
 
 from cifemu.cli_output import fail
 from dbm_tools.bus_options import BusOptionError, add_bus_arguments, select_bus, with_options
-from dbm_tools.network import NetworkError, NodeDescription, load_network
+from dbm_tools.network import Network, NetworkError, NodeDescription, load_network
 from firmware.interpreter import SWITCH_INTERVAL
 from firmware.sim.network import SimulatedNetwork
 
@@ -110,20 +109,25 @@ def run(args: argparse.Namespace) -> int:
               "card, monitor or candump outside it reaches these nodes; use --interface shm "
               f"--channel {args.channel} (and `cifemu firmware --interface shm --channel "
               f"{args.channel}`)", file=sys.stderr, flush=True)
+    # SIGTERM and SIGINT are taken by sigwait below, never by a handler: a handler that
+    # set an Event could interrupt the main thread inside that Event's own wait, holding its
+    # lock, and deadlock (a sim that ignored SIGTERM for good). Blocked before the bus and
+    # the nodes start their threads, which inherit the mask.
+    stop_signals = {signal.SIGTERM, signal.SIGINT}
+    mask = signal.pthread_sigmask(signal.SIG_BLOCK, stop_signals)
     try:
-        bus = can.Bus(interface=args.interface, channel=args.channel, bitrate=bitrate,
-                      **selected.options)
+        return _simulate(args, network, bitrate, selected.options, stop_signals)
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, mask)  # run in-process: as it was
+
+
+def _simulate(args: argparse.Namespace, network: Network, bitrate: int,
+              options: dict[str, Any], stop_signals: set[signal.Signals]) -> int:
+    try:
+        bus = can.Bus(interface=args.interface, channel=args.channel, bitrate=bitrate, **options)
     except (can.CanError, OSError, ValueError, ImportError, TypeError) as exc:
         return fail("sim", f"cannot open {args.interface} channel {args.channel}"
-                           f"{with_options(selected.options)}: {exc}", args.json)
-    done = threading.Event()
-
-    def on_signal(signum: int, frame: FrameType | None) -> None:
-        del signum, frame
-        done.set()
-
-    signal.signal(signal.SIGTERM, on_signal)
-    signal.signal(signal.SIGINT, on_signal)
+                           f"{with_options(options)}: {exc}", args.json)
     try:
         with SimulatedNetwork(network, bus):
             # Printed once the nodes are powered: a script may wait for the first line.
@@ -137,7 +141,7 @@ def run(args: argparse.Namespace) -> int:
                       f"at {bitrate} bit/s", flush=True)
                 for node in network.nodes:
                     print(f"  {describe(node)}", flush=True)
-            done.wait()
+            signal.sigwait(stop_signals)
     finally:
         bus.shutdown()
     return 0
