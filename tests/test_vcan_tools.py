@@ -24,6 +24,7 @@ from pathlib import Path
 import pytest
 
 from dbm_tools.network import load_network
+from dpm.com import acceptance_long
 from dpm.errors import Drv
 from dpm.message import Message
 from host_api import driver as d
@@ -259,7 +260,9 @@ def test_sync_comes_from_the_kernels_broadcast_manager(bench: Callable[..., Benc
 def test_transparent_reception_of_29_bit_frames_from_cansend(
         bench: Callable[..., Bench]) -> None:
     b = bench()
-    ext = struct.pack("<BIIBHB", 0x01, 0x1ABC0000, 0x1FFF0000, 0, 0, 0) + bytes(28)
+    # SJA1000 layout: ID.28..16 compared, ID.15..0 "don't care" (mask bit 1)
+    ext = struct.pack("<BIIBHB", 0x01, acceptance_long(0x1ABC0000),
+                      acceptance_long(0x0000FFFF), 0, 0, 0) + bytes(28)
     assert b.send(68, bytes([0, 128, 0, 0]) + ext).f == 0
     assert b.send(68, bytes([0, 127, 0, 0, 2]) + struct.pack("<HH", 0x80, 0) + bytes(2)).f == 0
     cansend("12340000#6E6F")  # outside the acceptance filter

@@ -122,6 +122,8 @@ class SimulatedNode(LocalNode):
         """Objects written since the last ``after_writes`` (by SDO, RPDO or the byte path)."""
         self._errors: set[int] = set()
         self._power_timers: list[Timer] = []
+        self._burst_pending = False
+        """The EMCY burst waits for the first OPERATIONAL after power-on."""
         self._cycle_timers: list[Timer] = []
         """Timers of the current boot cycle (boot-up, faults), cancelled by a reset."""
         self._leave_operational: Timer | None = None
@@ -199,12 +201,11 @@ class SimulatedNode(LocalNode):
     # --- power and NMT ---------------------------------------------------------------
 
     def power_on(self) -> None:
-        burst = self.description.sim.emcy_burst
-        if burst is not None:
-            self._power_timers = [
-                self.scheduler.call_later(burst.after_s + n * burst.interval_s,
-                                          lambda: self.emergency(burst.code))
-                for n in range(burst.count)]
+        # [ours] the EMCY burst counts from the node's first OPERATIONAL, not from power-on:
+        # a master that configures the node later (another process, a slow machine) still
+        # hears it, as it would hear a fault of a device in operation
+        self._power_timers = []
+        self._burst_pending = self.description.sim.emcy_burst is not None
         errors = self.description.sim.bus_errors
         if errors is not None:
             frame = error_frame(errors.kind)
@@ -302,6 +303,13 @@ class SimulatedNode(LocalNode):
                 self._leave_operational.cancel()
         if state == OPERATIONAL:
             self.pdo_engine.start()
+            burst = self.description.sim.emcy_burst
+            if self._burst_pending and burst is not None:
+                self._burst_pending = False
+                self._power_timers += [
+                    self.scheduler.call_later(burst.after_s + n * burst.interval_s,
+                                              lambda: self.emergency(burst.code))
+                    for n in range(burst.count)]
             after = self.description.sim.leave_operational_after_s
             if after is not None:
                 self._leave_operational = self.scheduler.call_later(
