@@ -164,8 +164,15 @@ error_control = "none"
 """)
     net.configure()
     net.wait_operating([2])
-    assert net.send(96, bytes([NMT_START, 1])).f == 0
-    net.wait_operating([1, 2])
+
+    def started() -> bool:
+        # node 1 may still be booting when node 2 is up (inside User-Mode Linux it was): a
+        # Start before its boot ends is no start the card can take, so the host sends it
+        # again until node 1 shows, as a host polling Nd_state would
+        assert net.send(96, bytes([NMT_START, 1])).f == 0
+        return net.diag().operating() == [1, 2]
+
+    wait_until(started, 10, "node 1 in data exchange after the host's Start")
     assert net.send(96, bytes([NMT_STOP, 2])).f == 0
     net.wait_operating([1])
     assert net.send(96, bytes([NMT_START, 2])).f == 0
