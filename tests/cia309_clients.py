@@ -3,15 +3,21 @@ reader, and a well-behaved client that keeps asking at its normal rate."""
 
 from __future__ import annotations
 
+import queue
 import re
+import signal
 import socket
 import subprocess
+import sys
 import threading
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from tests.conftest import wait_until
+from tests.conftest import Card, wait_until
+from tests.gateway_cards import start
 
 READ_1000 = "1 1 read 0x1000 0 u32"
 ANSWER_1000 = "983441"
@@ -86,3 +92,42 @@ class Steady:
         assert not self.failures
         assert self.worst < STEADY_WORST
         assert self.answered >= seconds / (STEADY_PERIOD + STEADY_WORST / 10)
+
+
+@contextmanager
+def serving(directory: Path, *options: str) -> Iterator[Server]:
+    """A read-only ``cifemu 309 serve`` process with ``options`` on a card that simulates
+    one generic node, yielded once node 1 answers through it; stopped with SIGTERM after."""
+    card: Card = start(directory, 0, "[[node]]\nid = 1\n")
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "cifemu", "309", "serve", "--board", "0", "--dpm-dir",
+         str(directory), "--port", "0", "--read-only", *options],
+        stderr=subprocess.PIPE, text=True)
+    try:
+        assert proc.stderr is not None
+        stderr = proc.stderr
+        lines: queue.SimpleQueue[str] = queue.SimpleQueue()
+
+        def pump() -> None:
+            for line in stderr:
+                lines.put(line)
+
+        threading.Thread(target=pump, daemon=True).start()
+        match = re.search(r"listening on 127\.0\.0\.1:(\d+)", lines.get(timeout=20))
+        assert match is not None
+        running = Server(proc, int(match.group(1)))
+        wait_until(lambda: ask_once(running.port, READ_1000) == f"[1] {ANSWER_1000}", 15,
+                   "node 1 answering through the server")
+        yield running
+        assert proc.poll() is None, "the server died"
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(20) == 0
+        card.stop()
+
+
+def ask_once(port: int, request: str) -> str:
+    """One request on a connection of its own; the answer line without its line end."""
+    with socket.create_connection(("127.0.0.1", port), timeout=10) as sock:
+        sock.sendall(f"[1] {request}\n".encode())
+        return read_line(sock).rstrip("\r\n")

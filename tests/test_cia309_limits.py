@@ -15,11 +15,7 @@ from __future__ import annotations
 import contextlib
 import os
 import queue
-import re
-import signal
 import socket
-import subprocess
-import sys
 import threading
 import time
 from collections.abc import Iterator
@@ -29,9 +25,16 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from tests.cia309_clients import ANSWER_1000, READ_1000, Server, Steady, read_line
-from tests.conftest import Card, wait_until
-from tests.gateway_cards import start
+from tests.cia309_clients import (
+    ANSWER_1000,
+    READ_1000,
+    Server,
+    Steady,
+    ask_once,
+    read_line,
+    serving,
+)
+from tests.conftest import wait_until
 
 EXAMPLES = int(os.environ.get("CIFEMU_FUZZ_EXAMPLES", "60"))
 ROUNDS = max(3, EXAMPLES // 20)
@@ -47,39 +50,8 @@ REFUSED = b"[0] ERROR:600 #Running out of memory.\r\n"
 
 @pytest.fixture(scope="module")
 def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Server]:
-    directory = tmp_path_factory.mktemp("cia309-limits")
-    card: Card = start(directory, 0, "[[node]]\nid = 1\n")
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "cifemu", "309", "serve", "--board", "0", "--dpm-dir",
-         str(directory), "--port", "0", "--read-only", *LIMITS],
-        stderr=subprocess.PIPE, text=True)
-    try:
-        assert proc.stderr is not None
-        stderr = proc.stderr
-        lines: queue.SimpleQueue[str] = queue.SimpleQueue()
-
-        def pump() -> None:
-            for line in stderr:
-                lines.put(line)
-
-        threading.Thread(target=pump, daemon=True).start()
-        match = re.search(r"listening on 127\.0\.0\.1:(\d+)", lines.get(timeout=20))
-        assert match is not None
-        running = Server(proc, int(match.group(1)))
-        wait_until(lambda: _ask_once(running.port, READ_1000) == f"[1] {ANSWER_1000}", 15,
-                   "node 1 answering through the server")
+    with serving(tmp_path_factory.mktemp("cia309-limits"), *LIMITS) as running:
         yield running
-        assert proc.poll() is None, "the server died"
-    finally:
-        proc.send_signal(signal.SIGTERM)
-        assert proc.wait(20) == 0
-        card.stop()
-
-
-def _ask_once(port: int, request: str) -> str:
-    with socket.create_connection(("127.0.0.1", port), timeout=10) as sock:
-        sock.sendall(f"[1] {request}\n".encode())
-        return read_line(sock).rstrip("\r\n")
 
 
 def _closed_by_server(sock: socket.socket, timeout: float) -> bool:
@@ -110,7 +82,7 @@ def steady(server: Server) -> Iterator[Steady]:
 def _served(port: int) -> bool:
     """A new client gets its answer (not the refusal of a full server)."""
     try:
-        return _ask_once(port, READ_1000) == f"[1] {ANSWER_1000}"
+        return ask_once(port, READ_1000) == f"[1] {ANSWER_1000}"
     except OSError:
         return False
 

@@ -11,13 +11,9 @@ one generic node, as in ``test_cia309_limits``.
 from __future__ import annotations
 
 import contextlib
-import queue
 import re
 import selectors
-import signal
 import socket
-import subprocess
-import sys
 import threading
 import time
 from collections.abc import Iterator
@@ -26,9 +22,8 @@ from pathlib import Path
 
 import pytest
 
-from tests.cia309_clients import ANSWER_1000, READ_1000, Server, Steady, read_line
-from tests.conftest import Card, wait_until
-from tests.gateway_cards import start
+from tests.cia309_clients import ANSWER_1000, READ_1000, Server, Steady, read_line, serving
+from tests.conftest import wait_until
 
 MAX_CLIENTS = 8
 """The default of ``--max-clients``."""
@@ -43,33 +38,8 @@ server must drop a client that does not read its answers."""
 
 @pytest.fixture(scope="module")
 def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Server]:
-    directory = tmp_path_factory.mktemp("cia309-slots")
-    card: Card = start(directory, 0, "[[node]]\nid = 1\n")
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "cifemu", "309", "serve", "--board", "0", "--dpm-dir",
-         str(directory), "--port", "0", "--read-only"],
-        stderr=subprocess.PIPE, text=True)
-    try:
-        assert proc.stderr is not None
-        stderr = proc.stderr
-        lines: queue.SimpleQueue[str] = queue.SimpleQueue()
-
-        def pump() -> None:
-            for line in stderr:
-                lines.put(line)
-
-        threading.Thread(target=pump, daemon=True).start()
-        match = re.search(r"listening on 127\.0\.0\.1:(\d+)", lines.get(timeout=20))
-        assert match is not None
-        running = Server(proc, int(match.group(1)))
-        wait_until(lambda: _ask(running.port, 1) == f"[1] {ANSWER_1000}\r\n", 15,
-                   "node 1 answering through the server")
+    with serving(tmp_path_factory.mktemp("cia309-slots")) as running:
         yield running
-        assert proc.poll() is None, "the server died"
-    finally:
-        proc.send_signal(signal.SIGTERM)
-        assert proc.wait(20) == 0
-        card.stop()
 
 
 def _ask(port: int, sequence: int, sock: socket.socket | None = None) -> str:
