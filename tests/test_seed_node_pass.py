@@ -14,8 +14,11 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
+import can
+
 from dbm_tools.network import parse_network
 from dbm_tools.parameters import NdFlag, NodeParameterSet, PdoData
+from dpm.message import Message
 from dpm.task2 import GlobalBits
 from host_api import driver as d
 from host_api.online import configure_online
@@ -26,7 +29,7 @@ from tests.shm_rig import NODE, Rig
 pytest_plugins = ["tests.can_net", "tests.shm_rig"]
 """The back-to-back fixtures (make_net on every bus) and the shm rig."""
 
-NMT_START, NMT_STOP = 0x01, 0x02
+NMT_START, NMT_STOP, NMT_RESET = 0x01, 0x02, 0x81
 
 
 def settle(seconds: float) -> None:
@@ -239,6 +242,38 @@ id = 2
     assert d.DevSetHostState(0, d.HOST_NOT_READY, 1000) == 0
     wait_until(lambda: net.diag().bErr_event == 39, 5, "Err_Event 39")
     wait_until(lambda: nexc(net), 5, "NEXC with the nodes stopped")
+
+
+def test_a_start_the_host_sends_while_the_node_boots_is_not_forgotten(rig: Rig) -> None:
+    """Seed 4.3 NEXC and 5.2.9: a node with START skipped waits for the host's Start_Node.
+    When that comes while the card still configures the node (after its reset), the node is
+    running when its boot-up ends: Nd_state set, NEXC clear. The test's station plays node 3
+    and holds its answer to the 1000h read until the host's start has gone out (seen under
+    load: the start came mid-boot, and NEXC stayed set for good)."""
+    configure_online(rig.board, parse_network(
+        f'[[node]]\nid = {NODE}\nerror_control = "none"\n'
+        '[[node]]\nid = 3\nerror_control = "none"\ndevice_type = 0x191\n'
+        'boot = ["reset", "device"]\n'))
+
+    def frame(ident: int, data: bytes | None = None) -> can.Message:
+        deadline = time.monotonic() + 10
+        while time.monotonic() < deadline:
+            msg = rig.station.recv(0.5)
+            if (msg is not None and msg.arbitration_id == ident
+                    and (data is None or bytes(msg.data) == data)):
+                return msg
+        raise AssertionError(f"no frame {ident:03X} from the card")
+
+    frame(0x000, bytes([NMT_RESET, 3]))
+    rig.send(0x703, b"\x00", time.time())  # the boot-up message
+    request = frame(0x603)
+    assert request.data[:4] == bytes([0x40, 0x00, 0x10, 0x00])  # 1000h upload
+    assert rig.board.transact(Message(rx=3, tx=16, b=96, data=bytes([NMT_START, 3]))).f == 0
+    frame(0x000, bytes([NMT_START, 3]))
+    rig.send(0x583, bytes([0x43, 0x00, 0x10, 0x00, 0x91, 0x01, 0x00, 0x00]), time.time())
+    wait_until(lambda: rig.diag().operating() == [NODE, 3], 5, "both nodes in Nd_state")
+    wait_until(lambda: not rig.diag().global_bits & GlobalBits.NEXC, 5, "NEXC clear")
+    assert rig.diag().bErr_event == 0
 
 
 # --- 10: no reaction on the boot-up message of an unsupervised node -----------------------

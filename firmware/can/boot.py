@@ -93,6 +93,11 @@ class BootSequence:
     def detach(self, bus: CanBus) -> None:
         bus.unsubscribe(0x580 + self.address, self._on_sdo_response)
 
+    @property
+    def reset_at(self) -> float:
+        """Wall-clock time of the last NMT reset the card sent the node (0: none yet)."""
+        return self._reset_at
+
     def arm(self) -> None:
         """A boot-up begins: a boot-up message from now on may answer its reset."""
         self._bootup.clear()

@@ -111,6 +111,8 @@ class NodeHandler:
         in the state it is in, and Nd_state shows whether it operates (seed 4.2, 4.3)."""
         self._diag_seen = (self.diag.status, self.diag.actual_error)
         """Nodestatus_1 and Actual_Error as the host last read them (COM_Node_Diag)."""
+        self._host_started_at: float | None = None
+        """Wall-clock time of a host's Start_Node that came while the node booted."""
         self.host_sdo = False
         """A host SDO transfer runs: the node's RPDOs are suppressed (seed 5.2.8)."""
         self.connected = False
@@ -163,6 +165,7 @@ class NodeHandler:
         self.boot.arm()
         self.state = State.BOOTING
         self.operational_expected = True
+        self._host_started_at = None
         self.events.set_node_state(self.address, False)
         self.network.executor.submit(self._boot, self._generation, reset_sent)
 
@@ -210,7 +213,13 @@ class NodeHandler:
         now = time.monotonic()
         self.control.restart(now)
         self.control.started(now)
-        self.awaiting_start = bool(skip & ConfigNdState.START) or self.network.global_start
+        # A host's Start_Node that came during the boot-up, after its reset, reached the
+        # node: it is running already and waits for no other start. Without this, a host that
+        # started it a moment early saw it operate in Nd_state and NEXC set for good.
+        host_started = (self._host_started_at is not None
+                        and self._host_started_at >= self.boot.reset_at)
+        self.awaiting_start = ((bool(skip & ConfigNdState.START) or self.network.global_start)
+                               and not host_started)
         self.pdos.forget_sent()
         self.state = State.OPERATING
         self.connected = True
@@ -238,6 +247,8 @@ class NodeHandler:
         heartbeat or guarding answer.
         """
         if self.state is not State.OPERATING:
+            if self.state is State.BOOTING and by_host:
+                self._host_started_at = time.time()  # for the boot-up's end (``_operate``)
             return False
         if self.awaiting_start:
             if not by_host and self.params.bitConfigNdState & ConfigNdState.START:
