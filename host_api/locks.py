@@ -9,8 +9,7 @@ when another caller holds it longer than that.
 [ours] The transaction lock (``Transaction``) keeps request and answer
 together: a host process holds its flock from a DevPutMessage until that
 request is answered. Its file is the ledger of the requests whose answers are
-awaited, one line each (``pid owner nr b rx tx multi sent_ms``; owner: a random
-number per process and board), the same as libcif's (libcif/src/chanlock.c).
+awaited, one line each (``dpm.ledger``), the same as libcif's (libcif/src/chanlock.c).
 The kernel frees the flock of a host that dies; the next holder finds the dead
 host's requests in the ledger and discards their answers when they come. A host
 whose DevGetMessage timed out lets the lock go when no other call of it is
@@ -35,6 +34,7 @@ from enum import Enum
 from pathlib import Path
 from types import TracebackType
 
+from dpm.ledger import LedgerLine, decode_line
 from dpm.message import Ext, Message
 from host_api.holders import Holder, lock_holder
 
@@ -145,21 +145,16 @@ class Request:
     """In memory: a get timed out waiting for it (it keeps the lock no more)."""
 
     def line(self) -> str:
-        return (f"{self.pid} {self.owner} {self.nr} {self.b} {self.rx} {self.tx} {self.multi} "
-                f"{self.sent_ms}\n")
+        return LedgerLine(self.pid, self.owner, self.nr, self.b, self.rx, self.tx, self.multi,
+                          self.sent_ms).encode()
 
     @classmethod
     def parse(cls, line: str, now_ms: int) -> Request | None:
         """The request of one ledger line; None when malformed or past ``STALE_MS``."""
-        fields = line.split()
-        if len(fields) != 8 or not all(f.lstrip("-").isdigit() for f in fields):
+        entry = decode_line(line)
+        if entry is None or entry.sent_ms > now_ms or now_ms - entry.sent_ms > STALE_MS:
             return None
-        pid, owner, nr, b, rx, tx, multi, sent = (int(f) for f in fields)
-        if not all(0 <= v <= 255 for v in (nr, b, rx, tx)) or multi not in (0, 1, 2):
-            return None
-        if sent > now_ms or now_ms - sent > STALE_MS:
-            return None
-        return cls(pid, owner, nr, b, rx, tx, multi, sent, given_up=True)
+        return cls(*entry, given_up=True)
 
     def answered_by(self, msg: Message) -> bool:
         if self.multi == 2 and msg.e & Ext.SEQ_MASK not in (Ext.CONT, Ext.LAST):
