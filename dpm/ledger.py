@@ -26,7 +26,11 @@ class LedgerLine(NamedTuple):
     sent_ms: int
 
     def encode(self) -> str:
-        return " ".join(str(v) for v in self) + "\n"
+        return LINE % self
+
+
+LINE = "%d %d %d %d %d %d %d %d\n"
+"""One ledger line, formatted from its eight fields in ``LedgerLine``'s order."""
 
 
 def decode_line(line: str | bytes) -> LedgerLine | None:

@@ -34,7 +34,7 @@ from enum import Enum
 from pathlib import Path
 from types import TracebackType
 
-from dpm.ledger import LedgerLine, decode_line
+from dpm.ledger import LINE, decode_line
 from dpm.message import Ext, Message
 from host_api.holders import Holder, lock_holder
 
@@ -145,8 +145,8 @@ class Request:
     """In memory: a get timed out waiting for it (it keeps the lock no more)."""
 
     def line(self) -> str:
-        return LedgerLine(self.pid, self.owner, self.nr, self.b, self.rx, self.tx, self.multi,
-                          self.sent_ms).encode()
+        return LINE % (self.pid, self.owner, self.nr, self.b, self.rx, self.tx, self.multi,
+                       self.sent_ms)
 
     @classmethod
     def parse(cls, line: str, now_ms: int) -> Request | None:
@@ -196,6 +196,10 @@ class Transaction:
         self._users = 0
         self._own: list[Request] = []
         self._stale: list[Request] = []
+        self._length = 0
+        """The file's length as this process last read or wrote it (while it holds the flock:
+        then nobody else writes it). Lets a request be appended and the last answer truncate,
+        one system call each, on the path of every mailbox round trip."""
         self.holder: Holder | None = None
         """Who held the lock when ``acquire`` last failed (None: unknown or free)."""
 
@@ -239,6 +243,7 @@ class Transaction:
         request = Request(os.getpid(), self._owner, msg.nr, msg.b, msg.rx, msg.tx,
                           int(msg.e & Ext.SEQ_MASK == Ext.FIRST), _now_ms())
         with self._state:
+            kept = len(self._own) + len(self._stale)
             if msg.e & Ext.SEQ_MASK in (Ext.CONT, Ext.LAST):
                 # It continues a sequence (the load function's transfers): the first request
                 # of that command, answered with a part marked FIRST, was no long upload.
@@ -247,7 +252,12 @@ class Transaction:
             if len(self._own) + len(self._stale) >= LEDGER_MAX:
                 (self._stale or self._own).pop(0)
             self._own.append(request)
-            self._store()
+            if len(self._own) + len(self._stale) == kept + 1:  # nothing else changed
+                line = request.line().encode("ascii")
+                os.pwrite(self._fd, line, self._length)
+                self._length += len(line)
+            else:
+                self._store()
 
     def is_stale(self, msg: Message) -> bool:
         """Whether the answer waiting in the mailbox is one to discard."""
@@ -314,6 +324,7 @@ class Transaction:
         sender died, or gave up waiting and let the lock go), this process's own ones are
         given up. Malformed and expired lines are dropped."""
         raw = os.pread(self._fd, LEDGER_MAX * 96, 0)  # 96: libcif's longest line
+        self._length = len(raw)
         lines = raw.decode("ascii", "replace").splitlines()
         now = _now_ms()
         kept = [r for r in (Request.parse(line, now) for line in lines) if r is not None]
@@ -327,7 +338,9 @@ class Transaction:
         text = "".join(r.line() for r in (*self._stale, *self._own)).encode("ascii")
         if text:
             os.pwrite(self._fd, text, 0)
-        os.ftruncate(self._fd, len(text))
+        if len(text) < self._length:
+            os.ftruncate(self._fd, len(text))
+        self._length = len(text)
 
     def reopen_after_fork(self) -> None:
         """In a forked child: its own flock and owner number, an empty ledger in memory
