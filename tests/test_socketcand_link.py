@@ -19,13 +19,17 @@ from __future__ import annotations
 import queue
 import socket
 import threading
+import time
 from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
 
-from dpm.task2 import GlobalBits
+from dbm_tools.network import load_network
+from dpm.task2 import ComDiagnostics, GlobalBits
+from firmware.can.bus import LINK_CHECK_S
 from host_api.board import Board
+from host_api.online import configure_online
 from tests.conftest import TIME_SCALE, start_card, wait_until
 
 CHANNEL = "can0"
@@ -77,6 +81,12 @@ class SocketcandStandIn:
             self.opened.get().close()
 
 
+def _bus_off_shown(diag: ComDiagnostics, before: ComDiagnostics) -> bool:
+    """One more bus-off, and EVE (the card writes the counter, then the bit)."""
+    return (diag.usBus_Off_Cnt == before.usBus_Off_Cnt + 1
+            and bool(diag.bGlobalBits & GlobalBits.EVE))
+
+
 @pytest.fixture
 def server() -> Iterator[SocketcandStandIn]:
     made = SocketcandStandIn()
@@ -96,12 +106,31 @@ def test_a_link_closed_while_the_card_sends_nothing_is_a_bus_off_and_reconnects(
             before = board.diagnostics()
             assert not before.bGlobalBits & GlobalBits.EVE
             first.close()  # the daemon gone: its end of the connection closes
-            wait_until(lambda: board.diagnostics().usBus_Off_Cnt == before.usBus_Off_Cnt + 1,
-                       NOTICED_S, "the lost link counted as a bus-off")
-            assert board.diagnostics().bGlobalBits & GlobalBits.EVE
+            wait_until(lambda: _bus_off_shown(board.diagnostics(), before), NOTICED_S,
+                       "the lost link counted as a bus-off, EVE set")
             assert board.diagnostics().usBus_Error_Cnt == before.usBus_Error_Cnt
             # The card opens the interface again every second: the next greeting is its.
             server.next_connection()
             assert board.diagnostics().usBus_Off_Cnt == before.usBus_Off_Cnt + 1
+    finally:
+        card.stop()
+
+
+def test_a_new_baud_rate_opens_the_link_again_without_a_bus_off(
+        server: SocketcandStandIn, tmp_path: Path) -> None:
+    """The bus parameters' Baud_rate closes the connection and opens a new one (python-can's
+    socketcand client has no set_bitrate): a closing of the card's own, not a lost link."""
+    card = start_card(tmp_path, 0, "--interface", "socketcand", "--channel", CHANNEL,
+                      "--bus-option", "host=127.0.0.1", "--bus-option", f"port={server.port}")
+    try:
+        server.next_connection()
+        network = tmp_path / "network.toml"
+        network.write_text("[bus]\nbitrate = 250000\n")
+        with Board(0, tmp_path, timeout=5000) as board:
+            before = board.diagnostics()
+            configure_online(board, load_network(network))
+            server.next_connection()  # the controller at its new Baud_rate
+            time.sleep(10 * LINK_CHECK_S)  # [ours] a window for a false bus-off to show
+            assert board.diagnostics().usBus_Off_Cnt == before.usBus_Off_Cnt
     finally:
         card.stop()

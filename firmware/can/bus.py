@@ -473,6 +473,7 @@ class CanBus(can.Listener):
             setter(bitrate)
         else:
             self._notifier.stop()
+            self._link = None  # closed on purpose: no lost link for check_link
             self.bus.shutdown()
             kwargs = {**self._open_kwargs, "bitrate": bitrate}
             self.bus = self._open(kwargs)
