@@ -18,12 +18,14 @@ the machine never had).
 from __future__ import annotations
 
 import contextlib
+import itertools
 import os
 import signal
 import socket
 import subprocess
 import sys
 import threading
+import time
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -185,13 +187,27 @@ def test_a_socketcand_link_lost_while_idle_is_a_bus_off_and_comes_back(
             os.kill(served[0], signal.SIGKILL)
             wait_until(lambda: board.diagnostics().usBus_Off_Cnt == before.usBus_Off_Cnt + 1,
                        NOTICED_S, "the lost link counted as a bus-off")
-            wait_until(lambda: board.exchange_io(b"\xa5", receive_size=1) == b"\xa5", 10,
+            # A PDO the card sent while the link was down is lost (Msg_Time_Out), and the
+            # card sends one only when the outputs change: a new value each try.
+            values = itertools.cycle(bytes([v]) for v in range(0x60, 0x80))
+            wait_until(lambda: _echoed(board, next(values)), 10,
                        "node 1 to echo its outputs through the new connection")
             after = board.diagnostics()
             assert after.usBus_Off_Cnt == before.usBus_Off_Cnt + 1
             assert after.operating() == [1]
     finally:
         card.stop()
+
+
+def _echoed(board: Board, value: bytes) -> bool:
+    """Write ``value`` to node 1's outputs; True when its echo is in the inputs within
+    0.2 s."""
+    board.exchange_io(value, receive_size=1)
+    deadline = time.monotonic() + 0.2
+    while time.monotonic() < deadline:
+        if board.exchange_io(value, receive_size=1) == value:
+            return True
+    return False
 
 
 def _listening(port: int) -> bool:
