@@ -27,6 +27,7 @@ import pytest
 
 from dbm_tools.network import load_network
 from dpm.task2 import ComDiagnostics, GlobalBits
+from firmware.can.bus import CanBus
 from host_api.board import Board
 from host_api.online import configure_online
 from tests.conftest import TIME_SCALE, start_card, wait_until
@@ -138,3 +139,26 @@ def test_a_new_baud_rate_opens_the_link_again_without_a_bus_off(
             assert board.diagnostics().usBus_Off_Cnt == before.usBus_Off_Cnt
     finally:
         card.stop()
+
+
+def test_no_remote_frame_goes_to_socketcand(server: SocketcandStandIn) -> None:
+    """socketcand's protocol has no remote frames: python-can's client would write the
+    guarding request as ``< send 701 1  >``, which the daemon drops as a syntax error. The
+    controller sends none and counts it as not sent (Msg_Time_Out); a data frame after it
+    is the only line the daemon gets. In process: what is checked is which lines reach the
+    daemon, and the controller's own answer."""
+    bus = CanBus("socketcand", CHANNEL, options={"host": "127.0.0.1", "port": server.port})
+    timeouts: list[None] = []
+    bus.on_send_timeout = lambda: timeouts.append(None)
+    try:
+        connection = server.next_connection()
+        assert not bus.send(0x701, remote=True, dlc=1)
+        assert timeouts == [None]
+        assert bus.send(0x123, b"\x01")
+        connection.settimeout(10 * TIME_SCALE)
+        received = b""
+        while not received.endswith(b">"):
+            received += connection.recv(256)
+        assert received == b"< send 123 1 1 >"
+    finally:
+        bus.shutdown()

@@ -62,6 +62,13 @@ LINK_CHECK_S = 0.1
 """[ours] How often the card looks at such a connection while nothing fails: a link lost
 while the card sends nothing is a bus-off within this."""
 
+NO_REMOTE_FRAME_INTERFACES = ("socketcand",)
+"""Interfaces that cannot send a remote frame: socketcand's ``< send >`` has no RTR flag, and
+python-can's client writes a remote frame as data it does not have (the daemon drops that
+line as a syntax error, or, for a length of 0, puts a data frame on the bus). The card sends
+none there and counts each in Msg_Time_Out [ours]: guarding and RTR-requested PDOs fail
+visibly, not silently."""
+
 PERIODIC_OUTSIDE_INTERFACES = ("socketcan", "shm")
 """Interfaces whose ``send_periodic`` keeps time outside this interpreter: SocketCAN's
 broadcast manager in the kernel, ``shm``'s timer process. Elsewhere it is a thread."""
@@ -239,6 +246,8 @@ class CanBus(can.Listener):
         self._lost = threading.Event()
         """The transport failed; a thread is opening it again (``on_error``)."""
         self._closed = threading.Event()
+        self._refused_remote = False
+        """Whether the one log line about a remote frame not sent is written."""
         listeners: list[can.Listener] = [self]
         self._notifier = can.Notifier(self.bus, listeners, timeout=0.1)
 
@@ -372,6 +381,14 @@ class CanBus(can.Listener):
     def send(self, can_id: int, data: bytes = b"", remote: bool = False,
              extended: bool | None = None, dlc: int | None = None) -> bool:
         """Send one frame; False (and Msg_Time_Out counted) when it could not go out."""
+        if remote and self.interface in NO_REMOTE_FRAME_INTERFACES:
+            if not self._refused_remote:
+                self._refused_remote = True
+                log.warning("%s cannot send remote frames: 0x%X and every later one not "
+                            "sent (Msg_Time_Out); supervise nodes by heartbeat",
+                            self.interface, can_id)
+            self.on_send_timeout()
+            return False
         msg = can.Message(
             timestamp=time.time(),
             is_rx=False,
