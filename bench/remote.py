@@ -587,9 +587,13 @@ def _lost_and_back(rig: Rig, kill: str) -> dict[str, Any]:
         written[0] = written[0] % 255 + 1
         value = bytes([written[0]]) * 8
         DevExchangeIO(board, out_offset, value, 0, 0, TIMEOUT_MS)
-        echoed = _until(lambda: DevExchangeIO(board, 0, b"", in_offset, 8, TIMEOUT_MS)[1]
-                        == value and watch.sample().operating() == [1], ECHO_WAIT_S)
-        return echoed is not None
+
+        def echoed() -> bool:
+            operating = watch.sample().operating() == [1]  # every time: errors between show
+            return operating and DevExchangeIO(board, 0, b"", in_offset, 8,
+                                               TIMEOUT_MS)[1] == value
+
+        return _until(echoed, ECHO_WAIT_S) is not None
 
     recovered = _until(back, RECOVER_TIMEOUT_S)
     after = diagnostics(board)
