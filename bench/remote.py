@@ -1,21 +1,37 @@
-"""``python -m bench remote``: the card on a bridged bus (python-can-remote) beside shm.
+"""``python -m bench remote``: the card across CAN bridges beside shm and vcan, in one run.
 
-Each bridge gets a rig of its own: ``cifemu sim`` with one generic node on a fresh
-``shm`` channel, and the card either on that channel (``shm``, the reference) or
-across python-can-remote's websocket server on 127.0.0.1 serving it (``remote``).
+Each bridge gets a rig of its own: ``cifemu sim`` with one generic node on the nodes'
+side, the card on the other side of the bridge:
+
+- ``shm`` (reference): card and node on one fresh ``shm`` channel, no bridge;
+- ``remote``: python-can-remote's websocket server on 127.0.0.1 serving that channel,
+  the card its client;
+- ``vcan`` (reference): card and node on vcan0, no bridge;
+- ``socketcand``: the daemon serving vcan0 on 127.0.0.1, the node on vcan0, the card
+  python-can's ``socketcand`` client (host and port as bus options);
+- ``cannelloni``: two instances tunnelling vcan0 <-> vcan1 over UDP on 127.0.0.1, the
+  card on vcan0, the node on vcan1.
+
 Per rig, in one run so the figures share the machine's load (reported beside them):
 
 - ``pdo_loop``: DevExchangeIO output -> RPDO -> node -> TPDO -> input, timed by
   ``bench.common.measure`` (uncontrolled handshake, as ``bench.can``'s phase 1);
 - ``sdo``: SDO uploads of 1000h through the mailbox, for ``SDO_SECONDS``;
 - ``frames``: the transport alone, no card: a burst of ``BURST`` numbered frames
-  from a client of the bridge to an ``shm`` reader; lost, reordered, frames/s;
-- ``nodes_lost``: the nodes' process killed and started again: what the host reads in
-  Task2State, how long the card takes to notice (Nd_state empty) and to recover;
-- ``link_lost`` (remote only): the server killed and started again on its port.
+  from a client on the card's side to a reader on the nodes' side; lost, reordered,
+  frames/s (a bridge that drops frames says how many);
+- ``nodes_lost``: the nodes' process killed, started again once the card noticed;
+- ``link_lost`` (bridges only): the bridge killed (remote: its server; socketcand: the
+  child that serves the card's connection, the daemon listens on; cannelloni: the card's
+  end of the tunnel), started again once the card noticed.
+  Both report what the host read in Task2State meanwhile (Err_Event, Bus_Off_Cnt,
+  Msg_Time_Out), how long the card took to notice (a bus-off, or the node out of data
+  exchange) and to recover (the node in data exchange and a PDO loop answering).
 
-Needs python-can-remote (``pip install -e '.[remote]'``); without it, the remote rig
-reports why it did not run.
+The SocketCAN rigs need vcan0 (and vcan1 for cannelloni): run inside ``tools/vcan-vm
+--vcan 2``. socketcand and cannelloni are found as the vcan tests find them
+(``tools/build-bridges``); python-can-remote comes with ``pip install -e '.[remote]'``.
+A rig that cannot run says why instead of its figures.
 """
 
 from __future__ import annotations
@@ -26,7 +42,9 @@ import itertools
 import os
 import queue
 import re
+import shutil
 import signal
+import socket
 import struct
 import subprocess
 import sys
@@ -34,9 +52,9 @@ import tempfile
 import threading
 import time
 import uuid
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -66,6 +84,7 @@ from bench.common import (
     timed,
     wait_ready,
 )
+from bench.vcan import HOST_LOADAVG
 from dbm_tools.network import parse_network
 from dpm.commands import COM_SDO_UP_DOWNLOAD
 from dpm.message import Message, Task
@@ -77,68 +96,291 @@ from host_api.driver import DevExchangeIO, DevGetTaskState
 NAME = "remote"
 DEFAULTS = (200, 20)
 """``--count`` and ``--warmup`` of the PDO loop."""
-BRIDGES = ("shm", "remote")
+BRIDGES = ("shm", "remote", "vcan", "socketcand", "cannelloni")
+NEAR, FAR = "vcan0", "vcan1"
+"""The card's SocketCAN channel, and the far end of cannelloni's tunnel."""
+BRIDGES_DIR = Path(os.environ.get("CIFEMU_BRIDGES",
+                                  Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache"))
+                                  / "cifemu" / "bridges")) / "bin"
+"""Where ``tools/build-bridges`` puts socketcand and cannelloni (``CIFEMU_BRIDGES``)."""
+BUILD_HINT = ("tools/build-bridges --socketcand DIR --cannelloni DIR (docs/remote-bus.md)")
 SDO_SECONDS = 3.0
 BURST = 2000
 """Frames in the transport burst: more than a websocket's and a socket's buffers hold."""
 QUIET_S = 2.0
 """The burst is over when the reader saw none of its frames for this long."""
 ECHO_TIMEOUT_S = 1.0
+NOTICE_TIMEOUT_S = 15.0
 RECOVER_TIMEOUT_S = 30.0
+ECHO_WAIT_S = 0.3
+"""How long one recovery probe waits for the node to echo its value."""
 LISTENING = re.compile(rb"Connect using channel '(ws://[^']+)'")
 SERVER_START_S = 20.0
 BURST_ID = 0x7E0
 """Identifier of the burst frames: no CANopen service of the node or the card uses it."""
+CANNELLONI_TIMEOUT_US = 1000
+"""cannelloni's buffering before a UDP packet leaves (its default, 100 ms, is every
+frame's delay)."""
+
+
+def bridge_program(name: str) -> str | None:
+    """socketcand or cannelloni: where ``tools/build-bridges`` put it, else on PATH."""
+    found = BRIDGES_DIR / name
+    return str(found) if found.is_file() else shutil.which(name)
+
+
+def socketcan_missing(*channels: str) -> str | None:
+    """Why the SocketCAN rigs cannot run here, or None."""
+    if not hasattr(socket, "AF_CAN"):
+        return "no AF_CAN in this Python (Linux only)"
+    for channel in channels:
+        try:
+            with socket.socket(socket.AF_CAN, socket.SOCK_RAW, socket.CAN_RAW) as probe:
+                probe.bind((channel,))
+        except OSError as exc:
+            return (f"no SocketCAN channel {channel} ({exc.strerror}): run inside "
+                    "tools/vcan-vm --vcan 2")
+    return None
+
+
+def free_port(kind: int = socket.SOCK_STREAM) -> int:
+    """A port free now on 127.0.0.1, for the daemons, which take no port 0."""
+    with socket.socket(socket.AF_INET, kind) as probe:
+        probe.bind(("127.0.0.1", 0))
+        return int(probe.getsockname()[1])
+
+
+def children_of(pid: int) -> list[int]:
+    """The processes whose parent is ``pid`` (socketcand forks one per client)."""
+    found = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except (OSError, IndexError):
+            continue  # ended meanwhile
+        if int(fields[1]) == pid:
+            found.append(int(stat.parent.name))
+    return found
+
+
+def _spawn(command: list[str], session: bool = False) -> subprocess.Popen[bytes]:
+    return subprocess.Popen(command, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
+                            stderr=subprocess.DEVNULL, start_new_session=session)
+
+
+# --- the bridges' own processes ------------------------------------------------------------
+
+
+class Link:
+    """A bridge's processes: what ``link_lost`` kills and starts again."""
+
+    def kill(self) -> None:
+        raise NotImplementedError
+
+    def restart(self) -> None:
+        """Start what ``kill`` ended; back when it serves again."""
+        raise NotImplementedError
+
+    def stop(self) -> None:
+        raise NotImplementedError
 
 
 @dataclass
-class Server:
+class RemoteServer(Link):
     """python-can-remote's server serving one shm channel on 127.0.0.1."""
 
-    proc: subprocess.Popen[bytes]
-    url: str
-    port: int
+    channel: str
+    proc: subprocess.Popen[bytes] | None = None
+    url: str = ""
+    port: int = 0
+
+    def start(self) -> None:
+        """``python -m can_remote`` on ``port`` (0: the kernel picks; the URL is read from
+        its log, so no port is guessed)."""
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "can_remote", "-i", "shm", "-c", self.channel, "-H",
+             "127.0.0.1", "-p", str(self.port)], stdin=subprocess.DEVNULL,
+            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+        lines: queue.Queue[bytes] = queue.Queue()
+
+        def pump() -> None:
+            assert proc.stderr is not None
+            for line in proc.stderr:
+                lines.put(line)
+
+        threading.Thread(target=pump, daemon=True).start()
+        deadline = time.monotonic() + SERVER_START_S
+        while time.monotonic() < deadline and proc.poll() is None:
+            with contextlib.suppress(queue.Empty):
+                found = LISTENING.search(lines.get(timeout=0.1))
+                if found:
+                    self.proc = proc
+                    self.url = found.group(1).decode().replace("localhost", "127.0.0.1")
+                    self.port = int(self.url.rstrip("/").rsplit(":", 1)[1])
+                    return
+        stop_process(proc)
+        raise RuntimeError("python -m can_remote did not say where it listens")
+
+    def kill(self) -> None:
+        assert self.proc is not None
+        self.proc.send_signal(signal.SIGKILL)
+        self.proc.wait()
+
+    def restart(self) -> None:
+        self.start()  # on the same port, which the card dials again
+
+    def stop(self) -> None:
+        """SIGINT, the server's only clean end (KeyboardInterrupt): after SIGTERM its side
+        of the shm channel would stay in /dev/shm. SIGTERM and SIGKILL follow if it does
+        not end."""
+        if self.proc is None:
+            return
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGINT)
+            with contextlib.suppress(subprocess.TimeoutExpired):
+                self.proc.wait(STOP_TIMEOUT)
+        stop_process(self.proc)
 
 
-def start_server(channel: str, port: int = 0) -> Server:
-    """``python -m can_remote`` on ``port`` (0: the kernel picks; the URL is read from its
-    log, so no port is guessed)."""
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "can_remote", "-i", "shm", "-c", channel, "-H", "127.0.0.1",
-         "-p", str(port)], stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
-        stderr=subprocess.PIPE)
-    lines: queue.Queue[bytes] = queue.Queue()
+@dataclass
+class Socketcand(Link):
+    """The daemon serving vcan0 on 127.0.0.1 (no discovery beacon)."""
 
-    def pump() -> None:
-        assert proc.stderr is not None
-        for line in proc.stderr:
-            lines.put(line)
+    program: str
+    port: int = field(default_factory=free_port)
+    proc: subprocess.Popen[bytes] | None = None
 
-    threading.Thread(target=pump, daemon=True).start()
-    deadline = time.monotonic() + SERVER_START_S
-    while time.monotonic() < deadline and proc.poll() is None:
-        with contextlib.suppress(queue.Empty):
-            found = LISTENING.search(lines.get(timeout=0.1))
-            if found:
-                url = found.group(1).decode().replace("localhost", "127.0.0.1")
-                return Server(proc, url, int(url.rstrip("/").rsplit(":", 1)[1]))
-    stop_process(proc)
-    raise RuntimeError("python -m can_remote did not say where it listens")
+    def start(self) -> None:
+        self.proc = _spawn([self.program, "-i", NEAR, "-l", "lo", "-p", str(self.port), "-n"],
+                           session=True)
+        deadline = time.monotonic() + SERVER_START_S
+        while time.monotonic() < deadline and self.proc.poll() is None:
+            with socket.socket() as probe:
+                if probe.connect_ex(("127.0.0.1", self.port)) == 0:
+                    return
+            time.sleep(0.05)
+        raise RuntimeError(f"socketcand did not listen on {self.port}")
+
+    def kill(self) -> None:
+        """The children that serve connections: the card's ends, the daemon listens on. A
+        whole daemon restarted could not listen again on its port for a minute: it sets no
+        SO_REUSEADDR, and the killed connection's end stays in TIME_WAIT."""
+        assert self.proc is not None
+        for child in children_of(self.proc.pid):
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(child, signal.SIGKILL)
+
+    def restart(self) -> None:
+        """Nothing: the daemon still listens, the card connects again by itself."""
+
+    def stop(self) -> None:
+        if self.proc is not None:
+            with contextlib.suppress(ProcessLookupError):
+                os.killpg(self.proc.pid, signal.SIGTERM)
+            stop_process(self.proc)
 
 
-def stop_server(server: Server) -> None:
-    """SIGINT, the server's only clean end (KeyboardInterrupt): after SIGTERM its side of the
-    shm channel would stay in /dev/shm. SIGTERM and SIGKILL follow if it does not end."""
-    if server.proc.poll() is None:
-        server.proc.send_signal(signal.SIGINT)
-        with contextlib.suppress(subprocess.TimeoutExpired):
-            server.proc.wait(STOP_TIMEOUT)
-    stop_process(server.proc)
+@dataclass
+class Cannelloni(Link):
+    """Two instances tunnelling vcan0 <-> vcan1 over UDP on 127.0.0.1."""
+
+    program: str
+    near_port: int = field(default_factory=lambda: free_port(socket.SOCK_DGRAM))
+    far_port: int = field(default_factory=lambda: free_port(socket.SOCK_DGRAM))
+    near: subprocess.Popen[bytes] | None = None
+    far: subprocess.Popen[bytes] | None = None
+
+    def _end(self, vcan: str, local: int, remote: int) -> subprocess.Popen[bytes]:
+        return _spawn([self.program, "-I", vcan, "-R", "127.0.0.1", "-r", str(remote),
+                       "-L", "127.0.0.1", "-l", str(local), "-t", str(CANNELLONI_TIMEOUT_US)])
+
+    def start(self) -> None:
+        self.far = self._end(FAR, self.far_port, self.near_port)
+        self.restart()
+
+    def kill(self) -> None:
+        """The card's end of the tunnel."""
+        assert self.near is not None
+        self.near.send_signal(signal.SIGKILL)
+        self.near.wait()
+
+    def restart(self) -> None:
+        self.near = self._end(NEAR, self.near_port, self.far_port)
+
+    def stop(self) -> None:
+        for end in (self.near, self.far):
+            if end is not None:
+                stop_process(end)
 
 
-def start_sim(toml: Path, channel: str) -> subprocess.Popen[bytes]:
-    sim = subprocess.Popen([sys.executable, "-m", "cifemu", "sim", str(toml), "--interface",
-                            "shm", "--channel", channel, "--log-level", "WARNING"],
+# --- the rigs ---------------------------------------------------------------------------
+
+
+@dataclass
+class Side:
+    """A python-can bus: the nodes' or the card's side of a bridge."""
+
+    interface: str
+    channel: str
+    options: dict[str, Any] = field(default_factory=dict)
+
+    def open(self) -> can.BusABC:
+        return can.Bus(interface=self.interface, channel=self.channel, **self.options)
+
+    def flags(self) -> list[str]:
+        """``cifemu firmware``/``sim`` flags that open this bus."""
+        return ["--interface", self.interface, "--channel", self.channel, *itertools.chain(
+            *(["--bus-option", f"{key}={value}"] for key, value in self.options.items()))]
+
+
+@dataclass
+class Rig:
+    bridge: str
+    card: SimCard
+    toml: Path
+    nodes: Side
+    card_side: Side
+    link: Link | None
+
+
+def unavailable(bridge: str) -> str | None:
+    """Why ``bridge``'s rig cannot run here, or None."""
+    if bridge == "remote" and importlib.util.find_spec("can_remote") is None:
+        return "python-can-remote is not installed: pip install -e '.[remote]'"
+    if bridge in ("vcan", "socketcand"):
+        return socketcan_missing(NEAR)
+    if bridge == "cannelloni":
+        return socketcan_missing(NEAR, FAR)
+    return None
+
+
+def _bridge_sides(bridge: str, channel: str) -> tuple[Side, Side, Link | None]:
+    """The nodes' side, the card's side and the started bridge between them."""
+    if bridge == "shm":
+        return Side("shm", channel), Side("shm", channel), None
+    if bridge == "vcan":
+        return Side("socketcan", NEAR), Side("socketcan", NEAR), None
+    if bridge == "remote":
+        server = RemoteServer(channel)
+        server.start()
+        return Side("shm", channel), Side("remote", server.url), server
+    program = bridge_program(bridge)
+    if program is None:
+        raise FileNotFoundError(f"{bridge} not found in {BRIDGES_DIR} or on PATH: build it "
+                                f"with {BUILD_HINT}")
+    if bridge == "socketcand":
+        daemon = Socketcand(program)
+        daemon.start()
+        return (Side("socketcan", NEAR),
+                Side("socketcand", NEAR, {"host": "127.0.0.1", "port": daemon.port}), daemon)
+    tunnel = Cannelloni(program)
+    tunnel.start()
+    return Side("socketcan", FAR), Side("socketcan", NEAR), tunnel
+
+
+def start_sim(toml: Path, side: Side) -> subprocess.Popen[bytes]:
+    sim = subprocess.Popen([sys.executable, "-m", "cifemu", "sim", str(toml), *side.flags(),
+                            "--log-level", "WARNING"],
                            stdin=subprocess.DEVNULL, stdout=subprocess.PIPE)
     assert sim.stdout is not None
     if not sim.stdout.readline().startswith(b"simulating"):
@@ -148,52 +390,36 @@ def start_sim(toml: Path, channel: str) -> subprocess.Popen[bytes]:
     return sim
 
 
-@dataclass
-class Rig:
-    bridge: str
-    card: SimCard
-    channel: str
-    toml: Path
-    server: Server | None
-
-    @property
-    def card_channel(self) -> tuple[str, str]:
-        """The interface and channel a client of this bridge opens."""
-        return ("remote", self.server.url) if self.server else ("shm", self.channel)
-
-
 @contextmanager
 def rig(bridge: str) -> Iterator[Rig]:
-    """The node in ``cifemu sim`` on a fresh shm channel, the card on ``bridge`` to it."""
+    """The node in ``cifemu sim`` on its side, the card on the other side of ``bridge``."""
     with tempfile.TemporaryDirectory(prefix="cifemu-bench-remote-", dir=scratch_root()) as tmp:
         directory = Path(tmp)
         toml = directory / "network.toml"
         toml.write_text(network_toml([1]))
         channel = f"bench-remote-{uuid.uuid4().hex[:12]}"
-        server = start_server(channel) if bridge == "remote" else None
-        made: Rig | None = None
+        link: Link | None = None
+        card: SimCard | None = None
         try:
-            sim = start_sim(toml, channel)
-            interface, card_channel = ("remote", server.url) if server else ("shm", channel)
+            nodes, card_side, link = _bridge_sides(bridge, channel)
+            sim = start_sim(toml, nodes)
             stderr_path = directory / "firmware.stderr"
             with stderr_path.open("wb") as stderr:
                 proc = subprocess.Popen(
                     [sys.executable, "-m", "cifemu", "firmware", "--board", str(BOARD),
-                     "--dpm-dir", tmp, "--log-level", "WARNING", "--interface", interface,
-                     "--channel", card_channel, "--flash", str(directory / "flash")],
+                     "--dpm-dir", tmp, "--log-level", "WARNING", *card_side.flags(),
+                     "--flash", str(directory / "flash")],
                     stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=stderr)
             card = SimCard(directory, proc, None, stderr_path, sim=sim)
-            made = Rig(bridge, card, channel, toml, server)
             wait_ready(proc, directory / f"board{BOARD}.dpm", STARTUP_TIMEOUT)
             card.board = Board(BOARD, directory, timeout=5000).open()
-            yield made
+            yield Rig(bridge, card, toml, nodes, card_side, link)
         finally:
-            if made is not None:
-                made.card.stop()
-                server = made.server
-            if server is not None:
-                stop_server(server)
-            # Hygiene: the server's threads may end before its side of the channel closes.
+            if card is not None:
+                card.stop()
+            if link is not None:
+                link.stop()
+            # Hygiene: python-can-remote's threads may end before its side of the channel.
             channel_path(channel).unlink(missing_ok=True)
 
 
@@ -202,6 +428,9 @@ def diagnostics(board: int) -> ComDiagnostics:
     if rc != 0:
         raise RuntimeError(f"DevGetTaskState returned {rc}")
     return ComDiagnostics.decode(raw)
+
+
+# --- the measurements --------------------------------------------------------------------
 
 
 def pdo_loop(rig: Rig, count: int, warmup: int) -> dict[str, Any]:
@@ -249,10 +478,9 @@ def sdo(rig: Rig) -> dict[str, Any]:
 def frames(rig: Rig) -> dict[str, Any]:
     """A burst through the transport alone; every frame numbered, so loss and reordering
     show. Reported, never hidden: a bridge that drops frames says how many."""
-    interface, channel = rig.card_channel
     progress(f"{rig.bridge}: a burst of {BURST} frames through the transport")
-    reader = can.Bus(interface="shm", channel=rig.channel)
-    sender = can.Bus(interface=interface, channel=channel)
+    reader = rig.nodes.open()
+    sender = rig.card_side.open()
     seen: list[int] = []
     last = [0.0]
 
@@ -283,45 +511,37 @@ def frames(rig: Rig) -> dict[str, Any]:
             "frames_per_s": round(len(seen) / elapsed, 1) if elapsed > 0 else None}
 
 
-def _lost_and_back(rig: Rig, kill: str) -> dict[str, Any]:
-    """Kill the nodes' process (``sim``) or the bridge's server (``server``), read what
-    the host sees, start it again and time the recovery."""
-    board = board_of(rig.card).number
-    before = diagnostics(board)
-    start = time.perf_counter()
-    port = 0
-    if kill == "sim":
-        assert rig.card.sim is not None
-        rig.card.sim.send_signal(signal.SIGKILL)
-        rig.card.sim.wait()
-    else:
-        assert rig.server is not None
-        port = rig.server.port
-        rig.server.proc.send_signal(signal.SIGKILL)
-        rig.server.proc.wait()
-    noticed = _until(lambda: not diagnostics(board).operating(), RECOVER_TIMEOUT_S)
-    lost = diagnostics(board)
-    if kill == "sim":
-        rig.card.sim = start_sim(rig.toml, rig.channel)
-    else:
-        rig.server = start_server(rig.channel, port)
-    back_start = time.perf_counter()
-    back = _until(lambda: diagnostics(board).operating() == [1], RECOVER_TIMEOUT_S)
-    after = diagnostics(board)
-    return {
-        "noticed_s": None if noticed is None else round(noticed - start, 3),
-        "err_event": lost.bErr_event, "err_node": lost.bErr_rem_adr,
-        "can_state": lost.bCAN_State,
-        "bus_off_cnt": lost.usBus_Off_Cnt - before.usBus_Off_Cnt,
-        "bus_error_cnt": lost.usBus_Error_Cnt - before.usBus_Error_Cnt,
-        "msg_time_out": lost.usMsg_Time_Out - before.usMsg_Time_Out,
-        "recovered_s": None if back is None else round(back - back_start, 3),
-        "err_event_after": after.bErr_event,
-        "recover_timeout_s": RECOVER_TIMEOUT_S,
-    }
+@dataclass
+class Watch:
+    """What the host reads in Task2State from a kill on: the first bus-off, the node's
+    leaving data exchange, the first error the card reports."""
+
+    board: int
+    before: ComDiagnostics
+    start: float = field(default_factory=time.perf_counter)
+    bus_off_s: float | None = None
+    nodes_out_s: float | None = None
+    err: tuple[int, int] | None = None
+    """(Err_Event, node) of the first error shown."""
+
+    def sample(self) -> ComDiagnostics:
+        diag = diagnostics(self.board)
+        now = round(time.perf_counter() - self.start, 3)
+        if self.bus_off_s is None and diag.usBus_Off_Cnt != self.before.usBus_Off_Cnt:
+            self.bus_off_s = now
+        if self.nodes_out_s is None and diag.operating() != [1]:
+            self.nodes_out_s = now
+        if self.err is None and diag.bErr_event:
+            self.err = (diag.bErr_event, diag.bErr_rem_adr)
+        return diag
+
+    def noticed(self) -> bool:
+        """Sample; True once the card showed the loss (a bus-off, or the node out)."""
+        self.sample()
+        return self.bus_off_s is not None or self.nodes_out_s is not None
 
 
-def _until(condition: Any, timeout: float) -> float | None:
+def _until(condition: Callable[[], bool], timeout: float) -> float | None:
     deadline = time.perf_counter() + timeout
     while time.perf_counter() < deadline:
         if condition():
@@ -330,21 +550,89 @@ def _until(condition: Any, timeout: float) -> float | None:
     return None
 
 
+def _settled(diag: ComDiagnostics) -> bool:
+    """The node in data exchange and no error shown."""
+    return diag.operating() == [1] and diag.bErr_event == 0
+
+
+def _lost_and_back(rig: Rig, kill: str) -> dict[str, Any]:
+    """Once the node is in data exchange with no error shown, kill the nodes' process
+    (``sim``) or the bridge (``link``); once the card noticed, start it again and time the
+    recovery: the node in data exchange and echoing a value the host had not written
+    before."""
+    board = board_of(rig.card).number
+    out_offset, in_offset = io_offsets(parse_network(rig.toml.read_text()))
+    # From a settled card: the burst before may have cost a slow machine a heartbeat.
+    settled = _until(lambda: _settled(diagnostics(board)), RECOVER_TIMEOUT_S)
+    watch = Watch(board, diagnostics(board))
+    if kill == "sim":
+        assert rig.card.sim is not None
+        rig.card.sim.send_signal(signal.SIGKILL)
+        rig.card.sim.wait()
+    else:
+        assert rig.link is not None
+        rig.link.kill()
+    noticed = _until(watch.noticed, NOTICE_TIMEOUT_S)
+    if kill == "sim":
+        rig.card.sim = start_sim(rig.toml, rig.nodes)
+    else:
+        assert rig.link is not None
+        rig.link.restart()
+    back_start = time.perf_counter()
+    written = [DevExchangeIO(board, 0, b"", in_offset, 8, TIMEOUT_MS)[1][0]]
+
+    def back() -> bool:
+        """One probe: an output the node has not echoed yet (a new one each time, since the
+        card sends an event-driven PDO only when its outputs change)."""
+        written[0] = written[0] % 255 + 1
+        value = bytes([written[0]]) * 8
+        DevExchangeIO(board, out_offset, value, 0, 0, TIMEOUT_MS)
+
+        def echoed() -> bool:
+            operating = watch.sample().operating() == [1]  # every time: errors between show
+            return operating and DevExchangeIO(board, 0, b"", in_offset, 8,
+                                               TIMEOUT_MS)[1] == value
+
+        return _until(echoed, ECHO_WAIT_S) is not None
+
+    recovered = _until(back, RECOVER_TIMEOUT_S)
+    after = diagnostics(board)
+    return {
+        "settled_before": settled is not None,
+        "noticed_s": None if noticed is None else round(noticed - watch.start, 3),
+        "bus_off_after_s": watch.bus_off_s,
+        "nodes_out_after_s": watch.nodes_out_s,
+        "err_event": None if watch.err is None else watch.err[0],
+        "err_node": None if watch.err is None else watch.err[1],
+        "bus_off_cnt": after.usBus_Off_Cnt - watch.before.usBus_Off_Cnt,
+        "bus_error_cnt": after.usBus_Error_Cnt - watch.before.usBus_Error_Cnt,
+        "msg_time_out": after.usMsg_Time_Out - watch.before.usMsg_Time_Out,
+        "recovered_s": None if recovered is None else round(recovered - back_start, 3),
+        "err_event_after": after.bErr_event,
+        "notice_timeout_s": NOTICE_TIMEOUT_S,
+        "recover_timeout_s": RECOVER_TIMEOUT_S,
+    }
+
+
 def bridge(name: str, count: int, warmup: int) -> dict[str, Any]:
-    if name == "remote" and importlib.util.find_spec("can_remote") is None:
-        return {"skipped": "python-can-remote is not installed: pip install -e '.[remote]'"}
+    reason = unavailable(name)
+    if reason is not None:
+        return {"skipped": reason}
     result: dict[str, Any] = {"loadavg_before": list(os.getloadavg())}
-    with rig(name) as made:
-        start_uncontrolled(made.card, parse_network(made.toml.read_text()))
-        result["pdo_loop"] = pdo_loop(made, count, warmup)
-        result["sdo"] = sdo(made)
-        result["frames"] = frames(made)
-        progress(f"{name}: the nodes' process killed and started again")
-        result["nodes_lost"] = _lost_and_back(made, "sim")
-        if made.server is not None:
-            progress(f"{name}: the server killed and started again")
-            result["link_lost"] = _lost_and_back(made, "server")
-        result["firmware_log"] = made.card.log()
+    try:
+        with rig(name) as made:
+            start_uncontrolled(made.card, parse_network(made.toml.read_text()))
+            result["pdo_loop"] = pdo_loop(made, count, warmup)
+            result["sdo"] = sdo(made)
+            result["frames"] = frames(made)
+            progress(f"{name}: the nodes' process killed and started again")
+            result["nodes_lost"] = _lost_and_back(made, "sim")
+            if made.link is not None:
+                progress(f"{name}: the link killed and started again")
+                result["link_lost"] = _lost_and_back(made, "link")
+            result["firmware_log"] = made.card.log()
+    except FileNotFoundError as exc:  # a daemon not built here
+        return {"skipped": str(exc)}
     result["loadavg_after"] = list(os.getloadavg())
     return result
 
@@ -354,10 +642,12 @@ def run(count: int | None, warmup: int | None) -> dict[str, Any]:
     warmup = DEFAULTS[1] if warmup is None else warmup
     return {
         "name": NAME,
-        "description": "the card on a bridged bus beside shm, same run: PDO loop latency, "
-                       "SDO rate, a frame burst through the transport alone (loss, order), "
-                       "and what the host reads when the nodes or the link go and come back",
+        "description": "the card across CAN bridges beside shm and vcan, same run: PDO loop "
+                       "latency, SDO rate, a frame burst through the transport alone (loss, "
+                       "order), and what the host reads when the nodes or the link go and "
+                       "come back",
         "machine": machine_info(),
+        "host_loadavg_at_start": os.environ.get(HOST_LOADAVG),
         "source": source_fingerprint(),
         "bridges": {name: bridge(name, count, warmup) for name in BRIDGES},
     }

@@ -12,6 +12,10 @@ users already write them:
   (or the old ``bustype``) fill in what ``--interface``, ``--channel`` and
   ``--bitrate`` leave open; every other key is an option.
 
+A network description's ``[bus]`` may name its interface, channel and options too
+(``interface``, ``channel``, ``[bus.options]``, typed by TOML); ``cifemu sim`` and ``cifemu
+firmware --simulate`` use them below everything on the command line.
+
 The command line wins over ``--bus-option``, which wins over the file. Values are
 typed as python-can types its own configuration files (``can.util.cast_from_string``):
 ``123`` an int, ``1.5`` a float, ``true``/``false`` a bool, anything else a string.
@@ -32,6 +36,8 @@ from pathlib import Path
 from typing import Any
 
 from can.util import cast_from_string, load_file_config
+
+from dbm_tools.network import BusDescription
 
 OWN_FLAGS = {"interface": "--interface", "channel": "--channel", "bitrate": "--bitrate",
              "bustype": "--interface"}
@@ -105,8 +111,15 @@ def load_section(spec: str) -> dict[str, Any]:
 
 
 def select_bus(interface: str | None, channel: str | None, bitrate: int | None,
-               options: list[str], config: str | None) -> BusSelection:
-    """Merge the flags, ``--bus-option`` and ``--bus-config`` (in this precedence)."""
+               options: list[str], config: str | None,
+               described: BusDescription | None = None) -> BusSelection:
+    """Merge the flags, ``--bus-option``, ``--bus-config`` and a network description's
+    ``[bus]`` (in this precedence).
+
+    The description's channel and options belong to its interface: where the command line
+    names another interface, none of them is used [ours]; where it names the same one or
+    none, they fill in what it leaves open, key by key for the options.
+    """
     from_file = load_section(config) if config is not None else {}
     if "bustype" in from_file:
         from_file.setdefault("interface", from_file["bustype"])
@@ -123,6 +136,10 @@ def select_bus(interface: str | None, channel: str | None, bitrate: int | None,
                                  "is not a whole number")
         bitrate = from_file["bitrate"]
     channel = channel if channel is not None else _text(from_file.get("channel"))
+    if described is not None and described.interface in (None, interface or described.interface):
+        interface = interface or described.interface
+        channel = channel if channel is not None else described.channel
+        merged = {**described.options, **merged}
     return BusSelection(interface, channel, bitrate, merged)
 
 

@@ -68,6 +68,13 @@ class BusDescription:
     wait_for_host: bool = False
     host_watchdog_ms: int = 1000
     handshake: str = "buffered-host-controlled"
+    interface: str | None = None
+    """The python-can interface that reaches this network, for ``cifemu sim`` and ``cifemu
+    firmware --simulate`` when their command line names none [ours]; not in the DBM."""
+    channel: str | None = None
+    options: dict[str, Any] = field(default_factory=dict)
+    """Keyword arguments for python-can's ``can.Bus`` (a socketcand host and port ...),
+    typed by TOML; see ``dbm_tools.bus_options``."""
 
     @property
     def baud_rate_code(self) -> int:
@@ -219,13 +226,24 @@ def _range(where: str, value: int, low: int, high: int) -> int:
     return value
 
 
+LINK_KEYS = {"interface": "bus.interface", "bustype": "bus.interface",
+             "channel": "bus.channel", "bitrate": "bus.bitrate"}
+"""python-can keys that ``[bus]`` names itself: ``[bus.options]`` refuses them."""
+OPTION_TYPES = (str, int, float, bool, list, dict)
+"""TOML values an option may have: all but dates and times, which no ``can.Bus`` takes."""
+
+
 def _bus(table: dict[str, Any]) -> BusDescription:
     _take(table, "bus", {
         "bitrate": int, "sync_cob_id": int, "sync_period_ms": int, "auto_clear": bool,
         "byte_order": str, "master_node_id": int, "heartbeat_ms": int, "global_start": bool,
         "accept_code": int, "accept_mask": int, "extended_ids": bool, "wait_for_host": bool,
-        "host_watchdog_ms": int, "handshake": str,
+        "host_watchdog_ms": int, "handshake": str, "interface": str, "channel": str,
+        "options": dict,
     })
+    if "interface" in table:
+        _interface(table["interface"])
+    _options(table.get("options", {}))
     bus = BusDescription(**table)
     if bus.bitrate not in BITRATES:
         rates = ", ".join(str(r) for r in BITRATES)
@@ -243,6 +261,29 @@ def _bus(table: dict[str, Any]) -> BusDescription:
         raise NetworkError(f"bus.handshake = {bus.handshake!r}: use one of "
                            + ", ".join(f'"{name}"' for name in HANDSHAKES))
     return bus
+
+
+def _interface(name: str) -> None:
+    """An interface python-can does not know is refused when the file is read, naming the
+    key, not when a bus opens. python-can is imported only here: the builder and the
+    other readers of a description never need it."""
+    from can.interfaces import VALID_INTERFACES
+
+    if name not in VALID_INTERFACES:
+        raise NetworkError(f"bus.interface = {name!r} is not a python-can interface (one of "
+                           f"{', '.join(sorted(VALID_INTERFACES))})")
+
+
+def _options(options: dict[str, Any]) -> None:
+    """``[bus.options]``: keyword arguments, so identifiers, none that ``[bus]`` names."""
+    for key, value in options.items():
+        if not key.isidentifier():
+            raise NetworkError(f"bus.options: key {key!r} is not a python identifier")
+        if key in LINK_KEYS:
+            raise NetworkError(f"bus.options.{key}: use {LINK_KEYS[key]}")
+        if not isinstance(value, OPTION_TYPES):
+            raise NetworkError(f"bus.options.{key}: a {type(value).__name__} is no python-can "
+                               "option value")
 
 
 def _sdo_key(text: str, where: str) -> tuple[int, int]:

@@ -9,14 +9,18 @@ the socketcand host and port given as options (a real TCP listener of the test's
 
 from __future__ import annotations
 
+import json
 import socket
 import subprocess
 import sys
+import uuid
 from pathlib import Path
 
 import pytest
 
 from dbm_tools.bus_options import BusOptionError, parse_option, select_bus
+from dbm_tools.network import parse_network
+from firmware.shm.bus import channel_path
 from tests.conftest import TIME_SCALE
 
 
@@ -110,4 +114,104 @@ def test_the_cards_controller_dials_the_host_and_port_given_as_options(tmp_path:
     last = stderr.strip().splitlines()[-1]
     assert last.startswith("cifemu firmware: cannot open CAN interface 'socketcand' channel "
                            f"'can0' with options host=127.0.0.1 port={port}: "), stderr
+    assert "Traceback" not in stderr
+
+
+# --- the network description's [bus]: interface, channel, options ----------------------------
+
+RACK = ('[bus]\ninterface = "socketcand"\nchannel = "can0"\n'
+        '[bus.options]\nhost = "127.0.0.1"\nport = {port}\ntcp_tune = true\n'
+        '[[node]]\nid = 1\n')
+
+
+def test_the_description_fills_in_what_the_command_line_leaves_open() -> None:
+    rack = parse_network(RACK.format(port=29536)).bus
+    assert rack.options == {"host": "127.0.0.1", "port": 29536, "tcp_tune": True}
+    alone = select_bus(None, None, None, [], None, rack)
+    assert (alone.interface, alone.channel, alone.options["port"]) == ("socketcand", "can0", 29536)
+    mine = select_bus("socketcand", "vcan0", None, ["port=1"], None, rack)
+    assert (mine.channel, mine.options) == ("vcan0", {"host": "127.0.0.1", "port": 1,
+                                                      "tcp_tune": True})
+    # Another interface on the command line: the file's channel and options are another bus's.
+    other = select_bus("shm", None, None, [], None, rack)
+    assert (other.interface, other.channel, other.options) == ("shm", None, {})
+
+
+@pytest.mark.parametrize(("bus", "named"), [
+    ('interface = "nosuchbus"', "bus.interface = 'nosuchbus' is not a python-can interface"),
+    ('interface = 5', "bus.interface: expected str"),
+    ('[bus.options]\nchannel = "can1"', "bus.options.channel: use bus.channel"),
+    ('[bus.options]\nbustype = "pcan"', "bus.options.bustype: use bus.interface"),
+    ('[bus.options]\n"my-key" = 1', "bus.options: key 'my-key' is not a python identifier"),
+    ('[bus.options]\nwhen = 1979-05-27', "bus.options.when: a date is no python-can option"),
+    ('options = "host=x"', "bus.options: expected dict")])
+def test_a_description_bus_that_cannot_be_used_is_one_line(tmp_path: Path, bus: str,
+                                                           named: str) -> None:
+    (tmp_path / "net.toml").write_text(f"[bus]\n{bus}\n[[node]]\nid = 1\n")
+    for command in (["sim", "net.toml", "--interface", "shm", "--channel", "c"],
+                    ["firmware", "--simulate", "net.toml", "--dpm-dir", str(tmp_path)]):
+        done = _cli(*command, cwd=tmp_path)
+        lines = done.stderr.strip().splitlines()
+        assert done.returncode == 1 and len(lines) == 1 and named in lines[0], done.stderr
+
+
+def _sim_json(tmp_path: Path, *flags: str) -> dict[str, object]:
+    """``cifemu sim net.toml --json``'s first line, then the simulation ends."""
+    sim = subprocess.Popen([sys.executable, "-m", "cifemu", "sim", "net.toml", "--json",
+                            "--log-level", "WARNING", *flags], cwd=tmp_path,
+                           stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        assert sim.stdout is not None
+        first = sim.stdout.readline()
+    finally:
+        sim.terminate()
+        _, stderr = sim.communicate(timeout=30 * TIME_SCALE)
+    assert first, stderr
+    return dict(json.loads(first))
+
+
+def test_cifemu_sim_opens_the_bus_the_description_names(tmp_path: Path) -> None:
+    channel = f"described-{uuid.uuid4().hex}"
+    (tmp_path / "net.toml").write_text(f'[bus]\ninterface = "shm"\nchannel = "{channel}"\n'
+                                       "[[node]]\nid = 1\n")
+    try:
+        shown = _sim_json(tmp_path)
+        assert (shown["interface"], shown["channel"]) == ("shm", channel)
+        mine = f"{channel}-flag"
+        shown = _sim_json(tmp_path, "--channel", mine)  # the command line wins
+        assert (shown["interface"], shown["channel"]) == ("shm", mine)
+    finally:
+        for name in (channel, f"{channel}-flag"):
+            channel_path(name).unlink(missing_ok=True)
+
+
+@pytest.mark.parametrize("command", [["sim", "net.toml", "--log-level", "WARNING"],
+                                     ["firmware", "--simulate", "net.toml",
+                                      "--exit-on-bus-error", "--log-level", "WARNING"]])
+def test_the_descriptions_options_reach_python_can(tmp_path: Path, command: list[str]) -> None:
+    """The host and port exist only in the file's [bus.options]: the bus dials the test's
+    listener, which hangs up (it is no socketcand), and the command ends in one line naming
+    the interface and the options it was opened with."""
+    with socket.socket() as listener:
+        listener.bind(("127.0.0.1", 0))
+        listener.listen(1)
+        listener.settimeout(30 * TIME_SCALE)
+        port = listener.getsockname()[1]
+        (tmp_path / "net.toml").write_text(RACK.format(port=port))
+        proc = subprocess.Popen([sys.executable, "-m", "cifemu", *command, *(
+            ["--dpm-dir", str(tmp_path)] if command[0] == "firmware" else [])], cwd=tmp_path,
+            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+        try:
+            connection, _ = listener.accept()
+            connection.close()
+            _, stderr = proc.communicate(timeout=30 * TIME_SCALE)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait(timeout=10)
+    assert proc.returncode == 1
+    last = stderr.strip().splitlines()[-1]
+    assert "'socketcand' channel 'can0' with options host=127.0.0.1 " in last or (
+        "socketcand channel can0 with options host=127.0.0.1 " in last), stderr
+    assert f"port={port} tcp_tune=True: " in last, stderr
     assert "Traceback" not in stderr

@@ -6,8 +6,6 @@ import argparse
 import logging
 import signal
 import sys
-from collections.abc import Iterator
-from contextlib import contextmanager
 from pathlib import Path
 from types import FrameType
 
@@ -66,7 +64,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "change, process-data exchange, and every frame in SESSION/can.log")
     parser.add_argument("--simulate", type=Path, default=None, metavar="NETWORK.toml",
                         help="also run the simulated nodes of a network description on the "
-                             "same bus, in this process")
+                             "same bus, in this process; its [bus] interface, channel and "
+                             "options apply where the command line gives none")
     parser.add_argument("--flash", type=Path, default=None, metavar="DIR",
                         help="the board's flash directory, where a downloaded DBM is kept "
                              f"(default ${FLASH_ENV}/board<N>, else "
@@ -105,37 +104,22 @@ def run(args: argparse.Namespace) -> int:
         return 1
     trace = recording_can_log(args.record) if args.record is not None else args.trace
     try:
+        # The --simulate file's [bus] names the bus below the command line: the simulated
+        # nodes and the card share it.
         selected = select_bus(args.interface, args.channel, args.bitrate, args.bus_option,
-                              args.bus_config)
+                              args.bus_config, network.bus if network is not None else None)
     except BusOptionError as exc:
         print(f"cifemu firmware: {exc}", file=sys.stderr)
         return 1
     interface = selected.interface or "virtual"
-    with python_can_options(selected.options):
-        return _serve(args, network, configure_path, selected.options, BusConfig(
-            interface, selected.channel or default_channel(interface), selected.bitrate,
-            trace, tap_address(image_path(dpm_dir(args.dpm_dir), args.board)),
-            exit_on_error=args.exit_on_bus_error))
-
-
-@contextmanager
-def python_can_options(options: dict[str, object]) -> Iterator[None]:
-    """Hand ``--bus-option``/``--bus-config`` to every bus this process opens, through
-    ``can.rc`` (python-can's in-code configuration, merged under each ``can.Bus``'s own
-    arguments): the controller is opened deep inside the card, and reopened on a new
-    Baud_rate, from a ``BusConfig`` that carries no options. The simulated nodes of
-    ``--simulate`` share the interface, so they take them too."""
-    saved = dict(can.rc)
-    can.rc.update(options)
-    try:
-        yield
-    finally:
-        can.rc.clear()
-        can.rc.update(saved)
+    return _serve(args, network, configure_path, BusConfig(
+        interface, selected.channel or default_channel(interface), selected.bitrate,
+        trace, tap_address(image_path(dpm_dir(args.dpm_dir), args.board)),
+        exit_on_error=args.exit_on_bus_error, options=selected.options))
 
 
 def _serve(args: argparse.Namespace, network: Network | None, configure_path: Path | None,
-           options: dict[str, object], bus: BusConfig) -> int:
+           bus: BusConfig) -> int:
     recorder = None
     if args.record is not None:  # before the card, as the bus: a refusal leaves no image
         try:
@@ -146,11 +130,11 @@ def _serve(args: argparse.Namespace, network: Network | None, configure_path: Pa
     simulation = None
     if network is not None:  # before the card: a bus that cannot open leaves no image
         try:
-            sim_bus = can.Bus(interface=bus.interface, channel=bus.channel)
+            sim_bus = can.Bus(interface=bus.interface, channel=bus.channel, **bus.options)
         except INTERFACE_ERRORS as exc:
             if recorder is not None:
                 recorder.close()
-            return _interface_error(bus, exc, options)
+            return _interface_error(bus, exc)
         simulation = SimulatedNetwork(network, sim_bus)
     try:
         device = Device(args.board, args.dpm_dir, reset_delay=args.reset_delay, bus=bus,
@@ -186,7 +170,7 @@ def _serve(args: argparse.Namespace, network: Network | None, configure_path: Pa
         if device.can.master.bus is not None:
             raise  # the controller was up: not an interface error
         device.path.unlink(missing_ok=True)
-        return _interface_error(bus, exc, options)
+        return _interface_error(bus, exc)
     finally:
         if simulation is not None:
             simulation.stop()
@@ -196,9 +180,9 @@ def _serve(args: argparse.Namespace, network: Network | None, configure_path: Pa
 
 
 
-def _interface_error(bus: BusConfig, exc: BaseException, options: dict[str, object]) -> int:
+def _interface_error(bus: BusConfig, exc: BaseException) -> int:
     print(f"cifemu firmware: cannot open CAN interface {bus.interface!r} channel "
-          f"{bus.channel!r}{with_options(options)}: {exc}", file=sys.stderr)
+          f"{bus.channel!r}{with_options(bus.options)}: {exc}", file=sys.stderr)
     return 1
 
 

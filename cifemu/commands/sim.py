@@ -28,10 +28,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--interface", default=None,
                         help="python-can interface that crosses processes: shm (cifemu's "
                              "shared-memory bus), socketcan, udp_multicast ... (required, "
-                             "here or in --bus-config)")
+                             "here, in --bus-config or in the description's [bus])")
     parser.add_argument("--channel", default=None,
                         help="python-can channel, e.g. the card's shm channel or vcan0 "
-                             "(required, here or in --bus-config)")
+                             "(required, here, in --bus-config or in the description's "
+                             "[bus])")
     add_bus_arguments(parser)
     parser.add_argument("--bitrate", type=int, default=None, metavar="BPS",
                         help="bit rate (default: the description's bus.bitrate)")
@@ -95,12 +96,13 @@ def run(args: argparse.Namespace) -> int:
         return fail("sim", str(exc), args.json)
     try:
         selected = select_bus(args.interface, args.channel, args.bitrate, args.bus_option,
-                              args.bus_config)
+                              args.bus_config, network.bus)
     except BusOptionError as exc:
         return fail("sim", str(exc), args.json)
     if selected.interface is None or selected.channel is None:
-        return fail("sim", "give --interface and --channel (or a --bus-config that names "
-                           "them)", args.json)
+        return fail("sim", "give --interface and --channel (or a --bus-config, or the "
+                           "description's [bus] interface and channel, that names them)",
+                    args.json)
     args.interface, args.channel = selected.interface, selected.channel
     bitrate = selected.bitrate or network.bus.bitrate
     if args.interface == "virtual":

@@ -14,12 +14,13 @@ from __future__ import annotations
 import contextlib
 import json
 import logging
+import socket
 import subprocess
 import threading
 import time
 from collections import deque
-from collections.abc import Callable
-from dataclasses import dataclass
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -52,6 +53,22 @@ FrameCallback = Callable[[can.Message], None]
 REOPEN_S = 1.0
 """[ours] How often a controller whose transport failed tries to open it again."""
 
+HIDDEN_CLOSE_INTERFACES = ("socketcand",)
+"""Bridge clients whose ``recv`` hides a closed connection: python-can's socketcand client
+reads nothing from a connection its server closed and returns no frame, again and again,
+without raising; only a later ``send`` fails. The controller looks at the connection
+itself (``check_link``)."""
+LINK_CHECK_S = 0.1
+"""[ours] How often the card looks at such a connection while nothing fails: a link lost
+while the card sends nothing is a bus-off within this."""
+
+NO_REMOTE_FRAME_INTERFACES = ("socketcand",)
+"""Interfaces that cannot send a remote frame: socketcand's ``< send >`` has no RTR flag, and
+python-can's client writes a remote frame as data it does not have (the daemon drops that
+line as a syntax error, or, for a length of 0, puts a data frame on the bus). The card sends
+none there and counts each in Msg_Time_Out [ours]: guarding and RTR-requested PDOs fail
+visibly, not silently."""
+
 PERIODIC_OUTSIDE_INTERFACES = ("socketcan", "shm")
 """Interfaces whose ``send_periodic`` keeps time outside this interpreter: SocketCAN's
 broadcast manager in the kernel, ``shm``'s timer process. Elsewhere it is a thread."""
@@ -78,6 +95,30 @@ def bitrate_of_link(details: object) -> int | None:
     except (KeyError, IndexError, TypeError):
         return None
     return rate if isinstance(rate, int) and rate > 0 else None
+
+
+def stream_of(bus: can.BusABC) -> socket.socket | None:
+    """The TCP connection of a bridge client that keeps it to itself: the one stream socket
+    among the bus object's attributes (python-can's socketcand client holds it in a private
+    one, so it is found by its type, not by a name that may change); None when there is not
+    exactly one."""
+    found = [value for value in vars(bus).values()
+             if isinstance(value, socket.socket) and value.type == socket.SOCK_STREAM]
+    return found[0] if len(found) == 1 else None
+
+
+def stream_failure(stream: socket.socket) -> Exception | None:
+    """Why a connection is gone, without taking a byte from it: its server closed it (a
+    peek reads nothing) or the system reports an error (reset, timed out); None while it
+    is up, whether or not a frame waits."""
+    try:
+        if stream.recv(1, socket.MSG_PEEK | socket.MSG_DONTWAIT):
+            return None
+    except BlockingIOError:
+        return None
+    except OSError as exc:
+        return exc
+    return can.CanOperationError("the server closed the connection")
 
 
 def socketcan_bitrate(channel: str) -> int | None:
@@ -158,6 +199,11 @@ class BusConfig:
     exit_on_error: bool = False
     """A controller that cannot be opened ends the firmware, instead of the seed's card
     staying up with FAT set (``cifemu firmware --exit-on-bus-error``)."""
+    options: dict[str, Any] = field(default_factory=dict)
+    """Keyword arguments for ``can.Bus`` beyond interface, channel and bit rate
+    (``--bus-option``, ``--bus-config``, the network description's ``[bus] options``): a
+    socketcand host and port, ``receive_own_messages`` ... Kept with the controller, which
+    opens the interface again with them (a new Baud_rate, a lost link)."""
 
 
 class CanBus(can.Listener):
@@ -165,19 +211,21 @@ class CanBus(can.Listener):
 
     def __init__(self, interface: str = "virtual", channel: str = "cifemu",
                  bitrate: int | None = None, trace: Path | None = None,
-                 tap: bytes | None = None, **config: Any) -> None:
-        kwargs: dict[str, Any] = dict(config)
+                 tap: bytes | None = None, options: Mapping[str, Any] | None = None) -> None:
+        kwargs: dict[str, Any] = dict(options or {})
         self.sets_bitrate = interface not in FIXED_RATE_INTERFACES
         """Whether ``set_bitrate`` changes the controller's rate (else it compares)."""
         if bitrate is not None and (self.sets_bitrate or interface == "shm"):
             kwargs["bitrate"] = bitrate  # on shm: the channel's rate, if the card opens it first
         if interface == "shm":
             kwargs.setdefault("timer_process", True)  # see send_periodic
-        self.bus = can.Bus(interface=interface, channel=channel, **kwargs)
-        self._open_kwargs = kwargs
-        self._bitrate = bitrate if self.sets_bitrate else None
         self.interface = interface
         self.channel = channel
+        self._link: socket.socket | None = None
+        """The connection ``check_link`` watches (``HIDDEN_CLOSE_INTERFACES`` only)."""
+        self.bus = self._open(kwargs)
+        self._open_kwargs = kwargs
+        self._bitrate = bitrate if self.sets_bitrate else None
         self.network = _MasterNetwork(self)
         # Copy-on-write: subscribing replaces a tuple, so the receive thread reads
         # them without a lock.
@@ -198,6 +246,8 @@ class CanBus(can.Listener):
         self._lost = threading.Event()
         """The transport failed; a thread is opening it again (``on_error``)."""
         self._closed = threading.Event()
+        self._refused_remote = False
+        """Whether the one log line about a remote frame not sent is written."""
         listeners: list[can.Listener] = [self]
         self._notifier = can.Notifier(self.bus, listeners, timeout=0.1)
 
@@ -259,10 +309,10 @@ class CanBus(can.Listener):
             self.network.notify(ident, msg.data, msg.timestamp)
 
     def on_error(self, exc: Exception) -> None:
-        """The transport failed under the receive or a sending thread: a bridge's link closed
-        (python-can-remote raises from ``recv`` and ``send``; python-can's socketcand client
-        only from ``send``, its ``recv`` returns nothing from a closed connection). No error
-        frame tells it.
+        """The transport failed under the receive or a sending thread, or ``check_link``
+        found its connection closed: a bridge's link is gone (python-can-remote raises from
+        ``recv`` and ``send``; python-can's socketcand client only from ``send``, its
+        ``recv`` returns nothing from a closed connection). No error frame tells it.
 
         [ours] The host sees a bus-off (Bus_Off_Cnt, EVE): the controller is off the bus.
         The interface is opened again every ``REOPEN_S`` until it is back, and the nodes'
@@ -277,14 +327,36 @@ class CanBus(can.Listener):
         self.on_error_frame(can.Message(is_error_frame=True, arbitration_id=CAN_ERR_BUSOFF))
         threading.Thread(target=self._reopen, name="can-reopen", daemon=True).start()
 
+    def check_link(self) -> None:
+        """Report a bridge connection its server closed while the card sends nothing, as
+        ``on_error`` reports a transport that raises (a bus-off, then reopening). For
+        ``HIDDEN_CLOSE_INTERFACES``, whose ``recv`` does not tell it; the card calls this
+        every ``LINK_CHECK_S``. Elsewhere it does nothing."""
+        link = self._link
+        if link is None or self._lost.is_set():
+            return
+        failure = stream_failure(link)
+        if failure is not None and link is self._link:  # not a socket a reopening replaced
+            self.on_error(failure)
+
+    def _open(self, kwargs: dict[str, Any]) -> can.BusABC:
+        """Open the interface; for one that hides a closed connection, find the connection
+        to watch."""
+        bus = can.Bus(interface=self.interface, channel=self.channel, **kwargs)
+        if self.interface in HIDDEN_CLOSE_INTERFACES:
+            self._link = stream_of(bus)
+            if self._link is None:
+                log.warning("%s: no connection found to watch; a lost link shows only when "
+                            "a frame cannot be sent", self.interface)
+        return bus
+
     def _reopen(self) -> None:
         self._notifier.stop()
         with contextlib.suppress(Exception):  # the transport is gone: closing it may fail too
             self.bus.shutdown()
         while not self._closed.wait(REOPEN_S):
             try:
-                bus = can.Bus(interface=self.interface, channel=self.channel,
-                              **self._open_kwargs)
+                bus = self._open(self._open_kwargs)
             except Exception as exc:  # whatever the transport raises while it is away
                 log.debug("CAN interface %s still away: %s", self.interface, exc)
                 continue
@@ -309,6 +381,14 @@ class CanBus(can.Listener):
     def send(self, can_id: int, data: bytes = b"", remote: bool = False,
              extended: bool | None = None, dlc: int | None = None) -> bool:
         """Send one frame; False (and Msg_Time_Out counted) when it could not go out."""
+        if remote and self.interface in NO_REMOTE_FRAME_INTERFACES:
+            if not self._refused_remote:
+                self._refused_remote = True
+                log.warning("%s cannot send remote frames: 0x%X and every later one not "
+                            "sent (Msg_Time_Out); supervise nodes by heartbeat",
+                            self.interface, can_id)
+            self.on_send_timeout()
+            return False
         msg = can.Message(
             timestamp=time.time(),
             is_rx=False,
@@ -410,9 +490,10 @@ class CanBus(can.Listener):
             setter(bitrate)
         else:
             self._notifier.stop()
+            self._link = None  # closed on purpose: no lost link for check_link
             self.bus.shutdown()
             kwargs = {**self._open_kwargs, "bitrate": bitrate}
-            self.bus = can.Bus(interface=self.interface, channel=self.channel, **kwargs)
+            self.bus = self._open(kwargs)
             self._open_kwargs = kwargs
             self._notifier = can.Notifier(self.bus, [self], timeout=0.1)
         self._bitrate = bitrate

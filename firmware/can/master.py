@@ -30,7 +30,13 @@ from dbm_tools.parameters import (
 )
 from dpm.errors import ERR_NODE_DEVICE, DeviceEvent
 from dpm.task2 import CanState, GlobalBits
-from firmware.can.bus import INTERFACE_ERRORS, BusConfig, CanBus, ErrorEscalation
+from firmware.can.bus import (
+    INTERFACE_ERRORS,
+    LINK_CHECK_S,
+    BusConfig,
+    CanBus,
+    ErrorEscalation,
+)
 from firmware.can.layer2 import Layer2
 from firmware.can.nmt import NmtMaster
 from firmware.can.node import NodeHandler
@@ -75,6 +81,7 @@ class Master:
         self._stop = threading.Event()
         self._tick_thread: threading.Thread | None = None
         self._supervise_due = 0.0
+        self._link_due = 0.0
         self.outputs = OutputWatch()
         self.sdo = SdoChannels()
         self.layer2 = Layer2(device, lambda: self.ext)
@@ -88,7 +95,8 @@ class Master:
     def open(self) -> None:
         """Connect the controller to the bus (once, at power-on)."""
         cfg = self.config
-        self.bus = CanBus(cfg.interface, cfg.channel, cfg.bitrate, cfg.trace, cfg.tap)
+        self.bus = CanBus(cfg.interface, cfg.channel, cfg.bitrate, cfg.trace, cfg.tap,
+                          cfg.options)
         self.bus.on_error_frame = self._on_error_frame
         self.bus.on_send_timeout = self._on_send_timeout
         self.bus.subscribe_all(self.layer2.on_frame)
@@ -278,6 +286,9 @@ class Master:
                 log.exception("CAN tick failed")
 
     def _tick(self, now: float) -> None:
+        if now >= self._link_due and self.bus is not None:  # configured or not
+            self._link_due = now + LINK_CHECK_S
+            self.bus.check_link()
         nmt = self.nmt
         if not nmt.running:
             return
