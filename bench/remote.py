@@ -30,7 +30,7 @@ Per rig, in one run so the figures share the machine's load (reported beside the
 
 The SocketCAN rigs need vcan0 (and vcan1 for cannelloni): run inside ``tools/vcan-vm
 --vcan 2``. socketcand and cannelloni are found as the vcan tests find them
-(``tools/build-bridges``); python-can-remote comes with ``pip install -e '.[remote]'``.
+(built outside this repository, docs/remote-bus.md); python-can-remote comes with ``pip install -e '.[remote]'``.
 A rig that cannot run says why instead of its figures.
 """
 
@@ -102,8 +102,10 @@ NEAR, FAR = "vcan0", "vcan1"
 BRIDGES_DIR = Path(os.environ.get("CIFEMU_BRIDGES",
                                   Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache"))
                                   / "cifemu" / "bridges")) / "bin"
-"""Where ``tools/build-bridges`` puts socketcand and cannelloni (``CIFEMU_BRIDGES``)."""
-BUILD_HINT = ("tools/build-bridges --socketcand DIR --cannelloni DIR (docs/remote-bus.md)")
+"""Where socketcand and cannelloni built outside this repository are looked for first
+(``CIFEMU_BRIDGES``), before PATH."""
+BUILD_HINT = ("build them as their own READMEs say and put them on PATH or in "
+              "$CIFEMU_BRIDGES/bin (docs/remote-bus.md)")
 SDO_SECONDS = 3.0
 BURST = 2000
 """Frames in the transport burst: more than a websocket's and a socket's buffers hold."""
@@ -124,7 +126,7 @@ frame's delay)."""
 
 
 def bridge_program(name: str) -> str | None:
-    """socketcand or cannelloni: where ``tools/build-bridges`` put it, else on PATH."""
+    """socketcand or cannelloni: in ``BRIDGES_DIR``, else on PATH."""
     found = BRIDGES_DIR / name
     return str(found) if found.is_file() else shutil.which(name)
 

@@ -1,7 +1,7 @@
 """The card through socketcand and cannelloni, on SocketCAN inside tools/vcan-vm.
 
 Both daemons are built from their public sources outside this repository
-(``tools/build-bridges``, docs/remote-bus.md). Where they are found (in
+(built outside this repository, docs/remote-bus.md). Where they are found (in
 ``$CIFEMU_BRIDGES/bin``, default ``~/.cache/cifemu/bridges/bin``, or on PATH) the tests
 are ``vcan`` tests and run in ``make test-vcan``; where they are not, they skip saying how
 to build them (and are no ``vcan`` tests, so ``make test-vcan`` does not fail for a daemon
@@ -44,8 +44,8 @@ QUIET_NETWORK = "[[node]]\nid = 1\nheartbeat_ms = 8000\n"
 exchange with no output changing, sends nothing that could find a lost link."""
 NOTICED_S = 2.5
 """The bound on noticing a lost link while the card sends nothing (it looks every 0.1 s)."""
-BUILD = ("build it with `tools/build-bridges --socketcand DIR --cannelloni DIR` from "
-         "checkouts of github.com/linux-can/socketcand and github.com/mguentner/cannelloni "
+BUILD = ("build it from github.com/linux-can/socketcand or github.com/mguentner/cannelloni "
+         "as its README says, and put it on PATH or in $CIFEMU_BRIDGES/bin "
          "(docs/remote-bus.md)")
 SOCKETCAND, CANNELLONI = bridge_program("socketcand"), bridge_program("cannelloni")
 
