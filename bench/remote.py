@@ -30,7 +30,8 @@ Per rig, in one run so the figures share the machine's load (reported beside the
 
 The SocketCAN rigs need vcan0 (and vcan1 for cannelloni): run inside ``tools/vcan-vm
 --vcan 2``. socketcand and cannelloni are found as the vcan tests find them
-(built outside this repository, docs/remote-bus.md); python-can-remote comes with ``pip install -e '.[remote]'``.
+(built outside this repository, docs/remote-bus.md); python-can-remote comes
+with ``pip install -e '.[remote]'``.
 A rig that cannot run says why instead of its figures.
 """
 
