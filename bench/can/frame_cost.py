@@ -111,6 +111,12 @@ def frame_cost(quick: bool = False) -> dict[str, Any]:
             windows.append(_window(board.number, out_offset, channel, pids,
                                    None if period_ms is None else period_ms / 1000, seconds))
         firmware_log = card.log()
+    idle = windows[0]
+    for window in windows[1:]:
+        added = window["frames_per_s"] - idle["frames_per_s"]
+        window["above_idle_pct_per_1000_frames_per_s"] = {
+            role: round(1000.0 * (window[f"{role}_pct"] - idle[f"{role}_pct"]) / added, 3)
+            if added > 0 else None for role in ("firmware", "sim")}
     return {
         "description": f"one card, {NODES} generic nodes in cifemu sim on shm, uncontrolled "
                        "handshake; the host writes every node's outputs once per period (open "
@@ -121,8 +127,8 @@ def frame_cost(quick: bool = False) -> dict[str, Any]:
         "nodes": NODES,
         "seconds": seconds,
         "windows": windows,
-        "idle": {"firmware_pct": windows[0]["firmware_pct"], "sim_pct": windows[0]["sim_pct"],
-                 "frames_per_s": windows[0]["frames_per_s"]},
+        "idle": {"firmware_pct": idle["firmware_pct"], "sim_pct": idle["sim_pct"],
+                 "frames_per_s": idle["frames_per_s"]},
         "firmware": _fit(windows, "firmware"),
         "sim": _fit(windows, "sim"),
         "firmware_log": firmware_log,
