@@ -9,16 +9,21 @@ host closes its control loop through. The SDO figure is expedited uploads of 100
 through the mailbox (COM_SDO_Up_Download), one transfer at a time, to nodes 1..N in
 turn.
 
-Baselines, in the same run before the card: python ``canopen`` on the same N simulated
-nodes in this process (``bench.can.baseline``), as the one-node phases of ``bench.can``
-measure it: a ``RemoteNode`` per node transmits RPDO1 and the loop waits for every
-node's TPDO1 to show the value; ``SdoClient`` uploads 1000h from nodes 1..N in turn.
+Baselines, in the same run: python ``canopen`` on the same N simulated nodes in this
+process (``bench.can.baseline``), as the one-node phases of ``bench.can`` measure it: a
+``RemoteNode`` per node transmits RPDO1 and the loop waits for every node's TPDO1 to
+show the value; ``SdoClient`` uploads 1000h from nodes 1..N in turn. Both sides are up
+together and are timed in alternating slices, so a change of the machine's load (by the
+minute on a shared machine) hits both.
 """
 
 from __future__ import annotations
 
 import itertools
 import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass
 from typing import Any
 
 import canopen
@@ -28,17 +33,18 @@ from bench.can.baseline import in_process, sdo_client, start_all
 from bench.can.card import (
     DEVICE_TYPE_BYTES,
     TIMEOUT_MS,
+    SimCard,
     io_offsets,
     network_toml,
     simulated_card,
     start_uncontrolled,
 )
 from bench.can.pdo_loop import ECHO_TIMEOUT_S, LOST
-from bench.can.sdo import sdo_message
-from bench.common import Rate, Step, latency_stats, measure, progress, ratio, timed
+from bench.can.sdo import interleaved, sdo_message
+from bench.common import Measured, Rate, Step, latency_stats, measure, progress, ratio
 from dbm_tools.network import Network, parse_network
 from firmware.sim.generic import IO_BYTES, generic_object_dictionary
-from host_api.board import Board, CifError
+from host_api.board import CifError
 from host_api.driver import DevExchangeIO
 
 NODE_COUNTS = (1, 16, 126)
@@ -52,6 +58,8 @@ WARMUP = 20
 SDO_SECONDS = 2.0
 QUICK_SDO_SECONDS = 0.5
 SDO_WARMUP = 20
+ROUNDS = 4
+"""Alternating slices of card and baseline, as ``bench.can.sdo`` takes its SDO figures."""
 
 
 def loop_count(nodes: int, quick: bool) -> int:
@@ -85,22 +93,18 @@ def image_round_trip(board: int, out_offset: int, in_offset: int, nodes: int) ->
     return round_trip
 
 
-def _loop_figures(step: Step, count: int, warmup: int) -> dict[str, Any]:
-    measured = measure(step, count, warmup, frozenset({0}))
-    return {"latency_us": latency_stats(measured.latencies_ns), "round_trips": measured.count,
-            "round_trips_per_s": round(measured.per_second, 1), "failures": measured.failures}
+@dataclass(frozen=True, slots=True)
+class Steps:
+    """One side's PDO loop round trip and expedited SDO upload."""
+
+    round_trip: Step
+    expedited: Callable[[], bool]
 
 
-def _sdo_figures(step: Any, seconds: float) -> dict[str, Any]:
-    rate: Rate = timed(step, SDO_WARMUP, seconds, 4)
-    return {"expedited_uploads_per_s": round(rate.per_s(), 1), "failures": rate.failures,
-            "seconds": round(rate.elapsed_s, 2)}
-
-
-def baseline(network: Network, count: int, warmup: int, sdo_seconds: float) -> dict[str, Any]:
-    """canopen straight to the same simulated nodes in this process: the PDO loop of every
-    node, then SDO uploads from each in turn."""
-    count_nodes = len(network.nodes)
+@contextmanager
+def baseline_steps(network: Network) -> Iterator[Steps]:
+    """canopen straight to the same simulated nodes in this process: a ``RemoteNode`` per
+    node sends RPDO1, the loop waits for every node's TPDO1; ``SdoClient`` per node."""
     with in_process(network) as (sim, client):
         remotes = []
         for node in network.nodes:
@@ -124,9 +128,6 @@ def baseline(network: Network, count: int, warmup: int, sdo_seconds: float) -> d
                             return LOST
             return 0
 
-        progress(f"active nodes (baseline): {count_nodes} node(s), {warmup} warm-up + 2 x "
-                 f"{count} PDO loop round trips")
-        loop = _loop_figures(round_trip, count, warmup)
         clients = itertools.cycle([sdo_client(client, node.id) for node in network.nodes])
 
         def expedited() -> bool:
@@ -135,38 +136,56 @@ def baseline(network: Network, count: int, warmup: int, sdo_seconds: float) -> d
             except SdoError:
                 return False
 
-        progress(f"active nodes (baseline): expedited SDO uploads for {sdo_seconds} s")
-        return {"pdo_loop": loop, "sdo": _sdo_figures(expedited, sdo_seconds)}
+        yield Steps(round_trip, expedited)
 
 
-def card(network: Network, description: str, count: int, warmup: int,
-         sdo_seconds: float) -> dict[str, Any]:
-    """The card with the nodes in ``cifemu sim`` on ``shm``: the same loop and uploads."""
-    count_nodes = len(network.nodes)
+@contextmanager
+def card_steps(network: Network, description: str) -> Iterator[tuple[Steps, SimCard]]:
+    """The card with the nodes in ``cifemu sim`` on ``shm``: the same loop through the
+    process image, the same uploads by COM_SDO_Up_Download."""
     out_offset, in_offset = io_offsets(network)
     with simulated_card(description, separate=True) as sim_card:
-        progress(f"active nodes (card): on-line configuration of {count_nodes} node(s)")
+        progress(f"active nodes (card): on-line configuration of {len(network.nodes)} node(s)")
         board, _, _ = start_uncontrolled(sim_card, network)
-        progress(f"active nodes (card): {count_nodes} node(s), {warmup} warm-up + 2 x "
-                 f"{count} PDO loop round trips")
-        loop = _loop_figures(image_round_trip(board.number, out_offset, in_offset,
-                                              count_nodes), count, warmup)
-        progress(f"active nodes (card): expedited SDO uploads for {sdo_seconds} s")
-        sdo = _sdo_figures(_card_expedited(board, network), sdo_seconds)
-        return {"pdo_loop": loop, "sdo": sdo, "firmware_log": sim_card.log()}
+        requests = itertools.cycle([node.id for node in network.nodes])
+
+        def expedited() -> bool:
+            try:
+                answer = board.transact(sdo_message(next(requests), 0x1000, 0))
+            except CifError:
+                return False
+            return answer.f == 0 and answer.data[8:12] == DEVICE_TYPE_BYTES
+
+        yield Steps(image_round_trip(board.number, out_offset, in_offset, len(network.nodes)),
+                    expedited), sim_card
 
 
-def _card_expedited(board: Board, network: Network) -> Any:
-    requests = itertools.cycle([node.id for node in network.nodes])
+def interleaved_loops(card: Step, base: Step, count: int,
+                      warmup: int) -> tuple[Measured, Measured]:
+    """``measure`` of card and baseline in ``ROUNDS`` alternating slices of ``count`` round
+    trips in all, so a change of the machine's load hits both."""
+    totals = (Measured(0, [], 0, 0), Measured(0, [], 0, 0))
+    for step in (card, base):
+        for _ in range(warmup):
+            step()
+    for _ in range(ROUNDS):
+        for total, step in zip(totals, (card, base), strict=True):
+            part = measure(step, max(1, count // ROUNDS), 0, frozenset({0}))
+            total.count += part.count
+            total.latencies_ns.extend(part.latencies_ns)
+            total.elapsed_ns += part.elapsed_ns
+            total.failures += part.failures
+    return totals
 
-    def expedited() -> bool:
-        try:
-            answer = board.transact(sdo_message(next(requests), 0x1000, 0))
-        except CifError:
-            return False
-        return answer.f == 0 and answer.data[8:12] == DEVICE_TYPE_BYTES
 
-    return expedited
+def _loop_figures(measured: Measured) -> dict[str, Any]:
+    return {"latency_us": latency_stats(measured.latencies_ns), "round_trips": measured.count,
+            "round_trips_per_s": round(measured.per_second, 1), "failures": measured.failures}
+
+
+def _sdo_figures(rate: Rate) -> dict[str, Any]:
+    return {"expedited_uploads_per_s": round(rate.per_s(), 1), "failures": rate.failures,
+            "seconds": round(rate.elapsed_s, 2)}
 
 
 def active_nodes(nodes: int, quick: bool = False, count: int | None = None,
@@ -178,8 +197,21 @@ def active_nodes(nodes: int, quick: bool = False, count: int | None = None,
     count = count or loop_count(nodes, quick)
     warmup = WARMUP if warmup is None else warmup
     sdo_seconds = QUICK_SDO_SECONDS if quick else SDO_SECONDS
-    base = baseline(network, count, warmup, sdo_seconds)
-    cif = card(network, description, count, warmup, sdo_seconds)
+    progress(f"active nodes: {nodes} in canopen's network in this process, and on the card")
+    with baseline_steps(network) as base_side, card_steps(network, description) as (
+            card_side, sim_card):
+        progress(f"active nodes: {nodes} node(s), {warmup} warm-up + 2 x {count} PDO loop "
+                 f"round trips each side, in {ROUNDS} alternating slices")
+        card_loop, base_loop_measured = interleaved_loops(card_side.round_trip,
+                                                          base_side.round_trip, count, warmup)
+        progress(f"active nodes: expedited SDO uploads, {sdo_seconds} s each side, "
+                 "alternating")
+        card_sdo, base_sdo = interleaved(card_side.expedited, base_side.expedited, SDO_WARMUP,
+                                         4, sdo_seconds)
+        firmware_log = sim_card.log()
+    cif = {"pdo_loop": _loop_figures(card_loop), "sdo": _sdo_figures(card_sdo),
+           "firmware_log": firmware_log}
+    base = {"pdo_loop": _loop_figures(base_loop_measured), "sdo": _sdo_figures(base_sdo)}
     cif_loop, base_loop = cif["pdo_loop"]["latency_us"], base["pdo_loop"]["latency_us"]
     return {
         "nodes": nodes,
