@@ -79,6 +79,9 @@ def summary(document: dict[str, Any]) -> dict[str, Any]:
             "cards": run["cards"],
             "pdo_loop_p50_us": [card.get("latency_us", {}).get("p50") for card in run["per_card"]],
             "pdo_loop_p99_us": [card.get("latency_us", {}).get("p99") for card in run["per_card"]],
+            "pdo_loop_failures": [card.get("failures") for card in run["per_card"]],
+            "firmware_sdo_timeouts": [card["firmware_log"]["sdo_timeouts"]
+                                      for card in run["per_card"]],
             "firmware_total_pct": run["firmware_total_pct"],
             "firmware_per_card_pct": run["firmware_per_card_pct"],
             "sim_total_pct": run["sim_total_pct"],
