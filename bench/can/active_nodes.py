@@ -207,7 +207,7 @@ def active_nodes(nodes: int, quick: bool = False, count: int | None = None,
         progress(f"active nodes: expedited SDO uploads, {sdo_seconds} s each side, "
                  "alternating")
         card_sdo, base_sdo = interleaved(card_side.expedited, base_side.expedited, SDO_WARMUP,
-                                         4, sdo_seconds)
+                                         len(DEVICE_TYPE_BYTES), sdo_seconds)
         firmware_log = sim_card.log()
     cif = {"pdo_loop": _loop_figures(card_loop), "sdo": _sdo_figures(card_sdo),
            "firmware_log": firmware_log}
