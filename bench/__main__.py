@@ -3,7 +3,8 @@
 Without a name every benchmark runs, in the order below. ``--count`` and
 ``--warmup`` override each benchmark's own defaults. ``--load`` runs them beside
 two busy processes (``bench.load``; ``--busy N`` for another number), and each
-result then says so under ``"load"``.
+result then says so under ``"load"``. ``--quick`` runs the short form of a benchmark
+that has one (``scaling``).
 """
 
 from __future__ import annotations
@@ -13,7 +14,7 @@ from collections.abc import Callable
 from contextlib import nullcontext
 from typing import Any
 
-from bench import can, cia309, dbm, exchange_io, hops, idle, lss, mailbox, remote, soak
+from bench import can, cia309, dbm, exchange_io, hops, idle, lss, mailbox, remote, scaling, soak
 from bench.common import add_size_arguments, emit, help_text, progress
 from bench.load import DEFAULT_BUSY, busy_load, describe
 
@@ -29,7 +30,11 @@ BENCHMARKS: dict[str, Runner] = {
     idle.NAME: idle.run,
     hops.NAME: hops.run,
     remote.NAME: remote.run,
+    scaling.NAME: scaling.run,
 }
+
+QUICK: dict[str, Runner] = {scaling.NAME: scaling.run_quick}
+"""The short forms (``--quick``) of the benchmarks that have one."""
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -43,6 +48,8 @@ def main(argv: list[str] | None = None) -> int:
                         help=f"run beside {DEFAULT_BUSY} busy processes (issue 22's load)")
     parser.add_argument("--busy", type=int, default=DEFAULT_BUSY, metavar="N",
                         help=f"busy processes for --load (default {DEFAULT_BUSY})")
+    parser.add_argument("--quick", action="store_true",
+                        help=f"the short form of {', '.join(QUICK)} (the others run as usual)")
     args = parser.parse_args(argv)
     unknown = [name for name in args.names if name not in BENCHMARKS]
     if unknown:
@@ -52,7 +59,8 @@ def main(argv: list[str] | None = None) -> int:
     with busy_load(args.busy) if args.load else nullcontext([]) as busy:
         for name in names:
             progress(f"running {name}")
-            result = BENCHMARKS[name](args.count, args.warmup)
+            runner = QUICK.get(name, BENCHMARKS[name]) if args.quick else BENCHMARKS[name]
+            result = runner(args.count, args.warmup)
             result["load"] = describe(busy) if args.load else None
             results.append(result)
     emit(results)

@@ -13,7 +13,7 @@ import os
 import subprocess
 import sys
 import time
-from collections.abc import Iterator
+from collections.abc import Iterator, Mapping
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
@@ -116,6 +116,56 @@ def share(before: CpuSample, after: CpuSample, pid: int) -> dict[str, Any]:
         "per_thread": per_thread,
         "wall_s": round(wall / 1e9, 3),
     }
+
+
+def descendants(pid: int) -> list[int]:
+    """The live child processes of ``pid`` and theirs (a card's SYNC timer process).
+
+    A child that ends meanwhile is skipped: its time is lost to the figures, which is why
+    they are taken over processes that live as long as the card.
+    """
+    found: list[int] = []
+    try:
+        tasks = list(Path(f"/proc/{pid}/task").iterdir())
+    except OSError:
+        return found
+    for task in tasks:
+        try:
+            children = [int(child) for child in (task / "children").read_text().split()]
+        except (OSError, ValueError):
+            continue
+        for child in children:
+            found += [child, *descendants(child)]
+    return found
+
+
+def tree_cpu_ns(pid: int) -> int:
+    """utime + stime of ``pid`` and its live descendants, in ns (``stat_cpu_ns`` each)."""
+    total = stat_cpu_ns(pid)
+    for child in descendants(pid):
+        try:
+            total += stat_cpu_ns(child)
+        except (OSError, ValueError, IndexError):
+            continue  # ended between the listing and the reading
+    return total
+
+
+@dataclass(frozen=True, slots=True)
+class Usage:
+    """``tree_cpu_ns`` of named processes at one moment, and the wall clock."""
+
+    ns: dict[str, int]
+    wall_ns: int
+
+    @classmethod
+    def take(cls, pids: Mapping[str, int]) -> Usage:
+        return cls({name: tree_cpu_ns(pid) for name, pid in pids.items()}, time.monotonic_ns())
+
+    def pct_since(self, before: Usage) -> dict[str, float]:
+        """Per cent of one core each process (with its descendants) used since ``before``."""
+        wall = self.wall_ns - before.wall_ns
+        return {name: round(100.0 * (ns - before.ns[name]) / wall, 3) if wall else 0.0
+                for name, ns in self.ns.items()}
 
 
 BLOCKED_SOURCE = (

@@ -17,7 +17,7 @@ import pytest
 TESTS = Path(__file__).resolve().parent
 
 PROCESS_MODULES = frozenset({
-    "test_bench_can", "test_can_bus", "test_can_late_frames", "test_can_task",
+    "test_bench_can", "test_bench_scaling", "test_can_bus", "test_can_late_frames", "test_can_task",
     "test_can_unsupervised", "test_chaos", "test_cia309_gateway", "test_cia309_limits",
     "test_cia309_server", "test_configure_cli", "test_dbm_by_hand", "test_dbm_cli",
     "test_download", "test_suite_guards", "test_firmware", "test_fuzz_mailbox",

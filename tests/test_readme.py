@@ -123,7 +123,8 @@ def test_every_cifemu_help_is_plain_text(name: str) -> None:
 
 
 @pytest.mark.parametrize("module", ["bench", "bench.can", "bench.cia309", "bench.lss",
-                                    "bench.mailbox", "bench.exchange_io", "bench.dbm"])
+                                    "bench.mailbox", "bench.exchange_io", "bench.dbm",
+                                    "bench.scaling"])
 def test_every_module_help_is_plain_text(module: str) -> None:
     result = subprocess.run([sys.executable, "-m", module, "--help"], cwd=ROOT,
                             capture_output=True, text=True, timeout=60)

@@ -44,6 +44,7 @@ from firmware.shm.bus import (
     RECORD_SIZE,
     ShmBus,
     channel_path,
+    frames_written,
 )
 from firmware.shm.tasks import ShmCyclicSendTask
 
@@ -385,6 +386,23 @@ def test_sleeping_readers_are_rung_not_left_to_poll(channel: str, open_bus: Open
     assert replies == list(range(trips))
     # Polling alone would average MAX_SLEEP_S / 2 per hop: 2 * trips hops.
     assert elapsed < trips * MAX_SLEEP_S / 2
+
+
+def test_frames_written_counts_every_stations_frames_without_a_station(
+        channel: str, open_bus: Opener) -> None:
+    """``python -m bench scaling`` counts a card's traffic by ``frames_written``: every
+    station's frames, and a reused entry's counter runs on, so a window's difference is
+    never negative."""
+    first, second = open_bus(channel), open_bus(channel)
+    for i in range(3):
+        first.send(counter_frame(i))
+    second.send(counter_frame(9))
+    assert frames_written(channel) == 4
+    first.shutdown()
+    reopened = open_bus(channel)  # takes the freed entry and its counter runs on
+    reopened.send(counter_frame(10))
+    assert frames_written(channel) == 5
+    assert counters(recv_n(second, 4, timeout=5)) == [0, 1, 2, 10]
 
 
 # --- the file -------------------------------------------------------------------------------

@@ -125,24 +125,28 @@ class SimCard:
 
 @contextmanager
 def simulated_card(description: str, *, trace: bool = False, separate: bool = False,
-                   bus: SeparateBus | None = None) -> Iterator[SimCard]:
+                   bus: SeparateBus | None = None, board: int = BOARD,
+                   dpm_dir: Path | None = None) -> Iterator[SimCard]:
     """``cifemu firmware --simulate`` on a fresh image directory and flash; board opened.
 
     ``separate`` runs the nodes as ``cifemu sim`` in a process of their own, the
     two meeting on ``bus`` (a fresh ``shm`` channel by default), so the card's
     threads do not share an interpreter lock with the simulator (as on a real bus,
-    where the nodes are other machines).
+    where the nodes are other machines). ``board`` and ``dpm_dir`` put the image
+    beside other cards' (boards 0-3 in one directory, as a driver sees several cards);
+    the flash, trace and log stay in the card's own temporary directory.
     """
     with tempfile.TemporaryDirectory(prefix="cifemu-bench-can-", dir=scratch_root()) as tmp:
         directory = Path(tmp)
+        images = dpm_dir or directory
         toml = directory / "network.toml"
         toml.write_text(description)
         trace_path = directory / "trace.log" if trace else None
         stderr_path = directory / "firmware.stderr"
         interface, channel = (bus or SeparateBus()).for_card() if separate else (
             "virtual", CHANNEL)
-        command = [sys.executable, "-m", "cifemu", "firmware", "--board", str(BOARD),
-                   "--dpm-dir", tmp, "--log-level", "WARNING", "--interface", interface,
+        command = [sys.executable, "-m", "cifemu", "firmware", "--board", str(board),
+                   "--dpm-dir", str(images), "--log-level", "WARNING", "--interface", interface,
                    "--channel", channel, "--flash", str(directory / "flash")]
         if not separate:
             command += ["--simulate", str(toml)]
@@ -165,8 +169,8 @@ def simulated_card(description: str, *, trace: bool = False, separate: bool = Fa
                                     stderr=stderr)
         card = SimCard(directory, proc, trace_path, stderr_path, sim=sim)
         try:
-            wait_ready(proc, image_path(directory, BOARD), STARTUP_TIMEOUT)
-            card.board = Board(BOARD, directory, timeout=5000).open()
+            wait_ready(proc, image_path(images, board), STARTUP_TIMEOUT)
+            card.board = Board(board, images, timeout=5000).open()
             yield card
         finally:
             card.stop()

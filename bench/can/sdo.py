@@ -147,9 +147,10 @@ def baseline_sdo_steps(eds: Path) -> Iterator[SdoSteps]:
 
 
 def interleaved(card: Callable[[], bool], baseline: Callable[[], bool], warmup: int,
-                payload: int) -> tuple[Rate, Rate]:
-    """Card and baseline in alternating slices, so a change of the machine's load hits both."""
-    slice_s = SDO_SECONDS / SDO_ROUNDS
+                payload: int, seconds: float = SDO_SECONDS) -> tuple[Rate, Rate]:
+    """Card and baseline in alternating slices, so a change of the machine's load hits both;
+    ``seconds`` per side in all."""
+    slice_s = seconds / SDO_ROUNDS
     totals = (Rate(), Rate())
     for step in (card, baseline):
         for _ in range(warmup):

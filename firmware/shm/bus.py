@@ -428,3 +428,20 @@ def _alive(pid: int) -> bool:
     except PermissionError:
         return True
     return True
+
+
+def frames_written(channel: str) -> int:
+    """Frames written on ``channel`` since its file was created, by every station [ours].
+
+    Read from the counters without opening a station: a benchmark that counts a card's
+    traffic this way costs the card nothing, whereas a station of its own would sleep on
+    its bell and every writer would ring it, a system call per frame in the very
+    processes being measured. A station's entry keeps its counter when reused, so the
+    figure only grows.
+    """
+    fd = os.open(channel_path(channel), os.O_RDONLY)
+    try:
+        raw = os.pread(fd, 8 * MAX_STATIONS, _SEQS_AT)
+    finally:
+        os.close(fd)
+    return sum(struct.unpack(f"<{MAX_STATIONS}Q", raw))
