@@ -101,12 +101,16 @@ class CardFaults:
             self._thread.start()
 
     def close(self) -> None:
-        """End the thread and remove the socket (power-off); the faults end with the process."""
+        """End the thread and remove the socket (power-off); the faults end with the process.
+        The one a fault leaves in the image, bRcsError, is cleared: a host that finds the
+        card stopped gets -11, not the RCS error of a fault that is over."""
         self._stop.set()
         self._wake()
         if self._thread.is_alive():
             self._thread.join()
         self._sock.close()
+        if RCS_ERROR in self._active:
+            self._device.mm[RCS_ERROR_BYTE] = 0
         if self._bound:
             self._device.files.unlink(Path(self.address).name)
 

@@ -303,6 +303,8 @@ class Master:
         if self.bus is not None:
             self.bus.set_bus_off(off)
             self.sync.wake()
+            if not off:
+                self.outputs.ask_everyone()  # what the host wrote meanwhile goes out now
 
     def _sync_changed(self) -> None:
         self.sync.wake()
