@@ -183,9 +183,11 @@ class CardFaults:
                 return
             except OSError:
                 return  # closed at power-off
-            if not data or not peer or peer == self.address:
-                continue  # a wake-up of its own, or a sender with no address to answer
+            if not data or peer == self.address:
+                continue  # a wake-up of its own
             reply = self._answer(data)
+            if not peer:
+                continue  # a sender without an address (socat, a shell) gets no answer
             try:
                 self._sock.sendto(reply, peer)
             except OSError as exc:
@@ -316,6 +318,7 @@ class CardFaults:
         with self._device.between_turns():
             self._device.write_host_flags(0)
             self.died = True
+            self._hung = True  # the turns until the loop sees the stop serve nothing either
         self._device.stop()
 
     def _hang(self) -> None:
