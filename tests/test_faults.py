@@ -178,8 +178,8 @@ def test_a_stalled_mailbox_takes_no_message_until_its_time_is_up(card: Card,
 
 
 def test_a_slow_card_answers_late_until_cleared(card: Card, opened: Board) -> None:
-    delay = 0.8
-    assert faults.inject("slow", 0, card.directory, delay_ms=800)[0].request.delay_ms == 800
+    delay = 1.0
+    assert faults.inject("slow", 0, card.directory, delay_ms=1000)[0].request.delay_ms == 1000
     started = time.monotonic()
     assert opened.transact(request(), timeout=5000).f == 0
     assert time.monotonic() - started >= delay
@@ -207,14 +207,14 @@ def test_an_input_bit_flips_once_or_for_a_while(cif_card: CifCard) -> None:
         assert sorted(seen) == [outputs] * 5 + [b"\x09" + outputs[1:]], seen
         assert seen.index(b"\x09" + outputs[1:]) < 2
         before = time.monotonic()
-        active = cif_card.fault("flip", offset=7, bit=7, for_ms=1500)
-        assert active[0].describe().startswith("flip bit=7 offset=7 for 1500 ms")
+        active = cif_card.fault("flip", offset=7, bit=7, for_ms=2500)
+        assert active[0].describe().startswith("flip bit=7 offset=7 for 2500 ms")
         flipped = outputs[:7] + b"\x00"
         assert flipped in (inputs(), inputs())
         for _ in range(5):
             assert inputs() == flipped
-        wait_until(lambda: inputs() == outputs, 10 + 1.5, "the flip to end")
-        assert time.monotonic() - before >= 1.5
+        wait_until(lambda: inputs() == outputs, 10 + 2.5, "the flip to end")
+        assert time.monotonic() - before >= 2.5
     assert cif_card.clear_faults() == []
 
 
@@ -286,16 +286,16 @@ def test_the_firmware_dies_as_a_card_whose_watchdog_fires(tmp_path: Path) -> Non
 
 def test_a_hanging_card_comes_back_by_a_cold_start(card: Card, opened: Board) -> None:
     """`die --hang`: READY drops and the process stays; with an RCS error in force a new
-    host's DevInitBoard gets 1000 + bRcsError; after for_ms the card starts cold (the host's
-    protocol parameters, a warm start's, are gone) and serves again."""
+    host's DevInitBoard gets 1000 + bRcsError; a second `die --hang` moves the hang's end,
+    and after for_ms the card starts cold (the host's protocol parameters, a warm start's,
+    are gone) and serves again."""
     parameters = opened.protocol_parameters()
     parameters.usWatchDogTime = 1234
     assert d.DevPutTaskParameter(0, 2, parameters.encode()[:16]) == Drv.DRV_NO_ERROR
     mm = card.map()
     try:
         faults.inject("rcs-error", 0, card.directory, code=42)
-        before = time.monotonic()
-        active = faults.inject("die", 0, card.directory, hang=True, for_ms=2000)
+        active = faults.inject("die", 0, card.directory, hang=True)
         assert {a.request.kind for a in active} == {"rcs-error", "die"}
         assert not mm[HOST_FLAGS] & fl.READY and mm[RCS_ERROR] == 42
         with pytest.raises(CifError) as refused:
@@ -307,8 +307,11 @@ def test_a_hanging_card_comes_back_by_a_cold_start(card: Card, opened: Board) ->
              f"d.DevOpenDriver({str(card.directory)!r}); print(d.DevInitBoard(0))"],
             cwd=ROOT, timeout=60, check=True, capture_output=True, text=True)
         assert new_host.stdout == "1042\n"
-        wait_until(lambda: mm[HOST_FLAGS] & fl.READY, 10 + 2, "READY after the hang")
-        assert time.monotonic() - before >= 2.0
+        before = time.monotonic()
+        faults.inject("die", 0, card.directory, hang=True, for_ms=1000)  # the end moves
+        assert not mm[HOST_FLAGS] & fl.READY
+        wait_until(lambda: mm[HOST_FLAGS] & fl.READY, 10 + 1, "READY after the hang")
+        assert time.monotonic() - before >= 1.0
         assert opened.transact(request()).f == 0
         assert opened.protocol_parameters().usWatchDogTime != 1234, "not a cold start"
         assert mm[RCS_ERROR] == 42
