@@ -5,8 +5,12 @@ API (``host_api.faults``) and the pytest plugin's handle (``CifCard.fault``)."""
 
 from __future__ import annotations
 
+import os
+import pwd
+import shutil
 import subprocess
 import sys
+import tempfile
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -319,3 +323,34 @@ def test_a_hanging_card_comes_back_by_a_cold_start(card: Card, opened: Board) ->
         assert mm[RCS_ERROR] == 0
     finally:
         mm.close()
+
+
+@pytest.mark.skipif(os.geteuid() != 0, reason="becoming another user needs root")
+def test_a_user_outside_the_image_directory_cannot_inject_a_fault(tmp_path: Path) -> None:
+    """docs/security.md: the fault socket is a file in the image directory (mode 2770), so
+    the kernel keeps another user from it, as from the image and the doorbell."""
+    place = Path(tempfile.mkdtemp(dir="/dev/shm", prefix="cifemu-test-"))
+    os.chmod(place, 0o1777)  # every user may enter the parent, as /dev/shm
+    cards = place / "cif"
+    card = start_card(cards, 0, "--flash", str(tmp_path / "flash"))
+    try:
+        nobody = pwd.getpwnam("nobody")
+        pid = os.fork()
+        if pid == 0:  # pragma: no cover - the child reports through its exit status
+            code = 2
+            try:
+                os.setgroups([])
+                os.setgid(nobody.pw_gid)
+                os.setuid(nobody.pw_uid)
+                faults.inject("die", 0, cards)
+                code = 1
+            except FaultError as exc:
+                code = 0 if "no permission to reach the card's fault socket" in str(exc) else 3
+            finally:
+                os._exit(code)
+        _, status = os.waitpid(pid, 0)
+        assert os.waitstatus_to_exitcode(status) == 0
+        assert card.proc.poll() is None and faults.active(0, cards) == []
+    finally:
+        card.stop()
+        shutil.rmtree(place, ignore_errors=True)
