@@ -51,6 +51,8 @@ COMMANDS = (
             "run an unchanged legacy binary against the card (/dev/cif preloaded)"),
     Command("replay", "cifemu.commands.replay",
             "replay a recorded session against a card and show what differs (or --diff A B)"),
+    Command("fault", "cifemu.commands.fault",
+            "make a running card misbehave on purpose (watchdog, mailbox, bus-off ...)"),
     Command("demo", "cifemu.commands.demo",
             "a card, a simulated network, its live view (Ctrl-C ends)"),
 )

@@ -43,9 +43,11 @@ import pytest
 
 from dbm_tools.network import Network, NetworkError, load_network
 from dpm import flags as fl
+from dpm.faults import ActiveFault
 from dpm.image import MAX_DEV_BOARDS, image_path
 from dpm.layout import HOST_FLAGS, TASK2_STATE
 from dpm.task2 import TASK_AREA_SIZE, ComDiagnostics
+from host_api import faults
 from host_api.liveness import firmware_liveness
 from host_api.status import health, read_image, snapshot
 
@@ -182,6 +184,19 @@ class CifCard:
         assert self._process is not None
         with contextlib.suppress(ProcessLookupError):  # the group has ended already
             os.killpg(self._process.pid, signum)
+
+    def fault(self, kind: str, *, for_ms: int | None = None, code: int = 0,
+              delay_ms: int = 0, offset: int = 0, bit: int = 0,
+              hang: bool = False) -> list[ActiveFault]:
+        """Inject a card-side fault (docs/faults.md, ``host_api.faults.inject``): the faults
+        in force afterwards. Each ends by itself after ``for_ms``, on ``clear_faults``, or
+        when the card stops."""
+        return faults.inject(kind, self.board, self.directory, for_ms=for_ms, code=code,
+                             delay_ms=delay_ms, offset=offset, bit=bit, hang=hang)
+
+    def clear_faults(self) -> list[ActiveFault]:
+        """End every fault in force (a hanging card comes back by a cold start)."""
+        return faults.clear(self.board, self.directory)
 
     def diagnostics(self) -> ComDiagnostics:
         """Task2State as the image holds it now, read without opening the board: the

@@ -23,7 +23,8 @@ import threading
 import time
 import weakref
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -54,6 +55,7 @@ from dpm.task2 import CanState
 from firmware import info
 from firmware.can.bus import BusConfig
 from firmware.can_task import CanTask
+from firmware.faults import CardFaults
 from firmware.flash import FlashStore, StoredDatabase, default_flash_dir
 from firmware.plc import PlcTask
 from firmware.rcs import RcsTask, Start
@@ -151,6 +153,8 @@ class Device:
             raise
         self.view: Any = image_view(self.mm)
         self.bell = DeviceBell(self.files, self.path)
+        self.faults = CardFaults(self)
+        """[ours] Card-side faults on demand (firmware/faults.py, docs/faults.md)."""
         self.outbox: deque[Message] = deque()
         self._calls: deque[Callable[[], None]] = deque()
         self._turn = threading.Lock()
@@ -192,6 +196,7 @@ class Device:
         """Power on (a cold start), then serve the image until ``stop``."""
         self._loop_thread = threading.get_ident()
         try:
+            self.faults.start()
             self.can.open()
             self.rcs.start(Start.COLD)
             self._flush()
@@ -252,7 +257,17 @@ class Device:
             select.select([self._stop_r], [], [], remaining)
         return True
 
+    @contextmanager
+    def between_turns(self) -> Iterator[None]:
+        """Hold the device loop between two turns while another thread changes what the card
+        serves (a fault begins or ends, firmware/faults.py); the loop looks again at once."""
+        with self._turn:
+            yield
+            self._flush()
+        self.bell.ring_self()
+
     def _power_off(self) -> None:
+        self.faults.close()
         self.can.close()
         self.write_host_flags(0)
         self._flush()
@@ -271,7 +286,13 @@ class Device:
     # --- cross-thread entry points ---------------------------------------------------
 
     def post(self, msg: Message) -> None:
-        """Give the host an answer or indication (any thread).
+        """Give the host an answer or indication (any thread); a slow card (a fault) holds
+        it back first."""
+        if not self.faults.hold(msg):
+            self.hand_over(msg)
+
+    def hand_over(self, msg: Message) -> None:
+        """Put ``msg`` into the host's mailbox now or at the loop's next turn (any thread).
 
         When the loop is between turns, nothing is queued before it and the
         host's mailbox is free, the calling thread hands ``msg`` over itself:
@@ -402,7 +423,9 @@ class Device:
             self.can.master.layer2_filters.clear()
 
     def fill_info(self) -> None:
+        """The identification areas, at every start (``RcsTask.start``)."""
         info.fill(self.view, self.board)
+        self.faults.started()
 
     # --- the loop's work ---------------------------------------------------------------
 
@@ -410,6 +433,9 @@ class Device:
         """One turn of the device loop."""
         while self._calls:
             self._calls.popleft()()
+        if self.faults.before_turn():  # [ours] a card that hangs, or its start afterwards
+            self._flush()
+            return
         mm = self.mm
         dev = mm[DEV_FLAGS]
         if self.recorder is not None:
@@ -419,7 +445,8 @@ class Device:
             self._flush()
             return
         self.rcs.service(dev, now)
-        if (mm[HOST_FLAGS] ^ mm[DEV_FLAGS]) & fl.DEV_MBX and len(self.outbox) < OUTBOX_LIMIT:
+        if ((mm[HOST_FLAGS] ^ mm[DEV_FLAGS]) & fl.DEV_MBX and len(self.outbox) < OUTBOX_LIMIT
+                and not self.faults.stalled):
             self._receive()
         self._levels()  # after the message: RUN as it left it (delete database), before its answer
         if not (mm[HOST_FLAGS] ^ mm[DEV_FLAGS]) & fl.HOST_MBX:
@@ -469,7 +496,8 @@ class Device:
         msg = Message.decode(raw)
         task = self.tasks.get(msg.rx)
         answer = task.handle(msg) if task else msg.answer(f=F_UNKNOWN_TASK)
-        if answer is not None and not (msg.e & Ext.NAK and answer.f == 0):
+        if (answer is not None and not (msg.e & Ext.NAK and answer.f == 0)
+                and not self.faults.hold(answer)):
             self.outbox.append(answer)
 
     def _deliver(self) -> None:

@@ -25,6 +25,9 @@ class ProcessImage:
         self.mode = 0
         self.driving = True
         """False while the host is not ready or its watchdog expired: outputs read as 0."""
+        self._flips: dict[int, int] = {}
+        """[ours] Input bits the fault "flip" inverts in RcvPd: byte offset -> mask."""
+        self._flip_once = False
 
     def clear(self) -> None:
         with self.lock:
@@ -53,6 +56,9 @@ class ProcessImage:
             self.inputs[offset : offset + len(data)] = data
             if self.mode == UNCONTROLLED:
                 self._mm[RCV_PD + offset : RCV_PD + offset + len(data)] = data
+                for flipped, mask in self._flips.items():
+                    if offset <= flipped < offset + len(data):
+                        self._mm[RCV_PD + flipped] = self.inputs[flipped] ^ mask
 
     def read_inputs(self, offset: int, size: int) -> bytes:
         with self.lock:
@@ -72,3 +78,36 @@ class ProcessImage:
         with self.lock:
             self.outputs[:] = self._mm[SND_PD : SND_PD + IO_AREA_SIZE]
             self._mm[RCV_PD : RCV_PD + IO_AREA_SIZE] = self.inputs
+            if self._flips:
+                for offset, mask in self._flips.items():
+                    self._mm[RCV_PD + offset] = self.inputs[offset] ^ mask
+                if self._flip_once:
+                    self._flips = {}
+
+    # --- the fault "flip" [ours] (firmware/faults.py) -----------------------------------
+
+    @property
+    def flipping(self) -> bool:
+        """Whether a flipped input bit is still to come (or, for a duration, in force)."""
+        return bool(self._flips)
+
+    def flip_inputs(self, offset: int, mask: int, once: bool) -> None:
+        """Invert the ``mask`` bits of input byte ``offset`` as the host receives it: at
+        the next buffered exchange (``once``) or at every one until ``unflip_inputs``. In
+        the uncontrolled mode the image is the process data: the byte is inverted at once
+        and, for a duration, again whenever the bus writes it."""
+        with self.lock:
+            if self.mode == UNCONTROLLED:
+                self._mm[RCV_PD + offset] = self.inputs[offset] ^ mask
+                if once:
+                    return
+            self._flips = {offset: mask}
+            self._flip_once = once
+
+    def unflip_inputs(self) -> None:
+        """End a flip: the next exchange (the uncontrolled mode: now) shows the true bits."""
+        with self.lock:
+            if self.mode == UNCONTROLLED:
+                for offset in self._flips:
+                    self._mm[RCV_PD + offset] = self.inputs[offset]
+            self._flips = {}

@@ -51,6 +51,9 @@ class RcsTask(Task):
         self.reset_delay = reset_delay
         self.watchdog_time = 0
         self.watchdog_expired = False
+        self.watchdog_stopped = False
+        """[ours] The fault "watchdog" (firmware/faults.py): the card's side of the host
+        watchdog has stopped."""
         self._last_dev_watchdog = 0
         self._watchdog_deadline = 0.0
         self.host_not_ready = False
@@ -118,9 +121,19 @@ class RcsTask(Task):
     def watchdog_due(self) -> float | None:
         """When the host watchdog expires unless triggered (monotonic seconds), or None
         while it is off, stopped, untriggered or expired: the device loop sleeps until then."""
-        if not self.watchdog_time or self.watchdog_expired or not self._last_dev_watchdog:
+        if (not self.watchdog_time or self.watchdog_expired or not self._last_dev_watchdog
+                or self.watchdog_stopped):
             return None
         return self._watchdog_deadline
+
+    def stop_watchdog(self, stopped: bool) -> None:
+        """[ours] Stop or resume the card's side of the host watchdog (the fault
+        "watchdog"): stopped, it answers no trigger and supervises nothing; resumed, it
+        answers the trigger that waits and supervises from then on, so the time it was
+        stopped never counts against the host."""
+        self.watchdog_stopped = stopped
+        if not stopped:
+            self._last_dev_watchdog = 0
 
     def _follow_not_ready(self, not_ready: bool) -> None:
         self.host_not_ready = not_ready
@@ -128,6 +141,8 @@ class RcsTask(Task):
         self.device.update_driving()
 
     def _watchdog(self, now: float) -> None:
+        if self.watchdog_stopped:
+            return
         mm = self.device.mm
         trigger = mm[DEV_WATCHDOG]
         if trigger == 0:

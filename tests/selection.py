@@ -21,6 +21,7 @@ PROCESS_MODULES = frozenset({
     "test_can_unsupervised", "test_chaos", "test_cia309_gateway", "test_cia309_limits",
     "test_cia309_server", "test_configure_cli", "test_dbm_by_hand", "test_dbm_cli",
     "test_download", "test_suite_guards", "test_firmware", "test_fuzz_mailbox",
+    "test_faults",
     "test_health", "test_host_restart", "test_hostile_image", "test_json_convention",
     "test_legacy", "test_libcif_c", "test_libcif_dbm", "test_libcif_driver",
     "test_libcif_headers", "test_lss", "test_monitor", "test_online_download",

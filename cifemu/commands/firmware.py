@@ -14,6 +14,7 @@ import can
 from cifemu.online_configure import OnlineConfiguration
 from dbm_tools.bus_options import BusOptionError, add_bus_arguments, select_bus, with_options
 from dbm_tools.network import Network, NetworkError, load_network
+from dpm.faults import DIE_EXIT_STATUS
 from dpm.image import (
     DEFAULT_DPM_DIR,
     MAX_DEV_BOARDS,
@@ -175,6 +176,8 @@ def _serve(args: argparse.Namespace, network: Network | None, configure_path: Pa
         if simulation is not None:
             simulation.stop()
             sim_bus.shutdown()
+    if device.faults.died:
+        return DIE_EXIT_STATUS
     return 1 if configuring is not None and configuring.failed else 0
 
 

@@ -245,6 +245,9 @@ class CanBus(can.Listener):
         self._tap = TapPublisher(tap) if tap else None
         self._lost = threading.Event()
         """The transport failed; a thread is opening it again (``on_error``)."""
+        self.off_bus = False
+        """[ours] The fault "bus-off" (firmware/faults.py): the controller neither sends
+        nor receives (``set_bus_off``)."""
         self._closed = threading.Event()
         self._refused_remote = False
         """Whether the one log line about a remote frame not sent is written."""
@@ -280,6 +283,8 @@ class CanBus(can.Listener):
             self._catch_all = (*self._catch_all, callback)
 
     def on_message_received(self, msg: can.Message) -> None:
+        if self.off_bus and not msg.is_error_frame:
+            return  # off the bus: the controller hears nothing
         if self._trace is not None:
             with self._trace_lock:
                 self._trace.on_message_received(msg)
@@ -350,6 +355,23 @@ class CanBus(can.Listener):
                             "a frame cannot be sent", self.interface)
         return bus
 
+    def set_bus_off(self, off: bool) -> None:
+        """[ours] The fault "bus-off": the controller reports bus-off and leaves the bus
+        (``off``), or reports its restart and joins it again. Each report is the error
+        frame a SocketCAN controller delivers (CAN_ERR_BUSOFF, CAN_ERR_RESTARTED), taken
+        as received: the trace, the tap and the master's counters see it as they would a
+        real one."""
+        if off:
+            self.on_message_received(can.Message(
+                timestamp=time.time(), is_error_frame=True, arbitration_id=CAN_ERR_BUSOFF,
+                channel=self.channel, dlc=8, data=bytes(8)))
+            self.off_bus = True
+        else:
+            self.off_bus = False
+            self.on_message_received(can.Message(
+                timestamp=time.time(), is_error_frame=True, arbitration_id=CAN_ERR_RESTARTED,
+                channel=self.channel, dlc=8, data=bytes(8)))
+
     def _reopen(self) -> None:
         self._notifier.stop()
         with contextlib.suppress(Exception):  # the transport is gone: closing it may fail too
@@ -380,7 +402,12 @@ class CanBus(can.Listener):
 
     def send(self, can_id: int, data: bytes = b"", remote: bool = False,
              extended: bool | None = None, dlc: int | None = None) -> bool:
-        """Send one frame; False (and Msg_Time_Out counted) when it could not go out."""
+        """Send one frame; False (and Msg_Time_Out counted) when it could not go out.
+
+        [ours] Off the bus (``set_bus_off``) nothing goes out and nothing is counted: the
+        controller is not waiting for an acknowledge, it knows it is off."""
+        if self.off_bus:
+            return False
         if remote and self.interface in NO_REMOTE_FRAME_INTERFACES:
             if not self._refused_remote:
                 self._refused_remote = True

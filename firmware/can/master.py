@@ -88,7 +88,7 @@ class Master:
         self.nmt = NmtMaster(device, self, self.nodes, self.bus_send,
                              lambda: zero_outputs(self.image, self.nodes), self._sync_changed)
         self.sync = SyncProducer(self._stop, lambda: self.sync_cob_id, lambda: self.sync_period,
-                                 lambda: self.nmt.exchanging, self._foreign_sync, self._on_sync)
+                                 self._sync_active, self._foreign_sync, self._on_sync)
 
     # --- life cycle ---------------------------------------------------------------------
 
@@ -303,6 +303,19 @@ class Master:
             nmt.update_nexc()
         self.outputs.follow(self.image.snapshot_outputs(), self.nodes)
         nmt.heartbeat(now)
+
+    def _sync_active(self) -> bool:
+        """SYNC goes out while the network exchanges data and the controller is on the bus
+        (an outside SYNC timer would go on sending through a bus-off, firmware/faults.py)."""
+        return self.nmt.exchanging and not (self.bus is not None and self.bus.off_bus)
+
+    def set_bus_off(self, off: bool) -> None:
+        """[ours] The fault "bus-off" (``CanBus.set_bus_off``); SYNC follows at once."""
+        if self.bus is not None:
+            self.bus.set_bus_off(off)
+            self.sync.wake()
+            if not off:
+                self.outputs.ask_everyone()  # what the host wrote meanwhile goes out now
 
     def _sync_changed(self) -> None:
         self.sync.wake()

@@ -233,18 +233,29 @@ class OutputWatch:
         """Which node's output PDO each output byte belongs to (0: none); see ``_owner_map``."""
         self._waiting: set[OutputSender] = set()
         self._last = b""
+        self._everyone = False
+        """Ask every node at the next look (``ask_everyone``)."""
 
     def nodes_changed(self) -> None:
         """A node came or went: the owner map is built again at the next look."""
         self._owners = None
 
+    def ask_everyone(self) -> None:
+        """[ours] At the next look every node sends the outputs the bus has not carried
+        yet: after a bus-off (firmware/faults.py) the outputs the host changed meanwhile
+        go out, as after any change."""
+        self._everyone = True
+
     def follow(self, outputs: bytes, nodes: Mapping[int, OutputSender]) -> None:
         """Send the PDOs of the nodes whose outputs changed since the last call, or wait."""
         last = self._last
         changed = outputs != last
-        if changed or self._waiting:
+        everyone, self._everyone = self._everyone, False
+        if changed or self._waiting or everyone:
             due = self._changed_nodes(outputs, last, nodes) if changed else set()
             due |= self._waiting
+            if everyone:
+                due |= set(nodes.values())
             self._waiting = {h for h in sorted(due, key=_address) if h.send_outputs()}
         self._last = outputs
 
