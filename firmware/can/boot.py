@@ -236,7 +236,7 @@ class BootSequence:
         [ours] The seed does not say what a refusal means. CiA 301 lets a node do without
         these objects (100Eh before 4.0 only, 1014h only with EMCY, 1005h only with SYNC) or
         keep them read-only, and such a node uses the predefined connection set's identifier:
-        so it may refuse the write of that default (80h, 80h + node-ID, 700h + node-ID),
+        so it may refuse the write of that default (700h + node-ID, 80h, 80h + node-ID),
         which it uses anyway. Any other value it must take, or its configuration fails (34,
         Prm_Fault): the card would send or expect frames the node does not.
         """
