@@ -8,8 +8,8 @@ a real bus, the card then shares nothing but the bus with them); on ``socketcan`
 
 Use it from a test module with ``pytest_plugins = ["tests.can_net"]`` and a ``make_net``
 argument: every test of the module then runs on each interface. The helpers (``Net``,
-``exchange``, ``candump``, ``start_sim``) are imported as usual. A helper module, not a test
-module: no test module imports another (tests/test_suite_rules.py).
+``exchange``, ``candump``, ``start_sim``, ``FrameWatch``, ``window``) are imported as usual.
+A helper module, not a test module: no test module imports another (tests/test_suite_rules.py).
 """
 
 from __future__ import annotations
@@ -18,10 +18,12 @@ import struct
 import subprocess
 import sys
 import threading
+import time
 import uuid
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
+import can
 import pytest
 
 from dbm_tools.network import load_network
@@ -30,6 +32,7 @@ from dpm.message import Message
 from dpm.task2 import ComDiagnostics
 from host_api import driver as d
 from host_api.board import Board
+from host_api.monitor.tap_bus import TapBus
 from host_api.online import configure_online
 from tests.buses import SOCKETCAN_CHANNEL, socketcan_missing
 from tests.conftest import Card, start_card, wait_until
@@ -47,6 +50,75 @@ def interface(request: pytest.FixtureRequest) -> str:
     return str(request.param)
 
 
+def window(seconds: float, why: str) -> None:
+    """Let ``seconds`` pass, where no event can end the wait: a time-out the card measures
+    has to run out, or a check that something does NOT happen needs a span to look at.
+    ``why`` says which, for the reader and for the failure message. Every other wait ends
+    on a condition (``wait_until``, ``FrameWatch.wait_for``)."""
+    until = time.monotonic() + seconds
+    wait_until(lambda: time.monotonic() > until, seconds + 1, why)
+
+
+def frame(ident: int, data: bytes | None = None,
+          remote: bool | None = None) -> Callable[[can.Message], bool]:
+    """A match for ``FrameWatch``: this identifier, and these data bytes or RTR bit if given."""
+    def match(msg: can.Message) -> bool:
+        return (msg.arbitration_id == ident and (data is None or bytes(msg.data) == data)
+                and (remote is None or msg.is_remote_frame == remote))
+    return match
+
+
+class FrameWatch:
+    """The frames the card sees, through its frame tap (what ``cifemu monitor`` shows), so a
+    wait ends on frames ("five guarding answers", "the whole EMCY burst"), not on time.
+
+    The card's tap learns a new subscriber at most every 0.1 s, and only while it publishes
+    frames (``firmware/can/tap.py``); so ``Net.watch`` returns once a first frame came
+    through (a simulated node's heartbeat, before the configuration too), and from then on
+    every frame is here.
+    """
+
+    def __init__(self, image: Path) -> None:
+        try:
+            self._bus = TapBus(image)
+        except can.CanInitializationError as exc:
+            pytest.fail(f"no frame tap: {exc}")
+        self._frames: list[can.Message] = []
+        self._lock = threading.Lock()
+        self._closed = threading.Event()
+        # A reader of its own: the card drops what a subscriber's socket cannot queue (a
+        # few datagrams, net.unix.max_dgram_qlen), so the tap is read all the time.
+        self._reader = threading.Thread(target=self._read, name="frame-watch", daemon=True)
+        self._reader.start()
+
+    def _read(self) -> None:
+        while not self._closed.is_set():
+            msg = self._bus.recv(0.05)
+            if msg is not None:
+                with self._lock:
+                    self._frames.append(msg)
+
+    def mark(self) -> int:
+        """Where the frames seen so far end: ``since`` for a later wait."""
+        with self._lock:
+            return len(self._frames)
+
+    def matching(self, match: Callable[[can.Message], bool], since: int = 0) -> list[can.Message]:
+        with self._lock:
+            return [msg for msg in self._frames[since:] if match(msg)]
+
+    def wait_for(self, match: Callable[[can.Message], bool], count: int, what: str,
+                 since: int = 0, timeout: float = 10) -> list[can.Message]:
+        """Wait until ``count`` frames that ``match`` came since the mark ``since``."""
+        wait_until(lambda: len(self.matching(match, since)) >= count, timeout, what)
+        return self.matching(match, since)
+
+    def close(self) -> None:
+        self._closed.set()
+        self._reader.join(5)
+        self._bus.shutdown()
+
+
 class Net:
     """A card with a simulated network, opened through ``Board``."""
 
@@ -55,6 +127,15 @@ class Net:
         self.board = board
         self.toml = toml
         self.channel = channel
+        self.watches: list[FrameWatch] = []
+
+    def watch(self) -> FrameWatch:
+        """A ``FrameWatch`` on the card's frames, closed with the card, once the tap sends it
+        frames (some node must produce heartbeats)."""
+        watch = FrameWatch(self.card.path)
+        self.watches.append(watch)
+        watch.wait_for(lambda msg: True, 1, "a first frame through the card's tap")
+        return watch
 
     def diag(self) -> ComDiagnostics:
         return self.board.diagnostics()
@@ -99,6 +180,8 @@ def make_net(tmp_path: Path, interface: str) -> Iterator[Callable[..., Net]]:
 
     yield make
     for net in opened:
+        for watch in net.watches:
+            watch.close()
         net.board.close()
         net.card.stop()
     for sim in sims:

@@ -33,7 +33,7 @@ from dpm.task2 import ComDiagnostics
 from host_api import driver as d
 from host_api.board import Board
 from host_api.online import configure_online
-from tests.can_net import GENERIC, Net, candump, exchange
+from tests.can_net import GENERIC, Net, candump, exchange, frame, window
 from tests.conftest import Card, start_card, wait_until
 
 pytest_plugins = ["tests.can_net"]
@@ -110,8 +110,7 @@ def test_download_errors(make_net: Callable[..., Net], messages: list[tuple[int,
 def test_download_sequence_timeout(make_net: Callable[..., Net]) -> None:
     net = make_net("")
     assert net.send(67, bytes([0, 4]) + struct.pack("<H", 20)).f == 0
-    started = time.monotonic()
-    wait_until(lambda: time.monotonic() - started > 0.05, what="the sequence timeout")
+    window(0.05, "the card's 20 ms sequence time-out to run out")
     assert net.send(68, bytes([0, 4, 0, 0]) + bytes(4)).f == 48
 
 
@@ -204,12 +203,13 @@ def test_emcy_collection_with_overflow(make_net: Callable[..., Net]) -> None:
     toml = ("[[node]]\nid = 5\n[node.sim]\n"
             "emcy_burst = { after_s = 0.5, count = 7, code = 0x2310, interval_s = 0.01 }\n")
     net = make_net(toml)
+    watch = net.watch()  # before the configuration: it sees every EMCY
     net.configure()
     net.wait_operating([5])
     wait_until(lambda: 5 in net.diag().diagnostic(), 5, "Nd_diag of node 5")
+    watch.wait_for(frame(0x85), 7, "the whole burst of 7 EMCYs")
+    assert net.sdo(5, 0x1000, 0).f == 0  # a marker: its answer comes after the burst
     wait_until(lambda: net.diag().operating() == [5], 5, "node 5 still exchanging data")
-    time_to_settle = time.monotonic() + 0.3
-    wait_until(lambda: time.monotonic() > time_to_settle, what="the whole burst")
     answer = net.send(66, bytes([5, 0, 0, 0, 0, 0, 5, 1]))
     diag = answer.data[8:]
     assert diag[0] & 0x02  # Emcy_Buff_Ovfl
@@ -400,8 +400,7 @@ transmission = 1
     net.configure()
     net.wait_operating([1])
     wait_until(lambda: exchange(net, b"\x5a" * 8) == b"\x5a" * 8, 5, "the synchronous echo")
-    recorded = time.monotonic() + 0.4
-    wait_until(lambda: time.monotonic() > recorded, what="0.4 s of SYNC traffic")
+    net.watch().wait_for(frame(0x080), 30, "30 SYNCs")
     net.card.stop()
     frames = candump(trace)
     syncs = [t for t, ident, _ in frames if ident == 0x080]
@@ -457,11 +456,12 @@ def test_sync_stops_while_the_host_is_not_ready(make_net: Callable[..., Net], tm
     if interface == "shm":
         wait_until(lambda: len(sync_timers(net.card)) == 1, 5, "only the spare")
     quiet_from = time.time() + 0.2  # the frames already on their way
-    wait_until(lambda: time.time() > quiet_from + 0.3, what="0.3 s of a stopped bus")
+    window(0.5, "0.3 s of a stopped bus to look at, after the frames on their way")
     quiet_to = time.time()
+    watch = net.watch()  # the node's heartbeats flow on
     assert d.DevSetHostState(0, d.HOST_READY, 2000) == 0
     resumed = time.time()
-    wait_until(lambda: time.time() > resumed + 1.0, what="SYNC again")
+    watch.wait_for(frame(0x080), 25, "SYNC again", since=watch.mark())
     net.card.stop()
     syncs = [t for t, ident, _ in candump(trace) if ident == 0x080]
     assert not [t for t in syncs if quiet_from <= t <= quiet_to]
@@ -682,19 +682,23 @@ def test_switching_error_control_at_run_time(make_net: Callable[..., Net]) -> No
     diag = net.send(66, bytes([1, 0, 0, 0, 0, 0, 5, 1])).data[8:]
     assert diag[0] & 0x08  # Guard_Active
     assert net.sdo(1, 0x100C, 0).data[8:10] == struct.pack("<H", 100)
-    started = time.monotonic()
-    wait_until(lambda: time.monotonic() - started > 2.0, what="the heartbeat to stop")
+    # Guarding on wrote 1017h = 0: the node's heartbeat stopped. Twenty guarding answers
+    # (2 s at 100 ms) outlast the old consumer time of 1 s.
+    watch = net.watch()
+    watch.wait_for(frame(0x701, remote=False), 20, "twenty guarding answers",
+                   since=watch.mark())
     assert net.diag().operating() == [1] and net.diag().bErr_event == 0  # guarded, not lost
 
 
 def test_emcy_consumer_off_ignores_emergencies(make_net: Callable[..., Net]) -> None:
     net = make_net("[[node]]\nid = 5\n[node.sim]\n"
                    "emcy_burst = { after_s = 1.5, count = 2, code = 0x2310 }\n")
+    watch = net.watch()  # before the configuration: it sees every EMCY
     net.configure()
     net.wait_operating([5])
     assert net.send(113, bytes([5, 0, 0, 0])).f == 0
-    started = time.monotonic()
-    wait_until(lambda: time.monotonic() - started > 2.0, what="the EMCY burst")
+    watch.wait_for(frame(0x85), 2, "the EMCY burst")
+    assert net.sdo(5, 0x1000, 0).f == 0  # a marker: its answer comes after the burst
     assert 5 not in net.diag().diagnostic()
     assert net.send(113, bytes([5, 1, 0, 0])).f == 0
 
@@ -713,10 +717,9 @@ def test_bootup_forwarding_and_master_heartbeat(make_net: Callable[..., Net],
     assert rc == 0 and indication is not None
     assert (indication.b, indication.data) == (117, b"\x01")
     net.wait_operating([1])
-    produced = time.monotonic() + 0.2
-    wait_until(lambda: time.monotonic() > produced, what="0.2 s of the master's heartbeat")
+    net.watch().wait_for(frame(0x764), 5, "five heartbeats of the master (0x700 + 100)")
     net.card.stop()
-    assert sum(ident == 0x764 for _, ident, _ in candump(trace)) >= 5  # 0x700 + 100
+    assert sum(ident == 0x764 for _, ident, _ in candump(trace)) >= 5
 
 
 def test_long_sdo_download_sequence_errors(make_net: Callable[..., Net]) -> None:
@@ -789,7 +792,8 @@ def test_transparent_reception_of_29_bit_frames(tmp_path: Path) -> None:
             assert indication.data[0] == 0x83  # extended frame, DLC 3
             assert int.from_bytes(indication.data[1:5], "big") >> 3 == 0x1ABC1234
             assert indication.data[5:8] == b"\x01\x02\x03"
-            assert d.DevGetMessage(0, 288, 300)[0] == Drv.DRV_DEV_GET_TIMEOUT  # 0x1234... not
+            # 0x12340000 went first: an indication of it would have come before this one
+            assert d.DevGetMessage(0, 288, 0)[0] == Drv.DRV_DEV_GET_NO_MESSAGE
     finally:
         sender.shutdown()
         card.stop()
@@ -806,8 +810,8 @@ def test_guarding_a_node_that_produced_heartbeats(make_net: Callable[..., Net]) 
     assert net.send(68, bytes([0, 3, 0, 0]) + params.encode()).f == 0
     assert net.send(68, bytes([0, 127, 0, 0, 2]) + struct.pack("<HH", 0x80, 0) + bytes(2)).f == 0
     net.wait_operating([3])
-    started = time.monotonic()
-    wait_until(lambda: time.monotonic() - started > 1.0, what="ten guard periods")
+    watch = net.watch()
+    watch.wait_for(frame(0x703, remote=False), 10, "ten guarding answers", since=watch.mark())
     assert net.diag().operating() == [3] and net.diag().bErr_event == 0
     assert net.send(66, bytes([3, 0, 0, 0, 0, 0, 5, 1])).data[8 + 5] == 5  # Node_State
 
@@ -818,8 +822,11 @@ def test_stopping_communication_removes_layer2_filters(make_net: Callable[..., N
     assert net.send(82, bytes([0x09, 0x07])).f == 0  # node 9's heartbeat, 0x709
     rc, indication = d.DevGetMessage(0, 288, 3000)
     assert rc == 0 and indication is not None and indication.b == 83
+    watch = net.watch()
     assert d.DevSetHostState(0, d.HOST_NOT_READY, 2000) == 0  # seed 5.3.2.1: filters go
     assert d.DevSetHostState(0, d.HOST_READY, 2000) == 0
     while d.DevGetMessage(0, 288, 0)[0] == 0:  # what was queued before the stop
         pass
-    assert d.DevGetMessage(0, 288, 1500)[0] == Drv.DRV_DEV_GET_TIMEOUT  # three heartbeats later
+    # Three heartbeats of node 9 later: an indication of the first two would be here.
+    watch.wait_for(frame(0x709), 3, "three heartbeats of node 9", since=watch.mark())
+    assert d.DevGetMessage(0, 288, 0)[0] == Drv.DRV_DEV_GET_NO_MESSAGE

@@ -13,7 +13,8 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 
-TASKS = ("task", "rcs", "plc", "can_task", "card_info", "flash", "card", "whole_card")
+TASKS = ("task", "rcs", "plc", "can_task", "can_download", "can_diagnosis", "can_host_sdo",
+         "can_bus_access", "can_gateway", "card_info", "flash", "card", "whole_card")
 """The tasks and what a start reaches: none of them may name the device."""
 
 

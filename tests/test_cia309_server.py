@@ -355,6 +355,23 @@ def test_cli_serve_exec_and_shell(servers: dict[str, BackgroundServer], director
         card.stop()
 
 
+def test_cli_net_n_is_the_309_network_and_network_n_still_works_with_a_warning(
+        directory: Path) -> None:
+    """Issue 21: ``--network`` names a NETWORK.toml in every other command, so the 309
+    network is ``--net N`` (board N-1); the first spelling still works, and says so."""
+    card = start(directory, 1, None)
+    version = VERSION.replace(" 1 3 ", " 2 3 ")  # board 1: serial 2
+    try:
+        for option, warned in (("--net", False), ("--network", True)):
+            done = subprocess.run(cifemu("exec", "--direct", option, "2", "--dpm-dir",
+                                         str(directory), "info version"),
+                                  capture_output=True, text=True, timeout=30)
+            assert (done.returncode, done.stdout) == (0, f"[1] {version}\n"), option
+            assert ("--network N is deprecated, use --net N" in done.stderr) == warned
+    finally:
+        card.stop()
+
+
 def test_cli_exec_answers_errors_and_json(servers: dict[str, BackgroundServer]) -> None:
     """Issue 14: ``exec help`` succeeds; a syntax error says what was wrong; ``--json``
     gives answers and errors as one object; no server names host:port and the way out."""

@@ -15,6 +15,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 import can
+import pytest
 
 from dbm_tools.network import parse_network
 from dbm_tools.parameters import NdFlag, NodeParameterSet, PdoData
@@ -315,6 +316,65 @@ sdo_abort = { "1017:0" = 0x06010002 }
     assert net.diag().bErr_event == 0
     answer = net.send(66, struct.pack("<BBHBBBB", 1, 0, 0, 0, 0, 0, 1))
     assert answer.f == 0 and not answer.data[8] & 0x04  # Nodestatus_1: no Prm_Fault
+
+
+def boot_outcome(net: Net, node: int) -> int:
+    """Configure the network from its TOML (``configure_online``) and wait for ``node`` to
+    end its first boot-up: 0 in data exchange, else its Err_Event (seed 4.3)."""
+    net.configure()
+    wait_until(lambda: net.diag().operating() == [node] or actual_error(net, node) != 0, 15,
+               f"node {node}'s boot-up to end")
+    return actual_error(net, node)
+
+
+def prm_fault(net: Net, node: int) -> bool:
+    """Nodestatus_1's Prm_Fault in the node's COM_Node_Diag answer (seed 5.2.7)."""
+    answer = net.send(66, struct.pack("<BBHBBBB", node, 0, 0, 0, 0, 0, 1))
+    assert answer.f == 0
+    return bool(answer.data[8] & 0x04)
+
+
+def test_a_heartbeat_node_refusing_1017h_boots_from_its_network_description(
+        make_net: Callable[..., Net]) -> None:
+    """The same node configured from a network description: the builder puts 1017h = half
+    the consumer time into its SDO list, and that write's abort is tolerated as well
+    ([ours], firmware/can/boot.py: the card consumes the heartbeat, whoever writes 1017h)."""
+    net = make_net("""[[node]]
+id = 1
+heartbeat_ms = 1000
+[node.sim]
+sdo_abort = { "1017:0" = 0x06010002 }
+""")
+    assert boot_outcome(net, 1) == 0
+    assert not prm_fault(net, 1)
+
+
+@pytest.mark.parametrize("refused", ["1005:0", "1014:0"])
+def test_a_node_refusing_the_default_sync_or_emcy_cob_id_still_boots(
+        make_net: Callable[..., Net], refused: str) -> None:
+    """[ours] A node without 1005h/1014h, or with them read-only, uses the CiA 301 defaults
+    80h and 80h + node-ID: a refused write of that default is no configuration failure."""
+    net = make_net(f"""[[node]]
+id = 1
+[node.sim]
+sdo_abort = {{ "{refused}" = 0x06010002 }}
+""")
+    assert boot_outcome(net, 1) == 0
+    assert not prm_fault(net, 1)
+
+
+def test_a_node_refusing_another_emcy_cob_id_fails_its_configuration(
+        make_net: Callable[..., Net]) -> None:
+    """The other side of the rule: a COB-ID other than the default must be taken, or the
+    card would expect EMCY frames the node never sends: 34 with Prm_Fault."""
+    net = make_net("""[[node]]
+id = 1
+emcy_cob_id = 0x0A1
+[node.sim]
+sdo_abort = { "1014:0" = 0x06010002 }
+""")
+    assert boot_outcome(net, 1) == 34
+    assert prm_fault(net, 1)
 
 
 # --- 12: auto-clear and a node that never booted ---------------------------------------------

@@ -1,6 +1,6 @@
 """cifemu 309: the CiA 309-3 ASCII gateway on the card's networks (network N = board N-1).
 
-  cifemu 309 serve [--host 127.0.0.1] [--port 60000] [--board N | --network N ...]
+  cifemu 309 serve [--host 127.0.0.1] [--port 60000] [--board N | --net N ...]
                    [--dialect canopennode|lely] [--read-only] [--max-clients N] [--max-line N]
                    [--idle-timeout S] [--line-timeout S] [--max-output N]
   cifemu 309 exec '[1] 4 read 0x1017 0 u16'     one request to a running server
@@ -139,13 +139,30 @@ def _seconds(text: str) -> float:
     return value
 
 
+class _NetworkMeansNet(argparse.Action):
+    """``--network N``, the first spelling of ``--net N``: still taken, with a warning.
+
+    Every other command's ``--network`` names a network description (NETWORK.toml); here it
+    named a CiA 309 network number, so it became ``--net``, the 309-3 requests' ``[net]``.
+    """
+
+    def __call__(self, parser: argparse.ArgumentParser, namespace: argparse.Namespace,
+                 values: object, option_string: str | None = None) -> None:
+        print("cifemu 309: --network N is deprecated, use --net N (elsewhere --network "
+              "names a NETWORK.toml)", file=sys.stderr)
+        setattr(namespace, self.dest, [*(getattr(namespace, self.dest, None) or []), values])
+
+
 def _card_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--board", type=int, action="append", default=[],
                         choices=range(MAX_DEV_BOARDS), metavar="N",
                         help="board to serve, 0..3 (repeatable; default 0)")
-    parser.add_argument("--network", type=int, action="append", default=[],
+    parser.add_argument("--net", type=int, action="append", default=[],
                         choices=range(1, MAX_DEV_BOARDS + 1), metavar="N",
-                        help="network to serve, 1..4 = board N-1 (repeatable)")
+                        help="CiA 309 network to serve, 1..4 = board N-1 (repeatable)")
+    parser.add_argument("--network", type=int, action=_NetworkMeansNet, dest="net",
+                        choices=range(1, MAX_DEV_BOARDS + 1), metavar="N",
+                        help="deprecated spelling of --net")
     parser.add_argument("--dpm-dir", default=None, metavar="DIR",
                         help="directory of the images (default $CIF_DPM_DIR or /dev/shm/cif)")
     parser.add_argument("--dialect", type=Dialect, choices=list(Dialect),
@@ -195,7 +212,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _boards(args: argparse.Namespace) -> list[int]:
-    boards = set(args.board) | {network - 1 for network in args.network}
+    boards = set(args.board) | {net - 1 for net in args.net}
     return sorted(boards) or [0]
 
 

@@ -24,6 +24,7 @@ from canopen.sdo.client import SdoClient
 from canopen.sdo.exceptions import SdoAbortedError, SdoCommunicationError
 
 from dbm_tools.parameters import ConfigNdState, NodeParameterSet
+from dpm.cia301 import COB_ID_SYNC, EMCY_BASE, ERROR_CONTROL_BASE
 from dpm.com import NodeDiagnosis, NodeStatus
 from dpm.commands import NMT_RESET_NODE as NMT_RESET
 from dpm.commands import NMT_START
@@ -38,6 +39,8 @@ BOOTUP_TIMEOUT = 3.0
 """[ours] seconds a reset node has to answer: its boot-up message, or 1000h read."""
 RESET_GRACE = 1.0
 """[ours] seconds the card waits after a reset for a boot-up message before it reads 1000h."""
+HEARTBEAT_PRODUCER = 0x1017
+"""CiA 301's producer heartbeat time, which only the node's own heartbeat depends on."""
 
 
 class BootLink(Protocol):
@@ -160,30 +163,30 @@ class BootSequence:
         if not skip & ConfigNdState.GUARD:
             if self._heartbeat():
                 if params.usGuardTime:
-                    # [ours] the node produces at half the master's consumer time. The card
-                    # only consumes heartbeats (seed 5.2.5.1.1): a node whose 1017h is not
-                    # writable produces at its own rate, and supervision judges that: too
-                    # slow is 30, none at all too.
-                    with contextlib.suppress(SdoAbortedError):
-                        sdo.download(0x1017, 0,
-                                     struct.pack("<H", max(1, params.usGuardTime // 2)))
+                    # [ours] the node produces at half the master's consumer time.
+                    self._write_producer_time(
+                        sdo, struct.pack("<H", max(1, params.usGuardTime // 2)))
             else:
                 if params.usGuardTime:
                     # CiA 301: a node that produces heartbeats does not answer guarding;
                     # switch its producer off (a node without 1017h may refuse: fine).
                     with contextlib.suppress(SdoAbortedError):
-                        sdo.download(0x1017, 0, b"\0\0")
+                        sdo.download(HEARTBEAT_PRODUCER, 0, b"\0\0")
                 sdo.download(0x100C, 0, struct.pack("<H", params.usGuardTime))
                 sdo.download(0x100D, 0, struct.pack("<B", params.bLifeTimeFactor))
-                self._write_guard_cob_id(sdo)
+                self._write_cob_id(sdo, 0x100E, params.usCobIDGuard,
+                                   ERROR_CONTROL_BASE + self.address)
         if not skip & ConfigNdState.SYNC:
-            sdo.download(0x1005, 0, struct.pack("<I", link.sync_cob_id))
+            self._write_cob_id(sdo, 0x1005, link.sync_cob_id, COB_ID_SYNC)
         if not skip & ConfigNdState.EMCY:
-            sdo.download(0x1014, 0, struct.pack("<I", params.usCobIDEmcy))
+            self._write_cob_id(sdo, 0x1014, params.usCobIDEmcy, EMCY_BASE + self.address)
         if not skip & ConfigNdState.SDO:
             for entry in params.atSdoCfgData:
-                sdo.download(entry.usIndex, entry.bSubindex,
-                             bytes(entry.abSdoValue[: entry.bLength]))
+                value = bytes(entry.abSdoValue[: entry.bLength])
+                if (entry.usIndex, entry.bSubindex) == (HEARTBEAT_PRODUCER, 0):
+                    self._write_producer_time(sdo, value)
+                else:
+                    sdo.download(entry.usIndex, entry.bSubindex, value)
         if not skip & ConfigNdState.START and not link.global_start and not link.nodes_stopped:
             link.send_nmt(NMT_START, self.address)
 
@@ -206,16 +209,44 @@ class BootSequence:
                     self.diag.status |= NodeStatus.NO_RESPONSE
                     raise BootFailure(NodeEvent.NO_RESPONSE) from None
 
-    def _write_guard_cob_id(self, sdo: SdoClient) -> None:
-        """usCobIDGuard into the node's COB-ID guarding object 100Eh (seed 4.2: written into
-        the node's object directory during its start-up; CiA 301 before 4.0 defines 100Eh).
-        [ours] A node without 100Eh may refuse the default 700h + node-ID, which it uses
-        anyway; it must take any other value, or its configuration fails (34, Prm_Fault)."""
+    def _write_producer_time(self, sdo: SdoClient, value: bytes) -> None:
+        """1017h, the node's producer heartbeat time: from the GUARD step or the SDO list.
+
+        [ours] The card only consumes heartbeats (seed 5.2.5.1.1: with HRTBT, usGuardTime
+        is the time "the DEVICE will wait as Consumer"); what rate the node produces at is
+        the node's. So for a node whose heartbeat the card consumes, a refused write of 1017h
+        is no configuration failure, wherever the write comes from: the node produces at its
+        own rate, and supervision judges that (too slow, or none at all, is 30). For any other
+        node, a 1017h entry of the SDO list is the host's like every other: refused, 34 with
+        Prm_Fault.
+        """
         try:
-            sdo.download(0x100E, 0, struct.pack("<I", self.params.usCobIDGuard))
-        except SdoAbortedError:
-            if self.params.usCobIDGuard != 0x700 + self.address:
+            sdo.download(HEARTBEAT_PRODUCER, 0, value)
+        except SdoAbortedError as exc:
+            if not (self._heartbeat() and self.params.usGuardTime):
                 raise
+            log.info("node %d: 1017h refused (0x%08X); it produces at its own rate",
+                     self.address, exc.code)
+
+    def _write_cob_id(self, sdo: SdoClient, index: int, cob_id: int, default: int) -> None:
+        """A COB-ID the boot-up writes: 100Eh (usCobIDGuard), 1005h (the SYNC COB-ID), 1014h
+        (usCobIDEmcy); seed 4.2 and 5.2.5.1.1: written "into the node object directory during
+        its startup".
+
+        [ours] The seed does not say what a refusal means. CiA 301 lets a node do without
+        these objects (100Eh before 4.0 only, 1014h only with EMCY, 1005h only with SYNC) or
+        keep them read-only, and such a node uses the predefined connection set's identifier:
+        so it may refuse the write of that default (700h + node-ID, 80h, 80h + node-ID),
+        which it uses anyway. Any other value it must take, or its configuration fails (34,
+        Prm_Fault): the card would send or expect frames the node does not.
+        """
+        try:
+            sdo.download(index, 0, struct.pack("<I", cob_id))
+        except SdoAbortedError as exc:
+            if cob_id != default:
+                raise
+            log.info("node %d: %04Xh refused (0x%08X); it uses the default %03Xh",
+                     self.address, index, exc.code, default)
 
     def _on_sdo_response(self, msg: can.Message) -> None:
         """Notes a response of the wrong length; canopen's client never sees it (``CanBus``)."""

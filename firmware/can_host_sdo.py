@@ -1,0 +1,143 @@
+"""COM_SDO_Up_Download: the host's SDO transfers through the card, long ones too.
+
+Why a module of its own: it is the one CAN-task message whose answer comes later, from the
+SDO channel's worker, and the one that gathers a request over several messages (seed 5.2.8;
+the long transfers with msg.e in docs/card-commands.md). It owns the parts of a long
+download while they come in; the transfer on the bus is ``firmware.can.sdo``'s.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+from dpm.com import encode_sdo_abort
+from dpm.commands import COM_SDO_UP_DOWNLOAD, LONG_SDO_LIMIT, SDO_MAX_DATA
+from dpm.errors import CanF
+from dpm.message import Ext, Message, MessageError, TelegramHeader, Tfc
+from firmware.can.node import State
+from firmware.can.sdo import HostSdoTransfer, SdoResult
+from firmware.card import Card
+from firmware.task import Handler
+
+if TYPE_CHECKING:
+    from firmware.can.master import Master
+
+
+class HostSdo:
+    """COM_SDO_Up_Download over the master's SDO channels; answers go out by ``Card.post``."""
+
+    def __init__(self, card: Card, master: Master) -> None:
+        self.card = card
+        self.master = master
+        self._long_download: dict[int, tuple[TelegramHeader, bytearray]] = {}
+
+    def handlers(self) -> dict[int, Handler]:
+        return {COM_SDO_UP_DOWNLOAD: self.com_sdo_up_download}
+
+    def reset(self) -> None:
+        """A start forgets the parts of every long download."""
+        self._long_download.clear()
+
+    def com_sdo_up_download(self, msg: Message) -> Message | None:
+        try:
+            head = TelegramHeader.decode(msg.data)
+        except MessageError:
+            return msg.answer(f=CanF.FAULTY_PARAMETER)
+        address = head.device_adr
+        if not 1 <= address <= 127:
+            return msg.answer(f=CanF.FAULTY_PARAMETER, data=msg.data[:8])
+        if head.function not in (Tfc.READ, Tfc.WRITE):
+            return msg.answer(f=CanF.SDO_FUNCTION, data=msg.data[:8])
+        if not self.master.nmt.running or self.master.bus is None:
+            return msg.answer(f=CanF.NOT_CONFIGURED, data=msg.data[:8])
+        if head.function == Tfc.WRITE and len(head.payload) != head.data_cnt:
+            return msg.answer(f=CanF.SDO_BUFFER, data=msg.data[:8])
+        # [ours] Only e 4, 8 and 0x0C mark a long transfer (docs/card-commands.md), and an
+        # upload gets several answers only when asked with e 4: a request as the seed writes
+        # it (e 0) gets the seed's single answer, and other bits in e change nothing.
+        long_upload = head.function == Tfc.READ and msg.e == Ext.FIRST
+        if msg.e in (Ext.FIRST, Ext.CONT, Ext.LAST) and not long_upload:
+            if head.function != Tfc.WRITE:
+                return msg.answer(f=CanF.SEQUENCE, data=msg.data[:8])
+            gathered = self._gather(msg, head)
+            if isinstance(gathered, Message):
+                return gathered
+            head = gathered
+        handler = self.master.nodes.get(address)
+        if handler is not None and handler.state is State.BOOTING:
+            return msg.answer(f=CanF.NODE_BUSY, data=msg.data[:8])
+        client = self.master.sdo.channel(address)
+        if not client.lock.acquire(blocking=False):
+            return msg.answer(f=CanF.SDO_FUNCTION, data=msg.data[:8])
+        if handler is not None:
+            handler.host_sdo = True  # seed 5.2.8: the node's RX-PDOs wait meanwhile
+
+        def done(result: SdoResult) -> None:
+            if handler is not None:
+                handler.host_sdo = False
+            client.lock.release()
+            self._answer_sdo(msg, head, result, long_upload)
+
+        self.master.sdo.start_host(HostSdoTransfer(
+            self.master.bus, address, head.data_adr, head.data_idx,
+            None if head.function == Tfc.READ else head.payload,
+            client.sdo.RESPONSE_TIMEOUT, done))
+        return None
+
+    def _gather(self, msg: Message, head: TelegramHeader) -> Message | TelegramHeader:
+        """One part of a long SDO download: an answer now, or the whole request at the end."""
+        sequence = msg.e & Ext.SEQ_MASK
+        address = head.device_adr
+        key = (head.device_adr, head.data_adr, head.data_idx)
+        if sequence == Ext.FIRST:
+            self._long_download[address] = (head, bytearray(head.payload))
+        else:
+            first = self._long_download.get(address)
+            if first is None or (first[0].device_adr, first[0].data_adr, first[0].data_idx) != key:
+                self._long_download.pop(address, None)
+                return msg.answer(f=CanF.SEQUENCE, data=msg.data[:8])
+            first[1].extend(head.payload)
+        data = self._long_download[address][1]
+        if len(data) > LONG_SDO_LIMIT:
+            self._long_download.pop(address, None)
+            return msg.answer(f=CanF.BUFFER_LENGTH, data=msg.data[:8])
+        if sequence != Ext.LAST:
+            head.data_cnt = 0
+            head.payload = b""
+            return msg.answer(data=head.encode())
+        del self._long_download[address]
+        return TelegramHeader(head.device_adr, 0, head.data_adr, head.data_idx, 0, 0,
+                              Tfc.WRITE, bytes(data))
+
+    def _answer_sdo(self, msg: Message, head: TelegramHeader, result: SdoResult,
+                    long_upload: bool) -> None:
+        """The answer to a finished host transfer (several messages for a long upload)."""
+        answer_head = TelegramHeader(head.device_adr, 0, head.data_adr, head.data_idx, 0, 0,
+                                     head.function)
+        if result.timed_out:
+            answer = msg.answer(f=CanF.NO_RESPONSE, data=answer_head.encode())
+        elif result.abort is not None:
+            answer = msg.answer(f=CanF.SDO_ABORT, data=encode_sdo_abort(answer_head, result.abort))
+        elif head.function == Tfc.READ and len(result.data) > LONG_SDO_LIMIT:
+            answer = msg.answer(f=CanF.SDO_BUFFER, data=answer_head.encode())
+        elif head.function == Tfc.READ and len(result.data) > SDO_MAX_DATA:
+            if not long_upload:  # seed 5.2.8: one answer of at most 247 bytes, else f 51
+                answer = msg.answer(f=CanF.SDO_BUFFER, data=answer_head.encode())
+            else:
+                self._post_long_upload(msg, answer_head, result.data)
+                return
+        else:
+            if head.function == Tfc.READ:
+                answer_head.data_cnt = len(result.data)
+                answer_head.payload = result.data
+            answer = msg.answer(data=answer_head.encode())
+        self.card.post(answer)
+
+    def _post_long_upload(self, msg: Message, head: TelegramHeader, data: bytes) -> None:
+        """More than one message of upload data: first, continue ..., last (msg.e)."""
+        parts = [data[i : i + SDO_MAX_DATA] for i in range(0, len(data), SDO_MAX_DATA)]
+        for n, part in enumerate(parts):
+            e = Ext.FIRST if n == 0 else Ext.LAST if n == len(parts) - 1 else Ext.CONT
+            head.data_cnt = len(part)
+            head.payload = part
+            self.card.post(msg.answer(data=head.encode(), e=e))
