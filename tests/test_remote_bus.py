@@ -42,6 +42,13 @@ pytestmark = pytest.mark.skipif(
 NODES = [1, 2]
 NETWORK = "".join(f"[[node]]\nid = {n}\nheartbeat_ms = 600\n" for n in NODES)
 """Heartbeat consumers of 600 ms: lost quickly after a kill, not by a busy machine."""
+UNSUPERVISED = '[[node]]\nid = 1\nerror_control = "none"\n'
+"""A node without error control: nothing tells the card it was away, so nothing boots it
+again and no boot-up sends its outputs; only the card's own resend can."""
+RESENT_S = 5.0
+"""The bound on the outputs' resend once the server listens again: the card tries to open
+the link every second (``REOPEN_S``), then sends at its next tick; the rest is margin for a
+loaded machine."""
 SERVER_START_S = 20.0
 LISTENING = re.compile(rb"Connect using channel '(ws://[^']+)'")
 
@@ -132,9 +139,11 @@ class Bench:
 
 
 @pytest.fixture
-def bench(tmp_path: Path) -> Iterator[Bench]:
+def bench(tmp_path: Path, request: pytest.FixtureRequest) -> Iterator[Bench]:
+    """The three processes on ``NETWORK``, or on the description a test gives as the
+    fixture's parameter (``indirect``)."""
     network = tmp_path / "network.toml"
-    network.write_text(NETWORK)
+    network.write_text(getattr(request, "param", NETWORK))
     channel = f"remote-{uuid.uuid4().hex}"
     server = start_remote_server(channel)
     made: Bench | None = None
@@ -229,3 +238,32 @@ def test_a_lost_link_is_a_bus_off_and_the_card_reconnects(bench: Bench) -> None:
                "the nodes back in data exchange over the reopened link")
     wait_until(lambda: bench.board.exchange_io(b"\x66", receive_size=1) == b"\x66", 3,
                "node 1 to echo the outputs over the reopened link")
+
+
+@pytest.mark.parametrize("bench", [UNSUPERVISED], indirect=True)
+def test_outputs_written_while_the_link_is_down_go_out_when_it_is_back(bench: Bench) -> None:
+    """Issue 26: the host writes a new output while the server is away. The PDO cannot go
+    (Msg_Time_Out), and event-driven PDOs go on change only, so before the fix the node
+    kept its old outputs for good while the host believed its new ones went out. Once the
+    link is back the card sends every running node's outputs again: node 1's echo shows the
+    new value without the host writing anything more (it only reads its inputs)."""
+    configure_online(bench.board, load_network(bench.network))
+    wait_until(lambda: bench.board.diagnostics().operating() == [1], 15,
+               "node 1 in data exchange")
+    wait_until(lambda: bench.board.exchange_io(b"\x11", receive_size=1) == b"\x11", 3,
+               "node 1 to echo the first output")
+    before = bench.board.diagnostics()
+    port = bench.server.port
+    bench.server.proc.send_signal(signal.SIGKILL)
+    bench.server.proc.wait(timeout=10)
+    wait_until(lambda: bench.board.diagnostics().usBus_Off_Cnt == before.usBus_Off_Cnt + 1, 5,
+               "the lost link counted as a bus-off")
+    assert bench.board.exchange_io(b"\x77", receive_size=1) == b"\x11"
+    wait_until(lambda: bench.board.diagnostics().usMsg_Time_Out > before.usMsg_Time_Out, 5,
+               "the output PDO not sent while the link is down (Msg_Time_Out)")
+    bench.server = start_remote_server(bench.channel, port)
+    wait_until(lambda: bench.board.exchange_io(receive_size=1) == b"\x77", RESENT_S,
+               "node 1 to echo the output written while the link was down, unwritten since")
+    diag = bench.board.diagnostics()
+    assert diag.operating() == [1] and diag.bErr_event == 0
+

@@ -241,6 +241,8 @@ class CanBus(can.Listener):
         """SDO response identifiers kept from canopen's network (see ``hold_from_canopen``)."""
         self.on_error_frame: Callable[[can.Message], None] = lambda msg: None
         self.on_send_timeout: Callable[[], None] = lambda: None
+        self.on_link_back: Callable[[], None] = lambda: None
+        """Called once a lost link is open again (``on_error``), from the reopening thread."""
         self._trace: can.Listener | None = can.Logger(str(trace)) if trace else None
         self._tap = TapPublisher(tap) if tap else None
         self._lost = threading.Event()
@@ -320,9 +322,10 @@ class CanBus(can.Listener):
         ``recv`` returns nothing from a closed connection). No error frame tells it.
 
         [ours] The host sees a bus-off (Bus_Off_Cnt, EVE): the controller is off the bus.
-        The interface is opened again every ``REOPEN_S`` until it is back, and the nodes'
-        supervision does the rest. python-can's receive thread would call ``recv`` again at
-        once; the reopening thread stops it (it cannot stop itself)."""
+        The interface is opened again every ``REOPEN_S`` until it is back; then
+        ``on_link_back`` (the master sends every running node's outputs again) and the
+        nodes' supervision do the rest. python-can's receive thread would call ``recv``
+        again at once; the reopening thread stops it (it cannot stop itself)."""
         with self._lock:  # the receive thread and every sending thread may get here
             if self._lost.is_set() or self._closed.is_set():
                 return
@@ -386,6 +389,7 @@ class CanBus(can.Listener):
             self._notifier = can.Notifier(bus, [self], timeout=0.1)
             self._lost.clear()
             log.warning("CAN interface %s channel %s is back", self.interface, self.channel)
+            self.on_link_back()
             return
 
     def _is_echo(self, msg: can.Message) -> bool:
@@ -405,8 +409,13 @@ class CanBus(can.Listener):
         """Send one frame; False (and Msg_Time_Out counted) when it could not go out.
 
         [ours] Off the bus (``set_bus_off``) nothing goes out and nothing is counted: the
-        controller is not waiting for an acknowledge, it knows it is off."""
+        controller is not waiting for an acknowledge, it knows it is off. A lost link not
+        open again (``on_error``) counts every frame: the client it had may take one without
+        a word (python-can-remote's closed websocket drops it), and the frame is lost."""
         if self.off_bus:
+            return False
+        if self._lost.is_set():
+            self.on_send_timeout()
             return False
         if remote and self.interface in NO_REMOTE_FRAME_INTERFACES:
             if not self._refused_remote:

@@ -99,6 +99,7 @@ class Master:
                           cfg.options)
         self.bus.on_error_frame = self._on_error_frame
         self.bus.on_send_timeout = self._on_send_timeout
+        self.bus.on_link_back = lambda: self.outputs.ask_everyone(force=True)
         self.bus.subscribe_all(self.layer2.on_frame)
         self.sdo.open(self.bus)
         self._tick_thread = threading.Thread(target=self._tick_loop, name="can-tick", daemon=True)

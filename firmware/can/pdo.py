@@ -10,6 +10,7 @@ to call ``NodePdos.send_outputs`` seldom enough.
 
 from __future__ import annotations
 
+import threading
 import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
@@ -235,28 +236,45 @@ class OutputWatch:
         self._last = b""
         self._everyone = False
         """Ask every node at the next look (``ask_everyone``)."""
+        self._force = False
+        """... to send all its outputs, carried or not (``ask_everyone(force=True)``)."""
+        self._ask_lock = threading.Lock()
+        """``ask_everyone`` comes from other threads (a fault, the controller's reopening):
+        a request taken while it is being made would be lost, and with it the outputs."""
 
     def nodes_changed(self) -> None:
         """A node came or went: the owner map is built again at the next look."""
         self._owners = None
 
-    def ask_everyone(self) -> None:
-        """[ours] At the next look every node sends the outputs the bus has not carried
-        yet: after a bus-off (firmware/faults.py) the outputs the host changed meanwhile
-        go out, as after any change."""
-        self._everyone = True
+    def ask_everyone(self, force: bool = False) -> None:
+        """[ours] At the next look every running node sends the outputs the bus has not
+        carried yet: after a bus-off (firmware/faults.py) the outputs the host changed
+        meanwhile go out, as after any change.
+
+        ``force``: all its outputs, as after a host's start (``send_outputs(force=True)``):
+        after a bridge's link came back (``CanBus.on_link_back``). The card cannot know
+        which of its frames crossed: a frame the client wrote into a connection whose peer
+        was already gone was taken without an error and lost, and one refused meanwhile is
+        not sent again on its own (event-driven PDOs go on change only). Without this the
+        node would run on stale outputs while the host believes its outputs went out."""
+        with self._ask_lock:
+            self._force = self._force or force
+            self._everyone = True
 
     def follow(self, outputs: bytes, nodes: Mapping[int, OutputSender]) -> None:
         """Send the PDOs of the nodes whose outputs changed since the last call, or wait."""
         last = self._last
         changed = outputs != last
-        everyone, self._everyone = self._everyone, False
+        with self._ask_lock:
+            everyone, self._everyone = self._everyone, False
+            force, self._force = self._force, False
         if changed or self._waiting or everyone:
             due = self._changed_nodes(outputs, last, nodes) if changed else set()
             due |= self._waiting
             if everyone:
                 due |= set(nodes.values())
-            self._waiting = {h for h in sorted(due, key=_address) if h.send_outputs()}
+            self._waiting = {h for h in sorted(due, key=_address)
+                             if h.send_outputs(force=force)}
         self._last = outputs
 
     def _changed_nodes(self, outputs: bytes, before: bytes,
