@@ -14,6 +14,7 @@ import importlib.util
 import queue
 import re
 import signal
+import socket
 import struct
 import subprocess
 import sys
@@ -30,6 +31,14 @@ from dbm_tools.network import GENERIC_DEVICE_TYPE, load_network
 from dpm.commands import COM_SDO_UP_DOWNLOAD
 from dpm.message import Message, Task
 from dpm.task2 import CanState, GlobalBits
+from firmware.can.bus import (
+    KEEPALIVE_IDLE_S,
+    KEEPALIVE_INTERVAL_S,
+    KEEPALIVE_PROBES,
+    LINK_DEAD_S,
+    CanBus,
+    stream_of,
+)
 from firmware.shm.bus import channel_path
 from host_api.board import Board
 from host_api.online import configure_online
@@ -267,3 +276,31 @@ def test_outputs_written_while_the_link_is_down_go_out_when_it_is_back(bench: Be
     diag = bench.board.diagnostics()
     assert diag.operating() == [1] and diag.bErr_event == 0
 
+
+def test_the_bridge_connection_is_probed_by_tcp_keep_alive(tmp_path: Path) -> None:
+    """The card's controller sets TCP keep-alive and a user time-out on the websocket's
+    connection (``keep_alive``), so that a peer gone without a word is a bus-off within
+    ``LINK_DEAD_S``. What is checked is the options on the real connection (getsockopt), not
+    a pulled cable: on loopback the kernel answers every probe itself for the peer, and
+    silencing it (a packet filter, netem, a network namespace) needs what this machine's
+    kernel or the suite lacks. In process, to reach the socket."""
+    channel = f"remote-{uuid.uuid4().hex}"
+    server = start_remote_server(channel)
+    try:
+        bus = CanBus("remote", server.url)
+        try:
+            stream = stream_of(bus.bus)
+            assert stream is not None, "python-can-remote's connection not found"
+            assert stream.getsockopt(socket.SOL_SOCKET, socket.SO_KEEPALIVE) == 1
+            assert stream.getsockopt(socket.IPPROTO_TCP, socket.TCP_KEEPIDLE) == KEEPALIVE_IDLE_S
+            assert (stream.getsockopt(socket.IPPROTO_TCP, socket.TCP_KEEPINTVL)
+                    == KEEPALIVE_INTERVAL_S)
+            assert stream.getsockopt(socket.IPPROTO_TCP, socket.TCP_KEEPCNT) == KEEPALIVE_PROBES
+            assert (stream.getsockopt(socket.IPPROTO_TCP, socket.TCP_USER_TIMEOUT)
+                    == LINK_DEAD_S * 1000)
+            assert LINK_DEAD_S <= 5, "docs/remote-bus.md promises a dead peer within ~5 s"
+        finally:
+            bus.shutdown()
+    finally:
+        server.stop()
+        channel_path(channel).unlink(missing_ok=True)

@@ -27,7 +27,14 @@ import pytest
 
 from dbm_tools.network import load_network
 from dpm.task2 import ComDiagnostics, GlobalBits
-from firmware.can.bus import CanBus
+from firmware.can.bus import (
+    KEEPALIVE_IDLE_S,
+    KEEPALIVE_INTERVAL_S,
+    KEEPALIVE_PROBES,
+    LINK_DEAD_S,
+    CanBus,
+    stream_of,
+)
 from host_api.board import Board
 from host_api.online import configure_online
 from tests.conftest import TIME_SCALE, start_card, wait_until
@@ -160,5 +167,45 @@ def test_no_remote_frame_goes_to_socketcand(server: SocketcandStandIn) -> None:
         while not received.endswith(b">"):
             received += connection.recv(256)
         assert received == b"< send 123 1 1 >"
+    finally:
+        bus.shutdown()
+
+
+def _probed(stream: socket.socket) -> tuple[int, int, int, int, int]:
+    """The connection's keep-alive and user time-out, as the system reports them."""
+    return (stream.getsockopt(socket.SOL_SOCKET, socket.SO_KEEPALIVE),
+            stream.getsockopt(socket.IPPROTO_TCP, socket.TCP_KEEPIDLE),
+            stream.getsockopt(socket.IPPROTO_TCP, socket.TCP_KEEPINTVL),
+            stream.getsockopt(socket.IPPROTO_TCP, socket.TCP_KEEPCNT),
+            stream.getsockopt(socket.IPPROTO_TCP, socket.TCP_USER_TIMEOUT))
+
+
+def test_the_connection_is_probed_by_tcp_keep_alive_also_when_reopened(
+        server: SocketcandStandIn) -> None:
+    """A cable pulled between the card and socketcand closes nothing: without keep-alive
+    the card would see only lost heartbeats until TCP gives up. The controller sets short
+    probes and a user time-out on its connection (``keep_alive``), and again on the one it
+    opens after a lost link. Checked on the real connection (getsockopt), not by pulling a
+    cable: on loopback the kernel answers every probe for the peer, and silencing it (a
+    packet filter, netem, a network namespace) needs what this machine's kernel or the suite
+    lacks. In process, to reach the socket."""
+    expected = (1, KEEPALIVE_IDLE_S, KEEPALIVE_INTERVAL_S, KEEPALIVE_PROBES, LINK_DEAD_S * 1000)
+    bus = CanBus("socketcand", CHANNEL, options={"host": "127.0.0.1", "port": server.port})
+    try:
+        first = server.next_connection()
+        stream = stream_of(bus.bus)
+        assert stream is not None
+        assert _probed(stream) == expected
+
+        def reopened() -> bool:
+            bus.check_link()  # the card's master looks every 0.1 s; here the test does
+            found = stream_of(bus.bus)
+            return found is not None and found is not stream
+
+        first.close()  # the link lost: the controller opens a new connection
+        wait_until(reopened, 10, "the connection opened again")
+        server.next_connection()
+        again = stream_of(bus.bus)
+        assert again is not None and _probed(again) == expected
     finally:
         bus.shutdown()

@@ -62,6 +62,24 @@ LINK_CHECK_S = 0.1
 """[ours] How often the card looks at such a connection while nothing fails: a link lost
 while the card sends nothing is a bus-off within this."""
 
+TCP_BRIDGE_INTERFACES = ("socketcand", "remote")
+"""Bridge clients on one TCP connection (python-can's socketcand client, python-can-remote's
+websocket), on which the card sets short keep-alive probes (``keep_alive``)."""
+KEEPALIVE_IDLE_S = 2
+"""[ours] A bridge's connection that carried nothing for this long is probed (TCP
+keep-alive; the system's default waits two hours)."""
+KEEPALIVE_INTERVAL_S = 1
+"""[ours] The time between two unanswered keep-alive probes."""
+KEEPALIVE_PROBES = 3
+"""[ours] Unanswered probes after which the system ends the connection."""
+LINK_DEAD_S = KEEPALIVE_IDLE_S + KEEPALIVE_INTERVAL_S * KEEPALIVE_PROBES
+"""[ours] How long a bridge's peer may stay silent before the system ends the connection and
+the card reports a bus-off: a pulled cable or a dead router, which close nothing. Also the
+time the card's frames may wait unacknowledged (TCP_USER_TIMEOUT): keep-alive probes go only
+over a connection with nothing to send, and a card that sends PDOs, SYNC or its heartbeat
+seldom has nothing; without it the system would retransmit for many minutes
+(net.ipv4.tcp_retries2)."""
+
 NO_REMOTE_FRAME_INTERFACES = ("socketcand",)
 """Interfaces that cannot send a remote frame: socketcand's ``< send >`` has no RTR flag, and
 python-can's client writes a remote frame as data it does not have (the daemon drops that
@@ -98,13 +116,35 @@ def bitrate_of_link(details: object) -> int | None:
 
 
 def stream_of(bus: can.BusABC) -> socket.socket | None:
-    """The TCP connection of a bridge client that keeps it to itself: the one stream socket
-    among the bus object's attributes (python-can's socketcand client holds it in a private
-    one, so it is found by its type, not by a name that may change); None when there is not
-    exactly one."""
+    """The TCP connection of a bridge client: the one TCP socket among the bus object's
+    attributes (python-can's socketcand client holds it in a private one, python-can-remote
+    in ``socket``, so it is found by its type, not by a name that may change); None when
+    there is not exactly one."""
     found = [value for value in vars(bus).values()
-             if isinstance(value, socket.socket) and value.type == socket.SOCK_STREAM]
+             if isinstance(value, socket.socket) and value.type == socket.SOCK_STREAM
+             and value.family in (socket.AF_INET, socket.AF_INET6)]
     return found[0] if len(found) == 1 else None
+
+
+def keep_alive(stream: socket.socket) -> None:
+    """Probe a bridge's TCP connection so that a silent peer ends it within ``LINK_DEAD_S``.
+
+    A peer that goes without a word (a cable pulled, a router gone, the remote machine's
+    power cut) sends no FIN and no RST: the connection stays open, the card's frames go into
+    it unanswered, and the host sees only the nodes' lost heartbeats until TCP gives up. With
+    these options the system ends the connection itself; the client's next ``recv`` (or
+    ``check_link``'s look) fails with ETIMEDOUT and the card reports the bus-off and reopens,
+    as for a closed connection. An option the system refuses leaves the link working, only
+    without the bound: one log line says so."""
+    try:
+        stream.setsockopt(socket.SOL_SOCKET, socket.SO_KEEPALIVE, 1)
+        stream.setsockopt(socket.IPPROTO_TCP, socket.TCP_KEEPIDLE, KEEPALIVE_IDLE_S)
+        stream.setsockopt(socket.IPPROTO_TCP, socket.TCP_KEEPINTVL, KEEPALIVE_INTERVAL_S)
+        stream.setsockopt(socket.IPPROTO_TCP, socket.TCP_KEEPCNT, KEEPALIVE_PROBES)
+        stream.setsockopt(socket.IPPROTO_TCP, socket.TCP_USER_TIMEOUT, LINK_DEAD_S * 1000)
+    except OSError as exc:
+        log.warning("no TCP keep-alive on the bridge's connection (%s): a link cut without a "
+                    "closed connection shows only as lost heartbeats until TCP gives up", exc)
 
 
 def stream_failure(stream: socket.socket) -> Exception | None:
@@ -348,14 +388,20 @@ class CanBus(can.Listener):
             self.on_error(failure)
 
     def _open(self, kwargs: dict[str, Any]) -> can.BusABC:
-        """Open the interface; for one that hides a closed connection, find the connection
-        to watch."""
+        """Open the interface; for a bridge on TCP, find its connection to probe
+        (``keep_alive``) and, for one that hides a closed connection, to watch."""
         bus = can.Bus(interface=self.interface, channel=self.channel, **kwargs)
-        if self.interface in HIDDEN_CLOSE_INTERFACES:
-            self._link = stream_of(bus)
-            if self._link is None:
-                log.warning("%s: no connection found to watch; a lost link shows only when "
-                            "a frame cannot be sent", self.interface)
+        if self.interface in TCP_BRIDGE_INTERFACES:
+            stream = stream_of(bus)
+            if stream is None:
+                log.warning("%s: no TCP connection found; a link cut without a closed "
+                            "connection shows only as lost heartbeats%s", self.interface,
+                            ", a closed one only when a frame cannot be sent"
+                            if self.interface in HIDDEN_CLOSE_INTERFACES else "")
+            else:
+                keep_alive(stream)
+            if self.interface in HIDDEN_CLOSE_INTERFACES:
+                self._link = stream
         return bus
 
     def set_bus_off(self, off: bool) -> None:
