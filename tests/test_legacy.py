@@ -25,7 +25,7 @@ from dbm_tools.builder import build_dbm
 from dbm_tools.container import save_dbm
 from dbm_tools.network import parse_network
 from tests.conftest import Card
-from tests.libcif_host import C_NETWORK, CC, build_libcif, needs_toolchain
+from tests.libcif_host import C_NETWORK, CC, STRICT, build_libcif, needs_toolchain
 
 SOURCE = Path(__file__).with_name("c") / "legacy_ioctl.c"
 pytestmark = needs_toolchain
@@ -123,9 +123,8 @@ def programs(tmp_path_factory: pytest.TempPathFactory,
         if ("i386" if abi.startswith("i386") else abi) not in preloads:
             continue
         program = out / f"legacy_ioctl-{abi}"
-        done = subprocess.run([CC, *abi_flags, "-std=c99", "-Wall", "-Wextra", "-Werror", "-g",
-                               str(SOURCE), "-o", str(program)], capture_output=True,
-                              text=True, check=False)
+        done = subprocess.run([CC, *abi_flags, *STRICT, str(SOURCE), "-o", str(program)],
+                              capture_output=True, text=True, check=False)
         if done.returncode == 0:
             built[abi] = program
         elif abi != "i386-time64":  # only glibc >= 2.34 has 64-bit time on i386
@@ -229,8 +228,8 @@ def lifecycle(tmp_path_factory: pytest.TempPathFactory,
         if abi not in preloads:
             continue
         program = out / f"legacy_lifecycle-{abi}"
-        subprocess.run([CC, *abi_flags, "-std=c99", "-Wall", "-Wextra", "-Werror", "-g",
-                        str(LIFECYCLE), "-o", str(program), "-pthread"], check=True)
+        subprocess.run([CC, *abi_flags, *STRICT, str(LIFECYCLE), "-o", str(program), "-pthread"],
+                       check=True)
         built[abi] = program
     return built
 
