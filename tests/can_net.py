@@ -8,7 +8,8 @@ a real bus, the card then shares nothing but the bus with them); on ``socketcan`
 
 Use it from a test module with ``pytest_plugins = ["tests.can_net"]`` and a ``make_net``
 argument: every test of the module then runs on each interface. The helpers (``Net``,
-``exchange``, ``candump``, ``start_sim``, ``FrameWatch``, ``window``) are imported as usual.
+``exchange``, ``candump``, ``start_sim``, ``FrameWatch``, ``window``, the data sets
+``node_set`` and ``bus_parameters``, ``actual_error``) are imported as usual.
 A helper module, not a test module: no test module imports another (tests/test_suite_rules.py).
 """
 
@@ -27,6 +28,7 @@ import can
 import pytest
 
 from dbm_tools.network import load_network
+from dbm_tools.parameters import NdFlag, NodeParameterSet, PdoData
 from dpm.errors import Drv
 from dpm.message import Message
 from dpm.task2 import ComDiagnostics
@@ -38,6 +40,8 @@ from tests.buses import SOCKETCAN_CHANNEL, socketcan_missing
 from tests.conftest import Card, start_card, wait_until
 
 GENERIC = "\n".join(f"[[node]]\nid = {n}" for n in (1, 2, 3))
+SYNC_ID = 0x080
+"""The COB-ID of SYNC the bus parameters of ``bus_parameters`` give (CiA 301's default)."""
 
 
 @pytest.fixture(params=["virtual", "shm", "socketcan"])
@@ -57,6 +61,31 @@ def window(seconds: float, why: str) -> None:
     on a condition (``wait_until``, ``FrameWatch.wait_for``)."""
     until = time.monotonic() + seconds
     wait_until(lambda: time.monotonic() > until, seconds + 1, why)
+
+
+def node_set(address: int, output_type: int = 255) -> bytes:
+    """A generic node's data set as COM_Download carries it (seed 5.2.5.1.1): heartbeat
+    consumer at 1000 ms, no SDO list, one RX-PDO of transmission ``output_type`` and one
+    event-driven TX-PDO."""
+    return NodeParameterSet(
+        bNd_Flag=NdFlag.ACTIVE | NdFlag.HRTBT, usAddTypeInfo=0x000F, usDevProfNum=0x191,
+        usCobIDEmcy=0x80 + address, usCobIDGuard=0x700 + address, usGuardTime=1000,
+        atPdoCfgData=[PdoData(0, 8, 0x200 + address, output_type),
+                      PdoData(1, 8, 0x180 + address, 255)],
+        ausInputOffsets=[0], ausOutputOffsets=[0]).encode()
+
+
+def bus_parameters(baud_rate: int = 2, sync_timer: int = 0) -> bytes:
+    """COM_Download of the bus parameters (seed 5.2.5.4.2): Area_Code 127, then the data set
+    (by default 500 kbit/s, no SYNC). Its download starts the bus."""
+    return bytes([0, 127, 0, 0, baud_rate]) + struct.pack("<HH", SYNC_ID, sync_timer) + bytes(2)
+
+
+def actual_error(net: Net, node: int) -> int:
+    """Octet 7 of the node's COM_Node_Diag answer (seed 5.2.7): its error now."""
+    answer = net.send(66, struct.pack("<BBHBBBB", node, 0, 0, 0, 0, 0, 1))
+    assert answer.f == 0
+    return answer.data[8 + 6]
 
 
 def frame(ident: int, data: bytes | None = None,

@@ -12,6 +12,7 @@ import functools
 import os
 import shutil
 import subprocess
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -19,6 +20,7 @@ import pytest
 from cifemu import libcif
 from dpm.message import Message
 from host_api.driver import ComState
+from tests.conftest import Card, start_card
 
 MSG_SIZE = 288
 
@@ -34,6 +36,12 @@ def toolchain_missing() -> str | None:
     if shutil.which("make") is None:
         return "no make: install it to build and test libcif"
     return None
+
+
+needs_toolchain = pytest.mark.skipif(toolchain_missing() is not None,
+                                     reason=str(toolchain_missing()))
+"""Marks a test module that compiles C programs: skipped, saying what to install, where
+the machine has no C compiler or no make."""
 
 
 def build_libcif(target: str = "all") -> None:
@@ -241,3 +249,31 @@ def run(program: Path, directory: Path, *args: str, timeout: float = 120) -> str
                           timeout=timeout, check=False)
     assert done.returncode == 0, f"{program.name} failed:\n{done.stdout}\n{done.stderr}"
     return done.stdout
+
+
+C_NETWORK = """
+[bus]
+bitrate = 500000
+sync_period_ms = 10
+
+[[node]]
+id = 1
+name = "io 1"
+
+[[node]]
+id = 2
+name = "io 2"
+"""
+"""The network the C programs run against: nodes 1 and 2, which tests/c/operative.c (the
+seed's 7.2 procedure) configures; the legacy and libcif tests download its database."""
+
+
+@pytest.fixture
+def simulated_card(tmp_path: Path) -> Iterator[Card]:
+    """A card with ``C_NETWORK``'s nodes simulated; a module takes it with
+    ``pytest_plugins = ["tests.libcif_host"]``."""
+    network = tmp_path / "net.toml"
+    network.write_text(C_NETWORK)
+    card = start_card(tmp_path, 0, "--simulate", str(network))
+    yield card
+    card.stop()

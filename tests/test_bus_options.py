@@ -14,6 +14,7 @@ import socket
 import subprocess
 import sys
 import uuid
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
@@ -88,28 +89,37 @@ def test_every_command_refuses_in_one_line(tmp_path: Path, command: list[str],
     assert len(lines) == 1 and named in lines[0], done.stderr
 
 
-def test_the_cards_controller_dials_the_host_and_port_given_as_options(tmp_path: Path) -> None:
-    """socketcand's host and port exist only as options: the card's controller connects to
-    the test's listener, which hangs up at once (it is no socketcand), and the card ends
-    with one line naming the interface and its options (--exit-on-bus-error)."""
+def _dial_a_hang_up(
+        start: Callable[[int], subprocess.Popen[str]]) -> tuple[subprocess.Popen[str], str, int]:
+    """A listener on 127.0.0.1 that is no socketcand: ``start(port)`` starts the command that
+    should dial it; the listener accepts that one connection and hangs up at once. The
+    command once it ended, its standard error, and the port."""
     with socket.socket() as listener:
         listener.bind(("127.0.0.1", 0))
         listener.listen(1)
         listener.settimeout(30 * TIME_SCALE)
         port = listener.getsockname()[1]
-        card = subprocess.Popen(
-            [sys.executable, "-m", "cifemu", "firmware", "--dpm-dir", str(tmp_path),
-             "--interface", "socketcand", "--channel", "can0", "--bus-option",
-             "host=127.0.0.1", "--bus-option", f"port={port}", "--exit-on-bus-error"],
-            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+        proc = start(port)
         try:
             connection, _ = listener.accept()
             connection.close()
-            _, stderr = card.communicate(timeout=30 * TIME_SCALE)
+            _, stderr = proc.communicate(timeout=30 * TIME_SCALE)
         finally:
-            if card.poll() is None:
-                card.kill()
-                card.wait(timeout=10)
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait(timeout=10)
+    return proc, stderr, port
+
+
+def test_the_cards_controller_dials_the_host_and_port_given_as_options(tmp_path: Path) -> None:
+    """socketcand's host and port exist only as options: the card's controller connects to
+    the test's listener, which hangs up at once (it is no socketcand), and the card ends
+    with one line naming the interface and its options (--exit-on-bus-error)."""
+    card, stderr, port = _dial_a_hang_up(lambda port: subprocess.Popen(
+        [sys.executable, "-m", "cifemu", "firmware", "--dpm-dir", str(tmp_path),
+         "--interface", "socketcand", "--channel", "can0", "--bus-option",
+         "host=127.0.0.1", "--bus-option", f"port={port}", "--exit-on-bus-error"],
+        stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True))
     assert card.returncode == 1
     last = stderr.strip().splitlines()[-1]
     assert last.startswith("cifemu firmware: cannot open CAN interface 'socketcand' channel "
@@ -192,23 +202,13 @@ def test_the_descriptions_options_reach_python_can(tmp_path: Path, command: list
     """The host and port exist only in the file's [bus.options]: the bus dials the test's
     listener, which hangs up (it is no socketcand), and the command ends in one line naming
     the interface and the options it was opened with."""
-    with socket.socket() as listener:
-        listener.bind(("127.0.0.1", 0))
-        listener.listen(1)
-        listener.settimeout(30 * TIME_SCALE)
-        port = listener.getsockname()[1]
+    def start(port: int) -> subprocess.Popen[str]:
         (tmp_path / "net.toml").write_text(RACK.format(port=port))
-        proc = subprocess.Popen([sys.executable, "-m", "cifemu", *command, *(
+        return subprocess.Popen([sys.executable, "-m", "cifemu", *command, *(
             ["--dpm-dir", str(tmp_path)] if command[0] == "firmware" else [])], cwd=tmp_path,
             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
-        try:
-            connection, _ = listener.accept()
-            connection.close()
-            _, stderr = proc.communicate(timeout=30 * TIME_SCALE)
-        finally:
-            if proc.poll() is None:
-                proc.kill()
-                proc.wait(timeout=10)
+
+    proc, stderr, port = _dial_a_hang_up(start)
     assert proc.returncode == 1
     last = stderr.strip().splitlines()[-1]
     assert "'socketcand' channel 'can0' with options host=127.0.0.1 " in last or (

@@ -27,14 +27,13 @@ import pytest
 from dbm_tools.builder import build_dbm
 from dbm_tools.container import save_dbm
 from dbm_tools.network import BOOT_STEPS, load_network
-from dbm_tools.parameters import NdFlag, NodeParameterSet, PdoData
 from dpm import flags as fl
 from dpm.message import Ext, Message
 from firmware.can.bus import CanBus
 from host_api import driver as d
 from host_api.download import CONFIGURATION_DOWNLOAD, DevDownload
 from tests import raw_mailbox
-from tests.can_net import Net, candump, exchange
+from tests.can_net import Net, bus_parameters, candump, exchange, node_set, window
 from tests.conftest import wait_until
 
 pytest_plugins = ["tests.can_net"]
@@ -52,28 +51,9 @@ TOUT = 0x40
 NO_RESPONSE, PRM_FAULT, GUARD_ACTIVE, DEACT = 0x01, 0x04, 0x08, 0x80
 
 
-def settle(seconds: float) -> None:
-    """Let ``seconds`` pass (traffic to record, supervision to act), as a bounded wait."""
-    until = time.monotonic() + seconds
-    wait_until(lambda: time.monotonic() > until, seconds + 1, f"{seconds} s to pass")
-
-
 def node_diag(net: Net, node: int) -> Message:
     """COM_Node_Diag (b 66, seed 5.2.7) of ``node``."""
     return net.send(66, struct.pack("<BBHBBBB", node, 0, 0, 0, 0, 5, 1))
-
-
-def node_set(address: int) -> bytes:
-    """A generic node's data set as COM_Download carries it (seed 5.2.5.1.1)."""
-    return NodeParameterSet(
-        bNd_Flag=NdFlag.ACTIVE | NdFlag.HRTBT, usAddTypeInfo=0x000F, usDevProfNum=0x191,
-        usCobIDEmcy=0x80 + address, usCobIDGuard=0x700 + address, usGuardTime=1000,
-        atPdoCfgData=[PdoData(0, 8, 0x200 + address, 255), PdoData(1, 8, 0x180 + address, 255)],
-        ausInputOffsets=[0], ausOutputOffsets=[0]).encode()
-
-
-BUS_PARAMETERS = bytes([0, 127, 0, 0, 2]) + struct.pack("<HH", SYNC_ID, 0) + bytes(2)
-"""COM_Download of the bus parameters (Area_Code 127, 500 kbit/s, no SYNC): starts the bus."""
 
 
 # --- bitConfigNdState: the skip bits (seed 5.2.5.1.1) -----------------------------------------
@@ -121,7 +101,7 @@ size = 1
     net = make_net(toml, "--trace", str(trace))
     net.configure()
     net.wait_operating(list(range(1, 8)), timeout=15)
-    settle(0.5)
+    window(0.5, "the seven nodes to run on without an Err_Event")
     diag = net.diag()
     assert diag.operating() == list(range(1, 8)) and diag.bErr_event == 0
     net.card.stop()
@@ -170,10 +150,10 @@ transmission = 3
     net.wait_operating([1, 2])
     wait_until(lambda: exchange(net, b"\x5a" * 8) == b"\x5a" * 8, 5, "node 1's echo via 252")
     quiet = time.time()
-    settle(1.0)  # no change: type 0 stays silent, type 3 keeps going
+    window(1.0, "no change: type 0 stays silent, type 3 keeps going")
     changed = time.time()
     wait_until(lambda: exchange(net, b"\xa5" * 8) == b"\xa5" * 8, 5, "the new echo")
-    settle(0.2)
+    window(0.2, "the frames after the change to reach the trace")
     net.card.stop()
     frames = candump(trace)
     syncs = [t for t, ident, _ in frames if ident == SYNC_ID]
@@ -204,7 +184,7 @@ def test_an_inactive_node_is_left_alone(make_net: Callable[..., Net], tmp_path: 
                    "--trace", str(trace))
     net.configure()
     net.wait_operating([1])
-    settle(1.0)
+    window(1.0, "node 2 to be left alone: no frame to it, no Err_Event")
     diag = net.diag()
     assert diag.configured() == [1] and diag.operating() == [1] and diag.bErr_event == 0
     answer = node_diag(net, 2)
@@ -239,7 +219,7 @@ guard_time_ms = 0
 """, "--trace", str(trace))
     net.configure()
     net.wait_operating([1, 2])
-    settle(2.5)
+    window(2.5, "node 1's heartbeat to stop and nobody to notice")
     diag = net.diag()
     assert diag.operating() == [1, 2] and diag.bErr_event == 0
     assert not any(node_diag(net, n).data[8] & GUARD_ACTIVE for n in (1, 2))
@@ -290,7 +270,7 @@ def test_msg_time_out_counts_and_saturates(make_net: Callable[..., Net]) -> None
     image = net.card.map()
     image[MSG_TIME_OUT:MSG_TIME_OUT + 2] = struct.pack("<H", 65533)
     wait_until(lambda: image[TASK2_STATE_GLOBAL] & TOUT, 5, "TIMEOUT-ERROR")
-    settle(0.3)
+    window(0.3, "the counter to stay at 65535 after the last ACK error")
     assert struct.unpack_from("<H", image, MSG_TIME_OUT)[0] == 65535
 
 
@@ -479,7 +459,7 @@ def seed_7_1_steps_2_to_8(net: Net) -> None:
         assert net.send(67, bytes([0, node]) + struct.pack("<H", 1000)).f == 0
         assert net.send(68, bytes([0, node, 0, 0]) + node_set(node)).f == 0
         assert net.send(69, b"\0").f == 0
-    assert net.send(68, BUS_PARAMETERS).f == 0
+    assert net.send(68, bus_parameters()).f == 0
     net.wait_operating([1, 2])
     assert host_flags_of_driver_info() & (fl.READY | fl.RUN | fl.COM) == (
         fl.READY | fl.RUN | fl.COM)
@@ -519,7 +499,7 @@ def test_seed_7_2_with_direct_access_to_the_image(make_net: Callable[..., Net],
                             next(nr)).f == 0
         assert raw.transact(mm, 3, 68, bytes([0, node, 0, 0]) + node_set(node), next(nr)).f == 0
         assert raw.transact(mm, 3, 69, b"\0", next(nr)).f == 0
-    assert raw.transact(mm, 3, 68, BUS_PARAMETERS, next(nr)).f == 0
+    assert raw.transact(mm, 3, 68, bus_parameters(), next(nr)).f == 0
     wait_until(lambda: mm[raw.HOST_FLAGS] & 0x20, 5, "COM")  # the network runs
     wait_until(lambda: mm[ND_STATE] == 0b110, 10, "Nd_state of nodes 1 and 2")
     running = raw.READY | raw.RUN | 0x20
@@ -542,7 +522,7 @@ def test_the_delete_takes_run_not_the_network(make_net: Callable[..., Net]) -> N
         delete_database_by_message(mm, 1)
         assert mm[raw.HOST_FLAGS] & (raw.READY | raw.RUN | 0x20) == raw.READY | 0x20
         assert net.diag().operating() == [1, 2]
-        assert net.send(68, BUS_PARAMETERS).f == 0
+        assert net.send(68, bus_parameters()).f == 0
         wait_until(lambda: mm[raw.HOST_FLAGS] & raw.RUN, 5, "RUN after the bus parameters")
     finally:
         mm.close()

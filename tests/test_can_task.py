@@ -33,7 +33,16 @@ from dpm.task2 import ComDiagnostics
 from host_api import driver as d
 from host_api.board import Board
 from host_api.online import configure_online
-from tests.can_net import GENERIC, Net, candump, exchange, frame, window
+from tests.can_net import (
+    GENERIC,
+    Net,
+    bus_parameters,
+    candump,
+    exchange,
+    frame,
+    node_set,
+    window,
+)
 from tests.conftest import Card, start_card, wait_until
 
 pytest_plugins = ["tests.can_net"]
@@ -64,12 +73,7 @@ def test_pdo_loop_output_to_node_to_input(make_net: Callable[..., Net]) -> None:
 
 def test_sequenced_download_and_upload(make_net: Callable[..., Net]) -> None:
     net = make_net("[[node]]\nid = 1\n")
-    params = NodeParameterSet(bNd_Flag=NdFlag.ACTIVE | NdFlag.HRTBT, usAddTypeInfo=0x000F,
-                              usDevProfNum=0x191, usCobIDEmcy=0x81, usCobIDGuard=0x701,
-                              usGuardTime=1000,
-                              atPdoCfgData=[PdoData(0, 8, 0x201, 255), PdoData(1, 8, 0x181, 255)],
-                              ausInputOffsets=[0], ausOutputOffsets=[0])
-    raw = params.encode()
+    raw = node_set(1)
     assert net.send(67, bytes([0, 1]) + struct.pack("<H", 0)).data == bytes([240])
     half = len(raw) // 2
     assert net.send(68, bytes([0, 1]) + struct.pack("<H", 0) + raw[:half]).f == 0
@@ -364,7 +368,7 @@ def test_layer2_reception(make_net: Callable[..., Net]) -> None:
     # Node 9 lives on the bus but is not configured in the card: its heartbeat
     # identifier is free for layer-2 access.
     net = make_net("[[node]]\nid = 1\n[[node]]\nid = 9\n")
-    net.send(68, bytes([0, 127, 0, 0, 2]) + struct.pack("<HH", 0x80, 0) + bytes(2))
+    net.send(68, bus_parameters())
     assert net.send(82, bytes([0x09, 0x07])).f == 0  # 0x709
     assert net.send(82, bytes([0x80, 0x00])).f == 55  # the SYNC identifier is in use
     rc, indication = d.DevGetMessage(0, 288, 3000)
@@ -650,7 +654,7 @@ def test_a_controller_receive_overflow_counts_into_rx_overflow(
 def test_layer2_queue_overflow_counts_lost_frames(make_net: Callable[..., Net]) -> None:
     # Node 9's heartbeat every 10 ms fills the 150-frame queue of a host that never reads.
     net = make_net("[[node]]\nid = 1\n[[node]]\nid = 9\nheartbeat_ms = 20\n")
-    net.send(68, bytes([0, 127, 0, 0, 2]) + struct.pack("<HH", 0x80, 0) + bytes(2))
+    net.send(68, bus_parameters())
     assert net.send(82, bytes([0x09, 0x07])).f == 0
     image = net.card.map()
     wait_until(lambda: struct.unpack_from("<H", image, 0x1F4A)[0] > 0, 10, "Rx_Overflow")
@@ -808,7 +812,7 @@ def test_guarding_a_node_that_produced_heartbeats(make_net: Callable[..., Net]) 
                               atPdoCfgData=[PdoData(0, 8, 0x203, 255), PdoData(1, 8, 0x183, 255)],
                               ausInputOffsets=[0], ausOutputOffsets=[0])
     assert net.send(68, bytes([0, 3, 0, 0]) + params.encode()).f == 0
-    assert net.send(68, bytes([0, 127, 0, 0, 2]) + struct.pack("<HH", 0x80, 0) + bytes(2)).f == 0
+    assert net.send(68, bus_parameters()).f == 0
     net.wait_operating([3])
     watch = net.watch()
     watch.wait_for(frame(0x703, remote=False), 10, "ten guarding answers", since=watch.mark())
@@ -818,7 +822,7 @@ def test_guarding_a_node_that_produced_heartbeats(make_net: Callable[..., Net]) 
 
 def test_stopping_communication_removes_layer2_filters(make_net: Callable[..., Net]) -> None:
     net = make_net("[[node]]\nid = 1\n[[node]]\nid = 9\n")
-    net.send(68, bytes([0, 127, 0, 0, 2]) + struct.pack("<HH", 0x80, 0) + bytes(2))
+    net.send(68, bus_parameters())
     assert net.send(82, bytes([0x09, 0x07])).f == 0  # node 9's heartbeat, 0x709
     rc, indication = d.DevGetMessage(0, 288, 3000)
     assert rc == 0 and indication is not None and indication.b == 83

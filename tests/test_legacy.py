@@ -15,7 +15,6 @@ import os
 import shutil
 import subprocess
 import sys
-from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -25,27 +24,13 @@ from cifemu.commands import legacy
 from dbm_tools.builder import build_dbm
 from dbm_tools.container import save_dbm
 from dbm_tools.network import parse_network
-from tests.conftest import Card, start_card
-from tests.libcif_host import build_libcif
+from tests.conftest import Card
+from tests.libcif_host import C_NETWORK, CC, STRICT, build_libcif, needs_toolchain
 
 SOURCE = Path(__file__).with_name("c") / "legacy_ioctl.c"
-CC = shutil.which("cc") or shutil.which("gcc")
-NETWORK = """
-[bus]
-bitrate = 500000
-sync_period_ms = 10
-
-[[node]]
-id = 1
-name = "io 1"
-
-[[node]]
-id = 2
-name = "io 2"
-"""
-
-pytestmark = pytest.mark.skipif(CC is None or shutil.which("make") is None,
-                                reason="no C compiler or make")
+pytestmark = needs_toolchain
+pytest_plugins = ["tests.libcif_host"]
+"""simulated_card: a card with C_NETWORK's nodes."""
 
 # What the program prints, driver code by driver code. The same for both ABIs and both
 # generations: the structures differ, the answers do not.
@@ -138,23 +123,13 @@ def programs(tmp_path_factory: pytest.TempPathFactory,
         if ("i386" if abi.startswith("i386") else abi) not in preloads:
             continue
         program = out / f"legacy_ioctl-{abi}"
-        done = subprocess.run([CC, *abi_flags, "-std=c99", "-Wall", "-Wextra", "-Werror", "-g",
-                               str(SOURCE), "-o", str(program)], capture_output=True,
-                              text=True, check=False)
+        done = subprocess.run([CC, *abi_flags, *STRICT, str(SOURCE), "-o", str(program)],
+                              capture_output=True, text=True, check=False)
         if done.returncode == 0:
             built[abi] = program
         elif abi != "i386-time64":  # only glibc >= 2.34 has 64-bit time on i386
             raise AssertionError(done.stderr)
     return built
-
-
-@pytest.fixture
-def simulated_card(tmp_path: Path) -> Iterator[Card]:
-    network = tmp_path / "net.toml"
-    network.write_text(NETWORK)
-    card = start_card(tmp_path, 0, "--simulate", str(network))
-    yield card
-    card.stop()
 
 
 def run_preloaded(program: Path, preload: Path, directory: Path,
@@ -184,7 +159,7 @@ def test_every_ioctl_answers_as_the_driver(preloads: dict[str, Path],
     if abi not in programs:
         pytest.skip("this glibc has no 64-bit time_t for i386")
     dbm = tmp_path / "sycon.dbm"
-    save_dbm(dbm, build_dbm(parse_network(NETWORK)))
+    save_dbm(dbm, build_dbm(parse_network(C_NETWORK)))
     done = run_preloaded(programs[abi], preload, simulated_card.directory, generation,
                          str(dbm))
     assert done.returncode == 0, done.stdout + done.stderr
@@ -253,8 +228,8 @@ def lifecycle(tmp_path_factory: pytest.TempPathFactory,
         if abi not in preloads:
             continue
         program = out / f"legacy_lifecycle-{abi}"
-        subprocess.run([CC, *abi_flags, "-std=c99", "-Wall", "-Wextra", "-Werror", "-g",
-                        str(LIFECYCLE), "-o", str(program), "-pthread"], check=True)
+        subprocess.run([CC, *abi_flags, *STRICT, str(LIFECYCLE), "-o", str(program), "-pthread"],
+                       check=True)
         built[abi] = program
     return built
 

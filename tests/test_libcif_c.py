@@ -17,7 +17,6 @@ import shutil
 import subprocess
 import threading
 import time
-from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -29,47 +28,27 @@ from dbm_tools.network import parse_network
 from dpm.errors import Drv
 from dpm.message import Message
 from host_api import driver as d
-from tests.conftest import Card, start_card
+from tests.conftest import Card
 from tests.libcif_host import (
+    C_NETWORK,
     C_TESTS,
     CC,
     CDriver,
     build_libcif,
     compile_program,
+    needs_toolchain,
     run,
 )
 
-NETWORK = """
-[bus]
-bitrate = 500000
-sync_period_ms = 10
-
-[[node]]
-id = 1
-name = "io 1"
-
-[[node]]
-id = 2
-name = "io 2"
-"""
-
-pytestmark = pytest.mark.skipif(CC is None or shutil.which("make") is None,
-                                reason="no C compiler or make")
+pytestmark = needs_toolchain
+pytest_plugins = ["tests.libcif_host"]
+"""simulated_card: a card with C_NETWORK's nodes."""
 
 
 @pytest.fixture(scope="module")
 def built() -> None:
     build_libcif("all")
     build_libcif("sanitize")
-
-
-@pytest.fixture
-def simulated_card(tmp_path: Path) -> Iterator[Card]:
-    network = tmp_path / "net.toml"
-    network.write_text(NETWORK)
-    card = start_card(tmp_path, 0, "--simulate", str(network))
-    yield card
-    card.stop()
 
 
 # --- link forms ----------------------------------------------------------------------------
@@ -197,7 +176,7 @@ def test_chapter_7_2_makes_the_card_operative(built: None, simulated_card: Card,
     procedure's step 1 has one to delete; then on-line configuration, process data, SDO,
     node diagnostics and NMT."""
     dbm = tmp_path / "sycon.dbm"
-    save_dbm(dbm, build_dbm(parse_network(NETWORK)))
+    save_dbm(dbm, build_dbm(parse_network(C_NETWORK)))
     program = compile_program(C_TESTS / "operative.c", tmp_path / "operative", variant)
     out = run(program, simulated_card.directory, str(dbm))
     assert f"step 0: {dbm.stat().st_size - 44} bytes of database downloaded" in out

@@ -18,13 +18,12 @@ import pytest
 from dbm_tools.builder import build_dbm
 from dbm_tools.container import save_dbm
 from dbm_tools.network import load_network
-from dbm_tools.parameters import NdFlag, NodeParameterSet, PdoData
 from dpm.card_info import read_card_info
 from dpm.message import Message
 from host_api import driver as d
 from host_api.board import Board
 from host_api.download import CONFIGURATION_DOWNLOAD, DevDownload, delete_database
-from tests.can_net import Net, candump, exchange, frame, window
+from tests.can_net import Net, actual_error, candump, exchange, frame, node_set, window
 from tests.conftest import start_card, wait_until
 
 pytest_plugins = ["tests.can_net"]
@@ -76,15 +75,6 @@ transmission = 1
     net.card.stop()  # flushes the trace
     syncs = [t for t, ident, _ in candump(trace) if ident == SYNC_ID]
     assert len(syncs) > 40
-
-
-def node_set(address: int) -> bytes:
-    """A generic node's data set, as COM_Download carries it."""
-    return NodeParameterSet(
-        bNd_Flag=NdFlag.ACTIVE | NdFlag.HRTBT, usAddTypeInfo=0x000F, usDevProfNum=0x191,
-        usCobIDEmcy=0x80 + address, usCobIDGuard=0x700 + address, usGuardTime=1000,
-        atPdoCfgData=[PdoData(0, 8, 0x200 + address, 255), PdoData(1, 8, 0x180 + address, 255)],
-        ausInputOffsets=[0], ausOutputOffsets=[0]).encode()
 
 
 def test_start_seq_time_out_expires_without_a_message(make_net: Callable[..., Net]) -> None:
@@ -262,13 +252,6 @@ def test_a_node_address_downloaded_twice_is_refused(make_net: Callable[..., Net]
     assert net.send(68, bytes([0, 1, 0, 0]) + node_set(1)).f == 60
     assert net.send(80, bytes([0, 1, 0, 0, 240])).data == first.data
     assert net.diag().operating() == [1]
-
-
-def actual_error(net: Net, node: int) -> int:
-    """Octet 7 of the node's COM_Node_Diag answer (seed 5.2.7): its error now."""
-    answer = net.send(66, struct.pack("<BBHBBBB", node, 0, 0, 0, 0, 0, 1))
-    assert answer.f == 0
-    return answer.data[8 + 6]
 
 
 def test_actual_error_is_cleared_when_the_node_recovers(make_net: Callable[..., Net]) -> None:

@@ -18,12 +18,11 @@ import can
 import pytest
 
 from dbm_tools.network import parse_network
-from dbm_tools.parameters import NdFlag, NodeParameterSet, PdoData
 from dpm.message import Message
 from dpm.task2 import GlobalBits
 from host_api import driver as d
 from host_api.online import configure_online
-from tests.can_net import Net, candump
+from tests.can_net import Net, actual_error, bus_parameters, candump, node_set, window
 from tests.conftest import wait_until
 from tests.shm_rig import NODE, Rig
 
@@ -31,33 +30,6 @@ pytest_plugins = ["tests.can_net", "tests.shm_rig"]
 """The back-to-back fixtures (make_net on every bus) and the shm rig."""
 
 NMT_START, NMT_STOP, NMT_RESET = 0x01, 0x02, 0x81
-
-
-def settle(seconds: float) -> None:
-    """Let ``seconds`` pass (traffic to record, supervision to act), as a bounded wait."""
-    until = time.monotonic() + seconds
-    wait_until(lambda: time.monotonic() > until, seconds + 1, f"{seconds} s to pass")
-
-
-def actual_error(net: Net, node: int) -> int:
-    """Octet 7 of the node's COM_Node_Diag answer (seed 5.2.7): its error now."""
-    answer = net.send(66, struct.pack("<BBHBBBB", node, 0, 0, 0, 0, 0, 1))
-    assert answer.f == 0
-    return answer.data[8 + 6]
-
-
-def node_set(address: int) -> bytes:
-    """A generic node's data set as COM_Download carries it (seed 5.2.5.1.1): heartbeat
-    consumer at 1000 ms, no SDO list."""
-    return NodeParameterSet(
-        bNd_Flag=NdFlag.ACTIVE | NdFlag.HRTBT, usAddTypeInfo=0x000F, usDevProfNum=0x191,
-        usCobIDEmcy=0x80 + address, usCobIDGuard=0x700 + address, usGuardTime=1000,
-        atPdoCfgData=[PdoData(0, 8, 0x200 + address, 255), PdoData(1, 8, 0x180 + address, 255)],
-        ausInputOffsets=[0], ausOutputOffsets=[0]).encode()
-
-
-BUS_PARAMETERS = bytes([0, 127, 0, 0, 2]) + struct.pack("<HH", 0x080, 0) + bytes(2)
-"""COM_Download of the bus parameters (Area_Code 127, 500 kbit/s, no SYNC): starts the bus."""
 
 
 def nexc(net: Net) -> bool:
@@ -123,7 +95,7 @@ boot_delay_s = 2.0
     net.configure()
     wait_until(lambda: net.diag().can_state_name == "CLEAR" and actual_error(net, 2) == 39, 10,
                "node 2 stopped by auto-clear after its boot-up")
-    settle(0.6)  # several of node 2's heartbeats (100 ms)
+    window(0.6, "several of node 2's heartbeats (100 ms) with no start for it")
     net.card.stop()
     frames = candump(trace)
     cleared = min(t for t, ident, data in frames if ident == 0 and data == "0200")
@@ -210,7 +182,7 @@ transmission = 1
 """, "--trace", str(trace))
     net.configure()
     net.wait_operating([1, 2])
-    settle(0.3)
+    window(0.3, "the remote requests after the boot-up to reach the trace")
     net.card.stop()
     frames = candump(trace)
     for node in (1, 2):
@@ -309,9 +281,9 @@ heartbeat_ms = 1000
 sdo_abort = { "1017:0" = 0x06010002 }
 """)
     assert net.send(68, bytes([0, 1, 0, 0]) + node_set(1)).f == 0
-    assert net.send(68, BUS_PARAMETERS).f == 0
+    assert net.send(68, bus_parameters()).f == 0
     net.wait_operating([1])
-    settle(1.5)  # supervision: its own heartbeat keeps it there
+    window(1.5, "supervision: its own heartbeat keeps it operating")
     assert net.diag().operating() == [1]
     assert net.diag().bErr_event == 0
     answer = net.send(66, struct.pack("<BBHBBBB", 1, 0, 0, 0, 0, 0, 1))
@@ -397,7 +369,7 @@ id = 2
     net.configure()
     wait_until(lambda: actual_error(net, 1) == 34, 15, "node 1's boot-up failing with 34")
     net.wait_operating([2])
-    settle(0.5)
+    window(0.5, "node 1's failure not to stop the card (no auto-clear)")
     diag = net.diag()
     assert diag.can_state_name == "OPERATE" and not diag.global_bits & GlobalBits.ACLR
     assert diag.operating() == [2]

@@ -19,7 +19,6 @@ import pytest
 from dbm_tools.builder import build_dbm
 from dbm_tools.container import save_dbm
 from dbm_tools.network import load_network
-from dbm_tools.parameters import NdFlag, NodeParameterSet, PdoData
 from dpm.card_info import read_card_info
 from dpm.com import ACCEPT_ALL_MASK, acceptance_long
 from dpm.message import Message
@@ -34,7 +33,7 @@ from firmware.frames import (
 from host_api import driver as d
 from host_api.board import Board
 from host_api.download import CONFIGURATION_DOWNLOAD, DevDownload
-from tests.can_net import Net, candump, exchange
+from tests.can_net import Net, bus_parameters, candump, exchange, node_set, window
 from tests.conftest import start_card, wait_until
 
 pytest_plugins = ["tests.can_net"]
@@ -45,27 +44,6 @@ CTRL = 0x01
 """Task2State's global bit CONTROL-ERROR (seed 4.3)."""
 BAUD_RATE_OUT_OF_RANGE = 56
 """Err_Event 56 at Err_Rem_Adr 255: "baudrate out of range" (seed 4.3)."""
-
-
-def bus_parameters(baud_rate: int = 2, sync_timer: int = 0) -> bytes:
-    """COM_Download of the bus parameters (seed 5.2.5.4.2): Area_Code 127, then the data set."""
-    return bytes([0, 127, 0, 0, baud_rate]) + struct.pack("<HH", SYNC_ID, sync_timer) + bytes(2)
-
-
-def node_set(address: int, output_type: int = 255) -> bytes:
-    """A generic node's data set (seed 5.2.5.1.1); its RX-PDO of transmission ``output_type``."""
-    return NodeParameterSet(
-        bNd_Flag=NdFlag.ACTIVE | NdFlag.HRTBT, usAddTypeInfo=0x000F, usDevProfNum=0x191,
-        usCobIDEmcy=0x80 + address, usCobIDGuard=0x700 + address, usGuardTime=1000,
-        atPdoCfgData=[PdoData(0, 8, 0x200 + address, output_type),
-                      PdoData(1, 8, 0x180 + address, 255)],
-        ausInputOffsets=[0], ausOutputOffsets=[0]).encode()
-
-
-def settle(seconds: float) -> None:
-    """Let ``seconds`` pass (traffic to record), as a bounded wait."""
-    until = time.monotonic() + seconds
-    wait_until(lambda: time.monotonic() > until, seconds + 1, f"{seconds} s to pass")
 
 
 # --- item 4: SYNC_Timer 0 with a synchronous PDO (seed revision 16, 5.2.5.4.1) -----------------
@@ -96,7 +74,7 @@ def test_sync_timer_0_with_a_synchronous_pdo_is_downloaded(make_net: Callable[..
     assert net.send(68, bytes([0, 1, 0, 0]) + node_set(1, output_type=1)).f == 0
     assert net.send(68, bus_parameters(sync_timer=0)).f == 0
     net.wait_operating([1])
-    settle(0.3)
+    window(0.3, "no SYNC of the card's own while the node runs")
     net.card.stop()
     assert not [t for t, ident, _ in candump(trace) if ident == SYNC_ID]
 
@@ -269,7 +247,7 @@ def test_bus_error_cnt_counts_one_escalation_once(tmp_path: Path) -> None:
             station.send(controller_state(status))
         wait_until(lambda: struct.unpack_from("<H", image, BUS_ERROR_CNT)[0] >= 2, 5,
                    "the second overstep counted")
-        settle(0.3)
+        window(0.3, "no third count after the two crossings")
         assert struct.unpack_from("<H", image, BUS_ERROR_CNT)[0] == 2
     finally:
         image.close()
