@@ -206,8 +206,12 @@ class Transaction:
     # --- calls ------------------------------------------------------------------------------
 
     def enter(self, timeout: float) -> bool:
-        """A call starts: True when the process holds the lock within ``timeout`` s."""
+        """A call starts: True when the process holds the lock within ``timeout`` s.
+
+        Another process's lock is waited for, except a CiA 309 gateway's, which it keeps
+        while it runs: then False at once."""
         deadline = time.monotonic() + timeout
+        asked = False
         while True:
             with self._state:
                 if not self._held:
@@ -222,6 +226,13 @@ class Transaction:
                     return True
             if time.monotonic() >= deadline:
                 return False
+            if not asked:
+                # [ours] Another process has it: waiting is futile when it keeps the lock
+                # for its life (the CiA 309 gateway), so the caller hears at once.
+                asked = True
+                holder = lock_holder(self.path)
+                if holder is not None and holder.long_lived:
+                    return False
             time.sleep(_FLOCK_RETRY)
 
     def leave(self) -> None:
@@ -297,17 +308,10 @@ class Transaction:
         if not (self._session.acquire(timeout=timeout) if timeout > 0
                 else self._session.acquire(False)):
             return False
-        if self.enter(0.0):
+        if self.enter(max(0.0, deadline - time.monotonic())):
             self.holder = None
             return True
-        # [ours] Taken by another process: waiting is futile when it keeps the lock for
-        # its life (the CiA 309 gateway), so the caller hears at once, with its name.
         self.holder = lock_holder(self.path)
-        long_lived = self.holder is not None and self.holder.long_lived
-        if not long_lived and self.enter(max(0.0, deadline - time.monotonic())):
-            self.holder = None
-            return True
-        self.holder = self.holder if long_lived else lock_holder(self.path)
         self._session.release()
         return False
 

@@ -33,7 +33,7 @@ from tests.libcif_host import C_TESTS, CC, STRICT, CDriver, build_libcif, compil
 pytestmark = pytest.mark.skipif(CC is None or shutil.which("make") is None,
                                 reason="no C compiler or make")
 
-LIBCIF_SOURCES = ["cif_api.c", "download.c", "bell.c", "chanlock.c", "dbm_embd.c"]
+LIBCIF_SOURCES = ["cif_api.c", "download.c", "bell.c", "chanlock.c", "holder.c", "dbm_embd.c"]
 ROOT = Path(__file__).resolve().parents[1]
 
 

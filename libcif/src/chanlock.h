@@ -76,7 +76,9 @@ int cifemu_txn_open(cifemu_txn *txn, const char *path);
 void cifemu_txn_close(cifemu_txn *txn);
 /* In a forked child: its own flock, an empty ledger in memory (the file is the parent's). */
 int cifemu_txn_reopen(cifemu_txn *txn, const char *path);
-/* A call starts: the process holds the lock within timeout_ms (1, counted), else 0. */
+/* A call starts: the process holds the lock within timeout_ms (1, counted), else 0; 0 at
+   once when the process holding it is a CiA 309 gateway, which keeps it while it runs
+   (holder.h). */
 int cifemu_txn_enter(cifemu_txn *txn, unsigned long timeout_ms);
 /* The call ends: the lock is given back when no call is inside and no answer is awaited
    (answers a timed-out get gave up on do not keep it). */

@@ -10,6 +10,7 @@
  * Usage: chanlock_wait LOCKFILE
  */
 #include "chanlock.c"
+#include "holder.c"
 
 #include <stdio.h>
 
