@@ -3,14 +3,21 @@
 It owns the controller (``CanBus``), the node handlers and the configuration, and
 composes the services, each in a module of its own with its frames and its state:
 network management (``nmt``), the SYNC producer (``sync``), layer-2 access
-(``layer2``), the SDO channels (``sdo``) and the PDO outputs (``pdo``). Its 1-ms tick
+(``layer2``), the SDO channels (``sdo``) and the PDO outputs (``pdo``). Its thread
 evaluates the connection-status bits (seed 3), supervises the nodes and sends the
 outputs that changed; it also counts the controller's error events into Task2State.
+
+The thread sleeps until something is due, not for a fixed tick (issue 22): a wake from
+the device loop when the host changed its outputs, connection bits or readiness
+(``notice_host``), a node's change of state (``reschedule``), or the earliest deadline
+of what it times itself: supervision, boot retries, remote requests, inhibit times, host
+SDO time-outs and the master's heartbeat. A card nobody uses costs (almost) nothing.
 """
 
 from __future__ import annotations
 
 import logging
+import math
 import threading
 import time
 from collections.abc import Callable
@@ -50,10 +57,6 @@ if TYPE_CHECKING:
 
 log = logging.getLogger(__name__)
 
-TICK = 0.001
-"""The connection bits are evaluated at least every millisecond (seed 3)."""
-SUPERVISION_PERIOD = 0.005
-"""[ours] heartbeat and guarding deadlines are checked every 5 ms."""
 
 
 class Master:
@@ -70,13 +73,22 @@ class Master:
         self._sync_used = False
         """Whether a configured node has a SYNC controlled PDO (see ``sync_period``)."""
         self.bus_params: BusParameterSet | None = None
-        self.ext = ExtendedBusParameterSet()
+        self._ext = ExtendedBusParameterSet()
         self.executor = ThreadPoolExecutor(max_workers=32, thread_name_prefix="node-boot")
         self._stop = threading.Event()
         self._tick_thread: threading.Thread | None = None
+        self._wakeup = threading.Event()
+        """Set by ``wake``: the thread looks at once."""
+        self._due_lock = threading.Lock()
+        self._due = math.inf
+        """When the thread looks next; inf while it is looking (``wake_at``)."""
+        self._general = True
+        """Set by ``reschedule``: the next look supervises every node and recomputes NEXC."""
         self._supervise_due = 0.0
+        self._host_seen: tuple[bytes, bytes, bool] | None = None
+        """The outputs, connection bits and readiness at the device loop's last turn."""
         self.outputs = OutputWatch()
-        self.sdo = SdoChannels()
+        self.sdo = SdoChannels(self.wake_at)
         self.layer2 = Layer2(device, lambda: self.ext)
         self.nmt = NmtMaster(device, self, self.nodes, self.bus_send,
                              lambda: zero_outputs(self.image, self.nodes), self._sync_changed)
@@ -111,6 +123,7 @@ class Master:
 
     def close(self) -> None:
         self._stop.set()
+        self._wakeup.set()
         if self._tick_thread is not None:
             self._tick_thread.join(timeout=2)
         self.sync.join(timeout=2)
@@ -127,13 +140,24 @@ class Master:
         self._sync_used = False
         self.outputs.nodes_changed()
         self.bus_params = None
-        self.ext = ExtendedBusParameterSet()
+        self._ext = ExtendedBusParameterSet()
         self.nmt.reset()
         self.sync.wake()
         self.layer2.reset()
         self.sdo.set_timeout(0, DEFAULT_SDO_TIMEOUT)
+        self.reschedule()
 
     # --- configuration ------------------------------------------------------------------------
+
+    @property
+    def ext(self) -> ExtendedBusParameterSet:
+        """The extended bus parameters (seed 4.4): the master's node-ID and heartbeat."""
+        return self._ext
+
+    @ext.setter
+    def ext(self, ext: ExtendedBusParameterSet) -> None:
+        self._ext = ext
+        self.wake()  # the master's heartbeat may start, stop or change its period
 
     @property
     def layer2_filters(self) -> set[int]:
@@ -194,6 +218,7 @@ class Master:
         if self.nmt.running:
             handler.attach()
             self.nmt.boot(handler)
+        self.reschedule()
 
     def start_network(self, params: BusParameterSet) -> None:
         """The bus parameter download: (re)start the whole network."""
@@ -209,6 +234,7 @@ class Master:
             handler.attach()
             if not self.nmt.halted:
                 self.nmt.boot(handler)
+        self.reschedule()
 
     def _apply_baud_rate(self, bitrate: int) -> None:
         """Seed 5.2.5.4: Baud_rate fixes the bus's rate. The controller takes it where the
@@ -268,30 +294,85 @@ class Master:
         """An NMT command to ``node`` (0: all); see ``NmtMaster.nmt``."""
         self.nmt.nmt(command, node)
 
-    # --- the tick and SYNC -----------------------------------------------------------------------
+    # --- the master's thread: asleep until something is due ---------------------------------
+
+    def wake(self) -> None:
+        """Look at once (any thread): something the thread follows may have changed."""
+        self._wakeup.set()
+
+    def wake_at(self, when: float) -> None:
+        """Look no later than ``when`` (monotonic seconds; any thread): a new deadline."""
+        with self._due_lock:
+            if when < self._due:
+                self._due = when
+                self._wakeup.set()
+
+    def reschedule(self) -> None:
+        """A node changed state (any thread): look at once, supervise every node, recompute
+        its deadlines and NEXC."""
+        self._general = True
+        self._wakeup.set()
+
+    def notice_host(self) -> bool:
+        """From the device loop after each turn: wake the thread when the host changed its
+        outputs, the connection bits or its readiness (NOTREADY, watchdog) since the last
+        turn. True when it did, so that the loop's fallback poll counts it as activity.
+
+        The device loop is the one that notices what a host writes: a host that rings
+        wakes it at once, one that never rings at its next fallback poll (``AdaptivePoll``).
+        Comparing here costs a copy of the output area per turn; waking the thread for
+        every turn would cost a thread switch, and the mailbox traffic would pay for it.
+        """
+        image = self.image
+        seen = (image.snapshot_outputs(), self.nmt.connection_bits(), image.driving)
+        if seen == self._host_seen:
+            return False
+        self._host_seen = seen
+        self._wakeup.set()
+        return True
 
     def _tick_loop(self) -> None:
-        while not self._stop.wait(TICK):
+        timeout: float | None = None
+        while True:
+            self._wakeup.wait(timeout)
+            if self._stop.is_set():
+                return
+            self._wakeup.clear()  # before looking: a wake from now on makes another look
+            with self._due_lock:
+                self._due = math.inf
+            general, self._general = self._general, False
+            now = time.monotonic()
             try:
-                self._tick(time.monotonic())
+                due = self._tick(now, general)
             except Exception:
                 log.exception("CAN tick failed")
+                due = now + 1.0  # [ours] and again in a second, whatever failed
+            with self._due_lock:
+                self._due = due = min(due, self._due)
+            timeout = None if math.isinf(due) else max(0.0, due - time.monotonic())
 
-    def _tick(self, now: float) -> None:
+    def _tick(self, now: float, general: bool) -> float:
+        """One look: what is due now, and when the next look is due (inf: on a wake only).
+
+        ``general``: a node changed state since the last look, so every node is supervised
+        now and their deadlines and NEXC computed again; else only when the earliest of
+        those deadlines has come.
+        """
         nmt = self.nmt
         if not nmt.running:
-            return
+            return math.inf
         nmt.follow_host()
-        self.sdo.check(now)
+        due = self.sdo.check(now)
         if not nmt.follow(now):
-            return
-        if now >= self._supervise_due:
-            self._supervise_due = now + SUPERVISION_PERIOD
-            for handler in list(self.nodes.values()):
+            return due
+        if general or now >= self._supervise_due:
+            nodes = list(self.nodes.values())
+            for handler in nodes:
                 handler.tick(now)
             nmt.update_nexc()
-        self.outputs.follow(self.image.snapshot_outputs(), self.nodes)
-        nmt.heartbeat(now)
+            self._supervise_due = min((h.next_due() for h in nodes), default=math.inf)
+        outputs = self.outputs.follow(self.image.snapshot_outputs(), self.nodes, now, general)
+        return min(due, self._supervise_due, outputs, nmt.heartbeat(now))
 
     def _sync_changed(self) -> None:
         self.sync.wake()
