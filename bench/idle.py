@@ -5,7 +5,7 @@ from /proc (``bench.cpu``): with no network and no host, and with N configured
 simulated nodes (``--nodes``, 1 and 16 by default) that run as ``cifemu sim`` in a
 process of their own and are all operational before the window starts; the host
 that configured them stays open and does nothing. Each figure is split into the
-device loop (the firmware's main thread) and its other threads (the CAN tick, the
+device loop (the firmware's main thread) and its other threads (the CAN master, the
 controller's receive thread, python-can's). Baseline, same run: a Python process
 blocked on a Unix datagram socket, as a card asleep on its doorbell would be.
 

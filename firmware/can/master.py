@@ -76,7 +76,7 @@ class Master:
         self._ext = ExtendedBusParameterSet()
         self.executor = ThreadPoolExecutor(max_workers=32, thread_name_prefix="node-boot")
         self._stop = threading.Event()
-        self._tick_thread: threading.Thread | None = None
+        self._thread: threading.Thread | None = None
         self._wakeup = threading.Event()
         """Set by ``wake``: the thread looks at once."""
         self._due_lock = threading.Lock()
@@ -105,8 +105,8 @@ class Master:
         self.bus.on_send_timeout = self._on_send_timeout
         self.bus.subscribe_all(self.layer2.on_frame)
         self.sdo.open(self.bus)
-        self._tick_thread = threading.Thread(target=self._tick_loop, name="can-tick", daemon=True)
-        self._tick_thread.start()
+        self._thread = threading.Thread(target=self._loop, name="can-master", daemon=True)
+        self._thread.start()
         self.sync.start(self.bus)
 
     @property
@@ -124,8 +124,8 @@ class Master:
     def close(self) -> None:
         self._stop.set()
         self._wakeup.set()
-        if self._tick_thread is not None:
-            self._tick_thread.join(timeout=2)
+        if self._thread is not None:
+            self._thread.join(timeout=2)
         self.sync.join(timeout=2)
         self.executor.shutdown(wait=False, cancel_futures=True)
         if self.bus is not None:
@@ -331,7 +331,7 @@ class Master:
         self._wakeup.set()
         return True
 
-    def _tick_loop(self) -> None:
+    def _loop(self) -> None:
         timeout: float | None = None
         while True:
             self._wakeup.wait(timeout)
@@ -343,15 +343,15 @@ class Master:
             general, self._general = self._general, False
             now = time.monotonic()
             try:
-                due = self._tick(now, general)
+                due = self._look(now, general)
             except Exception:
-                log.exception("CAN tick failed")
+                log.exception("the CAN master failed to look")
                 due = now + 1.0  # [ours] and again in a second, whatever failed
             with self._due_lock:
                 self._due = due = min(due, self._due)
             timeout = None if math.isinf(due) else max(0.0, due - time.monotonic())
 
-    def _tick(self, now: float, general: bool) -> float:
+    def _look(self, now: float, general: bool) -> float:
         """One look: what is due now, and when the next look is due (inf: on a wake only).
 
         ``general``: a node changed state since the last look, so every node is supervised
