@@ -8,10 +8,11 @@ evaluates the connection-status bits (seed 3), supervises the nodes and sends th
 outputs that changed; it also counts the controller's error events into Task2State.
 
 The thread sleeps until something is due, not for a fixed tick (issue 22): a wake from
-the device loop when the host changed its outputs, connection bits or readiness
-(``notice_host``), a node's change of state (``reschedule``), or the earliest deadline
-of what it times itself: supervision, boot retries, remote requests, inhibit times, host
-SDO time-outs and the master's heartbeat. A card nobody uses costs (almost) nothing.
+the device loop when the host changed its connection bits or readiness (``notice_host``;
+new outputs the device loop sends itself), a node's change of state (``reschedule``), or
+the earliest deadline of what it times itself: supervision, boot retries, remote
+requests, inhibit times, host SDO time-outs and the master's heartbeat. A card nobody
+uses costs (almost) nothing.
 """
 
 from __future__ import annotations
@@ -77,6 +78,7 @@ class Master:
         self.executor = ThreadPoolExecutor(max_workers=32, thread_name_prefix="node-boot")
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
+        self._thread_id: int | None = None
         self._wakeup = threading.Event()
         """Set by ``wake``: the thread looks at once."""
         self._due_lock = threading.Lock()
@@ -85,9 +87,12 @@ class Master:
         self._general = True
         """Set by ``reschedule``: the next look supervises every node and recomputes NEXC."""
         self._supervise_due = 0.0
-        self._host_seen: tuple[bytes, bytes, bool] | None = None
-        """The outputs, connection bits and readiness at the device loop's last turn."""
+        self._host_outputs = b""
+        self._host_state: tuple[bytes, bool] | None = None
+        """The outputs, and the connection bits and readiness, at the device loop's last turn."""
         self.outputs = OutputWatch()
+        self._outputs_lock = threading.Lock()
+        """``outputs`` is followed by the device loop (a host's change) and this thread."""
         self.sdo = SdoChannels(self.wake_at)
         self.layer2 = Layer2(device, lambda: self.ext)
         self.nmt = NmtMaster(device, self, self.nodes, self.bus_send,
@@ -314,24 +319,42 @@ class Master:
         self._wakeup.set()
 
     def notice_host(self) -> bool:
-        """From the device loop after each turn: wake the thread when the host changed its
-        outputs, the connection bits or its readiness (NOTREADY, watchdog) since the last
-        turn. True when it did, so that the loop's fallback poll counts it as activity.
+        """From the device loop after each turn: follow what the host changed since the last
+        turn. True when it changed something, so that the loop's fallback poll counts it
+        as activity.
 
         The device loop is the one that notices what a host writes: a host that rings
         wakes it at once, one that never rings at its next fallback poll (``AdaptivePoll``).
-        Comparing here costs a copy of the output area per turn; waking the thread for
-        every turn would cost a thread switch, and the mailbox traffic would pay for it.
+        New outputs alone are sent from the calling thread: waking this one for them would
+        cost a thread switch per change, as much as the send itself. New connection bits or
+        a change of the host's readiness (NOTREADY, watchdog) wake this thread, which
+        follows them before any output. Comparing costs a copy of the output area per turn.
         """
         image = self.image
-        seen = (image.snapshot_outputs(), self.nmt.connection_bits(), image.driving)
-        if seen == self._host_seen:
+        outputs = image.snapshot_outputs()
+        state = (self.nmt.connection_bits(), image.driving)
+        if state != self._host_state:
+            self._host_state = state
+            self._host_outputs = outputs
+            self._wakeup.set()
+            return True
+        if outputs == self._host_outputs:
             return False
-        self._host_seen = seen
-        self._wakeup.set()
+        self._host_outputs = outputs
+        if self.nmt.exchanging and image.driving:
+            self._follow_outputs(outputs, time.monotonic(), False)
         return True
 
+    def _follow_outputs(self, outputs: bytes, now: float, every: bool) -> float:
+        """Send what ``outputs`` changed (``OutputWatch.follow``); when to look again."""
+        with self._outputs_lock:
+            due = self.outputs.follow(outputs, self.nodes, now, every)
+        if threading.get_ident() != self._thread_id:
+            self.wake_at(due)  # a PDO waits for its inhibit time
+        return due
+
     def _loop(self) -> None:
+        self._thread_id = threading.get_ident()
         timeout: float | None = None
         while True:
             self._wakeup.wait(timeout)
@@ -371,7 +394,7 @@ class Master:
                 handler.tick(now)
             nmt.update_nexc()
             self._supervise_due = min((h.next_due() for h in nodes), default=math.inf)
-        outputs = self.outputs.follow(self.image.snapshot_outputs(), self.nodes, now, general)
+        outputs = self._follow_outputs(self.image.snapshot_outputs(), now, general)
         return min(due, self._supervise_due, outputs, nmt.heartbeat(now))
 
     def _sync_changed(self) -> None:
