@@ -230,6 +230,8 @@ class Master:
         restart = self.nmt.running
         self.bus_params = params
         self._apply_baud_rate(BAUD_RATES_KBIT[params.Baud_rate] * 1000)
+        with self._outputs_lock:
+            self.outputs.restart(self.image.snapshot_outputs())
         self.nmt.start()
         self.sync.retry_now()  # a new configuration tries the SYNC timer at once
         self.sync.wake()

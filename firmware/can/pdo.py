@@ -259,6 +259,13 @@ class OutputWatch:
         """A node came or went: the owner map is built again at the next look."""
         self._owners = None
 
+    def restart(self, outputs: bytes) -> None:
+        """The network starts: ``outputs`` as they are now are no change. Each node gets
+        them when its boot-up ends (unless TXRXPDO skips that), and only later changes go
+        out on their own; without this, a first look that comes after a node's boot-up (a
+        busy machine) took every output for new and sent them to a node that skips it."""
+        self._last = outputs
+
     def follow(self, outputs: bytes, nodes: Mapping[int, OutputSender], now: float,
                every: bool = False) -> float:
         """Send the PDOs of the nodes whose outputs changed since the last call, and of the
