@@ -363,7 +363,8 @@ SOURCE_PACKAGES = ("dpm", "firmware", "host_api")
 
 
 def source_fingerprint() -> dict[str, Any]:
-    """A SHA-256 over the ``.py`` files of the code under test, and their newest mtime.
+    """A SHA-256 over the ``.py`` files of the code under test (subpackages too), and their
+    newest mtime.
 
     Figures only compare between runs of the same fingerprint; the tree may
     have no commit to name, so the fingerprint stands in for one.
@@ -372,7 +373,7 @@ def source_fingerprint() -> dict[str, Any]:
     digest = hashlib.sha256()
     newest = 0.0
     for package in SOURCE_PACKAGES:
-        for path in sorted((root / package).glob("*.py")):
+        for path in sorted((root / package).rglob("*.py")):
             digest.update(path.relative_to(root).as_posix().encode() + b"\0")
             digest.update(path.read_bytes())
             newest = max(newest, path.stat().st_mtime)
