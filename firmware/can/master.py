@@ -59,7 +59,6 @@ if TYPE_CHECKING:
 log = logging.getLogger(__name__)
 
 
-
 class Master:
     def __init__(self, device: Card, config: BusConfig, publish: Callable[[], None]) -> None:
         self.device = device
