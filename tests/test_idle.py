@@ -59,11 +59,12 @@ MAX_CARD_CPU_PCT = 3.0
 OUTPUT_TRIALS = 9
 MAX_OUTPUT_LATENCY_S = 0.010
 """A ringing host's new output value until its RPDO is on the bus, median of the trials,
-each after a pause that let the device loop's poll back off. Without the ring the card
-would see it at its next fallback poll: 25 ms on average."""
+each after a pause that let the device loop's poll back off (0.5-1 ms here). Without the
+driver's ring the card sees it at its next fallback poll, up to 50 ms later: a median of
+17 ms, measured with the ring taken out."""
 SUPERVISION_SLACK_S = 0.25
-"""What a loaded machine may add between a supervision deadline and the host seeing its
-Err_Event: the master's wake-up, the host's poll."""
+"""What a loaded machine may add between a supervision deadline and the host seeing the
+node leave Nd_state: the master's wake-up, the host's poll."""
 
 
 @pytest.fixture
