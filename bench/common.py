@@ -19,7 +19,7 @@ import subprocess
 import sys
 import tempfile
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from multiprocessing.connection import Connection
@@ -108,9 +108,10 @@ def stop_process(proc: subprocess.Popen[bytes]) -> None:
 
 @contextmanager
 def running_card(board: int = 0, *, startup_timeout: float = STARTUP_TIMEOUT,
-                 record: bool = False) -> Iterator[Card]:
+                 record: bool = False, extra: Sequence[str] = ()) -> Iterator[Card]:
     """A firmware subprocess serving ``board`` in a temporary directory, READY on entry;
-    ``record``: recording a session there (``--record``), to measure what that costs.
+    ``record``: recording a session there (``--record``), to measure what that costs;
+    ``extra``: more options of ``cifemu firmware`` (its interface, say).
 
     The firmware's stdout is discarded (it must not mix with the JSON); its stderr
     (log lines at WARNING and above) goes to ours. On exit it gets SIGTERM, and is
@@ -123,6 +124,7 @@ def running_card(board: int = 0, *, startup_timeout: float = STARTUP_TIMEOUT,
                    "--log-level", "WARNING"]
         if record:
             command += ["--record", str(directory / "session")]
+        command += extra
         proc = subprocess.Popen(command, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL)
         try:
             card = Card(directory, board, proc.pid)
@@ -361,7 +363,8 @@ SOURCE_PACKAGES = ("dpm", "firmware", "host_api")
 
 
 def source_fingerprint() -> dict[str, Any]:
-    """A SHA-256 over the ``.py`` files of the code under test, and their newest mtime.
+    """A SHA-256 over the ``.py`` files of the code under test (subpackages too), and their
+    newest mtime.
 
     Figures only compare between runs of the same fingerprint; the tree may
     have no commit to name, so the fingerprint stands in for one.
@@ -370,7 +373,7 @@ def source_fingerprint() -> dict[str, Any]:
     digest = hashlib.sha256()
     newest = 0.0
     for package in SOURCE_PACKAGES:
-        for path in sorted((root / package).glob("*.py")):
+        for path in sorted((root / package).rglob("*.py")):
             digest.update(path.relative_to(root).as_posix().encode() + b"\0")
             digest.update(path.read_bytes())
             newest = max(newest, path.stat().st_mtime)

@@ -137,6 +137,7 @@ class GatewayCommands:
             self.master.ext.usProducerHeartbeatTime = decode_word(msg.data)
         except MessageError:
             return msg.answer(f=CanF.FAULTY_PARAMETER)
+        self.master.wake()  # the master's heartbeat starts, stops or changes its period
         return msg.answer()
 
     def com_set_node_id(self, msg: Message) -> Message:
@@ -145,6 +146,7 @@ class GatewayCommands:
         if msg.data[0] in self.master.nodes:
             return msg.answer(f=CanF.DOUBLE_ADDRESS)
         self.master.ext.bNodeID = msg.data[0]
+        self.master.wake()  # the master's heartbeat may start now
         return msg.answer()
 
     def com_bootup_forwarding(self, msg: Message) -> Message:

@@ -10,7 +10,10 @@ Tasks that work in threads of their own (the CAN task) hand answers over with
 
 The fallback poll (``AdaptivePoll``) serves a host that writes the flags without
 ringing: every millisecond while the flags move, backing off to 50 ms when idle,
-so that a card nobody uses costs (almost) nothing (issue 22).
+so that a card nobody uses costs (almost) nothing (issue 22). After each turn the
+loop tells the CAN master's thread, which sleeps too, when the host changed what it
+follows: the outputs, the connection bits, its readiness (``Master.notice_host``);
+those count as activity for the poll, as a flag change does.
 """
 
 from __future__ import annotations
@@ -209,8 +212,10 @@ class Device:
                     self._wake_pending = False  # before service reads what woke it
                     now = time.monotonic()
                     self.service(now)
+                # The CAN master sleeps until told: of new outputs, connection bits, NOTREADY.
+                host_wrote = self.can.master.notice_host()
                 current = self._flag_bytes()
-                interval = poll.next_interval(rung or current != seen, now)
+                interval = poll.next_interval(rung or current != seen or host_wrote, now)
                 seen = current
                 timeout = self._until_due(now, interval)
         finally:
@@ -419,7 +424,7 @@ class Device:
         self.plc.image.driving = not (self.rcs.host_not_ready or self.rcs.watchdog_expired)
         if not self.plc.image.driving:
             # Seed 5.3.2.1: stopping removes the layer-2 filters, at once, so that a
-            # stop and restart quicker than the CAN tick still removes them.
+            # stop and restart quicker than the CAN master looks still removes them.
             self.can.master.layer2_filters.clear()
 
     def fill_info(self) -> None:
@@ -465,7 +470,7 @@ class Device:
         configured = self.can.configured and self.plc.image.mode != 0
         state = self.can.can_state() if configured else CanState.OFFLINE
         if state == CanState.OPERATE and not self.plc.image.driving:
-            state = CanState.STOP  # the CAN tick follows within a millisecond
+            state = CanState.STOP  # the CAN master follows once this turn wakes it
         return state
 
     def level_flags(self) -> int:

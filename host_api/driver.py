@@ -401,8 +401,10 @@ def _exchange(
     mm = board.mm
     received = b""
     if mode == 3:  # uncontrolled: no handshake, just the copy
-        if send_data:
-            mm[SND_PD + send_offset : SND_PD + send_offset + len(send_data)] = send_data
+        span = slice(SND_PD + send_offset, SND_PD + send_offset + len(send_data))
+        if send_data and mm[span] != send_data:
+            mm[span] = send_data
+            board.bell.ring_device()  # [ours] the card sends changed outputs when rung
         if recv_size:
             received = mm[RCV_PD + recv_offset : RCV_PD + recv_offset + recv_size]
         rc: int = Drv.DRV_NO_ERROR
@@ -669,6 +671,7 @@ def DevPutTaskParameter(number: int, task: int, data: bytes) -> int:
         return rc
     offset = _task_area("parameter", task)
     board.mm[offset : offset + len(data)] = data
+    board.bell.ring_device()  # [ours] the connection bits take effect when rung (docs/dpm.md 2)
     return Drv.DRV_NO_ERROR
 
 

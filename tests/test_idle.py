@@ -3,23 +3,34 @@
 The device loop used to wake every millisecond to poll the flags: 1,000 wake-ups a
 second and 3-6 % of a core for a card nobody used. It now sleeps until a ring, a
 post from another thread or a due timer, with a fallback poll that backs off to
-``DEVICE_POLL_IDLE`` (docs/dpm.md 2). The figures here are the firmware's main thread
-(the device loop) from /proc: its CPU time and its voluntary context switches (each
-one a sleep that ended), which a loaded machine hardly changes, unlike wall time.
+``DEVICE_POLL_IDLE`` (docs/dpm.md 2). So does the CAN master's thread, which used to
+wake every millisecond too: it wakes when the device loop saw the host change its
+outputs, and when a deadline of its own comes (supervision, inhibit times, time-outs).
+The figures here come from /proc: CPU time and voluntary context switches (each one a
+sleep that ended), which a loaded machine hardly changes, unlike wall time.
 """
 
 from __future__ import annotations
 
 import mmap
+import statistics
+import subprocess
 import time
+import uuid
 from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
 
+from dbm_tools.network import load_network
 from dpm.doorbell import DEVICE_FAST_WINDOW, DEVICE_POLL_IDLE
 from dpm.flags import DevFlag, HostFlag
 from dpm.layout import DEV_FLAGS, HOST_FLAGS
+from dpm.task2 import ComPlcParameter, PlcMode
+from host_api import driver as d
+from host_api.board import Board
+from host_api.online import configure_online
+from tests.can_net import candump, start_sim
 from tests.conftest import Card, start_card, wait_until
 
 WINDOW_S = 3.0
@@ -34,6 +45,26 @@ backed-off poll 1 / DEVICE_POLL_IDLE (20)."""
 SCHEDULING_SLACK_S = 0.25
 """What a shared, loaded 2-core machine may add to a wake-up before the loop runs."""
 TRIALS = 5
+IDLE_NODES = 16
+MAX_THREAD_WAKEUPS_PER_S = 200
+"""Any one thread of a card with 16 operational nodes and nothing to do. The CAN master's
+thread woke 340-1,000 times a second when it polled every millisecond (fewer only on a
+loaded machine, which delays each wait); now it wakes for its deadlines, a few times a
+second. The busiest thread is the controller's receive thread: the nodes' heartbeats
+(32 a second) and the ``shm`` reader's bounded sleep (20 a second)."""
+MAX_CARD_WAKEUPS_PER_S = 300
+"""The whole card, every thread: about 80 a second now, 900-1,000 with the 1-ms tick."""
+MAX_CARD_CPU_PCT = 3.0
+"""The whole card with 16 nodes: 1.2 % now, 6.5-8 % with the 1-ms tick (3.8 % at load 15)."""
+OUTPUT_TRIALS = 9
+MAX_OUTPUT_LATENCY_S = 0.010
+"""A ringing host's new output value until its RPDO is on the bus, median of the trials,
+each after a pause that let the device loop's poll back off (0.5-1 ms here). Without the
+driver's ring the card sees it at its next fallback poll, up to 50 ms later: a median of
+17 ms, measured with the ring taken out."""
+SUPERVISION_SLACK_S = 0.25
+"""What a loaded machine may add between a supervision deadline and the host seeing the
+node leave Nd_state: the master's wake-up, the host's poll."""
 
 
 @pytest.fixture
@@ -98,3 +129,155 @@ def test_a_host_that_never_rings_is_served_within_the_fallback_latency(card: Car
         assert image[HOST_FLAGS] & HostFlag.READY
     finally:
         image.close()
+
+
+# --- the CAN master's thread ------------------------------------------------------------------
+
+
+def _threads(pid: int) -> dict[int, tuple[int, int]]:
+    """Per thread of ``pid``: (ns on the CPU, voluntary context switches)."""
+    threads = {}
+    for task in Path(f"/proc/{pid}/task").iterdir():
+        try:
+            cpu_ns = int((task / "schedstat").read_text().split()[0])
+            status = (task / "status").read_text()
+        except (OSError, ValueError, IndexError):
+            continue  # a thread that ended meanwhile
+        switches = next(int(line.split()[1]) for line in status.splitlines()
+                        if line.startswith("voluntary_ctxt_switches:"))
+        threads[int(task.name)] = (cpu_ns, switches)
+    return threads
+
+
+class ShmNetwork:
+    """A card on a fresh ``shm`` channel, its nodes in ``cifemu sim``: a process of their own,
+    so that the card's threads are only the card's. ``start`` configures it on line."""
+
+    def __init__(self, directory: Path) -> None:
+        self.directory = directory
+        self.channel = f"test-{uuid.uuid4().hex}"
+        self.trace = directory / "trace.log"
+        self.card: Card | None = None
+        self.sim: subprocess.Popen[bytes] | None = None
+        self.board: Board | None = None
+
+    def start(self, toml: str, uncontrolled: bool = False) -> Board:
+        """``uncontrolled``: the handshake of exchange mode 3, chosen by a warm start before
+        the configuration (a start forgets an on-line configuration)."""
+        path = self.directory / "network.toml"
+        path.write_text(toml)
+        self.card = start_card(self.directory, 0, "--interface", "shm", "--channel",
+                               self.channel, "--trace", str(self.trace))
+        self.sim = start_sim(path, "shm", self.channel)
+        self.board = Board(0, self.directory, timeout=5000).open()
+        if uncontrolled:
+            self.board.warm_start(ComPlcParameter(bMode=PlcMode.UNCONTROLLED))
+        configure_online(self.board, load_network(path))
+        return self.board
+
+    @property
+    def pid(self) -> int:
+        assert self.card is not None
+        return self.card.proc.pid
+
+    def stop(self) -> None:
+        """Everything ends; the trace is complete afterwards."""
+        if self.board is not None:
+            self.board.close()
+            self.board = None
+        if self.card is not None:
+            self.card.stop()
+        if self.sim is not None:
+            self.sim.terminate()
+            self.sim.wait(timeout=10)
+            self.sim = None
+
+
+@pytest.fixture
+def shm_net(tmp_path: Path) -> Iterator[ShmNetwork]:
+    network = ShmNetwork(tmp_path)
+    try:
+        yield network
+    finally:
+        network.stop()
+
+
+def test_an_idle_card_with_16_nodes_sleeps(shm_net: ShmNetwork) -> None:
+    """16 operational nodes, a host that holds the board and does nothing: no thread of the
+    card wakes more than a couple of hundred times a second, and the card takes little CPU."""
+    board = shm_net.start("".join(f"[[node]]\nid = {n}\n" for n in range(1, IDLE_NODES + 1)))
+    everyone = list(range(1, IDLE_NODES + 1))
+    wait_until(lambda: board.diagnostics().operating() == everyone, 30,
+               "16 nodes in data exchange")
+    time.sleep(DEVICE_FAST_WINDOW + 1.0)  # boot-ups and start-up work end
+    before = _threads(shm_net.pid)
+    start = time.monotonic()
+    time.sleep(WINDOW_S)  # the measurement window, not a wait on a condition
+    after = _threads(shm_net.pid)
+    wall = time.monotonic() - start
+    wakeups = {tid: (after[tid][1] - before.get(tid, (0, 0))[1]) / wall for tid in after}
+    cpu_pct = 100.0 * sum(after[t][0] - before.get(t, (0, 0))[0] for t in after) / 1e9 / wall
+    busiest = max(wakeups.values())
+    assert busiest < MAX_THREAD_WAKEUPS_PER_S, f"a thread woke {busiest:.0f} times a second"
+    total = sum(wakeups.values())
+    assert total < MAX_CARD_WAKEUPS_PER_S, f"the card woke {total:.0f} times a second"
+    assert cpu_pct < MAX_CARD_CPU_PCT, f"the card used {cpu_pct:.2f} % of a core"
+
+
+def test_a_ringing_host_s_new_outputs_reach_the_bus_at_once(shm_net: ShmNetwork) -> None:
+    """Uncontrolled handshake: DevExchangeIO writes a new value after a pause, and the card's
+    RPDO carries it within milliseconds; the driver rings the card, which wakes the master."""
+    board = shm_net.start("[[node]]\nid = 1\n", uncontrolled=True)
+    wait_until(lambda: board.diagnostics().operating() == [1], 15, "node 1 operating")
+    written: list[tuple[float, str]] = []
+    for trial in range(1, OUTPUT_TRIALS + 1):
+        time.sleep(DEVICE_FAST_WINDOW + 2 * DEVICE_POLL_IDLE)  # the loop's poll backs off
+        value = bytes([trial]) * 8
+        written.append((time.time(), value.hex()))
+        assert d.DevExchangeIO(0, 0, value, 0, 0, 1000)[0] == 0
+        wait_until(lambda v=value: d.DevExchangeIO(0, 0, b"", 0, 8, 1000)[1] == v, 5,
+                   f"node 1's echo of {value.hex()}")
+    shm_net.stop()
+    frames = [(t, data) for t, ident, data in candump(shm_net.trace) if ident == 0x201]
+    latencies = [next(t for t, data in frames if data == value and t >= at - 0.001) - at
+                 for at, value in written]
+    assert statistics.median(latencies) <= MAX_OUTPUT_LATENCY_S, latencies
+
+
+def test_heartbeat_and_guarding_losses_are_found_at_their_deadlines(
+        shm_net: ShmNetwork) -> None:
+    """Node 1's heartbeats (consumer time 200 ms) stop, node 2 stops answering guarding
+    (100 ms, life time factor 2): each leaves Nd_state when its deadline passes, not a
+    fixed tick's or a fallback's time later, and not before."""
+    board = shm_net.start("""[[node]]
+id = 1
+heartbeat_ms = 200
+[node.sim]
+heartbeat_stop_after_s = 1.0
+[[node]]
+id = 2
+error_control = "guarding"
+guard_time_ms = 100
+life_time_factor = 2
+[node.sim]
+guarding_fail_after_s = 1.0
+""")
+    wait_until(lambda: board.diagnostics().operating() == [1, 2], 15, "both operating")
+    left: dict[int, float] = {}
+
+    def both_left() -> bool:
+        operating = board.diagnostics().operating()
+        for node in (1, 2):
+            if node not in operating:
+                left.setdefault(node, time.time())
+        return len(left) == 2
+
+    wait_until(both_left, 10, "both nodes' losses found")
+    shm_net.stop()
+    frames = candump(shm_net.trace)
+    heartbeat = max(t for t, ident, data in frames if ident == 0x701 and data == "05"
+                    and t < left[1])
+    answer = max(t for t, ident, data in frames if ident == 0x702 and data not in ("", "R")
+                 and t < left[2])
+    assert 0.2 <= left[1] - heartbeat <= 0.2 + SUPERVISION_SLACK_S, left[1] - heartbeat
+    assert 2 * 0.1 <= left[2] - answer <= 3 * 0.1 + SUPERVISION_SLACK_S, left[2] - answer

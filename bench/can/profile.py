@@ -26,7 +26,7 @@ PROFILE_RATE = 100
 
 
 ROLES = {
-    "card: CAN tick (output scan, RPDO send, supervision)": ("can-tick",),
+    "card: CAN master (output changes, RPDO send, supervision)": ("can-master",),
     "card: SYNC producer": ("can-sync",),
     "card: node boot / SDO workers": ("node-boot",),
     "card: device loop (mailboxes, handshakes)": ("MainThread",),
@@ -77,7 +77,8 @@ def profile_window(card: SimCard, values: U64, active: int, out_offset: int,
         if card_busy else None,
         "estimate_note": "frames/s divided by the fraction of wall time the card's own threads "
                          "held the GIL: roughly the rate if the simulated nodes cost nothing "
-                         "(rough: the CAN tick's cost grows with ticks and nodes, not frames)",
+                         "(rough: the CAN master's cost grows with output changes and nodes, "
+                         "not frames)",
     }
 
 

@@ -3,7 +3,7 @@
 126 generic nodes, uncontrolled. For each node the host
 keeps one value in flight: once a node's input shows the value written, the
 host writes the next one, so every value is one RPDO and one TPDO and none is
-merged by the card's 1 ms output scan. A value still missing 2 s after the
+merged with the next by the card. A value still missing 2 s after the
 window is lost (its node stalls, so a single loss shows). The figure is 2 x
 the input updates the host verified; the card's candump trace counts the
 frames on the bus as a cross-check. Baseline: the same closed loop driven by

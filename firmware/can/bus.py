@@ -375,6 +375,11 @@ class CanBus(can.Listener):
         self.on_error_frame(can.Message(is_error_frame=True, arbitration_id=CAN_ERR_BUSOFF))
         threading.Thread(target=self._reopen, name="can-reopen", daemon=True).start()
 
+    @property
+    def watches_link(self) -> bool:
+        """Whether ``check_link`` has a connection to look at on this interface."""
+        return self.interface in HIDDEN_CLOSE_INTERFACES
+
     def check_link(self) -> None:
         """Report a bridge connection its server closed while the card sends nothing, as
         ``on_error`` reports a transport that raises (a bus-off, then reopening). For

@@ -3,14 +3,22 @@
 It owns the controller (``CanBus``), the node handlers and the configuration, and
 composes the services, each in a module of its own with its frames and its state:
 network management (``nmt``), the SYNC producer (``sync``), layer-2 access
-(``layer2``), the SDO channels (``sdo``) and the PDO outputs (``pdo``). Its 1-ms tick
+(``layer2``), the SDO channels (``sdo``) and the PDO outputs (``pdo``). Its thread
 evaluates the connection-status bits (seed 3), supervises the nodes and sends the
 outputs that changed; it also counts the controller's error events into Task2State.
+
+The thread sleeps until something is due, not for a fixed tick (issue 22): a wake from
+the device loop when the host changed its connection bits or readiness (``notice_host``;
+new outputs the device loop sends itself), a node's change of state (``reschedule``), or
+the earliest deadline of what it times itself: supervision, boot retries, remote
+requests, inhibit times, host SDO time-outs and the master's heartbeat. A card nobody
+uses costs (almost) nothing.
 """
 
 from __future__ import annotations
 
 import logging
+import math
 import threading
 import time
 from collections.abc import Callable
@@ -56,11 +64,6 @@ if TYPE_CHECKING:
 
 log = logging.getLogger(__name__)
 
-TICK = 0.001
-"""The connection bits are evaluated at least every millisecond (seed 3)."""
-SUPERVISION_PERIOD = 0.005
-"""[ours] heartbeat and guarding deadlines are checked every 5 ms."""
-
 
 class Master:
     def __init__(self, device: Card, config: BusConfig, publish: Callable[[], None]) -> None:
@@ -76,14 +79,27 @@ class Master:
         self._sync_used = False
         """Whether a configured node has a SYNC controlled PDO (see ``sync_period``)."""
         self.bus_params: BusParameterSet | None = None
-        self.ext = ExtendedBusParameterSet()
+        self._ext = ExtendedBusParameterSet()
         self.executor = ThreadPoolExecutor(max_workers=32, thread_name_prefix="node-boot")
         self._stop = threading.Event()
-        self._tick_thread: threading.Thread | None = None
+        self._thread: threading.Thread | None = None
+        self._thread_id: int | None = None
+        self._wakeup = threading.Event()
+        """Set by ``wake``: the thread looks at once."""
+        self._due_lock = threading.Lock()
+        self._due = math.inf
+        """When the thread looks next; inf while it is looking (``wake_at``)."""
+        self._general = True
+        """Set by ``reschedule``: the next look supervises every node and recomputes NEXC."""
         self._supervise_due = 0.0
         self._link_due = 0.0
+        self._host_outputs = b""
+        self._host_state: tuple[bytes, bool] | None = None
+        """The outputs, and the connection bits and readiness, at the device loop's last turn."""
         self.outputs = OutputWatch()
-        self.sdo = SdoChannels()
+        self._outputs_lock = threading.Lock()
+        """``outputs`` is followed by the device loop (a host's change) and this thread."""
+        self.sdo = SdoChannels(self.wake_at)
         self.layer2 = Layer2(device, lambda: self.ext)
         self.nmt = NmtMaster(device, self, self.nodes, self.bus_send,
                              lambda: zero_outputs(self.image, self.nodes), self._sync_changed)
@@ -99,11 +115,11 @@ class Master:
                           cfg.options)
         self.bus.on_error_frame = self._on_error_frame
         self.bus.on_send_timeout = self._on_send_timeout
-        self.bus.on_link_back = lambda: self.outputs.ask_everyone(force=True)
+        self.bus.on_link_back = lambda: self._send_all_outputs(force=True)
         self.bus.subscribe_all(self.layer2.on_frame)
         self.sdo.open(self.bus)
-        self._tick_thread = threading.Thread(target=self._tick_loop, name="can-tick", daemon=True)
-        self._tick_thread.start()
+        self._thread = threading.Thread(target=self._loop, name="can-master", daemon=True)
+        self._thread.start()
         self.sync.start(self.bus)
 
     @property
@@ -120,8 +136,9 @@ class Master:
 
     def close(self) -> None:
         self._stop.set()
-        if self._tick_thread is not None:
-            self._tick_thread.join(timeout=2)
+        self._wakeup.set()
+        if self._thread is not None:
+            self._thread.join(timeout=2)
         self.sync.join(timeout=2)
         self.executor.shutdown(wait=False, cancel_futures=True)
         if self.bus is not None:
@@ -136,13 +153,24 @@ class Master:
         self._sync_used = False
         self.outputs.nodes_changed()
         self.bus_params = None
-        self.ext = ExtendedBusParameterSet()
+        self._ext = ExtendedBusParameterSet()
         self.nmt.reset()
         self.sync.wake()
         self.layer2.reset()
         self.sdo.set_timeout(0, DEFAULT_SDO_TIMEOUT)
+        self.reschedule()
 
     # --- configuration ------------------------------------------------------------------------
+
+    @property
+    def ext(self) -> ExtendedBusParameterSet:
+        """The extended bus parameters (seed 4.4): the master's node-ID and heartbeat."""
+        return self._ext
+
+    @ext.setter
+    def ext(self, ext: ExtendedBusParameterSet) -> None:
+        self._ext = ext
+        self.wake()  # the master's heartbeat may start, stop or change its period
 
     @property
     def layer2_filters(self) -> set[int]:
@@ -203,12 +231,15 @@ class Master:
         if self.nmt.running:
             handler.attach()
             self.nmt.boot(handler)
+        self.reschedule()
 
     def start_network(self, params: BusParameterSet) -> None:
         """The bus parameter download: (re)start the whole network."""
         restart = self.nmt.running
         self.bus_params = params
         self._apply_baud_rate(BAUD_RATES_KBIT[params.Baud_rate] * 1000)
+        with self._outputs_lock:
+            self.outputs.restart(self.image.snapshot_outputs())
         self.nmt.start()
         self.sync.retry_now()  # a new configuration tries the SYNC timer at once
         self.sync.wake()
@@ -218,6 +249,7 @@ class Master:
             handler.attach()
             if not self.nmt.halted:
                 self.nmt.boot(handler)
+        self.reschedule()
 
     def _apply_baud_rate(self, bitrate: int) -> None:
         """Seed 5.2.5.4: Baud_rate fixes the bus's rate. The controller takes it where the
@@ -277,33 +309,118 @@ class Master:
         """An NMT command to ``node`` (0: all); see ``NmtMaster.nmt``."""
         self.nmt.nmt(command, node)
 
-    # --- the tick and SYNC -----------------------------------------------------------------------
+    # --- the master's thread: asleep until something is due ---------------------------------
 
-    def _tick_loop(self) -> None:
-        while not self._stop.wait(TICK):
+    def wake(self) -> None:
+        """Look at once (any thread): something the thread follows may have changed."""
+        self._wakeup.set()
+
+    def wake_at(self, when: float) -> None:
+        """Look no later than ``when`` (monotonic seconds; any thread): a new deadline."""
+        with self._due_lock:
+            if when < self._due:
+                self._due = when
+                self._wakeup.set()
+
+    def reschedule(self) -> None:
+        """A node changed state (any thread): look at once, supervise every node, recompute
+        its deadlines and NEXC."""
+        self._general = True
+        self._wakeup.set()
+
+    def notice_host(self) -> bool:
+        """From the device loop after each turn: follow what the host changed since the last
+        turn. True when it changed something, so that the loop's fallback poll counts it
+        as activity.
+
+        The device loop is the one that notices what a host writes: a host that rings
+        wakes it at once, one that never rings at its next fallback poll (``AdaptivePoll``).
+        New outputs alone are sent from the calling thread: waking this one for them would
+        cost a thread switch per change, as much as the send itself. New connection bits or
+        a change of the host's readiness (NOTREADY, watchdog) wake this thread, which
+        follows them before any output. Comparing costs a copy of the output area per turn.
+        """
+        image = self.image
+        outputs = image.snapshot_outputs()
+        state = (self.nmt.connection_bits(), image.driving)
+        if state != self._host_state:
+            self._host_state = state
+            self._host_outputs = outputs
+            self._wakeup.set()
+            return True
+        if outputs == self._host_outputs:
+            return False
+        self._host_outputs = outputs
+        if self.nmt.exchanging and image.driving:
+            self._follow_outputs(outputs, time.monotonic(), False)
+        return True
+
+    def _follow_outputs(self, outputs: bytes, now: float, every: bool) -> float:
+        """Send what ``outputs`` changed (``OutputWatch.follow``); when to look again."""
+        with self._outputs_lock:
+            due = self.outputs.follow(outputs, self.nodes, now, every)
+        if threading.get_ident() != self._thread_id:
+            self.wake_at(due)  # a PDO waits for its inhibit time
+        return due
+
+    def _loop(self) -> None:
+        self._thread_id = threading.get_ident()
+        timeout: float | None = None
+        while True:
+            self._wakeup.wait(timeout)
+            if self._stop.is_set():
+                return
+            self._wakeup.clear()  # before looking: a wake from now on makes another look
+            with self._due_lock:
+                self._due = math.inf
+            general, self._general = self._general, False
+            now = time.monotonic()
             try:
-                self._tick(time.monotonic())
+                due = self._look(now, general)
             except Exception:
-                log.exception("CAN tick failed")
+                log.exception("the CAN master failed to look")
+                due = now + 1.0  # [ours] and again in a second, whatever failed
+            with self._due_lock:
+                self._due = due = min(due, self._due)
+            timeout = None if math.isinf(due) else max(0.0, due - time.monotonic())
 
-    def _tick(self, now: float) -> None:
-        if now >= self._link_due and self.bus is not None:  # configured or not
+    def _look(self, now: float, general: bool) -> float:
+        """One look: what is due now, and when the next look is due (inf: on a wake only).
+
+        ``general``: a node changed state since the last look, so every node is supervised
+        now and their deadlines and NEXC computed again; else only when the earliest of
+        those deadlines has come.
+        """
+        return min(self._check_link(now), self._look_at_network(now, general))
+
+    def _check_link(self, now: float) -> float:
+        """A bridge whose closed connection its client hides is looked at every
+        ``LINK_CHECK_S``, configured or not (``CanBus.check_link``); other buses cost no
+        look."""
+        bus = self.bus
+        if bus is None or not bus.watches_link:
+            return math.inf
+        if now >= self._link_due:
             self._link_due = now + LINK_CHECK_S
-            self.bus.check_link()
+            bus.check_link()
+        return self._link_due
+
+    def _look_at_network(self, now: float, general: bool) -> float:
         nmt = self.nmt
         if not nmt.running:
-            return
+            return math.inf
         nmt.follow_host()
-        self.sdo.check(now)
+        due = self.sdo.check(now)
         if not nmt.follow(now):
-            return
-        if now >= self._supervise_due:
-            self._supervise_due = now + SUPERVISION_PERIOD
-            for handler in list(self.nodes.values()):
+            return due
+        if general or now >= self._supervise_due:
+            nodes = list(self.nodes.values())
+            for handler in nodes:
                 handler.tick(now)
             nmt.update_nexc()
-        self.outputs.follow(self.image.snapshot_outputs(), self.nodes)
-        nmt.heartbeat(now)
+            self._supervise_due = min((h.next_due() for h in nodes), default=math.inf)
+        outputs = self._follow_outputs(self.image.snapshot_outputs(), now, general)
+        return min(due, self._supervise_due, outputs, nmt.heartbeat(now))
 
     def _sync_active(self) -> bool:
         """SYNC goes out while the network exchanges data and the controller is on the bus
@@ -316,7 +433,13 @@ class Master:
             self.bus.set_bus_off(off)
             self.sync.wake()
             if not off:
-                self.outputs.ask_everyone()  # what the host wrote meanwhile goes out now
+                self._send_all_outputs(force=False)  # what the host wrote meanwhile goes out
+
+    def _send_all_outputs(self, force: bool) -> None:
+        """Every running node's outputs at the next look, which comes at once
+        (``OutputWatch.ask_everyone``): the controller was off the bus or its link lost."""
+        self.outputs.ask_everyone(force)
+        self.wake()
 
     def _sync_changed(self) -> None:
         self.sync.wake()

@@ -7,12 +7,14 @@ watchdog) or of the network itself (the global Start_Node, auto-clear). It owns 
 network's state (running, halted, cleared), the NMT frames (000h) and the master's own
 heartbeat (700h + its node-ID), and writes what follows into Task2State: Nd_state,
 Nd_diag, NEXC, ACLR, Err_Event. Node handlers report to it (``NodeEvents``); the
-master's tick drives it (``follow_host``, ``follow``).
+master's thread drives it (``follow_host``, ``follow``) whenever it looks, and wakes for
+the master heartbeat when ``heartbeat`` says it is due.
 """
 
 from __future__ import annotations
 
 import logging
+import math
 import threading
 import time
 from collections.abc import Callable
@@ -168,7 +170,7 @@ class NmtMaster:
         for handler in list(self._nodes.values()):
             if handler.state is State.OPERATING:
                 self._stop_node(handler)
-        self.update_nexc()  # the tick, which would, stops while the network is halted
+        self.update_nexc()  # the master, which would, stops looking while the network is halted
 
     def _stop_node(self, handler: NodeHandler) -> None:
         handler.idle()
@@ -188,7 +190,7 @@ class NmtMaster:
                 if handler.state not in (State.INACTIVE, State.DISCONNECTED):
                     handler.start_boot(reset_sent=True)  # armed before the boot-up can come
             else:
-                handler.operational_expected = command == NMT_START
+                handler.expect_operational(command == NMT_START)
                 if not handler.operational_expected:
                     self.set_node_state(handler.address, False)
         self.nmt(command, node)
@@ -204,11 +206,11 @@ class NmtMaster:
         for handler in handlers:
             self.set_node_state(handler.address, True)
 
-    # --- from the master's tick ---------------------------------------------------------------
+    # --- from the master's thread -------------------------------------------------------------
 
     def follow(self, now: float) -> bool:
         """The global start and the connection bits; False while the network does not
-        exchange data (halted or cleared), for the tick to stop there."""
+        exchange data (halted or cleared), for the master to stop there."""
         if self.halted or self.cleared:
             return False
         if self._global_start_due:
@@ -222,9 +224,18 @@ class NmtMaster:
     def _conn_bit(self, address: int) -> bool:
         return bool(self._card.mm[CONN_STATUS + (address >> 3)] & (1 << (address & 7)))
 
+    def connection_bits(self) -> bytes:
+        """Task2Parameter's abConnStatus as the host left it: bit n = node n (seed 3)."""
+        return self._card.mm[CONN_STATUS : CONN_STATUS + 16]
+
     def _follow_connection_bits(self) -> None:
-        """Seed 3: a cleared bit stops the node, a set bit starts it again at once."""
-        conn = self._card.mm[CONN_STATUS : CONN_STATUS + 16]
+        """Seed 3: a cleared bit stops the node, a set bit starts it again at once.
+
+        The seed evaluates them "at least every millisecond"; here [ours] whenever the master
+        looks, which a host's ring causes within a millisecond (docs/dpm.md 2: a host that
+        never rings is seen at the device loop's next fallback poll).
+        """
+        conn = self.connection_bits()
         if conn == self._last_conn:
             return
         self._last_conn = conn
@@ -255,7 +266,8 @@ class NmtMaster:
                     handler.send_outputs(force=True)
 
     def update_nexc(self) -> None:
-        """NEXC from every node's state; called by boot threads, the bus thread and the tick.
+        """NEXC from every node's state; called by boot threads, the bus thread and the
+        master's thread after every change of a node's state (``Master.reschedule``).
 
         Seed 4.3: "At least one node has not reached the data exchange state and no process
         data are exchanged with it": a node that waits for its start (START skipped) or that
@@ -269,11 +281,17 @@ class NmtMaster:
                           if h.active and h.state is not State.DISCONNECTED)
             self._card.set_global_bit(GlobalBits.NEXC, missing)
 
-    def heartbeat(self, now: float) -> None:
-        """The master's own heartbeat, when it has a node-ID and a producer time (seed 4.4)."""
+    def heartbeat(self, now: float) -> float:
+        """The master's own heartbeat, when it has a node-ID and a producer time (seed 4.4).
+
+        Returns when the next one is due (inf: none is produced); a host that changes the
+        producer time or the node-ID wakes the master (``Master.wake``).
+        """
         ext = self._settings.ext
         period = ext.usProducerHeartbeatTime / 1000.0
-        if not period or not ext.bNodeID or now < self._heartbeat_due:
-            return
-        self._heartbeat_due = now + period
-        self._send(0x700 + ext.bNodeID, b"\x05")
+        if not period or not ext.bNodeID:
+            return math.inf
+        if now >= self._heartbeat_due:
+            self._heartbeat_due = now + period
+            self._send(0x700 + ext.bNodeID, b"\x05")
+        return self._heartbeat_due

@@ -4,15 +4,18 @@ The seed calls them node handlers: "for every node station one state machine
 is implemented" (seed 5.2). The handler holds that state machine and the node's
 diagnosis; the services it composes each own their frames and their state: the
 boot-up (``boot``, in a worker thread, since it waits on SDO answers), error control
-(``supervision``, from the master's tick), EMCY (``emcy``) and the PDOs (``pdo``).
+(``supervision``, from the master's thread), EMCY (``emcy``) and the PDOs (``pdo``).
 They report back an Err_Event; only the handler changes the node's state and tells
-the network (``Network``, ``NodeEvents``), which the master implements.
+the network (``Network``, ``NodeEvents``), which the master implements. The master's
+thread sleeps until something is due: the handler says when (``next_due``) and asks it
+to look again after each change of state (``Network.reschedule``).
 """
 
 from __future__ import annotations
 
 import enum
 import logging
+import math
 import time
 from concurrent.futures import Executor
 from typing import Protocol
@@ -36,6 +39,11 @@ log = logging.getLogger(__name__)
 
 RETRY_DELAY = 1.0
 """[ours] seconds before a lost node is booted again when auto-clear is off."""
+HOST_SDO_RETRY_S = 0.001
+"""[ours] How often the master tries again to send a node's RX-PDOs that the host changed
+while its SDO transfer to the node runs (seed 5.2.8: they wait for its end). A transfer
+takes about a millisecond; only a node with changed outputs and a transfer under way is
+looked at this often."""
 FOREIGN_CLOCK_S = 60.0
 """[ours] A frame stamped further than this from the wall clock is stamped by the adapter's
 own clock: its stamp says nothing about when it was on the bus relative to the card's
@@ -68,6 +76,9 @@ class Network(BootLink, PdoLink, Protocol):
 
     @property
     def sdo(self) -> SdoChannels: ...
+
+    def reschedule(self) -> None:
+        """A node's state changed: the master supervises every node again at once."""
 
 
 class NodeEvents(Protocol):
@@ -168,6 +179,7 @@ class NodeHandler:
         self._host_started_at = None
         self.events.set_node_state(self.address, False)
         self.network.executor.submit(self._boot, self._generation, reset_sent)
+        self.network.reschedule()
 
     def _boot(self, generation: int, reset_sent: bool) -> None:
         """The boot-up in its worker thread, which nobody joins.
@@ -234,6 +246,7 @@ class NodeHandler:
             self.send_outputs(force=True)
             if not self.awaiting_start:  # else when the start goes out (``start_sent``)
                 self.pdos.request_first(now)
+        self.network.reschedule()  # supervision and remote requests from now on
 
     def start_sent(self, now: float, by_host: bool) -> bool:
         """A Start_Node went to the node (the global one, or the host's): from now on it must
@@ -261,6 +274,7 @@ class NodeHandler:
         if not self.params.bitConfigNdState & ConfigNdState.TXRXPDO:
             self.send_outputs(force=True)  # the first RX-PDO, now that the node takes it
             self.pdos.request_first(now)  # and the first TX-PDO
+        self.network.reschedule()  # in data exchange now: NEXC, remote requests
         return not self.control.supervised
 
     def _fail_boot(self, generation: int, event: int) -> None:
@@ -280,6 +294,12 @@ class NodeHandler:
             self.diag.status |= NodeStatus.GUARD_ACTIVE
         else:
             self.diag.status &= ~NodeStatus.GUARD_ACTIVE
+        self.network.reschedule()  # new deadlines
+
+    def expect_operational(self, on: bool) -> None:
+        """The host started (True) or stopped or pre-operated (False) the node with NMT."""
+        self.operational_expected = on
+        self.network.reschedule()  # in data exchange or not: NEXC, remote requests
 
     def fail(self, event: int) -> None:
         """The node left data exchange: report it; retry or let auto-clear stop all."""
@@ -295,6 +315,7 @@ class NodeHandler:
         self._retry_at = time.monotonic() + RETRY_DELAY
         self.note_diag()  # before Err_Event: a host that sees the event sees Nd_diag too
         self.events.node_failed(self, event)
+        self.network.reschedule()  # the retry's deadline, a global start
 
     def note_diag(self) -> None:
         """Nd_diag: set when Nodestatus_1 or Actual_Error differ from what the host last
@@ -311,6 +332,7 @@ class NodeHandler:
         self.state = State.DISCONNECTED
         self.events.set_node_state(self.address, False)
         self.network.send_nmt(NMT_STOP, self.address)
+        self.network.reschedule()
 
     def idle(self) -> None:
         """The network stopped (host not ready, watchdog, auto-clear)."""
@@ -319,9 +341,11 @@ class NodeHandler:
             self.state = State.WAITING
             self.connected = False
             self.events.set_node_state(self.address, False)
+            self.network.reschedule()
 
     def tick(self, now: float) -> None:
-        """Supervision and retries; called from the master's tick."""
+        """Supervision and retries; called by the master's thread when ``next_due`` has come
+        (or after any node's change of state)."""
         if self.state is State.FAILED:
             if (not self.network.auto_clear or not self.connected) and now >= self._retry_at:
                 self.start_boot()
@@ -331,6 +355,21 @@ class NodeHandler:
         event = self.control.check(now) or (self.pdos.poll(now) if self.exchanging else 0)
         if event:
             self.fail(event)
+
+    def next_due(self) -> float:
+        """When ``tick`` has something to do next (monotonic seconds; inf: nothing).
+
+        Every change that brings a deadline forward (a new state, a start, new supervision
+        settings) asks the master to look again (``reschedule``); frames only push the
+        deadlines back (a heartbeat, a guarding answer, an answered remote request).
+        """
+        if self.state is State.FAILED:
+            retrying = not self.network.auto_clear or not self.connected
+            return self._retry_at if retrying else math.inf
+        if self.state is not State.OPERATING:
+            return math.inf
+        due = self.control.next_due()
+        return min(due, self.pdos.next_due()) if self.exchanging else due
 
     def on_sync(self, now: float) -> None:
         """At each SYNC: synchronous outputs, and remote requests of 252 inputs."""
@@ -349,16 +388,17 @@ class NodeHandler:
         return (self.state is State.OPERATING and not self.awaiting_start
                 and self.operational_expected)
 
-    def send_outputs(self, sync: bool = False, force: bool = False) -> bool:
+    def send_outputs(self, sync: bool = False, force: bool = False) -> float | None:
         """Send the RX-PDOs that are due (``NodePdos.send_outputs``) while the node runs.
 
-        Returns True while a changed event-driven PDO waits for its inhibit time
-        (or for a host SDO transfer to end), so the master asks again.
+        Returns when to ask again while a changed event-driven PDO waits: the end of its
+        inhibit time, or ``HOST_SDO_RETRY_S`` from now while a host SDO transfer runs;
+        None when nothing waits.
         """
         if self.state is not State.OPERATING or not self.operational_expected:
-            return False
+            return None
         if self.host_sdo:
-            return True
+            return time.monotonic() + HOST_SDO_RETRY_S
         return self.pdos.send_outputs(sync, force)
 
     # --- frames from the node -------------------------------------------------------------------

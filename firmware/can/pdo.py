@@ -1,15 +1,16 @@
 """PDO communication of the master: the RX-PDOs it sends, the TX-PDOs it takes in.
 
 Why a module of its own: the PDOs are the one service that runs at bus speed on every
-tick and every SYNC, and it shares nothing with boot-up or supervision but the node's
-state, which it is asked about (``operating``) and never changes; a PDO that goes wrong
-is reported back as an Err_Event for the node handler to act on. The network-wide part,
-which nodes the host's outputs changed (``OutputWatch``), sits here too: it exists only
-to call ``NodePdos.send_outputs`` seldom enough.
+change of the host's outputs and every SYNC, and it shares nothing with boot-up or
+supervision but the node's state, which it is asked about (``operating``) and never
+changes; a PDO that goes wrong is reported back as an Err_Event for the node handler to
+act on. The network-wide part, which nodes the host's outputs changed (``OutputWatch``),
+sits here too: it exists only to call ``NodePdos.send_outputs`` seldom enough.
 """
 
 from __future__ import annotations
 
+import math
 import threading
 import time
 from collections.abc import Callable, Mapping
@@ -28,8 +29,9 @@ from firmware.can.bus import CanBus
 from firmware.process_image import ProcessImage
 
 RTR_PERIOD = 0.1
-"""[ours] seconds between remote requests of an RTR-only (253) input PDO without SYNC, and
-the least time a node has to answer a remote request of a 252 input (``on_sync``)."""
+"""[ours] seconds between remote requests of an RTR-only (253) input PDO without SYNC, the
+time a node has to answer one, and the least time it has to answer a remote request of a
+252 input (``on_sync``)."""
 
 
 class PdoLink(Protocol):
@@ -63,6 +65,8 @@ class InputPdo:
     offset: int
     requested: float = 0.0
     """When the first remote request still unanswered went out, 0 when answered."""
+    asked: float = 0.0
+    """When the last remote request went out (0: none since the node's boot-up)."""
 
 
 def swap_words(data: bytes) -> bytes:
@@ -91,7 +95,7 @@ class NodePdos:
         """Inputs that come only when asked by a remote frame (252, 253)."""
         self._synchronous = [e for e in self.outputs if e.pdo.bTransType <= 240]
         """Outputs a SYNC may send: at 1,000 SYNCs/s the others are not even read then
-        (the master's tick sends a changed event-driven output)."""
+        (the master sends a changed event-driven output when it looks)."""
 
     def attach(self, bus: CanBus) -> None:
         for entry in self.inputs:
@@ -107,7 +111,7 @@ class NodePdos:
         for output in self.outputs:
             output.last = None
         for entry in self.inputs:
-            entry.requested = 0.0
+            entry.requested = entry.asked = 0.0
 
     def request_first(self, now: float) -> None:
         """Seed 5.2.5.1.1, TXRXPDO: "Request first TX ... PDO after initialization sequence is
@@ -124,14 +128,26 @@ class NodePdos:
                 self.link.bus_send(entry.pdo.usPdoCOBId, remote=True, dlc=entry.pdo.data_length)
 
     def poll(self, now: float) -> int:
-        """RTR-only inputs without SYNC: ask again, or NO_RTR_RESPONSE (0: all well)."""
-        for entry in self._polled:
-            if entry.pdo.bTransType == ASYNC_RTR or not self.link.sync_period:
-                if entry.requested and now - entry.requested > RTR_PERIOD:
-                    return NodeEvent.NO_RTR_RESPONSE
-                if not entry.requested:
-                    self._request(entry, now)
+        """RTR-only inputs without SYNC: NO_RTR_RESPONSE when a request stayed unanswered
+        for ``RTR_PERIOD`` (0: all well), else the next request every ``RTR_PERIOD``."""
+        for entry in self._unsynced():
+            if entry.requested and now >= entry.requested + RTR_PERIOD:
+                return NodeEvent.NO_RTR_RESPONSE
+            if not entry.requested and now >= entry.asked + RTR_PERIOD:
+                self._request(entry, now)
         return 0
+
+    def next_due(self) -> float:
+        """When ``poll`` has something to do (monotonic seconds; inf: nothing): a request's
+        answer is late, or the next request is due."""
+        return min(((e.requested or e.asked) + RTR_PERIOD for e in self._unsynced()),
+                   default=math.inf)
+
+    def _unsynced(self) -> list[InputPdo]:
+        """The RTR-only inputs that no SYNC asks for: 253, and 252 while there is no SYNC."""
+        if self.link.sync_period:
+            return [e for e in self._polled if e.pdo.bTransType == ASYNC_RTR]
+        return self._polled
 
     def on_sync(self, now: float) -> int:
         """Remote requests of 252 inputs at a SYNC, or NO_RTR_RESPONSE (0: all well).
@@ -153,6 +169,7 @@ class NodePdos:
     def _request(self, entry: InputPdo, now: float) -> None:
         if not entry.requested:
             entry.requested = now
+        entry.asked = now
         self.link.bus_send(entry.pdo.usPdoCOBId, remote=True, dlc=entry.pdo.data_length)
 
     def outputs_changed(self, now: bytes, before: bytes) -> bool:
@@ -163,12 +180,13 @@ class NodePdos:
                 return True
         return False
 
-    def send_outputs(self, sync: bool, force: bool) -> bool:
+    def send_outputs(self, sync: bool, force: bool) -> float | None:
         """Send the RX-PDOs that are due: synchronous ones at SYNC, the rest on change.
 
-        Returns True while a changed event-driven PDO waits for its inhibit time.
+        Returns when the first changed event-driven PDO that waits for its inhibit time may
+        go (monotonic seconds), None when none waits.
         """
-        waiting = False
+        waiting: float | None = None
         link = self.link
         image = link.image
         now = time.monotonic()
@@ -191,7 +209,8 @@ class NodePdos:
                     continue
                 inhibit = pdo.usInhibitCycle / 10000.0  # CiA 301: multiples of 100 us
                 if not force and now - entry.last_time < inhibit:
-                    waiting = True
+                    free = entry.last_time + inhibit
+                    waiting = free if waiting is None else min(waiting, free)
                     continue
             if link.bus_send(pdo.usPdoCOBId, data):
                 entry.last = data
@@ -219,20 +238,22 @@ class OutputSender(Protocol):
     @property
     def pdos(self) -> NodePdos: ...
 
-    def send_outputs(self, sync: bool = False, force: bool = False) -> bool: ...
+    def send_outputs(self, sync: bool = False, force: bool = False) -> float | None: ...
 
 
 class OutputWatch:
-    """Which nodes' RX-PDOs the host's outputs changed, asked a thousand times a second.
+    """Which nodes' RX-PDOs the host's outputs changed, asked each time the master looks.
 
-    It keeps the outputs as the last tick saw them and the nodes whose PDO still waits
-    (inhibit time, a host SDO transfer), and asks only those nodes to send.
+    It keeps the outputs as the master last saw them and the nodes whose PDO still waits
+    (inhibit time, a host SDO transfer) with the time to ask them again, and asks only
+    those nodes to send.
     """
 
     def __init__(self) -> None:
         self._owners: npt.NDArray[np.uint8] | None = None
         """Which node's output PDO each output byte belongs to (0: none); see ``_owner_map``."""
-        self._waiting: set[OutputSender] = set()
+        self._waiting: dict[OutputSender, float] = {}
+        """Nodes with a changed PDO that waits, and when to ask them again."""
         self._last = b""
         self._everyone = False
         """Ask every node at the next look (``ask_everyone``)."""
@@ -249,7 +270,7 @@ class OutputWatch:
     def ask_everyone(self, force: bool = False) -> None:
         """[ours] At the next look every running node sends the outputs the bus has not
         carried yet: after a bus-off (firmware/faults.py) the outputs the host changed
-        meanwhile go out, as after any change.
+        meanwhile go out, as after any change. The caller wakes the master for that look.
 
         ``force``: all its outputs, as after a host's start (``send_outputs(force=True)``):
         after a bridge's link came back (``CanBus.on_link_back``). The card cannot know
@@ -261,28 +282,44 @@ class OutputWatch:
             self._force = self._force or force
             self._everyone = True
 
-    def follow(self, outputs: bytes, nodes: Mapping[int, OutputSender]) -> None:
-        """Send the PDOs of the nodes whose outputs changed since the last call, or wait."""
+    def restart(self, outputs: bytes) -> None:
+        """The network starts: ``outputs`` as they are now are no change. Each node gets
+        them when its boot-up ends (unless TXRXPDO skips that), and only later changes go
+        out on their own; without this, a first look that comes after a node's boot-up (a
+        busy machine) took every output for new and sent them to a node that skips it."""
+        self._last = outputs
+
+    def follow(self, outputs: bytes, nodes: Mapping[int, OutputSender], now: float,
+               every: bool = False) -> float:
+        """Send the PDOs of the nodes whose outputs changed since the last call, and of the
+        waiting nodes whose time has come (``every``: of all waiting nodes, after a change of
+        the nodes' states). Returns when to look again for a waiting node (inf: none waits).
+        """
         last = self._last
-        changed = outputs != last
+        waiting = self._waiting
         with self._ask_lock:
             everyone, self._everyone = self._everyone, False
             force, self._force = self._force, False
-        if changed or self._waiting or everyone:
-            due = self._changed_nodes(outputs, last, nodes) if changed else set()
-            due |= self._waiting
-            if everyone:
-                due |= set(nodes.values())
-            self._waiting = {h for h in sorted(due, key=_address)
-                             if h.send_outputs(force=force)}
+        due = self._changed_nodes(outputs, last, nodes) if outputs != last else set()
+        if waiting:
+            due.update(h for h, when in waiting.items() if every or when <= now)
+        if everyone:
+            due.update(nodes.values())
+        for handler in sorted(due, key=_address):
+            retry = handler.send_outputs(force=force)
+            if retry is None:
+                waiting.pop(handler, None)
+            else:
+                waiting[handler] = retry
         self._last = outputs
+        return min(waiting.values(), default=math.inf)
 
     def _changed_nodes(self, outputs: bytes, before: bytes,
                        nodes: Mapping[int, OutputSender]) -> set[OutputSender]:
         """The nodes whose output PDOs read differently in ``outputs`` than in ``before``.
 
         One vectorised comparison of the whole area instead of every node's
-        slices: at full bus load this runs a thousand times a second.
+        slices: at full bus load this runs thousands of times a second.
         """
         owners = self._owner_map(nodes)
         if owners is None or len(before) != len(outputs):

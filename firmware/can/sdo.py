@@ -11,11 +11,12 @@ itself. This client sends a request from the caller and advances on each answer 
 the bus thread, so a host's COM_SDO_Up_Download is answered from the frame that
 completes it. It speaks CiA 301 expedited and segmented transfers (the card's boot-up
 keeps canopen's client; the seed's card has no block transfers). Time-outs are checked
-by the master's tick.
+by the master's thread, which wakes for the earliest of them.
 """
 
 from __future__ import annotations
 
+import math
 import struct
 import threading
 import time
@@ -67,7 +68,7 @@ class HostSdoTransfer:
         expedited sizes are 1-4), so it goes as a segmented download of size 0 [ours]."""
         self._initiated = False
         self._deadline = time.monotonic() + timeout
-        """Refreshed by every request; set here already because the master's tick may
+        """Refreshed by every request; set here already because the master's thread may
         check the transfer between its registration and its first request."""
         self._finished = False
 
@@ -83,10 +84,20 @@ class HostSdoTransfer:
         else:
             self._send(bytes([0x21]) + head + struct.pack("<I", len(self.data)))
 
-    def check(self, now: float) -> None:
-        """Called from the master's tick: give up after the SDO time-out."""
-        if not self._finished and now > self._deadline:
+    def check(self, now: float) -> float:
+        """Called from the master's thread: give up after the SDO time-out. Returns when to
+        look again (inf: the transfer is over)."""
+        if self._finished:
+            return math.inf
+        if now >= self._deadline:
             self._abort(ABORT_TIMEOUT, SdoResult(timed_out=True))
+            return math.inf
+        return self._deadline
+
+    @property
+    def deadline(self) -> float:
+        """When the transfer gives up unless an answer comes first (monotonic seconds)."""
+        return self._deadline
 
     @property
     def finished(self) -> bool:
@@ -180,9 +191,13 @@ class SdoChannel:
 
 class SdoChannels:
     """The nodes' SDO channels, created on first use and kept for the card's life, with
-    the host transfers under way, whose time-outs the master's tick checks."""
+    the host transfers under way, whose time-outs the master's thread checks.
 
-    def __init__(self) -> None:
+    ``wake_at`` asks that thread to look no later than a given time (``Master.wake_at``).
+    """
+
+    def __init__(self, wake_at: Callable[[float], None]) -> None:
+        self._wake_at = wake_at
         self._bus: CanBus | None = None
         self._channels: dict[int, SdoChannel] = {}
         self._host_transfers: list[HostSdoTransfer] = []
@@ -216,10 +231,12 @@ class SdoChannels:
             self.channel(node).sdo.RESPONSE_TIMEOUT = seconds
 
     def start_host(self, transfer: HostSdoTransfer) -> None:
-        """A host SDO transfer; the tick watches its time-out (``check``)."""
+        """A host SDO transfer; the master's thread watches its time-out (``check``)."""
         self._host_transfers = [t for t in self._host_transfers if not t.finished] + [transfer]
         transfer.start()
+        self._wake_at(transfer.deadline)
 
-    def check(self, now: float) -> None:
-        for transfer in self._host_transfers:
-            transfer.check(now)
+    def check(self, now: float) -> float:
+        """Time out the host transfers whose time has come; returns when the next one may
+        (inf: none runs)."""
+        return min((t.check(now) for t in self._host_transfers), default=math.inf)

@@ -11,6 +11,7 @@ node handler, which hears it as an Err_Event number.
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Callable
 
@@ -72,8 +73,19 @@ class ErrorControl:
         self._start_stamp = time.time()
         self._confirmed = False
 
+    def next_due(self) -> float:
+        """When ``check`` has something to do (monotonic seconds; inf: unsupervised): the
+        heartbeat consumer's deadline, or the next guarding request. A heartbeat or an answer
+        only moves it later, so the master need not wake for frames."""
+        if not self.supervised:
+            return math.inf
+        if self.heartbeat:
+            return self._last_heartbeat + self.guard_time / 1000.0
+        return self._next_guard
+
     def check(self, now: float) -> int:
-        """The deadlines, from the master's supervision tick: GUARDING_FAILED or 0.
+        """The deadlines, from the master's thread once ``next_due`` has come: GUARDING_FAILED
+        or 0.
 
         Guarding sends the next remote request here when its time has come.
         """
@@ -81,7 +93,7 @@ class ErrorControl:
             return 0
         period = self.guard_time / 1000.0
         if self.heartbeat:
-            if now - self._last_heartbeat > period:
+            if now >= self._last_heartbeat + period:
                 return NodeEvent.GUARDING_FAILED
         elif now >= self._next_guard:
             if self._guard_pending:

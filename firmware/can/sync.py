@@ -26,6 +26,9 @@ from firmware.can.bus import PERIODIC_OUTSIDE_INTERFACES, CanBus
 log = logging.getLogger("firmware.can.master")
 """The master's log, as before SYNC had a module of its own."""
 
+TIMER_CHECK_S = 0.05
+"""[ours] How often the thread looks whether the outside SYNC timer still runs (its process
+may be killed) or a failed one is due to be tried again."""
 SYNC_RETRY_MAX_S = 5.0
 """[ours] the longest pause between tries to start an outside SYNC timer that fails."""
 
@@ -97,13 +100,13 @@ class SyncProducer:
             if not (self._active() and period):
                 self._stop_timer()
                 self._follow(self._active() and self._foreign())
-                self._await_change()
+                self._await_change(None)
                 next_sync = time.perf_counter()
                 continue
             self._follow(False)
             if outside:
                 self._run_timer(self._cob_id(), period)
-                self._await_change()
+                self._await_change(TIMER_CHECK_S)
                 continue
             next_sync += period
             remaining = next_sync - time.perf_counter()
@@ -118,9 +121,10 @@ class SyncProducer:
         self._stop_timer()
         self._follow(False)
 
-    def _await_change(self) -> None:
-        """Until a start, halt or reset rings, or 50 ms pass (a timer may have died)."""
-        self._wakeup.wait(0.05)
+    def _await_change(self, timeout: float | None) -> None:
+        """Until a start, halt or reset rings, or ``timeout`` passes (None: no SYNC runs, so
+        only a ring can change that: an idle card's thread sleeps)."""
+        self._wakeup.wait(timeout)
         self._wakeup.clear()
 
     def _run_timer(self, cob_id: int, period: float) -> None:

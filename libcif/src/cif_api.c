@@ -688,7 +688,11 @@ static short exchange(cifemu_board *b, unsigned mode, unsigned short usSendOffse
   if (!ready(b)) return DRV_DEV_NOT_READY;
   if (mode < 1 || mode > 5) return DRV_DEV_COM_MODE_UNKNOWN;
   if (mode == 3) { /* uncontrolled: no handshake, just the copy */
-    if (usSendSize) memcpy(b->mm + OFS_SND_PD + usSendOffset, pvSendData, usSendSize);
+    /* [ours] the card sends changed outputs when rung (docs/dpm.md 2) */
+    if (usSendSize && memcmp(b->mm + OFS_SND_PD + usSendOffset, pvSendData, usSendSize)) {
+      memcpy(b->mm + OFS_SND_PD + usSendOffset, pvSendData, usSendSize);
+      cifemu_bell_ring(&b->bell);
+    }
     if (usReceiveSize) memcpy(pvReceiveData, b->mm + OFS_RCV_PD + usReceiveOffset, usReceiveSize);
     rc = DRV_NO_ERROR;
   } else {
@@ -959,8 +963,12 @@ static short task_area(unsigned short usDevNumber, unsigned short usNumber,
   else {
     if (copy == READ_STATE) offset = usNumber == 1 ? OFS_TASK1_STATE : OFS_TASK2_STATE;
     else offset = usNumber == 1 ? OFS_TASK1_PARAMETER : OFS_TASK2_PARAMETER;
-    if (copy == WRITE_PARAMETER) memcpy(b->mm + offset, pvData, usSize);
-    else memcpy(pvData, b->mm + offset, usSize);
+    if (copy == WRITE_PARAMETER) {
+      memcpy(b->mm + offset, pvData, usSize);
+      cifemu_bell_ring(&b->bell); /* [ours] the connection bits take effect when rung */
+    } else {
+      memcpy(pvData, b->mm + offset, usSize);
+    }
   }
   cifemu_board_leave(b);
   return rc;
