@@ -28,6 +28,12 @@ log = logging.getLogger(__name__)
 NETWORK_WAIT_S = 10.0
 
 
+ANSWER_TIMEOUT_MS = 5000
+"""[ours] How long the card's own host waits for each answer. The card answers within
+milliseconds; a machine loaded by other work (a test suite beside two busy processes) has
+delayed one by over a second, and then the card stopped, its configuration half done."""
+
+
 class OnlineConfiguration(threading.Thread):
     """Configure ``device`` from ``path`` once it is READY; ``failed`` tells how it went."""
 
@@ -54,7 +60,8 @@ class OnlineConfiguration(threading.Thread):
         if not self._wait_ready():
             return
         try:
-            with Board(self.device.board, self.device.directory) as board:
+            with Board(self.device.board, self.device.directory,
+                       timeout=ANSWER_TIMEOUT_MS) as board:
                 outcome = configure(board, network, NETWORK_WAIT_S,
                                     lambda step: log.info("configuring: %s", step))
         except CifError as exc:

@@ -36,7 +36,10 @@ NETWORK = "[[node]]\nid = 5\n" + "".join(
     f"revision = {a.revision}, serial = {a.serial} }}\n" for a in SLAVES)
 NODE_5 = LssAddress(GENERIC_VENDOR_ID, GENERIC_PRODUCT_CODE, GENERIC_REVISION, 5)
 """The generic module's 1018h: its LSS address."""
-TIMEOUT_S = 0.3
+TIMEOUT_S = 1.0
+"""How long a confirmed LSS service waits for its answer. It ends every expected answer on
+that answer and costs its full length only in the tests of silence; 0.3 s lost a slave's
+answer with two busy processes beside the suite."""
 
 
 class Rig:

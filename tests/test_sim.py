@@ -625,7 +625,9 @@ def test_late_boot_up(bench: Callable[[str], Bench]) -> None:
     b = bench(GENERIC + "[[node]]\nid = 6\nsim = { boot_delay_s = 0.4 }\n")
     early = b.boot_up(5)
     late = b.boot_up(6)
-    assert early.timestamp - b.started < 0.2
+    # Node 5 does not wait for node 6's delay: it boots first (a bound on its own time from
+    # the start would measure the machine's load, not the simulator).
+    assert early.timestamp < late.timestamp
     assert late.timestamp - b.started >= 0.38
 
 
