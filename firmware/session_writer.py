@@ -3,12 +3,16 @@
 ``firmware.recorder`` hands it batches through its stdin, each a 4-byte little-endian
 length and a pickled list of event tuples; pickle, because both ends are the same
 firmware and the pipe is theirs alone (nothing else can write to it). Here, out of the
-firmware's process, each event becomes a ``dpm.session.Record``: the pid of a put's
-host from the ledger bytes the card read, an answer's pid from its request, an
-exchange's changed bytes from the snapshots, each line encoded and written to the
-file descriptor given as the one argument. At the end of its stdin it exits.
+firmware's process, each event becomes a line of ``session.jsonl`` (``dpm.session``'s
+codec): the pid of a put's host from the ledger bytes the card read, an answer's pid
+from its request, an exchange's changed bytes from the snapshots, the Unix time from
+the monotonic one. Frames go to ``can.log`` in candump's format (python-can's
+``CanutilsLogWriter``). At the end of its stdin it exits.
 
-    python -m firmware.session_writer FD
+    python -m firmware.session_writer EVENTS_FD CAN_LOG_FD WALL_OFFSET CHANNEL
+
+The descriptors are open files (CAN_LOG_FD -1: no frames recorded): the firmware's own,
+or the ones a user's ``cifemu record`` opened and passed to the card (firmware/record_socket.py).
 """
 
 from __future__ import annotations
@@ -16,13 +20,14 @@ from __future__ import annotations
 import os
 import pickle
 import sys
-from typing import Any, BinaryIO
+from typing import Any, BinaryIO, TextIO
 
 from dpm import session as s
 from dpm.layout import IO_AREA_SIZE, RCV_PD, SND_PD
-from dpm.message import Ext, Message
+from dpm.message import Ext
 
 _IO_END = RCV_PD + IO_AREA_SIZE
+_MORE = (Ext.FIRST, Ext.CONT)
 
 NICE = 10
 """The writer yields the processor to the card and its hosts: on a busy machine it falls
@@ -32,42 +37,68 @@ behind (the firmware's queue grows), it never slows the card's answers down."""
 class Events:
     """What the card's event tuples become; state carried from one event to the next."""
 
-    def __init__(self) -> None:
+    def __init__(self, wall_offset: float) -> None:
+        self._wall = wall_offset
+        """Unix time minus CLOCK_MONOTONIC when the recording started: the card reads one
+        clock per event, the writer derives the other."""
         self._io = bytes(_IO_END - SND_PD)
         self._pending: dict[tuple[int, int, int, int], int] = {}
         """Puts awaiting their answers: (nr, b, rx, tx) -> pid."""
 
-    def record(self, item: tuple[Any, ...]) -> s.Record:
-        kind, t, wall = item[0], item[1], item[2]
+    def line(self, item: tuple[Any, ...]) -> str:
+        """The ``session.jsonl`` line (without its newline) of one event tuple."""
+        kind, t = item[0], item[1]
+        wall = t + self._wall
         if kind == s.PUT:
-            msg = Message.decode(item[3])
-            pid = s.ledger_pid(item[4], msg)
+            raw: bytes = item[2]
+            rx, tx, _, nr, _, _, b, _ = raw[:8]
+            pid = s.request_pid(item[3], nr, b, rx, tx) if item[3] else None
             if pid is not None:
-                self._pending[(msg.nr, msg.b, msg.rx, msg.tx)] = pid
-            return s.Record(kind, t, wall, pid, msg=msg)
+                self._pending[(nr, b, rx, tx)] = pid
+            return s.encode_message(kind, t, wall, pid, raw)
         if kind == s.ANSWER:
-            msg = Message.decode(item[3])
-            key = (msg.nr, msg.a, msg.tx, msg.rx)
+            raw = item[2]
+            rx, tx, _, nr, a, f, _, e = raw[:8]
+            key = (nr, a, tx, rx)
             pid = self._pending.get(key)
-            more = msg.f == 0 and msg.e & Ext.SEQ_MASK in (Ext.FIRST, Ext.CONT)
+            more = f == 0 and e & Ext.SEQ_MASK in _MORE
             if pid is not None and not more:  # a long upload's parts share their request
                 del self._pending[key]
-            return s.Record(kind, t, wall, pid, msg=msg, state=bytes(item[4]))
-        if kind == s.EXCHANGE:
-            io: bytes | None = item[3]
-            if io is None:  # the card saw the areas unchanged
-                return s.Record(kind, t, wall, state=bytes(item[4]))
-            old = self._io
-            self._io = io
-            changes = {area: s.changed_runs(old[start : start + IO_AREA_SIZE],
-                                            io[start : start + IO_AREA_SIZE])
-                       for area, start in zip(s.AREAS, (SND_PD, RCV_PD - SND_PD), strict=True)}
-            return s.Record(kind, t, wall, changes={a: r for a, r in changes.items() if r},
-                            state=bytes(item[4]))
+            return s.encode_message(kind, t, wall, pid, raw, item[3])
+        if kind == s.HOST_FLAGS:
+            return s.encode_record(s.Record(kind, t, wall, before=item[2], after=item[3]))
         if kind == s.DEV_FLAGS:
-            return s.Record(kind, t, wall, before=max(item[3], 0), after=item[4],
-                            parameter=bytes(item[5]))
-        return s.Record(kind, t, wall, before=item[3], after=item[4])
+            return s.encode_record(s.Record(kind, t, wall, before=item[2], after=item[3],
+                                            parameter=item[4]))
+        return s.encode_record(self._exchange(t, wall, item[2], item[3]))
+
+    def _exchange(self, t: float, wall: float, io: bytes | None, state: bytes) -> s.Record:
+        if io is None:  # the card saw the areas unchanged
+            return s.Record(s.EXCHANGE, t, wall, state=state)
+        old = self._io
+        self._io = io
+        changes = {area: s.changed_runs(old[start : start + IO_AREA_SIZE],
+                                        io[start : start + IO_AREA_SIZE])
+                   for area, start in zip(s.AREAS, (SND_PD, RCV_PD - SND_PD), strict=True)}
+        return s.Record(s.EXCHANGE, t, wall, changes={a: r for a, r in changes.items() if r},
+                        state=state)
+
+
+class Frames:
+    """``can.log``: the frames in candump's log format, as python-can writes it."""
+
+    def __init__(self, out: TextIO, channel: str) -> None:
+        from can.io import CanutilsLogWriter  # here: a session without frames needs no can
+
+        from dpm.tap import decode_frame
+
+        self._decode = decode_frame
+        self._channel = channel
+        self._writer = CanutilsLogWriter(out, channel=channel)
+
+    def write(self, datagram: bytes) -> None:
+        msg, _ = self._decode(datagram, self._channel)
+        self._writer.on_message_received(msg)
 
 
 def batches(stream: BinaryIO) -> Any:
@@ -81,13 +112,26 @@ def batches(stream: BinaryIO) -> Any:
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = sys.argv[1:] if argv is None else argv
+    events_fd, can_fd, wall_offset, channel = sys.argv[1:] if argv is None else argv
     os.nice(NICE)
-    events = Events()
-    with os.fdopen(int(args[0]), "w", encoding="ascii") as out:
+    events = Events(float(wall_offset))
+    can_out = os.fdopen(int(can_fd), "w", encoding="ascii") if int(can_fd) >= 0 else None
+    frames = Frames(can_out, channel) if can_out is not None else None
+    with os.fdopen(int(events_fd), "w", encoding="ascii") as out:
         for batch in batches(sys.stdin.buffer):
-            out.writelines(s.encode_record(events.record(item)) + "\n" for item in batch)
+            lines = []
+            for item in batch:
+                if item[0] == s.CAN_FRAME:
+                    if frames is not None:
+                        frames.write(item[1])
+                else:
+                    lines.append(events.line(item) + "\n")
+            out.writelines(lines)
             out.flush()
+            if can_out is not None:
+                can_out.flush()
+    if can_out is not None:
+        can_out.close()
     return 0
 
 

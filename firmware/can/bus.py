@@ -194,6 +194,9 @@ class CanBus(can.Listener):
         self.on_error_frame: Callable[[can.Message], None] = lambda msg: None
         self.on_send_timeout: Callable[[], None] = lambda: None
         self._trace: can.Listener | None = can.Logger(str(trace)) if trace else None
+        self.record: Callable[[can.Message, bool], None] | None = None
+        """A recording's frame hook (``firmware.recorder``; frame, received), set and
+        cleared while the card runs: every frame the trace sees."""
         self._tap = TapPublisher(tap) if tap else None
         self._lost = threading.Event()
         """The transport failed; a thread is opening it again (``on_error``)."""
@@ -233,6 +236,9 @@ class CanBus(can.Listener):
         if self._trace is not None:
             with self._trace_lock:
                 self._trace.on_message_received(msg)
+        record = self.record
+        if record is not None:
+            record(msg, True)
         if self._tap is not None:
             self._tap.publish(msg, received=True)
         if msg.is_error_frame:
@@ -335,6 +341,9 @@ class CanBus(can.Listener):
         if self._trace is not None:
             with self._trace_lock:
                 self._trace.on_message_received(msg)
+        record = self.record
+        if record is not None:
+            record(msg, False)
         if self._tap is not None:
             self._tap.publish(msg, received=False)
         return True
