@@ -106,26 +106,56 @@ def stop_process(proc: subprocess.Popen[bytes]) -> None:
         proc.wait()
 
 
-@contextmanager
-def running_card(board: int = 0, *, startup_timeout: float = STARTUP_TIMEOUT,
-                 record: bool = False) -> Iterator[Card]:
-    """A firmware subprocess serving ``board`` in a temporary directory, READY on entry;
-    ``record``: recording a session there (``--record``), to measure what that costs.
+def _start_firmware(directory: Path, board: int, record: bool) -> subprocess.Popen[bytes]:
+    """A firmware process for ``board`` in ``directory``; ``record``: recording a session
+    there (``--record``). Its stdout is discarded (it must not mix with the JSON); its
+    stderr (log lines at WARNING and above) goes to ours."""
+    command = [sys.executable, "-m", "cifemu", "firmware", "--board", str(board),
+               "--dpm-dir", str(directory), "--flash", str(directory / f"flash{board}"),
+               "--log-level", "WARNING"]
+    if record:
+        command += ["--record", str(directory / f"session{board}")]
+    return subprocess.Popen(command, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL)
 
-    The firmware's stdout is discarded (it must not mix with the JSON); its stderr
-    (log lines at WARNING and above) goes to ours. On exit it gets SIGTERM, and is
-    killed if it has not ended after ``STOP_TIMEOUT`` seconds.
-    """
+
+@contextmanager
+def running_cards(records: tuple[bool, ...], *, startup_timeout: float = STARTUP_TIMEOUT
+                  ) -> Iterator[list[Card]]:
+    """Firmware processes serving boards 0, 1, ... in one temporary directory, READY on
+    entry; ``records[n]``: board n records a session (to measure what that costs). On
+    exit each gets SIGTERM, and is killed if it has not ended ``STOP_TIMEOUT`` seconds
+    later."""
     with tempfile.TemporaryDirectory(prefix="cifemu-bench-", dir=scratch_root()) as tmp:
         directory = Path(tmp)
-        command = [sys.executable, "-m", "cifemu", "firmware", "--board", str(board),
-                   "--dpm-dir", tmp, "--flash", str(directory / "flash"),
-                   "--log-level", "WARNING"]
-        if record:
-            command += ["--record", str(directory / "session")]
-        proc = subprocess.Popen(command, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL)
+        procs: list[subprocess.Popen[bytes]] = []
         try:
-            card = Card(directory, board, proc.pid)
+            cards = []
+            for board, record in enumerate(records):
+                proc = _start_firmware(directory, board, record)
+                procs.append(proc)
+                card = Card(directory, board, proc.pid)
+                wait_ready(proc, card.image, startup_timeout)
+                progress(f"firmware pid {proc.pid} READY on {card.image}"
+                         + (" (recording)" if record else ""))
+                cards.append(card)
+            yield cards
+        finally:
+            for proc in procs:
+                stop_process(proc)
+
+
+@contextmanager
+def running_card(board: int = 0, *, startup_timeout: float = STARTUP_TIMEOUT) -> Iterator[Card]:
+    """A firmware subprocess serving ``board`` in a temporary directory, READY on entry
+    (``running_cards``)."""
+    if board == 0:
+        with running_cards((False,), startup_timeout=startup_timeout) as cards:
+            yield cards[0]
+        return
+    with tempfile.TemporaryDirectory(prefix="cifemu-bench-", dir=scratch_root()) as tmp:
+        proc = _start_firmware(Path(tmp), board, False)
+        try:
+            card = Card(Path(tmp), board, proc.pid)
             wait_ready(proc, card.image, startup_timeout)
             progress(f"firmware pid {proc.pid} READY on {card.image}")
             yield card
@@ -151,15 +181,47 @@ def host_session(card: Card) -> Iterator[int]:
         DevCloseDriver()
 
 
-def recording_cost(plain: dict[str, Any], recording: dict[str, Any],
-                   rate_name: str) -> dict[str, Any]:
-    """What recording a session costs, in percent of the plain card's figures (issue 25
-    allows 10 %): the p50 latency's rise and the rate's fall."""
-    p50, rate = plain["latency_us"]["p50"], plain[rate_name]
-    return {"cost_pct": {
-        "p50": round(100.0 * (recording["latency_us"]["p50"] - p50) / p50, 1) if p50 else None,
-        rate_name: round(100.0 * (rate - recording[rate_name]) / rate, 1) if rate else None,
-    }}
+@contextmanager
+def host_sessions(cards: list[Card]) -> Iterator[list[int]]:
+    """DevOpenDriver on the cards' one directory, DevInitBoard on each; their numbers."""
+    rc = DevOpenDriver(cards[0].directory)
+    if rc != 0:
+        raise RuntimeError(f"DevOpenDriver({cards[0].directory}) returned {rc}")
+    opened: list[int] = []
+    try:
+        for card in cards:
+            rc = DevInitBoard(card.board)
+            if rc != 0:
+                raise RuntimeError(f"DevInitBoard({card.board}) returned {rc}")
+            opened.append(card.board)
+        yield opened
+    finally:
+        for board in opened:
+            DevExitBoard(board)
+        DevCloseDriver()
+
+
+RECORDING_BATCH = 2000
+"""Calls per batch when a plain and a recording card are measured in turn."""
+
+
+def recording_entry(name: str, plain: Measured, recording: Measured,
+                    rate_name: str) -> dict[str, Any]:
+    """The ``recording`` entry of a benchmark: the recording card's figures, the plain
+    card's beside it, and what recording a session costs in percent of the plain card's
+    (issue 25 allows 10 %): the p50 latency's rise and the rate's fall. Both cards ran
+    side by side and were measured in alternating batches (``measure_alternating``)."""
+    plain_summary = plain.summary(rate_name)
+    summary = recording.summary(rate_name)
+    p50, rate = plain_summary["latency_us"]["p50"], plain_summary[rate_name]
+    return {"name": name, **summary, "plain": plain_summary,
+            "method": f"a plain card and a recording one side by side, batches of "
+                      f"{RECORDING_BATCH} calls alternating between them",
+            "cost_pct": {
+                "p50": round(100.0 * (summary["latency_us"]["p50"] - p50) / p50, 1)
+                if p50 else None,
+                rate_name: round(100.0 * (rate - summary[rate_name]) / rate, 1)
+                if rate else None}}
 
 
 # --- timing and statistics ------------------------------------------------------------------
@@ -178,6 +240,8 @@ class Measured:
     elapsed_ns: int
     failures: int
     warmup_codes: dict[int, int] = field(default_factory=dict)
+    timed_twice: bool = True
+    """``measure``'s: the latency loop and the rate loop each ran ``count`` calls."""
 
     @property
     def per_second(self) -> float:
@@ -188,7 +252,7 @@ class Measured:
         return {
             rate_name: round(self.per_second, 1),
             "latency_us": latency_stats(self.latencies_ns),
-            "calls": 2 * self.count,
+            "calls": 2 * self.count if self.timed_twice else self.count,
             "failures": self.failures,
             "warmup_return_codes": {str(k): v for k, v in sorted(self.warmup_codes.items())},
         }
@@ -221,6 +285,46 @@ def measure(step: Step, count: int, warmup: int, accepted: frozenset[int]) -> Me
             failures += 1
     elapsed = clock() - start
     return Measured(count, latencies, elapsed, failures, codes)
+
+
+def measure_alternating(steps: list[Step], count: int, warmup: int,
+                        accepted: frozenset[int], batch: int = RECORDING_BATCH
+                        ) -> list[Measured]:
+    """Run each of ``steps`` ``warmup`` times, then ``count`` times each in batches of
+    ``batch``, taking turns (the order reversed every round), with each call's latency.
+
+    For two cards side by side, such as a plain and a recording one: on a shared machine
+    the load changes from second to second, and two runs one after the other differed by
+    as much as what was measured. Here both see the same machine. A batch's rate counts
+    the clock reads around its calls, for each step alike.
+    """
+    codes: list[dict[int, int]] = [{} for _ in steps]
+    for step, seen in zip(steps, codes, strict=True):
+        for _ in range(warmup):
+            status = step()
+            seen[status] = seen.get(status, 0) + 1
+    clock = time.perf_counter_ns
+    latencies: list[list[int]] = [[] for _ in steps]
+    elapsed = [0] * len(steps)
+    failures = [0] * len(steps)
+    order = list(range(len(steps)))
+    done = 0
+    while done < count:
+        size = min(batch, count - done)
+        for n in order:
+            step, times = steps[n], latencies[n]
+            started = clock()
+            for _ in range(size):
+                start = clock()
+                status = step()
+                times.append(clock() - start)
+                if status not in accepted:
+                    failures[n] += 1
+            elapsed[n] += clock() - started
+        order.reverse()
+        done += size
+    return [Measured(count, latencies[n], elapsed[n], failures[n], codes[n], timed_twice=False)
+            for n in range(len(steps))]
 
 
 @dataclass(slots=True)

@@ -22,13 +22,17 @@ from typing import Any
 
 from bench.common import (
     Measured,
+    Step,
     host_session,
+    host_sessions,
     machine_info,
     measure,
+    measure_alternating,
     progress,
     ratio,
-    recording_cost,
+    recording_entry,
     running_card,
+    running_cards,
     sized_main,
     source_fingerprint,
 )
@@ -112,16 +116,32 @@ def _select_mode(board: int, mode: Mode) -> None:
         )
 
 
-def measure_mode(board: int, mode: Mode, count: int, warmup: int) -> Measured:
-    _select_mode(board, mode)
+def _exchange(board: int) -> Step:
     outputs = bytes(range(IO_BYTES))
 
     def exchange() -> int:
         rc, inputs = DevExchangeIO(board, 0, outputs, 0, IO_BYTES, TIMEOUT_MS)
         return int(rc) if len(inputs) == IO_BYTES else SHORT_READ
 
+    return exchange
+
+
+def measure_mode(board: int, mode: Mode, count: int, warmup: int) -> Measured:
+    _select_mode(board, mode)
     progress(f"mode {mode.exchange_mode} ({mode.name}): {warmup} warm-up + 2 x {count} calls")
-    return measure(exchange, count, warmup, COMPLETED)
+    return measure(_exchange(board), count, warmup, COMPLETED)
+
+
+def measure_recording(mode: Mode, count: int, warmup: int) -> tuple[Measured, Measured]:
+    """``mode`` on a plain card and a recording one side by side, in alternating batches."""
+    with running_cards((False, True)) as cards, host_sessions(cards) as boards:
+        for board in boards:
+            _select_mode(board, mode)
+        progress(f"mode {mode.exchange_mode}, plain and recording card in turn: {warmup} "
+                 f"warm-up + {count} calls each")
+        plain, recording = measure_alternating([_exchange(b) for b in boards], count, warmup,
+                                               COMPLETED)
+        return plain, recording
 
 
 def run(count: int | None = None, warmup: int | None = None) -> dict[str, Any]:
@@ -150,9 +170,7 @@ def run(count: int | None = None, warmup: int | None = None) -> dict[str, Any]:
                 },
             })
     host_controlled = next(m for m in MODES if m.exchange_mode == RECORDED_MODE)
-    plain = next(m for m in modes if m["exchange_mode"] == RECORDED_MODE)
-    with running_card(record=True) as card, host_session(card) as board:
-        recording = measure_mode(board, host_controlled, count, warmup).summary("calls_per_s")
+    plain, recording = measure_recording(host_controlled, count, warmup)
     return {
         "benchmark": NAME,
         "description": f"DevExchangeIO with {IO_BYTES} bytes out and {IO_BYTES} bytes in, "
@@ -170,9 +188,9 @@ def run(count: int | None = None, warmup: int | None = None) -> dict[str, Any]:
         "targets": {m.name: {"calls_per_s_min": m.target_calls_per_s} for m in MODES},
         "meets_target": {m["name"]: m["meets_target"] for m in modes},
         "modes": modes,
-        "recording": {"name": f"mode {RECORDED_MODE} on a card recording a session "
-                              "(cifemu firmware --record)",
-                      **recording, **recording_cost(plain, recording, "calls_per_s")},
+        "recording": recording_entry(f"mode {RECORDED_MODE} on a card recording a session "
+                                     "(cifemu firmware --record)", plain, recording,
+                                     "calls_per_s"),
         "baseline": {"name": f"mmap slice store + load of {IO_BYTES} bytes", **baseline},
         "ratio_definition": "mode / baseline",
     }

@@ -44,7 +44,7 @@ KINDS = (PUT, ANSWER, HOST_FLAGS, DEV_FLAGS, EXCHANGE)
 AREAS = ("SndPd", "RcvPd")
 
 BATCH_FRAME = struct.Struct("<I")
-"""The length before each pickled batch of events on the pipe from the recording firmware
+"""The length before each marshalled batch of events on the pipe from the recording firmware
 to its writer process (firmware/recorder.py, firmware/session_writer.py)."""
 CAN_FRAME = "can"
 """On that pipe only: a CAN frame (``dpm.tap``'s datagram), which goes to ``can.log``."""
@@ -140,6 +140,7 @@ def request_pid(ledger: bytes, nr: int, b: int, rx: int, tx: int) -> int | None:
 _HEAD = '{"kind":"%s","t":%.6f,"wall":%.6f,"pid":%s'
 _MESSAGE = (',"msg":{"rx":%d,"tx":%d,"ln":%d,"nr":%d,"a":%d,"f":%d,"b":%d,"e":%d,'
             '"data":"%s"}')
+_FLAGS = ',"before":%d,"after":%d'
 _HEADER = struct.Struct("<8B")
 """MSG_STRUC's header as ``_MESSAGE`` orders it: rx tx ln nr a f b e."""
 
@@ -162,7 +163,7 @@ def encode_record(record: Record) -> str:
     if record.msg is not None:
         line += _message(record.msg.encode())
     if record.kind in (HOST_FLAGS, DEV_FLAGS):
-        line += f',"before":{record.before},"after":{record.after}'
+        line += _FLAGS % (record.before, record.after)
     if record.changes:
         line += ',"changes":' + json.dumps(
             {area: [[offset, data.hex()] for offset, data in runs]
@@ -182,6 +183,16 @@ def encode_message(kind: str, t: float, wall: float, pid: int | None, raw: bytes
     line = _head(kind, t, wall, pid) + _message(raw)
     if state:
         line += ',"Task2State":"%s"' % state.hex()  # noqa: UP031 (% is the fastest here)
+    return line + "}"
+
+
+def encode_flags(kind: str, t: float, wall: float, before: int, after: int,
+                 parameter: bytes = b"") -> str:
+    """The line ``encode_record`` makes of a flags record (no pid: the image does not say
+    who wrote a byte), without a Record: the writer's path, as ``encode_message``."""
+    line = _HEAD % (kind, t, wall, "null") + _FLAGS % (before, after)
+    if parameter:
+        line += ',"Task2Parameter":"%s"' % parameter.hex()  # noqa: UP031
     return line + "}"
 
 

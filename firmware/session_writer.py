@@ -1,8 +1,8 @@
 """The recorder's child process: turns the card's event batches into session.jsonl [ours].
 
 ``firmware.recorder`` hands it batches through its stdin, each a 4-byte little-endian
-length and a pickled list of event tuples; pickle, because both ends are the same
-firmware and the pipe is theirs alone (nothing else can write to it). Here, out of the
+length and a marshalled list of event tuples; marshal, because both ends are the same
+interpreter and the pipe is theirs alone (nothing else can write to it). Here, out of the
 firmware's process, each event becomes a line of ``session.jsonl`` (``dpm.session``'s
 codec): the pid of a put's host from the ledger bytes the card read, an answer's pid
 from its request, an exchange's changed bytes from the snapshots, the Unix time from
@@ -17,8 +17,8 @@ or the ones a user's ``cifemu record`` opened and passed to the card (firmware/r
 
 from __future__ import annotations
 
+import marshal
 import os
-import pickle
 import sys
 from typing import Any, BinaryIO, TextIO
 
@@ -66,10 +66,9 @@ class Events:
                 del self._pending[key]
             return s.encode_message(kind, t, wall, pid, raw, item[3])
         if kind == s.HOST_FLAGS:
-            return s.encode_record(s.Record(kind, t, wall, before=item[2], after=item[3]))
+            return s.encode_flags(kind, t, wall, item[2], item[3])
         if kind == s.DEV_FLAGS:
-            return s.encode_record(s.Record(kind, t, wall, before=item[2], after=item[3],
-                                            parameter=item[4]))
+            return s.encode_flags(kind, t, wall, item[2], item[3], item[4])
         return s.encode_record(self._exchange(t, wall, item[2], item[3]))
 
     def _exchange(self, t: float, wall: float, io: bytes | None, state: bytes) -> s.Record:
@@ -108,7 +107,7 @@ def batches(stream: BinaryIO) -> Any:
         if len(head) < s.BATCH_FRAME.size:
             return
         (size,) = s.BATCH_FRAME.unpack(head)
-        yield pickle.loads(stream.read(size))
+        yield marshal.loads(stream.read(size))
 
 
 def main(argv: list[str] | None = None) -> int:

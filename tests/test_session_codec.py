@@ -79,3 +79,9 @@ def test_the_writers_fast_line_is_the_codecs_line(record: s.Record) -> None:
     slot = record.msg.encode().ljust(288, b"\xee")
     assert s.encode_message(record.kind, record.t, record.wall, record.pid, slot,
                             record.state) == s.encode_record(record)
+
+
+@pytest.mark.parametrize("record", ROUND_TRIP[2:4], ids=[r.kind for r in ROUND_TRIP[2:4]])
+def test_the_writers_fast_flags_line_is_the_codecs_line(record: s.Record) -> None:
+    assert s.encode_flags(record.kind, record.t, record.wall, record.before, record.after,
+                          record.parameter) == s.encode_record(record)
