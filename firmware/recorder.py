@@ -84,9 +84,10 @@ class Recorder:
         self._child = subprocess.Popen(
             [sys.executable, "-m", "firmware.session_writer", str(events),
              str(-1 if can_log is None else can_log), repr(self.started_wall - self.started_t),
-             channel], pass_fds=fds, stdin=subprocess.PIPE, stdout=subprocess.DEVNULL,
-            start_new_session=True)  # a terminal's Ctrl-C is the firmware's to handle: the
-        # writer ends at the end of its stdin, after the last batch
+             channel, str(os.getpid())], pass_fds=fds, stdin=subprocess.PIPE,
+            stdout=subprocess.DEVNULL, start_new_session=True)
+        # a session of its own: a terminal's Ctrl-C is the firmware's to handle; the writer
+        # ends at the end of its stdin, after the last batch
         assert self._child.stdin is not None
         self._pipe = self._child.stdin
         self._image_files: CardDirectory | None = None

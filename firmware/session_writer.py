@@ -9,7 +9,12 @@ from its request, an exchange's changed bytes from the snapshots, the Unix time 
 the monotonic one. Frames go to ``can.log`` in candump's format (python-can's
 ``CanutilsLogWriter``). At the end of its stdin it exits.
 
-    python -m firmware.session_writer EVENTS_FD CAN_LOG_FD WALL_OFFSET CHANNEL
+The messages of the firmware's own host (``cifemu firmware --configure``, whose ledger
+lines carry the firmware's pid) are left out [ours]: it stands for a card that comes
+configured, not for a host, and a replay against a card started the same way must not
+configure it a second time.
+
+    python -m firmware.session_writer EVENTS_FD CAN_LOG_FD WALL_OFFSET CHANNEL FIRMWARE_PID
 
 The descriptors are open files (CAN_LOG_FD -1: no frames recorded): the firmware's own,
 or the ones a user's ``cifemu record`` opened and passed to the card (firmware/record_socket.py).
@@ -37,7 +42,8 @@ behind (the firmware's queue grows), it never slows the card's answers down."""
 class Events:
     """What the card's event tuples become; state carried from one event to the next."""
 
-    def __init__(self, wall_offset: float) -> None:
+    def __init__(self, wall_offset: float, firmware_pid: int = 0) -> None:
+        self._firmware = firmware_pid
         self._wall = wall_offset
         """Unix time minus CLOCK_MONOTONIC when the recording started: the card reads one
         clock per event, the writer derives the other."""
@@ -45,8 +51,9 @@ class Events:
         self._pending: dict[tuple[int, int, int, int], int] = {}
         """Puts awaiting their answers: (nr, b, rx, tx) -> pid."""
 
-    def line(self, item: tuple[Any, ...]) -> str:
-        """The ``session.jsonl`` line (without its newline) of one event tuple."""
+    def line(self, item: tuple[Any, ...]) -> str | None:
+        """The ``session.jsonl`` line (without its newline) of one event tuple; None for
+        a message of the firmware's own host."""
         kind, t = item[0], item[1]
         wall = t + self._wall
         if kind == s.PUT:
@@ -55,6 +62,8 @@ class Events:
             pid = s.request_pid(item[3], nr, b, rx, tx) if item[3] else None
             if pid is not None:
                 self._pending[(nr, b, rx, tx)] = pid
+            if pid == self._firmware:
+                return None
             return s.encode_message(kind, t, wall, pid, raw)
         if kind == s.ANSWER:
             raw = item[2]
@@ -64,6 +73,8 @@ class Events:
             more = f == 0 and e & Ext.SEQ_MASK in _MORE
             if pid is not None and not more:  # a long upload's parts share their request
                 del self._pending[key]
+            if pid == self._firmware:
+                return None
             return s.encode_message(kind, t, wall, pid, raw, item[3])
         if kind == s.HOST_FLAGS:
             return s.encode_flags(kind, t, wall, item[2], item[3])
@@ -111,9 +122,9 @@ def batches(stream: BinaryIO) -> Any:
 
 
 def main(argv: list[str] | None = None) -> int:
-    events_fd, can_fd, wall_offset, channel = sys.argv[1:] if argv is None else argv
+    events_fd, can_fd, wall_offset, channel, firmware_pid = sys.argv[1:] if argv is None else argv
     os.nice(NICE)
-    events = Events(float(wall_offset))
+    events = Events(float(wall_offset), int(firmware_pid))
     can_out = os.fdopen(int(can_fd), "w", encoding="ascii") if int(can_fd) >= 0 else None
     frames = Frames(can_out, channel) if can_out is not None else None
     with os.fdopen(int(events_fd), "w", encoding="ascii") as out:
@@ -124,7 +135,9 @@ def main(argv: list[str] | None = None) -> int:
                     if frames is not None:
                         frames.write(item[1])
                 else:
-                    lines.append(events.line(item) + "\n")
+                    line = events.line(item)
+                    if line is not None:
+                        lines.append(line + "\n")
             out.writelines(lines)
             out.flush()
             if can_out is not None:

@@ -21,6 +21,7 @@ import can
 from dpm import session as s
 from dpm.commands import COM_SHARED_MEMORY
 from dpm.message import Task
+from dpm.transcript import transcript
 from tests.conftest import TIME_SCALE, Card, start_card
 
 HOST = """
@@ -233,3 +234,79 @@ def test_frames_of_an_attached_recording_are_a_candump_log(tmp_path: Path) -> No
     assert f"and {len(frames)} frames recorded" in out
     puts = [r for r in s.decode_events((session / s.EVENTS).read_text()) if r.kind == s.PUT]
     assert [r.pid for r in puts] == [sender.pid]  # COM_Send_CANMsg_Transparent, its sender
+
+
+USER_TESTS = '''
+import pytest
+from host_api.board import Board
+from dpm.commands import COM_SHARED_MEMORY
+from dpm.message import Message, Task, Tdt, TelegramHeader, Tfc
+
+ONE_NODE = {"node": [{"id": 1}]}
+READ = TelegramHeader(data_area=1, data_cnt=8, data_type=Tdt.UINT8, function=Tfc.READ).encode()
+
+
+def talk(board_number):
+    with Board(board_number) as board:
+        board.transact(Message(rx=Task.PLC, tx=Task.USER, b=COM_SHARED_MEMORY, nr=7, data=READ))
+        board.exchange_io(b"\\x5a" * 4, receive_size=4)
+
+
+@pytest.mark.cif_network(ONE_NODE)
+def test_the_users_mistake(cif_card):
+    cif_card.wait_until_operating()
+    talk(cif_card.board)
+    assert False, "the user's mistake"
+
+
+@pytest.mark.cif_network(ONE_NODE)
+def test_passes_and_leaves_no_session(cif_card):
+    cif_card.wait_until_operating()
+    talk(cif_card.board)
+
+
+@pytest.mark.cif_network(ONE_NODE)
+@pytest.mark.cif_record("kept")
+def test_passes_and_keeps_its_session(cif_card):
+    cif_card.wait_until_operating()
+    talk(cif_card.board)
+    cif_card.restart()
+    cif_card.wait_until_operating()
+    assert [r.msg.nr for r in cif_card.records() if r.kind == "put"] == [7]
+    assert cif_card.transcript()[-1] == "exchange: SndPd[0] 5a5a5a5a"
+'''
+"""A user's suite: a host talks to its card (one COM_Shared_Memory read, one exchange);
+one test fails, one passes, one keeps its session across a restart of its card."""
+
+
+def test_a_failing_tests_report_has_its_cards_transcript(tmp_path: Path) -> None:
+    project = tmp_path / "project"
+    project.mkdir()
+    (project / "test_user.py").write_text(USER_TESTS)
+    env = {**os.environ, "PYTEST_DISABLE_PLUGIN_AUTOLOAD": "1"}  # -p cifemu loads it
+    done = subprocess.run([sys.executable, "-m", "pytest", "-p", "cifemu", "-p",
+                           "no:cacheprovider", "--basetemp", str(tmp_path / "base"),
+                           "--strict-markers", "-q"], cwd=project, env=env,
+                          capture_output=True, text=True, timeout=600, check=False)
+    out = done.stdout
+    assert done.returncode == 1, out + done.stderr
+    assert "1 failed, 2 passed" in out
+    report = out[out.index("_ test_the_users_mistake _"):out.index("short test summary info")]
+    section = report[report.index("- cifemu board 0: transcript -"):]
+    session = tmp_path / "base" / "test_the_users_mistake0" / "cifemu" / "session"
+    assert f"steps recorded in {session} (cifemu replay SESSION" in section
+    assert ("put COM_Shared_Memory node 0: f 0 e 0 area 1 adr 0x0 idx 0 cnt 8 type 5 "
+            "function 1 d -") in section
+    assert "answer COM_Shared_Memory node 0: f 0 e 0 area 1" in section
+    assert "HostFlags: levels COM|RUN|READY" in section
+    assert "exchange: SndPd[0] 5a5a5a5a" in section
+    assert (session / s.EVENTS).exists()  # a failed test's session stays, to be replayed
+    # a passed test's recording is gone; a marked one's stays where the marker says
+    assert not (tmp_path / "base" / "test_passes_and_leaves_no_s0" / "cifemu" / "session"
+                ).exists()
+    kept = [s.decode_events((project / name / s.EVENTS).read_text())
+            for name in ("kept", "kept-2")]
+    assert [r.msg.nr for r in kept[0] if r.kind == s.PUT and r.msg] == [7]
+    # the restarted card configured itself, which is no host's doing, before records() ended
+    # the recording: nothing to show
+    assert transcript(kept[1]) == []
