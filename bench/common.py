@@ -26,6 +26,7 @@ from multiprocessing.connection import Connection
 from pathlib import Path
 from typing import Any
 
+from bench.cpu import thread_cpu_ns
 from dpm.flags import HostFlag
 from dpm.image import image_path
 from dpm.layout import HOST_FLAGS
@@ -203,25 +204,92 @@ def host_sessions(cards: list[Card]) -> Iterator[list[int]]:
 
 RECORDING_BATCH = 2000
 """Calls per batch when a plain and a recording card are measured in turn."""
+WRITER_SETTLE_S = 30.0
+"""How long the session writer may take to catch up after the calls (it runs niced)."""
 
 
-def recording_entry(name: str, plain: Measured, recording: Measured,
-                    rate_name: str) -> dict[str, Any]:
+@dataclass(frozen=True, slots=True)
+class RecordingRun:
+    """A plain card (board 0) and a recording one (board 1), measured in turn, and the
+    CPU each spent per call: the cards' processes and the recording card's session writer."""
+
+    plain: Measured
+    recording: Measured
+    cpu_us_per_call: dict[str, float]
+
+
+def _cpu_ns(pid: int) -> int:
+    return sum(thread_cpu_ns(pid).values())
+
+
+def session_writer_of(pid: int) -> int:
+    """The session writer process of the recording firmware ``pid``."""
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            ppid = int(stat.read_text().rsplit(")", 1)[1].split()[1])
+            if ppid == pid and b"firmware.session_writer" in (stat.parent / "cmdline").read_bytes():
+                return int(stat.parent.name)
+        except (OSError, IndexError, ValueError):
+            continue
+    raise RuntimeError(f"the recording firmware {pid} runs no session writer")
+
+
+def _settled_cpu_ns(pid: int) -> int:
+    """The CPU of ``pid`` once it has stopped growing (the writer has caught up)."""
+    deadline = time.monotonic() + WRITER_SETTLE_S
+    last = _cpu_ns(pid)
+    while time.monotonic() < deadline:
+        time.sleep(0.2)
+        now = _cpu_ns(pid)
+        if now == last:
+            break
+        last = now
+    return last
+
+
+def measure_recording(make_step: Callable[[int], Step], count: int, warmup: int,
+                      accepted: frozenset[int], prepare: Callable[[int], None] = lambda b: None
+                      ) -> RecordingRun:
+    """``make_step(board)`` on a plain card and on a recording one (``--record``) side by
+    side, in alternating batches (``measure_alternating``), after ``prepare(board)``.
+
+    The CPU per call is load-proof where the latencies are not: CPU time hardly moves
+    when the machine is busy (``bench.cpu``). It counts the warm-up calls too, and what
+    each card spends idle while the other is measured (the same for both)."""
+    with running_cards((False, True)) as cards, host_sessions(cards) as boards:
+        for board in boards:
+            prepare(board)
+        writer = session_writer_of(cards[1].pid)
+        before = [_cpu_ns(cards[0].pid), _cpu_ns(cards[1].pid), _settled_cpu_ns(writer)]
+        plain, recording = measure_alternating([make_step(b) for b in boards], count, warmup,
+                                               accepted)
+        after = [_cpu_ns(cards[0].pid), _cpu_ns(cards[1].pid), _settled_cpu_ns(writer)]
+    calls = count + warmup
+    spent = [round((a - b) / calls / 1000, 2) for a, b in zip(after, before, strict=True)]
+    return RecordingRun(plain, recording, {"plain_card": spent[0], "recording_card": spent[1],
+                                           "session_writer": spent[2]})
+
+
+def recording_entry(name: str, run: RecordingRun, rate_name: str) -> dict[str, Any]:
     """The ``recording`` entry of a benchmark: the recording card's figures, the plain
     card's beside it, and what recording a session costs in percent of the plain card's
-    (issue 25 allows 10 %): the p50 latency's rise and the rate's fall. Both cards ran
-    side by side and were measured in alternating batches (``measure_alternating``)."""
-    plain_summary = plain.summary(rate_name)
-    summary = recording.summary(rate_name)
+    (issue 25 allows 10 %): the p50 latency's rise and the rate's fall, and the CPU per
+    call (``measure_recording``)."""
+    plain_summary = run.plain.summary(rate_name)
+    summary = run.recording.summary(rate_name)
     p50, rate = plain_summary["latency_us"]["p50"], plain_summary[rate_name]
+    cpu = run.cpu_us_per_call
     return {"name": name, **summary, "plain": plain_summary,
             "method": f"a plain card and a recording one side by side, batches of "
                       f"{RECORDING_BATCH} calls alternating between them",
+            "cpu_us_per_call": cpu,
             "cost_pct": {
                 "p50": round(100.0 * (summary["latency_us"]["p50"] - p50) / p50, 1)
                 if p50 else None,
                 rate_name: round(100.0 * (rate - summary[rate_name]) / rate, 1)
-                if rate else None}}
+                if rate else None,
+                "card_cpu": round(100.0 * (cpu["recording_card"] - cpu["plain_card"])
+                                  / cpu["plain_card"], 1) if cpu["plain_card"] else None}}
 
 
 # --- timing and statistics ------------------------------------------------------------------

@@ -24,15 +24,13 @@ from bench.common import (
     Measured,
     Step,
     host_session,
-    host_sessions,
     machine_info,
     measure,
-    measure_alternating,
+    measure_recording,
     progress,
     ratio,
     recording_entry,
     running_card,
-    running_cards,
     sized_main,
     source_fingerprint,
 )
@@ -132,16 +130,6 @@ def measure_mode(board: int, mode: Mode, count: int, warmup: int) -> Measured:
     return measure(_exchange(board), count, warmup, COMPLETED)
 
 
-def measure_recording(mode: Mode, count: int, warmup: int) -> tuple[Measured, Measured]:
-    """``mode`` on a plain card and a recording one side by side, in alternating batches."""
-    with running_cards((False, True)) as cards, host_sessions(cards) as boards:
-        for board in boards:
-            _select_mode(board, mode)
-        progress(f"mode {mode.exchange_mode}, plain and recording card in turn: {warmup} "
-                 f"warm-up + {count} calls each")
-        plain, recording = measure_alternating([_exchange(b) for b in boards], count, warmup,
-                                               COMPLETED)
-        return plain, recording
 
 
 def run(count: int | None = None, warmup: int | None = None) -> dict[str, Any]:
@@ -170,7 +158,10 @@ def run(count: int | None = None, warmup: int | None = None) -> dict[str, Any]:
                 },
             })
     host_controlled = next(m for m in MODES if m.exchange_mode == RECORDED_MODE)
-    plain, recording = measure_recording(host_controlled, count, warmup)
+    progress(f"mode {RECORDED_MODE}, plain and recording card in turn: {warmup} warm-up + "
+             f"{count} calls each")
+    recording = measure_recording(_exchange, count, warmup, COMPLETED,
+                                  lambda board: _select_mode(board, host_controlled))
     return {
         "benchmark": NAME,
         "description": f"DevExchangeIO with {IO_BYTES} bytes out and {IO_BYTES} bytes in, "
@@ -189,8 +180,7 @@ def run(count: int | None = None, warmup: int | None = None) -> dict[str, Any]:
         "meets_target": {m["name"]: m["meets_target"] for m in modes},
         "modes": modes,
         "recording": recording_entry(f"mode {RECORDED_MODE} on a card recording a session "
-                                     "(cifemu firmware --record)", plain, recording,
-                                     "calls_per_s"),
+                                     "(cifemu firmware --record)", recording, "calls_per_s"),
         "baseline": {"name": f"mmap slice store + load of {IO_BYTES} bytes", **baseline},
         "ratio_definition": "mode / baseline",
     }

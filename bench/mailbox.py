@@ -18,16 +18,14 @@ from bench.common import (
     Measured,
     Step,
     host_session,
-    host_sessions,
     machine_info,
     measure,
-    measure_alternating,
+    measure_recording,
     pipe_echo,
     progress,
     ratio,
     recording_entry,
     running_card,
-    running_cards,
     sized_main,
     source_fingerprint,
 )
@@ -97,14 +95,6 @@ def measure_card(count: int, warmup: int) -> Measured:
         return measure(_round_trip(board), count, warmup, frozenset({0}))
 
 
-def measure_recording(count: int, warmup: int) -> tuple[Measured, Measured]:
-    """A plain card and a recording one side by side, in alternating batches."""
-    with running_cards((False, True)) as cards, host_sessions(cards) as boards:
-        progress(f"mailbox, plain and recording card in turn: {warmup} warm-up + {count} "
-                 "round trips each")
-        plain, recording = measure_alternating([_round_trip(b) for b in boards], count,
-                                               warmup, frozenset({0}))
-        return plain, recording
 
 
 def measure_pipe(count: int, warmup: int) -> Measured:
@@ -140,7 +130,9 @@ def run(count: int | None = None, warmup: int | None = None) -> dict[str, Any]:
     source = source_fingerprint()
     pipe = measure_pipe(count, warmup)
     card = measure_card(count, warmup)
-    plain, recording = measure_recording(count, warmup)
+    progress(f"mailbox, plain and recording card in turn: {warmup} warm-up + {count} "
+             "round trips each")
+    recording = measure_recording(_round_trip, count, warmup, frozenset({0}))
     card_result = card.summary("round_trips_per_s")
     pipe_result = pipe.summary("round_trips_per_s")
     p50 = card_result["latency_us"]["p50"]
@@ -165,7 +157,7 @@ def run(count: int | None = None, warmup: int | None = None) -> dict[str, Any]:
         },
         "cif_mailbox": card_result,
         "recording": recording_entry("a card recording a session (cifemu firmware --record)",
-                                     plain, recording, "round_trips_per_s"),
+                                     recording, "round_trips_per_s"),
         "baseline": {"name": "multiprocessing.Pipe send_bytes/recv_bytes ping-pong", **pipe_result},
         "ratio_to_baseline": {
             "definition": "cif_mailbox / baseline",
