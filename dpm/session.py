@@ -21,6 +21,7 @@ from typing import Any
 
 from dpm.errors import DpmError
 from dpm.layout import MSG_HEADER_SIZE
+from dpm.ledger import decode_line
 from dpm.message import Message, MessageError
 
 FORMAT = "cifemu-session"
@@ -119,18 +120,18 @@ def apply_runs(image: bytearray, runs: Runs) -> None:
 
 def ledger_pid(ledger: bytes, msg: Message) -> int | None:
     """The pid of the host that sent ``msg``, from the board's transaction ledger
-    (``board<N>.transaction.lock``: lines ``pid owner nr b rx tx multi sent_ms``, written
-    by host_api and libcif before a request reaches the card); None when no line names it."""
+    (``dpm.ledger``, written by host_api and libcif before a request reaches the card);
+    None when no line names it."""
     return request_pid(ledger, msg.nr, msg.b, msg.rx, msg.tx)
 
 
 def request_pid(ledger: bytes, nr: int, b: int, rx: int, tx: int) -> int | None:
     """``ledger_pid`` of the message with these header fields."""
-    wanted = b"%d %d %d %d" % (nr, b, rx, tx)
+    wanted = (nr, b, rx, tx)
     for line in ledger.splitlines():
-        fields = line.split(b" ")
-        if len(fields) == 8 and b" ".join(fields[2:6]) == wanted and fields[0].isdigit():
-            return int(fields[0])
+        entry = decode_line(line)
+        if entry is not None and entry.pid >= 0 and entry[2:6] == wanted:
+            return entry.pid
     return None
 
 

@@ -15,10 +15,13 @@ so that a card nobody uses costs (almost) nothing (issue 22).
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
+import select
 import threading
 import time
+import weakref
 from collections import deque
 from collections.abc import Callable
 from pathlib import Path
@@ -153,7 +156,14 @@ class Device:
         self._calls: deque[Callable[[], None]] = deque()
         self._turn = threading.Lock()
         """Held by the device loop for each turn; ``post`` takes it to answer at once."""
-        self._stop = threading.Event()
+        self._stopping = False
+        self._stop_r, self._stop_w = os.pipe2(os.O_CLOEXEC | os.O_NONBLOCK)
+        """``stop`` writes a byte here for ``sleep``. Not a ``threading.Event``: ``stop``
+        runs in signal handlers, and one that interrupted the loop inside that Event's own
+        wait, holding its lock, deadlocked the card (a firmware that ignored SIGTERM).
+        Closed with the object, not at power-off: a late signal must not write to a
+        descriptor number that something else opened since."""
+        weakref.finalize(self, _close_all, self._stop_r, self._stop_w)
         self._ring = False
         self._loop_thread: int | None = None
         self._wake_pending = False
@@ -193,7 +203,7 @@ class Device:
             poll = AdaptivePoll()
             seen = self._flag_bytes()
             timeout = POLL_INTERVAL
-            while not self._stop.is_set():
+            while not self._stopping:
                 rung = self.bell.wait(timeout)
                 with self._turn:
                     self._wake_pending = False  # before service reads what woke it
@@ -230,13 +240,22 @@ class Device:
             self.bell.ring_self()
 
     def stop(self) -> None:
-        """Ask the loop to end; safe from signal handlers and other threads."""
-        self._stop.set()
+        """Ask the loop to end; safe from signal handlers and other threads: a flag, a
+        byte into a pipe and a ring, none of which takes a lock."""
+        self._stopping = True
+        with contextlib.suppress(BlockingIOError):  # full: told to stop often enough
+            os.write(self._stop_w, b"s")
         self.bell.ring_self()
 
     def sleep(self, seconds: float) -> bool:
         """Wait inside the loop (an emulated slow reset); True when told to stop."""
-        return self._stop.wait(seconds)
+        deadline = time.monotonic() + seconds
+        while not self._stopping:
+            remaining = deadline - time.monotonic()
+            if remaining <= 0:
+                return False
+            select.select([self._stop_r], [], [], remaining)
+        return True
 
     def _power_off(self) -> None:
         self.can.close()
@@ -284,7 +303,7 @@ class Device:
         if self._turn.acquire(blocking=False):
             try:
                 mm = self.mm
-                if (not self._stop.is_set() and not self._calls and not self.outbox
+                if (not self._stopping and not self._calls and not self.outbox
                         and not (mm[HOST_FLAGS] ^ mm[DEV_FLAGS]) & fl.HOST_MBX):
                     self.outbox.append(msg)
                     self._deliver()
@@ -496,3 +515,7 @@ class Device:
             self._state_sent = current
             self.toggle_host_flags(fl.STATECOM)
 
+
+def _close_all(*fds: int) -> None:
+    for fd in fds:
+        os.close(fd)

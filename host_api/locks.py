@@ -9,8 +9,7 @@ when another caller holds it longer than that.
 [ours] The transaction lock (``Transaction``) keeps request and answer
 together: a host process holds its flock from a DevPutMessage until that
 request is answered. Its file is the ledger of the requests whose answers are
-awaited, one line each (``pid owner nr b rx tx multi sent_ms``; owner: a random
-number per process and board), the same as libcif's (libcif/src/chanlock.c).
+awaited, one line each (``dpm.ledger``), the same as libcif's (libcif/src/chanlock.c).
 The kernel frees the flock of a host that dies; the next holder finds the dead
 host's requests in the ledger and discards their answers when they come. A host
 whose DevGetMessage timed out lets the lock go when no other call of it is
@@ -35,6 +34,7 @@ from enum import Enum
 from pathlib import Path
 from types import TracebackType
 
+from dpm.ledger import LINE, decode_line
 from dpm.message import Ext, Message
 from host_api.holders import Holder, lock_holder
 
@@ -145,21 +145,16 @@ class Request:
     """In memory: a get timed out waiting for it (it keeps the lock no more)."""
 
     def line(self) -> str:
-        return (f"{self.pid} {self.owner} {self.nr} {self.b} {self.rx} {self.tx} {self.multi} "
-                f"{self.sent_ms}\n")
+        return LINE % (self.pid, self.owner, self.nr, self.b, self.rx, self.tx, self.multi,
+                       self.sent_ms)
 
     @classmethod
     def parse(cls, line: str, now_ms: int) -> Request | None:
         """The request of one ledger line; None when malformed or past ``STALE_MS``."""
-        fields = line.split()
-        if len(fields) != 8 or not all(f.lstrip("-").isdigit() for f in fields):
+        entry = decode_line(line)
+        if entry is None or entry.sent_ms > now_ms or now_ms - entry.sent_ms > STALE_MS:
             return None
-        pid, owner, nr, b, rx, tx, multi, sent = (int(f) for f in fields)
-        if not all(0 <= v <= 255 for v in (nr, b, rx, tx)) or multi not in (0, 1, 2):
-            return None
-        if sent > now_ms or now_ms - sent > STALE_MS:
-            return None
-        return cls(pid, owner, nr, b, rx, tx, multi, sent, given_up=True)
+        return cls(*entry, given_up=True)
 
     def answered_by(self, msg: Message) -> bool:
         if self.multi == 2 and msg.e & Ext.SEQ_MASK not in (Ext.CONT, Ext.LAST):
@@ -201,6 +196,10 @@ class Transaction:
         self._users = 0
         self._own: list[Request] = []
         self._stale: list[Request] = []
+        self._length = 0
+        """The file's length as this process last read or wrote it (while it holds the flock:
+        then nobody else writes it). Lets a request be appended and the last answer truncate,
+        one system call each, on the path of every mailbox round trip."""
         self.holder: Holder | None = None
         """Who held the lock when ``acquire`` last failed (None: unknown or free)."""
 
@@ -244,6 +243,7 @@ class Transaction:
         request = Request(os.getpid(), self._owner, msg.nr, msg.b, msg.rx, msg.tx,
                           int(msg.e & Ext.SEQ_MASK == Ext.FIRST), _now_ms())
         with self._state:
+            kept = len(self._own) + len(self._stale)
             if msg.e & Ext.SEQ_MASK in (Ext.CONT, Ext.LAST):
                 # It continues a sequence (the load function's transfers): the first request
                 # of that command, answered with a part marked FIRST, was no long upload.
@@ -252,7 +252,12 @@ class Transaction:
             if len(self._own) + len(self._stale) >= LEDGER_MAX:
                 (self._stale or self._own).pop(0)
             self._own.append(request)
-            self._store()
+            if len(self._own) + len(self._stale) == kept + 1:  # nothing else changed
+                line = request.line().encode("ascii")
+                os.pwrite(self._fd, line, self._length)
+                self._length += len(line)
+            else:
+                self._store()
 
     def is_stale(self, msg: Message) -> bool:
         """Whether the answer waiting in the mailbox is one to discard."""
@@ -319,6 +324,7 @@ class Transaction:
         sender died, or gave up waiting and let the lock go), this process's own ones are
         given up. Malformed and expired lines are dropped."""
         raw = os.pread(self._fd, LEDGER_MAX * 96, 0)  # 96: libcif's longest line
+        self._length = len(raw)
         lines = raw.decode("ascii", "replace").splitlines()
         now = _now_ms()
         kept = [r for r in (Request.parse(line, now) for line in lines) if r is not None]
@@ -332,7 +338,9 @@ class Transaction:
         text = "".join(r.line() for r in (*self._stale, *self._own)).encode("ascii")
         if text:
             os.pwrite(self._fd, text, 0)
-        os.ftruncate(self._fd, len(text))
+        if len(text) < self._length:
+            os.ftruncate(self._fd, len(text))
+        self._length = len(text)
 
     def reopen_after_fork(self) -> None:
         """In a forked child: its own flock and owner number, an empty ledger in memory

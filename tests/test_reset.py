@@ -80,3 +80,27 @@ def test_no_error_text_carries_the_projects_marker() -> None:
     texts = [member.text for table in tables for member in table]
     texts += list(errors.ERROR_CONTROL_TEXT.values())
     assert texts and not [text for text in texts if "[ours]" in text]
+
+
+STOP_STORM = """
+import signal, sys, time
+from firmware.device import Device
+device = Device(0, sys.argv[1], flash_dir=sys.argv[1] + "/flash")
+signal.signal(signal.SIGALRM, lambda signum, frame: device.stop())
+signal.setitimer(signal.ITIMER_REAL, 0.00005, 0.00005)
+for _ in range(20000):
+    assert device.sleep(0.5)  # told to stop: at once
+signal.setitimer(signal.ITIMER_REAL, 0)
+print("done")
+"""
+
+
+def test_a_stop_from_a_signal_handler_never_deadlocks_a_sleeping_card(tmp_path: Path) -> None:
+    """``cifemu firmware`` stops the card from its SIGTERM handler, also while the card
+    sleeps through an emulated slow reset (--reset-delay). A handler that interrupted that
+    sleep inside a ``threading.Event``'s own wait, holding its lock, deadlocked the card: the
+    firmware ignored SIGTERM for good (seen once under load). Here a timer signal stops the
+    card 20,000 times a second while it sleeps, in a process of its own, as the firmware's."""
+    out = subprocess.run([sys.executable, "-c", STOP_STORM, str(tmp_path)], cwd=ROOT,
+                         capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0 and out.stdout == "done\n", out.stderr

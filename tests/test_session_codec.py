@@ -11,6 +11,7 @@ import pytest
 
 from dpm import flags as fl
 from dpm import session as s
+from dpm.ledger import LedgerLine, decode_line
 from dpm.message import Message
 
 ROUND_TRIP = [
@@ -85,3 +86,15 @@ def test_the_writers_fast_line_is_the_codecs_line(record: s.Record) -> None:
 def test_the_writers_fast_flags_line_is_the_codecs_line(record: s.Record) -> None:
     assert s.encode_flags(record.kind, record.t, record.wall, record.before, record.after,
                           record.parameter) == s.encode_record(record)
+
+
+def test_a_ledger_line_round_trips_and_a_malformed_one_is_refused() -> None:
+    """One format for host_api, libcif and the recorder (dpm.ledger); a line a dying host
+    cut short, or a local user wrote, names nobody."""
+    entry = LedgerLine(4242, 7, 9, 74, 3, 16, 1, 123456)
+    assert entry.encode() == "4242 7 9 74 3 16 1 123456\n"
+    assert decode_line(entry.encode()) == entry
+    assert decode_line(entry.encode().encode()) == entry
+    for bad in ("4242 7 9 74 3 16 1", "4242 7 256 74 3 16 0 5", "4242 7 9 74 3 16 3 5",
+                "a b c d e f g h", "", "4242 7 9 74 3 16 0 5 6"):
+        assert decode_line(bad) is None, bad
