@@ -6,13 +6,15 @@ SOCK_SEQPACKET socket: a file system socket, so the directory's permissions
 recording at a time:
 
 1. the recording side (``cifemu record``, the pytest plugin) creates the session
-   directory and its files itself, as its own user, and sends ``ATTACH`` with two open
-   descriptors (SCM_RIGHTS): ``session.jsonl`` and ``can.log``. The firmware, often
-   root, never opens a path a local user named (a path would let that user have root
+   directory and its files itself, as its own user, and sends ``ATTACH`` with three open
+   descriptors (SCM_RIGHTS): ``session.jsonl``, ``can.log`` and the spool, a file
+   without a name in the session's directory, open for reading and writing, where the
+   card's writer keeps the events until the recording ends. The firmware, often root,
+   never opens a path a local user named (a path would let that user have root
    overwrite any file);
 2. the card answers one JSON object: ``{"attached": {board, firmware_pid, started_t,
    started_wall, channel}}``, or ``{"refused": "one line"}`` (another recording runs,
-   the descriptors are no files open for writing);
+   the descriptors are not such files);
 3. the recording runs until the recording side sends ``DETACH`` or goes away (its end
    of the socket closes), or the card stops. The card then has the writer write
    everything and answers ``{"detached": {events, frames, complete, card_stopped}}``:
@@ -173,6 +175,7 @@ def attach(image: Path, board: int, session: Path,
         try:
             for name in names:
                 fds.append(files.open(name, os.O_WRONLY | os.O_CREAT | os.O_EXCL))
+            fds.append(files.open_unnamed())
         except FileExistsError:
             raise RecordingError(f"{session} already holds a session; a recording never "
                                  "overwrites one") from None

@@ -2,7 +2,7 @@
 
 The contract (``board<N>.record``, ATTACH with two descriptors, the answers) is
 ``dpm.record_socket``. Here one thread serves it: it accepts a connection, checks the
-two descriptors (regular files, open for writing: the writer must never block on a pipe
+three descriptors (regular files, open for writing: the writer must never block on a pipe
 nobody reads, or the card's queue would grow without bound), starts a ``Recorder`` on
 them and hands it to the device loop (``Device.record``). When the recording side
 detaches, goes away, or the card stops, it takes the recorder out of the loop again,
@@ -110,7 +110,7 @@ class RecordSocket:
         conn.settimeout(REQUEST_TIMEOUT_S)
         fds: list[int] = []
         try:
-            request, fds, flags, _ = socket.recv_fds(conn, MAX_MESSAGE, 2)
+            request, fds, flags, _ = socket.recv_fds(conn, MAX_MESSAGE, 3)
             refusal = self._refusal(request, fds, flags)
             if refusal is None:
                 try:
@@ -140,9 +140,11 @@ class RecordSocket:
                 "channel": self._device.can.master.config.channel}))
 
     def _refusal(self, request: bytes, fds: list[int], flags: int) -> str | None:
-        if (request != ATTACH or len(fds) != 2 or flags & socket.MSG_CTRUNC
-                or not all(_writable_file(fd) for fd in fds)):
-            return "an ATTACH takes two regular files open for writing (dpm/record_socket.py)"
+        if (request != ATTACH or len(fds) != 3 or flags & socket.MSG_CTRUNC
+                or not all(_writable_file(fd) for fd in fds)
+                or fcntl.fcntl(fds[2], fcntl.F_GETFL) & os.O_ACCMODE != os.O_RDWR):
+            return ("an ATTACH takes three regular files open for writing, the last also for "
+                    "reading (dpm/record_socket.py)")
         if self._recorder is not None:
             return (f"it is being recorded already (attached by pid {self._peer}); end that "
                     "recording first")
@@ -152,7 +154,8 @@ class RecordSocket:
 
     def _start(self, fds: list[int]) -> Recorder:
         device = self._device
-        recorder = Recorder(device.board, fds[0], fds[1], device.can.master.config.channel)
+        recorder = Recorder(device.board, fds[0], fds[1], fds[2],
+                            device.can.master.config.channel)
         recorder.start(device.files, device.mm)
         device.record(recorder)
         return recorder

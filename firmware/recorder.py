@@ -73,19 +73,22 @@ class SessionExistsError(FileExistsError):
 class Recorder:
     """One session being written; the hooks are called by the device loop's threads."""
 
-    def __init__(self, board: int, events: int, can_log: int | None, channel: str) -> None:
-        """Start the writer on the open files ``events`` (session.jsonl) and ``can_log``
-        (None: no frames); the writer takes copies, the caller closes its own.
-        ``start`` then connects the recorder to the card."""
+    def __init__(self, board: int, events: int, can_log: int | None, spool: int,
+                 channel: str) -> None:
+        """Start the writer on the open files ``events`` (session.jsonl), ``can_log``
+        (None: no frames) and ``spool`` (read and written: where the writer keeps the
+        events until the recording ends); the writer takes copies, the caller closes its
+        own. ``start`` then connects the recorder to the card."""
         self.board = board
         self.started_t = time.monotonic()
         self.started_wall = time.time()
-        fds = (events,) if can_log is None else (events, can_log)
+        fds = (events, spool) if can_log is None else (events, can_log, spool)
         self._child = subprocess.Popen(
             [sys.executable, "-m", "firmware.session_writer", str(events),
-             str(-1 if can_log is None else can_log), repr(self.started_wall - self.started_t),
-             channel, str(os.getpid())], pass_fds=fds, stdin=subprocess.PIPE,
-            stdout=subprocess.DEVNULL, start_new_session=True)
+             str(-1 if can_log is None else can_log), str(spool),
+             repr(self.started_wall - self.started_t), channel, str(os.getpid())],
+            pass_fds=fds, stdin=subprocess.PIPE, stdout=subprocess.DEVNULL,
+            start_new_session=True)
         # a session of its own: a terminal's Ctrl-C is the firmware's to handle; the writer
         # ends at the end of its stdin, after the last batch
         assert self._child.stdin is not None
@@ -118,14 +121,15 @@ class Recorder:
             try:
                 for name in (s.EVENTS, s.CAN_LOG):
                     fds.append(files.open(name, os.O_WRONLY | os.O_CREAT | os.O_EXCL))
+                fds.append(files.open_unnamed())
             except FileExistsError:
                 raise SessionExistsError(f"{session} already holds a session") from None
             finally:
-                if len(fds) < 2:
+                if len(fds) < 3:
                     for fd in fds:
                         os.close(fd)
             try:
-                recorder = cls(board, fds[0], fds[1], channel)
+                recorder = cls(board, fds[0], fds[1], fds[2], channel)
             finally:
                 for fd in fds:
                     os.close(fd)

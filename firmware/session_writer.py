@@ -2,22 +2,30 @@
 
 ``firmware.recorder`` hands it batches through its stdin, each a 4-byte little-endian
 length and a marshalled list of event tuples; marshal, because both ends are the same
-interpreter and the pipe is theirs alone (nothing else can write to it). Here, out of the
-firmware's process, each event becomes a line of ``session.jsonl`` (``dpm.session``'s
-codec): the pid of a put's host from the ledger bytes the card read, an answer's pid
-from its request, an exchange's changed bytes from the snapshots, the Unix time from
-the monotonic one. Frames go to ``can.log`` in candump's format (python-can's
-``CanutilsLogWriter``). At the end of its stdin it exits.
+interpreter and the pipe is theirs alone (nothing else can write to it).
+
+While the card records, the writer only moves what comes into the spool, a file without
+a name in the session's directory (``os.splice``: the kernel copies, the writer hardly
+runs). At the end of its stdin, when the recording ends, it reads the spool back and
+encodes: each event becomes a line of ``session.jsonl`` (``dpm.session``'s codec), the
+pid of a put's host from the ledger bytes the card read, an answer's pid from its
+request, an exchange's changed bytes from the snapshots, the Unix time from the
+monotonic one; frames go to ``can.log`` in candump's format (python-can's
+``CanutilsLogWriter``). Then it exits. Encoding as the events came cost a third of a
+core on a mailbox loop, taken from the card and its hosts on a two-core machine; after
+the recording it costs the same, but nobody waits for an answer meanwhile.
 
 The messages of the firmware's own host (``cifemu firmware --configure``, whose ledger
 lines carry the firmware's pid) are left out [ours]: it stands for a card that comes
 configured, not for a host, and a replay against a card started the same way must not
 configure it a second time.
 
-    python -m firmware.session_writer EVENTS_FD CAN_LOG_FD WALL_OFFSET CHANNEL FIRMWARE_PID
+    python -m firmware.session_writer EVENTS_FD CAN_LOG_FD SPOOL_FD WALL_OFFSET CHANNEL \
+        FIRMWARE_PID
 
-The descriptors are open files (CAN_LOG_FD -1: no frames recorded): the firmware's own,
-or the ones a user's ``cifemu record`` opened and passed to the card (firmware/record_socket.py).
+The descriptors are open files (CAN_LOG_FD -1: no frames recorded; SPOOL_FD open for
+reading and writing): the firmware's own, or the ones a user's ``cifemu record`` opened
+and passed to the card (firmware/record_socket.py).
 """
 
 from __future__ import annotations
@@ -121,14 +129,27 @@ def batches(stream: BinaryIO) -> Any:
         yield marshal.loads(stream.read(size))
 
 
+SPLICE_BYTES = 1 << 20
+
+
+def spool(source: int, spool_fd: int) -> None:
+    """Move everything from ``source`` (a pipe) to the end of ``spool_fd`` until its end."""
+    while os.splice(source, spool_fd, SPLICE_BYTES):
+        pass
+
+
 def main(argv: list[str] | None = None) -> int:
-    events_fd, can_fd, wall_offset, channel, firmware_pid = sys.argv[1:] if argv is None else argv
+    events_fd, can_fd, spool_fd, wall_offset, channel, firmware_pid = (
+        sys.argv[1:] if argv is None else argv)
     os.nice(NICE)
+    spool(sys.stdin.fileno(), int(spool_fd))
     events = Events(float(wall_offset), int(firmware_pid))
     can_out = os.fdopen(int(can_fd), "w", encoding="ascii") if int(can_fd) >= 0 else None
     frames = Frames(can_out, channel) if can_out is not None else None
-    with os.fdopen(int(events_fd), "w", encoding="ascii") as out:
-        for batch in batches(sys.stdin.buffer):
+    os.lseek(int(spool_fd), 0, os.SEEK_SET)
+    with os.fdopen(int(spool_fd), "rb") as stored, \
+            os.fdopen(int(events_fd), "w", encoding="ascii") as out:
+        for batch in batches(stored):
             lines = []
             for item in batch:
                 if item[0] == s.CAN_FRAME:
@@ -139,9 +160,6 @@ def main(argv: list[str] | None = None) -> int:
                     if line is not None:
                         lines.append(line + "\n")
             out.writelines(lines)
-            out.flush()
-            if can_out is not None:
-                can_out.flush()
     if can_out is not None:
         can_out.close()
     return 0

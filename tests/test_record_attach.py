@@ -21,6 +21,7 @@ import can
 from dpm import session as s
 from dpm.commands import COM_SHARED_MEMORY
 from dpm.message import Task
+from dpm.tap import TapSubscriber, decode_frame
 from dpm.transcript import transcript
 from tests.conftest import TIME_SCALE, Card, start_card
 
@@ -208,6 +209,20 @@ def test_a_card_that_stops_ends_the_recording_complete(tmp_path: Path) -> None:
     assert events[-1].kind == s.HOST_FLAGS and events[-1].after == 0
 
 
+def heard_heartbeat(card: Card) -> None:
+    """Return once the card's frame tap (dpm.tap) showed a heartbeat of node 1."""
+    tap = TapSubscriber(card.path)
+    try:
+        deadline = time.monotonic() + WAIT_S
+        while time.monotonic() < deadline:
+            datagram = tap.recv(timeout=1.0)
+            if datagram is not None and decode_frame(datagram)[0].arbitration_id == 0x701:
+                return
+        raise AssertionError("no heartbeat of node 1 on the card's frame tap")
+    finally:
+        tap.close()
+
+
 def test_frames_of_an_attached_recording_are_a_candump_log(tmp_path: Path) -> None:
     network = tmp_path / "net.toml"
     network.write_text('[[node]]\nid = 1\nname = "io"\n')
@@ -221,8 +236,7 @@ def test_frames_of_an_attached_recording_are_a_candump_log(tmp_path: Path) -> No
                                   stderr=subprocess.PIPE, text=True)
         _, sent_err = sender.communicate(timeout=WAIT_S)
         assert sender.returncode == 0, sent_err
-        wait_until(lambda: b" 701#" in (session / s.CAN_LOG).read_bytes(),
-                   "no heartbeat of node 1 in can.log")
+        heard_heartbeat(card)  # after the attach: one is in the recording
         code, out, err = finish(recorder)
         assert code == 0, err
     finally:
