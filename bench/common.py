@@ -204,14 +204,13 @@ def host_sessions(cards: list[Card]) -> Iterator[list[int]]:
 
 RECORDING_BATCH = 2000
 """Calls per batch when a plain and a recording card are measured in turn."""
-WRITER_SETTLE_S = 30.0
-"""How long the session writer may take to catch up after the calls (it runs niced)."""
 
 
 @dataclass(frozen=True, slots=True)
 class RecordingRun:
-    """A plain card (board 0) and a recording one (board 1), measured in turn, and the
-    CPU each spent per call: the cards' processes and the recording card's session writer."""
+    """A plain card and a recording one, measured in turn, and the CPU each spent per call:
+    the cards' processes and the recording card's session writer (while it records: it
+    encodes the session after the recording, when nobody waits)."""
 
     plain: Measured
     recording: Measured
@@ -234,40 +233,46 @@ def session_writer_of(pid: int) -> int:
     raise RuntimeError(f"the recording firmware {pid} runs no session writer")
 
 
-def _settled_cpu_ns(pid: int) -> int:
-    """The CPU of ``pid`` once it has stopped growing (the writer has caught up)."""
-    deadline = time.monotonic() + WRITER_SETTLE_S
-    last = _cpu_ns(pid)
-    while time.monotonic() < deadline:
-        time.sleep(0.2)
-        now = _cpu_ns(pid)
-        if now == last:
-            break
-        last = now
-    return last
+def _joined(parts: list[Measured]) -> Measured:
+    codes: dict[int, int] = {}
+    for part in parts:
+        for code, seen in part.warmup_codes.items():
+            codes[code] = codes.get(code, 0) + seen
+    return Measured(sum(p.count for p in parts), [ns for p in parts for ns in p.latencies_ns],
+                    sum(p.elapsed_ns for p in parts), sum(p.failures for p in parts), codes,
+                    timed_twice=False)
 
 
 def measure_recording(make_step: Callable[[int], Step], count: int, warmup: int,
                       accepted: frozenset[int], prepare: Callable[[int], None] = lambda b: None
                       ) -> RecordingRun:
     """``make_step(board)`` on a plain card and on a recording one (``--record``) side by
-    side, in alternating batches (``measure_alternating``), after ``prepare(board)``.
+    side, in alternating batches (``measure_alternating``), after ``prepare(board)``: half
+    of ``count`` with board 1 recording, half with board 0 (two identical plain cards
+    differed by up to a tenth on the shared machine, one board faster than the other).
 
-    The CPU per call is load-proof where the latencies are not: CPU time hardly moves
-    when the machine is busy (``bench.cpu``). It counts the warm-up calls too, and what
-    each card spends idle while the other is measured (the same for both)."""
-    with running_cards((False, True)) as cards, host_sessions(cards) as boards:
-        for board in boards:
-            prepare(board)
-        writer = session_writer_of(cards[1].pid)
-        before = [_cpu_ns(cards[0].pid), _cpu_ns(cards[1].pid), _settled_cpu_ns(writer)]
-        plain, recording = measure_alternating([make_step(b) for b in boards], count, warmup,
-                                               accepted)
-        after = [_cpu_ns(cards[0].pid), _cpu_ns(cards[1].pid), _settled_cpu_ns(writer)]
-    calls = count + warmup
-    spent = [round((a - b) / calls / 1000, 2) for a, b in zip(after, before, strict=True)]
-    return RecordingRun(plain, recording, {"plain_card": spent[0], "recording_card": spent[1],
-                                           "session_writer": spent[2]})
+    The CPU per call counts the warm-up calls too, and what each card spends idle while
+    the other is measured (the same for both)."""
+    plain: list[Measured] = []
+    recording: list[Measured] = []
+    spent = {"plain_card": 0, "recording_card": 0, "session_writer": 0}
+    for recorder in (1, 0):
+        with running_cards((recorder == 0, recorder == 1)) as cards, \
+                host_sessions(cards) as boards:
+            for board in boards:
+                prepare(board)
+            pids = {"plain_card": cards[1 - recorder].pid, "recording_card": cards[recorder].pid,
+                    "session_writer": session_writer_of(cards[recorder].pid)}
+            before = {name: _cpu_ns(pid) for name, pid in pids.items()}
+            measured = measure_alternating([make_step(b) for b in boards], count // 2, warmup,
+                                           accepted)
+            for name, pid in pids.items():
+                spent[name] += _cpu_ns(pid) - before[name]
+        plain.append(measured[1 - recorder])
+        recording.append(measured[recorder])
+    calls = 2 * (count // 2 + warmup)
+    return RecordingRun(_joined(plain), _joined(recording),
+                        {name: round(ns / calls / 1000, 2) for name, ns in spent.items()})
 
 
 def recording_entry(name: str, run: RecordingRun, rate_name: str) -> dict[str, Any]:
@@ -281,7 +286,8 @@ def recording_entry(name: str, run: RecordingRun, rate_name: str) -> dict[str, A
     cpu = run.cpu_us_per_call
     return {"name": name, **summary, "plain": plain_summary,
             "method": f"a plain card and a recording one side by side, batches of "
-                      f"{RECORDING_BATCH} calls alternating between them",
+                      f"{RECORDING_BATCH} calls alternating between them; half of the calls "
+                      "with board 1 recording, half with board 0",
             "cpu_us_per_call": cpu,
             "cost_pct": {
                 "p50": round(100.0 * (summary["latency_us"]["p50"] - p50) / p50, 1)

@@ -33,6 +33,8 @@ import sys
 import threading
 import time
 from collections import deque
+from itertools import repeat
+from operator import call
 from pathlib import Path
 from typing import Any
 
@@ -53,8 +55,9 @@ CHUNK = 256
 LEDGER_BYTES = 128 * 96
 """The ledger's largest size (host_api.locks.LEDGER_MAX lines of libcif's longest)."""
 LEDGER_FIRST_READ = 2048
-"""What the card reads of the ledger first: a few hosts' lines. Reading its largest size
-each time costs the loop the allocation of 12 KiB per message."""
+"""What the card reads of the ledger first: a few hosts' lines; all of it only when that
+was not all. Reading its largest size each time cost the loop the allocation of 12 KiB
+per message."""
 
 _IO_END = RCV_PD + IO_AREA_SIZE
 _STATE_END = TASK2_STATE + TASK_STATE_SIZE
@@ -64,6 +67,7 @@ _PDACK, _READY = fl.PDACK, fl.READY
 _PUT, _ANSWER, _HOST_FLAGS, _DEV_FLAGS, _EXCHANGE, _CAN = (
     s.PUT, s.ANSWER, s.HOST_FLAGS, s.DEV_FLAGS, s.EXCHANGE, s.CAN_FRAME)
 _monotonic = time.monotonic
+_pread = os.pread
 
 
 class SessionExistsError(FileExistsError):
@@ -87,7 +91,7 @@ class Recorder:
             [sys.executable, "-m", "firmware.session_writer", str(events),
              str(-1 if can_log is None else can_log), str(spool),
              repr(self.started_wall - self.started_t), channel, str(os.getpid())],
-            pass_fds=fds, stdin=subprocess.PIPE, stdout=subprocess.DEVNULL,
+            pass_fds=fds, stdin=subprocess.PIPE, stdout=subprocess.PIPE,
             start_new_session=True)
         # a session of its own: a terminal's Ctrl-C is the firmware's to handle; the writer
         # ends at the end of its stdin, after the last batch
@@ -104,7 +108,7 @@ class Recorder:
         """SndPd and RcvPd as the last exchange left them."""
         self.events = 0
         self.frames = 0
-        """What the writer has been handed so far."""
+        """What the writer wrote: lines of session.jsonl, frames of can.log (``close``)."""
         self.complete = False
         """Whether ``close`` saw the writer write everything."""
         self._stop = threading.Event()
@@ -151,7 +155,11 @@ class Recorder:
     def put(self, raw: bytes) -> None:
         """``raw``: the message slot as the card copied it (the writer decodes it: a
         Message object costs microseconds to pass, bytes nothing)."""
-        self._queue.append((_PUT, _monotonic(), raw, self._read_ledger()))
+        ledger = self._ledger
+        lines = _pread(ledger, LEDGER_FIRST_READ, 0) if ledger >= 0 else self._open_ledger()
+        if len(lines) == LEDGER_FIRST_READ:
+            lines = _pread(self._ledger, LEDGER_BYTES, 0)
+        self._queue.append((_PUT, _monotonic(), raw, lines))
 
     def answer(self, raw: bytes) -> None:
         """``raw``: the encoded answer, as the card writes it into PcMbx."""
@@ -183,17 +191,14 @@ class Recorder:
         """A frame the controller sent or received (any of its threads)."""
         self._queue.append((_CAN, encode_frame(msg, received)))
 
-    def _read_ledger(self) -> bytes:
-        if self._ledger < 0:
-            assert self._image_files is not None  # hooks run only after start
-            try:
-                self._ledger = self._image_files.open(self._ledger_name, os.O_RDONLY, own=False)
-            except OSError:
-                return b""  # no host has locked the board yet: nobody to name
-        ledger = os.pread(self._ledger, LEDGER_FIRST_READ, 0)
-        if len(ledger) == LEDGER_FIRST_READ:
-            ledger = os.pread(self._ledger, LEDGER_BYTES, 0)
-        return ledger
+    def _open_ledger(self) -> bytes:
+        """The ledger's first bytes, once it could be opened (then ``put`` reads it)."""
+        assert self._image_files is not None  # hooks run only after start
+        try:
+            self._ledger = self._image_files.open(self._ledger_name, os.O_RDONLY, own=False)
+        except OSError:
+            return b""  # no host has locked the board yet: nobody to name
+        return _pread(self._ledger, LEDGER_FIRST_READ, 0)
 
     # --- the writer --------------------------------------------------------------------
 
@@ -207,7 +212,11 @@ class Recorder:
             self._pipe.close()
         except OSError as exc:  # BrokenPipeError: the writer died
             log.error("the session writer is gone (%s)", exc)
-        if self._child.wait() == 0:
+        assert self._child.stdout is not None
+        told = self._child.stdout.read().split()  # "EVENTS FRAMES" at its end
+        self._child.stdout.close()
+        if self._child.wait() == 0 and len(told) == 2:
+            self.events, self.frames = int(told[0]), int(told[1])
             self.complete = True
         else:
             log.error("the session writer ended with status %d: the session is incomplete",
@@ -226,13 +235,10 @@ class Recorder:
 
     def _drain(self) -> None:
         queue = self._queue
-        batch = []
-        while queue:
-            batch.append(queue.popleft())
+        # what is queued now, in one C loop (a Python loop cost the card 2 us a round trip);
+        # hooks may append meanwhile, behind it
+        batch = list(map(call, repeat(queue.popleft, len(queue))))
         if batch:
-            frames = sum(1 for item in batch if item[0] == _CAN)
-            self.frames += frames
-            self.events += len(batch) - frames
             pieces: list[bytes] = []
             for start in range(0, len(batch), CHUNK):
                 data = marshal.dumps(batch[start : start + CHUNK])

@@ -11,9 +11,10 @@ encodes: each event becomes a line of ``session.jsonl`` (``dpm.session``'s codec
 pid of a put's host from the ledger bytes the card read, an answer's pid from its
 request, an exchange's changed bytes from the snapshots, the Unix time from the
 monotonic one; frames go to ``can.log`` in candump's format (python-can's
-``CanutilsLogWriter``). Then it exits. Encoding as the events came cost a third of a
-core on a mailbox loop, taken from the card and its hosts on a two-core machine; after
-the recording it costs the same, but nobody waits for an answer meanwhile.
+``CanutilsLogWriter``). Then it prints how many lines and frames it wrote, and exits.
+Encoding as the events came cost a third of a core on a mailbox loop, taken from the
+card and its hosts on a two-core machine; after the recording it costs the same, but
+nobody waits for an answer meanwhile.
 
 The messages of the firmware's own host (``cifemu firmware --configure``, whose ledger
 lines carry the firmware's pid) are left out [ours]: it stands for a card that comes
@@ -113,10 +114,12 @@ class Frames:
         self._decode = decode_frame
         self._channel = channel
         self._writer = CanutilsLogWriter(out, channel=channel)
+        self.written = 0
 
     def write(self, datagram: bytes) -> None:
         msg, _ = self._decode(datagram, self._channel)
         self._writer.on_message_received(msg)
+        self.written += 1
 
 
 def batches(stream: BinaryIO) -> Any:
@@ -147,6 +150,7 @@ def main(argv: list[str] | None = None) -> int:
     can_out = os.fdopen(int(can_fd), "w", encoding="ascii") if int(can_fd) >= 0 else None
     frames = Frames(can_out, channel) if can_out is not None else None
     os.lseek(int(spool_fd), 0, os.SEEK_SET)
+    written = 0
     with os.fdopen(int(spool_fd), "rb") as stored, \
             os.fdopen(int(events_fd), "w", encoding="ascii") as out:
         for batch in batches(stored):
@@ -160,8 +164,10 @@ def main(argv: list[str] | None = None) -> int:
                     if line is not None:
                         lines.append(line + "\n")
             out.writelines(lines)
+            written += len(lines)
     if can_out is not None:
         can_out.close()
+    print(written, frames.written if frames is not None else 0)
     return 0
 
 
