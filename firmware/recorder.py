@@ -29,7 +29,6 @@ import logging
 import marshal
 import os
 import subprocess
-import sys
 import threading
 import time
 from collections import deque
@@ -45,6 +44,7 @@ from dpm import session as s
 from dpm.image import CardDirectory, lock_path
 from dpm.layout import IO_AREA_SIZE, RCV_PD, SND_PD, TASK2_PARAMETER, TASK2_STATE, TASK_STATE_SIZE
 from dpm.tap import encode_frame
+from firmware import session_writer
 
 log = logging.getLogger(__name__)
 
@@ -88,9 +88,8 @@ class Recorder:
         self.started_wall = time.time()
         fds = (events, spool) if can_log is None else (events, can_log, spool)
         self._child = subprocess.Popen(
-            [sys.executable, "-m", "firmware.session_writer", str(events),
-             str(-1 if can_log is None else can_log), str(spool),
-             repr(self.started_wall - self.started_t), channel, str(os.getpid())],
+            session_writer.command(events, can_log, spool, self.started_wall - self.started_t,
+                                   channel, os.getpid()),
             pass_fds=fds, stdin=subprocess.PIPE, stdout=subprocess.PIPE,
             start_new_session=True)
         # a session of its own: a terminal's Ctrl-C is the firmware's to handle; the writer

@@ -6,12 +6,15 @@ interpreter and the pipe is theirs alone (nothing else can write to it).
 
 While the card records, the writer only moves what comes into the spool, a file without
 a name in the session's directory (``os.splice``: the kernel copies, the writer hardly
-runs). At the end of its stdin, when the recording ends, it reads the spool back and
-encodes: each event becomes a line of ``session.jsonl`` (``dpm.session``'s codec), the
-pid of a put's host from the ledger bytes the card read, an answer's pid from its
-request, an exchange's changed bytes from the snapshots, the Unix time from the
-monotonic one; frames go to ``can.log`` in candump's format (python-can's
-``CanutilsLogWriter``). Then it prints how many lines and frames it wrote, and exits.
+runs), in a bare interpreter (``SPOOLER``, ``python -S``: it starts in milliseconds,
+where importing this module and numpy took a third of a second of the processor the card
+needed right then). At the end of its stdin, when the recording ends, that process
+becomes this module (``os.execv``), which reads the spool back and encodes: each event
+becomes a line of ``session.jsonl`` (``dpm.session``'s codec), the pid of a put's host
+from the ledger bytes the card read, an answer's pid from its request, an exchange's
+changed bytes from the snapshots, the Unix time from the monotonic one; frames go to
+``can.log`` in candump's format (python-can's ``CanutilsLogWriter``). Then it prints how
+many lines and frames it wrote, and exits.
 Encoding as the events came cost a third of a core on a mailbox loop, taken from the
 card and its hosts on a two-core machine; after the recording it costs the same, but
 nobody waits for an answer meanwhile.
@@ -21,8 +24,8 @@ lines carry the firmware's pid) are left out [ours]: it stands for a card that c
 configured, not for a host, and a replay against a card started the same way must not
 configure it a second time.
 
-    python -m firmware.session_writer EVENTS_FD CAN_LOG_FD SPOOL_FD WALL_OFFSET CHANNEL \
-        FIRMWARE_PID
+    python -S -c SPOOLER EVENTS_FD CAN_LOG_FD SPOOL_FD WALL_OFFSET CHANNEL FIRMWARE_PID
+    (then) python -m firmware.session_writer EVENTS_FD ... FIRMWARE_PID
 
 The descriptors are open files (CAN_LOG_FD -1: no frames recorded; SPOOL_FD open for
 reading and writing): the firmware's own, or the ones a user's ``cifemu record`` opened
@@ -132,20 +135,27 @@ def batches(stream: BinaryIO) -> Any:
         yield marshal.loads(stream.read(size))
 
 
-SPLICE_BYTES = 1 << 20
+SPOOLER = f"""import os, sys
+os.nice({NICE})
+while os.splice(0, int(sys.argv[3]), 1 << 20):
+    pass
+os.execv(sys.executable, [sys.executable, "-m", "firmware.session_writer", *sys.argv[1:]])
+"""
+"""The writer's first part: stdin (the card's batches) to the spool until its end, then
+this module. Every descriptor stays open across the exec."""
 
 
-def spool(source: int, spool_fd: int) -> None:
-    """Move everything from ``source`` (a pipe) to the end of ``spool_fd`` until its end."""
-    while os.splice(source, spool_fd, SPLICE_BYTES):
-        pass
+def command(events: int, can_log: int | None, spool: int, wall_offset: float, channel: str,
+            firmware_pid: int) -> list[str]:
+    """The writer's command line (``firmware.recorder`` starts it)."""
+    return [sys.executable, "-S", "-c", SPOOLER, str(events),
+            str(-1 if can_log is None else can_log), str(spool), repr(wall_offset), channel,
+            str(firmware_pid)]
 
 
 def main(argv: list[str] | None = None) -> int:
     events_fd, can_fd, spool_fd, wall_offset, channel, firmware_pid = (
         sys.argv[1:] if argv is None else argv)
-    os.nice(NICE)
-    spool(sys.stdin.fileno(), int(spool_fd))
     events = Events(float(wall_offset), int(firmware_pid))
     can_out = os.fdopen(int(can_fd), "w", encoding="ascii") if int(can_fd) >= 0 else None
     frames = Frames(can_out, channel) if can_out is not None else None
