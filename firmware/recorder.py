@@ -25,6 +25,8 @@ the card takes the message: the ledger line is gone once the host took the answe
 
 from __future__ import annotations
 
+import contextlib
+import fcntl
 import logging
 import marshal
 import os
@@ -50,6 +52,9 @@ log = logging.getLogger(__name__)
 
 DRAIN_S = 0.05
 """How often the writer drains the queue: the loop never wakes it."""
+PIPE_BYTES = 1 << 20
+"""The pipe to the writer: a second of a mailbox loop's events (the default 64 KiB held a
+third of a drain, and the drain thread waited for the writer in between)."""
 CHUNK = 256
 """Events marshalled in one call: about 20 us of the interpreter lock."""
 LEDGER_BYTES = 128 * 96
@@ -96,6 +101,8 @@ class Recorder:
         # ends at the end of its stdin, after the last batch
         assert self._child.stdin is not None
         self._pipe = self._child.stdin
+        with contextlib.suppress(OSError):  # a drain's batch in one write, never a wait
+            fcntl.fcntl(self._pipe.fileno(), fcntl.F_SETPIPE_SZ, PIPE_BYTES)
         self._image_files: CardDirectory | None = None
         self._ledger_name = ""
         self._ledger = -1
