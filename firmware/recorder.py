@@ -53,7 +53,7 @@ log = logging.getLogger(__name__)
 DRAIN_S = 0.05
 """How often the writer drains the queue: the loop never wakes it."""
 PIPE_BYTES = 1 << 20
-"""The pipe to the writer: a second of a mailbox loop's events (the default 64 KiB held a
+"""The pipe to the writer: half a second of a mailbox loop's events (the default 64 KiB held a
 third of a drain, and the drain thread waited for the writer in between)."""
 CHUNK = 256
 """Events marshalled in one call: about 20 us of the interpreter lock."""
