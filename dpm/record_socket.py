@@ -48,8 +48,9 @@ MAX_MESSAGE = 4096
 ANSWER_TIMEOUT_S = 10.0
 """How long the recording side waits for the card to answer an ``ATTACH``."""
 DETACH_TIMEOUT_S = 300.0
-"""How long it waits for ``detached``: the writer runs at a low priority and may be
-behind on a busy machine; the answer comes as soon as it has written everything."""
+"""How long ``detach`` waits for ``detached`` by default: the card's writer encodes the
+whole session when the recording ends, at a low priority (a minute of a mailbox loop
+takes it several seconds); the answer comes as soon as it has written everything."""
 
 
 class RecordingError(DpmError, RuntimeError):
@@ -115,8 +116,9 @@ class Attachment:
     def fileno(self) -> int:
         return self._sock.fileno()
 
-    def detach(self, timeout: float = DETACH_TIMEOUT_S) -> Summary:
-        """End the recording; returns once the card has written all of it."""
+    def detach(self, timeout: float | None = DETACH_TIMEOUT_S) -> Summary:
+        """End the recording; returns once the card has written all of it (None: however
+        long that takes)."""
         if self.summary is not None:
             return self.summary
         with contextlib.suppress(OSError):  # the card has gone: its answer may be there

@@ -59,10 +59,10 @@ CHUNK = 256
 """Events marshalled in one call: about 20 us of the interpreter lock."""
 LEDGER_BYTES = 128 * 96
 """The ledger's largest size (host_api.locks.LEDGER_MAX lines of libcif's longest)."""
-LEDGER_FIRST_READ = 2048
-"""What the card reads of the ledger first: a few hosts' lines; all of it only when that
-was not all. Reading its largest size each time cost the loop the allocation of 12 KiB
-per message."""
+LEDGER_FIRST_READ = 512
+"""What the card reads of the ledger first: a dozen requests' lines; all of it only when
+that was not all. The read's buffer is allocated for each message: 12 KiB each time cost
+the loop half a microsecond more than this."""
 
 _IO_END = RCV_PD + IO_AREA_SIZE
 _STATE_END = TASK2_STATE + TASK_STATE_SIZE
@@ -80,7 +80,31 @@ class SessionExistsError(FileExistsError):
 
 
 class Recorder:
-    """One session being written; the hooks are called by the device loop's threads."""
+    """One session being written; the hooks are called by the device loop's threads.
+
+    Slots and a bound ``append``: each hook's attribute lookups are part of what every
+    message and handshake of the card costs while it records."""
+
+    __slots__ = (
+        "_append",
+        "_child",
+        "_dev",
+        "_image_files",
+        "_io",
+        "_ledger",
+        "_ledger_name",
+        "_mm",
+        "_pipe",
+        "_queue",
+        "_stop",
+        "_thread",
+        "board",
+        "complete",
+        "events",
+        "frames",
+        "started_t",
+        "started_wall",
+    )
 
     def __init__(self, board: int, events: int, can_log: int | None, spool: int,
                  channel: str) -> None:
@@ -108,6 +132,7 @@ class Recorder:
         self._ledger = -1
         self._mm: Any = None
         self._queue: deque[tuple[Any, ...]] = deque()
+        self._append = self._queue.append
         self._dev = 0
         """DevFlags as last seen; a session takes them as 0 before its first dev_flags."""
         self._io = bytes(_IO_END - SND_PD)
@@ -165,17 +190,17 @@ class Recorder:
         lines = _pread(ledger, LEDGER_FIRST_READ, 0) if ledger >= 0 else self._open_ledger()
         if len(lines) == LEDGER_FIRST_READ:
             lines = _pread(self._ledger, LEDGER_BYTES, 0)
-        self._queue.append((_PUT, _monotonic(), raw, lines))
+        self._append((_PUT, _monotonic(), raw, lines))
 
     def answer(self, raw: bytes) -> None:
         """``raw``: the encoded answer, as the card writes it into PcMbx."""
-        self._queue.append((_ANSWER, _monotonic(), raw, self._mm[TASK2_STATE:_STATE_END]))
+        self._append((_ANSWER, _monotonic(), raw, self._mm[TASK2_STATE:_STATE_END]))
 
     def host_flags(self, before: int, after: int) -> None:
         if before == after:
             return
         now = _monotonic()
-        self._queue.append((_HOST_FLAGS, now, before, after))
+        self._append((_HOST_FLAGS, now, before, after))
         if (before ^ after) & _PDACK and before & after & _READY:  # not a (re)start's
             mm = self._mm
             io = mm[SND_PD:_IO_END]
@@ -183,19 +208,19 @@ class Recorder:
                 io = None  # unchanged: the writer gets no 7 KiB to compare
             else:
                 self._io = io
-            self._queue.append((_EXCHANGE, now, io, mm[TASK2_STATE:_STATE_END]))
+            self._append((_EXCHANGE, now, io, mm[TASK2_STATE:_STATE_END]))
 
     def dev_flags(self, value: int) -> None:
         before = self._dev
         if value != before:
             parameter = (self._mm[TASK2_PARAMETER:_PARAMETER_END] if value & ~before & _STARTS
                          else b"")
-            self._queue.append((_DEV_FLAGS, _monotonic(), before, value, parameter))
+            self._append((_DEV_FLAGS, _monotonic(), before, value, parameter))
             self._dev = value
 
     def frame(self, msg: can.Message, received: bool) -> None:
         """A frame the controller sent or received (any of its threads)."""
-        self._queue.append((_CAN, encode_frame(msg, received)))
+        self._append((_CAN, encode_frame(msg, received)))
 
     def _open_ledger(self) -> bytes:
         """The ledger's first bytes, once it could be opened (then ``put`` reads it)."""
@@ -237,7 +262,7 @@ class Recorder:
                 self._drain()
         except OSError as exc:  # the writer died: keep the loop's queue from growing
             log.error("the session writer is gone (%s); recording nothing more", exc)
-            self._queue = deque(maxlen=0)
+            self._append = deque[tuple[Any, ...]](maxlen=0).append
 
     def _drain(self) -> None:
         queue = self._queue

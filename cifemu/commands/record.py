@@ -81,7 +81,8 @@ def run(args: argparse.Namespace) -> int:
         # a second Ctrl-C while the writer finishes must not leave the session half told
         signal.signal(signal.SIGINT, signal.SIG_IGN)
         signal.signal(signal.SIGTERM, signal.SIG_IGN)
-        summary = attachment.detach()
+        print(f"writing the session into {args.output}", flush=True)
+        summary = attachment.detach(timeout=None)  # the card's socket closes if it dies
     except RecordingError as exc:
         print(f"cifemu {COMMAND}: {exc}", file=sys.stderr)
         return 1
