@@ -22,7 +22,7 @@ from typing import Any
 from dpm.errors import DpmError
 from dpm.layout import MSG_HEADER_SIZE
 from dpm.ledger import decode_line
-from dpm.message import Message, MessageError
+from dpm.message import HEADER, Message, MessageError
 
 FORMAT = "cifemu-session"
 VERSION = 1
@@ -142,8 +142,6 @@ _HEAD = '{"kind":"%s","t":%.6f,"wall":%.6f,"pid":%s'
 _MESSAGE = (',"msg":{"rx":%d,"tx":%d,"ln":%d,"nr":%d,"a":%d,"f":%d,"b":%d,"e":%d,'
             '"data":"%s"}')
 _FLAGS = ',"before":%d,"after":%d'
-_HEADER = struct.Struct("<8B")
-"""MSG_STRUC's header as ``_MESSAGE`` orders it: rx tx ln nr a f b e."""
 
 
 def _head(kind: str, t: float, wall: float, pid: int | None) -> str:
@@ -151,7 +149,7 @@ def _head(kind: str, t: float, wall: float, pid: int | None) -> str:
 
 
 def _message(raw: bytes) -> str:
-    rx, tx, ln, nr, a, f, b, e = _HEADER.unpack_from(raw)
+    rx, tx, ln, nr, a, f, b, e = HEADER.unpack_from(raw)
     data = raw[MSG_HEADER_SIZE : MSG_HEADER_SIZE + ln]
     return _MESSAGE % (rx, tx, len(data), nr, a, f, b, e, data.hex())
 

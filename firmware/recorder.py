@@ -44,7 +44,16 @@ import can
 from dpm import flags as fl
 from dpm import session as s
 from dpm.image import CardDirectory, lock_path
-from dpm.layout import IO_AREA_SIZE, RCV_PD, SND_PD, TASK2_PARAMETER, TASK2_STATE, TASK_STATE_SIZE
+from dpm.layout import (
+    IO_AREA_SIZE,
+    MSG_HEADER_SIZE,
+    RCV_PD,
+    SND_PD,
+    TASK2_PARAMETER,
+    TASK2_STATE,
+    TASK_STATE_SIZE,
+)
+from dpm.message import LN_OFFSET
 from dpm.tap import encode_frame
 from firmware import session_writer
 
@@ -65,6 +74,7 @@ that was not all. The read's buffer is allocated for each message: 12 KiB each t
 the loop half a microsecond more than this."""
 
 _IO_END = RCV_PD + IO_AREA_SIZE
+_HEAD_SIZE, _LN = MSG_HEADER_SIZE, LN_OFFSET
 _STATE_END = TASK2_STATE + TASK_STATE_SIZE
 _PARAMETER_END = TASK2_PARAMETER + s.PARAMETER_SIZE
 _STARTS = fl.RESET | fl.INIT
@@ -185,12 +195,14 @@ class Recorder:
 
     def put(self, raw: bytes) -> None:
         """``raw``: the message slot as the card copied it (the writer decodes it: a
-        Message object costs microseconds to pass, bytes nothing)."""
+        Message object costs microseconds to pass, bytes nothing); kept as far as its
+        msg.ln reaches, a tenth of the slot for most messages, for the queue and the
+        spool."""
         ledger = self._ledger
         lines = _pread(ledger, LEDGER_FIRST_READ, 0) if ledger >= 0 else self._open_ledger()
         if len(lines) == LEDGER_FIRST_READ:
             lines = _pread(self._ledger, LEDGER_BYTES, 0)
-        self._append((_PUT, _monotonic(), raw, lines))
+        self._append((_PUT, _monotonic(), raw[: _HEAD_SIZE + raw[_LN]], lines))
 
     def answer(self, raw: bytes) -> None:
         """``raw``: the encoded answer, as the card writes it into PcMbx."""

@@ -41,7 +41,7 @@ from typing import Any, BinaryIO, TextIO
 
 from dpm import session as s
 from dpm.layout import IO_AREA_SIZE, RCV_PD, SND_PD
-from dpm.message import Ext
+from dpm.message import HEADER, Ext
 
 _IO_END = RCV_PD + IO_AREA_SIZE
 _MORE = (Ext.FIRST, Ext.CONT)
@@ -70,7 +70,7 @@ class Events:
         wall = t + self._wall
         if kind == s.PUT:
             raw: bytes = item[2]
-            rx, tx, _, nr, _, _, b, _ = raw[:8]
+            rx, tx, _, nr, _, _, b, _ = HEADER.unpack_from(raw)
             pid = s.request_pid(item[3], nr, b, rx, tx) if item[3] else None
             if pid is not None:
                 self._pending[(nr, b, rx, tx)] = pid
@@ -79,7 +79,7 @@ class Events:
             return s.encode_message(kind, t, wall, pid, raw)
         if kind == s.ANSWER:
             raw = item[2]
-            rx, tx, _, nr, a, f, _, e = raw[:8]
+            rx, tx, _, nr, a, f, _, e = HEADER.unpack_from(raw)
             key = (nr, a, tx, rx)
             pid = self._pending.get(key)
             more = f == 0 and e & Ext.SEQ_MASK in _MORE
