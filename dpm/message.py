@@ -92,7 +92,7 @@ class Message:
             raise MessageError(f"message data of {len(self.data)} bytes exceeds 255")
         try:
             head = HEADER.pack(self.rx, self.tx, len(self.data), self.nr, self.a, self.f,
-                                self.b, self.e)
+                               self.b, self.e)
         except struct.error:
             raise MessageError(f"a header field of {self!r} is not a byte") from None
         return head + self.data
