@@ -233,6 +233,19 @@ def session_writer_of(pid: int) -> int:
     raise RuntimeError(f"the recording firmware {pid} runs no session writer")
 
 
+WRITER_END_S = 300.0
+"""How long a session writer may take to encode its session after its card stopped."""
+
+
+def _wait_gone(pid: int) -> None:
+    """Until process ``pid`` has ended (it is no child of ours: its /proc entry goes)."""
+    deadline = time.monotonic() + WRITER_END_S
+    while Path(f"/proc/{pid}").exists():
+        if time.monotonic() > deadline:
+            raise RuntimeError(f"the session writer {pid} still runs after {WRITER_END_S} s")
+        time.sleep(0.05)
+
+
 def _joined(parts: list[Measured]) -> Measured:
     codes: dict[int, int] = {}
     for part in parts:
@@ -268,6 +281,7 @@ def measure_recording(make_step: Callable[[int], Step], count: int, warmup: int,
                                            accepted)
             for name, pid in pids.items():
                 spent[name] += _cpu_ns(pid) - before[name]
+        _wait_gone(pids["session_writer"])  # it encodes the session now: not beside the next
         plain.append(measured[1 - recorder])
         recording.append(measured[recorder])
     calls = 2 * (count // 2 + warmup)
