@@ -215,11 +215,13 @@ class Recorder:
         self._append((_HOST_FLAGS, now, before, after))
         if (before ^ after) & _PDACK and before & after & _READY:  # not a (re)start's
             mm = self._mm
-            io = mm[SND_PD:_IO_END]
-            if io == self._io:
-                io = None  # unchanged: the writer gets no 7 KiB to compare
+            # unchanged: no copy, and the writer gets no 7 KiB to compare. ``find`` of the
+            # last snapshot over exactly its length compares in place, where a slice would
+            # allocate and fill 7 KiB first
+            if mm.find(self._io, SND_PD, _IO_END) == SND_PD:
+                io = None
             else:
-                self._io = io
+                io = self._io = mm[SND_PD:_IO_END]
             self._append((_EXCHANGE, now, io, mm[TASK2_STATE:_STATE_END]))
 
     def dev_flags(self, value: int) -> None:
