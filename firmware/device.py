@@ -197,9 +197,9 @@ class Device:
         try:
             self.can.open()
             self._record_frames()
+            self._record_socket = RecordSocket(self)  # before READY: a host may attach then
             self.rcs.start(Start.COLD)
             self._flush()
-            self._record_socket = RecordSocket(self)
             poll = AdaptivePoll()
             seen = self._flag_bytes()
             timeout = POLL_INTERVAL
