@@ -26,6 +26,7 @@ from multiprocessing.connection import Connection
 from pathlib import Path
 from typing import Any
 
+from bench.cpu import thread_cpu_ns
 from dpm.flags import HostFlag
 from dpm.image import image_path
 from dpm.layout import HOST_FLAGS
@@ -106,28 +107,60 @@ def stop_process(proc: subprocess.Popen[bytes]) -> None:
         proc.wait()
 
 
-@contextmanager
-def running_card(board: int = 0, *, startup_timeout: float = STARTUP_TIMEOUT,
-                 record: bool = False, extra: Sequence[str] = ()) -> Iterator[Card]:
-    """A firmware subprocess serving ``board`` in a temporary directory, READY on entry;
-    ``record``: recording a session there (``--record``), to measure what that costs;
-    ``extra``: more options of ``cifemu firmware`` (its interface, say).
+def _start_firmware(directory: Path, board: int, record: bool,
+                    extra: Sequence[str] = ()) -> subprocess.Popen[bytes]:
+    """A firmware process for ``board`` in ``directory``; ``record``: recording a session
+    there (``--record``); ``extra``: more options of ``cifemu firmware`` (its interface,
+    say). Its stdout is discarded (it must not mix with the JSON); its
+    stderr (log lines at WARNING and above) goes to ours."""
+    command = [sys.executable, "-m", "cifemu", "firmware", "--board", str(board),
+               "--dpm-dir", str(directory), "--flash", str(directory / f"flash{board}"),
+               "--log-level", "WARNING"]
+    if record:
+        command += ["--record", str(directory / f"session{board}")]
+    command += extra
+    return subprocess.Popen(command, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL)
 
-    The firmware's stdout is discarded (it must not mix with the JSON); its stderr
-    (log lines at WARNING and above) goes to ours. On exit it gets SIGTERM, and is
-    killed if it has not ended after ``STOP_TIMEOUT`` seconds.
-    """
+
+@contextmanager
+def running_cards(records: tuple[bool, ...], *, startup_timeout: float = STARTUP_TIMEOUT,
+                  extra: Sequence[str] = ()) -> Iterator[list[Card]]:
+    """Firmware processes serving boards 0, 1, ... in one temporary directory, READY on
+    entry; ``records[n]``: board n records a session (to measure what that costs). On
+    exit each gets SIGTERM, and is killed if it has not ended ``STOP_TIMEOUT`` seconds
+    later."""
     with tempfile.TemporaryDirectory(prefix="cifemu-bench-", dir=scratch_root()) as tmp:
         directory = Path(tmp)
-        command = [sys.executable, "-m", "cifemu", "firmware", "--board", str(board),
-                   "--dpm-dir", tmp, "--flash", str(directory / "flash"),
-                   "--log-level", "WARNING"]
-        if record:
-            command += ["--record", str(directory / "session")]
-        command += extra
-        proc = subprocess.Popen(command, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL)
+        procs: list[subprocess.Popen[bytes]] = []
         try:
-            card = Card(directory, board, proc.pid)
+            cards = []
+            for board, record in enumerate(records):
+                proc = _start_firmware(directory, board, record, extra)
+                procs.append(proc)
+                card = Card(directory, board, proc.pid)
+                wait_ready(proc, card.image, startup_timeout)
+                progress(f"firmware pid {proc.pid} READY on {card.image}"
+                         + (" (recording)" if record else ""))
+                cards.append(card)
+            yield cards
+        finally:
+            for proc in procs:
+                stop_process(proc)
+
+
+@contextmanager
+def running_card(board: int = 0, *, startup_timeout: float = STARTUP_TIMEOUT,
+                 extra: Sequence[str] = ()) -> Iterator[Card]:
+    """A firmware subprocess serving ``board`` in a temporary directory, READY on entry
+    (``running_cards``)."""
+    if board == 0:
+        with running_cards((False,), startup_timeout=startup_timeout, extra=extra) as cards:
+            yield cards[0]
+        return
+    with tempfile.TemporaryDirectory(prefix="cifemu-bench-", dir=scratch_root()) as tmp:
+        proc = _start_firmware(Path(tmp), board, False, extra)
+        try:
+            card = Card(Path(tmp), board, proc.pid)
             wait_ready(proc, card.image, startup_timeout)
             progress(f"firmware pid {proc.pid} READY on {card.image}")
             yield card
@@ -153,15 +186,134 @@ def host_session(card: Card) -> Iterator[int]:
         DevCloseDriver()
 
 
-def recording_cost(plain: dict[str, Any], recording: dict[str, Any],
-                   rate_name: str) -> dict[str, Any]:
-    """What recording a session costs, in percent of the plain card's figures (issue 25
-    allows 10 %): the p50 latency's rise and the rate's fall."""
-    p50, rate = plain["latency_us"]["p50"], plain[rate_name]
-    return {"cost_pct": {
-        "p50": round(100.0 * (recording["latency_us"]["p50"] - p50) / p50, 1) if p50 else None,
-        rate_name: round(100.0 * (rate - recording[rate_name]) / rate, 1) if rate else None,
-    }}
+@contextmanager
+def host_sessions(cards: list[Card]) -> Iterator[list[int]]:
+    """DevOpenDriver on the cards' one directory, DevInitBoard on each; their numbers."""
+    rc = DevOpenDriver(cards[0].directory)
+    if rc != 0:
+        raise RuntimeError(f"DevOpenDriver({cards[0].directory}) returned {rc}")
+    opened: list[int] = []
+    try:
+        for card in cards:
+            rc = DevInitBoard(card.board)
+            if rc != 0:
+                raise RuntimeError(f"DevInitBoard({card.board}) returned {rc}")
+            opened.append(card.board)
+        yield opened
+    finally:
+        for board in opened:
+            DevExitBoard(board)
+        DevCloseDriver()
+
+
+RECORDING_BATCH = 2000
+"""Calls per batch when a plain and a recording card are measured in turn."""
+
+
+@dataclass(frozen=True, slots=True)
+class RecordingRun:
+    """A plain card and a recording one, measured in turn, and the CPU each spent per call:
+    the cards' processes and the recording card's session writer (while it records: it
+    encodes the session after the recording, when nobody waits)."""
+
+    plain: Measured
+    recording: Measured
+    cpu_us_per_call: dict[str, float]
+
+
+def _cpu_ns(pid: int) -> int:
+    return sum(thread_cpu_ns(pid).values())
+
+
+def session_writer_of(pid: int) -> int:
+    """The session writer process of the recording firmware ``pid``."""
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            ppid = int(stat.read_text().rsplit(")", 1)[1].split()[1])
+            if ppid == pid and b"firmware.session_writer" in (stat.parent / "cmdline").read_bytes():
+                return int(stat.parent.name)
+        except (OSError, IndexError, ValueError):
+            continue
+    raise RuntimeError(f"the recording firmware {pid} runs no session writer")
+
+
+WRITER_END_S = 300.0
+"""How long a session writer may take to encode its session after its card stopped."""
+
+
+def _wait_gone(pid: int) -> None:
+    """Until process ``pid`` has ended (it is no child of ours: its /proc entry goes)."""
+    deadline = time.monotonic() + WRITER_END_S
+    while Path(f"/proc/{pid}").exists():
+        if time.monotonic() > deadline:
+            raise RuntimeError(f"the session writer {pid} still runs after {WRITER_END_S} s")
+        time.sleep(0.05)
+
+
+def _joined(parts: list[Measured]) -> Measured:
+    codes: dict[int, int] = {}
+    for part in parts:
+        for code, seen in part.warmup_codes.items():
+            codes[code] = codes.get(code, 0) + seen
+    return Measured(sum(p.count for p in parts), [ns for p in parts for ns in p.latencies_ns],
+                    sum(p.elapsed_ns for p in parts), sum(p.failures for p in parts), codes,
+                    timed_twice=False)
+
+
+def measure_recording(make_step: Callable[[int], Step], count: int, warmup: int,
+                      accepted: frozenset[int], prepare: Callable[[int], None] = lambda b: None
+                      ) -> RecordingRun:
+    """``make_step(board)`` on a plain card and on a recording one (``--record``) side by
+    side, in alternating batches (``measure_alternating``), after ``prepare(board)``: half
+    of ``count`` with board 1 recording, half with board 0 (two identical plain cards
+    differed by up to a tenth on the shared machine, one board faster than the other).
+
+    The CPU per call counts the warm-up calls too, and what each card spends idle while
+    the other is measured (the same for both)."""
+    plain: list[Measured] = []
+    recording: list[Measured] = []
+    spent = {"plain_card": 0, "recording_card": 0, "session_writer": 0}
+    for recorder in (1, 0):
+        with running_cards((recorder == 0, recorder == 1)) as cards, \
+                host_sessions(cards) as boards:
+            for board in boards:
+                prepare(board)
+            pids = {"plain_card": cards[1 - recorder].pid, "recording_card": cards[recorder].pid,
+                    "session_writer": session_writer_of(cards[recorder].pid)}
+            before = {name: _cpu_ns(pid) for name, pid in pids.items()}
+            measured = measure_alternating([make_step(b) for b in boards], count // 2, warmup,
+                                           accepted)
+            for name, pid in pids.items():
+                spent[name] += _cpu_ns(pid) - before[name]
+        _wait_gone(pids["session_writer"])  # it encodes the session now: not beside the next
+        plain.append(measured[1 - recorder])
+        recording.append(measured[recorder])
+    calls = 2 * (count // 2 + warmup)
+    return RecordingRun(_joined(plain), _joined(recording),
+                        {name: round(ns / calls / 1000, 2) for name, ns in spent.items()})
+
+
+def recording_entry(name: str, run: RecordingRun, rate_name: str) -> dict[str, Any]:
+    """The ``recording`` entry of a benchmark: the recording card's figures, the plain
+    card's beside it, and what recording a session costs in percent of the plain card's
+    (issue 25 allows 10 %): the p50 latency's rise and the rate's fall, and the CPU per
+    call (``measure_recording``)."""
+    plain_summary = run.plain.summary(rate_name)
+    summary = run.recording.summary(rate_name)
+    p50, rate = plain_summary["latency_us"]["p50"], plain_summary[rate_name]
+    cpu = run.cpu_us_per_call
+    return {"name": name, **summary, "plain": plain_summary,
+            "method": f"a plain card and a recording one side by side, batches of "
+                      f"{RECORDING_BATCH} calls alternating between them; half of the calls "
+                      "with board 1 recording, half with board 0",
+            "cpu_us_per_call": cpu,
+            "cost_pct": {
+                "p50": round(100.0 * (summary["latency_us"]["p50"] - p50) / p50, 1)
+                if p50 else None,
+                rate_name: round(100.0 * (rate - summary[rate_name]) / rate, 1)
+                if rate else None,
+                "card_cpu": round(100.0 * (cpu["recording_card"] - cpu["plain_card"])
+                                  / cpu["plain_card"], 1) if cpu["plain_card"] else None}}
 
 
 # --- timing and statistics ------------------------------------------------------------------
@@ -180,6 +332,8 @@ class Measured:
     elapsed_ns: int
     failures: int
     warmup_codes: dict[int, int] = field(default_factory=dict)
+    timed_twice: bool = True
+    """``measure``'s: the latency loop and the rate loop each ran ``count`` calls."""
 
     @property
     def per_second(self) -> float:
@@ -190,7 +344,7 @@ class Measured:
         return {
             rate_name: round(self.per_second, 1),
             "latency_us": latency_stats(self.latencies_ns),
-            "calls": 2 * self.count,
+            "calls": 2 * self.count if self.timed_twice else self.count,
             "failures": self.failures,
             "warmup_return_codes": {str(k): v for k, v in sorted(self.warmup_codes.items())},
         }
@@ -223,6 +377,46 @@ def measure(step: Step, count: int, warmup: int, accepted: frozenset[int]) -> Me
             failures += 1
     elapsed = clock() - start
     return Measured(count, latencies, elapsed, failures, codes)
+
+
+def measure_alternating(steps: list[Step], count: int, warmup: int,
+                        accepted: frozenset[int], batch: int = RECORDING_BATCH
+                        ) -> list[Measured]:
+    """Run each of ``steps`` ``warmup`` times, then ``count`` times each in batches of
+    ``batch``, taking turns (the order reversed every round), with each call's latency.
+
+    For two cards side by side, such as a plain and a recording one: on a shared machine
+    the load changes from second to second, and two runs one after the other differed by
+    as much as what was measured. Here both see the same machine. A batch's rate counts
+    the clock reads around its calls, for each step alike.
+    """
+    codes: list[dict[int, int]] = [{} for _ in steps]
+    for step, seen in zip(steps, codes, strict=True):
+        for _ in range(warmup):
+            status = step()
+            seen[status] = seen.get(status, 0) + 1
+    clock = time.perf_counter_ns
+    latencies: list[list[int]] = [[] for _ in steps]
+    elapsed = [0] * len(steps)
+    failures = [0] * len(steps)
+    order = list(range(len(steps)))
+    done = 0
+    while done < count:
+        size = min(batch, count - done)
+        for n in order:
+            step, times = steps[n], latencies[n]
+            started = clock()
+            for _ in range(size):
+                start = clock()
+                status = step()
+                times.append(clock() - start)
+                if status not in accepted:
+                    failures[n] += 1
+            elapsed[n] += clock() - started
+        order.reverse()
+        done += size
+    return [Measured(count, latencies[n], elapsed[n], failures[n], codes[n], timed_twice=False)
+            for n in range(len(steps))]
 
 
 @dataclass(slots=True)

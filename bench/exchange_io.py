@@ -22,12 +22,14 @@ from typing import Any
 
 from bench.common import (
     Measured,
+    Step,
     host_session,
     machine_info,
     measure,
+    measure_recording,
     progress,
     ratio,
-    recording_cost,
+    recording_entry,
     running_card,
     sized_main,
     source_fingerprint,
@@ -112,16 +114,22 @@ def _select_mode(board: int, mode: Mode) -> None:
         )
 
 
-def measure_mode(board: int, mode: Mode, count: int, warmup: int) -> Measured:
-    _select_mode(board, mode)
+def _exchange(board: int) -> Step:
     outputs = bytes(range(IO_BYTES))
 
     def exchange() -> int:
         rc, inputs = DevExchangeIO(board, 0, outputs, 0, IO_BYTES, TIMEOUT_MS)
         return int(rc) if len(inputs) == IO_BYTES else SHORT_READ
 
+    return exchange
+
+
+def measure_mode(board: int, mode: Mode, count: int, warmup: int) -> Measured:
+    _select_mode(board, mode)
     progress(f"mode {mode.exchange_mode} ({mode.name}): {warmup} warm-up + 2 x {count} calls")
-    return measure(exchange, count, warmup, COMPLETED)
+    return measure(_exchange(board), count, warmup, COMPLETED)
+
+
 
 
 def run(count: int | None = None, warmup: int | None = None) -> dict[str, Any]:
@@ -150,9 +158,10 @@ def run(count: int | None = None, warmup: int | None = None) -> dict[str, Any]:
                 },
             })
     host_controlled = next(m for m in MODES if m.exchange_mode == RECORDED_MODE)
-    plain = next(m for m in modes if m["exchange_mode"] == RECORDED_MODE)
-    with running_card(record=True) as card, host_session(card) as board:
-        recording = measure_mode(board, host_controlled, count, warmup).summary("calls_per_s")
+    progress(f"mode {RECORDED_MODE}, plain and recording card in turn: {warmup} warm-up + "
+             f"{count} calls each")
+    recording = measure_recording(_exchange, count, warmup, COMPLETED,
+                                  lambda board: _select_mode(board, host_controlled))
     return {
         "benchmark": NAME,
         "description": f"DevExchangeIO with {IO_BYTES} bytes out and {IO_BYTES} bytes in, "
@@ -170,9 +179,8 @@ def run(count: int | None = None, warmup: int | None = None) -> dict[str, Any]:
         "targets": {m.name: {"calls_per_s_min": m.target_calls_per_s} for m in MODES},
         "meets_target": {m["name"]: m["meets_target"] for m in modes},
         "modes": modes,
-        "recording": {"name": f"mode {RECORDED_MODE} on a card recording a session "
-                              "(cifemu firmware --record)",
-                      **recording, **recording_cost(plain, recording, "calls_per_s")},
+        "recording": recording_entry(f"mode {RECORDED_MODE} on a card recording a session "
+                                     "(cifemu firmware --record)", recording, "calls_per_s"),
         "baseline": {"name": f"mmap slice store + load of {IO_BYTES} bytes", **baseline},
         "ratio_definition": "mode / baseline",
     }

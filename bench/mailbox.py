@@ -16,13 +16,15 @@ from typing import Any
 
 from bench.common import (
     Measured,
+    Step,
     host_session,
     machine_info,
     measure,
+    measure_recording,
     pipe_echo,
     progress,
     ratio,
-    recording_cost,
+    recording_entry,
     running_card,
     sized_main,
     source_fingerprint,
@@ -64,30 +66,35 @@ def _drain(board: int) -> None:
         pass
 
 
-def measure_card(count: int, warmup: int, record: bool = False) -> Measured:
-    with running_card(record=record) as card, host_session(card) as board:
-        requests = _requests()
-        sequence = 0
+def _round_trip(board: int) -> Step:
+    requests = _requests()
+    sequence = 0
 
-        def round_trip() -> int:
-            nonlocal sequence
-            sequence = (sequence + 1) & 0xFF
-            rc = DevPutMessage(board, requests[sequence], TIMEOUT_MS)
-            if rc != 0:
-                return int(rc)
-            rc, answer = DevGetMessage(board, MSG_BUFFER_SIZE, TIMEOUT_MS)
-            if rc != 0:
-                _drain(board)
-                return int(rc)
-            if (answer is None or answer.nr != sequence or answer.f != 0
-                    or answer.ln + 8 != ANSWER_BYTES):
-                _drain(board)
-                return BAD_ANSWER
-            return 0
+    def round_trip() -> int:
+        nonlocal sequence
+        sequence = (sequence + 1) & 0xFF
+        rc = DevPutMessage(board, requests[sequence], TIMEOUT_MS)
+        if rc != 0:
+            return int(rc)
+        rc, answer = DevGetMessage(board, MSG_BUFFER_SIZE, TIMEOUT_MS)
+        if rc != 0:
+            _drain(board)
+            return int(rc)
+        if (answer is None or answer.nr != sequence or answer.f != 0
+                or answer.ln + 8 != ANSWER_BYTES):
+            _drain(board)
+            return BAD_ANSWER
+        return 0
 
-        progress(f"mailbox{' (recording)' if record else ''}: {warmup} warm-up + 2 x {count} "
-                 "round trips")
-        return measure(round_trip, count, warmup, frozenset({0}))
+    return round_trip
+
+
+def measure_card(count: int, warmup: int) -> Measured:
+    with running_card() as card, host_session(card) as board:
+        progress(f"mailbox: {warmup} warm-up + 2 x {count} round trips")
+        return measure(_round_trip(board), count, warmup, frozenset({0}))
+
+
 
 
 def measure_pipe(count: int, warmup: int) -> Measured:
@@ -123,7 +130,9 @@ def run(count: int | None = None, warmup: int | None = None) -> dict[str, Any]:
     source = source_fingerprint()
     pipe = measure_pipe(count, warmup)
     card = measure_card(count, warmup)
-    recording = measure_card(count, warmup, record=True).summary("round_trips_per_s")
+    progress(f"mailbox, plain and recording card in turn: {warmup} warm-up + {count} "
+             "round trips each")
+    recording = measure_recording(_round_trip, count, warmup, frozenset({0}))
     card_result = card.summary("round_trips_per_s")
     pipe_result = pipe.summary("round_trips_per_s")
     p50 = card_result["latency_us"]["p50"]
@@ -147,9 +156,8 @@ def run(count: int | None = None, warmup: int | None = None) -> dict[str, Any]:
             "round_trips_per_s": rate >= TARGET_ROUND_TRIPS_PER_S,
         },
         "cif_mailbox": card_result,
-        "recording": {"name": "the same card recording a session (cifemu firmware --record)",
-                      **recording, **recording_cost(card_result, recording,
-                                                    "round_trips_per_s")},
+        "recording": recording_entry("a card recording a session (cifemu firmware --record)",
+                                     recording, "round_trips_per_s"),
         "baseline": {"name": "multiprocessing.Pipe send_bytes/recv_bytes ping-pong", **pipe_result},
         "ratio_to_baseline": {
             "definition": "cif_mailbox / baseline",

@@ -49,6 +49,8 @@ COMMANDS = (
             "compiler and linker flags for C programs (libcif)"),
     Command("legacy", "cifemu.commands.legacy",
             "run an unchanged legacy binary against the card (/dev/cif preloaded)"),
+    Command("record", "cifemu.commands.record",
+            "attach to a running card and record a session until Ctrl-C"),
     Command("replay", "cifemu.commands.replay",
             "replay a recorded session against a card and show what differs (or --diff A B)"),
     Command("fault", "cifemu.commands.fault",

@@ -12,8 +12,12 @@ cifemu installed gets, without a conftest:
   so ``host_api.driver.DevOpenDriver()``, libcif programs and ``cifemu legacy`` find it
   without being told. The fixture yields a ``CifCard``;
 - the marker ``cif_network(path_or_dict, board=0, configure=True)``;
-- for a failed test, report sections with the card's side of it: the firmware's log and
-  a final ``cifemu status --json`` snapshot.
+- a recording of each test's card (``cifemu record``'s, attached at each start): for a
+  failed test its transcript is a report section, for a passed one it is removed unless
+  the marker ``cif_record(path=None)`` keeps it;
+- for a failed test, report sections with the card's side of it: the firmware's log,
+  a final ``cifemu status --json`` snapshot and the transcript of what the hosts did
+  and saw (``dpm.transcript``, as ``cifemu replay`` compares it).
 
 Why a process and not a thread in the test's own process: the host program under test
 must meet the card as it would meet the real one, through the image and the doorbell
@@ -43,15 +47,19 @@ import pytest
 
 from dbm_tools.network import Network, NetworkError, load_network
 from dpm import flags as fl
+from dpm import session as s
 from dpm.faults import ActiveFault
 from dpm.image import MAX_DEV_BOARDS, image_path
 from dpm.layout import HOST_FLAGS, TASK2_STATE
+from dpm.record_socket import Attachment, RecordingError, attach
 from dpm.task2 import TASK_AREA_SIZE, ComDiagnostics
+from dpm.transcript import transcript as transcript_of
 from host_api import faults
 from host_api.liveness import firmware_liveness
 from host_api.status import health, read_image, snapshot
 
 NETWORK_MARKER = "cif_network"
+RECORD_MARKER = "cif_record"
 START_TIMEOUT_S = 60.0
 """How long a card may take to show READY. Generous: a loaded machine starts Python
 slowly, and the wait ends as soon as READY shows."""
@@ -61,6 +69,8 @@ STOP_TIMEOUT_S = 30.0
 POLL_S = 0.01
 LOG_TAIL_LINES = 200
 """The firmware log lines a failure report shows; the whole log stays in its file."""
+TRANSCRIPT_LINES = 200
+"""The transcript lines a failure report shows; the whole session stays in its directory."""
 
 
 class CardError(RuntimeError):
@@ -99,7 +109,9 @@ class CifCard:
     test) are what a host program needs; ``network`` is the description the card
     simulates (None: a card out of the box, no nodes, not configured), and configures
     itself from on line at each start when ``configure`` is true; ``log`` is the
-    firmware's stdout and stderr.
+    firmware's stdout and stderr. ``record_into`` (None: no recording) is where each
+    start's recording goes: that directory, then ``<name>-2``, ``<name>-3`` ... after
+    restarts; ``sessions`` lists them.
     """
 
     board: int
@@ -108,7 +120,12 @@ class CifCard:
     log: Path
     network: Network | None = field(default=None, repr=False)
     configure: bool = True
+    record_into: Path | None = None
+    sessions: list[Path] = field(default_factory=list)
+    recording_problem: str | None = None
+    """Why a recording ended early (the card died under it), None when none did."""
     _process: subprocess.Popen[bytes] | None = field(default=None, repr=False)
+    _attachment: Attachment | None = field(default=None, repr=False)
 
     @property
     def image(self) -> Path:
@@ -145,16 +162,61 @@ class CifCard:
                                              stderr=log, start_new_session=True)
         try:
             wait_ready(self._process, self.directory, self.board, timeout)
+            if self.record_into is not None:
+                self._record()
         except CardError as exc:
             self.stop()
             raise CardError(f"board {self.board}: {exc}\n{self.log_tail()}") from None
 
+    def _record(self) -> None:
+        """Attach a recording to the card that just started, into the next session."""
+        assert self.record_into is not None
+        into = self.record_into
+        if self.sessions:
+            into = into.with_name(f"{into.name}-{len(self.sessions) + 1}")
+        try:
+            self._attachment = attach(self.image, self.board, into)
+        except RecordingError as exc:
+            raise CardError(f"cannot record it: {exc}") from None
+        self.sessions.append(into)
+
+    def stop_recording(self) -> None:
+        """End the running recording, if one runs: its session is then complete. The card
+        records again after its next start."""
+        attachment, self._attachment = self._attachment, None
+        if attachment is None:
+            return
+        try:
+            summary = attachment.detach()
+        except RecordingError as exc:
+            self.recording_problem = str(exc)
+            return
+        if not summary.complete:
+            self.recording_problem = (f"the card's session writer failed: {attachment.session}"
+                                      " ends early (see the firmware log)")
+
+    def records(self) -> list[s.Record]:
+        """Every event recorded of this card during the test, its sessions in order
+        (docs/recording.md). Ends the running recording first."""
+        self.stop_recording()
+        records: list[s.Record] = []
+        for session in self.sessions:
+            records += s.decode_events((session / s.EVENTS).read_text(encoding="ascii"))
+        return records
+
+    def transcript(self) -> list[str]:
+        """The recorded sessions as ``cifemu replay`` compares them: one decoded line per
+        step (``dpm.transcript``). Ends the running recording first."""
+        return [str(line) for line in transcript_of(self.records())]
+
     def stop(self, timeout: float = STOP_TIMEOUT_S) -> int | None:
         """Stop the firmware (SIGTERM, SIGKILL after ``timeout``) and whatever else runs
-        in its process group; its exit status, None when it was never started."""
+        in its process group; its exit status, None when it was never started. A
+        recording ends first, complete."""
         process = self._process
         if process is None:
             return None
+        self.stop_recording()
         if process.returncode is None:  # not reaped: its pid still names its group
             self._signal_group(signal.SIGTERM)
             if not self._exited(timeout):
@@ -247,6 +309,21 @@ class CifCard:
             return {"board": self.board, "error": f"no image at {self.image}"}
         return {"board": self.board, **snapshot(image),
                 "health": health(self.directory, self.board)}
+
+    def transcript_tail(self, lines: int = TRANSCRIPT_LINES) -> str:
+        """The end of the transcript for a report, naming the sessions to replay."""
+        try:
+            steps = self.transcript()
+        except (OSError, s.SessionError) as exc:
+            return f"(no transcript: {exc})"
+        names = ", ".join(str(session) for session in self.sessions)
+        head = [f"{len(steps)} steps recorded in {names} (cifemu replay SESSION plays them "
+                "against a card)"]
+        if self.recording_problem is not None:
+            head.append(f"(the recording ended early: {self.recording_problem})")
+        if len(steps) > lines:
+            head.append(f"({len(steps) - lines} earlier step(s) left out)")
+        return "\n".join(head + steps[-lines:])
 
     def log_tail(self, lines: int = LOG_TAIL_LINES) -> str:
         """The end of the firmware's log, saying where the rest is."""
@@ -346,10 +423,30 @@ def _marked(item: pytest.Item, directory: Path) -> _Marked:
         pytest.fail(f"{NETWORK_MARKER}: {exc}", pytrace=False)
 
 
+def _recording(item: pytest.Item, home: Path) -> tuple[Path, bool]:
+    """Where the test's card records (``home/session`` unless its ``cif_record`` marker
+    names a directory, relative to the test file) and whether the marker keeps it."""
+    marker = item.get_closest_marker(RECORD_MARKER)
+    if marker is None:
+        return home / "session", False
+    usage = f"@pytest.mark.{RECORD_MARKER}(path=None)"
+    spec = marker.kwargs.get("path", marker.args[0] if marker.args else None)
+    if len(marker.args) > 1 or set(marker.kwargs) - {"path"} or (marker.args and marker.kwargs):
+        pytest.fail(f"{usage}: got args {marker.args}, kwargs {marker.kwargs}", pytrace=False)
+    if spec is None:
+        return home / "session", True
+    if not isinstance(spec, str | os.PathLike):
+        pytest.fail(f"{usage}: path is a directory, not a {type(spec).__name__}",
+                    pytrace=False)
+    return Path(item.path).parent / spec, True
+
+
 # --- pytest's side -----------------------------------------------------------------------
 
 CARD = pytest.StashKey[CifCard]()
 """The test's card, for the failure report."""
+FAILED = pytest.StashKey[bool]()
+"""Whether a phase of the test failed: its recording is kept for the report's reader."""
 
 
 def pytest_configure(config: pytest.Config) -> None:
@@ -358,6 +455,11 @@ def pytest_configure(config: pytest.Config) -> None:
         "network of the cif_card fixture's card (a network description file, relative to "
         "the test file, or its contents as a dict), its board number, and whether the card "
         "configures itself from it on line (False: the host program under test does)")
+    config.addinivalue_line(
+        "markers", f"{RECORD_MARKER}(path=None): keep the recorded session of the cif_card "
+        "fixture's card: in path (a directory to create, relative to the test file; after a "
+        "restart path-2 ...), else in tmp_path/cifemu/session. Unmarked, it is kept only "
+        "when the test fails")
 
 
 @pytest.fixture
@@ -367,33 +469,45 @@ def cif_card(request: pytest.FixtureRequest, tmp_path: Path,
     home = tmp_path / "cifemu"
     home.mkdir()
     marked = _marked(request.node, home)
+    record_into, keep = _recording(request.node, home)
     # The image directory holds the card's sockets, whose paths may not pass 107 bytes: a
     # short directory of its own, not one under pytest's deep tmp_path.
     images = Path(tempfile.mkdtemp(prefix="cifemu-"))
     request.addfinalizer(lambda: shutil.rmtree(images, ignore_errors=True))
     card = CifCard(marked.board, images, home / "flash", home / "firmware.log",
-                   marked.network, marked.configure)
+                   marked.network, marked.configure, record_into)
     monkeypatch.setenv("CIF_DPM_DIR", str(card.directory))
+    failure = None
     try:
         card.start()
     except CardError as exc:  # its message has the log: no report section to repeat it
-        pytest.fail(str(exc), pytrace=False)
+        failure = str(exc)
+    if failure is not None:  # outside the handler: pytest would show the message twice
+        pytest.fail(failure, pytrace=False)
     request.node.stash[CARD] = card
     try:
         yield card
     finally:
         card.stop()
+        if not keep and not request.node.stash.get(FAILED, False):
+            for session in card.sessions:  # a passed test's recording served its purpose
+                shutil.rmtree(session, ignore_errors=True)
 
 
 @pytest.hookimpl(wrapper=True)
 def pytest_runtest_makereport(item: pytest.Item, call: pytest.CallInfo[None]
                               ) -> Generator[None, pytest.TestReport, pytest.TestReport]:
-    """A failed test that had a card gets the card's side: its log and its final state."""
+    """A failed test that had a card gets the card's side: its log, its final state and
+    the transcript of its recording (which then ends: the card has written it all)."""
     del call
     report: pytest.TestReport = yield
+    if report.failed:
+        item.stash[FAILED] = True
     card = item.stash.get(CARD, None)
     if card is not None and report.failed:
         name = f"cifemu board {card.board}"
         report.sections.append((f"{name}: firmware log", card.log_tail()))
         report.sections.append((f"{name}: status", json.dumps(card.status(), indent=2)))
+        if card.sessions:
+            report.sections.append((f"{name}: transcript", card.transcript_tail()))
     return report

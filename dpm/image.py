@@ -172,6 +172,22 @@ class CardDirectory:
         if durable:
             os.fsync(self.fd)
 
+    def open_unnamed(self) -> int:
+        """A new file in this directory without a name (O_TMPFILE), open for reading and
+        writing: only its descriptor reaches it, and it is gone when the last one closes,
+        so nothing planted in the directory can be it. Where the file system has no
+        O_TMPFILE: a file made with O_EXCL under an unpredictable name, removed at once."""
+        try:
+            return os.open(".", os.O_TMPFILE | os.O_RDWR | os.O_CLOEXEC, 0o600, dir_fd=self.fd)
+        except OSError as exc:
+            if exc.errno not in (errno.EOPNOTSUPP, errno.EISDIR, errno.EINVAL):
+                raise
+        name = f".{secrets.token_hex(8)}.tmp"
+        fd = os.open(name, os.O_RDWR | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW | os.O_CLOEXEC,
+                     0o600, dir_fd=self.fd)
+        self.unlink(name)
+        return fd
+
     def unlink(self, name: str) -> None:
         """Remove ``name`` (never what a symlink points to); none there is no error."""
         with contextlib.suppress(FileNotFoundError):

@@ -15,8 +15,11 @@ from dpm.errors import DpmError
 from dpm.layout import MSG_DATA_SIZE, MSG_HEADER_SIZE
 
 MSG_MAX_SIZE = MSG_HEADER_SIZE + MSG_DATA_SIZE
-_HEADER = struct.Struct("8B")
 """A message is at most 263 bytes (the slot is 288 with its dummy tail)."""
+HEADER = struct.Struct("8B")
+"""MSG_STRUC's header: rx tx ln nr a f b e."""
+LN_OFFSET = 2
+"""Where msg.ln is in the header."""
 
 
 class Task(IntEnum):
@@ -88,8 +91,8 @@ class Message:
         if len(self.data) > MSG_DATA_SIZE:
             raise MessageError(f"message data of {len(self.data)} bytes exceeds 255")
         try:
-            head = _HEADER.pack(self.rx, self.tx, len(self.data), self.nr, self.a, self.f,
-                                self.b, self.e)
+            head = HEADER.pack(self.rx, self.tx, len(self.data), self.nr, self.a, self.f,
+                               self.b, self.e)
         except struct.error:
             raise MessageError(f"a header field of {self!r} is not a byte") from None
         return head + self.data
@@ -99,7 +102,7 @@ class Message:
         """Read a message from the start of ``raw`` (a mailbox slot or a copy)."""
         if len(raw) < MSG_HEADER_SIZE:
             raise MessageError(f"{len(raw)} bytes is shorter than a message header")
-        rx, tx, ln, nr, a, f, b, e = _HEADER.unpack_from(raw)
+        rx, tx, ln, nr, a, f, b, e = HEADER.unpack_from(raw)
         if len(raw) < MSG_HEADER_SIZE + ln:
             raise MessageError(f"msg.ln = {ln} but only {len(raw) - 8} data bytes")
         return cls(rx, tx, b, bytes(raw[MSG_HEADER_SIZE : MSG_HEADER_SIZE + ln]), nr, a, f, e)

@@ -2,7 +2,7 @@
 
 A session is a directory (docs/recording.md): ``meta.json`` says what was recorded,
 ``session.jsonl`` holds one host-side event per line, ``can.log`` every CAN frame in
-candump's log format (python-can's ``can.Logger`` writes it, candump's tools and
+candump's log format (python-can's ``CanutilsLogWriter`` writes it, candump's tools and
 ``can.LogReader`` read it). The firmware writes sessions and the host side reads them;
 neither imports the other, so the format lives here, beside the image it describes, as
 the doorbell's contract does.
@@ -20,8 +20,9 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from dpm.errors import DpmError
+from dpm.layout import MSG_HEADER_SIZE
 from dpm.ledger import decode_line
-from dpm.message import Message, MessageError
+from dpm.message import HEADER, Message, MessageError
 
 FORMAT = "cifemu-session"
 VERSION = 1
@@ -44,8 +45,10 @@ KINDS = (PUT, ANSWER, HOST_FLAGS, DEV_FLAGS, EXCHANGE)
 AREAS = ("SndPd", "RcvPd")
 
 BATCH_FRAME = struct.Struct("<I")
-"""The length before each pickled batch of events on the pipe from the recording firmware
+"""The length before each marshalled batch of events on the pipe from the recording firmware
 to its writer process (firmware/recorder.py, firmware/session_writer.py)."""
+CAN_FRAME = "can"
+"""On that pipe only: a CAN frame (``dpm.tap``'s datagram), which goes to ``can.log``."""
 
 
 class SessionError(DpmError, ValueError):
@@ -119,7 +122,12 @@ def ledger_pid(ledger: bytes, msg: Message) -> int | None:
     """The pid of the host that sent ``msg``, from the board's transaction ledger
     (``dpm.ledger``, written by host_api and libcif before a request reaches the card);
     None when no line names it."""
-    wanted = (msg.nr, msg.b, msg.rx, msg.tx)
+    return request_pid(ledger, msg.nr, msg.b, msg.rx, msg.tx)
+
+
+def request_pid(ledger: bytes, nr: int, b: int, rx: int, tx: int) -> int | None:
+    """``ledger_pid`` of the message with these header fields."""
+    wanted = (nr, b, rx, tx)
     for line in ledger.splitlines():
         entry = decode_line(line)
         if entry is not None and entry.pid >= 0 and entry[2:6] == wanted:
@@ -130,18 +138,31 @@ def ledger_pid(ledger: bytes, msg: Message) -> int | None:
 # --- the codec ----------------------------------------------------------------------------
 
 
+_HEAD = '{"kind":"%s","t":%.6f,"wall":%.6f,"pid":%s'
+_MESSAGE = (',"msg":{"rx":%d,"tx":%d,"ln":%d,"nr":%d,"a":%d,"f":%d,"b":%d,"e":%d,'
+            '"data":"%s"}')
+_FLAGS = ',"before":%d,"after":%d'
+
+
+def _head(kind: str, t: float, wall: float, pid: int | None) -> str:
+    return _HEAD % (kind, t, wall, "null" if pid is None else int(pid))
+
+
+def _message(raw: bytes) -> str:
+    rx, tx, ln, nr, a, f, b, e = HEADER.unpack_from(raw)
+    data = raw[MSG_HEADER_SIZE : MSG_HEADER_SIZE + ln]
+    return _MESSAGE % (rx, tx, len(data), nr, a, f, b, e, data.hex())
+
+
 def encode_record(record: Record) -> str:
     """One line of ``session.jsonl`` (without its newline). Formatted by hand, not by
     ``json.dumps``: the recorder's writer encodes several lines per mailbox round trip,
-    in the firmware's process, and a third of the cost went to the generic encoder."""
-    pid = "null" if record.pid is None else str(int(record.pid))
-    line = f'{{"kind":"{record.kind}","t":{record.t:.6f},"wall":{record.wall:.6f},"pid":{pid}'
-    m = record.msg
-    if m is not None:
-        line += (f',"msg":{{"rx":{m.rx},"tx":{m.tx},"ln":{len(m.data)},"nr":{m.nr},'
-                 f'"a":{m.a},"f":{m.f},"b":{m.b},"e":{m.e},"data":"{m.data.hex()}"}}')
+    and a third of the cost went to the generic encoder."""
+    line = _head(record.kind, record.t, record.wall, record.pid)
+    if record.msg is not None:
+        line += _message(record.msg.encode())
     if record.kind in (HOST_FLAGS, DEV_FLAGS):
-        line += f',"before":{record.before},"after":{record.after}'
+        line += _FLAGS % (record.before, record.after)
     if record.changes:
         line += ',"changes":' + json.dumps(
             {area: [[offset, data.hex()] for offset, data in runs]
@@ -150,6 +171,27 @@ def encode_record(record: Record) -> str:
         line += f',"Task2State":"{record.state.hex()}"'
     if record.parameter:
         line += f',"Task2Parameter":"{record.parameter.hex()}"'
+    return line + "}"
+
+
+def encode_message(kind: str, t: float, wall: float, pid: int | None, raw: bytes,
+                   state: bytes = b"") -> str:
+    """The line ``encode_record`` makes of a put or an answer, straight from the message's
+    mailbox bytes (``raw``: header and data): the writer's path, in half the time, since
+    it builds no Message and no Record (docs/recording.md, what recording costs)."""
+    line = _head(kind, t, wall, pid) + _message(raw)
+    if state:
+        line += ',"Task2State":"%s"' % state.hex()  # noqa: UP031 (% is the fastest here)
+    return line + "}"
+
+
+def encode_flags(kind: str, t: float, wall: float, before: int, after: int,
+                 parameter: bytes = b"") -> str:
+    """The line ``encode_record`` makes of a flags record (no pid: the image does not say
+    who wrote a byte), without a Record: the writer's path, as ``encode_message``."""
+    line = _HEAD % (kind, t, wall, "null") + _FLAGS % (before, after)
+    if parameter:
+        line += ',"Task2Parameter":"%s"' % parameter.hex()  # noqa: UP031
     return line + "}"
 
 
@@ -249,11 +291,14 @@ def decode_events(text: str) -> list[Record]:
 
 
 def encode_meta(board: int, started_wall: float, started_t: float, firmware_pid: int,
-                can_log: bool) -> str:
+                can_log: bool, attached_by: int | None = None) -> str:
+    """``attached_by``: the pid of the ``cifemu record`` that attached to a running card,
+    None for a recording from the card's start (``cifemu firmware --record``)."""
     return json.dumps({"format": FORMAT, "version": VERSION, "board": board,
                        "started_wall": started_wall, "started_t": started_t,
                        "firmware_pid": firmware_pid,
-                       "can_log": CAN_LOG if can_log else None}, indent=1) + "\n"
+                       "can_log": CAN_LOG if can_log else None,
+                       "attached_by": attached_by}, indent=1) + "\n"
 
 
 def decode_meta(text: str) -> dict[str, Any]:

@@ -62,6 +62,7 @@ from firmware.faults import CardFaults
 from firmware.flash import FlashStore, StoredDatabase, default_flash_dir
 from firmware.plc import PlcTask
 from firmware.rcs import RcsTask, Start
+from firmware.record_socket import RecordSocket
 from firmware.task import Task
 
 if TYPE_CHECKING:
@@ -187,7 +188,9 @@ class Device:
         self.can = CanTask(self, bus)
         self.tasks: dict[int, Task] = {t.number: t for t in (self.rcs, self.plc, self.can)}
         self.recorder: Recorder | None = None
-        """Set before ``run`` to record a session (firmware/recorder.py)."""
+        """The recording that runs (firmware/recorder.py): ``--record``'s, set before
+        ``run``, or one a ``cifemu record`` attached (``record``)."""
+        self._record_socket: RecordSocket | None = None
         trace = os.environ.get(HOP_TRACE_ENV)
         self._hop_trace = _HopTrace(trace) if trace else None
         if self._hop_trace is not None:
@@ -201,6 +204,8 @@ class Device:
         try:
             self.faults.start()
             self.can.open()
+            self._record_frames()
+            self._record_socket = RecordSocket(self)  # before READY: a host may attach then
             self.rcs.start(Start.COLD)
             self._flush()
             poll = AdaptivePoll()
@@ -276,8 +281,11 @@ class Device:
         self.can.close()
         self.write_host_flags(0)
         self._flush()
-        if self.recorder is not None:
-            self.recorder.close()
+        if self._record_socket is not None:
+            self._record_socket.close()  # an attached recording ends, complete
+        recorder = self.record(None)
+        if recorder is not None:
+            recorder.close()
         self.bell.close()
         del self.view
         self.mm.flush()
@@ -287,6 +295,20 @@ class Device:
         self.flash.close()
         if self._hop_trace is not None:
             self._hop_trace.write()
+
+    def record(self, recorder: Recorder | None) -> Recorder | None:
+        """Start (``recorder``, started) or end (None) a recording: swapped between two
+        turns of the loop, so that no turn sees half of it. Returns the one that ran, for
+        its owner to close."""
+        with self._turn:
+            previous, self.recorder = self.recorder, recorder
+            self._record_frames()
+        return previous
+
+    def _record_frames(self) -> None:
+        bus = self.can.master.bus
+        if bus is not None:
+            bus.record = self.recorder.frame if self.recorder is not None else None
 
     # --- cross-thread entry points ---------------------------------------------------
 
@@ -324,8 +346,9 @@ class Device:
         self.mm[HOST_FLAGS] = 0  # a killed predecessor's READY is not this firmware's
 
     def write_host_flags(self, value: int) -> None:
-        if self.recorder is not None:
-            self.recorder.host_flags(self.mm[HOST_FLAGS], value)
+        recorder = self.recorder  # once: ``record`` may swap it from another thread
+        if recorder is not None:
+            recorder.host_flags(self.mm[HOST_FLAGS], value)
         self.mm[HOST_FLAGS] = value
         self._ring = True
 
@@ -443,8 +466,9 @@ class Device:
             return
         mm = self.mm
         dev = mm[DEV_FLAGS]
-        if self.recorder is not None:
-            self.recorder.dev_flags(dev)
+        recorder = self.recorder
+        if recorder is not None:
+            recorder.dev_flags(dev)
         if dev & (fl.RESET | fl.INIT):
             self.rcs.start(Start.from_flags(dev))
             self._flush()
@@ -496,8 +520,9 @@ class Device:
         # that is malformed for its command with their own msg.f.
         raw = self.mm[DEV_MBX : DEV_MBX + MSG_MAX_SIZE]
         self.toggle_host_flags(fl.DEVACK)
-        if self.recorder is not None:
-            self.recorder.put(raw)
+        recorder = self.recorder
+        if recorder is not None:
+            recorder.put(raw)
         msg = Message.decode(raw)
         task = self.tasks.get(msg.rx)
         answer = task.handle(msg) if task else msg.answer(f=F_UNKNOWN_TASK)
@@ -507,8 +532,9 @@ class Device:
 
     def _deliver(self) -> None:
         raw = self.outbox.popleft().encode()
-        if self.recorder is not None:
-            self.recorder.answer(raw)
+        recorder = self.recorder
+        if recorder is not None:
+            recorder.answer(raw)
         self.mm[PC_MBX : PC_MBX + len(raw)] = raw
         self.toggle_host_flags(fl.HOSTCOM)
 

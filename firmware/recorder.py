@@ -2,46 +2,87 @@
 
 The device loop calls a ``Recorder`` at the points where it already looks: a message
 taken from DevMbx, an answer put into PcMbx, a HostFlags write, the DevFlags it read
-for its turn. Each call appends a tuple to a deque (atomic, never blocking) and
-returns. A thread drains the deque every ``DRAIN_S`` and hands the batch, pickled in
-one piece, through a pipe to a child process (``firmware.session_writer``) that
-computes what changed and writes ``session.jsonl``. Encoding lines in the firmware's
-own process, even by hand, cost the loop a third of its mailbox round trips on a
-loaded two-core machine (the writer held the interpreter lock the loop waits for);
-pickling a batch costs it a fraction of a microsecond per event. So recording costs
-the loop a few attribute lookups, two clock reads per event and, at a process-data
+for its turn; the controller calls it for each frame. Each call appends a tuple to a
+deque (atomic, never blocking) and returns. A thread drains the deque every ``DRAIN_S``
+and hands the batch, marshalled, through a pipe to a child process
+(``firmware.session_writer``) that computes what changed and writes ``session.jsonl``
+and ``can.log``. Encoding lines in the firmware's own process, even by hand, cost the
+loop a third of its mailbox round trips on a loaded two-core machine (the writer held
+the interpreter lock the loop waits for). ``marshal``, not ``pickle``: both ends are
+the same interpreter, and marshal is four times faster; in pieces of ``CHUNK`` events,
+because one call holds the interpreter lock until it returns (pickling 50 ms of a
+mailbox loop in one piece held it for a third of a millisecond). So recording costs the
+loop a few attribute lookups, one clock read per event and, at a process-data
 handshake, one copy of the two I/O areas; never a write or a lock.
 
-The pid of a message's host is read from the transaction ledger at the moment the
-card takes the message: the ledger line is gone once the host took the answer.
+The writer gets open files, never a path: ``create`` makes them for ``cifemu firmware
+--record``, whose user chose the path; a ``cifemu record`` that attaches to a running
+card opens them itself and passes them over the card's record socket
+(firmware/record_socket.py), so the firmware, often root, opens no path another user
+named. The pid of a message's host is read from the transaction ledger at the moment
+the card takes the message: the ledger line is gone once the host took the answer.
 """
 
 from __future__ import annotations
 
+import contextlib
+import fcntl
 import logging
+import marshal
 import os
-import pickle
 import subprocess
-import sys
 import threading
 import time
 from collections import deque
+from itertools import repeat
+from operator import call
 from pathlib import Path
 from typing import Any
+
+import can
 
 from dpm import flags as fl
 from dpm import session as s
 from dpm.image import CardDirectory, lock_path
-from dpm.layout import IO_AREA_SIZE, RCV_PD, SND_PD, TASK2_PARAMETER, TASK2_STATE, TASK_STATE_SIZE
+from dpm.layout import (
+    IO_AREA_SIZE,
+    MSG_HEADER_SIZE,
+    RCV_PD,
+    SND_PD,
+    TASK2_PARAMETER,
+    TASK2_STATE,
+    TASK_STATE_SIZE,
+)
+from dpm.message import LN_OFFSET
+from dpm.tap import encode_frame
+from firmware import session_writer
 
 log = logging.getLogger(__name__)
 
 DRAIN_S = 0.05
 """How often the writer drains the queue: the loop never wakes it."""
+PIPE_BYTES = 1 << 20
+"""The pipe to the writer: half a second of a mailbox loop's events (the default 64 KiB held a
+third of a drain, and the drain thread waited for the writer in between)."""
+CHUNK = 256
+"""Events marshalled in one call: about 20 us of the interpreter lock."""
 LEDGER_BYTES = 128 * 96
 """The ledger's largest size (host_api.locks.LEDGER_MAX lines of libcif's longest)."""
+LEDGER_FIRST_READ = 512
+"""What the card reads of the ledger first: a dozen requests' lines; all of it only when
+that was not all. The read's buffer is allocated for each message: 12 KiB each time cost
+the loop half a microsecond more than this."""
 
 _IO_END = RCV_PD + IO_AREA_SIZE
+_HEAD_SIZE, _LN = MSG_HEADER_SIZE, LN_OFFSET
+_STATE_END = TASK2_STATE + TASK_STATE_SIZE
+_PARAMETER_END = TASK2_PARAMETER + s.PARAMETER_SIZE
+_STARTS = fl.RESET | fl.INIT
+_PDACK, _READY = fl.PDACK, fl.READY
+_PUT, _ANSWER, _HOST_FLAGS, _DEV_FLAGS, _EXCHANGE, _CAN = (
+    s.PUT, s.ANSWER, s.HOST_FLAGS, s.DEV_FLAGS, s.EXCHANGE, s.CAN_FRAME)
+_monotonic = time.monotonic
+_pread = os.pread
 
 
 class SessionExistsError(FileExistsError):
@@ -49,125 +90,203 @@ class SessionExistsError(FileExistsError):
 
 
 class Recorder:
-    """One session being written; the hooks are called by the device loop's threads."""
+    """One session being written; the hooks are called by the device loop's threads.
 
-    def __init__(self, session: Path, board: int, can_log: bool) -> None:
-        """Create the session's files (before the card powers on: a refusal leaves no
-        card up); ``start`` then connects it to the card."""
-        self.path = session
-        self._files = CardDirectory(session, create=True)
-        try:
-            fd = self._files.open(s.EVENTS, os.O_WRONLY | os.O_CREAT | os.O_EXCL)
-        except FileExistsError:
-            self._files.close()
-            raise SessionExistsError(f"{session} already holds a session") from None
-        try:
-            self._child = subprocess.Popen(
-                [sys.executable, "-m", "firmware.session_writer", str(fd)], pass_fds=(fd,),
-                stdin=subprocess.PIPE, stdout=subprocess.DEVNULL,
-                start_new_session=True)  # a terminal's Ctrl-C is the firmware's to handle:
-            # the writer ends at the end of its stdin, after the last batch
-        finally:
-            os.close(fd)
+    Slots and a bound ``append``: each hook's attribute lookups are part of what every
+    message and handshake of the card costs while it records."""
+
+    __slots__ = (
+        "_append",
+        "_child",
+        "_dev",
+        "_image_files",
+        "_io",
+        "_ledger",
+        "_ledger_name",
+        "_mm",
+        "_pipe",
+        "_queue",
+        "_stop",
+        "_thread",
+        "board",
+        "complete",
+        "events",
+        "frames",
+        "started_t",
+        "started_wall",
+    )
+
+    def __init__(self, board: int, events: int, can_log: int | None, spool: int,
+                 channel: str) -> None:
+        """Start the writer on the open files ``events`` (session.jsonl), ``can_log``
+        (None: no frames) and ``spool`` (read and written: where the writer keeps the
+        events until the recording ends); the writer takes copies, the caller closes its
+        own. ``start`` then connects the recorder to the card."""
+        self.board = board
+        self.started_t = time.monotonic()
+        self.started_wall = time.time()
+        fds = (events, spool) if can_log is None else (events, can_log, spool)
+        self._child = subprocess.Popen(
+            session_writer.command(events, can_log, spool, self.started_wall - self.started_t,
+                                   channel, os.getpid()),
+            pass_fds=fds, stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+            start_new_session=True)
+        # a session of its own: a terminal's Ctrl-C is the firmware's to handle; the writer
+        # ends at the end of its stdin, after the last batch
         assert self._child.stdin is not None
         self._pipe = self._child.stdin
-        self._files.replace(s.META, s.encode_meta(board, time.time(), time.monotonic(),
-                                                  os.getpid(), can_log).encode())
-        self._board = board
+        with contextlib.suppress(OSError):  # a drain's batch in one write, never a wait
+            fcntl.fcntl(self._pipe.fileno(), fcntl.F_SETPIPE_SZ, PIPE_BYTES)
         self._image_files: CardDirectory | None = None
         self._ledger_name = ""
         self._ledger = -1
         self._mm: Any = None
         self._queue: deque[tuple[Any, ...]] = deque()
-        self._dev = -1
+        self._append = self._queue.append
+        self._dev = 0
+        """DevFlags as last seen; a session takes them as 0 before its first dev_flags."""
         self._io = bytes(_IO_END - SND_PD)
         """SndPd and RcvPd as the last exchange left them."""
+        self.events = 0
+        self.frames = 0
+        """What the writer wrote: lines of session.jsonl, frames of can.log (``close``)."""
+        self.complete = False
+        """Whether ``close`` saw the writer write everything."""
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._write_loop, name="recorder", daemon=True)
+
+    @classmethod
+    def create(cls, session: Path, board: int, channel: str) -> Recorder:
+        """``cifemu firmware --record``'s: the directory ``session`` and its files made
+        here, with the image directory's rules (docs/security.md), before the card powers
+        on (a refusal leaves no card up)."""
+        files = CardDirectory(session, create=True)
+        try:
+            fds: list[int] = []
+            try:
+                for name in (s.EVENTS, s.CAN_LOG):
+                    fds.append(files.open(name, os.O_WRONLY | os.O_CREAT | os.O_EXCL))
+                fds.append(files.open_unnamed())
+            except FileExistsError:
+                raise SessionExistsError(f"{session} already holds a session") from None
+            finally:
+                if len(fds) < 3:
+                    for fd in fds:
+                        os.close(fd)
+            try:
+                recorder = cls(board, fds[0], fds[1], fds[2], channel)
+            finally:
+                for fd in fds:
+                    os.close(fd)
+            files.replace(s.META, s.encode_meta(board, recorder.started_wall,
+                                                recorder.started_t, os.getpid(), True).encode())
+        finally:
+            files.close()
+        return recorder
 
     def start(self, image_files: CardDirectory, mm: Any) -> None:
         """Record the card of ``mm``, whose directory ``image_files`` holds the ledger."""
         self._image_files = image_files
-        self._ledger_name = lock_path(image_files.path, self._board, "transaction").name
+        self._ledger_name = lock_path(image_files.path, self.board, "transaction").name
         self._mm = mm
         self._thread.start()
 
-    # --- hooks (device loop and ``post`` threads) -------------------------------------
+    # --- hooks (device loop, ``post`` and the controller's threads) ---------------------
 
     def put(self, raw: bytes) -> None:
         """``raw``: the message slot as the card copied it (the writer decodes it: a
-        Message object costs microseconds to pickle, bytes nothing)."""
-        self._queue.append((s.PUT, time.monotonic(), time.time(), raw, self._read_ledger()))
+        Message object costs microseconds to pass, bytes nothing); kept as far as its
+        msg.ln reaches, a tenth of the slot for most messages, for the queue and the
+        spool."""
+        ledger = self._ledger
+        lines = _pread(ledger, LEDGER_FIRST_READ, 0) if ledger >= 0 else self._open_ledger()
+        if len(lines) == LEDGER_FIRST_READ:
+            lines = _pread(self._ledger, LEDGER_BYTES, 0)
+        self._append((_PUT, _monotonic(), raw[: _HEAD_SIZE + raw[_LN]], lines))
 
     def answer(self, raw: bytes) -> None:
         """``raw``: the encoded answer, as the card writes it into PcMbx."""
-        mm = self._mm
-        self._queue.append((s.ANSWER, time.monotonic(), time.time(), raw,
-                            mm[TASK2_STATE : TASK2_STATE + TASK_STATE_SIZE]))
+        self._append((_ANSWER, _monotonic(), raw, self._mm[TASK2_STATE:_STATE_END]))
 
     def host_flags(self, before: int, after: int) -> None:
         if before == after:
             return
-        now, wall = time.monotonic(), time.time()
-        self._queue.append((s.HOST_FLAGS, now, wall, before, after))
-        if (before ^ after) & fl.PDACK and before & after & fl.READY:  # not a (re)start's
+        now = _monotonic()
+        self._append((_HOST_FLAGS, now, before, after))
+        if (before ^ after) & _PDACK and before & after & _READY:  # not a (re)start's
             mm = self._mm
-            io = mm[SND_PD:_IO_END]
-            if io == self._io:
-                io = None  # unchanged: the writer gets no 7 KiB to compare
+            # unchanged: no copy, and the writer gets no 7 KiB to compare. ``find`` of the
+            # last snapshot over exactly its length compares in place, where a slice would
+            # allocate and fill 7 KiB first
+            if mm.find(self._io, SND_PD, _IO_END) == SND_PD:
+                io = None
             else:
-                self._io = io
-            self._queue.append((s.EXCHANGE, now, wall, io,
-                                mm[TASK2_STATE : TASK2_STATE + TASK_STATE_SIZE]))
+                io = self._io = mm[SND_PD:_IO_END]
+            self._append((_EXCHANGE, now, io, mm[TASK2_STATE:_STATE_END]))
 
     def dev_flags(self, value: int) -> None:
-        if value != self._dev:
-            starting = value & ~max(self._dev, 0) & (fl.RESET | fl.INIT)
-            parameter = (self._mm[TASK2_PARAMETER : TASK2_PARAMETER + s.PARAMETER_SIZE]
-                         if starting else b"")
-            self._queue.append((s.DEV_FLAGS, time.monotonic(), time.time(), self._dev, value,
-                                parameter))
+        before = self._dev
+        if value != before:
+            parameter = (self._mm[TASK2_PARAMETER:_PARAMETER_END] if value & ~before & _STARTS
+                         else b"")
+            self._append((_DEV_FLAGS, _monotonic(), before, value, parameter))
             self._dev = value
 
-    def _read_ledger(self) -> bytes:
-        if self._ledger < 0:
-            assert self._image_files is not None  # hooks run only after start
-            try:
-                self._ledger = self._image_files.open(self._ledger_name, os.O_RDONLY, own=False)
-            except OSError:
-                return b""  # no host has locked the board yet: nobody to name
-        return os.pread(self._ledger, LEDGER_BYTES, 0)
+    def frame(self, msg: can.Message, received: bool) -> None:
+        """A frame the controller sent or received (any of its threads)."""
+        self._append((_CAN, encode_frame(msg, received)))
+
+    def _open_ledger(self) -> bytes:
+        """The ledger's first bytes, once it could be opened (then ``put`` reads it)."""
+        assert self._image_files is not None  # hooks run only after start
+        try:
+            self._ledger = self._image_files.open(self._ledger_name, os.O_RDONLY, own=False)
+        except OSError:
+            return b""  # no host has locked the board yet: nobody to name
+        return _pread(self._ledger, LEDGER_FIRST_READ, 0)
 
     # --- the writer --------------------------------------------------------------------
 
     def close(self) -> None:
-        """Write what is queued and close the session (after the loop's last turn)."""
+        """Write what is queued and close the session (after the hooks' last call)."""
         self._stop.set()
         if self._thread.is_alive():
             self._thread.join()
-        self._drain()
-        self._pipe.close()
-        if self._child.wait() != 0:
-            log.error("the session writer ended with status %d: %s is incomplete",
-                      self._child.returncode, self.path / s.EVENTS)
-        self._files.close()
+        try:
+            self._drain()
+            self._pipe.close()
+        except OSError as exc:  # BrokenPipeError: the writer died
+            log.error("the session writer is gone (%s)", exc)
+        assert self._child.stdout is not None
+        told = self._child.stdout.read().split()  # "EVENTS FRAMES" at its end
+        self._child.stdout.close()
+        if self._child.wait() == 0 and len(told) == 2:
+            self.events, self.frames = int(told[0]), int(told[1])
+            self.complete = True
+        else:
+            log.error("the session writer ended with status %d: the session is incomplete",
+                      self._child.returncode)
         if self._ledger >= 0:
             os.close(self._ledger)
+            self._ledger = -1
 
     def _write_loop(self) -> None:
-        while not self._stop.wait(DRAIN_S):
-            self._drain()
+        try:
+            while not self._stop.wait(DRAIN_S):
+                self._drain()
+        except OSError as exc:  # the writer died: keep the loop's queue from growing
+            log.error("the session writer is gone (%s); recording nothing more", exc)
+            self._append = deque[tuple[Any, ...]](maxlen=0).append
 
     def _drain(self) -> None:
         queue = self._queue
-        batch = []
-        while queue:
-            batch.append(queue.popleft())
+        # what is queued now, in one C loop (a Python loop cost the card 2 us a round trip);
+        # hooks may append meanwhile, behind it
+        batch = list(map(call, repeat(queue.popleft, len(queue))))
         if batch:
-            data = pickle.dumps(batch, protocol=pickle.HIGHEST_PROTOCOL)
-            self._pipe.write(s.BATCH_FRAME.pack(len(data)) + data)
+            pieces: list[bytes] = []
+            for start in range(0, len(batch), CHUNK):
+                data = marshal.dumps(batch[start : start + CHUNK])
+                pieces += (s.BATCH_FRAME.pack(len(data)), data)
+            self._pipe.write(b"".join(pieces))
             self._pipe.flush()
-
-def recording_can_log(session: Path) -> Path:
-    """Where the controller's trace of a recorded session goes."""
-    return session / s.CAN_LOG

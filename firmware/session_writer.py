@@ -1,28 +1,50 @@
 """The recorder's child process: turns the card's event batches into session.jsonl [ours].
 
 ``firmware.recorder`` hands it batches through its stdin, each a 4-byte little-endian
-length and a pickled list of event tuples; pickle, because both ends are the same
-firmware and the pipe is theirs alone (nothing else can write to it). Here, out of the
-firmware's process, each event becomes a ``dpm.session.Record``: the pid of a put's
-host from the ledger bytes the card read, an answer's pid from its request, an
-exchange's changed bytes from the snapshots, each line encoded and written to the
-file descriptor given as the one argument. At the end of its stdin it exits.
+length and a marshalled list of event tuples; marshal, because both ends are the same
+interpreter and the pipe is theirs alone (nothing else can write to it).
 
-    python -m firmware.session_writer FD
+While the card records, the writer only moves what comes into the spool, a file without
+a name in the session's directory (``os.splice``: the kernel copies, the writer hardly
+runs), in a bare interpreter (``SPOOLER``, ``python -S``: it starts in milliseconds,
+where importing this module and numpy took a third of a second of the processor the card
+needed right then). At the end of its stdin, when the recording ends, that process
+becomes this module (``os.execv``), which reads the spool back and encodes: each event
+becomes a line of ``session.jsonl`` (``dpm.session``'s codec), the pid of a put's host
+from the ledger bytes the card read, an answer's pid from its request, an exchange's
+changed bytes from the snapshots, the Unix time from the monotonic one; frames go to
+``can.log`` in candump's format (python-can's ``CanutilsLogWriter``). Then it prints how
+many lines and frames it wrote, and exits.
+Encoding as the events came cost a third of a core on a mailbox loop, taken from the
+card and its hosts on a two-core machine; after the recording it costs the same, but
+nobody waits for an answer meanwhile.
+
+The messages of the firmware's own host (``cifemu firmware --configure``, whose ledger
+lines carry the firmware's pid) are left out [ours]: it stands for a card that comes
+configured, not for a host, and a replay against a card started the same way must not
+configure it a second time.
+
+    python -S -c SPOOLER EVENTS_FD CAN_LOG_FD SPOOL_FD WALL_OFFSET CHANNEL FIRMWARE_PID
+    (then) python -m firmware.session_writer EVENTS_FD ... FIRMWARE_PID
+
+The descriptors are open files (CAN_LOG_FD -1: no frames recorded; SPOOL_FD open for
+reading and writing): the firmware's own, or the ones a user's ``cifemu record`` opened
+and passed to the card (firmware/record_socket.py).
 """
 
 from __future__ import annotations
 
+import marshal
 import os
-import pickle
 import sys
-from typing import Any, BinaryIO
+from typing import Any, BinaryIO, TextIO
 
 from dpm import session as s
 from dpm.layout import IO_AREA_SIZE, RCV_PD, SND_PD
-from dpm.message import Ext, Message
+from dpm.message import HEADER, Ext
 
 _IO_END = RCV_PD + IO_AREA_SIZE
+_MORE = (Ext.FIRST, Ext.CONT)
 
 NICE = 10
 """The writer yields the processor to the card and its hosts: on a busy machine it falls
@@ -32,42 +54,75 @@ behind (the firmware's queue grows), it never slows the card's answers down."""
 class Events:
     """What the card's event tuples become; state carried from one event to the next."""
 
-    def __init__(self) -> None:
+    def __init__(self, wall_offset: float, firmware_pid: int = 0) -> None:
+        self._firmware = firmware_pid
+        self._wall = wall_offset
+        """Unix time minus CLOCK_MONOTONIC when the recording started: the card reads one
+        clock per event, the writer derives the other."""
         self._io = bytes(_IO_END - SND_PD)
         self._pending: dict[tuple[int, int, int, int], int] = {}
         """Puts awaiting their answers: (nr, b, rx, tx) -> pid."""
 
-    def record(self, item: tuple[Any, ...]) -> s.Record:
-        kind, t, wall = item[0], item[1], item[2]
+    def line(self, item: tuple[Any, ...]) -> str | None:
+        """The ``session.jsonl`` line (without its newline) of one event tuple; None for
+        a message of the firmware's own host."""
+        kind, t = item[0], item[1]
+        wall = t + self._wall
         if kind == s.PUT:
-            msg = Message.decode(item[3])
-            pid = s.ledger_pid(item[4], msg)
+            raw: bytes = item[2]
+            rx, tx, _, nr, _, _, b, _ = HEADER.unpack_from(raw)
+            pid = s.request_pid(item[3], nr, b, rx, tx) if item[3] else None
             if pid is not None:
-                self._pending[(msg.nr, msg.b, msg.rx, msg.tx)] = pid
-            return s.Record(kind, t, wall, pid, msg=msg)
+                self._pending[(nr, b, rx, tx)] = pid
+            if pid == self._firmware:
+                return None
+            return s.encode_message(kind, t, wall, pid, raw)
         if kind == s.ANSWER:
-            msg = Message.decode(item[3])
-            key = (msg.nr, msg.a, msg.tx, msg.rx)
+            raw = item[2]
+            rx, tx, _, nr, a, f, _, e = HEADER.unpack_from(raw)
+            key = (nr, a, tx, rx)
             pid = self._pending.get(key)
-            more = msg.f == 0 and msg.e & Ext.SEQ_MASK in (Ext.FIRST, Ext.CONT)
+            more = f == 0 and e & Ext.SEQ_MASK in _MORE
             if pid is not None and not more:  # a long upload's parts share their request
                 del self._pending[key]
-            return s.Record(kind, t, wall, pid, msg=msg, state=bytes(item[4]))
-        if kind == s.EXCHANGE:
-            io: bytes | None = item[3]
-            if io is None:  # the card saw the areas unchanged
-                return s.Record(kind, t, wall, state=bytes(item[4]))
-            old = self._io
-            self._io = io
-            changes = {area: s.changed_runs(old[start : start + IO_AREA_SIZE],
-                                            io[start : start + IO_AREA_SIZE])
-                       for area, start in zip(s.AREAS, (SND_PD, RCV_PD - SND_PD), strict=True)}
-            return s.Record(kind, t, wall, changes={a: r for a, r in changes.items() if r},
-                            state=bytes(item[4]))
+            if pid == self._firmware:
+                return None
+            return s.encode_message(kind, t, wall, pid, raw, item[3])
+        if kind == s.HOST_FLAGS:
+            return s.encode_flags(kind, t, wall, item[2], item[3])
         if kind == s.DEV_FLAGS:
-            return s.Record(kind, t, wall, before=max(item[3], 0), after=item[4],
-                            parameter=bytes(item[5]))
-        return s.Record(kind, t, wall, before=item[3], after=item[4])
+            return s.encode_flags(kind, t, wall, item[2], item[3], item[4])
+        return s.encode_record(self._exchange(t, wall, item[2], item[3]))
+
+    def _exchange(self, t: float, wall: float, io: bytes | None, state: bytes) -> s.Record:
+        if io is None:  # the card saw the areas unchanged
+            return s.Record(s.EXCHANGE, t, wall, state=state)
+        old = self._io
+        self._io = io
+        changes = {area: s.changed_runs(old[start : start + IO_AREA_SIZE],
+                                        io[start : start + IO_AREA_SIZE])
+                   for area, start in zip(s.AREAS, (SND_PD, RCV_PD - SND_PD), strict=True)}
+        return s.Record(s.EXCHANGE, t, wall, changes={a: r for a, r in changes.items() if r},
+                        state=state)
+
+
+class Frames:
+    """``can.log``: the frames in candump's log format, as python-can writes it."""
+
+    def __init__(self, out: TextIO, channel: str) -> None:
+        from can.io import CanutilsLogWriter  # here: a session without frames needs no can
+
+        from dpm.tap import decode_frame
+
+        self._decode = decode_frame
+        self._channel = channel
+        self._writer = CanutilsLogWriter(out, channel=channel)
+        self.written = 0
+
+    def write(self, datagram: bytes) -> None:
+        msg, _ = self._decode(datagram, self._channel)
+        self._writer.on_message_received(msg)
+        self.written += 1
 
 
 def batches(stream: BinaryIO) -> Any:
@@ -77,17 +132,52 @@ def batches(stream: BinaryIO) -> Any:
         if len(head) < s.BATCH_FRAME.size:
             return
         (size,) = s.BATCH_FRAME.unpack(head)
-        yield pickle.loads(stream.read(size))
+        yield marshal.loads(stream.read(size))
+
+
+SPOOLER = f"""import os, sys
+os.nice({NICE})
+while os.splice(0, int(sys.argv[3]), 1 << 20):
+    pass
+os.execv(sys.executable, [sys.executable, "-m", "firmware.session_writer", *sys.argv[1:]])
+"""
+"""The writer's first part: stdin (the card's batches) to the spool until its end, then
+this module. Every descriptor stays open across the exec."""
+
+
+def command(events: int, can_log: int | None, spool: int, wall_offset: float, channel: str,
+            firmware_pid: int) -> list[str]:
+    """The writer's command line (``firmware.recorder`` starts it)."""
+    return [sys.executable, "-S", "-c", SPOOLER, str(events),
+            str(-1 if can_log is None else can_log), str(spool), repr(wall_offset), channel,
+            str(firmware_pid)]
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = sys.argv[1:] if argv is None else argv
-    os.nice(NICE)
-    events = Events()
-    with os.fdopen(int(args[0]), "w", encoding="ascii") as out:
-        for batch in batches(sys.stdin.buffer):
-            out.writelines(s.encode_record(events.record(item)) + "\n" for item in batch)
-            out.flush()
+    events_fd, can_fd, spool_fd, wall_offset, channel, firmware_pid = (
+        sys.argv[1:] if argv is None else argv)
+    events = Events(float(wall_offset), int(firmware_pid))
+    can_out = os.fdopen(int(can_fd), "w", encoding="ascii") if int(can_fd) >= 0 else None
+    frames = Frames(can_out, channel) if can_out is not None else None
+    os.lseek(int(spool_fd), 0, os.SEEK_SET)
+    written = 0
+    with os.fdopen(int(spool_fd), "rb") as stored, \
+            os.fdopen(int(events_fd), "w", encoding="ascii") as out:
+        for batch in batches(stored):
+            lines = []
+            for item in batch:
+                if item[0] == s.CAN_FRAME:
+                    if frames is not None:
+                        frames.write(item[1])
+                else:
+                    line = events.line(item)
+                    if line is not None:
+                        lines.append(line + "\n")
+            out.writelines(lines)
+            written += len(lines)
+    if can_out is not None:
+        can_out.close()
+    print(written, frames.written if frames is not None else 0)
     return 0
 
 

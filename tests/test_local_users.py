@@ -237,7 +237,8 @@ def test_directories_and_files_keep_their_modes_under_umask_000(tmp_path: Path) 
     assert modes == {"run": 0o2750, "run/cif": 0o2770, "data": 0o750, "data/board0": 0o750,
                      "run/cif/board0.dpm": 0o660, "run/cif/board0.firmware.lock": 0o660,
                      "run/cif/board0.card.json": 0o660, "run/cif/board0.bell": 0o660,
-                     "run/cif/board0.tap": 0o660, "run/cif/board0.fault": 0o660}
+                     "run/cif/board0.tap": 0o660, "run/cif/board0.fault": 0o660,
+                     "run/cif/board0.record": 0o660}
 
 
 def hold(action: Callable[[socket.socket], None]) -> tuple[int, socket.socket]:

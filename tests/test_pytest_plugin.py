@@ -86,7 +86,9 @@ def test_the_examples_pass_and_a_failing_test_shows_the_card(pytester: pytest.Py
     assert "- cifemu board 0: status -" in failure
     assert '"nd_state": [\n      1,\n      2\n    ]' in failure
     assert '"inputs": "1111111111111111' in failure  # what the host read: the echo
-    assert out.count("- cifemu board") == 2, "sections for the failed test only"
+    assert "- cifemu board 0: transcript -" in failure  # what the host did, from the recording
+    assert "exchange: SndPd[0] 1111111111111111" in failure
+    assert out.count("- cifemu board") == 3, "sections for the failed test only"
     # a mistake in the marker: one line naming the key, no traceback into the plugin
     result.stdout.fnmatch_lines(["*cif_network: node 300: id = 300 is outside 1..127*"])
     assert "pytest_plugin.py" not in out

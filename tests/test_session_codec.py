@@ -71,6 +71,23 @@ def test_the_ledger_names_the_sender_of_a_message() -> None:
     assert s.ledger_pid(b"garbage\n", Message(3, 16, 74, nr=7)) is None
 
 
+@pytest.mark.parametrize("record", ROUND_TRIP[:2], ids=[r.kind for r in ROUND_TRIP[:2]])
+def test_the_writers_fast_line_is_the_codecs_line(record: s.Record) -> None:
+    """The session writer encodes puts and answers from the mailbox bytes, without a Message
+    (firmware/session_writer.py): the same line as the codec's, a mailbox slot's trailing
+    bytes after msg.ln left out."""
+    assert record.msg is not None
+    slot = record.msg.encode().ljust(288, b"\xee")
+    assert s.encode_message(record.kind, record.t, record.wall, record.pid, slot,
+                            record.state) == s.encode_record(record)
+
+
+@pytest.mark.parametrize("record", ROUND_TRIP[2:4], ids=[r.kind for r in ROUND_TRIP[2:4]])
+def test_the_writers_fast_flags_line_is_the_codecs_line(record: s.Record) -> None:
+    assert s.encode_flags(record.kind, record.t, record.wall, record.before, record.after,
+                          record.parameter) == s.encode_record(record)
+
+
 def test_a_ledger_line_round_trips_and_a_malformed_one_is_refused() -> None:
     """One format for host_api, libcif and the recorder (dpm.ledger); a line a dying host
     cut short, or a local user wrote, names nobody."""

@@ -28,7 +28,7 @@ from firmware.can.bus import INTERFACE_ERRORS, BusConfig
 from firmware.device import Device
 from firmware.flash import FLASH_ENV
 from firmware.interpreter import SWITCH_INTERVAL
-from firmware.recorder import Recorder, recording_can_log
+from firmware.recorder import Recorder
 from firmware.sim import SimulatedNetwork
 
 
@@ -62,7 +62,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--record", type=Path, default=None, metavar="SESSION",
                         help="record a session from the start into the directory SESSION "
                              "(created; docs/recording.md): every mailbox message, flag "
-                             "change, process-data exchange, and every frame in SESSION/can.log")
+                             "change, process-data exchange, and every frame in "
+                             "SESSION/can.log. `cifemu record` attaches to a running card")
     parser.add_argument("--simulate", type=Path, default=None, metavar="NETWORK.toml",
                         help="also run the simulated nodes of a network description on the "
                              "same bus, in this process; its [bus] interface, channel and "
@@ -99,11 +100,6 @@ def run(args: argparse.Namespace) -> int:
         print("cifemu firmware: --configure needs a network description (or --simulate)",
               file=sys.stderr)
         return 1
-    if args.record is not None and args.trace is not None:
-        print("cifemu firmware: --record writes its own trace (SESSION/can.log): "
-              "give --record or --trace", file=sys.stderr)
-        return 1
-    trace = recording_can_log(args.record) if args.record is not None else args.trace
     try:
         # The --simulate file's [bus] names the bus below the command line: the simulated
         # nodes and the card share it.
@@ -115,7 +111,7 @@ def run(args: argparse.Namespace) -> int:
     interface = selected.interface or "virtual"
     return _serve(args, network, configure_path, BusConfig(
         interface, selected.channel or default_channel(interface), selected.bitrate,
-        trace, tap_address(image_path(dpm_dir(args.dpm_dir), args.board)),
+        args.trace, tap_address(image_path(dpm_dir(args.dpm_dir), args.board)),
         exit_on_error=args.exit_on_bus_error, options=selected.options))
 
 
@@ -124,7 +120,7 @@ def _serve(args: argparse.Namespace, network: Network | None, configure_path: Pa
     recorder = None
     if args.record is not None:  # before the card, as the bus: a refusal leaves no image
         try:
-            recorder = Recorder(args.record, args.board, can_log=True)
+            recorder = Recorder.create(args.record, args.board, bus.channel)
         except (UnsafePathError, OSError) as exc:  # SessionExistsError is an OSError
             print(f"cifemu firmware: --record {args.record}: {exc}", file=sys.stderr)
             return 1
@@ -150,7 +146,7 @@ def _serve(args: argparse.Namespace, network: Network | None, configure_path: Pa
         return 1
     if recorder is not None:
         recorder.start(device.files, device.mm)
-        device.recorder = recorder
+        device.record(recorder)
     if simulation is not None:
         simulation.start()
 

@@ -284,6 +284,9 @@ class CanBus(can.Listener):
         self.on_link_back: Callable[[], None] = lambda: None
         """Called once a lost link is open again (``on_error``), from the reopening thread."""
         self._trace: can.Listener | None = can.Logger(str(trace)) if trace else None
+        self.record: Callable[[can.Message, bool], None] | None = None
+        """A recording's frame hook (``firmware.recorder``; frame, received), set and
+        cleared while the card runs: every frame the trace sees."""
         self._tap = TapPublisher(tap) if tap else None
         self._lost = threading.Event()
         """The transport failed; a thread is opening it again (``on_error``)."""
@@ -330,6 +333,9 @@ class CanBus(can.Listener):
         if self._trace is not None:
             with self._trace_lock:
                 self._trace.on_message_received(msg)
+        record = self.record
+        if record is not None:
+            record(msg, True)
         if self._tap is not None:
             self._tap.publish(msg, received=True)
         if msg.is_error_frame:
@@ -502,6 +508,9 @@ class CanBus(can.Listener):
         if self._trace is not None:
             with self._trace_lock:
                 self._trace.on_message_received(msg)
+        record = self.record
+        if record is not None:
+            record(msg, False)
         if self._tap is not None:
             self._tap.publish(msg, received=False)
         return True
