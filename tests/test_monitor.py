@@ -4,8 +4,10 @@ from __future__ import annotations
 
 import json
 import os
+import signal
 import subprocess
 import sys
+import threading
 from pathlib import Path
 
 from tests.conftest import ROOT, start_card, wait_until
@@ -25,17 +27,31 @@ def records(proc: subprocess.Popen[str]) -> list[dict[str, object]]:
 
 
 def test_the_tap_shows_a_configuration_decoded_on_the_virtual_bus(tmp_path: Path) -> None:
+    """The monitor runs until the frames the test looks for came (then Ctrl-C), not for a
+    fixed window: a loaded machine's configuration outlasted a 6 s one."""
     card = start_card(tmp_path, 0, "--simulate", str(DEMO))
     log = tmp_path / "trace.log"
     try:
         watching = monitor("--dpm-dir", str(tmp_path), "--network", str(DEMO), "--json",
-                           "--duration", "6", "--log", str(log))
+                           "--duration", "120", "--log", str(log))
+        lines: list[str] = []
+        reader = threading.Thread(target=lambda: lines.extend(iter(watching.stdout.readline,
+                                                                    "")), daemon=True)
+        reader.start()
         wait_until(lambda: (tmp_path / "trace.log").exists(), 20, "the monitor's log file")
         configured = subprocess.run([sys.executable, "-m", "cifemu", "configure", str(DEMO),
                                      "--dpm-dir", str(tmp_path)], capture_output=True,
                                     timeout=60, cwd=ROOT)
         assert configured.returncode == 0
-        seen = records(watching)
+        wanted = ('"NMT start: node 4"', '"guarding request node 3"', '"SYNC"',
+                  "SDO upload response node 3 1000h/00h")
+        wait_until(lambda: all(any(w in line for line in list(lines)) for w in wanted), 30,
+                   "the start, guarding and SYNC in the monitor's output")
+        watching.send_signal(signal.SIGINT)
+        watching.wait(timeout=30)
+        reader.join(timeout=30)
+        assert watching.returncode == 0, watching.stderr.read()
+        seen = [json.loads(line) for line in lines]
     finally:
         card.stop()
     texts = {str(r["text"]) for r in seen}
