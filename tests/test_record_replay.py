@@ -24,21 +24,9 @@ from dpm import flags as fl
 from dpm import session as s
 from dpm.commands import Com
 from tests.conftest import start_card
-from tests.libcif_host import C_TESTS, build_libcif, compile_program
+from tests.libcif_host import C_NETWORK, C_TESTS, build_libcif, compile_program
 
-NETWORK = """
-[bus]
-bitrate = 500000
-sync_period_ms = 10
-
-[[node]]
-id = 1
-name = "io 1"
-
-[[node]]
-id = 2
-name = "io 2"
-"""
+NETWORK = C_NETWORK
 """operative.c's network: the seed's 7.2 procedure configures nodes 1 and 2."""
 
 CHANGED_NODE_2 = NETWORK + "\n[node.sim]\ndevice_type = 0x000F0192\n"
