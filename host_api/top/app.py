@@ -18,6 +18,7 @@ from typing import ClassVar
 from rich.console import RenderableType
 from textual.app import App, ComposeResult
 from textual.binding import Binding, BindingType
+from textual.css.query import NoMatches
 from textual.widgets import DataTable, Footer, Header, Input, RichLog, Sparkline, Static
 
 from dpm.commands import Nmt
@@ -92,7 +93,10 @@ class TopApp(App[None]):
 
     def refresh_view(self) -> None:
         now = time.time()
-        card = self.query_one("#card", Static)
+        try:
+            card = self.query_one("#card", Static)
+        except NoMatches:
+            return  # the interval fired while the app closes: its widgets are gone
         if card.has_class("visible") and self.card_view is not None:
             view = self.card_view()
             if view is not None:
