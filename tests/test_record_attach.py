@@ -287,7 +287,8 @@ def test_passes_and_keeps_its_session(cif_card):
     cif_card.restart()
     cif_card.wait_until_operating()
     assert [r.msg.nr for r in cif_card.records() if r.kind == "put"] == [7]
-    assert cif_card.transcript()[-1] == "exchange: SndPd[0] 5a5a5a5a"
+    # The second start's own flag changes may follow it, as the attach met them (or not).
+    assert "exchange: SndPd[0] 5a5a5a5a" in cif_card.transcript()
 '''
 """A user's suite: a host talks to its card (one COM_Shared_Memory read, one exchange);
 one test fails, one passes, one keeps its session across a restart of its card."""
