@@ -390,8 +390,10 @@ def _new_firmware(bench: Bench, directory: Path, init: bool = False) -> None:
     """
     started = time.monotonic()
     bench.card = start_card(directory, 0, "--interface", "shm", "--channel", bench.channel)
-    if init:  # a host whose DevInitBoard found the card dead initialises it again
-        assert d.DevInitBoard(0) == Drv.DRV_NO_ERROR
+    if init:  # a host whose DevInitBoard found the card dead initialises it again, until
+        # the new firmware is READY (the killed one's stale READY may still show at first)
+        wait_until(lambda: d.DevInitBoard(0) == Drv.DRV_NO_ERROR, 10,
+                   "DevInitBoard on the new firmware")
     wait_until(lambda: _answers(bench.board), 10, "the new firmware's first answer")
     assert time.monotonic() - started < 10
 
