@@ -48,7 +48,7 @@ test-soak: $(STAMP)
 
 # Then tools/vcan-vm's own tests on this host (marker vcan_vm: qemu without KVM, 2 minutes).
 test-vcan: $(STAMP)
-	$(VCAN_VM) --timeout $(VCAN_TIMEOUT) -- env CIFEMU_REQUIRE_SOCKETCAN=1 \
+	$(VCAN_VM) --vcan 2 --timeout $(VCAN_TIMEOUT) -- env CIFEMU_REQUIRE_SOCKETCAN=1 \
 		$(BIN)/python -m pytest -q -m vcan
 	$(BIN)/python -m pytest -q -m vcan_vm
 
