@@ -8,6 +8,11 @@ One round trip is an expedited SDO upload of 1000h from a generic simulated node
 3. baseline: python ``canopen``'s SDO client straight to the same simulated node on a
    virtual bus in this process, with no card between them.
 
+Two references bound what the TCP path can reach: ``tcp_empty_line``, the same client's
+round trip of an empty line, which the server answers without the gateway (the TCP and
+asyncio floor), and ``ceiling_tcp_to_baseline``, the ratio the TCP path would have if it
+cost only that floor plus the gateway's upload (docs/benchmarks.md).
+
 The card is ``cifemu firmware --simulate`` (``bench.can.simulated_card``): the node and
 the card share a virtual bus in the firmware process, and this process reaches the card
 only through its image. Ratios compare each path with the baseline and the TCP server with
@@ -69,6 +74,17 @@ class _LineClient:
             answer += chunk
         return 0 if answer == f"[{self._sequence}] ".encode() + ANSWER else FAILED
 
+    def empty(self) -> int:
+        """An empty line; the server answers it with one (CANopenNode: cocomm -f waits)."""
+        self._socket.sendall(b"\n")
+        answer = b""
+        while not answer.endswith(b"\r\n"):
+            chunk = self._socket.recv(256)
+            if not chunk:
+                return FAILED
+            answer += chunk
+        return 0 if answer == b"\r\n" else FAILED
+
     def close(self) -> None:
         self._socket.close()
 
@@ -85,8 +101,8 @@ def measure_baseline(count: int, warmup: int) -> Measured:
         return measure(upload, count, warmup, frozenset({0}))
 
 
-def measure_card(count: int, warmup: int) -> tuple[Measured, Measured]:
-    """(gateway, tcp) against one card."""
+def measure_card(count: int, warmup: int) -> tuple[Measured, Measured, Measured]:
+    """(gateway, tcp, tcp empty line) against one card."""
     description = network_toml([NODE])
     with simulated_card(description) as card:
         configure(card, parse_network(description))
@@ -107,10 +123,12 @@ def measure_card(count: int, warmup: int) -> tuple[Measured, Measured]:
             try:
                 progress("timing the 309-3 TCP server")
                 tcp = measure(client.read, count, warmup, frozenset({0}))
+                progress("timing the 309-3 TCP server's empty line (no gateway)")
+                empty = measure(client.empty, count, warmup, frozenset({0}))
             finally:
                 client.close()
                 server.close()
-    return direct, tcp
+    return direct, tcp, empty
 
 
 def run(count: int | None = None, warmup: int | None = None) -> dict[str, Any]:
@@ -118,9 +136,10 @@ def run(count: int | None = None, warmup: int | None = None) -> dict[str, Any]:
     warmup = DEFAULT_WARMUP if warmup is None else warmup
     progress("timing python canopen straight on the bus (baseline)")
     baseline = measure_baseline(count, warmup)
-    direct, tcp = measure_card(count, warmup)
+    direct, tcp, empty = measure_card(count, warmup)
     rates = {name: m.per_second for name, m in
-             (("tcp", tcp), ("gateway", direct), ("baseline", baseline))}
+             (("tcp", tcp), ("gateway", direct), ("baseline", baseline), ("empty", empty))}
+    floor_us = 1e6 / rates["empty"] + 1e6 / rates["gateway"]
     return {
         "benchmark": NAME,
         "what": "expedited SDO upload of 1000h from a simulated generic node, round trips",
@@ -129,10 +148,14 @@ def run(count: int | None = None, warmup: int | None = None) -> dict[str, Any]:
         "tcp_309_3": tcp.summary("round_trips_per_s"),
         "gateway": direct.summary("round_trips_per_s"),
         "baseline_canopen": baseline.summary("round_trips_per_s"),
+        "tcp_empty_line": empty.summary("round_trips_per_s"),
         "ratios": {
             "tcp_to_baseline": ratio(rates["tcp"], rates["baseline"]),
             "gateway_to_baseline": ratio(rates["gateway"], rates["baseline"]),
             "tcp_to_gateway": ratio(rates["tcp"], rates["gateway"]),
+            "ceiling_tcp_to_baseline": ratio(1e6 / floor_us, rates["baseline"]),
+            "ceiling_definition": "tcp_to_baseline if a TCP read cost only the empty line's "
+                                  "round trip plus the gateway's upload",
         },
         "machine": machine_info(),
         "source": source_fingerprint(),

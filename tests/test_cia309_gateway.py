@@ -23,7 +23,7 @@ from dpm.com import CanFrame
 from dpm.commands import AREA_BUS, COM_UPLOAD, MAX_LEN_DATA_UNIT
 from dpm.message import Message, Task
 from dpm.task2 import CanState
-from host_api.cia309.gateway import VENDOR_ID, Gateway
+from host_api.cia309.gateway import VENDOR_ID, Gateway, SdoUploadInFlight
 from host_api.cia309.model import (
     ALL_NODES,
     MAX_COMMAND_SIZE,
@@ -193,6 +193,32 @@ def test_sdo_time_outs(gw: Gateway) -> None:
     assert gw.sdo_upload(0x1000, 0, node_id=1) == struct.pack("<I", 0x000F0191)
     gw.set_command_size(MAX_COMMAND_SIZE)
     assert reason(lambda: gw.set_command_size(MAX_COMMAND_SIZE + 1)).error == 600
+
+
+def test_sdo_upload_sent_without_waiting(gw: Gateway) -> None:
+    """``try_sdo_upload`` (the 309-3 server's event loop): the answer is announced from the
+    mailbox reader; a second transfer to a node whose transfer runs is not sent (the caller
+    then blocks in a thread instead); one given up on frees the node's channel at once."""
+    done = [threading.Event() for _ in range(3)]
+    flight = gw.try_sdo_upload(0x1000, 0, done[0].set, node_id=1)
+    assert flight is not None
+    assert done[0].wait(5)
+    assert flight.result() == struct.pack("<I", 0x000F0191)
+    absent = gw.try_sdo_upload(0x1000, 0, lambda: None, node_id=42)  # not on the bus
+    assert absent is not None
+    assert gw.try_sdo_upload(0x1000, 0, lambda: None, node_id=42) is None
+    assert absent.abandon().error == ErrorCode.TIME_OUT
+    sent: list[SdoUploadInFlight | None] = []  # None while the card's mailbox is still full
+    wait_until(lambda: sent.append(gw.try_sdo_upload(0x1000, 0, done[1].set, node_id=42))
+               or sent[-1] is not None, 5, "node 42's channel free again")
+    again = sent[-1]
+    assert again is not None and done[1].wait(5)  # refused (42's transfer runs) or timed out
+    assert reason(again.result).error in (ErrorCode.TIME_OUT, ErrorCode.INTERNAL_STATE)
+    wrong: list[SdoUploadInFlight | None] = []
+    wait_until(lambda: wrong.append(gw.try_sdo_upload(0x2345, 0, done[2].set, node_id=2))
+               or wrong[-1] is not None, 5, "the card's mailbox free")
+    assert done[2].wait(5)
+    assert reason(wrong[-1].result).abort_code == 0x06020000
 
 
 # --- 4.2 PDO ----------------------------------------------------------------------------------

@@ -205,6 +205,10 @@ def sdo() -> dict[str, Any]:
             "mailbox_round_trip": round(mailbox_us, 1),
             "inside_the_card": round(1e6 / card_fast.per_s() - mailbox_us, 1),
             "baseline_total": round(1e6 / base_fast.per_s(), 1),
+            "ceiling_ratio": ratio(1e6 / base_fast.per_s(),
+                                   1e6 / base_fast.per_s() + mailbox_us),
+            "ceiling_definition": "expedited ratio if the card added only one mailbox round "
+                                  "trip to what the baseline's client and node cost",
         }
     return {
         "description": "expedited: upload of 1000h (4 bytes); segmented: download then upload "

@@ -79,6 +79,7 @@ from host_api.cia309.link import (
     RESET_TIMEOUT_MS,
     FrameListener,
     IndicationQueue,
+    InFlight,
     Link,
     card_error,
     driver_error,
@@ -386,8 +387,24 @@ class Gateway:
             raise syntax_error(f"multiplexer {index:#x}:{subindex}")
         return TelegramHeader(node, 0, index, subindex, count, 0, function).encode()
 
-    def _upload(self, link: Link, node: int, index: int, subindex: int) -> bytes:
+    def try_sdo_upload(self, index: int, subindex: int, on_done: Callable[[], None], *,
+                       network: int | None = None, node_id: int | None = None
+                       ) -> SdoUploadInFlight | None:
+        """``sdo_upload`` of a whole object for a caller that cannot block (the 309-3
+        server's event loop): sent now, ``on_done`` called from the mailbox reader's thread
+        once the answer is there, then ``SdoUploadInFlight.result``. None, with nothing
+        sent, when the request would have to wait (``Link.try_request``)."""
+        link = self._link(network)
+        node = self._node(node_id)
         head = self._sdo_header(node, index, subindex, 0, Tfc.READ)
+        flight = link.try_request(COM_SDO_UP_DOWNLOAD, head, self._timeout(), on_done,
+                                  multipart=True, e=Ext.FIRST,
+                                  on_part=self._upload_progress(link, node), sdo_node=node)
+        return None if flight is None else SdoUploadInFlight(flight, _upload_what(
+            node, index, subindex))
+
+    def _upload_progress(self, link: Link, node: int) -> Callable[[Message], None]:
+        """SdoProgressEvents for the parts of a long upload."""
         transferred = 0
 
         def progress(msg: Message) -> None:
@@ -395,11 +412,15 @@ class Gateway:
             transferred += max(0, len(msg.data) - TelegramHeader.SIZE)
             self._core.events.emit(SdoProgressEvent(link.network, node, True, transferred))
 
+        return progress
+
+    def _upload(self, link: Link, node: int, index: int, subindex: int) -> bytes:
+        head = self._sdo_header(node, index, subindex, 0, Tfc.READ)
         with link.sdo_channel(node, self._timeout()):
             answers = link.request(COM_SDO_UP_DOWNLOAD, head, self._timeout(), multipart=True,
-                                   e=Ext.FIRST, on_part=progress)  # e 4: the long form
-        _check_sdo(answers[-1], f"SDO upload {index:04X}:{subindex} from node {node}")
-        return b"".join(answer.data[TelegramHeader.SIZE :] for answer in answers)
+                                   e=Ext.FIRST,  # e 4: the long form
+                                   on_part=self._upload_progress(link, node))
+        return _upload_data(answers, _upload_what(node, index, subindex))
 
     def _download(self, link: Link, node: int, index: int, subindex: int, data: bytes) -> None:
         what = f"SDO download {index:04X}:{subindex} to node {node}"
@@ -979,6 +1000,37 @@ def _check_sdo(answer: Message, what: str) -> None:
         raise Cia309Error.abort(code, what)
     if answer.f:
         raise card_error(answer.f, what)
+
+
+def _upload_what(node: int, index: int, subindex: int) -> str:
+    return f"SDO upload {index:04X}:{subindex} from node {node}"
+
+
+def _upload_data(answers: list[Message], what: str) -> bytes:
+    """The data of an SDO upload's answers; raises the node's abort or the card's refusal."""
+    _check_sdo(answers[-1], what)
+    return b"".join(answer.data[TelegramHeader.SIZE :] for answer in answers)
+
+
+class SdoUploadInFlight:
+    """An SDO upload sent by ``Gateway.try_sdo_upload``, its answer not waited for yet."""
+
+    def __init__(self, flight: InFlight, what: str) -> None:
+        self._flight = flight
+        self._what = what
+
+    @property
+    def timeout(self) -> float:
+        """Seconds to wait for the answer: the session's command time-out."""
+        return self._flight.timeout
+
+    def result(self) -> bytes:
+        """The object's data, once ``on_done`` was called; raises as ``sdo_upload`` does."""
+        return _upload_data(self._flight.messages, self._what)
+
+    def abandon(self) -> Cia309Error:
+        """No answer within ``timeout``: the error ``sdo_upload`` raises then."""
+        return self._flight.abandon()
 
 
 def _check_specifier(specifier: int | None) -> None:

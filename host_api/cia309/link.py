@@ -194,6 +194,8 @@ class _Pending:
     messages: list[Message] = field(default_factory=list)
     done: threading.Event = field(default_factory=threading.Event)
     abandoned_at: float | None = None
+    on_done: Callable[[], None] | None = None
+    """Called in the reader thread once the answer is complete (``Link.try_request``)."""
 
     def deliver(self, msg: Message) -> None:
         self.messages.append(msg)
@@ -205,6 +207,8 @@ class _Pending:
         if self.on_part is not None and self.multipart and sequence == Ext.LAST:
             self.on_part(msg)
         self.done.set()
+        if self.on_done is not None:
+            self.on_done()
 
 
 class _Gate:
@@ -232,6 +236,20 @@ class _Gate:
             with self._condition:
                 self._active -= 1
                 self._condition.notify_all()
+
+    def try_shared(self) -> bool:
+        """Enter shared, without waiting: False while a thread holds the gate alone."""
+        with self._condition:
+            if self._owner is not None:
+                return False
+            self._active += 1
+            return True
+
+    def leave_shared(self) -> None:
+        """End a ``try_shared``."""
+        with self._condition:
+            self._active -= 1
+            self._condition.notify_all()
 
     @contextmanager
     def exclusive(self) -> Iterator[None]:
@@ -282,6 +300,61 @@ class _LinkBoard(Board):
 
     def get_message(self, timeout: int | None = None) -> Message:
         raise CifError(Drv.DRV_CMD_ACTIVE, "DevGetMessage: the 309 gateway reads this mailbox")
+
+
+class InFlight:
+    """A request sent without waiting for its answer (``Link.try_request``): its owner
+    waits for ``on_done`` in its own way, then reads ``messages``, or ``abandon``s it when
+    it gives up. It holds the link's gate (shared) and the node's SDO channel until its
+    answer is complete or it is given up, whichever comes first: the reader thread lets them
+    go itself, so an owner that never comes back (an event loop that stopped) holds nothing
+    once the card has answered."""
+
+    def __init__(self, link: Link, nr: int, pending: _Pending, channel: threading.Lock | None,
+                 timeout: float, on_done: Callable[[], None]) -> None:
+        self.link = link
+        self.nr = nr
+        self.pending = pending
+        self.timeout = timeout
+        """Seconds its owner waits for the answer, as ``Link.request`` would."""
+        self._channel = channel
+        self._on_done = on_done
+        self._open = True
+        self._lock = threading.Lock()
+        """The reader thread (answer complete) and the owner (``abandon``) may both end it."""
+
+    @property
+    def messages(self) -> list[Message]:
+        """The answer (several messages for a long upload), once ``on_done`` was called."""
+        return self.pending.messages
+
+    def release(self) -> None:
+        """Let the request's number, the gate and the SDO channel go (once)."""
+        with self._lock:
+            if not self._open:
+                return
+            self._open = False
+        self.link.forget(self.nr)
+        if self._channel is not None:
+            self._channel.release()
+        self.link.gate.leave_shared()
+
+    def delivered(self) -> None:
+        """From the reader thread: the answer is complete."""
+        self.release()
+        self._on_done()
+
+    def abandon(self) -> Cia309Error:
+        """Give up waiting (a late answer is discarded); the error ``Link.request`` raises."""
+        self.pending.abandoned_at = time.monotonic()
+        with self._lock:
+            still_open = self._open
+            self._open = False
+        if still_open:  # the number stays taken for the late answer, as in ``request``
+            if self._channel is not None:
+                self._channel.release()
+            self.link.gate.leave_shared()
+        return self.link.no_answer(self.pending.b, self.timeout)
 
 
 class Link:
@@ -431,14 +504,68 @@ class Link:
                     raise driver_error(code, "DevPutMessage")
                 if not pending.done.wait(timeout):
                     pending.abandoned_at = time.monotonic()
-                    raise Cia309Error(ErrorCode.TIME_OUT,
-                                      f"board {self.number}: no answer to msg.b {b} "
-                                      f"within {timeout:g} s")
+                    raise self.no_answer(b, timeout)
             finally:
                 if pending.abandoned_at is None:
-                    with self._pending_lock:
-                        self._pending.pop(nr, None)
+                    self.forget(nr)
             return pending.messages
+
+    def forget(self, nr: int) -> None:
+        """A request's number is free again (its answer came)."""
+        with self._pending_lock:
+            self._pending.pop(nr, None)
+
+    def no_answer(self, b: int, timeout: float) -> Cia309Error:
+        return Cia309Error(ErrorCode.TIME_OUT,
+                           f"board {self.number}: no answer to msg.b {b} within {timeout:g} s")
+
+    def try_request(
+        self,
+        b: int,
+        data: bytes,
+        timeout: float,
+        on_done: Callable[[], None],
+        *,
+        e: int = 0,
+        multipart: bool = False,
+        on_part: Callable[[Message], None] | None = None,
+        sdo_node: int | None = None,
+    ) -> InFlight | None:
+        """``request`` for a caller that cannot block (the 309-3 server's event loop): the
+        command is sent and ``on_done`` called from the reader thread once its answer is
+        complete. None, with nothing sent, when it would have to wait: the gate held alone,
+        ``sdo_node``'s SDO channel busy (``sdo_channel``), the card's mailbox full; the
+        caller then makes the blocking call from a thread.
+
+        Why: a thread that waits for the answer costs the server two thread switches per
+        request (to the worker and back to the event loop), about a third of a 309-3 SDO
+        read (docs/benchmarks.md); the reader can wake the event loop directly."""
+        if not self.gate.try_shared():
+            return None
+        channel = None
+        if sdo_node is not None:
+            with self._sdo_channels_lock:
+                channel = self._sdo_channels.setdefault(sdo_node, threading.Lock())
+            if not channel.acquire(blocking=False):
+                self.gate.leave_shared()
+                return None
+        try:
+            nr, pending = self._register(b, multipart, on_part)
+        except BaseException:
+            if channel is not None:
+                channel.release()
+            self.gate.leave_shared()
+            raise
+        flight = InFlight(self, nr, pending, channel, timeout, on_done)
+        pending.on_done = flight.delivered
+        code = d.DevPutMessage(self.number, Message(rx=Task.CAN, tx=Task.USER, b=b, data=data,
+                                                    nr=nr, e=e), 0)
+        if code != Drv.DRV_NO_ERROR:
+            flight.release()
+            if code in (Drv.DRV_DEV_MAILBOX_FULL, Drv.DRV_CMD_ACTIVE):
+                return None
+            raise driver_error(code, "DevPutMessage")
+        return flight
 
     @contextmanager
     def sdo_channel(self, node: int, timeout: float) -> Iterator[None]:

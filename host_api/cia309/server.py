@@ -264,6 +264,13 @@ class EventLog:
         return text + self.dialect.line_end
 
 
+@dataclass(frozen=True)
+class Answered:
+    """A line answered without executing a request (``Dispatcher.prepare``)."""
+
+    text: str | None
+
+
 class Dispatcher:
     """One request line in, one answer text out (None: no answer), for one client."""
 
@@ -284,28 +291,45 @@ class Dispatcher:
         """The answer to one framed line (blocking: call it from a worker thread). A
         failure of the line or the service is its ``ERROR`` answer; only a defect of the
         gateway itself raises."""
+        prepared = self.prepare(client, line)
+        if isinstance(prepared, Answered):
+            return prepared.text
+        return self.execute(client, prepared)
+
+    def prepare(self, client: Client, line: str | OverlongLine) -> Request | Answered:
+        """The request a line makes, or its answer when it makes none to execute (a line
+        that does not parse, an empty one, one ``--read-only`` refuses); never blocks."""
         dialect = self.dialect
         if isinstance(line, OverlongLine):
             error = line.error()
             sequence = client.last_sequence if error.sequence is None else error.sequence
-            return format_error(sequence, error.error, dialect, detail=str(error))
+            return Answered(format_error(sequence, error.error, dialect, detail=str(error)))
         try:
             request = parse_request(line, dialect)
         except ParseError as exc:
             sequence = client.last_sequence if exc.sequence is None else exc.sequence
-            return format_error(sequence, exc.error, dialect, detail=str(exc))
+            return Answered(format_error(sequence, exc.error, dialect, detail=str(exc)))
         if request is None:
-            return format_empty(dialect)
-        client.last_sequence = sequence = request.sequence
+            return Answered(format_empty(dialect))
+        client.last_sequence = request.sequence
         if self.read_only and not isinstance(request, READ_ONLY_REQUESTS):
-            return format_error(sequence, ErrorCode.REQUEST_NOT_SUPPORTED, dialect)
+            return Answered(format_error(request.sequence, ErrorCode.REQUEST_NOT_SUPPORTED,
+                                         dialect))
+        return request
+
+    def execute(self, client: Client, request: Request) -> str:
+        """The answer to a prepared request (blocking)."""
         try:
             return self._execute(client, request)
         except Cia309Error as exc:
-            if exc.abort_code is not None:
-                return format_abort(sequence, exc.abort_code, dialect)
-            assert exc.error is not None
-            return format_error(sequence, exc.error, dialect)
+            return self.failure(request, exc)
+
+    def failure(self, request: Request, exc: Cia309Error) -> str:
+        """The answer to a request whose service failed: the node's abort or the error."""
+        if exc.abort_code is not None:
+            return format_abort(request.sequence, exc.abort_code, self.dialect)
+        assert exc.error is not None
+        return format_error(request.sequence, exc.error, self.dialect)
 
     def _execute(self, client: Client, request: Request) -> str:
         handler = _SERVICES.get(type(request))
@@ -773,9 +797,9 @@ class Server:
         self._connections.append(connection)
         try:
             while connection in self._connections:
-                try:
-                    data = await asyncio.wait_for(reader.read(READ_CHUNK),
-                                                  self._read_timeout(client, loop.time()))
+                try:  # asyncio.timeout, not wait_for: no task of its own for every read
+                    async with asyncio.timeout(self._read_timeout(client, loop.time())):
+                        data = await reader.read(READ_CHUNK)
                 except TimeoutError:
                     what = "line unfinished" if client.framer.partial else "idle"
                     self._end(connection, f"{what} for too long", flush=False)
@@ -790,8 +814,7 @@ class Server:
                         break  # ended while its answers waited to be read
                     connection.serving = True
                     try:
-                        answer = await loop.run_in_executor(
-                            self._executor, self.dispatcher.handle, client, line)
+                        answer = await self._answer(client, line)
                     finally:
                         connection.serving = False
                     connection.last_active = loop.time()
@@ -816,6 +839,54 @@ class Server:
                 self._connections.remove(connection)
             if not writer.transport.is_closing():
                 writer.transport.abort()
+
+    async def _answer(self, client: Client, line: str | OverlongLine) -> str | None:
+        """The answer to one line: an SDO upload from the event loop itself, when the
+        card can take it now; every other request in a worker thread, as the gateway's
+        calls block.
+
+        Why the upload apart: it is the request a 309-3 client repeats most, and a worker
+        thread costs it two thread switches (to the worker, back to the event loop), each
+        of which waits for the interpreter lock; the gateway's mailbox reader wakes the
+        event loop directly instead (``Gateway.try_sdo_upload``)."""
+        dispatcher = self.dispatcher
+        prepared = dispatcher.prepare(client, line)
+        if isinstance(prepared, Answered):
+            return prepared.text
+        loop = asyncio.get_running_loop()
+        if isinstance(prepared, SdoUpload):
+            answered: asyncio.Future[None] = loop.create_future()
+
+            def on_done() -> None:  # in the mailbox reader's thread
+                with contextlib.suppress(RuntimeError):  # the loop closed: nobody waits
+                    loop.call_soon_threadsafe(_resolve, answered)
+
+            try:
+                flight = client.gateway.try_sdo_upload(
+                    prepared.index, prepared.subindex, on_done, network=prepared.net,
+                    node_id=prepared.node)
+            except Cia309Error as exc:
+                return dispatcher.failure(prepared, exc)
+            if flight is not None:
+                try:
+                    async with asyncio.timeout(flight.timeout):
+                        await answered
+                except TimeoutError:
+                    return dispatcher.failure(prepared, flight.abandon())
+                except BaseException:  # cancelled: the server closes
+                    flight.abandon()
+                    raise
+                try:
+                    return format_upload(prepared.sequence, prepared.dtype, flight.result(),
+                                         dispatcher.dialect)
+                except Cia309Error as exc:
+                    return dispatcher.failure(prepared, exc)
+        return await loop.run_in_executor(self._executor, dispatcher.execute, client, prepared)
+
+
+def _resolve(future: asyncio.Future[None]) -> None:
+    if not future.done():
+        future.set_result(None)
 
 
 def _waiting(transport: asyncio.WriteTransport) -> int:
