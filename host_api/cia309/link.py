@@ -537,9 +537,10 @@ class Link:
         ``sdo_node``'s SDO channel busy (``sdo_channel``), the card's mailbox full; the
         caller then makes the blocking call from a thread.
 
-        Why: a thread that waits for the answer costs the server two thread switches per
-        request (to the worker and back to the event loop), about a third of a 309-3 SDO
-        read (docs/benchmarks.md); the reader can wake the event loop directly."""
+        Why: a thread that waits for the answer costs the server two more thread wake-ups
+        per request (to the worker and back to the event loop), each a wait for the
+        interpreter lock and a CPU; the reader can wake the event loop directly. Context
+        switches per 309-3 read went from about 20 to 7 (docs/benchmarks.md)."""
         if not self.gate.try_shared():
             return None
         channel = None
