@@ -7,12 +7,14 @@ STAMP := $(VENV)/.installed
 .PHONY: test test-fast demo bench lint clean test-vcan bench-vcan test-soak
 
 # pip installs a pyproject project editable from 21.3 on (PEP 660): only an older pip is
-# upgraded first, a download and an install fewer on every fresh clone.
+# upgraded first, a download and an install fewer on every fresh clone. --no-compile: Python
+# compiles a module when it is first imported, so the thousands nobody imports (mypy's,
+# hypothesis's, pygments' lexers) are not compiled at all: 8 s of CPU less (docs/testing.md).
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PY) -m venv $(VENV)
 	$(BIN)/python -c 'import pip, sys; sys.exit([int(n) for n in pip.__version__.split(".")[:2]] < [21, 3])' \
 		|| $(BIN)/python -m pip install --quiet --upgrade pip
-	$(BIN)/python -m pip install --quiet -e '.[dev]'
+	$(BIN)/python -m pip install --quiet --no-compile -e '.[dev]'
 	touch $(STAMP)
 
 # The whole suite but the virtual machines' tests (make test-vcan): pytest-xdist spreads it
