@@ -87,3 +87,16 @@ def forbid_processes() -> None:
     """From now on, this process raises at every ``FORBIDDEN_EVENTS`` event. An audit hook
     cannot be removed: call it only in a process that runs nothing but fast tests."""
     sys.addaudithook(_audit)
+
+
+def module_paths(modules: frozenset[str]) -> list[str]:
+    """The files of ``modules``, relative to the clone's root, as pytest takes them."""
+    return [str(TESTS.relative_to(TESTS.parent) / f"{module}.py") for module in sorted(modules)]
+
+
+if __name__ == "__main__":
+    # ``python -m tests.selection serial``: the files of the serial modules, for make test's
+    # second pass, which then collects only them and not the whole suite once more.
+    if sys.argv[1:] != ["serial"]:
+        raise SystemExit("usage: python -m tests.selection serial")
+    print(" ".join(module_paths(SERIAL_MODULES)))

@@ -16,6 +16,7 @@ from tests.selection import (
     SERIAL_MODULES,
     TESTS,
     VCAN_VM_MODULES,
+    module_paths,
 )
 
 
@@ -63,3 +64,11 @@ def test_the_selection_names_test_modules_that_exist() -> None:
     assert VCAN_VM_MODULES <= PROCESS_MODULES and SERIAL_MODULES <= PROCESS_MODULES
     assert "tests.buses" in HELPER_MODULES and not any(
         name.startswith("tests.test_") for name in HELPER_MODULES)
+
+
+def test_the_serial_pass_collects_the_files_of_the_serial_modules_only() -> None:
+    """make test's second pass takes these paths (``python -m tests.selection serial``): each
+    is a serial module's file, from the clone's root, and none is left out."""
+    paths = module_paths(SERIAL_MODULES)
+    assert paths == sorted(f"tests/{module}.py" for module in SERIAL_MODULES)
+    assert all((TESTS.parent / path).is_file() for path in paths)
