@@ -19,6 +19,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import math
+import os
 import select
 import socket
 import threading
@@ -85,6 +86,11 @@ class CardFaults:
         """The fault ``die`` ended the firmware (``cifemu firmware`` exits with
         ``dpm.faults.DIE_EXIT_STATUS``)."""
         self._stop = threading.Event()
+        self._wake_r, self._wake_w = os.pipe()
+        """Wakes the thread from its own process. Not a datagram to the socket's own address:
+        once the socket's file is gone (a demo removes its directory as it ends) nothing
+        reaches that address, and power-off would wait for the thread for good."""
+        os.set_blocking(self._wake_w, False)
         self.address = fault_address(device.path)
         self._sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
         self._sock.setblocking(False)
@@ -109,6 +115,8 @@ class CardFaults:
         if self._thread.is_alive():
             self._thread.join()
         self._sock.close()
+        os.close(self._wake_r)
+        os.close(self._wake_w)
         if RCS_ERROR in self._active:
             self._device.mm[RCS_ERROR_BYTE] = 0
         if self._bound:
@@ -161,15 +169,17 @@ class CardFaults:
     # --- the thread -----------------------------------------------------------------------
 
     def _wake(self) -> None:
-        if self._bound:
-            with contextlib.suppress(OSError):  # its queue is full: it is awake anyway
-                self._sock.sendto(b"", self.address)
+        with contextlib.suppress(BlockingIOError):  # the pipe is full: it is awake anyway
+            os.write(self._wake_w, b"w")
 
     def _serve(self) -> None:
         while not self._stop.is_set():
             due = self._next_due()
             timeout = None if due is None else max(0.0, due - time.monotonic())
-            if select.select((self._sock,), (), (), timeout)[0]:
+            ready = select.select((self._sock, self._wake_r), (), (), timeout)[0]
+            if self._wake_r in ready:
+                os.read(self._wake_r, 512)
+            if self._sock in ready:
                 self._take_requests()
             now = time.monotonic()
             self._expire(now)
@@ -183,8 +193,8 @@ class CardFaults:
                 return
             except OSError:
                 return  # closed at power-off
-            if not data or peer == self.address:
-                continue  # a wake-up of its own
+            if not data:
+                continue  # nothing asked
             reply = self._answer(data)
             if not peer:
                 continue  # a sender without an address (socat, a shell) gets no answer

@@ -107,6 +107,12 @@ def start_card(directory: Path, board: int = 0, *extra: str) -> Card:
 
 
 def pytest_configure(config: pytest.Config) -> None:
+    # A shell starts a background job (`make test &`, CI scripts) with SIGINT ignored, and
+    # children inherit an ignored signal: the demo, `cifemu record` and the other commands
+    # that the tests end with Ctrl-C would never see it. A handler is not inherited: the
+    # children start with Ctrl-C's default again.
+    if signal.getsignal(signal.SIGINT) == signal.SIG_IGN:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
     config.addinivalue_line("markers", "vcan: needs SocketCAN with vcan0 (make test-vcan)")
     config.addinivalue_line("markers", "fast: starts no process and opens no socket: a codec, "
                             "parser or source check (make test-fast; tests/selection.py)")

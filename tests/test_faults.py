@@ -288,6 +288,15 @@ def test_the_firmware_dies_as_a_card_whose_watchdog_fires(tmp_path: Path) -> Non
         card.stop()
 
 
+def test_the_firmware_stops_when_its_fault_socket_file_is_gone(card: Card) -> None:
+    """A demo removes its directory as it ends, the fault socket's file with it: SIGTERM then
+    still ends the firmware. The fault thread used to be woken by a datagram to that file,
+    so power-off waited for it for good and the process stayed."""
+    (card.directory / f"board{card.board}.fault").unlink()
+    card.proc.terminate()
+    assert card.proc.wait(timeout=20 * TIME_SCALE) == 0
+
+
 def test_a_hanging_card_comes_back_by_a_cold_start(card: Card, opened: Board) -> None:
     """`die --hang`: READY drops and the process stays; with an RCS error in force a new
     host's DevInitBoard gets 1000 + bRcsError; a second `die --hang` moves the hang's end,
