@@ -60,7 +60,8 @@ test-vcan: $(STAMP)
 		$(BIN)/python -m pytest -q -m vcan
 	$(BIN)/python -m pytest -q -m vcan_vm
 
-# The SocketCAN figures (bench.vcan: vcan0, the broadcast manager, the card on them, and
+# The SocketCAN figures (bench.vcan: vcan0, the broadcast manager, the card on them, 309-3
+# reads against CANopenNode's gateway where CANopenNode is built beside the project, and
 # the CAN benchmark's phases with their nodes on vcan0), one JSON document on stdout. The
 # guest sees only its own load: the host's goes in by the environment.
 bench-vcan: $(STAMP)
