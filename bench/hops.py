@@ -172,7 +172,27 @@ def breakdown(names: list[str], rounds: list[Marks]) -> dict[str, Any]:
         row["share"] = round(row["p50_us"] / total, 3) if total else None
     return {"hops": table, "sum_of_p50_us": round(total, 1),
             "end_to_end_us": latency_stats([r[-1] - r[0] for r in rounds]),
-            "round_trips": len(rounds)}
+            "round_trips": len(rounds), "tail": tail(names, rounds)}
+
+
+def tail(names: list[str], rounds: list[Marks]) -> dict[str, Any]:
+    """Where the slowest round trips lose their time: for those at or above the end-to-end
+    p99, each hop's mean and how often it was the round trip's longest hop.
+
+    The p99 of each hop alone does not say that: the slowest round trips need not be made
+    of any one hop's slowest spans. A tail spread over the hops that are wake-ups of a
+    thread or process, while the hops that only compute stay short, is the scheduler's
+    (a woken thread waiting for a CPU), not the card's work."""
+    if not rounds:
+        return {}
+    ends = sorted(r[-1] - r[0] for r in rounds)
+    threshold = percentile(ends, 99)
+    slow = [r for r in rounds if r[-1] - r[0] >= threshold]
+    longest = [max(range(len(names)), key=lambda i, r=r: r[i + 1] - r[i]) for r in slow]
+    return {"round_trips": len(slow), "from_us": round(threshold / 1000, 1),
+            "hops": [{"hop": name,
+                      "mean_us": round(sum(r[i + 1] - r[i] for r in slow) / len(slow) / 1000, 1),
+                      "longest_in": longest.count(i)} for i, name in enumerate(names)]}
 
 
 def run_rounds(step: Callable[[], Marks], count: int, warmup: int) -> tuple[list[Marks], int]:

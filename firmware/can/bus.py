@@ -271,6 +271,9 @@ class CanBus(can.Listener):
         # them without a lock.
         self._subscribers: dict[int, tuple[FrameCallback, ...]] = {}
         self._catch_all: tuple[FrameCallback, ...] = ()
+        self._dispatch: dict[int, tuple[FrameCallback, ...]] = {}
+        """Per 11-bit identifier with subscribers: the catch-all callbacks, then its own, as
+        one tuple made when a subscription changes, not per received frame (``_redispatch``)."""
         self._lock = threading.Lock()
         self._trace_lock = threading.Lock()
         """The trace is written by the receive thread and by every sending thread."""
@@ -304,6 +307,7 @@ class CanBus(can.Listener):
     def subscribe(self, can_id: int, callback: FrameCallback) -> None:
         with self._lock:
             self._subscribers[can_id] = (*self._subscribers.get(can_id, ()), callback)
+            self._redispatch()
 
     def unsubscribe(self, can_id: int, callback: FrameCallback) -> None:
         with self._lock:
@@ -311,6 +315,14 @@ class CanBus(can.Listener):
             if callback in callbacks:
                 callbacks.remove(callback)
                 self._subscribers[can_id] = tuple(callbacks)
+                self._redispatch()
+
+    def _redispatch(self) -> None:
+        """Make ``_dispatch`` anew (under ``_lock``) and swap it in whole: the receive
+        thread reads either the old table or the new one, never half of one."""
+        catch_all = self._catch_all
+        self._dispatch = {ident: catch_all + callbacks
+                          for ident, callbacks in self._subscribers.items() if callbacks}
 
     def hold_from_canopen(self, can_id: int, held: bool) -> None:
         """Keep ``can_id``'s frames from canopen's network while another client owns it.
@@ -326,6 +338,7 @@ class CanBus(can.Listener):
         """Every received frame (layer-2 access, transparent reception)."""
         with self._lock:
             self._catch_all = (*self._catch_all, callback)
+            self._redispatch()
 
     def on_message_received(self, msg: can.Message) -> None:
         if self.off_bus and not msg.is_error_frame:
@@ -345,9 +358,8 @@ class CanBus(can.Listener):
             return
         ident = msg.arbitration_id
         held = ident in self._held  # before the callbacks: the last answer ends the hold
-        callbacks = self._catch_all
-        if not msg.is_extended_id:
-            callbacks += self._subscribers.get(ident, ())
+        callbacks = self._catch_all if msg.is_extended_id else self._dispatch.get(
+            ident, self._catch_all)
         for callback in callbacks:
             try:
                 callback(msg)

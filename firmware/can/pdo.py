@@ -96,6 +96,13 @@ class NodePdos:
         self._synchronous = [e for e in self.outputs if e.pdo.bTransType <= 240]
         """Outputs a SYNC may send: at 1,000 SYNCs/s the others are not even read then
         (the master sends a changed event-driven output when it looks)."""
+        self._by_cob_id: dict[int, tuple[tuple[InputPdo, int, int, bool], ...]] = {}
+        """Per TX-PDO identifier: its inputs with their offset, length and word order, so
+        that a received frame (thousands a second) finds its place without a search."""
+        for entry in self.inputs:
+            pdo = entry.pdo
+            self._by_cob_id[pdo.usPdoCOBId] = (*self._by_cob_id.get(pdo.usPdoCOBId, ()), (
+                entry, entry.offset, pdo.data_length, bool(pdo.bLength & MSK_WORD_PDO)))
 
     def attach(self, bus: CanBus) -> None:
         for entry in self.inputs:
@@ -220,13 +227,13 @@ class NodePdos:
     def _on_input(self, msg: can.Message) -> None:
         if msg.is_remote_frame or not self._operating():
             return
-        for entry in self.inputs:
-            if entry.pdo.usPdoCOBId == msg.arbitration_id:
-                entry.requested = 0.0
-                data = bytes(msg.data[: entry.pdo.data_length])
-                if entry.pdo.bLength & MSK_WORD_PDO and self.link.motorola:
-                    data = swap_words(data)
-                self.link.image.write_inputs(entry.offset, data)
+        link = self.link
+        for entry, offset, length, word in self._by_cob_id.get(msg.arbitration_id, ()):
+            entry.requested = 0.0
+            data = bytes(msg.data[:length])
+            if word and link.motorola:
+                data = swap_words(data)
+            link.image.write_inputs(offset, data)
 
 
 class OutputSender(Protocol):

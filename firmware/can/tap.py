@@ -74,13 +74,18 @@ class TapPublisher:
                 del self._subscribers[peer]
 
     def publish(self, msg: can.Message, received: bool) -> None:
-        """Offer one frame (any thread); costs a clock read while nobody listens."""
+        """Offer one frame (any thread); costs a clock read while nobody listens. The
+        subscribers are only changed under the lock; a look at them without it can at worst
+        miss one that ``_drain`` is adding in this moment, which then gets the next frame."""
         if self._directory is None:
             return
         now = time.monotonic()
+        emcy = msg.arbitration_id in EMCY_IDS and not msg.is_extended_id and not (
+            msg.is_remote_frame or msg.is_error_frame)
+        if not (emcy or self._subscribers or now >= self._drain_due):
+            return  # nothing to keep, nobody to send it to, no look due: not even the lock
         with self._lock:
-            if msg.arbitration_id in EMCY_IDS and not msg.is_extended_id and not (
-                    msg.is_remote_frame or msg.is_error_frame):
+            if emcy:
                 self._last_emcy[msg.arbitration_id] = encode_frame(msg, received, replay=True)
             if now >= self._drain_due:
                 self._drain_due = now + DRAIN_INTERVAL_S
