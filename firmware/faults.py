@@ -176,10 +176,10 @@ class CardFaults:
         while not self._stop.is_set():
             due = self._next_due()
             timeout = None if due is None else max(0.0, due - time.monotonic())
-            ready = select.select((self._sock, self._wake_r), (), (), timeout)[0]
+            ready = select.select((self._sock.fileno(), self._wake_r), (), (), timeout)[0]
             if self._wake_r in ready:
                 os.read(self._wake_r, 512)
-            if self._sock in ready:
+            if self._sock.fileno() in ready:
                 self._take_requests()
             now = time.monotonic()
             self._expire(now)
