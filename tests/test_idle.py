@@ -45,15 +45,15 @@ WINDOW_S = 3.0
 MAX_LOOP_CPU_PCT = 1.0
 """The device loop's CPU time while idle, in per cent of the wall time. The polling loop
 took 3.0 % on this machine at load average 19 (5.8 % for the card at load 1); the
-event-driven one takes 0.2-0.5 %."""
+event-driven one took 0.2-0.5 % with the 50 ms poll, 0.06 % with the 250 ms quiet poll."""
 MAX_WAKEUPS_PER_S = 10
 """The device loop's sleeps per second while idle: a 1 ms poll gives up to 1,000, the
 backed-off poll 1 / DEVICE_POLL_IDLE (20), the quiet poll 1 / DEVICE_POLL_QUIET (4)."""
 MAX_IDLE_CARD_WAKEUPS_PER_S = 12
 """Every thread of a card with nothing to do, with no network or on ``shm`` with no nodes:
-the device loop's quiet poll (4 a second) and the receive thread's net (1 a second). Before
-issue 22's last step: 30 with no network (the 50 ms poll, python-can's Notifier every 100 ms),
-40 on ``shm`` (the reader's 50 ms sleep)."""
+the device loop's quiet poll (4 a second) and the receive thread's net (1 a second). With the
+50 ms poll and python-can's Notifier (d599661): 28-30 with no network (the Notifier woke every
+100 ms), 36-38 on ``shm`` (the reader's 50 ms sleep)."""
 QUIET_TRIALS = 3
 SCHEDULING_SLACK_S = 0.25
 """What a shared, loaded 2-core machine may add to a wake-up before the loop runs."""
