@@ -90,7 +90,7 @@ def share(before: CpuSample, after: CpuSample, pid: int) -> dict[str, Any]:
 
     ``main_thread`` is the thread whose id is ``pid``: the firmware's device loop. The
     other threads have no names the kernel knows; their wake-up rates tell them apart (the
-    controller's receive thread wakes for every frame and at least 10 times a second).
+    controller's receive thread wakes for every frame and, idle, about once a second).
     """
     wall = after.wall_ns - before.wall_ns
     spent = {tid: ns - before.threads.get(tid, 0) for tid, ns in after.threads.items()}

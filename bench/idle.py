@@ -8,7 +8,7 @@ operational before the window starts; the host that configured them stays open a
 does nothing. What a node adds is counted against the card on the same bus: the
 ``shm`` reader's own bounded sleep is the bus's cost, not the nodes'. Each figure is split into the
 device loop (the firmware's main thread) and its other threads (the CAN master, the
-controller's receive thread, python-can's). Baseline, same run: a Python process
+controller's receive thread). Baseline, same run: a Python process
 blocked on a Unix datagram socket, as a card asleep on its doorbell would be.
 
 CPU time, not wall time: the figures hold on a loaded machine.

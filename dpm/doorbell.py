@@ -10,7 +10,8 @@ both sides re-read the flags after every wake-up and also poll, so a lost ring
 (a full queue, a host that writes the image directly) costs at most one poll
 interval, never correctness. The device polls adaptively (``AdaptivePoll``): every
 millisecond while the flags move, backing off to ``DEVICE_POLL_IDLE`` when nothing
-happens, so an idle card sleeps instead of waking a thousand times a second.
+happens and, after ``DEVICE_QUIET_AFTER`` without anything, to ``DEVICE_POLL_QUIET``, so an
+idle card sleeps instead of waking a thousand (or twenty) times a second.
 """
 
 from __future__ import annotations
@@ -28,9 +29,20 @@ POLL_INTERVAL = 0.001
 while the flags move (the 1 ms of docs/dpm.md 2)."""
 
 DEVICE_POLL_IDLE = 0.05
-"""[ours] The device's longest poll interval, reached when the flags have not moved for a
-while: the latency a host that never rings sees for its first request after a pause
-(docs/dpm.md 2). 20 turns a second cost an idle card about 0.1-0.3 % of a core."""
+"""[ours] The device's longest poll interval within ``DEVICE_QUIET_AFTER`` of the last
+activity: the latency a host that never rings sees for a request after a short pause
+(docs/dpm.md 2)."""
+
+DEVICE_QUIET_AFTER = 1.0
+"""[ours] Seconds without activity after which the device polls at ``DEVICE_POLL_QUIET``: a
+raw host that pauses less than this between its exchanges keeps ``DEVICE_POLL_IDLE``."""
+
+DEVICE_POLL_QUIET = 0.25
+"""[ours] The device's longest poll interval, reached after ``DEVICE_QUIET_AFTER`` without
+activity: the latency a host that never rings sees for its first request after a long pause
+(docs/dpm.md 2). Each turn costs this machine about 0.2 ms of CPU, mostly the wake-up
+itself: 20 turns a second (``DEVICE_POLL_IDLE``) were 0.3-0.45 % of a core, most of an idle
+card's cost; 4 a second are under 0.1 %."""
 
 DEVICE_FAST_WINDOW = 0.05
 """Seconds after the last flag change during which the device keeps polling every
@@ -102,22 +114,28 @@ class AdaptivePoll:
     A ring wakes the device at once whatever the interval; the poll only serves a host
     that writes the flags without ringing. ``POLL_INTERVAL`` holds for
     ``DEVICE_FAST_WINDOW`` after the last activity, then the interval doubles each quiet
-    turn up to ``DEVICE_POLL_IDLE``: a raw host in the middle of its exchanges keeps the
-    1 ms service, and one that starts after a pause waits at most ``DEVICE_POLL_IDLE``.
+    turn up to ``DEVICE_POLL_IDLE``, and after ``DEVICE_QUIET_AFTER`` on up to
+    ``DEVICE_POLL_QUIET``. A raw host in the middle of its exchanges keeps the 1 ms
+    service, one that starts after a short pause waits at most ``DEVICE_POLL_IDLE``, and one
+    that starts after a long pause at most ``DEVICE_POLL_QUIET``; any activity snaps the
+    interval back to ``POLL_INTERVAL``.
     """
 
     def __init__(self) -> None:
         self.interval = POLL_INTERVAL
         self._fast_until = 0.0
+        self._quiet_from = 0.0
 
     def next_interval(self, active: bool, now: float) -> float:
         """The interval until the next poll, after a turn at ``now`` (``active``: it saw
         a ring or a flag change)."""
         if active:
             self._fast_until = now + DEVICE_FAST_WINDOW
+            self._quiet_from = now + DEVICE_QUIET_AFTER
             self.interval = POLL_INTERVAL
         elif now >= self._fast_until:
-            self.interval = min(self.interval * 2, DEVICE_POLL_IDLE)
+            longest = DEVICE_POLL_QUIET if now >= self._quiet_from else DEVICE_POLL_IDLE
+            self.interval = min(self.interval * 2, longest)
         return self.interval
 
 

@@ -9,8 +9,9 @@ Tasks that work in threads of their own (the CAN task) hand answers over with
 ``post``; their Task2State writes wake the loop, which shows them (STATECOM).
 
 The fallback poll (``AdaptivePoll``) serves a host that writes the flags without
-ringing: every millisecond while the flags move, backing off to 50 ms when idle,
-so that a card nobody uses costs (almost) nothing (issue 22). After each turn the
+ringing: every millisecond while the flags move, backing off to 50 ms when idle and
+to 250 ms after a second without activity, so that a card nobody uses costs (almost)
+nothing (issue 22). After each turn the
 loop tells the CAN master's thread, which sleeps too, when the host changed what it
 follows: the outputs, the connection bits, its readiness (``Master.notice_host``);
 those count as activity for the poll, as a flag change does.

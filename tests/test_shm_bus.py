@@ -39,7 +39,6 @@ from firmware.shm.bus import (
     CAPACITY,
     FILE_SIZE,
     MAGIC,
-    MAX_SLEEP_S,
     MAX_STATIONS,
     RECORD_SIZE,
     ShmBus,
@@ -47,8 +46,15 @@ from firmware.shm.bus import (
     frames_written,
 )
 from firmware.shm.tasks import ShmCyclicSendTask
+from tests.conftest import wait_until
 
 ROOT = Path(__file__).resolve().parents[1]
+POLL_PERIOD_S = 0.05
+"""The reader's bounded sleep before issue 22: what a reader that only polled would wait."""
+IDLE_WINDOW_S = 3.0
+"""How long an idle reader is watched (``test_an_idle_reader_sleeps_until_rung``)."""
+MAX_IDLE_WAKEUPS_PER_S = 2
+"""An idle reader's wake-ups: one per ``MAX_SLEEP_S`` (1 s) now, 20 a second before."""
 CAN_ERR_CRTL = 0x004
 CAN_ERR_CRTL_RX_OVERFLOW = 0x01
 
@@ -384,8 +390,50 @@ def test_sleeping_readers_are_rung_not_left_to_poll(channel: str, open_bus: Open
     elapsed = time.monotonic() - begin
     thread.join(timeout=5)
     assert replies == list(range(trips))
-    # Polling alone would average MAX_SLEEP_S / 2 per hop: 2 * trips hops.
-    assert elapsed < trips * MAX_SLEEP_S / 2
+    # Polling every 50 ms (the reader's bound before issue 22) would average 25 ms per
+    # hop: 2 * trips hops.
+    assert elapsed < trips * POLL_PERIOD_S / 2
+
+
+def _voluntary_switches(native_id: int) -> int:
+    """Sleeps that ended, of one thread of this process (each one a wake-up)."""
+    status = Path(f"/proc/self/task/{native_id}/status").read_text()
+    return next(int(line.split()[1]) for line in status.splitlines()
+                if line.startswith("voluntary_ctxt_switches:"))
+
+
+def test_an_idle_reader_sleeps_until_rung(channel: str, open_bus: Opener) -> None:
+    """Issue 22: a reader with nothing to read wakes once per ``MAX_SLEEP_S`` at most (it
+    woke every 50 ms, 20 times a second, the most of an idle card's receive thread); a
+    frame still wakes it, and ``loop_back`` ends its wait from another thread.
+    (``test_sleeping_readers_are_rung_not_left_to_poll`` times the rings.)"""
+    reader, writer = open_bus(channel), open_bus(channel)
+    got: list[can.Message | None] = []
+    native_id: list[int] = []
+
+    def receive() -> None:
+        native_id.append(threading.get_native_id())
+        got.append(reader.recv(timeout=IDLE_WINDOW_S + 30))
+
+    thread = threading.Thread(target=receive, daemon=True)
+    thread.start()
+    wait_until(lambda: bool(native_id))
+    before = _voluntary_switches(native_id[0])
+    time.sleep(IDLE_WINDOW_S)  # the measurement window, not a wait on a condition
+    wakeups = _voluntary_switches(native_id[0]) - before
+    assert wakeups <= IDLE_WINDOW_S * MAX_IDLE_WAKEUPS_PER_S, f"the reader woke {wakeups} times"
+    writer.send(counter_frame(7))
+    thread.join(timeout=10)
+    assert counters([frame for frame in got if frame is not None]) == [7]
+
+    marker = can.Message(arbitration_id=0x123, is_extended_id=False, data=b"wake")
+    thread = threading.Thread(target=receive, daemon=True)
+    thread.start()
+    wait_until(lambda: len(native_id) == 2)
+    reader.loop_back(marker)
+    thread.join(timeout=10)
+    assert not thread.is_alive()
+    assert got[-1] is marker
 
 
 def test_frames_written_counts_every_stations_frames_without_a_station(

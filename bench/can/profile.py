@@ -30,10 +30,10 @@ ROLES = {
     "card: SYNC producer": ("can-sync",),
     "card: node boot / SDO workers": ("node-boot",),
     "card: device loop (mailboxes, handshakes)": ("MainThread",),
+    "card: controller receive (input PDOs -> image)": ("can-receive",),
     "simulator: timers": ("sim scheduler",),
     "simulator: heartbeat producers (python-can cyclic tasks)": ("Cyclic send task",),
 }
-CARD_RX = "card: controller receive (input PDOs -> image)"
 SIM_RX = "simulator: receive (RPDO apply, echo, TPDO send, SDO server)"
 
 
@@ -85,7 +85,6 @@ def profile_window(card: SimCard, values: U64, active: int, out_offset: int,
 def summarise_profile(raw: str, expected_samples: float) -> dict[str, Any]:
     """Shares of GIL samples by thread role and by function (py-spy raw, ``--threads``)."""
     by_thread: Counter[str] = Counter()
-    thread_kind: dict[str, Counter[str]] = {}
     thread_name: dict[str, str] = {}
     inclusive: Counter[str] = Counter()
     total = 0
@@ -101,11 +100,6 @@ def summarise_profile(raw: str, expected_samples: float) -> dict[str, Any]:
         thread_name[tid] = head.partition(": ")[2]
         by_thread[tid] += count
         total += count
-        kinds = thread_kind.setdefault(tid, Counter())
-        if "firmware/can/bus.py" in stack:
-            kinds["card"] += count
-        elif "firmware/sim/" in stack or "canopen/network.py" in stack:
-            kinds["sim"] += count
         seen: set[str] = set()
         for frame in frames[1:]:
             name = frame.split(":")[0] + ")" if ":" in frame else frame
@@ -117,8 +111,7 @@ def summarise_profile(raw: str, expected_samples: float) -> dict[str, Any]:
         name = thread_name[tid]
         role = next((r for r, prefixes in ROLES.items() if name.startswith(prefixes)), None)
         if role is None and name.startswith("Notifier"):
-            kinds = thread_kind.get(tid, Counter())
-            role = CARD_RX if kinds["card"] >= kinds["sim"] else SIM_RX
+            role = SIM_RX  # the card's controller has a receive thread of its own
         shares[role or f"other: {name}"] += count
 
     def share(value: int) -> float:

@@ -7,6 +7,11 @@ SDO client sends. The exception is a SYNC from a timer outside the interpreter
 and a controller that fails to send it reports that in error frames. Received
 frames are dispatched by identifier to the services that subscribed, and fed to
 canopen's network for its SDO clients.
+
+The receive thread (``_Receiver``) is the controller's own, not python-can's
+``Notifier``: the Notifier returns from ``recv`` every 100 ms to see whether it
+should stop, ten wake-ups a second of a card with nothing to do. This one blocks
+until a frame comes, and power-off wakes it (issue 22).
 """
 
 from __future__ import annotations
@@ -14,10 +19,14 @@ from __future__ import annotations
 import contextlib
 import json
 import logging
+import os
+import queue
+import select
 import socket
 import subprocess
 import threading
 import time
+import weakref
 from collections import deque
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
@@ -99,6 +108,22 @@ link set can0 type can bitrate N``, as root), an ``shm`` channel's its first sta
 compares its Baud_rate with it (``link_bitrate``)."""
 IP_TIMEOUT_S = 2.0
 """How long reading a SocketCAN link's rate from ``ip`` may take."""
+SELECTABLE_INTERFACES = ("socketcan", "udp_multicast")
+"""Interfaces whose ``fileno`` is readable exactly while a frame waits (one frame per
+datagram, nothing buffered in Python): the receive thread waits on it with ``select``,
+beside a pipe that its ``stop`` writes."""
+RECV_IDLE_S = 1.0
+"""How long the receive thread waits in ``recv`` on ``virtual`` and ``shm``, whose waits its
+``stop`` ends at once: a net for a wake-up frame that a software filter (``can_filters``)
+dropped. An idle controller's thread wakes this often (it woke every 100 ms with
+python-can's ``Notifier``)."""
+RECV_POLL_S = 0.1
+"""How long the receive thread waits in ``recv`` on an interface it has no other way to wake
+(a bridge's client, a vendor's driver): python-can's ``Notifier`` waited as long, and the
+card's power-off waits at most this for the thread."""
+RECEIVER_JOIN_S = 5.0
+"""How long ``_Receiver.stop`` waits for the thread (python-can's ``Notifier.stop``'s
+default); a frame handler that takes longer is left to end on its own."""
 
 
 def bitrate_of_link(details: object) -> int | None:
@@ -246,6 +271,87 @@ class BusConfig:
     opens the interface again with them (a new Baud_rate, a lost link)."""
 
 
+class _Receiver:
+    """The controller's receive thread: waits until a frame comes or ``stop`` wakes it.
+
+    How it waits depends on what can wake the interface's ``recv``:
+
+    - ``SELECTABLE_INTERFACES``: ``select`` on the bus's descriptor and on a pipe that
+      ``stop`` writes, without a time-out, then ``recv(0)``;
+    - ``virtual`` and ``shm``: ``recv(RECV_IDLE_S)``; ``stop`` hands the station a frame of
+      its own (``VirtualBus.queue``, ``ShmBus.loop_back``), which ends the wait and which
+      the thread drops. (A ``recv`` that only returned None would not do: python-can's
+      ``recv`` waits on until its time-out.)
+    - any other: ``recv(RECV_POLL_S)``, as python-can's ``Notifier``.
+
+    A frame that arrives while it stops is dropped, as the Notifier drops the frames after
+    its last ``recv``. An exception from the interface or a frame handler goes to the
+    controller's ``on_error``, as the Notifier's did; then the thread ends: ``on_error``
+    opens the interface again with a new receiver, or the controller is closing.
+    """
+
+    def __init__(self, bus: can.BusABC, interface: str, listener: can.Listener) -> None:
+        self._bus = bus
+        self._listener = listener
+        self._stopping = False
+        self._wake_frame = can.Message(arbitration_id=0, is_extended_id=False)
+        """What ``stop`` hands a ``virtual`` or ``shm`` station (known by identity)."""
+        self._fd = -1
+        self._wake_w = -1
+        """The pipe's end that ``stop`` writes (``SELECTABLE_INTERFACES``)."""
+        self._hand_over: Callable[[can.Message], None] | None = None
+        if interface in SELECTABLE_INTERFACES:
+            with contextlib.suppress(NotImplementedError, OSError):
+                self._fd = bus.fileno()
+        if self._fd >= 0:
+            self._wake_r, self._wake_w = os.pipe2(os.O_CLOEXEC | os.O_NONBLOCK)
+            # Closed with the object, which the thread holds while it runs: never a
+            # descriptor that the thread may still select on.
+            weakref.finalize(self, _close_pipe, self._wake_r, self._wake_w)
+        elif interface == "virtual" and isinstance(getattr(bus, "queue", None), queue.Queue):
+            self._hand_over = bus.queue.put_nowait  # type: ignore[attr-defined]
+        elif callable(getattr(bus, "loop_back", None)):
+            self._hand_over = bus.loop_back  # type: ignore[attr-defined]
+        self._timeout = RECV_IDLE_S if self._hand_over is not None else RECV_POLL_S
+        self._thread = threading.Thread(target=self._run, name="can-receive", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        try:
+            while not self._stopping:
+                msg = self._next()
+                if msg is not None and not self._stopping and msg is not self._wake_frame:
+                    self._listener.on_message_received(msg)
+        except Exception as exc:  # the transport failed, or a frame handler did
+            if not self._stopping:
+                self._listener.on_error(exc)
+
+    def _next(self) -> can.Message | None:
+        if self._fd >= 0:
+            ready = select.select((self._fd, self._wake_r), (), ())[0]
+            return self._bus.recv(0) if self._fd in ready else None
+        return self._bus.recv(self._timeout)
+
+    def stop(self) -> None:
+        """End the thread: wake it, and wait for it (unless called from it, by a frame
+        handler or ``on_error``)."""
+        if self._stopping:
+            return
+        self._stopping = True
+        if self._wake_w >= 0:
+            os.write(self._wake_w, b"s")  # the only byte: the pipe has room
+        if self._hand_over is not None:
+            with contextlib.suppress(queue.Full):  # a full queue wakes the thread anyway
+                self._hand_over(self._wake_frame)
+        if threading.current_thread() is not self._thread:
+            self._thread.join(RECEIVER_JOIN_S)
+
+
+def _close_pipe(*fds: int) -> None:
+    for fd in fds:
+        os.close(fd)
+
+
 class CanBus(can.Listener):
     """One CAN controller on one python-can bus."""
 
@@ -299,8 +405,7 @@ class CanBus(can.Listener):
         self._closed = threading.Event()
         self._refused_remote = False
         """Whether the one log line about a remote frame not sent is written."""
-        listeners: list[can.Listener] = [self]
-        self._notifier = can.Notifier(self.bus, listeners, timeout=0.1)
+        self._receiver = _Receiver(self.bus, interface, self)
 
     # --- receiving ----------------------------------------------------------------------
 
@@ -382,8 +487,8 @@ class CanBus(can.Listener):
         [ours] The host sees a bus-off (Bus_Off_Cnt, EVE): the controller is off the bus.
         The interface is opened again every ``REOPEN_S`` until it is back; then
         ``on_link_back`` (the master sends every running node's outputs again) and the
-        nodes' supervision do the rest. python-can's receive thread would call ``recv``
-        again at once; the reopening thread stops it (it cannot stop itself)."""
+        nodes' supervision do the rest. The receive thread ends after it reports a
+        failure (``_Receiver``); the reopening thread waits for it."""
         with self._lock:  # the receive thread and every sending thread may get here
             if self._lost.is_set() or self._closed.is_set():
                 return
@@ -445,7 +550,7 @@ class CanBus(can.Listener):
                 channel=self.channel, dlc=8, data=bytes(8)))
 
     def _reopen(self) -> None:
-        self._notifier.stop()
+        self._receiver.stop()
         with contextlib.suppress(Exception):  # the transport is gone: closing it may fail too
             self.bus.shutdown()
         while not self._closed.wait(REOPEN_S):
@@ -455,7 +560,7 @@ class CanBus(can.Listener):
                 log.debug("CAN interface %s still away: %s", self.interface, exc)
                 continue
             self.bus = bus
-            self._notifier = can.Notifier(bus, [self], timeout=0.1)
+            self._receiver = _Receiver(bus, self.interface, self)
             self._lost.clear()
             log.warning("CAN interface %s channel %s is back", self.interface, self.channel)
             self.on_link_back()
@@ -597,18 +702,18 @@ class CanBus(can.Listener):
         if callable(setter):
             setter(bitrate)
         else:
-            self._notifier.stop()
+            self._receiver.stop()
             self._link = None  # closed on purpose: no lost link for check_link
             self.bus.shutdown()
             kwargs = {**self._open_kwargs, "bitrate": bitrate}
             self.bus = self._open(kwargs)
             self._open_kwargs = kwargs
-            self._notifier = can.Notifier(self.bus, [self], timeout=0.1)
+            self._receiver = _Receiver(self.bus, self.interface, self)
         self._bitrate = bitrate
 
     def shutdown(self) -> None:
         self._closed.set()
-        self._notifier.stop()
+        self._receiver.stop()
         if self._trace is not None:
             self._trace.stop()
         if self._tap is not None:
