@@ -83,12 +83,18 @@ class _Endpoint:
         return True
 
     def _drain(self) -> list[tuple[bytes, str | bytes]]:
-        # Asking select is cheaper than ending the loop on a raised BlockingIOError.
+        """The rings queued, once select said there is one: that one is read without asking
+        again (a system call per wake-up saved). Asking select is cheaper than ending the
+        loop on a raised BlockingIOError."""
         rings: list[tuple[bytes, str | bytes]] = []
+        try:
+            rings.append(self.sock.recvfrom(16))
+        except BlockingIOError:  # another thread of this process took it
+            return rings
         while select.select((self.sock,), (), (), 0)[0]:
             try:
                 rings.append(self.sock.recvfrom(16))
-            except BlockingIOError:  # another thread of this process took it
+            except BlockingIOError:
                 break
         return rings
 
@@ -182,12 +188,20 @@ class DeviceBell(_Endpoint):
 
 
 class HostBell(_Endpoint):
-    """A host's side: rings the device after writing DevFlags, waits for rings."""
+    """A host's side: rings the device after writing DevFlags, waits for rings.
+
+    The socket is connected to the device's once: a send on it skips the look-up of the
+    socket file's path that a ``sendto`` does on every ring. A connected socket takes
+    rings only from the device it is connected to; a device started again has a new
+    socket under the same name, so a ring the old one refuses connects again, and the new
+    device learns this host from it (until then it cannot ring this host: a ring is a
+    hint, the waits poll)."""
 
     def __init__(self, image_path: Path) -> None:
         super().__init__()
         self.sock.bind(b"")  # Linux autobind: a unique abstract name
         self.device = device_address(image_path)
+        self._connected = False
         self.device_wants_ack = True
         """Whether the device's last ring asked for a ring on HOSTACK (it has
         more answers queued); starts True so nothing waits on a missed hint."""
@@ -197,4 +211,17 @@ class HostBell(_Endpoint):
             self.device_wants_ack = rings[-1][0] == _RING_WANT_ACK
 
     def ring_device(self) -> None:
-        self._send(self.device)
+        for _ in range(2):  # the second time after a refusal: connected again
+            if not self._connected:
+                try:
+                    self.sock.connect(self.device)
+                except OSError:
+                    return  # no device listens: it polls when it comes
+                self._connected = True
+            try:
+                self.sock.send(_RING)
+                return
+            except BlockingIOError:
+                return  # queue full: the device is awake anyway, or will poll
+            except OSError:
+                self._connected = False  # refused: the device is gone, or was started again

@@ -7,6 +7,12 @@ process and board, multi 0 to 2, sent_ms CLOCK_MONOTONIC in milliseconds). host_
 (libcif/src/chanlock.c) write it; the card's recorder reads it to name a message's host.
 The format lives here, apart from the locking (``host_api.locks``), so both sides read one
 definition.
+
+[ours] The ledger ends at the file's end or at its first NUL byte (``END``), whichever comes
+first. host_api ends it with a NUL instead of truncating the file: on the tmpfs under the
+image, emptying a file frees its page and the next request allocates one again, twice the
+cost of the write itself, on every mailbox round trip. libcif writes exact lengths and
+truncates; its reader, like every reader here, stops at the NUL (``ledger_text``).
 """
 
 from __future__ import annotations
@@ -31,6 +37,14 @@ class LedgerLine(NamedTuple):
 
 LINE = "%d %d %d %d %d %d %d %d\n"
 """One ledger line, formatted from its eight fields in ``LedgerLine``'s order."""
+
+END = b"\0"
+"""Where the ledger ends when the file goes on: what follows is left from a longer one."""
+
+
+def ledger_text(raw: bytes) -> bytes:
+    """The ledger's lines in the file's bytes ``raw``: up to ``END`` or the end."""
+    return raw.partition(END)[0]
 
 
 def decode_line(line: str | bytes) -> LedgerLine | None:

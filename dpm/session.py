@@ -21,7 +21,7 @@ from typing import Any
 
 from dpm.errors import DpmError
 from dpm.layout import MSG_HEADER_SIZE
-from dpm.ledger import decode_line
+from dpm.ledger import decode_line, ledger_text
 from dpm.message import HEADER, Message, MessageError
 
 FORMAT = "cifemu-session"
@@ -128,7 +128,7 @@ def ledger_pid(ledger: bytes, msg: Message) -> int | None:
 def request_pid(ledger: bytes, nr: int, b: int, rx: int, tx: int) -> int | None:
     """``ledger_pid`` of the message with these header fields."""
     wanted = (nr, b, rx, tx)
-    for line in ledger.splitlines():
+    for line in ledger_text(ledger).splitlines():
         entry = decode_line(line)
         if entry is not None and entry.pid >= 0 and entry[2:6] == wanted:
             return entry.pid

@@ -53,6 +53,7 @@ from dpm.layout import (
     TASK2_STATE,
     TASK_STATE_SIZE,
 )
+from dpm.ledger import END
 from dpm.message import LN_OFFSET
 from dpm.tap import encode_frame
 from firmware import session_writer
@@ -70,8 +71,8 @@ LEDGER_BYTES = 128 * 96
 """The ledger's largest size (host_api.locks.LEDGER_MAX lines of libcif's longest)."""
 LEDGER_FIRST_READ = 512
 """What the card reads of the ledger first: a dozen requests' lines; all of it only when
-that was not all. The read's buffer is allocated for each message: 12 KiB each time cost
-the loop half a microsecond more than this."""
+that was not all (the ledger's END is not in it). The read's buffer is allocated for each
+message: 12 KiB each time cost the loop half a microsecond more than this."""
 
 _IO_END = RCV_PD + IO_AREA_SIZE
 _HEAD_SIZE, _LN = MSG_HEADER_SIZE, LN_OFFSET
@@ -200,7 +201,7 @@ class Recorder:
         spool."""
         ledger = self._ledger
         lines = _pread(ledger, LEDGER_FIRST_READ, 0) if ledger >= 0 else self._open_ledger()
-        if len(lines) == LEDGER_FIRST_READ:
+        if len(lines) == LEDGER_FIRST_READ and END not in lines:
             lines = _pread(self._ledger, LEDGER_BYTES, 0)
         self._append((_PUT, _monotonic(), raw[: _HEAD_SIZE + raw[_LN]], lines))
 

@@ -29,12 +29,12 @@ import os
 import secrets
 import threading
 import time
-from dataclasses import dataclass, replace
 from enum import Enum
 from pathlib import Path
 from types import TracebackType
+from typing import NamedTuple
 
-from dpm.ledger import LINE, decode_line
+from dpm.ledger import END, LINE, decode_line, ledger_text
 from dpm.message import Ext, Message
 from host_api.holders import Holder, lock_holder
 
@@ -46,6 +46,11 @@ LEDGER_MAX = 128
 STALE_MS = 30_000
 """A dead host's request is forgotten this long after it was sent: a card answers within
 it or never (the driver's longest wait is DevDownload's 15 s)."""
+
+
+_NAK, _SEQ_MASK = int(Ext.NAK), int(Ext.SEQ_MASK)
+_FIRST, _CONT, _LAST = int(Ext.FIRST), int(Ext.CONT), int(Ext.LAST)
+"""msg.e's bits as plain ints, for the ledger's work on every request and answer."""
 
 
 def _open(path: Path) -> int:
@@ -125,9 +130,11 @@ class Answer(Enum):
     """A dead host's, or one whose DevGetMessage gave up: to be discarded."""
 
 
-@dataclass(frozen=True, slots=True)
-class Request:
-    """A request whose answer is awaited, as a ledger line records it."""
+class Request(NamedTuple):
+    """A request whose answer is awaited, as a ledger line records it.
+
+    A named tuple, not a frozen dataclass: one is made per request, on the path of every
+    mailbox round trip, and a tuple is made in a fraction of the time."""
 
     pid: int
     owner: int
@@ -145,8 +152,7 @@ class Request:
     """In memory: a get timed out waiting for it (it keeps the lock no more)."""
 
     def line(self) -> str:
-        return LINE % (self.pid, self.owner, self.nr, self.b, self.rx, self.tx, self.multi,
-                       self.sent_ms)
+        return LINE % self[:8]
 
     @classmethod
     def parse(cls, line: str, now_ms: int) -> Request | None:
@@ -157,16 +163,15 @@ class Request:
         return cls(*entry, given_up=True)
 
     def answered_by(self, msg: Message) -> bool:
-        if self.multi == 2 and msg.e & Ext.SEQ_MASK not in (Ext.CONT, Ext.LAST):
+        if self.multi == 2 and msg.e & _SEQ_MASK not in (_CONT, _LAST):
             return False
         return msg.nr == self.nr and msg.a == self.b and msg.rx == self.tx and msg.tx == self.rx
 
     def after(self, msg: Message) -> Request | None:
         """The request once ``msg`` answered it: None when that was its last answer, a
         long upload's part (f 0, e FIRST or CONT) has more after it."""
-        sequence = msg.e & Ext.SEQ_MASK
-        if self.multi and msg.f == 0 and sequence in (Ext.FIRST, Ext.CONT):
-            return replace(self, multi=2)
+        if self.multi and msg.f == 0 and msg.e & _SEQ_MASK in (_FIRST, _CONT):
+            return self._replace(multi=2)
         return None
 
 
@@ -192,14 +197,16 @@ class Transaction:
         self._session = threading.Lock()
         self._owner = secrets.randbits(63)
         """This process's number in the ledger (a new one after a fork)."""
+        self._pid = os.getpid()
         self._held = False
         self._users = 0
         self._own: list[Request] = []
         self._stale: list[Request] = []
         self._length = 0
-        """The file's length as this process last read or wrote it (while it holds the flock:
-        then nobody else writes it). Lets a request be appended and the last answer truncate,
-        one system call each, on the path of every mailbox round trip."""
+        """The ledger's length (up to its end, ``dpm.ledger.END``) as this process last read
+        or wrote it (while it holds the flock: then nobody else writes it). Lets a request be
+        appended and the last answer empty the ledger, one system call each, on the path of
+        every mailbox round trip."""
         self.holder: Holder | None = None
         """Who held the lock when ``acquire`` last failed (None: unknown or free)."""
 
@@ -210,7 +217,7 @@ class Transaction:
 
         Another process's lock is waited for, except a CiA 309 gateway's, which it keeps
         while it runs: then False at once."""
-        deadline = time.monotonic() + timeout
+        deadline = 0.0
         asked = False
         while True:
             with self._state:
@@ -224,7 +231,10 @@ class Transaction:
                 if self._held:
                     self._users += 1
                     return True
-            if time.monotonic() >= deadline:
+            now = time.monotonic()
+            if not deadline:  # the clock read only once the lock is found taken
+                deadline = now + timeout
+            if now >= deadline:
                 return False
             if not asked:
                 # [ours] Another process has it: waiting is futile when it keeps the lock
@@ -249,26 +259,31 @@ class Transaction:
     def sent(self, msg: Message) -> None:
         """Before the request reaches the card: recorded in the ledger (one with the NAK
         bit is answered only when it fails: none is awaited)."""
-        if msg.e & Ext.NAK:
+        e = msg.e
+        if e & _NAK:
             return
-        request = Request(os.getpid(), self._owner, msg.nr, msg.b, msg.rx, msg.tx,
-                          int(msg.e & Ext.SEQ_MASK == Ext.FIRST), _now_ms())
+        sequence = e & _SEQ_MASK
+        request = Request(self._pid, self._owner, msg.nr, msg.b, msg.rx, msg.tx,
+                          int(sequence == _FIRST), time.monotonic_ns() // 1_000_000)
         with self._state:
-            kept = len(self._own) + len(self._stale)
-            if msg.e & Ext.SEQ_MASK in (Ext.CONT, Ext.LAST):
+            changed = False
+            if sequence in (_CONT, _LAST) and self._own:
                 # It continues a sequence (the load function's transfers): the first request
                 # of that command, answered with a part marked FIRST, was no long upload.
-                self._own = [r for r in self._own if not (
+                kept = [r for r in self._own if not (
                     r.multi == 2 and (r.b, r.rx, r.tx) == (msg.b, msg.rx, msg.tx))]
+                changed = len(kept) != len(self._own)
+                self._own = kept
             if len(self._own) + len(self._stale) >= LEDGER_MAX:
                 (self._stale or self._own).pop(0)
+                changed = True
             self._own.append(request)
-            if len(self._own) + len(self._stale) == kept + 1:  # nothing else changed
-                line = request.line().encode("ascii")
-                os.pwrite(self._fd, line, self._length)
-                self._length += len(line)
-            else:
+            if changed:
                 self._store()
+            else:
+                line = request.line().encode("ascii")
+                os.pwrite(self._fd, line + END, self._length)
+                self._length += len(line)
 
     def is_stale(self, msg: Message) -> bool:
         """Whether the answer waiting in the mailbox is one to discard."""
@@ -294,7 +309,7 @@ class Transaction:
     def give_up(self) -> None:
         """A get timed out: the answers awaited keep the lock no more."""
         with self._state:
-            self._own = [replace(r, given_up=True) for r in self._own]
+            self._own = [r._replace(given_up=True) for r in self._own]
 
     # --- sessions ---------------------------------------------------------------------------
 
@@ -328,8 +343,12 @@ class Transaction:
         sender died, or gave up waiting and let the lock go), this process's own ones are
         given up. Malformed and expired lines are dropped."""
         raw = os.pread(self._fd, LEDGER_MAX * 96, 0)  # 96: libcif's longest line
-        self._length = len(raw)
-        lines = raw.decode("ascii", "replace").splitlines()
+        text = ledger_text(raw)
+        self._length = len(text)
+        if not text:  # the ledger of a board nobody awaits answers from
+            self._own, self._stale = [], []
+            return
+        lines = text.decode("ascii", "replace").splitlines()
         now = _now_ms()
         kept = [r for r in (Request.parse(line, now) for line in lines) if r is not None]
         kept = kept[:LEDGER_MAX]
@@ -339,11 +358,15 @@ class Transaction:
             self._store()
 
     def _store(self) -> None:
+        """The ledger rewritten from memory, ended by ``END``: the file is not truncated
+        (``dpm.ledger``)."""
+        if not self._own and not self._stale:
+            if self._length:
+                os.pwrite(self._fd, END, 0)
+                self._length = 0
+            return
         text = "".join(r.line() for r in (*self._stale, *self._own)).encode("ascii")
-        if text:
-            os.pwrite(self._fd, text, 0)
-        if len(text) < self._length:
-            os.ftruncate(self._fd, len(text))
+        os.pwrite(self._fd, text + END, 0)
         self._length = len(text)
 
     def reopen_after_fork(self) -> None:
@@ -352,6 +375,7 @@ class Transaction:
         self._state = threading.Lock()
         self._session = threading.Lock()
         self._owner = secrets.randbits(63)
+        self._pid = os.getpid()
         self._held = False
         self._users = 0
         self._own = []

@@ -18,11 +18,13 @@ import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import pytest
 
 from cifemu import libcif
 from dpm.errors import Drv
+from dpm.ledger import ledger_text
 from dpm.message import Ext, Message
 from host_api import driver as d
 from host_api.board import Board
@@ -372,6 +374,11 @@ def test_a_planted_link_in_a_lock_files_place_is_not_followed(
 # --- the ledger's rules, without a card -----------------------------------------------------
 
 
+def ledger(path: Path) -> str:
+    """The ledger's lines in the lock file ``path`` (up to its end, ``dpm.ledger.END``)."""
+    return ledger_text(path.read_bytes()).decode("ascii")
+
+
 def answer(request: Message, e: int = 0, f: int = 0) -> Message:
     return Message(rx=request.tx, tx=request.rx, b=0, data=b"", nr=request.nr, a=request.b,
                    f=f, e=e)
@@ -395,7 +402,7 @@ def test_another_owners_requests_are_stale_and_this_owners_given_up_ones_still_i
         assert other.answered(answer(tagged(2))) is Answer.STALE
         assert other.answered(answer(tagged(2))) is Answer.OTHER  # discarded once only
         other.leave()
-        assert path.read_text() == ""
+        assert ledger(path) == ""
     finally:
         mine.close()
         other.close()
@@ -436,7 +443,7 @@ def test_a_load_function_sequence_is_no_long_upload(tmp_path: Path) -> None:
         assert host.answered(answer(first, e=Ext.FIRST)) is Answer.OWN
         host.sent(Message(rx=0, tx=16, b=6, nr=2, e=Ext.CONT))
         host.leave()
-        assert path.read_text().count("\n") == 1  # the second request only
+        assert ledger(path).count("\n") == 1  # the second request only
     finally:
         host.close()
 
@@ -451,7 +458,28 @@ def test_malformed_and_expired_ledger_lines_are_dropped(tmp_path: Path) -> None:
     host = Transaction(path)
     try:
         assert host.enter(0)
-        assert path.read_text() == f"1 2 3 17 2 16 0 {now}\n"
+        assert ledger(path) == f"1 2 3 17 2 16 0 {now}\n"
         host.leave()
     finally:
         host.close()
+
+
+@pytest.mark.parametrize("impl", ["python", "c"])
+def test_lines_after_the_ledgers_end_are_no_requests(built: None, card: Card, impl: str) -> None:
+    """[ours] A Python host empties the ledger by writing its END (a NUL) at the start, not
+    by truncating the file: the lines after it are left from a longer ledger. A host that
+    took them for a dead host's request would discard the answer to its own request with
+    the same number and command."""
+    request = tagged(7)
+    now = time.monotonic_ns() // 1_000_000
+    leftover = f"1 2 3 17 2 16 0 {now}\n1 2 {request.nr} 17 2 16 0 {now}\n"
+    (card.directory / "board0.transaction.lock").write_bytes(b"\0" + leftover.encode())
+    driver: Any = d if impl == "python" else CDriver()
+    assert driver.DevOpenDriver(card.directory) == 0 and driver.DevInitBoard(0) == 0
+    try:
+        assert driver.DevPutMessage(0, request, 5000) == 0
+        rc, got = driver.DevGetMessage(0, 288, 2000)
+        assert rc == Drv.DRV_NO_ERROR and tag_of(got) == 7
+    finally:
+        while driver.DevCloseDriver() == 0:
+            pass

@@ -69,6 +69,8 @@ def test_the_ledger_names_the_sender_of_a_message() -> None:
     assert s.ledger_pid(ledger, Message(3, 16, 74, nr=7)) == 222
     assert s.ledger_pid(ledger, Message(3, 16, 74, nr=8)) is None
     assert s.ledger_pid(b"garbage\n", Message(3, 16, 74, nr=7)) is None
+    # [ours] what follows the ledger's END (a NUL) is left from a longer ledger
+    assert s.ledger_pid(b"\0" + ledger, Message(3, 16, 74, nr=7)) is None
 
 
 @pytest.mark.parametrize("record", ROUND_TRIP[:2], ids=[r.kind for r in ROUND_TRIP[:2]])
