@@ -5,8 +5,12 @@ start): the time from DevReset until all 127 are in Nd_state. Node 127 cannot
 be configured on line: area code 127 of COM_Download is the bus parameter
 set, so the on-line figure (taken from phase 2) has 126 nodes, timed from the
 bus parameter download. Baseline: canopen runs the card's boot sequence
-(NMT reset node, boot-up, upload 1000h, download 1017h, 1005h, 1014h, NMT
-start) for the same 127 simulated nodes, 32 nodes in parallel as the card.
+(NMT reset node, boot-up, upload 1000h, download 1017h, 1005h, 1014h and the
+node's SDO list from the database, NMT start) for the same 127 nodes, 32 nodes
+in parallel as the card. Both meet the nodes in ``cifemu sim`` on a channel of
+the same kind (a fresh ``shm`` one each), so they ask the same of the same nodes
+over the same medium; the baseline's nodes once ran in its own process on the
+virtual bus, and it wrote 1017h once where the card writes it twice.
 """
 
 from __future__ import annotations
@@ -17,7 +21,9 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
-from bench.can.baseline import in_process, sdo_client
+import canopen
+
+from bench.can.baseline import sdo_client
 from bench.can.card import (
     DEVICE_TYPE_BYTES,
     RESET_TIMEOUT_MS,
@@ -25,6 +31,7 @@ from bench.can.card import (
     SeparateBus,
     board_of,
     network_toml,
+    separate_nodes,
     simulated_card,
     wait_operating,
 )
@@ -35,9 +42,12 @@ from bench.common import (
 )
 from dbm_tools.builder import build_dbm
 from dbm_tools.container import write_dbm
-from dbm_tools.network import parse_network
+from dbm_tools.network import Network, parse_network
+from dbm_tools.parameters import NodeParameterSet
+from dbm_tools.tables import NODES
 from dpm.cia301 import COB_ID_NMT
 from dpm.commands import NMT_RESET_NODE, NMT_START
+from firmware.can.sdo import DEFAULT_SDO_TIMEOUT
 from host_api.download import CONFIGURATION_DOWNLOAD, DevDownload
 from host_api.driver import (
     COLDSTART,
@@ -82,58 +92,93 @@ def _median(values: list[float]) -> float:
     return percentile(sorted(values), 50)
 
 
-def baseline_boot(count: int) -> dict[str, Any]:
+def sdo_lists(network: Network) -> dict[int, list[tuple[int, int, bytes]]]:
+    """Each node's SDO list (atSdoCfgData) as the card gets it in the database: the
+    writes that end its boot-up's configuration (the builder puts 1017h there again for a
+    heartbeat node, so the card writes it twice)."""
+    table = build_dbm(network).table(NODES)
+    if table is None:
+        raise RuntimeError("the network has no nodes")
+    lists = {}
+    for record in table.records:
+        params = NodeParameterSet.decode(record[1:])
+        lists[record[0]] = [(entry.usIndex, entry.bSubindex,
+                             bytes(entry.abSdoValue[: entry.bLength]))
+                            for entry in params.atSdoCfgData]
+    return lists
+
+
+def baseline_boot(count: int, bus: SeparateBus | None) -> dict[str, Any]:
     nodes = list(range(1, count + 1))
-    network = parse_network(network_toml(nodes))
+    text = network_toml(nodes)
+    writes = sdo_lists(parse_network(text))
     runs: list[float] = []
-    with in_process(network) as (_, client):
-        bootups = {node: threading.Event() for node in nodes}
-
-        def on_error_control(can_id: int, data: bytearray, timestamp: float) -> None:
-            del timestamp
-            if data and data[0] == 0:
-                bootups[can_id - 0x700].set()
-
-        for node in nodes:
-            client.subscribe(0x700 + node, on_error_control)
-        clients = {node: sdo_client(client, node) for node in nodes}
-
-        def boot_node(node: int) -> None:
-            """The card's boot steps (firmware.can.boot.BootSequence._steps)."""
-            sdo = clients[node]
-            bootups[node].clear()
-            client.send_message(COB_ID_NMT, bytes([NMT_RESET_NODE, node]))
-            if not bootups[node].wait(BOOTUP_TIMEOUT_S):
-                raise RuntimeError(f"node {node}: no boot-up")
-            if bytes(sdo.upload(0x1000, 0)) != DEVICE_TYPE_BYTES:
-                raise RuntimeError(f"node {node}: wrong device type")
-            sdo.download(0x1017, 0, struct.pack("<H", 500))
-            sdo.download(0x1005, 0, struct.pack("<I", SYNC_COB_ID))
-            sdo.download(0x1014, 0, struct.pack("<I", 0x80 + node))
-            client.send_message(COB_ID_NMT, bytes([NMT_START, node]))
-
-        time.sleep(0.1)  # the nodes' power-on boot-ups
-        with ThreadPoolExecutor(max_workers=BOOT_WORKERS) as pool:
-            for attempt in range(BOOT_REPEATS):
-                progress(f"boot (baseline): run {attempt + 1}/{BOOT_REPEATS}, {len(nodes)} nodes")
-                start = time.perf_counter()
-                list(pool.map(boot_node, nodes))
-                runs.append(time.perf_counter() - start)
+    with separate_nodes(text, bus) as station:
+        client = canopen.Network(station)
+        client.connect()
+        try:
+            runs = _boot_with_canopen(client, nodes, writes)
+        finally:
+            client.disconnect()
     return {
-        "name": f"canopen runs the card's boot sequence for the same {len(nodes)} simulated "
-                "nodes in this process: NMT reset node, wait for the boot-up, upload 1000h, "
-                "download 1017h, 1005h, 1014h, NMT start; "
+        "name": f"canopen runs the card's boot sequence for the same {len(nodes)} nodes in "
+                "cifemu sim, on the same kind of channel as the card: NMT reset node, wait "
+                "for the boot-up, upload 1000h, download 1017h, 1005h, 1014h and the SDO "
+                "list of the database (1017h again), NMT start; "
                 f"{BOOT_WORKERS} nodes in parallel (the card's boot pool)",
         "nodes": len(nodes),
+        "sdo_per_node": 4 + len(writes[nodes[0]]),
         "runs_s": [round(r, 3) for r in runs],
         "median_s": round(_median(runs), 3),
     }
 
 
+def _boot_with_canopen(client: canopen.Network, nodes: list[int],
+                       writes: dict[int, list[tuple[int, int, bytes]]]) -> list[float]:
+    bootups = {node: threading.Event() for node in nodes}
+
+    def on_error_control(can_id: int, data: bytearray, timestamp: float) -> None:
+        del timestamp
+        if data and data[0] == 0:
+            bootups[can_id - 0x700].set()
+
+    for node in nodes:
+        client.subscribe(0x700 + node, on_error_control)
+    clients = {node: sdo_client(client, node) for node in nodes}
+    for sdo in clients.values():
+        sdo.RESPONSE_TIMEOUT = DEFAULT_SDO_TIMEOUT  # the card's, not canopen's 0.3 s
+
+    def boot_node(node: int) -> None:
+        """The card's boot steps (firmware.can.boot.BootSequence._steps)."""
+        sdo = clients[node]
+        bootups[node].clear()
+        client.send_message(COB_ID_NMT, bytes([NMT_RESET_NODE, node]))
+        if not bootups[node].wait(BOOTUP_TIMEOUT_S):
+            raise RuntimeError(f"node {node}: no boot-up")
+        if bytes(sdo.upload(0x1000, 0)) != DEVICE_TYPE_BYTES:
+            raise RuntimeError(f"node {node}: wrong device type")
+        sdo.download(0x1017, 0, struct.pack("<H", 500))
+        sdo.download(0x1005, 0, struct.pack("<I", SYNC_COB_ID))
+        sdo.download(0x1014, 0, struct.pack("<I", 0x80 + node))
+        for index, subindex, value in writes[node]:
+            sdo.download(index, subindex, value)
+        client.send_message(COB_ID_NMT, bytes([NMT_START, node]))
+
+    runs: list[float] = []
+    time.sleep(0.1)  # the nodes' power-on boot-ups
+    with ThreadPoolExecutor(max_workers=BOOT_WORKERS) as pool:
+        for attempt in range(BOOT_REPEATS):
+            progress(f"boot (baseline): run {attempt + 1}/{BOOT_REPEATS}, {len(nodes)} nodes")
+            start = time.perf_counter()
+            list(pool.map(boot_node, nodes))
+            runs.append(time.perf_counter() - start)
+    return runs
+
+
 def boot(online: tuple[int, float] | None, nodes: int = BOOT_NODES,
          bus: SeparateBus | None = None) -> dict[str, Any]:
     """``online``: the pdo_throughput phase's on-line boot, (nodes, seconds)."""
-    baseline = baseline_boot(nodes)
+    baseline = baseline_boot(nodes, bus)
     card = card_boot(nodes, bus)
     if online is not None:
         card["online_nodes"], card["online_s"] = online
