@@ -40,6 +40,7 @@ from bench.common import (
     progress,
     ratio,
 )
+from bench.cpu import stat_cpu_ns, tree_cpu_ns
 from dbm_tools.builder import build_dbm
 from dbm_tools.container import write_dbm
 from dbm_tools.network import Network, parse_network
@@ -71,20 +72,26 @@ def card_boot(count: int, bus: SeparateBus | None) -> dict[str, Any]:
         rc = DevDownload(board.number, CONFIGURATION_DOWNLOAD, database)
         if rc != 0:
             raise RuntimeError(f"DevDownload returned {rc}")
+        assert card.sim is not None  # separate=True
+        cpu: list[tuple[float, float]] = []
         for attempt in range(BOOT_REPEATS):
             progress(f"boot (card): cold start {attempt + 1}/{BOOT_REPEATS} with {len(nodes)} "
                      "nodes in the stored database")
+            own, theirs = tree_cpu_ns(card.pid), stat_cpu_ns(card.sim.pid)
             start = time.perf_counter()
             rc = DevReset(board.number, COLDSTART, RESET_TIMEOUT_MS)
             if rc != 0:
                 raise RuntimeError(f"DevReset(COLDSTART) returned {rc}")
             ready = time.perf_counter()
             operating = wait_operating(board.number, len(nodes))
+            cpu.append((round((tree_cpu_ns(card.pid) - own) / 1e9, 3),
+                        round((stat_cpu_ns(card.sim.pid) - theirs) / 1e9, 3)))
             runs.append({"all_operating_s": round(operating - start, 3),
                          "ready_s": round(ready - start, 3)})
         firmware_log = card.log()
     return {"nodes": len(nodes), "runs": runs,
             "median_s": round(_median([r["all_operating_s"] for r in runs]), 3),
+            **_cpu_figures(cpu, "card_cpu_s", "the firmware process (and its SYNC timer)"),
             "firmware_log": firmware_log}
 
 
@@ -113,11 +120,11 @@ def baseline_boot(count: int, bus: SeparateBus | None) -> dict[str, Any]:
     text = network_toml(nodes)
     writes = sdo_lists(parse_network(text))
     runs: list[float] = []
-    with separate_nodes(text, bus) as station:
+    with separate_nodes(text, bus) as (station, sim):
         client = canopen.Network(station)
         client.connect()
         try:
-            runs = _boot_with_canopen(client, nodes, writes)
+            runs, cpu = _boot_with_canopen(client, nodes, writes, sim.pid)
         finally:
             client.disconnect()
     return {
@@ -130,11 +137,21 @@ def baseline_boot(count: int, bus: SeparateBus | None) -> dict[str, Any]:
         "sdo_per_node": 4 + len(writes[nodes[0]]),
         "runs_s": [round(r, 3) for r in runs],
         "median_s": round(_median(runs), 3),
+        **_cpu_figures(cpu, "canopen_cpu_s", "this process (canopen and its threads)"),
     }
 
 
+def _cpu_figures(cpu: list[tuple[float, float]], key: str, what: str) -> dict[str, Any]:
+    """Median CPU seconds per boot of the master's side and of ``cifemu sim``: they move less
+    with the machine's load than the wall-clock time does."""
+    return {key: _median([c[0] for c in cpu]), "sim_cpu_s": _median([c[1] for c in cpu]),
+            "cpu_note": f"median CPU seconds per boot (utime + stime, 10 ms ticks): {what}, "
+                        "and the cifemu sim process"}
+
+
 def _boot_with_canopen(client: canopen.Network, nodes: list[int],
-                       writes: dict[int, list[tuple[int, int, bytes]]]) -> list[float]:
+                       writes: dict[int, list[tuple[int, int, bytes]]], sim: int
+                       ) -> tuple[list[float], list[tuple[float, float]]]:
     bootups = {node: threading.Event() for node in nodes}
 
     def on_error_control(can_id: int, data: bytearray, timestamp: float) -> None:
@@ -165,14 +182,18 @@ def _boot_with_canopen(client: canopen.Network, nodes: list[int],
         client.send_message(COB_ID_NMT, bytes([NMT_START, node]))
 
     runs: list[float] = []
+    cpu: list[tuple[float, float]] = []
     time.sleep(0.1)  # the nodes' power-on boot-ups
     with ThreadPoolExecutor(max_workers=BOOT_WORKERS) as pool:
         for attempt in range(BOOT_REPEATS):
             progress(f"boot (baseline): run {attempt + 1}/{BOOT_REPEATS}, {len(nodes)} nodes")
+            own, theirs = time.process_time(), stat_cpu_ns(sim)
             start = time.perf_counter()
             list(pool.map(boot_node, nodes))
             runs.append(time.perf_counter() - start)
-    return runs
+            cpu.append((round(time.process_time() - own, 3),
+                        round((stat_cpu_ns(sim) - theirs) / 1e9, 3)))
+    return runs, cpu
 
 
 def boot(online: tuple[int, float] | None, nodes: int = BOOT_NODES,

@@ -187,10 +187,12 @@ def start_sim(toml: Path, interface: str, channel: str) -> subprocess.Popen[byte
 
 
 @contextmanager
-def separate_nodes(description: str, bus: SeparateBus | None = None) -> Iterator[can.BusABC]:
+def separate_nodes(description: str, bus: SeparateBus | None = None
+                   ) -> Iterator[tuple[can.BusABC, subprocess.Popen[bytes]]]:
     """The nodes of ``description`` in ``cifemu sim``, as a card under test meets them
     (``simulated_card(separate=True)``), and a python-can bus of this process on their
-    channel: for a baseline that must ask of the same nodes what the card asks."""
+    channel: for a baseline that must ask of the same nodes what the card asks. Yields the
+    bus and the simulator's process."""
     with tempfile.TemporaryDirectory(prefix="cifemu-bench-sim-", dir=scratch_root()) as tmp:
         toml = Path(tmp) / "network.toml"
         toml.write_text(description)
@@ -199,7 +201,7 @@ def separate_nodes(description: str, bus: SeparateBus | None = None) -> Iterator
         try:
             station = can.Bus(interface=interface, channel=channel)
             try:
-                yield station
+                yield station, sim
             finally:
                 station.shutdown()
         finally:
