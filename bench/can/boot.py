@@ -102,6 +102,12 @@ def _median(values: list[float]) -> float:
     return percentile(sorted(values), 50)
 
 
+class NoBootUp(RuntimeError):
+    """A node sent no boot-up message within ``BOOTUP_TIMEOUT_S`` of its reset: a node still
+    in its power-on boot ignores the reset (its power-on boot-up came before the wait), which
+    a loaded machine made happen to the first node of the first run."""
+
+
 def sdo_lists(network: Network) -> dict[int, list[tuple[int, int, bytes]]]:
     """Each node's SDO list (atSdoCfgData) as the card gets it in the database: the
     writes that end its boot-up's configuration (the builder puts 1017h there again for a
@@ -172,14 +178,14 @@ def _boot_with_canopen(client: canopen.Network, nodes: list[int],
     retries: list[int] = []
 
     def boot_node(node: int) -> None:
-        """Boot the node; one whose SDO answer missed the time-out is booted again at once,
-        as the card boots a failed node again (after 1 s), and counted: a loaded machine
-        otherwise ended the whole phase with canopen's SdoCommunicationError."""
+        """Boot the node; one whose SDO answer missed the time-out, or whose boot-up did not
+        come, is booted again at once, as the card boots a failed node again (after 1 s),
+        and counted: a loaded machine otherwise ended the whole phase."""
         for _ in range(BOOT_ATTEMPTS - 1):
             try:
                 boot_steps(node)
                 return
-            except SdoCommunicationError:
+            except (SdoCommunicationError, NoBootUp):
                 retries.append(node)
         boot_steps(node)
 
@@ -189,7 +195,7 @@ def _boot_with_canopen(client: canopen.Network, nodes: list[int],
         bootups[node].clear()
         client.send_message(COB_ID_NMT, bytes([NMT_RESET_NODE, node]))
         if not bootups[node].wait(BOOTUP_TIMEOUT_S):
-            raise RuntimeError(f"node {node}: no boot-up")
+            raise NoBootUp(f"node {node}: no boot-up")
         if bytes(sdo.upload(0x1000, 0)) != DEVICE_TYPE_BYTES:
             raise RuntimeError(f"node {node}: wrong device type")
         sdo.download(0x1017, 0, struct.pack("<H", 500))
