@@ -355,6 +355,26 @@ def test_no_heartbeat_while_guarding(bench: Callable[[str], Bench]) -> None:
     assert [bytes(m.data) for m in heartbeats] == [b"\x00", b"\x7f"]  # boot-up, 1 answer
 
 
+def test_guarding_follows_a_written_guard_cob_id_and_its_reset(
+        bench: Callable[[str], Bench]) -> None:
+    """A node answers guarding on 100Eh as it is now: after an SDO write of 77Fh on 77Fh
+    (not on 705h, where it answered before), after a reset node on 705h again."""
+    b = bench(GUARDED)
+    b.boot_up(5)
+    assert guard(b) == b"\x7f"
+    b.write(5, 0x100E, 0, 0x77F, 4)
+    mark = b.frames.mark()
+    b.master.send_message(0x77F, b"", remote=True)
+    assert bytes(b.frames.wait(frame(0x77F), "guarding answer on 77Fh", mark)[0].data) == (
+        b"\xff")
+    b.barrier(5)
+    assert b.frames.since(mark, frame(0x705)) == []
+    mark = b.frames.mark()
+    b.nmt(NMT_RESET_NODE, 5)
+    b.boot_up(5, mark)
+    assert guard(b) == b"\x7f"
+
+
 def test_life_guarding_event_and_its_end(bench: Callable[[str], Bench]) -> None:
     b = bench("""
 [[node]]

@@ -10,7 +10,8 @@ nodes inside the card's process, 1.0 s with them outside). This
 process is the host and reaches the card only through the driver API. Every
 baseline runs here, in this process, in the same run: python ``canopen`` (or
 python-can) talking straight to the same simulated nodes on a virtual bus, with
-no card between them.
+no card between them; the boot phase's baseline talks to nodes in ``cifemu sim``
+on a channel of the card's kind, as the card does.
 
 One module per phase: ``pdo_loop`` (1. ``pdo_loop_latency``), ``throughput``
 (2. ``pdo_throughput``), ``sdo`` (3.), ``boot`` (4.), ``sync`` (5. ``sync_jitter``); they

@@ -21,6 +21,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import can
+
 from bench.common import (
     STARTUP_TIMEOUT,
     progress,
@@ -152,18 +154,7 @@ def simulated_card(description: str, *, trace: bool = False, separate: bool = Fa
             command += ["--simulate", str(toml)]
         if trace_path is not None:
             command += ["--trace", str(trace_path)]
-        sim = None
-        if separate:
-            sim = subprocess.Popen(
-                [sys.executable, "-m", "cifemu", "sim", str(toml), "--interface", interface,
-                 "--channel", channel, "--log-level", "WARNING"],
-                stdin=subprocess.DEVNULL, stdout=subprocess.PIPE)
-            assert sim.stdout is not None
-            if not sim.stdout.readline().startswith(b"simulating"):  # its nodes are on the bus
-                stop_process(sim)
-                raise RuntimeError("cifemu sim did not start")
-            # The node lines are read by nobody further on: the pipe must not fill.
-            threading.Thread(target=sim.stdout.read, daemon=True).start()
+        sim = start_sim(toml, interface, channel) if separate else None
         with stderr_path.open("wb") as stderr:
             proc = subprocess.Popen(command, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
                                     stderr=stderr)
@@ -178,6 +169,43 @@ def simulated_card(description: str, *, trace: bool = False, separate: bool = Fa
             if logged["lines"]:
                 progress(f"the firmware logged {logged['lines']} line(s), e.g. "
                          f"{logged['first_lines'][0]}")
+
+
+def start_sim(toml: Path, interface: str, channel: str) -> subprocess.Popen[bytes]:
+    """``cifemu sim`` for the network description ``toml``, once its nodes are on the bus."""
+    sim = subprocess.Popen(
+        [sys.executable, "-m", "cifemu", "sim", str(toml), "--interface", interface,
+         "--channel", channel, "--log-level", "WARNING"],
+        stdin=subprocess.DEVNULL, stdout=subprocess.PIPE)
+    assert sim.stdout is not None
+    if not sim.stdout.readline().startswith(b"simulating"):  # its nodes are on the bus
+        stop_process(sim)
+        raise RuntimeError("cifemu sim did not start")
+    # The node lines are read by nobody further on: the pipe must not fill.
+    threading.Thread(target=sim.stdout.read, daemon=True).start()
+    return sim
+
+
+@contextmanager
+def separate_nodes(description: str, bus: SeparateBus | None = None
+                   ) -> Iterator[tuple[can.BusABC, subprocess.Popen[bytes]]]:
+    """The nodes of ``description`` in ``cifemu sim``, as a card under test meets them
+    (``simulated_card(separate=True)``), and a python-can bus of this process on their
+    channel: for a baseline that must ask of the same nodes what the card asks. Yields the
+    bus and the simulator's process."""
+    with tempfile.TemporaryDirectory(prefix="cifemu-bench-sim-", dir=scratch_root()) as tmp:
+        toml = Path(tmp) / "network.toml"
+        toml.write_text(description)
+        interface, channel = (bus or SeparateBus()).for_card()
+        sim = start_sim(toml, interface, channel)
+        try:
+            station = can.Bus(interface=interface, channel=channel)
+            try:
+                yield station, sim
+            finally:
+                station.shutdown()
+        finally:
+            stop_process(sim)
 
 
 def board_of(card: SimCard) -> Board:

@@ -65,6 +65,11 @@ if TYPE_CHECKING:
 log = logging.getLogger(__name__)
 
 
+def _uses_sync(params: NodeParameterSet) -> bool:
+    """An active node with a SYNC controlled PDO: the card sends SYNC for it (seed 4.2)."""
+    return params.active and any(pdo.sync_controlled for pdo in params.atPdoCfgData)
+
+
 class Master:
     def __init__(self, device: Card, config: BusConfig, publish: Callable[[], None]) -> None:
         self.device = device
@@ -222,16 +227,19 @@ class Master:
         handler = NodeHandler(self, self.nmt, address, params)
         self.nodes[address] = handler
         self.outputs.nodes_changed()
-        self._sync_used = any(
-            h.params.active and any(pdo.sync_controlled for pdo in h.params.atPdoCfgData)
-            for h in self.nodes.values())
-        self.sync.wake()
+        # A new node can only add SYNC use; a replaced one may take it away. Asking every
+        # node each time made a stored database of 127 nodes cost 127² questions at a start.
+        sync_used = (_uses_sync(params) or self._sync_used) if old is None else any(
+            _uses_sync(h.params) for h in self.nodes.values())
+        if sync_used != self._sync_used:
+            self._sync_used = sync_used
+            self.sync.wake()  # only SYNC use decides it here (``sync_period``)
         self.device.set_node_bit("abNd_cfg", address, params.active)
         self.device.set_node_bit("abNd_diag", address, False)
         if self.nmt.running:
             handler.attach()
             self.nmt.boot(handler)
-        self.reschedule()
+            self.reschedule()  # else nothing to look at: ``start_network`` reschedules
 
     def start_network(self, params: BusParameterSet) -> None:
         """The bus parameter download: (re)start the whole network."""
