@@ -335,6 +335,37 @@ sdo_abort = {{ "{refused}" = 0x06010002 }}
     assert not prm_fault(net, 1)
 
 
+def test_an_unguarded_node_without_guarding_objects_still_boots(
+        make_net: Callable[..., Net]) -> None:
+    """[ours] With no error control the GUARD step writes guard time 0 (100Ch) and the life
+    time factor (100Dh) only to switch guarding off; a node without those objects (CiA 301
+    lets a heartbeat producer do without them, as a CANopenNode device does) is not guarded
+    either way, so their refusal is no configuration failure."""
+    net = make_net("""[[node]]
+id = 1
+error_control = "none"
+[node.sim]
+sdo_abort = { "100C:0" = 0x06020000, "100D:0" = 0x06020000 }
+""")
+    assert boot_outcome(net, 1) == 0
+    assert not prm_fault(net, 1)
+
+
+def test_a_guarded_node_refusing_its_guard_time_fails_its_configuration(
+        make_net: Callable[..., Net]) -> None:
+    """The other side: a guard time the node refuses fails its configuration (34 with
+    Prm_Fault), or the card would guard a node that never answers."""
+    net = make_net("""[[node]]
+id = 1
+error_control = "guarding"
+guard_time_ms = 200
+[node.sim]
+sdo_abort = { "100C:0" = 0x06020000 }
+""")
+    assert boot_outcome(net, 1) == 34
+    assert prm_fault(net, 1)
+
+
 def test_a_node_refusing_another_emcy_cob_id_fails_its_configuration(
         make_net: Callable[..., Net]) -> None:
     """The other side of the rule: a COB-ID other than the default must be taken, or the

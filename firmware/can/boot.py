@@ -172,8 +172,8 @@ class BootSequence:
                     # switch its producer off (a node without 1017h may refuse: fine).
                     with contextlib.suppress(SdoAbortedError):
                         sdo.download(HEARTBEAT_PRODUCER, 0, b"\0\0")
-                sdo.download(0x100C, 0, struct.pack("<H", params.usGuardTime))
-                sdo.download(0x100D, 0, struct.pack("<B", params.bLifeTimeFactor))
+                self._write_guarding(sdo, 0x100C, struct.pack("<H", params.usGuardTime))
+                self._write_guarding(sdo, 0x100D, struct.pack("<B", params.bLifeTimeFactor))
                 self._write_cob_id(sdo, 0x100E, params.usCobIDGuard,
                                    ERROR_CONTROL_BASE + self.address)
         if not skip & ConfigNdState.SYNC:
@@ -227,6 +227,24 @@ class BootSequence:
                 raise
             log.info("node %d: 1017h refused (0x%08X); it produces at its own rate",
                      self.address, exc.code)
+
+    def _write_guarding(self, sdo: SdoClient, index: int, value: bytes) -> None:
+        """100Ch (guard time) or 100Dh (life time factor), written by the GUARD step.
+
+        [ours] With a guard time of 0 the node is not guarded at all, and the write only
+        switches its life guarding off. CiA 301 lets a node that produces heartbeats do
+        without both objects (a CANopenNode device has neither): a refusal of that write
+        is no configuration failure, since a node without them guards nothing. With a guard
+        time, a refusal fails the configuration (34, Prm_Fault): the card would guard a
+        node that does not answer.
+        """
+        try:
+            sdo.download(index, 0, value)
+        except SdoAbortedError as exc:
+            if self.params.usGuardTime:
+                raise
+            log.info("node %d: %04Xh refused (0x%08X); it is not guarded",
+                     self.address, index, exc.code)
 
     def _write_cob_id(self, sdo: SdoClient, index: int, cob_id: int, default: int) -> None:
         """A COB-ID the boot-up writes: 100Eh (usCobIDGuard), 1005h (the SYNC COB-ID), 1014h
