@@ -217,6 +217,9 @@ class Device:
                     self._wake_pending = False  # before service reads what woke it
                     now = time.monotonic()
                     self.service(now)
+                    recorder = self.recorder
+                    if recorder is not None:
+                        recorder.settle()  # after the ring: off the way of the host's answer
                 # The CAN master sleeps until told: of new outputs, connection bits, NOTREADY.
                 host_wrote = self.can.master.notice_host()
                 current = self._flag_bytes()

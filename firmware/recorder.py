@@ -51,7 +51,6 @@ from dpm.layout import (
     IO_AREA_SIZE,
     MSG_HEADER_SIZE,
     RCV_PD,
-    SND_PD,
     TASK2_PARAMETER,
     TASK2_STATE,
     TASK_STATE_SIZE,
@@ -103,14 +102,17 @@ class Recorder:
         "_append_frame",
         "_child",
         "_dev",
+        "_exchange",
         "_frames",
         "_image_files",
-        "_io",
         "_ledger",
         "_ledger_name",
         "_mm",
+        "_outputs",
         "_pipe",
         "_queue",
+        "_received",
+        "_sent",
         "_stop",
         "_thread",
         "board",
@@ -153,8 +155,11 @@ class Recorder:
         self._append_frame = self._frames.append
         self._dev = 0
         """DevFlags as last seen; a session takes them as 0 before its first dev_flags."""
-        self._io = bytes(_IO_END - SND_PD)
+        self._sent = self._received = bytes(IO_AREA_SIZE)
         """SndPd and RcvPd as the last exchange left them."""
+        self._outputs = bytearray()
+        self._exchange: tuple[int, int] | None = None
+        """The HostFlags change (PDACK) of this turn's exchange, until ``settle``."""
         self.events = 0
         self.frames = 0
         """What the writer wrote: lines of session.jsonl, frames of can.log (``close``)."""
@@ -192,9 +197,11 @@ class Recorder:
             files.close()
         return recorder
 
-    def start(self, image_files: CardDirectory, mm: Any) -> None:
-        """Record the card of ``mm``, whose directory ``image_files`` holds the ledger."""
+    def start(self, image_files: CardDirectory, mm: Any, outputs: bytearray) -> None:
+        """Record the card of ``mm``, whose directory ``image_files`` holds the ledger;
+        ``outputs``: its process image's copy of SndPd (``ProcessImage.outputs``)."""
         self._image_files = image_files
+        self._outputs = outputs
         self._ledger_name = lock_path(image_files.path, self.board, "transaction").name
         self._mm = mm
         self._thread.start()
@@ -207,6 +214,8 @@ class Recorder:
         msg.ln reaches, a tenth of the slot for most messages, for the queue and the
         spool. ``before``, ``after``: the HostFlags change (DEVACK) that took it, in the
         same event."""
+        if self._exchange is not None:  # (the loop takes messages before it exchanges)
+            self.settle()
         ledger = self._ledger
         lines = _pread(ledger, LEDGER_FIRST_READ, 0) if ledger >= 0 else self._open_ledger()
         if len(lines) == LEDGER_FIRST_READ:
@@ -216,23 +225,17 @@ class Recorder:
     def answer(self, raw: bytes, before: int, after: int) -> None:
         """``raw``: the encoded answer, as the card writes it into PcMbx; ``before``,
         ``after``: the HostFlags change (HOSTCOM) that hands it over, in the same event."""
+        if self._exchange is not None:
+            self.settle()
         self._append((_ANSWER, _monotonic(), raw, self._mm[TASK2_STATE:_STATE_END], before,
                       after))
 
     def host_flags(self, before: int, after: int) -> None:
         if (before ^ after) & _PDACK and before & after & _READY:  # not a (re)start's
-            # the change and the exchange in one event, which the writer makes two lines
-            mm = self._mm
-            # unchanged: no copy, and the writer gets no 7 KiB to compare. ``find`` of the
-            # last snapshot over exactly its length compares in place, where a slice would
-            # allocate and fill 7 KiB first
-            if mm.find(self._io, SND_PD, _IO_END) == SND_PD:
-                io = None
-            else:
-                io = self._io = mm[SND_PD:_IO_END]
-            self._append((_EXCHANGE, _monotonic(), before, after, io,
-                          mm[TASK2_STATE:_STATE_END]))
+            self._exchange = (before, after)  # ``settle`` queues it, after the ring
         elif before != after:
+            if self._exchange is not None:  # in the order the card wrote them
+                self.settle()
             self._append((_HOST_FLAGS, _monotonic(), before, after))
 
     def dev_flags(self, value: int, now: float) -> None:
@@ -244,6 +247,29 @@ class Recorder:
             self._append((_DEV_FLAGS, now, before, value,
                           self._mm[TASK2_PARAMETER:_PARAMETER_END] if value & ~before & _STARTS
                           else b""))
+
+    def settle(self) -> None:
+        """The turn's exchange and its PDACK toggle, one event, queued at the end of the
+        turn, after the card rang its hosts (the device loop calls this after each turn):
+        the comparison of the areas is off the way of the host's next call. The areas are
+        as the exchange left them: SndPd as the card took it (``ProcessImage.outputs``:
+        the host may write the image's SndPd again as soon as it sees PDACK), RcvPd as
+        the card wrote it (only the next exchange writes it)."""
+        pending = self._exchange
+        if pending is None:
+            return
+        self._exchange = None
+        before, after = pending
+        mm, outputs = self._mm, self._outputs
+        # unchanged: no copy, and the writer gets no 7 KiB to compare. ``find`` of the last
+        # snapshot over exactly its length compares in place, where a slice would allocate
+        # and fill 3.5 KiB first
+        if outputs == self._sent and mm.find(self._received, RCV_PD, _IO_END) == RCV_PD:
+            io = None
+        else:
+            self._sent, self._received = bytes(outputs), mm[RCV_PD:_IO_END]
+            io = self._sent + self._received
+        self._append((_EXCHANGE, _monotonic(), before, after, io, mm[TASK2_STATE:_STATE_END]))
 
     def frame(self, msg: can.Message, received: bool) -> None:
         """A frame the controller sent or received (any of its threads): queued as it is,
@@ -265,6 +291,7 @@ class Recorder:
 
     def close(self) -> None:
         """Write what is queued and close the session (after the hooks' last call)."""
+        self.settle()
         self._stop.set()
         if self._thread.is_alive():
             self._thread.join()
