@@ -13,10 +13,10 @@ the same interpreter, and marshal is four times faster; in pieces of ``CHUNK`` e
 because one call holds the interpreter lock until it returns (pickling 50 ms of a
 mailbox loop in one piece held it for a third of a millisecond). So recording costs the
 loop a few attribute lookups, at most one clock read per event and, at a process-data
-handshake, one comparison of the two I/O areas (a copy when they changed); never a write
-or a lock. A message and the HostFlags toggle that takes or hands it over are one event,
-as are an exchange and its PDACK toggle: each call and tuple counts on a loop that turns
-every 25 us.
+handshake, one comparison of the two I/O areas (a copy when they changed), made after the
+card rang its hosts (``settle``); never a write or a lock. A message and the HostFlags
+toggle that takes or hands it over are one event, as are an exchange and its PDACK
+toggle: each call and tuple counts on a loop that turns every 25 us.
 
 The writer gets open files, never a path: ``create`` makes them for ``cifemu firmware
 --record``, whose user chose the path; a ``cifemu record`` that attaches to a running
