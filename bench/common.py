@@ -20,7 +20,7 @@ import sys
 import tempfile
 import time
 from collections.abc import Callable, Iterator, Sequence
-from contextlib import contextmanager
+from contextlib import AbstractContextManager, contextmanager
 from dataclasses import dataclass, field
 from multiprocessing.connection import Connection
 from pathlib import Path
@@ -219,6 +219,8 @@ class RecordingRun:
     plain: Measured
     recording: Measured
     cpu_us_per_call: dict[str, float]
+    batch: int
+    """Calls per batch (``measure_alternating``)."""
 
 
 def _cpu_ns(pid: int) -> int:
@@ -260,13 +262,31 @@ def _joined(parts: list[Measured]) -> Measured:
                     timed_twice=False)
 
 
+@contextmanager
+def _plain_pair(records: tuple[bool, bool], make_step: Callable[[int], Step],
+                prepare: Callable[[int], None]) -> Iterator[list[tuple[int, Step]]]:
+    """The mailbox and exchange benchmarks' pair: two cards without a network."""
+    with running_cards(records) as cards, host_sessions(cards) as boards:
+        for board in boards:
+            prepare(board)
+        yield [(card.pid, make_step(board)) for card, board in zip(cards, boards, strict=True)]
+
+
 def measure_recording(make_step: Callable[[int], Step], count: int, warmup: int,
                       accepted: frozenset[int], prepare: Callable[[int], None] = lambda b: None
                       ) -> RecordingRun:
-    """``make_step(board)`` on a plain card and on a recording one (``--record``) side by
-    side, in alternating batches (``measure_alternating``), after ``prepare(board)``: half
-    of ``count`` with board 1 recording, half with board 0 (two identical plain cards
-    differed by up to a tenth on the shared machine, one board faster than the other).
+    """``make_step(board)`` on a plain card and on a recording one (``--record``) after
+    ``prepare(board)`` (``measure_recording_pair``)."""
+    return measure_recording_pair(lambda records: _plain_pair(records, make_step, prepare),
+                                  count, warmup, accepted)
+
+
+def measure_recording_pair(pair: Pair, count: int, warmup: int, accepted: frozenset[int],
+                           batch: int = RECORDING_BATCH) -> RecordingRun:
+    """A plain card and a recording one of ``pair`` side by side, in alternating batches
+    (``measure_alternating``): half of ``count`` with board 1 recording, half with board 0
+    (two identical plain cards differed by up to a tenth on the shared machine, one board
+    faster than the other).
 
     The CPU per call counts the warm-up calls too, and what each card spends idle while
     the other is measured (the same for both)."""
@@ -274,15 +294,12 @@ def measure_recording(make_step: Callable[[int], Step], count: int, warmup: int,
     recording: list[Measured] = []
     spent = {"plain_card": 0, "recording_card": 0, "session_writer": 0}
     for recorder in (1, 0):
-        with running_cards((recorder == 0, recorder == 1)) as cards, \
-                host_sessions(cards) as boards:
-            for board in boards:
-                prepare(board)
-            pids = {"plain_card": cards[1 - recorder].pid, "recording_card": cards[recorder].pid,
-                    "session_writer": session_writer_of(cards[recorder].pid)}
+        with pair((recorder == 0, recorder == 1)) as cards:
+            pids = {"plain_card": cards[1 - recorder][0], "recording_card": cards[recorder][0],
+                    "session_writer": session_writer_of(cards[recorder][0])}
             before = {name: _cpu_ns(pid) for name, pid in pids.items()}
-            measured = measure_alternating([make_step(b) for b in boards], count // 2, warmup,
-                                           accepted)
+            measured = measure_alternating([step for _, step in cards], count // 2, warmup,
+                                           accepted, batch)
             for name, pid in pids.items():
                 spent[name] += _cpu_ns(pid) - before[name]
         _wait_gone(pids["session_writer"])  # it encodes the session now: not beside the next
@@ -290,7 +307,8 @@ def measure_recording(make_step: Callable[[int], Step], count: int, warmup: int,
         recording.append(measured[recorder])
     calls = 2 * (count // 2 + warmup)
     return RecordingRun(_joined(plain), _joined(recording),
-                        {name: round(ns / calls / 1000, 2) for name, ns in spent.items()})
+                        {name: round(ns / calls / 1000, 2) for name, ns in spent.items()},
+                        batch)
 
 
 def recording_entry(name: str, run: RecordingRun, rate_name: str) -> dict[str, Any]:
@@ -304,7 +322,7 @@ def recording_entry(name: str, run: RecordingRun, rate_name: str) -> dict[str, A
     cpu = run.cpu_us_per_call
     return {"name": name, **summary, "plain": plain_summary,
             "method": f"a plain card and a recording one side by side, batches of "
-                      f"{RECORDING_BATCH} calls alternating between them; half of the calls "
+                      f"{run.batch} calls alternating between them; half of the calls "
                       "with board 1 recording, half with board 0",
             "cpu_us_per_call": cpu,
             "cost_pct": {
@@ -321,6 +339,10 @@ def recording_entry(name: str, run: RecordingRun, rate_name: str) -> dict[str, A
 
 Step = Callable[[], int]
 """One operation under test; returns a status code (the driver's rc, or 0 for success)."""
+
+Pair = Callable[[tuple[bool, bool]], AbstractContextManager[list[tuple[int, Step]]]]
+"""Two cards side by side, ``records[n]``: board n records a session; yields each card's
+firmware pid and the step that is timed on it."""
 
 
 @dataclass(slots=True)

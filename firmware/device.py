@@ -218,6 +218,9 @@ class Device:
                     self._wake_pending = False  # before service reads what woke it
                     now = time.monotonic()
                     self.service(now)
+                    recorder = self.recorder
+                    if recorder is not None:
+                        recorder.settle()  # after the ring: off the way of the host's answer
                 # The CAN master sleeps until told: of new outputs, connection bits, NOTREADY.
                 host_wrote = self.can.master.notice_host()
                 current = self._flag_bytes()
@@ -353,6 +356,15 @@ class Device:
         self.mm[HOST_FLAGS] = value
         self._ring = True
 
+    def _toggle_unrecorded(self, bits: int) -> int:
+        """``toggle_host_flags`` for a change the caller records with its message (one
+        event instead of two: docs/recording.md, what it costs); returns the flags before."""
+        mm = self.mm
+        before = mm[HOST_FLAGS]
+        mm[HOST_FLAGS] = before ^ bits
+        self._ring = True
+        return before
+
     def toggle_host_flags(self, bits: int) -> None:
         self.write_host_flags(self.mm[HOST_FLAGS] ^ bits)
 
@@ -469,7 +481,7 @@ class Device:
         dev = mm[DEV_FLAGS]
         recorder = self.recorder
         if recorder is not None:
-            recorder.dev_flags(dev)
+            recorder.dev_flags(dev, now)
         if dev & (fl.RESET | fl.INIT):
             self.rcs.start(Start.from_flags(dev))
             self._flush()
@@ -520,10 +532,10 @@ class Device:
         # disagree (every ln of 0..255 fits the slot). The tasks answer a message
         # that is malformed for its command with their own msg.f.
         raw = self.mm[DEV_MBX : DEV_MBX + MSG_MAX_SIZE]
-        self.toggle_host_flags(fl.DEVACK)
+        before = self._toggle_unrecorded(fl.DEVACK)
         recorder = self.recorder
         if recorder is not None:
-            recorder.put(raw)
+            recorder.put(raw, before, before ^ fl.DEVACK)
         msg = Message.decode(raw)
         task = self.tasks.get(msg.rx)
         answer = task.handle(msg) if task else msg.answer(f=F_UNKNOWN_TASK)
@@ -535,9 +547,10 @@ class Device:
         raw = self.outbox.popleft().encode()
         recorder = self.recorder
         if recorder is not None:
-            recorder.answer(raw)
+            host = self.mm[HOST_FLAGS]
+            recorder.answer(raw, host, host ^ fl.HOSTCOM)
         self.mm[PC_MBX : PC_MBX + len(raw)] = raw
-        self.toggle_host_flags(fl.HOSTCOM)
+        self._toggle_unrecorded(fl.HOSTCOM)
 
     def _state_field(self) -> None:
         """Event-driven state field: toggle STATECOM when Task2State changed."""

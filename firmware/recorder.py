@@ -12,8 +12,11 @@ the interpreter lock the loop waits for). ``marshal``, not ``pickle``: both ends
 the same interpreter, and marshal is four times faster; in pieces of ``CHUNK`` events,
 because one call holds the interpreter lock until it returns (pickling 50 ms of a
 mailbox loop in one piece held it for a third of a millisecond). So recording costs the
-loop a few attribute lookups, one clock read per event and, at a process-data
-handshake, one copy of the two I/O areas; never a write or a lock.
+loop a few attribute lookups, at most one clock read per event and, at a process-data
+handshake, one comparison of the two I/O areas (a copy when they changed), made after the
+card rang its hosts (``settle``); never a write or a lock. A message and the HostFlags
+toggle that takes or hands it over are one event, as are an exchange and its PDACK
+toggle: each call and tuple counts on a loop that turns every 25 us.
 
 The writer gets open files, never a path: ``create`` makes them for ``cifemu firmware
 --record``, whose user chose the path; a ``cifemu record`` that attaches to a running
@@ -48,7 +51,6 @@ from dpm.layout import (
     IO_AREA_SIZE,
     MSG_HEADER_SIZE,
     RCV_PD,
-    SND_PD,
     TASK2_PARAMETER,
     TASK2_STATE,
     TASK_STATE_SIZE,
@@ -98,15 +100,20 @@ class Recorder:
 
     __slots__ = (
         "_append",
+        "_append_frame",
         "_child",
         "_dev",
+        "_exchange",
+        "_frames",
         "_image_files",
-        "_io",
         "_ledger",
         "_ledger_name",
         "_mm",
+        "_outputs",
         "_pipe",
         "_queue",
+        "_received",
+        "_sent",
         "_stop",
         "_thread",
         "board",
@@ -144,10 +151,16 @@ class Recorder:
         self._mm: Any = None
         self._queue: deque[tuple[Any, ...]] = deque()
         self._append = self._queue.append
+        self._frames: deque[tuple[can.Message, bool]] = deque()
+        """Frames, apart from the events: they go to a file of their own (can.log)."""
+        self._append_frame = self._frames.append
         self._dev = 0
         """DevFlags as last seen; a session takes them as 0 before its first dev_flags."""
-        self._io = bytes(_IO_END - SND_PD)
+        self._sent = self._received = bytes(IO_AREA_SIZE)
         """SndPd and RcvPd as the last exchange left them."""
+        self._outputs = bytearray()
+        self._exchange: tuple[int, int] | None = None
+        """The HostFlags change (PDACK) of this turn's exchange, until ``settle``."""
         self.events = 0
         self.frames = 0
         """What the writer wrote: lines of session.jsonl, frames of can.log (``close``)."""
@@ -185,57 +198,86 @@ class Recorder:
             files.close()
         return recorder
 
-    def start(self, image_files: CardDirectory, mm: Any) -> None:
-        """Record the card of ``mm``, whose directory ``image_files`` holds the ledger."""
+    def start(self, image_files: CardDirectory, mm: Any, outputs: bytearray) -> None:
+        """Record the card of ``mm``, whose directory ``image_files`` holds the ledger;
+        ``outputs``: its process image's copy of SndPd (``ProcessImage.outputs``)."""
         self._image_files = image_files
+        self._outputs = outputs
         self._ledger_name = lock_path(image_files.path, self.board, "transaction").name
         self._mm = mm
         self._thread.start()
 
     # --- hooks (device loop, ``post`` and the controller's threads) ---------------------
 
-    def put(self, raw: bytes) -> None:
+    def put(self, raw: bytes, before: int, after: int) -> None:
         """``raw``: the message slot as the card copied it (the writer decodes it: a
         Message object costs microseconds to pass, bytes nothing); kept as far as its
         msg.ln reaches, a tenth of the slot for most messages, for the queue and the
-        spool."""
+        spool. ``before``, ``after``: the HostFlags change (DEVACK) that took it, in the
+        same event."""
+        if self._exchange is not None:  # (the loop takes messages before it exchanges)
+            self.settle()
         ledger = self._ledger
         lines = _pread(ledger, LEDGER_FIRST_READ, 0) if ledger >= 0 else self._open_ledger()
         if len(lines) == LEDGER_FIRST_READ and END not in lines:
             lines = _pread(self._ledger, LEDGER_BYTES, 0)
-        self._append((_PUT, _monotonic(), raw[: _HEAD_SIZE + raw[_LN]], lines))
+        self._append((_PUT, _monotonic(), raw[: _HEAD_SIZE + raw[_LN]], lines, before, after))
 
-    def answer(self, raw: bytes) -> None:
-        """``raw``: the encoded answer, as the card writes it into PcMbx."""
-        self._append((_ANSWER, _monotonic(), raw, self._mm[TASK2_STATE:_STATE_END]))
+    def answer(self, raw: bytes, before: int, after: int) -> None:
+        """``raw``: the encoded answer, as the card writes it into PcMbx; ``before``,
+        ``after``: the HostFlags change (HOSTCOM) that hands it over, in the same event."""
+        if self._exchange is not None:
+            self.settle()
+        self._append((_ANSWER, _monotonic(), raw, self._mm[TASK2_STATE:_STATE_END], before,
+                      after))
 
     def host_flags(self, before: int, after: int) -> None:
-        if before == after:
-            return
-        now = _monotonic()
-        self._append((_HOST_FLAGS, now, before, after))
         if (before ^ after) & _PDACK and before & after & _READY:  # not a (re)start's
-            mm = self._mm
-            # unchanged: no copy, and the writer gets no 7 KiB to compare. ``find`` of the
-            # last snapshot over exactly its length compares in place, where a slice would
-            # allocate and fill 7 KiB first
-            if mm.find(self._io, SND_PD, _IO_END) == SND_PD:
-                io = None
-            else:
-                io = self._io = mm[SND_PD:_IO_END]
-            self._append((_EXCHANGE, now, io, mm[TASK2_STATE:_STATE_END]))
+            self._exchange = (before, after)  # ``settle`` queues it, after the ring
+        elif before != after:
+            if self._exchange is not None:  # in the order the card wrote them
+                self.settle()
+            self._append((_HOST_FLAGS, _monotonic(), before, after))
 
-    def dev_flags(self, value: int) -> None:
+    def dev_flags(self, value: int, now: float) -> None:
+        """``value`` as the card read it at the start of its turn at ``now`` (the loop's
+        clock read: the event needs none of its own)."""
         before = self._dev
         if value != before:
-            parameter = (self._mm[TASK2_PARAMETER:_PARAMETER_END] if value & ~before & _STARTS
-                         else b"")
-            self._append((_DEV_FLAGS, _monotonic(), before, value, parameter))
             self._dev = value
+            self._append((_DEV_FLAGS, now, before, value,
+                          self._mm[TASK2_PARAMETER:_PARAMETER_END] if value & ~before & _STARTS
+                          else b""))
+
+    def settle(self) -> None:
+        """The turn's exchange and its PDACK toggle, one event, queued at the end of the
+        turn, after the card rang its hosts (the device loop calls this after each turn):
+        the comparison of the areas is off the way of the host's next call. The areas are
+        as the exchange left them: SndPd as the card took it (``ProcessImage.outputs``:
+        the host may write the image's SndPd again as soon as it sees PDACK), RcvPd as
+        the card wrote it (only the next exchange writes it)."""
+        pending = self._exchange
+        if pending is None:
+            return
+        self._exchange = None
+        before, after = pending
+        mm, outputs = self._mm, self._outputs
+        # unchanged: no copy, and the writer gets no 7 KiB to compare. ``find`` of the last
+        # snapshot over exactly its length compares in place, where a slice would allocate
+        # and fill 3.5 KiB first
+        if outputs == self._sent and mm.find(self._received, RCV_PD, _IO_END) == RCV_PD:
+            io = None
+        else:
+            self._sent, self._received = bytes(outputs), mm[RCV_PD:_IO_END]
+            io = self._sent + self._received
+        self._append((_EXCHANGE, _monotonic(), before, after, io, mm[TASK2_STATE:_STATE_END]))
 
     def frame(self, msg: can.Message, received: bool) -> None:
-        """A frame the controller sent or received (any of its threads)."""
-        self._append((_CAN, encode_frame(msg, received)))
+        """A frame the controller sent or received (any of its threads): queued as it is,
+        encoded by the drain (a frame's datagram cost the receiving thread a microsecond,
+        on the way from a node's TPDO to the input image). python-can makes a message per
+        frame and nobody changes one afterwards."""
+        self._append_frame((msg, received))
 
     def _open_ledger(self) -> bytes:
         """The ledger's first bytes, once it could be opened (then ``put`` reads it)."""
@@ -250,6 +292,7 @@ class Recorder:
 
     def close(self) -> None:
         """Write what is queued and close the session (after the hooks' last call)."""
+        self.settle()
         self._stop.set()
         if self._thread.is_alive():
             self._thread.join()
@@ -278,12 +321,17 @@ class Recorder:
         except OSError as exc:  # the writer died: keep the loop's queue from growing
             log.error("the session writer is gone (%s); recording nothing more", exc)
             self._append = deque[tuple[Any, ...]](maxlen=0).append
+            self._append_frame = deque[tuple[can.Message, bool]](maxlen=0).append
 
     def _drain(self) -> None:
         queue = self._queue
         # what is queued now, in one C loop (a Python loop cost the card 2 us a round trip);
         # hooks may append meanwhile, behind it
         batch = list(map(call, repeat(queue.popleft, len(queue))))
+        frames = self._frames
+        if frames:
+            batch += [(_CAN, encode_frame(msg, received))
+                      for msg, received in map(call, repeat(frames.popleft, len(frames)))]
         if batch:
             pieces: list[bytes] = []
             for start in range(0, len(batch), CHUNK):

@@ -10,7 +10,8 @@ runs), in a bare interpreter (``SPOOLER``, ``python -S``: it starts in milliseco
 where importing this module and numpy took a third of a second of the processor the card
 needed right then). At the end of its stdin, when the recording ends, that process
 becomes this module (``os.execv``), which reads the spool back and encodes: each event
-becomes a line of ``session.jsonl`` (``dpm.session``'s codec), the pid of a put's host
+becomes a line of ``session.jsonl`` (``dpm.session``'s codec), or two where the card
+queued a HostFlags change with its message or exchange, the pid of a put's host
 from the ledger bytes the card read, an answer's pid from its request, an exchange's
 changed bytes from the snapshots, the Unix time from the monotonic one; frames go to
 ``can.log`` in candump's format (python-can's ``CanutilsLogWriter``). Then it prints how
@@ -63,9 +64,9 @@ class Events:
         self._pending: dict[tuple[int, int, int, int], int] = {}
         """Puts awaiting their answers: (nr, b, rx, tx) -> pid."""
 
-    def line(self, item: tuple[Any, ...]) -> str | None:
-        """The ``session.jsonl`` line (without its newline) of one event tuple; None for
-        a message of the firmware's own host."""
+    def lines(self, item: tuple[Any, ...]) -> list[str]:
+        """The ``session.jsonl`` lines (without their newlines) of one event tuple: none
+        for a message of the firmware's own host, two for an exchange."""
         kind, t = item[0], item[1]
         wall = t + self._wall
         if kind == s.PUT:
@@ -74,9 +75,10 @@ class Events:
             pid = s.request_pid(item[3], nr, b, rx, tx) if item[3] else None
             if pid is not None:
                 self._pending[(nr, b, rx, tx)] = pid
+            taken = s.encode_flags(s.HOST_FLAGS, t, wall, item[4], item[5])  # DEVACK
             if pid == self._firmware:
-                return None
-            return s.encode_message(kind, t, wall, pid, raw)
+                return [taken]
+            return [taken, s.encode_message(kind, t, wall, pid, raw)]
         if kind == s.ANSWER:
             raw = item[2]
             rx, tx, _, nr, a, f, _, e = HEADER.unpack_from(raw)
@@ -85,14 +87,17 @@ class Events:
             more = f == 0 and e & Ext.SEQ_MASK in _MORE
             if pid is not None and not more:  # a long upload's parts share their request
                 del self._pending[key]
+            handed = s.encode_flags(s.HOST_FLAGS, t, wall, item[4], item[5])  # HOSTCOM
             if pid == self._firmware:
-                return None
-            return s.encode_message(kind, t, wall, pid, raw, item[3])
+                return [handed]
+            return [s.encode_message(kind, t, wall, pid, raw, item[3]), handed]
         if kind == s.HOST_FLAGS:
-            return s.encode_flags(kind, t, wall, item[2], item[3])
+            return [s.encode_flags(kind, t, wall, item[2], item[3])]
         if kind == s.DEV_FLAGS:
-            return s.encode_flags(kind, t, wall, item[2], item[3], item[4])
-        return s.encode_record(self._exchange(t, wall, item[2], item[3]))
+            return [s.encode_flags(kind, t, wall, item[2], item[3], item[4])]
+        # the HostFlags change that made the exchange, then the exchange
+        return [s.encode_flags(s.HOST_FLAGS, t, wall, item[2], item[3]),
+                s.encode_record(self._exchange(t, wall, item[4], item[5]))]
 
     def _exchange(self, t: float, wall: float, io: bytes | None, state: bytes) -> s.Record:
         if io is None:  # the card saw the areas unchanged
@@ -170,9 +175,7 @@ def main(argv: list[str] | None = None) -> int:
                     if frames is not None:
                         frames.write(item[1])
                 else:
-                    line = events.line(item)
-                    if line is not None:
-                        lines.append(line + "\n")
+                    lines += [line + "\n" for line in events.lines(item)]
             out.writelines(lines)
             written += len(lines)
     if can_out is not None:

@@ -9,6 +9,7 @@ that stops ends the recording complete; a detached card runs no writer any more.
 
 from __future__ import annotations
 
+import itertools
 import os
 import signal
 import subprocess
@@ -18,6 +19,7 @@ from pathlib import Path
 
 import can
 
+from dpm import flags as fl
 from dpm import session as s
 from dpm.commands import COM_SHARED_MEMORY
 from dpm.message import Task
@@ -125,6 +127,21 @@ def test_an_attached_recording_holds_the_hosts_session_and_replays(tmp_path: Pat
     assert {r.pid for r in puts + answers} == {host_pid}
     assert [r.changes["SndPd"] for r in events if r.kind == s.EXCHANGE
             and "SndPd" in r.changes] == [[(4, b"\x11\x22\x33")]]
+    # each HostFlags toggle in its place, though the card queues it with its message or
+    # exchange: DEVACK before the put, HOSTCOM after the answer, PDACK before the exchange
+    toggled = {r.before ^ r.after for r in events if r.kind == s.HOST_FLAGS}
+    for number, event in enumerate(events):
+        if event.kind in (s.PUT, s.EXCHANGE):
+            flags = events[number - 1]
+            assert number > 0 and flags.kind == s.HOST_FLAGS and flags.t == event.t
+            assert flags.before ^ flags.after == (fl.DEVACK if event.kind == s.PUT
+                                                  else fl.PDACK)
+        if event.kind == s.ANSWER:
+            flags = events[number + 1]
+            assert flags.kind == s.HOST_FLAGS and flags.t == event.t
+            assert flags.before ^ flags.after == fl.HOSTCOM
+    assert {fl.DEVACK, fl.HOSTCOM, fl.PDACK} <= toggled
+    assert all(a.t <= b.t for a, b in itertools.pairwise(events))  # as the card saw them
     assert list(can.LogReader(str(session / s.CAN_LOG))) == []  # no bus traffic: no frames
     fresh = start_card(tmp_path / "fresh")
     try:

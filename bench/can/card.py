@@ -128,7 +128,7 @@ class SimCard:
 @contextmanager
 def simulated_card(description: str, *, trace: bool = False, separate: bool = False,
                    bus: SeparateBus | None = None, board: int = BOARD,
-                   dpm_dir: Path | None = None) -> Iterator[SimCard]:
+                   dpm_dir: Path | None = None, record: bool = False) -> Iterator[SimCard]:
     """``cifemu firmware --simulate`` on a fresh image directory and flash; board opened.
 
     ``separate`` runs the nodes as ``cifemu sim`` in a process of their own, the
@@ -136,7 +136,8 @@ def simulated_card(description: str, *, trace: bool = False, separate: bool = Fa
     threads do not share an interpreter lock with the simulator (as on a real bus,
     where the nodes are other machines). ``board`` and ``dpm_dir`` put the image
     beside other cards' (boards 0-3 in one directory, as a driver sees several cards);
-    the flash, trace and log stay in the card's own temporary directory.
+    the flash, trace and log stay in the card's own temporary directory. ``record``: the
+    card records a session there (``--record``), to measure what that costs.
     """
     with tempfile.TemporaryDirectory(prefix="cifemu-bench-can-", dir=scratch_root()) as tmp:
         directory = Path(tmp)
@@ -154,6 +155,8 @@ def simulated_card(description: str, *, trace: bool = False, separate: bool = Fa
             command += ["--simulate", str(toml)]
         if trace_path is not None:
             command += ["--trace", str(trace_path)]
+        if record:
+            command += ["--record", str(directory / "session")]
         sim = start_sim(toml, interface, channel) if separate else None
         with stderr_path.open("wb") as stderr:
             proc = subprocess.Popen(command, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,

@@ -145,7 +145,7 @@ def _serve(args: argparse.Namespace, network: Network | None, configure_path: Pa
         print(f"cifemu firmware: board {args.board} refused: {exc}", file=sys.stderr)
         return 1
     if recorder is not None:
-        recorder.start(device.files, device.mm)
+        recorder.start(device.files, device.mm, device.plc.image.outputs)
         device.record(recorder)
     if simulation is not None:
         simulation.start()
