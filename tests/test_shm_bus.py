@@ -41,6 +41,7 @@ from firmware.shm.bus import (
     MAGIC,
     MAX_STATIONS,
     RECORD_SIZE,
+    ChannelWatch,
     ShmBus,
     channel_path,
     frames_written,
@@ -451,6 +452,35 @@ def test_frames_written_counts_every_stations_frames_without_a_station(
     reopened.send(counter_frame(10))
     assert frames_written(channel) == 5
     assert counters(recv_n(second, 4, timeout=5)) == [0, 1, 2, 10]
+
+
+def test_a_channel_watch_copies_every_stations_frames_and_counts_what_it_missed(
+        channel: str, open_bus: Opener) -> None:
+    """``python -m bench can``'s throughput phase counts the card's frames by identifier
+    and time with a ``ChannelWatch`` instead of the card's trace: it sees every station's
+    frames from its start on, in time order, says how many a ring overwrote before it
+    looked, and is no station (the last station's shutdown still removes the file)."""
+    first, second = open_bus(channel), open_bus(channel)
+    first.send(counter_frame(0, 0x201))  # before the watch: not its business
+    watch = ChannelWatch(channel)
+    try:
+        first.send(counter_frame(1, 0x202))
+        second.send(counter_frame(2, 0x182))
+        first.send(counter_frame(3, 0x203))
+        assert watch.poll() == 3
+        frames = watch.frames()
+        assert frames["ident"].tolist() == [0x202, 0x182, 0x203]
+        assert (frames["stamp"][1:] >= frames["stamp"][:-1]).all()
+        for i in range(CAPACITY + 5):  # a whole ring and 5 more before the next look
+            second.send(counter_frame(i, 0x183))
+        assert watch.poll() == CAPACITY
+        assert watch.missed == 5
+        assert len(watch.frames()) == 3 + CAPACITY
+        first.shutdown()
+        second.shutdown()
+        assert not channel_path(channel).exists()
+    finally:
+        watch.close()
 
 
 # --- the file -------------------------------------------------------------------------------

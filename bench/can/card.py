@@ -100,6 +100,9 @@ class SimCard:
     board: Board | None = None
     sim: subprocess.Popen[bytes] | None = None
     """``cifemu sim`` when the nodes run in a process of their own."""
+    interface: str = "virtual"
+    channel: str = CHANNEL
+    """Where the card and its nodes meet (a fresh ``shm`` channel for a separate ``sim``)."""
 
     @property
     def pid(self) -> int:
@@ -161,7 +164,8 @@ def simulated_card(description: str, *, trace: bool = False, separate: bool = Fa
         with stderr_path.open("wb") as stderr:
             proc = subprocess.Popen(command, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
                                     stderr=stderr)
-        card = SimCard(directory, proc, trace_path, stderr_path, sim=sim)
+        card = SimCard(directory, proc, trace_path, stderr_path, sim=sim, interface=interface,
+                       channel=channel)
         try:
             wait_ready(proc, image_path(images, board), STARTUP_TIMEOUT)
             card.board = Board(board, images, timeout=5000).open()
