@@ -13,13 +13,14 @@ them into ``CifError``).
 Concurrency [ours]: DevPutMessage, DevGetMessage and the process-data
 exchange are each atomic across threads and processes. A call waits for its
 channel up to its own timeout and returns DRV_CMD_ACTIVE (-4) when another
-caller holds it longer. A DevPutMessage takes the board's transaction lock for
-this process until its answer is read (``host_api.locks.Transaction``, the
-lock libcif takes), so processes that pair raw DevPutMessage/DevGetMessage
-calls, Python or C, never read each other's answers, and the answers of a host
-that died or gave up waiting are discarded, never returned. Threads of one
-process that pair raw calls can still read each other's answers;
-``Board.transact`` pairs them atomically.
+caller holds it longer (the put and get channels are thread locks inside the
+transaction lock, which excludes other processes). A DevPutMessage takes the
+board's transaction lock for this process until its answer is read
+(``host_api.locks.Transaction``, the lock libcif takes), so processes that pair
+raw DevPutMessage/DevGetMessage calls, Python or C, never read each other's
+answers, and the answers of a host that died or gave up waiting are discarded,
+never returned. Threads of one process that pair raw calls can still read each
+other's answers; ``Board.transact`` pairs them atomically.
 """
 
 from __future__ import annotations
@@ -27,6 +28,7 @@ from __future__ import annotations
 import math
 import mmap
 import struct
+import threading
 import time
 from contextlib import ExitStack
 from dataclasses import dataclass
@@ -224,16 +226,16 @@ def _open_board(number: int, path: Path, mm: mmap.mmap) -> _Board | None:
             bell = HostBell(path)
             opened.callback(bell.close)
             locks: list[ChannelLock] = []
-            for what in ("put", "get", "io", "flags"):
+            for what in ("io", "flags"):
                 locks.append(ChannelLock(lock_path(directory, number, what)))
                 opened.callback(locks[-1].close)
             transaction = Transaction(lock_path(directory, number, "transaction"))
             opened.pop_all()
     except OSError:
         return None
-    put, get, io, flags = locks
-    return _Board(number, path, mm, bell, put, get, io, flags, transaction,
-                  _driver.counters.setdefault(number, _Counters()))
+    io, flags = locks
+    return _Board(number, path, mm, bell, threading.Lock(), threading.Lock(), io, flags,
+                  transaction, _driver.counters.setdefault(number, _Counters()))
 
 
 def _check_card(mm: mmap.mmap) -> int:
@@ -282,7 +284,7 @@ def DevPutMessage(number: int, msg: Message | bytes, timeout: int) -> int:
     if not board.transaction.enter(timeout / 1000.0):
         return Drv.DRV_CMD_ACTIVE
     try:
-        if not board.put_lock.acquire(_left(deadline)):
+        if not _take(board.put_lock, deadline):
             return Drv.DRV_CMD_ACTIVE
         try:
             free = board.wait_for(
@@ -309,6 +311,13 @@ def _left(deadline: float) -> float:
     return max(0.0, deadline - time.monotonic())
 
 
+def _take(channel: threading.Lock, deadline: float) -> bool:
+    """The put or get channel of this process, waited for until the call's deadline; the
+    transaction lock the call holds already keeps every other host out (``MappedBoard``)."""
+    left = _left(deadline)
+    return channel.acquire(timeout=left) if left > 0 else channel.acquire(False)
+
+
 def _left_ms(deadline: float) -> int:
     """Whole milliseconds left, rounded up: a wait never ends before its time."""
     return max(0, math.ceil((deadline - time.monotonic()) * 1000))
@@ -331,7 +340,7 @@ def DevGetMessage(number: int, size: int, timeout: int) -> tuple[int, Message | 
     if not board.transaction.enter(timeout / 1000.0):
         return Drv.DRV_CMD_ACTIVE, None
     try:
-        if not board.get_lock.acquire(_left(deadline)):
+        if not _take(board.get_lock, deadline):
             return Drv.DRV_CMD_ACTIVE, None
         try:
             return _take_message(board, size, timeout, deadline)

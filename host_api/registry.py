@@ -61,8 +61,12 @@ class MappedBoard:
     path: Path
     mm: mmap.mmap
     bell: HostBell
-    put_lock: ChannelLock
-    get_lock: ChannelLock
+    put_lock: threading.Lock
+    get_lock: threading.Lock
+    """The put and get channels exclude this process's threads only: every put and get, of
+    a Python host and of libcif's, is made inside the board's transaction lock, which one
+    process at a time holds (``host_api.locks.Transaction``). An flock of their own would
+    exclude nobody more and cost four system calls per round trip (issue 22)."""
     io_lock: ChannelLock
     flags_lock: ChannelLock
     transaction: Transaction
@@ -121,12 +125,14 @@ class MappedBoard:
                 return True
 
     def channel_locks(self) -> tuple[ChannelLock, ...]:
-        return self.put_lock, self.get_lock, self.io_lock, self.flags_lock
+        return self.io_lock, self.flags_lock
 
     def after_fork(self) -> None:
         """In a forked child: its own lock files, thread locks and doorbell."""
         for lock in self.channel_locks():
             lock.reopen_after_fork()
+        # a parent's thread that held one is not here
+        self.put_lock, self.get_lock = threading.Lock(), threading.Lock()
         self.transaction.reopen_after_fork()
         self.bell.close()
         self.bell = HostBell(self.path)

@@ -228,8 +228,10 @@ def test_c_and_python_hosts_take_the_same_channel_locks(card: Card) -> None:
         assert c.DevReset(0, d.WARMSTART, 5000) == 0
         board = d._driver.boards[0]
         request = Message(rx=2, tx=16, b=17, nr=1, data=bytes([0, 1, 0, 0, 0, 2, 5, 1]))
-        for lock, call in ((board.put_lock, lambda: c.DevPutMessage(0, request, 30)),
-                           (board.get_lock, lambda: c.DevGetMessage(0, 288, 30)[0]),
+        # a Python host's put or get holds the transaction lock (its put and get channels
+        # are thread locks inside it)
+        for lock, call in ((board.transaction, lambda: c.DevPutMessage(0, request, 30)),
+                           (board.transaction, lambda: c.DevGetMessage(0, 288, 30)[0]),
                            (board.io_lock, lambda: c.DevExchangeIO(0, 0, b"x", 0, 1, 30)[0])):
             assert lock.acquire(1.0)
             try:
