@@ -66,24 +66,23 @@ class _LineClient:
     def read(self) -> int:
         self._sequence = self._sequence % 1_000_000 + 1
         self._socket.sendall(f"[{self._sequence}] {NODE} read 0x1000 0 u32\n".encode())
-        answer = b""
-        while not answer.endswith(b"\r\n"):
-            chunk = self._socket.recv(256)
-            if not chunk:
-                return FAILED
-            answer += chunk
+        answer = self._answer()
         return 0 if answer == f"[{self._sequence}] ".encode() + ANSWER else FAILED
 
     def empty(self) -> int:
         """An empty line; the server answers it with one (CANopenNode: cocomm -f waits)."""
         self._socket.sendall(b"\n")
+        return 0 if self._answer() == b"\r\n" else FAILED
+
+    def _answer(self) -> bytes | None:
+        """The server's answer line, with its CR LF; None when the server closed."""
         answer = b""
         while not answer.endswith(b"\r\n"):
             chunk = self._socket.recv(256)
             if not chunk:
-                return FAILED
+                return None
             answer += chunk
-        return 0 if answer == b"\r\n" else FAILED
+        return answer
 
     def close(self) -> None:
         self._socket.close()
