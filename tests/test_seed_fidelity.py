@@ -278,7 +278,10 @@ def test_host_not_ready_stops_the_nodes_with_err_event_39(make_net: Callable[...
     net.configure()
     net.wait_operating([1, 2])
     assert d.DevSetHostState(0, d.HOST_NOT_READY, 1000) == 0
-    wait_until(lambda: net.diag().bErr_event == 39, 5, "Err_Event 39")
+    # The card stops the nodes one after another: Err_Event 39 shows with node 1's stop,
+    # node 2 leaves Nd_state a moment later (CI on SocketCAN read [2] in between).
+    wait_until(lambda: net.diag().bErr_event == 39 and net.diag().operating() == [], 5,
+               "Err_Event 39 and no node in Nd_state")
     diag = net.diag()
     assert diag.operating() == [] and diag.bErr_rem_adr == 1
     assert diag.can_state_name == "STOP"
