@@ -71,6 +71,7 @@ from bench.can.card import (
     network_toml,
     start_uncontrolled,
 )
+from bench.can.pdo_loop import image_round_trip
 from bench.common import (
     STARTUP_TIMEOUT,
     STOP_TIMEOUT,
@@ -112,7 +113,6 @@ BURST = 2000
 """Frames in the transport burst: more than a websocket's and a socket's buffers hold."""
 QUIET_S = 2.0
 """The burst is over when the reader saw none of its frames for this long."""
-ECHO_TIMEOUT_S = 1.0
 NOTICE_TIMEOUT_S = 15.0
 RECOVER_TIMEOUT_S = 30.0
 ECHO_WAIT_S = 0.3
@@ -440,18 +440,7 @@ def pdo_loop(rig: Rig, count: int, warmup: int) -> dict[str, Any]:
     network = parse_network(rig.toml.read_text())
     board = board_of(rig.card)
     out_offset, in_offset = io_offsets(network)
-    number, clock = board.number, time.perf_counter_ns
-    values = itertools.cycle([bytes([v]) * 8 for v in range(1, 256)])
-    give_up_ns = int(ECHO_TIMEOUT_S * 1e9)
-
-    def round_trip() -> int:
-        value = next(values)
-        start = clock()
-        DevExchangeIO(number, out_offset, value, 0, 0, TIMEOUT_MS)
-        while DevExchangeIO(number, 0, b"", in_offset, 8, TIMEOUT_MS)[1] != value:
-            if clock() - start > give_up_ns:
-                return 1
-        return 0
+    round_trip = image_round_trip(board.number, out_offset, in_offset)
 
     progress(f"{rig.bridge}: pdo loop, {warmup} warm-up + 2 x {count} round trips")
     measured = measure(round_trip, count, warmup, frozenset({0}))

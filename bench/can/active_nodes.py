@@ -20,7 +20,6 @@ minute on a shared machine) hits both.
 from __future__ import annotations
 
 import itertools
-import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -32,20 +31,18 @@ from canopen.sdo.exceptions import SdoError
 from bench.can.baseline import in_process, sdo_client, start_all
 from bench.can.card import (
     DEVICE_TYPE_BYTES,
-    TIMEOUT_MS,
     SimCard,
     io_offsets,
     network_toml,
     simulated_card,
     start_uncontrolled,
 )
-from bench.can.pdo_loop import ECHO_TIMEOUT_S, LOST
+from bench.can.pdo_loop import ECHO_TIMEOUT_S, LOST, image_round_trip, image_values
 from bench.can.sdo import interleaved, sdo_message
 from bench.common import Measured, Rate, Step, latency_stats, measure, progress, ratio
 from dbm_tools.network import Network, parse_network
-from firmware.sim.generic import IO_BYTES, generic_object_dictionary
+from firmware.sim.generic import generic_object_dictionary
 from host_api.board import CifError
-from host_api.driver import DevExchangeIO
 
 NODE_COUNTS = (1, 16, 126)
 COUNTS = {1: 2_000, 16: 1_000, 126: 500}
@@ -64,33 +61,6 @@ ROUNDS = 4
 
 def loop_count(nodes: int, quick: bool) -> int:
     return (QUICK_COUNTS if quick else COUNTS).get(nodes, OTHER_COUNT // (4 if quick else 1))
-
-
-def image_values(nodes: int) -> list[bytes]:
-    """Successive values of all ``nodes`` nodes' outputs: each differs from the one before,
-    none is the inputs' initial 0."""
-    return [bytes([v]) * (IO_BYTES * nodes) for v in range(1, 256)]
-
-
-def image_round_trip(board: int, out_offset: int, in_offset: int, nodes: int) -> Step:
-    """One PDO loop round trip of ``nodes`` nodes: write their outputs, poll their inputs
-    until every one shows the value (``LOST`` after ``ECHO_TIMEOUT_S``). The host spins,
-    as ``bench.can.pdo_loop`` does."""
-    exchange, clock = DevExchangeIO, time.perf_counter_ns
-    values = itertools.cycle(image_values(nodes))
-    size = IO_BYTES * nodes
-    give_up_ns = int(ECHO_TIMEOUT_S * 1e9)
-
-    def round_trip() -> int:
-        value = next(values)
-        start = clock()
-        exchange(board, out_offset, value, 0, 0, TIMEOUT_MS)
-        while exchange(board, 0, b"", in_offset, size, TIMEOUT_MS)[1] != value:
-            if clock() - start > give_up_ns:
-                return LOST
-        return 0
-
-    return round_trip
 
 
 @dataclass(frozen=True, slots=True)
@@ -114,7 +84,7 @@ def baseline_steps(network: Network) -> Iterator[Steps]:
             remote.tpdo.read(from_od=True)  # type: ignore[no-untyped-call]
             remotes.append((remote.rpdo[1], remote.tpdo[1]))
         start_all(sim, client)
-        values = itertools.cycle([bytes([v]) * IO_BYTES for v in range(1, 256)])
+        values = itertools.cycle(image_values(1))
 
         def round_trip() -> int:
             value = next(values)

@@ -22,8 +22,8 @@ from multiprocessing.connection import Connection
 from pathlib import Path
 from typing import Any
 
-from bench.can.active_nodes import image_round_trip
 from bench.can.card import io_offsets, network_toml, simulated_card, start_uncontrolled
+from bench.can.pdo_loop import image_round_trip
 from bench.common import latency_stats, progress, scratch_root
 from bench.cpu import Usage
 from dbm_tools.network import parse_network

@@ -26,7 +26,6 @@ from typing import Any
 
 import numpy as np
 
-from bench.can.active_nodes import image_values
 from bench.can.card import (
     TIMEOUT_MS,
     SeparateBus,
@@ -35,6 +34,7 @@ from bench.can.card import (
     simulated_card,
     start_uncontrolled,
 )
+from bench.can.pdo_loop import image_values
 from bench.common import progress
 from bench.cpu import Usage
 from dbm_tools.network import parse_network

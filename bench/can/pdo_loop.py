@@ -44,7 +44,7 @@ from bench.common import (
     scratch_root,
 )
 from dbm_tools.network import parse_network
-from firmware.sim.generic import generic_object_dictionary
+from firmware.sim.generic import IO_BYTES, generic_object_dictionary
 from host_api.driver import (
     DevExchangeIO,
 )
@@ -53,8 +53,6 @@ ECHO_TIMEOUT_S = 1.0
 """A PDO loop round trip not back within this is a failure."""
 
 
-VALUES = [bytes([v]) * 8 for v in range(1, 256)]
-"""Successive outputs: each differs from the one before, none is the inputs' initial 0."""
 LOST = 1
 """[bench] status of a round trip whose value was not back within ECHO_TIMEOUT_S."""
 RECORDING_BATCH = 200
@@ -75,18 +73,26 @@ def _summary(measured: Measured, firmware_log: dict[str, Any] | None = None) -> 
     return result
 
 
-def _round_trip(number: int, out_offset: int, in_offset: int) -> Step:
-    """One PDO loop round trip on board ``number``: a new output, then the input polled
-    until it shows the value."""
+def image_values(nodes: int) -> list[bytes]:
+    """Successive values of all ``nodes`` nodes' outputs: each differs from the one before,
+    none is the inputs' initial 0."""
+    return [bytes([v]) * (IO_BYTES * nodes) for v in range(1, 256)]
+
+
+def image_round_trip(board: int, out_offset: int, in_offset: int, nodes: int = 1) -> Step:
+    """One PDO loop round trip of ``nodes`` nodes on ``board``: write their outputs, poll
+    their inputs until every one shows the value (``LOST`` after ``ECHO_TIMEOUT_S``). The
+    host spins, as a control loop on DevExchangeIO does."""
     exchange, clock = DevExchangeIO, time.perf_counter_ns
-    values = itertools.cycle(VALUES)
+    values = itertools.cycle(image_values(nodes))
+    size = IO_BYTES * nodes
     give_up_ns = int(ECHO_TIMEOUT_S * 1e9)
 
     def round_trip() -> int:
         value = next(values)
         start = clock()
-        exchange(number, out_offset, value, 0, 0, TIMEOUT_MS)
-        while exchange(number, 0, b"", in_offset, 8, TIMEOUT_MS)[1] != value:
+        exchange(board, out_offset, value, 0, 0, TIMEOUT_MS)
+        while exchange(board, 0, b"", in_offset, size, TIMEOUT_MS)[1] != value:
             if clock() - start > give_up_ns:
                 return LOST
         return 0
@@ -98,7 +104,7 @@ def card_pdo_latency(count: int, warmup: int) -> dict[str, Any]:
     network = parse_network(network_toml([1]))
     with simulated_card(network_toml([1])) as card:
         board, _, _ = start_uncontrolled(card, network)
-        round_trip = _round_trip(board.number, *io_offsets(network))
+        round_trip = image_round_trip(board.number, *io_offsets(network))
         progress(f"pdo latency (card): {warmup} warm-up + 2 x {count} round trips")
         measured = measure(round_trip, count, warmup, frozenset({0}))
         return _summary(measured, card.log())
@@ -118,7 +124,7 @@ def _pdo_pair(records: tuple[bool, bool]) -> Iterator[list[tuple[int, Step]]]:
             card = stack.enter_context(simulated_card(description, board=number,
                                                       dpm_dir=Path(tmp), record=record))
             board, _, _ = start_uncontrolled(card, network)
-            pair.append((card.pid, _round_trip(board.number, *offsets)))
+            pair.append((card.pid, image_round_trip(board.number, *offsets)))
         yield pair
 
 
@@ -142,7 +148,7 @@ def baseline_pdo_latency(count: int, warmup: int) -> dict[str, Any]:
         start_all(sim, client)
         rpdo, tpdo = node.rpdo[1], node.tpdo[1]
         condition = tpdo.receive_condition
-        values = itertools.cycle(VALUES)
+        values = itertools.cycle(image_values(1))
 
         def round_trip() -> int:
             value = next(values)
