@@ -330,11 +330,17 @@ class InFlight:
 
     def release(self) -> None:
         """Let the request's number, the gate and the SDO channel go (once)."""
+        if self._close():
+            self.link.forget(self.nr)
+            self._let_go()
+
+    def _close(self) -> bool:
+        """Whether it was still open: the first of the reader and the owner to end it."""
         with self._lock:
-            if not self._open:
-                return
-            self._open = False
-        self.link.forget(self.nr)
+            was_open, self._open = self._open, False
+        return was_open
+
+    def _let_go(self) -> None:
         if self._channel is not None:
             self._channel.release()
         self.link.gate.leave_shared()
@@ -347,13 +353,8 @@ class InFlight:
     def abandon(self) -> Cia309Error:
         """Give up waiting (a late answer is discarded); the error ``Link.request`` raises."""
         self.pending.abandoned_at = time.monotonic()
-        with self._lock:
-            still_open = self._open
-            self._open = False
-        if still_open:  # the number stays taken for the late answer, as in ``request``
-            if self._channel is not None:
-                self._channel.release()
-            self.link.gate.leave_shared()
+        if self._close():  # the number stays taken for the late answer, as in ``request``
+            self._let_go()
         return self.link.no_answer(self.pending.b, self.timeout)
 
 
@@ -545,8 +546,7 @@ class Link:
             return None
         channel = None
         if sdo_node is not None:
-            with self._sdo_channels_lock:
-                channel = self._sdo_channels.setdefault(sdo_node, threading.Lock())
+            channel = self._sdo_channel_lock(sdo_node)
             if not channel.acquire(blocking=False):
                 self.gate.leave_shared()
                 return None
@@ -568,13 +568,16 @@ class Link:
             raise driver_error(code, "DevPutMessage")
         return flight
 
+    def _sdo_channel_lock(self, node: int) -> threading.Lock:
+        with self._sdo_channels_lock:
+            return self._sdo_channels.setdefault(node, threading.Lock())
+
     @contextmanager
     def sdo_channel(self, node: int, timeout: float) -> Iterator[None]:
         """The node's SDO channel for one transfer: the card runs one transfer per node
         and refuses a second (f 54), so the gateway's sessions take turns; 103 when the
         turn does not come within the time-out."""
-        with self._sdo_channels_lock:
-            channel = self._sdo_channels.setdefault(node, threading.Lock())
+        channel = self._sdo_channel_lock(node)
         if not channel.acquire(timeout=timeout):
             raise Cia309Error(ErrorCode.TIME_OUT, f"node {node}: its SDO channel stays busy")
         try:
