@@ -266,7 +266,7 @@ class Transaction:
             return
         sequence = e & _SEQ_MASK
         request = Request(self._pid, self._owner, msg.nr, msg.b, msg.rx, msg.tx,
-                          int(sequence == _FIRST), time.monotonic_ns() // 1_000_000)
+                          int(sequence == _FIRST), _now_ms())
         with self._state:
             changed = False
             if sequence in (_CONT, _LAST) and self._own:
