@@ -40,8 +40,8 @@ SPIN_SECONDS = 100e-6
 """How long a waiting call watches the flags before it sleeps on the bell."""
 POLLS_BEFORE_YIELD = 8
 """[ours] Uncontrolled exchanges in a row that read the same inputs, after which a host
-polling the card gives up its CPU once (``MappedBoard.poll_inputs``): about every 30 µs of
-a Python host's spinning, one system call per eight calls."""
+polling the card gives up its CPU once (``MappedBoard.poll_inputs``): every 10-30 µs of a
+Python host's spinning (a call takes 1.4-4 µs here), one system call per eight calls."""
 POLL_WINDOW_NS = 1_000_000
 """[ours] ... when those calls came within this many ns: a host polling, not a periodic
 control loop (a 1 kHz one takes eight milliseconds for eight calls)."""
