@@ -416,6 +416,8 @@ def _exchange(
             board.bell.ring_device()  # [ours] the card sends changed outputs when rung
         if recv_size:
             received = mm[RCV_PD + recv_offset : RCV_PD + recv_offset + recv_size]
+            if not send_data:
+                board.poll_inputs(received)  # [ours] a host polling lets the card run
         rc: int = Drv.DRV_NO_ERROR
     else:
         if not board.io_lock.acquire(timeout / 1000.0):
