@@ -66,10 +66,14 @@ class SpareTimer:
         return process
 
     def close(self) -> None:
+        """End the spare at once. It has no job and no station yet, so there is nothing to
+        end cleanly; closing its input instead (``_reap``) waited until it had imported
+        what it needs, an interpreter start: a second of a card's stop under load."""
         with self._lock:
             self._closed = True
             process, self._spare = self._spare, None
         if process is not None:
+            process.kill()
             _reap(process)
 
 
