@@ -16,7 +16,7 @@ import pytest
 from dpm.message import Message
 from dpm.task2 import ComPlcParameter
 from host_api.board import Board, CifError
-from tests.conftest import ROOT, Card, start_card, wait_until
+from tests.conftest import HOST_FLAGS, READY, ROOT, Card, start_card, wait_until
 
 
 def test_image_is_created_8k_with_mode_0660(card: Card) -> None:
@@ -182,3 +182,32 @@ def test_demo_runs_the_bundled_network_until_ctrl_c(tmp_path: Path, extra: list[
     finally:
         demo.send_signal(signal.SIGINT)
         assert demo.wait(timeout=20) == 0, demo.stderr.read().decode() if demo.stderr else ""
+
+
+# --- start-up: what a card that no option asked for does not load (docs/testing.md) ---------
+
+COMPOSITION = ("cifemu.online_configure", "cifemu.commands.configure", "dbm_tools.builder",
+               "host_api", "firmware.sim")
+"""What only --configure (a host inside the card) and --simulate need."""
+
+
+def test_firmware_command_loads_no_composition_until_an_option_asks() -> None:
+    """The tests start some thousand firmwares: --configure's host (the DBM builder,
+    host_api's Board) was a fifth of each start's CPU although few ask for it."""
+    probe = ("import sys\nfrom cifemu.cli import main\n"
+             "try:\n    main(['firmware', '--help'])\nexcept SystemExit:\n    pass\n"
+             f"prefixes = {COMPOSITION!r}\n"
+             "print(sorted(m for m in sys.modules if m.startswith(prefixes) or m == 'numpy'))\n")
+    out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True,
+                         timeout=60, cwd=ROOT)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.splitlines()[-1] == "[]"
+
+
+def test_a_card_without_configuration_maps_no_numpy(card: Card) -> None:
+    """numpy costs a process 0.1 s of CPU to import; the card needs it only to compare
+    outputs (``OutputWatch``), so a card that was never configured has not loaded it: its
+    process maps none of numpy's libraries."""
+    maps = Path(f"/proc/{card.proc.pid}/maps").read_text()
+    assert "numpy" not in maps
+    assert card.map()[HOST_FLAGS] & READY  # and it serves
