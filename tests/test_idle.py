@@ -17,6 +17,7 @@ from __future__ import annotations
 import mmap
 import statistics
 import subprocess
+import sys
 import time
 import uuid
 from collections.abc import Iterator
@@ -36,6 +37,8 @@ from dpm.layout import DEV_FLAGS, HOST_FLAGS
 from dpm.task2 import ComPlcParameter, PlcMode
 from host_api import driver as d
 from host_api.board import Board
+from host_api.cia309.events import MONITOR_PERIOD_QUIET
+from host_api.cia309.link import READER_POLL_QUIET
 from host_api.online import configure_online
 from tests.can_net import candump, start_sim
 from tests.conftest import Card, start_card, wait_until
@@ -202,6 +205,41 @@ def test_every_thread_of_an_idle_card_sleeps(tmp_path: Path, bus: str) -> None:
     wakeups = sum(after[t][1] - before.get(t, (0, 0))[1] for t in after) / wall
     assert wakeups < MAX_IDLE_CARD_WAKEUPS_PER_S, f"the card woke {wakeups:.1f} times a second"
     assert running.proc.returncode == 0
+
+
+MAX_GATEWAY_WAKEUPS_PER_S = 30
+"""Every thread of ``cifemu 309 serve`` on a card nobody asks anything: the mailbox reader's
+and the Task2State monitor's fallback looks (4 a second each once backed off). It woke
+1,050-1,100 times a second when the reader waited in 20 ms DevGetMessage calls, which
+re-check the flags every millisecond, and the monitor looked every 10 ms."""
+MAX_GATEWAY_CPU_PCT = 1.0
+"""The idle gateway's CPU time: 2.5-4 % of a core with the 1 ms and 10 ms polls."""
+
+
+def test_an_idle_309_gateway_sleeps(card: Card) -> None:
+    """``cifemu 309 serve`` with no client: its threads sleep until the card rings, a client
+    connects or a fallback look is due, instead of polling every millisecond."""
+    serve = subprocess.Popen(
+        [sys.executable, "-m", "cifemu", "309", "serve", "--dpm-dir", str(card.directory),
+         "--port", "0"], stderr=subprocess.PIPE, text=True)
+    try:
+        assert serve.stderr is not None
+        line = serve.stderr.readline()  # the server's one line once it listens
+        assert "listening on" in line, line
+        # The gateway's start-up looks age: both fallback polls back off to their longest.
+        time.sleep(2 * (READER_POLL_QUIET + MONITOR_PERIOD_QUIET))
+        before = _threads(serve.pid)
+        start = time.monotonic()
+        time.sleep(WINDOW_S)  # the measurement window, not a wait on a condition
+        after = _threads(serve.pid)
+        wall = time.monotonic() - start
+    finally:
+        serve.terminate()
+        serve.wait(timeout=10)
+    wakeups = sum(after[t][1] - before.get(t, (0, 0))[1] for t in after) / wall
+    cpu_pct = 100.0 * sum(after[t][0] - before.get(t, (0, 0))[0] for t in after) / 1e9 / wall
+    assert wakeups < MAX_GATEWAY_WAKEUPS_PER_S, f"the gateway woke {wakeups:.0f} times a second"
+    assert cpu_pct < MAX_GATEWAY_CPU_PCT, f"the gateway used {cpu_pct:.2f} % of a core"
 
 
 class ShmNetwork:
