@@ -8,7 +8,9 @@ post from another thread or a due timer, with a fallback poll that backs off to
 comes or power-off wakes it. So does the CAN master's thread, which used to
 wake every millisecond too: it wakes when the device loop saw the host change its
 outputs, and when a deadline of its own comes (supervision, inhibit times, time-outs).
-The figures here come from /proc: CPU time and voluntary context switches (each one a
+The CiA 309 gateway (``cifemu 309 serve``) sleeps too: its mailbox reader waits for the
+card's ring, and a host that never waits on its bell no longer silences the card's rings
+to the others. The figures here come from /proc: CPU time and voluntary context switches (each one a
 sleep that ended), which a loaded machine hardly changes, unlike wall time.
 """
 
@@ -31,6 +33,7 @@ from dpm.doorbell import (
     DEVICE_POLL_IDLE,
     DEVICE_POLL_QUIET,
     DEVICE_QUIET_AFTER,
+    HostBell,
 )
 from dpm.flags import DevFlag, HostFlag
 from dpm.layout import DEV_FLAGS, HOST_FLAGS
@@ -166,6 +169,31 @@ def test_a_host_that_never_rings_is_served_after_a_long_pause(card: Card) -> Non
         assert follow_up[QUIET_TRIALS // 2] <= DEVICE_POLL_IDLE + SCHEDULING_SLACK_S, follow_up
     finally:
         image.close()
+
+
+RINGS = 400
+"""More of the device's rings than its send buffer held for a host that never takes them
+(about 280, when hosts' bells were connected to the device's)."""
+RING_WAIT_S = 5.0
+
+
+def test_a_host_that_never_waits_on_its_bell_does_not_silence_it(card: Card) -> None:
+    """One host has the board's bell and never waits on it (a tool that configured the card
+    and sits there); another host is still rung for every answer of the card, however many:
+    a host that waits for rings only (the CiA 309 gateway) must not fall back to its poll."""
+    idle, waiting = HostBell(card.path), HostBell(card.path)
+    image = card.map()
+    try:
+        idle.ring_device()  # the device knows it from now on
+        wait_until(lambda: image[HOST_FLAGS] & HostFlag.READY, what="READY")
+        for ring in range(RINGS):
+            image[DEV_FLAGS] ^= DevFlag.SPCCOM
+            waiting.ring_device()
+            assert waiting.wait(RING_WAIT_S), f"no ring for the card's answer {ring}"
+    finally:
+        image.close()
+        idle.close()
+        waiting.close()
 
 
 # --- the card's threads ------------------------------------------------------------------------
