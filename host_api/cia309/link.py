@@ -1,7 +1,8 @@
 """The link to the card: one board's host mailbox, its layer-2 access and the
 configuration the card holds, for the CiA 309 service layer.
 
-* One :class:`Link` per board owns the host mailbox: a single reader thread takes every
+* One :class:`Link` per board owns the host mailbox: a single reader (a thread, or the
+  309-3 server's event loop: ``Link.read_on``) sleeps on the card's doorbell, takes every
   message with ``DevGetMessage`` and routes answers by (``msg.a``, ``msg.nr``) to the
   waiting call and indications (layer-2 frames, boot-up) to the gateway's own listeners.
   Two readers would steal each other's answers, so the link also holds the board's

@@ -851,8 +851,10 @@ class Server:
 
         Why the upload apart: it is the request a 309-3 client repeats most, and a worker
         thread costs it two thread switches (to the worker, back to the event loop), each
-        of which waits for the interpreter lock; the gateway's mailbox reader wakes the
-        event loop directly instead (``Gateway.try_sdo_upload``)."""
+        of which waits for the interpreter lock. The server reads the mailbox on this loop
+        (``Gateway.read_on``), so the card's ring wakes the loop, which resolves the answer
+        at once; a gateway read by another loop's or its own thread wakes this loop
+        (``Gateway.try_sdo_upload``)."""
         dispatcher = self.dispatcher
         prepared = dispatcher.prepare(client, line)
         if isinstance(prepared, Answered):
