@@ -205,6 +205,10 @@ def test_sdo_upload_sent_without_waiting(gw: Gateway) -> None:
     assert flight is not None
     assert done[0].wait(5)
     assert flight.result() == struct.pack("<I", 0x000F0191)
+    # A transfer to node 42 that an earlier test gave up on may still run in the card, which
+    # then refuses the next one at once (f 54: 102): wait for one that runs its whole time.
+    wait_until(lambda: reason(lambda: gw.sdo_upload(0x1000, 0, node_id=42)).error
+               == ErrorCode.TIME_OUT, 5, "node 42's earlier transfer over")
     # The card's own SDO time-out (0.5 s by default) must outlast the two calls below: a
     # test beside busy processes can be held that long between them.
     gw.configure_sdo_timeout(3000)

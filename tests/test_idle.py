@@ -8,7 +8,9 @@ post from another thread or a due timer, with a fallback poll that backs off to
 comes or power-off wakes it. So does the CAN master's thread, which used to
 wake every millisecond too: it wakes when the device loop saw the host change its
 outputs, and when a deadline of its own comes (supervision, inhibit times, time-outs).
-The figures here come from /proc: CPU time and voluntary context switches (each one a
+The CiA 309 gateway (``cifemu 309 serve``) sleeps too: its mailbox reader waits for the
+card's ring, and a host that never waits on its bell no longer silences the card's rings
+to the others. The figures here come from /proc: CPU time and voluntary context switches (each one a
 sleep that ended), which a loaded machine hardly changes, unlike wall time.
 """
 
@@ -17,6 +19,7 @@ from __future__ import annotations
 import mmap
 import statistics
 import subprocess
+import sys
 import time
 import uuid
 from collections.abc import Iterator
@@ -30,12 +33,15 @@ from dpm.doorbell import (
     DEVICE_POLL_IDLE,
     DEVICE_POLL_QUIET,
     DEVICE_QUIET_AFTER,
+    HostBell,
 )
 from dpm.flags import DevFlag, HostFlag
 from dpm.layout import DEV_FLAGS, HOST_FLAGS
 from dpm.task2 import ComPlcParameter, PlcMode
 from host_api import driver as d
 from host_api.board import Board
+from host_api.cia309.events import MONITOR_PERIOD_QUIET
+from host_api.cia309.link import READER_POLL_QUIET
 from host_api.online import configure_online
 from tests.can_net import candump, start_sim
 from tests.conftest import Card, start_card, wait_until
@@ -165,6 +171,31 @@ def test_a_host_that_never_rings_is_served_after_a_long_pause(card: Card) -> Non
         image.close()
 
 
+RINGS = 400
+"""More of the device's rings than its send buffer held for a host that never takes them
+(about 280, when hosts' bells were connected to the device's)."""
+RING_WAIT_S = 5.0
+
+
+def test_a_host_that_never_waits_on_its_bell_does_not_silence_it(card: Card) -> None:
+    """One host has the board's bell and never waits on it (a tool that configured the card
+    and sits there); another host is still rung for every answer of the card, however many:
+    a host that waits for rings only (the CiA 309 gateway) must not fall back to its poll."""
+    idle, waiting = HostBell(card.path), HostBell(card.path)
+    image = card.map()
+    try:
+        idle.ring_device()  # the device knows it from now on
+        wait_until(lambda: image[HOST_FLAGS] & HostFlag.READY, what="READY")
+        for ring in range(RINGS):
+            image[DEV_FLAGS] ^= DevFlag.SPCCOM
+            waiting.ring_device()
+            assert waiting.wait(RING_WAIT_S), f"no ring for the card's answer {ring}"
+    finally:
+        image.close()
+        idle.close()
+        waiting.close()
+
+
 # --- the card's threads ------------------------------------------------------------------------
 
 
@@ -202,6 +233,41 @@ def test_every_thread_of_an_idle_card_sleeps(tmp_path: Path, bus: str) -> None:
     wakeups = sum(after[t][1] - before.get(t, (0, 0))[1] for t in after) / wall
     assert wakeups < MAX_IDLE_CARD_WAKEUPS_PER_S, f"the card woke {wakeups:.1f} times a second"
     assert running.proc.returncode == 0
+
+
+MAX_GATEWAY_WAKEUPS_PER_S = 30
+"""Every thread of ``cifemu 309 serve`` on a card nobody asks anything: the mailbox reader's
+and the Task2State monitor's fallback looks (4 a second each once backed off). It woke
+1,050-1,100 times a second when the reader waited in 20 ms DevGetMessage calls, which
+re-check the flags every millisecond, and the monitor looked every 10 ms."""
+MAX_GATEWAY_CPU_PCT = 1.0
+"""The idle gateway's CPU time: 2.5-4 % of a core with the 1 ms and 10 ms polls."""
+
+
+def test_an_idle_309_gateway_sleeps(card: Card) -> None:
+    """``cifemu 309 serve`` with no client: its threads sleep until the card rings, a client
+    connects or a fallback look is due, instead of polling every millisecond."""
+    serve = subprocess.Popen(
+        [sys.executable, "-m", "cifemu", "309", "serve", "--dpm-dir", str(card.directory),
+         "--port", "0"], stderr=subprocess.PIPE, text=True)
+    try:
+        assert serve.stderr is not None
+        line = serve.stderr.readline()  # the server's one line once it listens
+        assert "listening on" in line, line
+        # The gateway's start-up looks age: both fallback polls back off to their longest.
+        time.sleep(2 * (READER_POLL_QUIET + MONITOR_PERIOD_QUIET))
+        before = _threads(serve.pid)
+        start = time.monotonic()
+        time.sleep(WINDOW_S)  # the measurement window, not a wait on a condition
+        after = _threads(serve.pid)
+        wall = time.monotonic() - start
+    finally:
+        serve.terminate()
+        serve.wait(timeout=10)
+    wakeups = sum(after[t][1] - before.get(t, (0, 0))[1] for t in after) / wall
+    cpu_pct = 100.0 * sum(after[t][0] - before.get(t, (0, 0))[0] for t in after) / 1e9 / wall
+    assert wakeups < MAX_GATEWAY_WAKEUPS_PER_S, f"the gateway woke {wakeups:.0f} times a second"
+    assert cpu_pct < MAX_GATEWAY_CPU_PCT, f"the gateway used {cpu_pct:.2f} % of a core"
 
 
 class ShmNetwork:
