@@ -132,9 +132,9 @@ class MappedBoard:
         self, set_bits: int = 0, clear_bits: int = 0, toggle: int = 0, ring: bool = True
     ) -> None:
         """Read-modify-write DevFlags under the flags lock, then ring the device."""
+        mm = self.mm
         with self.flags_lock:
-            value = self.dev()
-            self.mm[DEV_FLAGS] = ((value | set_bits) & ~clear_bits & 0xFF) ^ toggle
+            mm[DEV_FLAGS] = ((mm[DEV_FLAGS] | set_bits) & ~clear_bits & 0xFF) ^ toggle
         if ring:
             self.bell.ring_device()
 
@@ -229,10 +229,10 @@ def lookup(number: int) -> MappedBoard | int:
 
 def ready_board(number: int) -> MappedBoard | int:
     """``lookup``, and DRV_DEV_NOT_READY (-11) while the card has not set READY."""
-    board = lookup(number)
-    if isinstance(board, MappedBoard) and not board.ready():
-        return Drv.DRV_DEV_NOT_READY
-    return board
+    board = registry.boards.get(number)  # on every mailbox call: one look-up, no calls
+    if board is None:
+        return lookup(number)
+    return board if board.mm[HOST_FLAGS] & fl.READY else Drv.DRV_DEV_NOT_READY
 
 
 def transaction_lock(number: int) -> Transaction | None:
