@@ -287,9 +287,10 @@ def DevPutMessage(number: int, msg: Message | bytes, timeout: int) -> int:
         if not _take(board.put_lock, deadline):
             return Drv.DRV_CMD_ACTIVE
         try:
+            # The card rings for a message it took only when asked (dpm/doorbell.py).
             free = board.wait_for(
                 lambda: not fl.pending(board.host(), board.dev(), fl.DEV_MBX),
-                _left_ms(deadline))
+                _left_ms(deadline), lambda: board.bell.ring_device(want_mailbox=True))
             if not free:
                 return (Drv.DRV_DEV_MAILBOX_FULL if timeout <= 0
                         else board.timed_out(Drv.DRV_DEV_PUT_TIMEOUT))
