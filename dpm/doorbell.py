@@ -54,6 +54,11 @@ MAX_HOSTS = 64
 _RING = b"\x01"
 _RING_WANT_ACK = b"\x02"
 """A device ring that also says: more answers wait, ring me when you acknowledge."""
+_RING_WANT_MAILBOX = b"\x03"
+"""A host ring that also says: I wait for the device mailbox, ring me when it is free. The
+card rings for a message it took (DEVACK) only when a host asked so: a host that waits for
+its answer would only wake for nothing, a thread hand-off per request whose answer comes
+later (an SDO transfer; issue 22)."""
 
 
 def device_address(image_path: Path) -> str:
@@ -174,15 +179,20 @@ class DeviceBell(_Endpoint):
             self.sock.close()
             raise
         self._hosts: OrderedDict[str | bytes, None] = OrderedDict()
+        self.mailbox_wanted = False
+        """A host rang that it waits for the device mailbox (``_RING_WANT_MAILBOX``): the
+        device rings its hosts once the mailbox is free, and clears this."""
 
     def close(self) -> None:
         super().close()
         self._directory.unlink(Path(self.address).name)
 
     def _on_rings(self, rings: list[tuple[bytes, str | bytes]]) -> None:
-        for _, address in rings:
+        for payload, address in rings:
             if not address or address == self.address:
                 continue
+            if payload == _RING_WANT_MAILBOX:
+                self.mailbox_wanted = True
             self._hosts[address] = None
             self._hosts.move_to_end(address)
             while len(self._hosts) > MAX_HOSTS:
@@ -227,5 +237,8 @@ class HostBell(_Endpoint):
         if rings:
             self.device_wants_ack = rings[-1][0] == _RING_WANT_ACK
 
-    def ring_device(self) -> None:
-        self._send(self.device)  # no device listens: it polls when it comes
+    def ring_device(self, want_mailbox: bool = False) -> None:
+        """Ring the device; ``want_mailbox``: and ask for a ring once the device mailbox is
+        free (DevPutMessage before it sleeps on a full mailbox)."""
+        # no device listens: it polls when it comes
+        self._send(self.device, _RING_WANT_MAILBOX if want_mailbox else _RING)

@@ -354,14 +354,24 @@ class Device:
         self.mm[HOST_FLAGS] = value
         self._ring = True
 
-    def _toggle_unrecorded(self, bits: int) -> int:
+    def _toggle_unrecorded(self, bits: int, ring: bool = True) -> int:
         """``toggle_host_flags`` for a change the caller records with its message (one
-        event instead of two: docs/recording.md, what it costs); returns the flags before."""
+        event instead of two: docs/recording.md, what it costs); returns the flags before.
+        ``ring``: the hosts hear of it at the end of the turn."""
         mm = self.mm
         before = mm[HOST_FLAGS]
         mm[HOST_FLAGS] = before ^ bits
-        self._ring = True
+        if ring:
+            self._ring = True
         return before
+
+    def _ring_for_mailbox(self) -> None:
+        """Ring the hosts once the device mailbox is free, if one asked (``DeviceBell``'s
+        ``mailbox_wanted``): it may have asked after the card took the message."""
+        mm = self.mm
+        if self.bell.mailbox_wanted and not (mm[HOST_FLAGS] ^ mm[DEV_FLAGS]) & fl.DEV_MBX:
+            self.bell.mailbox_wanted = False
+            self._ring = True
 
     def toggle_host_flags(self, bits: int) -> None:
         self.write_host_flags(self.mm[HOST_FLAGS] ^ bits)
@@ -505,6 +515,7 @@ class Device:
         self.plc.service(mm[HOST_FLAGS], mm[DEV_FLAGS])
         self._state_field()
         self._set_level(fl.SPCACK, bool(mm[DEV_FLAGS] & fl.SPCCOM))
+        self._ring_for_mailbox()
         self._flush()
 
     def _current_can_state(self) -> CanState:
@@ -536,7 +547,9 @@ class Device:
         # disagree (every ln of 0..255 fits the slot). The tasks answer a message
         # that is malformed for its command with their own msg.f.
         raw = self.mm[DEV_MBX : DEV_MBX + MSG_MAX_SIZE]
-        before = self._toggle_unrecorded(fl.DEVACK)
+        # No ring for DEVACK alone: a host waiting for the free mailbox asks for one
+        # (``_ring_for_mailbox``); its answer, now or later, rings the one that waits for it.
+        before = self._toggle_unrecorded(fl.DEVACK, ring=False)
         recorder = self.recorder
         if recorder is not None:
             recorder.put(raw, before, before ^ fl.DEVACK)

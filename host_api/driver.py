@@ -290,9 +290,10 @@ def DevPutMessage(number: int, msg: Message | bytes, timeout: int) -> int:
             return Drv.DRV_CMD_ACTIVE
         try:
             mm = board.mm
+            # The card rings for a message it took only when asked (dpm/doorbell.py).
             if (mm[HOST_FLAGS] ^ mm[DEV_FLAGS]) & fl.DEV_MBX and not board.wait_for(
                     lambda: not fl.pending(board.host(), board.dev(), fl.DEV_MBX),
-                    _left_ms(deadline)):
+                    _left_ms(deadline), lambda: board.bell.ring_device(want_mailbox=True)):
                 return (Drv.DRV_DEV_MAILBOX_FULL if timeout <= 0
                         else board.timed_out(Drv.DRV_DEV_PUT_TIMEOUT))
             mm[DEV_MBX : DEV_MBX + len(raw)] = raw

@@ -138,8 +138,10 @@ class MappedBoard:
         if ring:
             self.bell.ring_device()
 
-    def wait_for(self, condition: Callable[[], bool], timeout_ms: int) -> bool:
-        """Wait on the bell (polling as a fallback) until ``condition`` or the timeout."""
+    def wait_for(self, condition: Callable[[], bool], timeout_ms: int,
+                 before_sleep: Callable[[], None] | None = None) -> bool:
+        """Wait on the bell (polling as a fallback) until ``condition`` or the timeout;
+        ``before_sleep`` runs once, before the first sleep on the bell."""
         if condition():
             return True
         if timeout_ms <= 0:
@@ -155,6 +157,8 @@ class MappedBoard:
             while time.perf_counter() < spin_end:
                 if condition():
                     return True
+        if before_sleep is not None:
+            before_sleep()
         while True:
             remaining = deadline - time.monotonic()
             if remaining <= 0:

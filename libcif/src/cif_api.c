@@ -82,8 +82,11 @@ static void change_dev_flags(cifemu_board *b, unsigned char set, unsigned char c
 
 typedef int (*condition_fn)(const cifemu_board *b, int arg);
 
-/* Wait on the bell (polling as a fallback) until the condition or the timeout. */
-static int wait_for(cifemu_board *b, condition_fn cond, int arg, unsigned long timeout_ms) {
+/* Wait on the bell (polling as a fallback) until the condition or the timeout.
+   want_mailbox: ring the device before the first sleep, asking for a ring once the device
+   mailbox is free (it rings for a message it took only when asked). */
+static int wait_for_ringing(cifemu_board *b, condition_fn cond, int arg,
+                            unsigned long timeout_ms, int want_mailbox) {
   long long deadline, spin_end, now;
   if (cond(b, arg)) return 1;
   if (timeout_ms == 0) return 0;
@@ -95,6 +98,7 @@ static int wait_for(cifemu_board *b, condition_fn cond, int arg, unsigned long t
   spin_end = now + SPIN_NS;
   while (cifemu_now_ns() < spin_end)
     if (cond(b, arg)) return 1;
+  if (want_mailbox) cifemu_bell_ring_want_mailbox(&b->bell);
   for (;;) {
     long long remaining = deadline - cifemu_now_ns();
     if (remaining <= 0) return cond(b, arg);
@@ -102,6 +106,10 @@ static int wait_for(cifemu_board *b, condition_fn cond, int arg, unsigned long t
       count(&b->counters->irq);
     if (cond(b, arg)) return 1;
   }
+}
+
+static int wait_for(cifemu_board *b, condition_fn cond, int arg, unsigned long timeout_ms) {
+  return wait_for_ringing(b, cond, arg, timeout_ms, 0);
 }
 
 /* What is left of a call's time-out that started at `start` (CLOCK_MONOTONIC ns). */
@@ -550,7 +558,7 @@ static short put_message(cifemu_board *b, MSG_STRUC *ptMessage, unsigned long ul
     cifemu_txn_leave(&b->txn);
     return DRV_CMD_ACTIVE;
   }
-  if (!wait_for(b, cond_free, CH_DEV_MBX, remaining_ms(deadline, ulTimeout))) {
+  if (!wait_for_ringing(b, cond_free, CH_DEV_MBX, remaining_ms(deadline, ulTimeout), 1)) {
     rc = ulTimeout == 0 ? DRV_DEV_MAILBOX_FULL : timed_out(b, DRV_DEV_PUT_TIMEOUT);
   } else {
     /* the message is ln + 8 bytes; the caller's buffer may be no longer than that */
