@@ -22,7 +22,8 @@ import subprocess
 import sys
 import time
 import uuid
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
@@ -86,37 +87,24 @@ SUPERVISION_SLACK_S = 0.25
 node leave Nd_state: the master's wake-up, the host's poll."""
 
 
-@pytest.fixture
-def card(tmp_path: Path) -> Iterator[Card]:
-    running = start_card(tmp_path)
+@pytest.fixture(scope="module")
+def card(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Card]:
+    """One card for the raw hosts' tests: each waits for the poll to back off itself, and
+    each toggles SPCCOM an even number of times, so the next finds the flags as they were."""
+    running = start_card(tmp_path_factory.mktemp("idle-card"))
     try:
         yield running
     finally:
         running.stop()
 
 
-def _main_thread(pid: int) -> tuple[int, int]:
-    """(ns on the CPU, voluntary context switches) of ``pid``'s main thread: the device loop."""
-    task = Path(f"/proc/{pid}/task/{pid}")
-    cpu_ns = int((task / "schedstat").read_text().split()[0])
-    switches = 0
-    for line in (task / "status").read_text().splitlines():
-        if line.startswith("voluntary_ctxt_switches:"):
-            switches = int(line.split()[1])
-    return cpu_ns, switches
-
-
-def test_an_idle_card_s_device_loop_sleeps(card: Card) -> None:
-    pid = card.proc.pid
-    # The start's flag changes age: the loop backs off to its quiet poll.
-    time.sleep(DEVICE_QUIET_AFTER + 2 * DEVICE_POLL_QUIET)
-    cpu_before, switches_before = _main_thread(pid)
-    start = time.monotonic()
-    time.sleep(WINDOW_S)  # the measurement window, not a wait on a condition
-    cpu_after, switches_after = _main_thread(pid)
-    wall = time.monotonic() - start
-    cpu_pct = 100.0 * (cpu_after - cpu_before) / 1e9 / wall
-    wakeups = (switches_after - switches_before) / wall
+def test_an_idle_card_s_device_loop_sleeps(idle_window: Callable[[str], IdleWindow]) -> None:
+    """The device loop is the card's main thread; its window is the one of the no-network
+    card of ``test_every_thread_of_an_idle_card_sleeps``."""
+    window = idle_window("none")
+    (cpu_before, switches_before), (cpu_after, switches_after) = window.main_thread()
+    cpu_pct = 100.0 * (cpu_after - cpu_before) / 1e9 / window.wall
+    wakeups = (switches_after - switches_before) / window.wall
     assert wakeups < MAX_WAKEUPS_PER_S, f"device loop woke {wakeups:.0f} times a second"
     assert cpu_pct < MAX_LOOP_CPU_PCT, f"device loop used {cpu_pct:.2f} % of a core"
 
@@ -214,13 +202,24 @@ def _threads(pid: int) -> dict[int, tuple[int, int]]:
     return threads
 
 
-@pytest.mark.parametrize("bus", ["none", "shm"])
-def test_every_thread_of_an_idle_card_sleeps(tmp_path: Path, bus: str) -> None:
-    """No network (``virtual``) and on ``shm`` with no nodes: the whole card wakes a few times
-    a second, not every 50 ms (the device loop's poll, the ``shm`` reader) or 100 ms
-    (python-can's Notifier, which the card's power-off waited for)."""
+@dataclass
+class IdleWindow:
+    """Every thread of a card with nothing to do, over WINDOW_S, and how the card ended."""
+
+    pid: int
+    before: dict[int, tuple[int, int]]
+    after: dict[int, tuple[int, int]]
+    wall: float
+    returncode: int | None
+
+    def main_thread(self) -> tuple[tuple[int, int], tuple[int, int]]:
+        """(ns on the CPU, voluntary context switches) of the device loop, before and after."""
+        return self.before[self.pid], self.after[self.pid]
+
+
+def _measure_idle(directory: Path, bus: str) -> IdleWindow:
     extra = ("--interface", "shm", "--channel", f"test-{uuid.uuid4().hex}") if bus == "shm" else ()
-    running = start_card(tmp_path, 0, *extra)
+    running = start_card(directory, 0, *extra)
     try:
         time.sleep(DEVICE_QUIET_AFTER + 2 * DEVICE_POLL_QUIET)  # the loop's poll backs off
         before = _threads(running.proc.pid)
@@ -230,9 +229,34 @@ def test_every_thread_of_an_idle_card_sleeps(tmp_path: Path, bus: str) -> None:
         wall = time.monotonic() - start
     finally:
         running.stop()
-    wakeups = sum(after[t][1] - before.get(t, (0, 0))[1] for t in after) / wall
+    return IdleWindow(running.proc.pid, before, after, wall, running.proc.returncode)
+
+
+@pytest.fixture(scope="module")
+def idle_window(tmp_path_factory: pytest.TempPathFactory) -> Callable[[str], IdleWindow]:
+    """The idle window of a card on ``bus``, measured once for the tests that read it: the
+    device loop's test and the whole card's look at the same card (4.5 s of waiting each)."""
+    measured: dict[str, IdleWindow] = {}
+
+    def measure(bus: str) -> IdleWindow:
+        if bus not in measured:
+            measured[bus] = _measure_idle(tmp_path_factory.mktemp(f"idle-{bus}"), bus)
+        return measured[bus]
+
+    return measure
+
+
+@pytest.mark.parametrize("bus", ["none", "shm"])
+def test_every_thread_of_an_idle_card_sleeps(idle_window: Callable[[str], IdleWindow],
+                                             bus: str) -> None:
+    """No network (``virtual``) and on ``shm`` with no nodes: the whole card wakes a few times
+    a second, not every 50 ms (the device loop's poll, the ``shm`` reader) or 100 ms
+    (python-can's Notifier, which the card's power-off waited for)."""
+    window = idle_window(bus)
+    before, after = window.before, window.after
+    wakeups = sum(after[t][1] - before.get(t, (0, 0))[1] for t in after) / window.wall
     assert wakeups < MAX_IDLE_CARD_WAKEUPS_PER_S, f"the card woke {wakeups:.1f} times a second"
-    assert running.proc.returncode == 0
+    assert window.returncode == 0
 
 
 MAX_GATEWAY_WAKEUPS_PER_S = 30
