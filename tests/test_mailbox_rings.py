@@ -59,7 +59,10 @@ def test_a_host_sleeps_until_its_answer_and_is_rung_for_the_mailbox_when_it_asks
         assert d.DevPutMessage(0, request(), 1000) == Drv.DRV_NO_ERROR
         rung = board.counters.irq
         assert d.DevPutMessage(0, request(), int(RING_WAIT_S * 1000)) == Drv.DRV_NO_ERROR
-        assert board.counters.irq > rung, "the free mailbox was found by polling, not rung"
+        if board.counters.irq == rung:
+            # The host's fallback poll can see the flag before the ring that follows it
+            # arrives (a loaded machine holds the card between the two): the ring still comes.
+            assert board.bell.wait(RING_WAIT_S), "no ring for the free mailbox"
         assert not fl.pending(board.host(), board.dev(), fl.HOST_MBX), \
             "the ring was the first answer's, not the free mailbox's"
         wait_until(lambda: fl.pending(board.host(), board.dev(), fl.HOST_MBX), RING_WAIT_S,
