@@ -473,12 +473,7 @@ class Link:
                 while self._reader_paused and not stop.is_set():
                     self._reader_condition.wait()
                 self._reader_busy = True
-            try:
-                code = self._take_messages()
-            finally:
-                with self._reader_condition:
-                    self._reader_busy = False
-                    self._reader_condition.notify_all()
+            code = self._take_while_busy()
             if code != Drv.DRV_DEV_GET_NO_MESSAGE:
                 stop.wait(0.01)  # the card restarts (-11) or is gone
                 continue
@@ -612,6 +607,16 @@ class Link:
             self._bell_counters()
         self._loop_turn()
 
+    def _take_while_busy(self) -> int:
+        """``_take_messages`` by a reader its caller marked busy, then not busy again: a pause
+        for a card reset (``_reader_paused``) waits until no reader takes messages."""
+        try:
+            return self._take_messages()
+        finally:
+            with self._reader_condition:
+                self._reader_busy = False
+                self._reader_condition.notify_all()
+
     def _bell_counters(self) -> None:
         board = lookup(self.number)
         if isinstance(board, MappedBoard):
@@ -622,12 +627,7 @@ class Link:
             if self._reader_paused or not self._loop_reading:
                 return
             self._reader_busy = True
-        try:
-            code = self._take_messages()
-        finally:
-            with self._reader_condition:
-                self._reader_busy = False
-                self._reader_condition.notify_all()
+        code = self._take_while_busy()
         if code != Drv.DRV_DEV_GET_NO_MESSAGE:
             self._loop_active = True  # the card restarts: look again soon
         self._loop_flags = self._state_flags(self._loop_flags)
