@@ -291,7 +291,7 @@ def DevPutMessage(number: int, msg: Message | bytes, timeout: int) -> int:
         try:
             mm = board.mm
             # The card rings for a message it took only when asked (dpm/doorbell.py).
-            if (mm[HOST_FLAGS] ^ mm[DEV_FLAGS]) & fl.DEV_MBX and not board.wait_for(
+            if fl.pending(mm[HOST_FLAGS], mm[DEV_FLAGS], fl.DEV_MBX) and not board.wait_for(
                     lambda: not fl.pending(board.host(), board.dev(), fl.DEV_MBX),
                     _left_ms(deadline), lambda: board.bell.ring_device(want_mailbox=True)):
                 return (Drv.DRV_DEV_MAILBOX_FULL if timeout <= 0
@@ -357,7 +357,7 @@ def _take_message(board: _Board, transaction: Transaction, size: int, timeout: i
     """DevGetMessage with its locks held."""
     mm = board.mm
     while True:
-        if not (mm[HOST_FLAGS] ^ mm[DEV_FLAGS]) & fl.HOST_MBX and not board.wait_for(
+        if not fl.pending(mm[HOST_FLAGS], mm[DEV_FLAGS], fl.HOST_MBX) and not board.wait_for(
                 lambda: fl.pending(board.host(), board.dev(), fl.HOST_MBX),
                 _left_ms(deadline)):
             if timeout <= 0:
