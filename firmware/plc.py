@@ -29,7 +29,7 @@ _MAX_COUNT: dict[int, int] = {
     int(Tdt.UINT16): 119, int(Tdt.UINT8): 239, int(Tdt.STRING): 239, int(Tdt.BIT): 255}
 
 _READ, _WRITE = int(Tfc.READ), int(Tfc.WRITE)
-_UINT8, _UINT16, _BIT = int(Tdt.UINT8), int(Tdt.UINT16), int(Tdt.BIT)
+_UINT16, _BIT = int(Tdt.UINT16), int(Tdt.BIT)
 """The telegram header's codes as plain ints: an enum member looked up on its class costs
 more than the comparison it serves, on every COM_Shared_Memory."""
 _AREAS = (AREA_BY_FUNCTION, AREA_RECEIVE, AREA_SEND)
