@@ -80,6 +80,9 @@ WATCHDOG_WAKE_LATE = 0.0002
 """Seconds the loop wakes after a watchdog deadline: the expiry is ``now > deadline``, and a
 wake-up exactly on it would find the watchdog still alive and sleep once more."""
 
+_NAK = int(Ext.NAK)
+"""msg.e's no-answer bit as a plain int, for the test on every message."""
+
 STATE_MODE_EVENT = 4
 """[ours] low nibble of bDriverType: the state field is event driven."""
 
@@ -354,17 +357,6 @@ class Device:
         self.mm[HOST_FLAGS] = value
         self._ring = True
 
-    def _toggle_unrecorded(self, bits: int, ring: bool = True) -> int:
-        """``toggle_host_flags`` for a change the caller records with its message (one
-        event instead of two: docs/recording.md, what it costs); returns the flags before.
-        ``ring``: the hosts hear of it at the end of the turn."""
-        mm = self.mm
-        before = mm[HOST_FLAGS]
-        mm[HOST_FLAGS] = before ^ bits
-        if ring:
-            self._ring = True
-        return before
-
     def _ring_for_mailbox(self) -> None:
         """Ring the hosts once the device mailbox is free, if one asked (``DeviceBell``'s
         ``mailbox_wanted``): it may have asked after the card took the message."""
@@ -546,28 +538,34 @@ class Device:
         # rewrites msg.ln while the card reads cannot make the length and the data
         # disagree (every ln of 0..255 fits the slot). The tasks answer a message
         # that is malformed for its command with their own msg.f.
-        raw = self.mm[DEV_MBX : DEV_MBX + MSG_MAX_SIZE]
+        mm = self.mm
+        raw = mm[DEV_MBX : DEV_MBX + MSG_MAX_SIZE]
         # No ring for DEVACK alone: a host waiting for the free mailbox asks for one
         # (``_ring_for_mailbox``); its answer, now or later, rings the one that waits for it.
-        before = self._toggle_unrecorded(fl.DEVACK, ring=False)
+        # The toggle is recorded with the message (one event instead of two:
+        # docs/recording.md, what it costs).
+        before = mm[HOST_FLAGS]
+        mm[HOST_FLAGS] = before ^ fl.DEVACK
         recorder = self.recorder
         if recorder is not None:
             recorder.put(raw, before, before ^ fl.DEVACK)
         msg = Message.decode(raw)
         task = self.tasks.get(msg.rx)
         answer = task.handle(msg) if task else msg.answer(f=F_UNKNOWN_TASK)
-        if (answer is not None and not (msg.e & Ext.NAK and answer.f == 0)
+        if (answer is not None and not (msg.e & _NAK and answer.f == 0)
                 and not self.faults.hold(answer)):
             self.outbox.append(answer)
 
     def _deliver(self) -> None:
         raw = self.outbox.popleft().encode()
+        mm = self.mm
+        host = mm[HOST_FLAGS]
         recorder = self.recorder
         if recorder is not None:
-            host = self.mm[HOST_FLAGS]
             recorder.answer(raw, host, host ^ fl.HOSTCOM)
-        self.mm[PC_MBX : PC_MBX + len(raw)] = raw
-        self._toggle_unrecorded(fl.HOSTCOM)
+        mm[PC_MBX : PC_MBX + len(raw)] = raw
+        mm[HOST_FLAGS] = host ^ fl.HOSTCOM  # recorded with the answer, rung at the turn's end
+        self._ring = True
 
     def _state_field(self) -> None:
         """Event-driven state field: toggle STATECOM when Task2State changed."""

@@ -14,7 +14,7 @@ from dpm import message
 from dpm.commands import AREA_BY_FUNCTION, AREA_RECEIVE, AREA_SEND, COM_SHARED_MEMORY
 from dpm.errors import ERR_NODE_DEVICE, DeviceEvent, PlcF
 from dpm.layout import IO_AREA_SIZE
-from dpm.message import Message, MessageError, Tdt, TelegramHeader, Tfc
+from dpm.message import TELEGRAM_HEADER, Message, Tdt, Tfc
 from dpm.task2 import BMODE_TO_EXCHANGE_MODE, ComPlcParameter, GlobalBits
 from firmware.process_image import ProcessImage
 from firmware.task import Task
@@ -23,8 +23,40 @@ if TYPE_CHECKING:
     from firmware.card import Card
 
 # Per data type: maximum address and count (seed 5.1.1).
-_MAX_ADDRESS: dict[int, int] = {Tdt.UINT16: 1791, Tdt.UINT8: 3583, Tdt.STRING: 3583, Tdt.BIT: 1791}
-_MAX_COUNT: dict[int, int] = {Tdt.UINT16: 119, Tdt.UINT8: 239, Tdt.STRING: 239, Tdt.BIT: 255}
+_MAX_ADDRESS: dict[int, int] = {
+    int(Tdt.UINT16): 1791, int(Tdt.UINT8): 3583, int(Tdt.STRING): 3583, int(Tdt.BIT): 1791}
+_MAX_COUNT: dict[int, int] = {
+    int(Tdt.UINT16): 119, int(Tdt.UINT8): 239, int(Tdt.STRING): 239, int(Tdt.BIT): 255}
+
+_READ, _WRITE = int(Tfc.READ), int(Tfc.WRITE)
+_UINT16, _BIT = int(Tdt.UINT16), int(Tdt.BIT)
+"""The telegram header's codes as plain ints: an enum member looked up on its class costs
+more than the comparison it serves, on every COM_Shared_Memory."""
+_AREAS = (AREA_BY_FUNCTION, AREA_RECEIVE, AREA_SEND)
+
+
+def _check(area: int, adr: int, idx: int, cnt: int, data_type: int, function: int) -> int:
+    """msg.f for a COM_Shared_Memory header that asks for too much, 0 when it is good."""
+    if function != _READ and function != _WRITE:
+        return PlcF.UNKNOWN_FUNCTION
+    limit = _MAX_COUNT.get(data_type)
+    if limit is None:
+        return PlcF.UNKNOWN_DATA_TYPE
+    if area not in _AREAS:
+        return PlcF.ILLEGAL_AREA
+    if not 1 <= cnt <= limit:
+        return PlcF.ILLEGAL_COUNT
+    if data_type == _BIT:
+        if idx > 15:
+            return PlcF.BUFFER_OVERFLOW
+        if adr > _MAX_ADDRESS[data_type] or adr * 16 + idx + cnt > IO_AREA_SIZE * 8:
+            return PlcF.BUFFER_OVERFLOW
+        return 0
+    width = 2 if data_type == _UINT16 else 1
+    if adr > _MAX_ADDRESS[data_type] or (adr + cnt) * width > IO_AREA_SIZE:
+        return PlcF.BUFFER_OVERFLOW
+    return 0
+
 
 DEVICE_CONTROLLED = (1, 2)
 HOST_CONTROLLED = (4, 5)
@@ -74,52 +106,27 @@ class PlcTask(Task):
     # --- COM_Shared_Memory --------------------------------------------------------
 
     def com_shared_memory(self, msg: Message) -> Message:
-        try:
-            head = TelegramHeader.decode(msg.data)
-        except MessageError:
+        """Read or write the process image. The answer's telegram header is the request's
+        own eight bytes (every field comes back unchanged), so it is copied, not packed
+        again: this runs on every mailbox round trip of a host that polls the image."""
+        data = msg.data
+        if len(data) < TELEGRAM_HEADER.size:
             return msg.answer(f=PlcF.ILLEGAL_COUNT)
-        f = self._check(head)
+        _, area, adr, idx, cnt, data_type, function = TELEGRAM_HEADER.unpack_from(data)
+        f = _check(area, adr, idx, cnt, data_type, function)
         if f:
             return msg.answer(f=f)
-        area = head.data_area or (AREA_RECEIVE if head.function == Tfc.READ else AREA_SEND)
-        data_type = head.data_type
-        if head.function == Tfc.READ:
-            payload = self._read(area, data_type, head)
-            head.payload = payload
-            return msg.answer(data=head.encode())
-        if data_type == Tdt.BIT:
-            expected = (head.data_cnt + 7) // 8
-        else:
-            expected = head.data_cnt * (2 if data_type == Tdt.UINT16 else 1)
-        if len(head.payload) != expected:
+        if not area:
+            area = AREA_RECEIVE if function == _READ else AREA_SEND
+        head = data[:TELEGRAM_HEADER.size]
+        if function == _READ:
+            return msg.answer(data=head + self._read(area, data_type, adr, idx, cnt))
+        payload = data[TELEGRAM_HEADER.size :]
+        expected = (cnt + 7) // 8 if data_type == _BIT else cnt * (2 if data_type == _UINT16 else 1)
+        if len(payload) != expected:
             return msg.answer(f=PlcF.ILLEGAL_COUNT)
-        self._write(area, data_type, head)
-        head.payload = b""
-        return msg.answer(data=head.encode())
-
-    @staticmethod
-    def _check(head: TelegramHeader) -> int:
-        if head.function not in (Tfc.READ, Tfc.WRITE):
-            return PlcF.UNKNOWN_FUNCTION
-        if head.data_type not in _MAX_COUNT:
-            return PlcF.UNKNOWN_DATA_TYPE
-        if head.data_area not in (AREA_BY_FUNCTION, AREA_RECEIVE, AREA_SEND):
-            return PlcF.ILLEGAL_AREA
-        data_type = head.data_type
-        if not 1 <= head.data_cnt <= _MAX_COUNT[data_type]:
-            return PlcF.ILLEGAL_COUNT
-        if data_type == Tdt.BIT:
-            if head.data_idx > 15:
-                return PlcF.BUFFER_OVERFLOW
-            end_bit = head.data_adr * 16 + head.data_idx + head.data_cnt
-            if head.data_adr > _MAX_ADDRESS[data_type] or end_bit > IO_AREA_SIZE * 8:
-                return PlcF.BUFFER_OVERFLOW
-            return 0
-        width = 2 if data_type == Tdt.UINT16 else 1
-        start = head.data_adr * width
-        if head.data_adr > _MAX_ADDRESS[data_type] or start + head.data_cnt * width > IO_AREA_SIZE:
-            return PlcF.BUFFER_OVERFLOW
-        return 0
+        self._write(area, data_type, adr, idx, cnt, payload)
+        return msg.answer(data=head)
 
     def _area_read(self, area: int, offset: int, size: int) -> bytes:
         if area == AREA_RECEIVE:
@@ -132,27 +139,28 @@ class PlcTask(Task):
         else:
             self.image.write_send_area(offset, data)
 
-    def _read(self, area: int, data_type: int, head: TelegramHeader) -> bytes:
-        if data_type != Tdt.BIT:
-            width = 2 if data_type == Tdt.UINT16 else 1
-            return self._area_read(area, head.data_adr * width, head.data_cnt * width)
-        first = head.data_adr * 16 + head.data_idx
-        span = self._area_read(area, first // 8, (first % 8 + head.data_cnt + 7) // 8)
+    def _read(self, area: int, data_type: int, adr: int, idx: int, cnt: int) -> bytes:
+        if data_type != _BIT:
+            width = 2 if data_type == _UINT16 else 1
+            return self._area_read(area, adr * width, cnt * width)
+        first = adr * 16 + idx
+        span = self._area_read(area, first // 8, (first % 8 + cnt + 7) // 8)
         value = int.from_bytes(span, "little") >> (first % 8)
-        value &= (1 << head.data_cnt) - 1
-        return value.to_bytes((head.data_cnt + 7) // 8, "little")
+        value &= (1 << cnt) - 1
+        return value.to_bytes((cnt + 7) // 8, "little")
 
-    def _write(self, area: int, data_type: int, head: TelegramHeader) -> None:
-        if data_type != Tdt.BIT:
-            width = 2 if data_type == Tdt.UINT16 else 1
-            self._area_write(area, head.data_adr * width, head.payload)
+    def _write(self, area: int, data_type: int, adr: int, idx: int, cnt: int,
+               payload: bytes) -> None:
+        if data_type != _BIT:
+            width = 2 if data_type == _UINT16 else 1
+            self._area_write(area, adr * width, payload)
             return
-        first = head.data_adr * 16 + head.data_idx
+        first = adr * 16 + idx
         shift = first % 8
-        size = (shift + head.data_cnt + 7) // 8
+        size = (shift + cnt + 7) // 8
         with self.image.lock:  # read-modify-write of the bits around the field
             span = int.from_bytes(self._area_read(area, first // 8, size), "little")
-            mask = ((1 << head.data_cnt) - 1) << shift
-            bits = (int.from_bytes(head.payload, "little") << shift) & mask
+            mask = ((1 << cnt) - 1) << shift
+            bits = (int.from_bytes(payload, "little") << shift) & mask
             new = ((span & ~mask) | bits).to_bytes(size, "little")
             self._area_write(area, first // 8, new)

@@ -51,9 +51,13 @@ it or never (the driver's longest wait is DevDownload's 15 s)."""
 
 
 _LINE = LINE.encode("ascii")
-_LINE_END = _LINE + END
-"""A ledger line, and one followed by the ledger's end, as bytes: a request is formatted and
-appended in one step, with no text to encode and no concatenation."""
+_TAIL_END = _LINE[len(b"%d %d ") :] + END
+"""A ledger line after its pid and owner, followed by the ledger's end, as bytes: a request
+is appended as this process's prefix (``Transaction._prefix``) and these six fields, in one
+write, with no text to encode."""
+_new_request = tuple.__new__
+"""Builds a ``Request`` from a full tuple of its fields: on every request, without the
+keyword handling of the named tuple's own constructor."""
 
 _NAK, _SEQ_MASK = int(Ext.NAK), int(Ext.SEQ_MASK)
 _FIRST, _CONT, _LAST = int(Ext.FIRST), int(Ext.CONT), int(Ext.LAST)
@@ -206,6 +210,8 @@ class Transaction:
         self._owner = secrets.randbits(63)
         """This process's number in the ledger (a new one after a fork)."""
         self._pid = os.getpid()
+        self._prefix = b"%d %d " % (self._pid, self._owner)
+        """The first two fields of this process's ledger lines."""
         self._held = False
         self._users = 0
         self._own: list[Request] = []
@@ -259,8 +265,9 @@ class Transaction:
         with self._state:
             if self._users:
                 self._users -= 1
+            own = self._own
             if (self._held and not self._users
-                    and all(r.given_up for r in self._own)):
+                    and (not own or all(r.given_up for r in own))):
                 fcntl.flock(self._fd, fcntl.LOCK_UN)
                 self._held = False
                 self._own, self._stale = [], []  # the file keeps them for the next holder
@@ -272,8 +279,9 @@ class Transaction:
         if e & _NAK:
             return
         sequence = e & _SEQ_MASK
-        request = Request(self._pid, self._owner, msg.nr, msg.b, msg.rx, msg.tx,
-                          int(sequence == _FIRST), _now_ms())
+        request = _new_request(Request, (self._pid, self._owner, msg.nr, msg.b, msg.rx,
+                                         msg.tx, int(sequence == _FIRST),
+                                         time.monotonic_ns() // 1_000_000, False))
         with self._state:
             own = self._own
             changed = False
@@ -291,9 +299,9 @@ class Transaction:
             if changed:
                 self._store()
             else:
-                line = _LINE_END % request[:8]
+                line = self._prefix + _TAIL_END % request[2:8]
                 os.pwrite(self._fd, line, self._length)
-                self._length += len(line) - len(END)
+                self._length += len(line) - 1  # END is one byte
 
     def is_stale(self, msg: Message) -> bool:
         """Whether the answer waiting in the mailbox is one to discard."""
@@ -396,6 +404,7 @@ class Transaction:
         self._session = threading.Lock()
         self._owner = secrets.randbits(63)
         self._pid = os.getpid()
+        self._prefix = b"%d %d " % (self._pid, self._owner)
         self._held = False
         self._users = 0
         self._own = []
