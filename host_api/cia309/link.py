@@ -829,6 +829,9 @@ class Link:
         return flight
 
     def _sdo_channel_lock(self, node: int) -> threading.Lock:
+        channel = self._sdo_channels.get(node)  # a dict read is atomic: no lock to find it
+        if channel is not None:
+            return channel
         with self._sdo_channels_lock:
             return self._sdo_channels.setdefault(node, threading.Lock())
 
