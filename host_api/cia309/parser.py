@@ -258,8 +258,9 @@ def _tokenize(text: str, dialect: Dialect, sequence: int) -> list[_Token]:
     string starts a comment, as in both gateways.
 
     A line without a quote or ``#`` (every read, most requests) is split by one regular
-    expression: the character loop below cost a 309-3 read 10 us of the server's CPU.
-    ``\\S`` is ``not str.isspace()``, so both ways give the same tokens."""
+    expression, which the server pays for each line: parsing a read took 15.4 us with
+    the character loop below, 14.4 without (2026-12-02). ``\\S`` is ``not str.isspace()``,
+    so both ways give the same tokens."""
     if '"' not in text and "#" not in text:
         return [_Token(match.group(), match.start(), match.end())
                 for match in _WORD.finditer(text)]
