@@ -515,7 +515,8 @@ class Link:
                 self._route(msg)
             except Exception:
                 log.exception("board %d: routing %r failed", self.number, msg)
-            board = board or self._mapped()
+            if board is None:
+                board = self._mapped()
             if board is not None and not fl.pending(board.host(), board.dev(), fl.HOST_MBX):
                 return Drv.DRV_DEV_GET_NO_MESSAGE
 
