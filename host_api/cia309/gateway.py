@@ -414,8 +414,7 @@ class Gateway:
         flight = link.try_request(COM_SDO_UP_DOWNLOAD, head, self._timeout(), on_done,
                                   multipart=True, e=Ext.FIRST,
                                   on_part=self._upload_progress(link, node), sdo_node=node)
-        return None if flight is None else SdoUploadInFlight(flight, _upload_what(
-            node, index, subindex))
+        return None if flight is None else SdoUploadInFlight(flight, node, index, subindex)
 
     def _upload_progress(self, link: Link, node: int) -> Callable[[Message], None]:
         """SdoProgressEvents for the parts of a long upload."""
@@ -1029,9 +1028,10 @@ def _upload_data(answers: list[Message], what: str) -> bytes:
 class SdoUploadInFlight:
     """An SDO upload sent by ``Gateway.try_sdo_upload``, its answer not waited for yet."""
 
-    def __init__(self, flight: InFlight, what: str) -> None:
+    def __init__(self, flight: InFlight, node: int, index: int, subindex: int) -> None:
         self._flight = flight
-        self._what = what
+        self._object = (node, index, subindex)
+        """What an error names; its text is made only for an error."""
 
     @property
     def timeout(self) -> float:
@@ -1040,7 +1040,10 @@ class SdoUploadInFlight:
 
     def result(self) -> bytes:
         """The object's data, once ``on_done`` was called; raises as ``sdo_upload`` does."""
-        return _upload_data(self._flight.messages, self._what)
+        messages = self._flight.messages
+        if len(messages) == 1 and not messages[0].f:  # an upload's usual answer
+            return messages[0].data[TelegramHeader.SIZE :]
+        return _upload_data(messages, _upload_what(*self._object))
 
     def abandon(self) -> Cia309Error:
         """No answer within ``timeout``: the error ``sdo_upload`` raises then."""

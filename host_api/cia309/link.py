@@ -200,6 +200,21 @@ class IndicationQueue:
 
 
 
+class _Backoff:
+    """How long a mailbox reader sleeps without a ring before it looks at the flags itself:
+    ``READER_POLL_FIRST`` after activity, doubled by each quiet look up to
+    ``READER_POLL_QUIET``. One for the reader thread and the event loop that reads instead."""
+
+    def __init__(self) -> None:
+        self.interval = READER_POLL_FIRST
+
+    def after(self, active: bool) -> float:
+        """The next sleep, after a look that found activity (a ring, a restart) or none."""
+        self.interval = (READER_POLL_FIRST if active
+                         else min(self.interval * 2, READER_POLL_QUIET))
+        return self.interval
+
+
 @dataclass
 class _Pending:
     """A request waiting for its answer; a long upload collects several messages."""
@@ -208,7 +223,9 @@ class _Pending:
     multipart: bool
     on_part: Callable[[Message], None] | None
     messages: list[Message] = field(default_factory=list)
-    done: threading.Event = field(default_factory=threading.Event)
+    done: threading.Event | None = field(default_factory=threading.Event)
+    """What a blocking ``Link.request`` waits on; None for ``Link.try_request``, whose
+    owner is called back (``on_done``) instead."""
     abandoned_at: float | None = None
     on_done: Callable[[], None] | None = None
     """Called in the reader thread once the answer is complete (``Link.try_request``)."""
@@ -222,7 +239,8 @@ class _Pending:
             return
         if self.on_part is not None and self.multipart and sequence == Ext.LAST:
             self.on_part(msg)
-        self.done.set()
+        if self.done is not None:
+            self.done.set()
         if self.on_done is not None:
             self.on_done()
 
@@ -430,7 +448,7 @@ class Link:
         self._loop_thread = 0
         self._loop_reading = False
         self._loop_active = False
-        self._loop_interval = READER_POLL_FIRST
+        self._loop_backoff = _Backoff()
         self._loop_flags = -1
         self._fallback: asyncio.TimerHandle | None = None
         self._bell: HostBell | None = None
@@ -465,7 +483,7 @@ class Link:
         A ring is a hint (dpm.doorbell): a card started again does not know this host until
         it rings it, so the reader still looks now and then, at ``READER_POLL_FIRST`` after
         activity, backing off to ``READER_POLL_QUIET``."""
-        interval = READER_POLL_FIRST
+        backoff = _Backoff()
         flags = -1
         stop = self._reader_stop
         while not stop.is_set():
@@ -478,14 +496,17 @@ class Link:
                 stop.wait(0.01)  # the card restarts (-11) or is gone
                 continue
             flags = self._state_flags(flags)
-            if self._wait_for_ring(interval):
-                interval = READER_POLL_FIRST
-            else:
-                interval = min(interval * 2, READER_POLL_QUIET)
+            backoff.after(self._wait_for_ring(backoff.interval))
 
     def _take_messages(self) -> int:
         """Route every message waiting in the mailbox; the driver's code that ended it
-        (DRV_DEV_GET_NO_MESSAGE: the mailbox is empty)."""
+        (DRV_DEV_GET_NO_MESSAGE: the mailbox is empty).
+
+        After a message, the next DevGetMessage is made only when the flags show another:
+        one that finds the mailbox empty still takes and gives back the board's ledger
+        lock, a fifth of the mailbox's cost of a 309-3 read. The first call of a turn is
+        always made, so a card that restarts still reports DRV_DEV_NOT_READY."""
+        board: MappedBoard | None = None
         while True:
             code, msg = d.DevGetMessage(self.number, d.MSG_BUFFER_SIZE, 0)
             if code != Drv.DRV_NO_ERROR or msg is None:
@@ -494,16 +515,30 @@ class Link:
                 self._route(msg)
             except Exception:
                 log.exception("board %d: routing %r failed", self.number, msg)
+            if board is None:
+                board = self._mapped()
+            if board is not None and not fl.pending(board.host(), board.dev(), fl.HOST_MBX):
+                return Drv.DRV_DEV_GET_NO_MESSAGE
+
+    def _mapped(self) -> MappedBoard | None:
+        """The board as the driver maps it now (None while it is not initialised)."""
+        board = lookup(self.number)
+        return board if isinstance(board, MappedBoard) else None
+
+    def _count_ring(self, board: MappedBoard | None) -> None:
+        """A ring taken by a reader counts as the driver's interrupt (DevGetInfo)."""
+        if board is not None:
+            board.counters.irq += 1
 
     def _wait_for_ring(self, timeout: float) -> bool:
         """Sleep until the card rings, ``wake`` is called or ``timeout`` seconds pass;
         True unless the time ran out."""
-        board = lookup(self.number)
-        if not isinstance(board, MappedBoard):
+        board = self._mapped()
+        if board is None:
             self._reader_stop.wait(timeout)
             return False
         if board.bell.wait(timeout, (self._wake_r,)):
-            board.counters.irq += 1
+            self._count_ring(board)
             return True
         try:
             os.read(self._wake_r, 64)
@@ -519,8 +554,8 @@ class Link:
     def _state_flags(self, seen: int) -> int:
         """Tell ``on_state_flags`` when the card's STATECOM, COM, RUN or READY changed
         since ``seen`` (a ring came with them); returns them."""
-        board = lookup(self.number)
-        if not isinstance(board, MappedBoard):
+        board = self._mapped()
+        if board is None:
             return seen
         flags = board.host() & STATE_FLAGS
         if flags != seen and seen >= 0 and self.on_state_flags is not None:
@@ -558,15 +593,15 @@ class Link:
         Blocking calls from other threads still get their answers: the loop routes them."""
         if self._loop is not None or self._closing.is_set():
             return False
-        board = lookup(self.number)
-        if not isinstance(board, MappedBoard):
+        board = self._mapped()
+        if board is None:
             return False
         self._stop_reader()
         self._loop = loop
         self._loop_thread = threading.get_ident()
         self._bell = board.bell
         self._loop_flags = -1
-        self._loop_interval = READER_POLL_FIRST
+        self._loop_backoff = _Backoff()
         self._loop_active = False
         self._resume_on_loop()
         return True
@@ -588,7 +623,7 @@ class Link:
         loop.add_reader(self._bell.fileno(), self._on_ring)
         self._loop_reading = True
         self._loop_turn()
-        self._fallback = loop.call_later(self._loop_interval, self._on_fallback)
+        self._fallback = loop.call_later(self._loop_backoff.interval, self._on_fallback)
 
     def _pause_on_loop(self) -> None:
         if not self._loop_reading or self._loop is None:
@@ -604,7 +639,7 @@ class Link:
         assert self._bell is not None
         if self._bell.take_rings():
             self._loop_active = True
-            self._bell_counters()
+            self._count_ring(self._mapped())
         self._loop_turn()
 
     def _take_while_busy(self) -> int:
@@ -616,11 +651,6 @@ class Link:
             with self._reader_condition:
                 self._reader_busy = False
                 self._reader_condition.notify_all()
-
-    def _bell_counters(self) -> None:
-        board = lookup(self.number)
-        if isinstance(board, MappedBoard):
-            board.counters.irq += 1
 
     def _loop_turn(self) -> None:
         with self._reader_condition:
@@ -638,12 +668,9 @@ class Link:
         if not self._loop_reading or self._loop is None:
             return
         self._loop_turn()
-        if self._loop_active:
-            self._loop_interval = READER_POLL_FIRST
-        else:
-            self._loop_interval = min(self._loop_interval * 2, READER_POLL_QUIET)
+        interval = self._loop_backoff.after(self._loop_active)
         self._loop_active = False
-        self._fallback = self._loop.call_later(self._loop_interval, self._on_fallback)
+        self._fallback = self._loop.call_later(interval, self._on_fallback)
 
     def _on_loop(self, call: Callable[[], None]) -> None:
         """Run ``call`` on the reading loop and wait for it (at once on the loop's thread);
@@ -736,6 +763,7 @@ class Link:
                 code = _put(self.number, msg, timeout)
                 if code != Drv.DRV_NO_ERROR:
                     raise driver_error(code, "DevPutMessage")
+                assert pending.done is not None  # a blocking request's
                 if not pending.done.wait(timeout):
                     pending.abandoned_at = time.monotonic()
                     raise self.no_answer(b, timeout)
@@ -784,7 +812,7 @@ class Link:
                 self.gate.leave_shared()
                 return None
         try:
-            nr, pending = self._register(b, multipart, on_part)
+            nr, pending = self._register(b, multipart, on_part, wait=False)
         except BaseException:
             if channel is not None:
                 channel.release()
@@ -802,6 +830,9 @@ class Link:
         return flight
 
     def _sdo_channel_lock(self, node: int) -> threading.Lock:
+        channel = self._sdo_channels.get(node)  # a dict read is atomic: no lock to find it
+        if channel is not None:
+            return channel
         with self._sdo_channels_lock:
             return self._sdo_channels.setdefault(node, threading.Lock())
 
@@ -837,7 +868,8 @@ class Link:
                 raise driver_error(code, "DevPutMessage")
 
     def _register(
-        self, b: int, multipart: bool, on_part: Callable[[Message], None] | None
+        self, b: int, multipart: bool, on_part: Callable[[Message], None] | None,
+        *, wait: bool = True,
     ) -> tuple[int, _Pending]:
         now = time.monotonic()
         with self._pending_lock:
@@ -847,7 +879,8 @@ class Link:
             for _ in range(255):
                 nr = next(self._numbers)
                 if nr not in self._pending:
-                    pending = _Pending(b, multipart, on_part)
+                    pending = _Pending(b, multipart, on_part,
+                                       done=threading.Event() if wait else None)
                     self._pending[nr] = pending
                     return nr, pending
         raise Cia309Error(ErrorCode.OUT_OF_MEMORY,

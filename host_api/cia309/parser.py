@@ -9,8 +9,9 @@ out of range). No socket, no clock, no card.
 
 from __future__ import annotations
 
+import re
 from collections.abc import Callable
-from dataclasses import dataclass
+from typing import NamedTuple
 
 from dpm.cia301 import ASYNC_RTR, EVENT_PROFILE
 from dpm.cia305 import UNCONFIGURED, LssAddress
@@ -89,12 +90,12 @@ _LSS_INQUIRE_FIRST_CS = 0x5A
 
 _U16 = 0xFFFF
 _U32 = 0xFFFF_FFFF
+_WORD = re.compile(r"\S+")
 
+class _Token(NamedTuple):
+    """A word of the request and where it stands in the line (for ``rest``). A named tuple:
+    a frozen dataclass cost 1 us per word to build, a third of parsing a read."""
 
-
-
-@dataclass(frozen=True)
-class _Token:
     text: str
     start: int
     end: int
@@ -254,7 +255,15 @@ def parse_request(line: str, dialect: Dialect = Dialect.CANOPENNODE) -> Request 
 def _tokenize(text: str, dialect: Dialect, sequence: int) -> list[_Token]:
     """Split at white space; a ``"`` opens a string that runs to its closing quote (``""``
     inside, and in Lely's dialect a backslash escape, do not close it); ``#`` outside a
-    string starts a comment, as in both gateways."""
+    string starts a comment, as in both gateways.
+
+    A line without a quote or ``#`` (every read, most requests) is split by one regular
+    expression, which the server pays for each line: parsing a read took 15.4 us with
+    the character loop below, 14.4 without (2026-12-02). ``\\S`` is ``not str.isspace()``,
+    so both ways give the same tokens."""
+    if '"' not in text and "#" not in text:
+        return [_Token(match.group(), match.start(), match.end())
+                for match in _WORD.finditer(text)]
     tokens: list[_Token] = []
     position = 0
     while position < len(text):

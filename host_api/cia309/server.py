@@ -879,14 +879,18 @@ class Server:
             except Cia309Error as exc:
                 return dispatcher.failure(prepared, exc)
             if flight is not None:
+                # A timer of its own, not asyncio.timeout: no Timeout object and no
+                # rescheduling per read for the one wait that nearly never runs out.
+                timer = loop.call_later(flight.timeout, _time_out, answered)
                 try:
-                    async with asyncio.timeout(flight.timeout):
-                        await answered
+                    await answered
                 except TimeoutError:
                     return dispatcher.failure(prepared, flight.abandon())
                 except BaseException:  # cancelled: the server closes
                     flight.abandon()
                     raise
+                finally:
+                    timer.cancel()
                 try:
                     return format_upload(prepared.sequence, prepared.dtype, flight.result(),
                                          dispatcher.dialect)
@@ -902,6 +906,11 @@ def _nothing() -> None:
 def _resolve(future: asyncio.Future[None]) -> None:
     if not future.done():
         future.set_result(None)
+
+
+def _time_out(future: asyncio.Future[None]) -> None:
+    if not future.done():
+        future.set_exception(TimeoutError())
 
 
 def _waiting(transport: asyncio.WriteTransport) -> int:
