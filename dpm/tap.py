@@ -39,6 +39,7 @@ side is ``firmware.can.tap.TapPublisher``, a monitor's receiving side is
 
 from __future__ import annotations
 
+import contextlib
 import os
 import socket
 import struct
@@ -208,10 +209,8 @@ class TapSubscriber:
     def interrupt(self) -> None:
         """End a ``recv`` another thread waits in (it returns None): an empty datagram to
         this socket itself (shutting it down does not wake a Unix datagram reader)."""
-        try:
+        with contextlib.suppress(OSError):  # a full queue: the reader has datagrams to wake to
             self._sock.sendto(b"", socket.MSG_DONTWAIT, self._sock.getsockname())
-        except OSError:
-            pass  # the queue is full: the reader has datagrams to wake up to
 
     def close(self) -> None:
         self._sock.close()

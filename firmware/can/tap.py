@@ -10,6 +10,7 @@ thread, started at the first full queue, waits for that room in ``poll``.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import select
@@ -51,7 +52,7 @@ class _Subscriber:
     """One subscriber: a socket connected to it (so ``poll`` can tell when its queue has
     room), the frames offered to it so far, and the ones it has not taken yet."""
 
-    __slots__ = ("peer", "sock", "seen", "offered", "pending", "waiting")
+    __slots__ = ("offered", "peer", "pending", "seen", "sock", "waiting")
 
     def __init__(self, peer: bytes, now: float) -> None:
         self.peer = peer
@@ -124,7 +125,10 @@ class TapPublisher:
                 self._subscribers[peer] = subscriber
                 self._offer(subscriber, list(self._last_emcy.values()))
         for subscriber in list(self._subscribers.values()):
-            if now - subscriber.seen > EXPIRE_S:
+            # one whose queue is full stays, however long it is silent: a monitor stopped
+            # (Ctrl-Z) is told on waking how many frames it lost, which it could not be if
+            # its numbering began anew; a dead one goes at the flusher's next send
+            if now - subscriber.seen > EXPIRE_S and not subscriber.waiting:
                 self._remove(subscriber)
 
     def publish(self, msg: can.Message, received: bool) -> None:
@@ -193,10 +197,8 @@ class TapPublisher:
             self._flusher = threading.Thread(target=self._flushing, name="tap-flusher",
                                              daemon=True)
             self._flusher.start()
-        try:
+        with contextlib.suppress(OSError):  # full: a wake-up is queued already
             self._wake_w.send(b"w")
-        except OSError:
-            pass  # a wake-up is queued already
 
     def _flushing(self) -> None:
         """Wait for room in the full queues, and send each its waiting frames then; no

@@ -46,7 +46,8 @@ class TapBus(can.BusABC):
             self._subscriber.close()
             raise can.CanInitializationError(problem)
         self.channel_info = f"frame tap of {image_path}"
-        self._channel = channel
+        self.channel = channel
+        """The channel name its frames carry (the card's bus's)."""
         self._replays = replays
         """Whether the card's replay of each node's last EMCY is wanted (a state view)
         or dropped (a trace shows only what happens while it runs)."""
@@ -78,7 +79,7 @@ class TapBus(can.BusABC):
             items: list[can.Message | int] = [batch.lost] if batch.lost else []
             for frame in batch.frames:
                 try:
-                    msg, replay = decode_frame(frame, self._channel)
+                    msg, replay = decode_frame(frame, self.channel)
                 except ValueError:
                     continue
                 if self._replays or not replay:
