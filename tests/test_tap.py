@@ -178,9 +178,11 @@ def test_the_monitor_stopped_during_a_burst_shows_the_frames_it_lost(tmp_path: P
         [sys.executable, "-m", "cifemu", "monitor", "--dpm-dir", str(tmp_path), "--json",
          "--log", str(log_file), "--duration", "300"],
         cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    assert watching.stdout is not None and watching.stderr is not None
+    stdout = watching.stdout
     lines: list[str] = []
-    reader = threading.Thread(target=lambda: lines.extend(iter(watching.stdout.readline, "")),
-                              daemon=True)  # type: ignore[union-attr]
+    reader = threading.Thread(target=lambda: lines.extend(iter(stdout.readline, "")),
+                              daemon=True)
     reader.start()
     try:
         hello = 0
@@ -214,7 +216,7 @@ def test_the_monitor_stopped_during_a_burst_shows_the_frames_it_lost(tmp_path: P
         watching.send_signal(signal.SIGINT)
         watching.wait(timeout=30)
         reader.join(timeout=30)
-        err = watching.stderr.read()  # type: ignore[union-attr]
+        err = watching.stderr.read()
     finally:
         if watching.poll() is None:
             watching.send_signal(signal.SIGCONT)
