@@ -26,6 +26,8 @@ from dpm.image import image_path
 from dpm.tap import TapSubscriber, decode_frame, tap_address
 from firmware.can.tap import TapPublisher
 from host_api.monitor.tap_bus import QUEUE_FRAMES, TapBus
+from host_api.top.model import CardModel
+from host_api.top.render import bus_text
 from tests.conftest import ROOT, start_card, wait_until
 
 BURST_ID = 0x181
@@ -161,6 +163,18 @@ def test_a_tap_bus_user_who_stops_reading_gets_a_warning_and_the_count(
         assert "tap reader too slow" in warned[0]
     finally:
         bus.shutdown()
+
+
+def test_top_shows_the_frames_its_tap_reader_lost() -> None:
+    """``cifemu top``'s feed hands ``TapBus.lost_frames`` to its model: the bus line says
+    its frames/s undercount, the event log says when."""
+    model = CardModel()
+    assert "lost" not in bus_text(model.bus(1000.0))
+    model.on_frames_lost(7, 1000.0)
+    model.on_frames_lost(5, 1001.0)
+    assert bus_text(model.bus(1001.0)).endswith("  12 frames lost (tap reader too slow)")
+    assert [e.split(" ", 1)[1] for e in model.new_events(0)] == [
+        "7 frames lost (tap reader too slow)", "5 frames lost (tap reader too slow)"]
 
 
 def test_the_monitor_stopped_during_a_burst_shows_the_frames_it_lost(tmp_path: Path) -> None:
