@@ -8,9 +8,10 @@ subscribe. On an abstract name, any local user could take the name first (the
 card had no bus) or hold every subscription (the owner's monitor got nothing
 while that user read every frame). A monitor binds an automatic abstract
 name and sends ``SUBSCRIBE`` at least every ``RENEW_S``; the card sends each
-frame to every subscriber heard from within ``EXPIRE_S``, and drops one whose
-socket is gone. Sending never blocks: a subscriber that does not keep up loses
-frames, the card never waits for it. A new subscriber first gets the last EMCY of
+frame to every subscriber heard from within ``EXPIRE_S`` (or whose queue is full,
+however long it is silent), and drops one whose socket is gone. Sending never
+blocks: the card never waits for a subscriber that does not keep up; it keeps
+that one's frames a while and numbers them, so what it drops is counted (below). A new subscriber first gets the last EMCY of
 each node again, marked as a replay, so a state view started after a node's
 emergency still shows it; a trace drops replays.
 
