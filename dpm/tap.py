@@ -11,9 +11,10 @@ name and sends ``SUBSCRIBE`` at least every ``RENEW_S``; the card sends each
 frame to every subscriber heard from within ``EXPIRE_S`` (or whose queue is full,
 however long it is silent), and drops one whose socket is gone. Sending never
 blocks: the card never waits for a subscriber that does not keep up; it keeps
-that one's frames a while and numbers them, so what it drops is counted (below). A new subscriber first gets the last EMCY of
-each node again, marked as a replay, so a state view started after a node's
-emergency still shows it; a trace drops replays.
+that one's frames a while and numbers them, so what it drops is counted (below).
+A new subscriber first gets the last EMCY of each node again, marked as a replay,
+so a state view started after a node's emergency still shows it; a trace drops
+replays.
 
 No frame is lost unseen [ours]. A Unix datagram queue holds only
 ``net.unix.max_dgram_qlen`` datagrams (10 by default), so the card sends a batch:
