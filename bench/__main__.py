@@ -14,7 +14,20 @@ from collections.abc import Callable
 from contextlib import nullcontext
 from typing import Any
 
-from bench import can, cia309, dbm, exchange_io, hops, idle, lss, mailbox, remote, scaling, soak
+from bench import (
+    can,
+    cia309,
+    dbm,
+    exchange_io,
+    hops,
+    idle,
+    lss,
+    mailbox,
+    remote,
+    scaling,
+    soak,
+    tap,
+)
 from bench.common import add_size_arguments, emit, help_text, progress
 from bench.load import DEFAULT_BUSY, busy_load, describe
 
@@ -31,6 +44,7 @@ BENCHMARKS: dict[str, Runner] = {
     hops.NAME: hops.run,
     remote.NAME: remote.run,
     scaling.NAME: scaling.run,
+    tap.NAME: tap.run,
 }
 
 QUICK: dict[str, Runner] = {scaling.NAME: scaling.run_quick}

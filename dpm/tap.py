@@ -8,35 +8,67 @@ subscribe. On an abstract name, any local user could take the name first (the
 card had no bus) or hold every subscription (the owner's monitor got nothing
 while that user read every frame). A monitor binds an automatic abstract
 name and sends ``SUBSCRIBE`` at least every ``RENEW_S``; the card sends each
-frame to every subscriber heard from within ``EXPIRE_S``, and drops one whose
-socket is gone. Sending never blocks: a subscriber that does not keep up loses
-frames, the card never waits for it. A new subscriber first gets the last EMCY of
-each node again, marked as a replay, so a state view started after a node's
-emergency still shows it; a trace drops replays.
+frame to every subscriber heard from within ``EXPIRE_S`` (or whose queue is full,
+however long it is silent), and drops one whose socket is gone. Sending never
+blocks: the card never waits for a subscriber that does not keep up; it keeps
+that one's frames a while and numbers them, so what it drops is counted (below).
+A new subscriber first gets the last EMCY of each node again, marked as a replay,
+so a state view started after a node's emergency still shows it; a trace drops
+replays.
 
-A frame datagram is ``FRAME_HEAD`` (time stamp, identifier, flags, DLC) and the
-data bytes. The codec (``encode_frame`` / ``decode_frame``) is apart from the
-socket so both sides and the tests share it. Like the doorbell, the tap is a
-contract between the firmware and the host tools, so it lives here: the card's
-serving side is ``firmware.can.tap.TapPublisher``, a monitor's receiving side is
+No frame is lost unseen [ours]. A Unix datagram queue holds only
+``net.unix.max_dgram_qlen`` datagrams (10 by default), so the card sends a batch:
+``BATCH_HEAD`` (the version, the number of frames, the sequence number of its
+first frame) and that many records, each a length byte and one frame (below).
+The card numbers the frames it offers each subscriber from 0 at its
+subscription, and keeps what that subscriber's queue did not take (at most
+``PENDING_FRAMES``, dropping the oldest) to send as one batch once it has room.
+A gap between one batch's sequence numbers and the next one's is the exact
+number of frames that subscriber lost (``TapSubscriber.lost``). Since the oldest
+are dropped, the batch after a gap is always sent once the reader reads again,
+so a loss is reported even when no frame follows. A subscription names the
+version it reads (``SUBSCRIBE``): a card ignores one of another version, so an
+older monitor gets no frames rather than misread ones.
+
+A frame is ``FRAME_HEAD`` (time stamp, identifier, flags, DLC) and the data
+bytes; the card's recording (``firmware.recorder``) keeps frames in the same
+codec. The codec (``encode_frame`` / ``decode_frame``) is apart from the socket
+so both sides and the tests share it. Like the doorbell, the tap is a contract
+between the firmware and the host tools, so it lives here: the card's serving
+side is ``firmware.can.tap.TapPublisher``, a monitor's receiving side is
 ``TapSubscriber`` below.
 """
 
 from __future__ import annotations
 
+import contextlib
 import os
 import socket
 import struct
 import time
+from collections.abc import Sequence
 from pathlib import Path
+from typing import NamedTuple
 
 import can
 
 from dpm.image import socket_path
 
-SUBSCRIBE = b"S"
+TAP_VERSION = 2
+"""The datagrams' version [ours]: 1 sent one bare frame per datagram, without a sequence
+number, so a subscriber could not tell that it had lost frames."""
+SUBSCRIBE = b"S" + bytes([TAP_VERSION])
 RENEW_S = 1.0
 EXPIRE_S = 5.0
+
+BATCH_HEAD = struct.Struct("<BBHQ")
+"""Version, 0 (reserved), the number of frames, the sequence number of the first one."""
+BATCH_FRAMES = 256
+"""At most this many frames in one datagram (about 6 KiB of classic frames)."""
+PENDING_FRAMES = 4096
+"""Per subscriber, the frames the card keeps while its queue is full [ours]."""
+RECEIVE_BYTES = 1 << 16
+"""A reader's receive buffer: more than the largest batch (``BATCH_FRAMES`` FD frames)."""
 
 FRAME_HEAD = struct.Struct("<dIBB")
 FLAG_EXTENDED = 0x01
@@ -76,8 +108,55 @@ def decode_frame(datagram: bytes, channel: str | None = None) -> tuple[can.Messa
     return msg, bool(flags & FLAG_REPLAY)
 
 
+_CAN_ERR_CRTL = 0x004
+_CAN_ERR_CRTL_RX_OVERFLOW = 0x01
+
+
+def gap_frame(timestamp: float, channel: str | None = None) -> can.Message:
+    """How a log written from the tap marks where frames are missing [ours]: the error frame
+    a SocketCAN driver reports a receive overflow with (linux/can/error.h: controller
+    problem, RX buffer overflow), which candump and python-can's log readers know."""
+    return can.Message(timestamp=timestamp, arbitration_id=_CAN_ERR_CRTL, is_error_frame=True,
+                       is_extended_id=False, dlc=8,
+                       data=bytes([0, _CAN_ERR_CRTL_RX_OVERFLOW, 0, 0, 0, 0, 0, 0]),
+                       channel=channel)
+
+
+def encode_batch(first: int, frames: Sequence[bytes]) -> bytes:
+    """One datagram of ``encode_frame`` frames, the first of them numbered ``first``."""
+    return BATCH_HEAD.pack(TAP_VERSION, 0, len(frames), first) + b"".join(
+        bytes([len(frame)]) + frame for frame in frames)
+
+
+def decode_batch(datagram: bytes) -> tuple[int, list[bytes]]:
+    """The sequence number of a batch's first frame and its frames (``decode_frame`` each);
+    ValueError when it is malformed or of another version."""
+    if len(datagram) < BATCH_HEAD.size:
+        raise ValueError(f"tap datagram of {len(datagram)} bytes is shorter than its head")
+    version, _, count, first = BATCH_HEAD.unpack_from(datagram)
+    if version != TAP_VERSION:
+        raise ValueError(f"tap datagram of version {version}, not {TAP_VERSION}")
+    frames: list[bytes] = []
+    offset = BATCH_HEAD.size
+    for _ in range(count):
+        if offset >= len(datagram) or offset + 1 + datagram[offset] > len(datagram):
+            raise ValueError(f"tap datagram cut short in its frame {len(frames) + 1} of {count}")
+        end = offset + 1 + datagram[offset]
+        frames.append(datagram[offset + 1:end])
+        offset = end
+    return first, frames
+
+
+class Batch(NamedTuple):
+    """One datagram as a subscriber takes it: the frames lost right before it, its frames."""
+
+    lost: int
+    frames: list[bytes]
+
+
 class TapSubscriber:
-    """A monitor's side: receives the frames of the card serving ``image_path``."""
+    """A monitor's side: receives the frames of the card serving ``image_path`` and counts
+    the ones it lost (``lost``, from the gaps in the sequence numbers)."""
 
     def __init__(self, image_path: Path) -> None:
         self.address = tap_address(image_path)
@@ -85,6 +164,14 @@ class TapSubscriber:
         self._sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1 << 20)
         self._sock.bind(b"")  # an automatic abstract name
         self._renew_due = 0.0
+        self._next = 0
+        """The sequence number the next frame should have."""
+        self.lost = 0
+        """Frames the card offered this subscriber that never reached it, so far."""
+        self.restarts = 0
+        """Times the numbering began anew (a new firmware, or a subscription that lapsed
+        while this process was stopped for over ``EXPIRE_S``): frames may be missing
+        there, their number unknown."""
 
     def subscribe(self) -> str | None:
         """Renew the subscription; None when sent, else why no card's tap takes it
@@ -100,8 +187,9 @@ class TapSubscriber:
             pass  # the card's queue is full: it drains it while frames flow, renew later
         return None
 
-    def recv(self, timeout: float | None) -> bytes | None:
-        """One frame datagram, renewing the subscription as time passes; None on time-out."""
+    def recv(self, timeout: float | None) -> Batch | None:
+        """The frames of one datagram and how many were lost before them, renewing the
+        subscription as time passes; None on time-out or a malformed datagram."""
         now = time.monotonic()
         if now >= self._renew_due:
             self._renew_due = now + RENEW_S
@@ -109,9 +197,22 @@ class TapSubscriber:
         wait = RENEW_S if timeout is None else min(timeout, max(0.0, self._renew_due - now))
         self._sock.settimeout(wait)
         try:
-            return self._sock.recv(128)
-        except TimeoutError:
+            first, frames = decode_batch(self._sock.recv(RECEIVE_BYTES))
+        except (TimeoutError, ValueError):
             return None
+        lost = first - self._next
+        if lost < 0:
+            self.restarts += 1
+            lost = 0
+        self.lost += lost
+        self._next = first + len(frames)
+        return Batch(lost, frames)
+
+    def interrupt(self) -> None:
+        """End a ``recv`` another thread waits in (it returns None): an empty datagram to
+        this socket itself (shutting it down does not wake a Unix datagram reader)."""
+        with contextlib.suppress(OSError):  # a full queue: the reader has datagrams to wake to
+            self._sock.sendto(b"", socket.MSG_DONTWAIT, self._sock.getsockname())
 
     def close(self) -> None:
         self._sock.close()

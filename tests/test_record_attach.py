@@ -232,8 +232,9 @@ def heard_heartbeat(card: Card) -> None:
     try:
         deadline = time.monotonic() + WAIT_S
         while time.monotonic() < deadline:
-            datagram = tap.recv(timeout=1.0)
-            if datagram is not None and decode_frame(datagram)[0].arbitration_id == 0x701:
+            batch = tap.recv(timeout=1.0)
+            if batch is not None and any(decode_frame(frame)[0].arbitration_id == 0x701
+                                         for frame in batch.frames):
                 return
         raise AssertionError("no heartbeat of node 1 on the card's frame tap")
     finally:

@@ -57,9 +57,10 @@ def emcy_counter(tap: TapSubscriber, node: int) -> Callable[[], int]:
 
     def count() -> int:
         nonlocal seen
-        while (datagram := tap.recv(0.001)) is not None:
-            frame, replay = decode_frame(datagram)
-            seen += frame.arbitration_id == 0x80 + node and not replay
+        while (batch := tap.recv(0.001)) is not None:
+            for datagram in batch.frames:
+                frame, replay = decode_frame(datagram)
+                seen += frame.arbitration_id == 0x80 + node and not replay
         return seen
 
     return count

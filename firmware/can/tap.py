@@ -2,22 +2,36 @@
 
 The wire format, the socket's place and a monitor's side are the contract in
 ``dpm.tap``; here the card binds ``board<N>.tap``, learns its subscribers and sends
-each frame to them without ever blocking.
+each frame to them without ever blocking. What a subscriber's queue does not take
+waits in its ``pending`` (the oldest dropped past ``PENDING_FRAMES``, and so counted
+by the sequence numbers) and goes out as one batch when the queue has room again: a
+thread, started at the first full queue, waits for that room in ``poll``.
 """
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
+import select
 import socket
 import threading
 import time
+from collections import deque
+from itertools import islice
 from pathlib import Path
 
 import can
 
 from dpm.image import CardDirectory
-from dpm.tap import EXPIRE_S, SUBSCRIBE, encode_frame
+from dpm.tap import (
+    BATCH_FRAMES,
+    EXPIRE_S,
+    PENDING_FRAMES,
+    SUBSCRIBE,
+    encode_batch,
+    encode_frame,
+)
 
 log = logging.getLogger(__name__)
 
@@ -26,6 +40,36 @@ DRAIN_INTERVAL_S = 0.1
 MAX_SUBSCRIBERS = 8
 EMCY_IDS = range(0x081, 0x100)
 """CiA 301's predefined EMCY identifiers (080h + node-ID)."""
+SEND_BUFFER_BYTES = 1 << 20
+"""A subscriber socket's SO_SNDBUF (the kernel doubles it, up to net.core.wmem_max). A
+Unix datagram socket counts the datagrams its peer has not read against its own send
+buffer, and ``poll`` calls it writable only while they fill a quarter of it or less:
+with the default (208 KiB) a queue of full batches would never look writable."""
+JOIN_S = 2.0
+
+
+class _Subscriber:
+    """One subscriber: a socket connected to it (so ``poll`` can tell when its queue has
+    room), the frames offered to it so far, and the ones it has not taken yet."""
+
+    __slots__ = ("offered", "peer", "pending", "seen", "sock", "waiting")
+
+    def __init__(self, peer: bytes, now: float) -> None:
+        self.peer = peer
+        self.sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+        try:
+            self.sock.setblocking(False)
+            self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, SEND_BUFFER_BYTES)
+            self.sock.connect(peer)
+        except OSError:
+            self.sock.close()
+            raise
+        self.seen = now
+        self.offered = 0
+        """Frames offered to this subscriber since it subscribed: the next one's number."""
+        self.pending: deque[bytes] = deque(maxlen=PENDING_FRAMES)
+        self.waiting = False
+        """Its queue was full at the last send: only the flusher sends to it now."""
 
 
 class TapPublisher:
@@ -38,11 +82,16 @@ class TapPublisher:
 
     def __init__(self, address: bytes) -> None:
         self.address = address
-        self._subscribers: dict[bytes, float] = {}
+        self._subscribers: dict[bytes, _Subscriber] = {}
         self._last_emcy: dict[int, bytes] = {}
-        """Per EMCY identifier, the last one as a replay datagram."""
+        """Per EMCY identifier, the last one as a replay frame."""
         self._lock = threading.Lock()
         self._drain_due = 0.0
+        self._flusher: threading.Thread | None = None
+        self._wake_r, self._wake_w = socket.socketpair(socket.AF_UNIX, socket.SOCK_DGRAM)
+        self._wake_r.setblocking(False)
+        self._wake_w.setblocking(False)
+        self._closed = False
         path = Path(os.fsdecode(address))
         self._sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
         self._sock.setblocking(False)
@@ -63,15 +112,24 @@ class TapPublisher:
                 payload, peer = self._sock.recvfrom(16)
             except (BlockingIOError, OSError):
                 break
-            if payload == SUBSCRIBE and isinstance(peer, bytes) and peer and (
-                    peer in self._subscribers or len(self._subscribers) < MAX_SUBSCRIBERS):
-                if peer not in self._subscribers:
-                    for datagram in self._last_emcy.values():
-                        self._send(peer, datagram)
-                self._subscribers[peer] = now
-        for peer, seen in list(self._subscribers.items()):
-            if now - seen > EXPIRE_S:
-                del self._subscribers[peer]
+            if payload != SUBSCRIBE or not isinstance(peer, bytes) or not peer:
+                continue
+            known = self._subscribers.get(peer)
+            if known is not None:
+                known.seen = now
+            elif len(self._subscribers) < MAX_SUBSCRIBERS:
+                try:
+                    subscriber = _Subscriber(peer, now)
+                except OSError:
+                    continue  # gone again already
+                self._subscribers[peer] = subscriber
+                self._offer(subscriber, list(self._last_emcy.values()))
+        for subscriber in list(self._subscribers.values()):
+            # one whose queue is full stays, however long it is silent: a monitor stopped
+            # (Ctrl-Z) is told on waking how many frames it lost, which it could not be if
+            # its numbering began anew; a dead one goes at the flusher's next send
+            if now - subscriber.seen > EXPIRE_S and not subscriber.waiting:
+                self._remove(subscriber)
 
     def publish(self, msg: can.Message, received: bool) -> None:
         """Offer one frame (any thread); costs a clock read while nobody listens. The
@@ -92,19 +150,94 @@ class TapPublisher:
                 self._drain(now)
             if not self._subscribers:
                 return
-            datagram = encode_frame(msg, received)
-            for peer in list(self._subscribers):
-                self._send(peer, datagram)
+            frame = [encode_frame(msg, received)]
+            for subscriber in list(self._subscribers.values()):
+                self._offer(subscriber, frame)
 
-    def _send(self, peer: bytes, datagram: bytes) -> None:
-        try:
-            self._sock.sendto(datagram, peer)
-        except (ConnectionRefusedError, FileNotFoundError):
-            self._subscribers.pop(peer, None)
-        except OSError:
-            pass  # the subscriber's queue is full: it loses this frame
+    def _offer(self, subscriber: _Subscriber, frames: list[bytes]) -> None:
+        """Number ``frames`` for ``subscriber`` and send what it can take now (under the
+        lock). While its queue is full they only wait, the oldest making way."""
+        subscriber.offered += len(frames)
+        subscriber.pending.extend(frames)
+        if not subscriber.waiting:
+            self._flush(subscriber)
+
+    def _flush(self, subscriber: _Subscriber) -> None:
+        """Send ``subscriber``'s waiting frames in batches until its queue is full (then
+        the flusher waits for room) or they are all sent (under the lock)."""
+        pending = subscriber.pending
+        while pending:
+            count = min(len(pending), BATCH_FRAMES)
+            datagram = encode_batch(subscriber.offered - len(pending),
+                                    list(islice(pending, count)))
+            try:
+                subscriber.sock.send(datagram)
+            except BlockingIOError:
+                if not subscriber.waiting:
+                    subscriber.waiting = True
+                    self._wake_flusher()
+                return
+            except OSError:  # its socket is gone (or refuses): it subscribes anew if it lives
+                self._remove(subscriber)
+                return
+            for _ in range(count):
+                pending.popleft()
+        subscriber.waiting = False
+
+    def _remove(self, subscriber: _Subscriber) -> None:
+        del self._subscribers[subscriber.peer]
+        subscriber.sock.close()
+        if subscriber.waiting:
+            self._wake_flusher()  # its socket leaves the flusher's poll
+
+    def _wake_flusher(self) -> None:
+        """Have the flusher look at the waiting subscribers anew (under the lock), starting
+        it on the first full queue: a card nobody reads slowly never has the thread."""
+        if self._flusher is None:
+            self._flusher = threading.Thread(target=self._flushing, name="tap-flusher",
+                                             daemon=True)
+            self._flusher.start()
+        with contextlib.suppress(OSError):  # full: a wake-up is queued already
+            self._wake_w.send(b"w")
+
+    def _flushing(self) -> None:
+        """Wait for room in the full queues, and send each its waiting frames then; no
+        time-out: nothing to do until a reader reads, a subscriber goes or the card stops."""
+        while True:
+            with self._lock:
+                if self._closed:
+                    return
+                waiting = {s.sock.fileno(): s for s in self._subscribers.values() if s.waiting}
+            poller = select.poll()
+            poller.register(self._wake_r, select.POLLIN)
+            for fd in waiting:
+                poller.register(fd, select.POLLOUT)
+            ready = poller.poll()
+            while True:
+                try:
+                    self._wake_r.recv(16)
+                except OSError:
+                    break
+            with self._lock:
+                for fd, _ in ready:
+                    subscriber = waiting.get(fd)
+                    if (subscriber is not None and subscriber.waiting
+                            and self._subscribers.get(subscriber.peer) is subscriber):
+                        subscriber.waiting = False
+                        self._flush(subscriber)
 
     def close(self) -> None:
+        with self._lock:
+            self._closed = True
+            for subscriber in list(self._subscribers.values()):
+                self._remove(subscriber)
+            flusher = self._flusher
+            if flusher is not None:
+                self._wake_flusher()
+        if flusher is not None:
+            flusher.join(JOIN_S)
+        self._wake_r.close()
+        self._wake_w.close()
         self._sock.close()
         if self._directory is not None:
             self._directory.unlink(os.fsdecode(os.path.basename(self.address)))

@@ -31,7 +31,7 @@ class CardFeed:
         self.tap_error: str | None = None
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
-        self._bus: can.BusABC | None = None
+        self._bus: TapBus | None = None
 
     def start(self) -> None:
         info = read_card_info(self.directory, self.board) or {}
@@ -39,7 +39,8 @@ class CardFeed:
         if self.model.bitrate is None:
             self.model.bitrate = (info.get("bus") or {}).get("bitrate")
         try:
-            self._bus = TapBus(image_path(self.directory, self.board), channel, replays=True)
+            self._bus = TapBus(image_path(self.directory, self.board), channel, replays=True,
+                               log_losses=False)
         except can.CanError as exc:
             self.tap_error = str(exc)
             return
@@ -48,8 +49,12 @@ class CardFeed:
 
     def _receive(self) -> None:
         assert self._bus is not None
+        lost = 0
         while not self._stop.is_set():
             msg = self._bus.recv(RECEIVE_TIMEOUT_S)
+            if self._bus.lost_frames != lost:
+                self.model.on_frames_lost(self._bus.lost_frames - lost, time.time())
+                lost = self._bus.lost_frames
             if msg is not None:
                 self.model.on_frame(msg.arbitration_id, bytes(msg.data),
                                     remote=msg.is_remote_frame, extended=msg.is_extended_id,

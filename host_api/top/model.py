@@ -57,6 +57,9 @@ class BusFigures:
     frames_per_s: float
     load_percent: float | None
     bitrate: int | None
+    tap_lost: int = 0
+    """Frames the card's tap sent that this view lost (its reader too slow) [ours]: the
+    figures above undercount by them."""
 
 
 @dataclass
@@ -84,6 +87,7 @@ class CardModel:
         self._diag = ComDiagnostics()
         self._pdos: dict[int, _Pdo] = {}
         self._frames: deque[tuple[float, int]] = deque()
+        self._tap_lost = 0
         self._last_error = (0, 0)
         self._error_control: dict[int, str] = {}
         """Node -> "heartbeat" or "guarding": the words of its Err_Event 30."""
@@ -176,6 +180,12 @@ class CardModel:
             elif meaning.kind == "nmt":
                 self.log(timestamp, meaning.text)
 
+    def on_frames_lost(self, count: int, timestamp: float) -> None:
+        """``count`` frames from the card's tap missing before the next one (``TapBus``)."""
+        with self._lock:
+            self._tap_lost += count
+        self.log(timestamp, f"{count} frames lost (tap reader too slow)")
+
     def select_next_value(self) -> None:
         with self._lock:
             if self.view.slots:
@@ -216,4 +226,4 @@ class CardModel:
             counters={"Bus_Error_Cnt": diag.usBus_Error_Cnt, "Bus_Off_Cnt": diag.usBus_Off_Cnt,
                       "Msg_Time_Out": diag.usMsg_Time_Out, "Rx_Overflow": diag.usRx_Overflow},
             can_state=diag.can_state_name, frames_per_s=frames / LOAD_WINDOW_S,
-            load_percent=load, bitrate=self.bitrate)
+            load_percent=load, bitrate=self.bitrate, tap_lost=self._tap_lost)

@@ -67,8 +67,10 @@ def bus_text(figures: BusFigures, stale: bool = False) -> str:
             if figures.load_percent is not None else "bit rate unknown")
     counters = "  ".join(f"{name} {value}" for name, value in figures.counters.items())
     state = f"{figures.can_state} (stale)" if stale else figures.can_state
+    lost = (f"  {figures.tap_lost} frames lost (tap reader too slow)" if figures.tap_lost
+            else "")
     return (f"CAN_state {state}  {figures.frames_per_s:.0f} frames/s ({load})  "
-            f"{counters}")
+            f"{counters}{lost}")
 
 
 def snapshot(model: CardModel, now: float, title: str, stale: bool = False) -> Group:
