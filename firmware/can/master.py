@@ -95,7 +95,12 @@ class Master:
         self._due = math.inf
         """When the thread looks next; inf while it is looking (``wake_at``)."""
         self._general = True
-        """Set by ``reschedule``: the next look supervises every node and recomputes NEXC."""
+        """Set by ``reschedule()``: the next look supervises every node and recomputes NEXC."""
+        self._changed: set[NodeHandler] = set()
+        """Nodes whose state changed since the last look (``reschedule(handler)``, under
+        ``_due_lock``): the next look supervises them, and the nodes whose deadline came."""
+        self._dues: dict[NodeHandler, float] = {}
+        """Each node's deadline (``NodeHandler.next_due``) as its last supervision left it."""
         self._supervise_due = 0.0
         self._link_due = 0.0
         self._host_outputs = b""
@@ -239,7 +244,7 @@ class Master:
         if self.nmt.running:
             handler.attach()
             self.nmt.boot(handler)
-            self.reschedule()  # else nothing to look at: ``start_network`` reschedules
+            self.reschedule(handler)  # else nothing to look at: ``start_network`` reschedules
 
     def start_network(self, params: BusParameterSet) -> None:
         """The bus parameter download: (re)start the whole network."""
@@ -330,10 +335,18 @@ class Master:
                 self._due = when
                 self._wakeup.set()
 
-    def reschedule(self) -> None:
-        """A node changed state (any thread): look at once, supervise every node, recompute
-        its deadlines and NEXC."""
-        self._general = True
+    def reschedule(self, handler: NodeHandler | None = None) -> None:
+        """A node changed state (any thread): look at once, supervise ``handler`` (None:
+        every node), recompute its deadlines and NEXC.
+
+        Only the changed node: a boot of 127 nodes changes states some 400 times, and
+        supervising every node each time was a quadratic 127 deadlines per change (issue 22).
+        """
+        if handler is None:
+            self._general = True
+        else:
+            with self._due_lock:
+                self._changed.add(handler)
         self._wakeup.set()
 
     def notice_host(self) -> bool:
@@ -395,9 +408,9 @@ class Master:
     def _look(self, now: float, general: bool) -> float:
         """One look: what is due now, and when the next look is due (inf: on a wake only).
 
-        ``general``: a node changed state since the last look, so every node is supervised
-        now and their deadlines and NEXC computed again; else only when the earliest of
-        those deadlines has come.
+        ``general``: the network changed since the last look (a start, a new node set), so
+        every node is supervised now and their deadlines and NEXC computed again; else the
+        nodes that changed state (``reschedule(handler)``) and those whose deadline came.
         """
         return min(self._check_link(now), self._look_at_network(now, general))
 
@@ -420,15 +433,38 @@ class Master:
         nmt.follow_host()
         due = self.sdo.check(now)
         if not nmt.follow(now):
+            self._general |= general  # halted: every node again once it runs (changed wait)
             return due
-        if general or now >= self._supervise_due:
-            nodes = list(self.nodes.values())
-            for handler in nodes:
-                handler.tick(now)
-            nmt.update_nexc()
-            self._supervise_due = min((h.next_due() for h in nodes), default=math.inf)
-        outputs = self._follow_outputs(self.image.snapshot_outputs(), now, general)
+        with self._due_lock:
+            changed, self._changed = self._changed, set()
+        if general or changed or now >= self._supervise_due:
+            self._supervise(now, general, changed)
+        outputs = self._follow_outputs(self.image.snapshot_outputs(), now,
+                                       general or bool(changed))
         return min(due, self._supervise_due, outputs, nmt.heartbeat(now))
+
+    def _supervise(self, now: float, general: bool, changed: set[NodeHandler]) -> None:
+        """Tick every node (``general``), else the ``changed`` ones still configured and
+        those whose deadline came; then their deadlines and NEXC anew."""
+        nodes = self.nodes
+        if general:
+            handlers = list(nodes.values())
+        else:
+            due = {h for h, when in self._dues.items() if when <= now}
+            due.update(h for h in changed if nodes.get(h.address) is h)
+            handlers = sorted(due, key=lambda h: h.address)
+        for handler in handlers:
+            handler.tick(now)
+        self.nmt.update_nexc()
+        if general:
+            self._dues = {h: h.next_due() for h in handlers}
+        else:
+            for handler in handlers:
+                if nodes.get(handler.address) is handler:
+                    self._dues[handler] = handler.next_due()
+                else:
+                    self._dues.pop(handler, None)
+        self._supervise_due = min(self._dues.values(), default=math.inf)
 
     def _sync_active(self) -> bool:
         """SYNC goes out while the network exchanges data and the controller is on the bus

@@ -77,8 +77,9 @@ class Network(BootLink, PdoLink, Protocol):
     @property
     def sdo(self) -> SdoChannels: ...
 
-    def reschedule(self) -> None:
-        """A node's state changed: the master supervises every node again at once."""
+    def reschedule(self, handler: NodeHandler | None = None) -> None:
+        """``handler``'s state changed (None: the network's): the master supervises it
+        again at once."""
 
 
 class NodeEvents(Protocol):
@@ -179,7 +180,7 @@ class NodeHandler:
         self._host_started_at = None
         self.events.set_node_state(self.address, False)
         self.network.executor.submit(self._boot, self._generation, reset_sent)
-        self.network.reschedule()
+        self.network.reschedule(self)
 
     def _boot(self, generation: int, reset_sent: bool) -> None:
         """The boot-up in its worker thread, which nobody joins.
@@ -246,7 +247,7 @@ class NodeHandler:
             self.send_outputs(force=True)
             if not self.awaiting_start:  # else when the start goes out (``start_sent``)
                 self.pdos.request_first(now)
-        self.network.reschedule()  # supervision and remote requests from now on
+        self.network.reschedule(self)  # supervision and remote requests from now on
 
     def start_sent(self, now: float, by_host: bool) -> bool:
         """A Start_Node went to the node (the global one, or the host's): from now on it must
@@ -274,7 +275,7 @@ class NodeHandler:
         if not self.params.bitConfigNdState & ConfigNdState.TXRXPDO:
             self.send_outputs(force=True)  # the first RX-PDO, now that the node takes it
             self.pdos.request_first(now)  # and the first TX-PDO
-        self.network.reschedule()  # in data exchange now: NEXC, remote requests
+        self.network.reschedule(self)  # in data exchange now: NEXC, remote requests
         return not self.control.supervised
 
     def _fail_boot(self, generation: int, event: int) -> None:
@@ -294,12 +295,12 @@ class NodeHandler:
             self.diag.status |= NodeStatus.GUARD_ACTIVE
         else:
             self.diag.status &= ~NodeStatus.GUARD_ACTIVE
-        self.network.reschedule()  # new deadlines
+        self.network.reschedule(self)  # new deadlines
 
     def expect_operational(self, on: bool) -> None:
         """The host started (True) or stopped or pre-operated (False) the node with NMT."""
         self.operational_expected = on
-        self.network.reschedule()  # in data exchange or not: NEXC, remote requests
+        self.network.reschedule(self)  # in data exchange or not: NEXC, remote requests
 
     def fail(self, event: int) -> None:
         """The node left data exchange: report it; retry or let auto-clear stop all."""
@@ -315,7 +316,7 @@ class NodeHandler:
         self._retry_at = time.monotonic() + RETRY_DELAY
         self.note_diag()  # before Err_Event: a host that sees the event sees Nd_diag too
         self.events.node_failed(self, event)
-        self.network.reschedule()  # the retry's deadline, a global start
+        self.network.reschedule(self)  # the retry's deadline, a global start
 
     def note_diag(self) -> None:
         """Nd_diag: set when Nodestatus_1 or Actual_Error differ from what the host last
@@ -332,7 +333,7 @@ class NodeHandler:
         self.state = State.DISCONNECTED
         self.events.set_node_state(self.address, False)
         self.network.send_nmt(NMT_STOP, self.address)
-        self.network.reschedule()
+        self.network.reschedule(self)
 
     def idle(self) -> None:
         """The network stopped (host not ready, watchdog, auto-clear)."""
@@ -341,7 +342,7 @@ class NodeHandler:
             self.state = State.WAITING
             self.connected = False
             self.events.set_node_state(self.address, False)
-            self.network.reschedule()
+            self.network.reschedule(self)
 
     def tick(self, now: float) -> None:
         """Supervision and retries; called by the master's thread when ``next_due`` has come
