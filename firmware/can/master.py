@@ -409,8 +409,9 @@ class Master:
         """One look: what is due now, and when the next look is due (inf: on a wake only).
 
         ``general``: the network changed since the last look (a start, a new node set), so
-        every node is supervised now and their deadlines and NEXC computed again; else the
-        nodes that changed state (``reschedule(handler)``) and those whose deadline came.
+        every node is supervised now and their deadlines and NEXC computed again, as when
+        the earliest deadline came; else only the nodes that changed state
+        (``reschedule(handler)``).
         """
         return min(self._check_link(now), self._look_at_network(now, general))
 
@@ -444,22 +445,24 @@ class Master:
         return min(due, self._supervise_due, outputs, nmt.heartbeat(now))
 
     def _supervise(self, now: float, general: bool, changed: set[NodeHandler]) -> None:
-        """Tick every node (``general``), else the ``changed`` ones still configured and
-        those whose deadline came; then their deadlines and NEXC anew."""
+        """Tick every node when ``general`` or when the earliest deadline came, else only the
+        ``changed`` ones still configured; then their deadlines and NEXC anew.
+
+        A deadline that came ticks every node, as before: frames push the others' deadlines
+        back without a word (``NodeHandler.next_due``), and asking all of them at once
+        keeps an idle network's wakes at one per real deadline, not one per stale one.
+        """
         nodes = self.nodes
-        if general:
-            handlers = list(nodes.values())
-        else:
-            due = {h for h, when in self._dues.items() if when <= now}
-            due.update(h for h in changed if nodes.get(h.address) is h)
-            handlers = sorted(due, key=lambda h: h.address)
+        every = general or now >= self._supervise_due
+        handlers = list(nodes.values()) if every else sorted(
+            (h for h in changed if nodes.get(h.address) is h), key=lambda h: h.address)
         for handler in handlers:
             handler.tick(now)
         self.nmt.update_nexc()
-        if general:
+        if every:
             self._dues = {h: h.next_due() for h in handlers}
         else:
-            for handler in handlers:
+            for handler in changed:
                 if nodes.get(handler.address) is handler:
                     self._dues[handler] = handler.next_due()
                 else:
