@@ -13,12 +13,14 @@ Three sections, each card figure beside its baseline from the same run:
 
 The nodes run as ``cifemu sim`` on a fresh ``shm`` channel per card. About 3 minutes
 on an idle 2-core machine; --quick (shorter loops and windows) about 1. --count N sets
-the PDO loop round trips of every node count, --warmup N the round trips before them.
+the PDO loop round trips of every node count, --warmup N the round trips before them,
+--cards-seconds S the window in which the cards' hosts run their loops together (10 s;
+--quick 3 s); tests/test_bench_scaling.py's tiny run gives 1.
 ``python -m bench --load scaling`` runs it beside two busy processes. The JSON gives the
 load average at the start (machine.loadavg) and at the end (loadavg_at_end).
 
     python -m bench.scaling [--quick] [--only nodes|cards|cost ...] [--nodes N ...]
-                            [--cards K ...] [--count N] [--warmup N]
+                            [--cards K ...] [--count N] [--warmup N] [--cards-seconds S]
 """
 
 from __future__ import annotations
@@ -98,8 +100,9 @@ def summary(document: dict[str, Any]) -> dict[str, Any]:
 
 def scaling(*, quick: bool = False, sections: Sequence[str] = SECTIONS,
             node_counts: Sequence[int] = NODE_COUNTS, card_counts: Sequence[int] = CARD_COUNTS,
-            count: int | None = None, warmup: int | None = None) -> dict[str, Any]:
-    """The benchmark's JSON document."""
+            count: int | None = None, warmup: int | None = None,
+            cards_seconds: float | None = None) -> dict[str, Any]:
+    """The benchmark's JSON document; ``cards_seconds`` overrides the cards' window."""
     logging.getLogger("canopen").setLevel(logging.WARNING)
     started = time.perf_counter()
     document: dict[str, Any] = {
@@ -110,13 +113,14 @@ def scaling(*, quick: bool = False, sections: Sequence[str] = SECTIONS,
         "machine": machine_info(),
         "source": source_fingerprint(),
         "params": {"quick": quick, "sections": list(sections), "node_counts": list(node_counts),
-                   "card_counts": list(card_counts), "count": count, "warmup": warmup},
+                   "card_counts": list(card_counts), "count": count, "warmup": warmup,
+                   "cards_seconds": cards_seconds},
     }
     if "nodes" in sections:
         document["active_nodes"] = [active_nodes(nodes, quick, count, warmup)
                                     for nodes in node_counts]
     if "cards" in sections:
-        document["cards"] = several_cards(tuple(card_counts), quick)
+        document["cards"] = several_cards(tuple(card_counts), quick, cards_seconds)
     if "cost" in sections:
         document["frame_cost"] = frame_cost(quick)
     document["summary"] = summary(document)
@@ -148,6 +152,16 @@ def _ranged(low: int, high: int, what: str) -> Any:
     return parse
 
 
+def _seconds(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        value = 0.0
+    if not 0 < value <= 3600:
+        raise argparse.ArgumentTypeError(f"a window from 0 to 3600 s, not {text!r}")
+    return value
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m bench.scaling", description=help_text(__doc__),
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -163,9 +177,13 @@ def main(argv: list[str] | None = None) -> int:
                         help=f"card counts (default {' '.join(map(str, CARD_COUNTS))})")
     add_size_arguments(parser, "PDO loop round trips per node count, default "
                        + ", ".join(f"{n}: {c}" for n, c in COUNTS.items()), f"default {WARMUP}")
+    parser.add_argument("--cards-seconds", type=_seconds, default=None, metavar="S",
+                        help="the window in which the cards' hosts run their loops "
+                             "together, in seconds (default 10; --quick 3)")
     args = parser.parse_args(argv)
     emit(scaling(quick=args.quick, sections=args.only or SECTIONS, node_counts=args.nodes,
-                 card_counts=args.cards, count=args.count, warmup=args.warmup))
+                 card_counts=args.cards, count=args.count, warmup=args.warmup,
+                 cards_seconds=args.cards_seconds))
     return 0
 
 

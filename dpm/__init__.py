@@ -10,8 +10,9 @@ what this package raises.
 
 The names below are the ones nearly every user of the card needs; the rest are imported
 from their modules. They load on first use, as does ``__version__``: a command that needs
-only ``dpm.errors`` (every ``cifemu COMMAND --help``) does not pay for numpy, which
-``layout`` and ``message`` need, nor for the package metadata.
+only ``dpm.errors`` (every ``cifemu COMMAND --help``) does not pay for the other modules
+nor for the package metadata. numpy is imported by none of them but when ``layout``'s
+dtypes or ``image_view`` are first asked for (docs/testing.md, *Start-up*).
 """
 
 from __future__ import annotations

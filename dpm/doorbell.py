@@ -54,6 +54,11 @@ MAX_HOSTS = 64
 _RING = b"\x01"
 _RING_WANT_ACK = b"\x02"
 """A device ring that also says: more answers wait, ring me when you acknowledge."""
+_RING_WANT_MAILBOX = b"\x03"
+"""A host ring that also says: I wait for the device mailbox, ring me when it is free. The
+card rings for a message it took (DEVACK) only when a host asked so: a host that waits for
+its answer would only wake for nothing, a thread hand-off per request whose answer comes
+later (an SDO transfer; issue 22)."""
 
 
 def device_address(image_path: Path) -> str:
@@ -98,17 +103,30 @@ class _Endpoint:
                 break
         return rings
 
-    def wait(self, timeout: float) -> bool:
-        """Block until a ring or ``timeout`` seconds; True when rung.
+    def wait(self, timeout: float, also: tuple[int, ...] = ()) -> bool:
+        """Block until a ring, ``timeout`` seconds, or one of the descriptors ``also`` is
+        readable (a thread's own wake-up pipe, which the caller drains); True when rung.
 
         select, unlike a shared poll object, may be waited on by several threads
         of one host process at once (one in DevGetMessage, one in DevPutMessage).
         """
-        ready = select.select((self.sock,), (), (), max(0.0, timeout))[0]
-        if ready:
+        if not also:
+            ready = select.select((self.sock,), (), (), max(0.0, timeout))[0]
+            rung = bool(ready)
+        else:
+            fd = self.sock.fileno()
+            rung = fd in select.select((fd, *also), (), (), max(0.0, timeout))[0]
+        if rung:
             self._on_rings(self._drain())
             return True
         return False
+
+    def take_rings(self) -> bool:
+        """Take the rings queued, for a caller whose own selector (an event loop's) said the
+        socket is readable; True when there was one."""
+        rings = self._drain()
+        self._on_rings(rings)
+        return bool(rings)
 
     def _on_rings(self, rings: list[tuple[bytes, str | bytes]]) -> None:
         del rings
@@ -161,15 +179,20 @@ class DeviceBell(_Endpoint):
             self.sock.close()
             raise
         self._hosts: OrderedDict[str | bytes, None] = OrderedDict()
+        self.mailbox_wanted = False
+        """A host rang that it waits for the device mailbox (``_RING_WANT_MAILBOX``): the
+        device rings its hosts once the mailbox is free, and clears this."""
 
     def close(self) -> None:
         super().close()
         self._directory.unlink(Path(self.address).name)
 
     def _on_rings(self, rings: list[tuple[bytes, str | bytes]]) -> None:
-        for _, address in rings:
+        for payload, address in rings:
             if not address or address == self.address:
                 continue
+            if payload == _RING_WANT_MAILBOX:
+                self.mailbox_wanted = True
             self._hosts[address] = None
             self._hosts.move_to_end(address)
             while len(self._hosts) > MAX_HOSTS:
@@ -190,18 +213,22 @@ class DeviceBell(_Endpoint):
 class HostBell(_Endpoint):
     """A host's side: rings the device after writing DevFlags, waits for rings.
 
-    The socket is connected to the device's once: a send on it skips the look-up of the
-    socket file's path that a ``sendto`` does on every ring. A connected socket takes
-    rings only from the device it is connected to; a device started again has a new
-    socket under the same name, so a ring the old one refuses connects again, and the new
-    device learns this host from it (until then it cannot ring this host: a ring is a
-    hint, the waits poll)."""
+    The socket is not connected to the device's, though a ``send`` on a connected one
+    would skip the look-up of the socket file's path that ``sendto`` makes on every ring:
+    Linux does not limit the queue of a datagram socket for the peer it is connected to,
+    so a host that has the board open but never waits on its bell (a tool that configured
+    the card, a client that only sends) kept every ring the device sent it, each charged to
+    the device's send buffer; after about 280 of them the device could ring no host at all,
+    and every host waited for its fallback poll (issue 22: the CiA 309 gateway, which waits
+    for rings only, then answered every 250 ms). Unconnected, such a host holds at most
+    ``/proc/sys/net/unix/max_dgram_qlen`` rings, and the device's rings to it alone fail.
+    A device started again binds the same name, so the next ring reaches it, and it
+    learns this host from that ring."""
 
     def __init__(self, image_path: Path) -> None:
         super().__init__()
         self.sock.bind(b"")  # Linux autobind: a unique abstract name
         self.device = device_address(image_path)
-        self._connected = False
         self.device_wants_ack = True
         """Whether the device's last ring asked for a ring on HOSTACK (it has
         more answers queued); starts True so nothing waits on a missed hint."""
@@ -210,18 +237,8 @@ class HostBell(_Endpoint):
         if rings:
             self.device_wants_ack = rings[-1][0] == _RING_WANT_ACK
 
-    def ring_device(self) -> None:
-        for _ in range(2):  # the second time after a refusal: connected again
-            if not self._connected:
-                try:
-                    self.sock.connect(self.device)
-                except OSError:
-                    return  # no device listens: it polls when it comes
-                self._connected = True
-            try:
-                self.sock.send(_RING)
-                return
-            except BlockingIOError:
-                return  # queue full: the device is awake anyway, or will poll
-            except OSError:
-                self._connected = False  # refused: the device is gone, or was started again
+    def ring_device(self, want_mailbox: bool = False) -> None:
+        """Ring the device; ``want_mailbox``: and ask for a ring once the device mailbox is
+        free (DevPutMessage before it sleeps on a full mailbox)."""
+        # no device listens: it polls when it comes
+        self._send(self.device, _RING_WANT_MAILBOX if want_mailbox else _RING)

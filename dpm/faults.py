@@ -139,7 +139,7 @@ class FaultRequest:
         if self.kind == SLOW:
             _in_range("delay_ms", self.delay_ms, 1, MAX_MS)
         if self.kind == FLIP:
-            from dpm.layout import IO_AREA_SIZE  # here: `cifemu fault --help` needs no numpy
+            from dpm.layout import IO_AREA_SIZE  # here: `cifemu fault --help` needs no layout
 
             _in_range("offset", self.offset, 0, IO_AREA_SIZE - 1)
             _in_range("bit", self.bit, 0, BITS_PER_BYTE - 1)

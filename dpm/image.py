@@ -299,7 +299,7 @@ class ExclusiveLock:
 def create_image(directory: CardDirectory, name: str) -> mmap.mmap:
     """The firmware's map: the file is created (or reused, if it is the firmware
     user's own regular file) with mode 0660."""
-    from dpm.layout import DPM_SIZE  # here: every --help reads this module, not numpy
+    from dpm.layout import DPM_SIZE  # here: every --help reads this module, not the layout
 
     fd = directory.open(name, os.O_RDWR | os.O_CREAT)
     try:
@@ -313,7 +313,7 @@ def create_image(directory: CardDirectory, name: str) -> mmap.mmap:
 def open_image(path: Path, *, readonly: bool = False) -> mmap.mmap:
     """A host's map of an existing image; raises OSError when it is missing, short, or
     no regular file (a symlink planted there would have a host write into its target)."""
-    from dpm.layout import DPM_SIZE  # here: every --help reads this module, not numpy
+    from dpm.layout import DPM_SIZE  # here: every --help reads this module, not the layout
 
     fd = os.open(path, (os.O_RDONLY if readonly else os.O_RDWR) | os.O_NOFOLLOW | os.O_CLOEXEC)
     try:

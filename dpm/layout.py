@@ -2,16 +2,27 @@
 
 This module is the single source of truth for every offset in the image: the
 firmware, the driver API and the status tool all take their offsets from the
-dtypes below (``offset_of``), and a test compares them with docs/dpm.md's table.
+tables below (``offset_of``), and a test compares them with docs/dpm.md's table.
 All integers are little-endian and all structures packed, as on the card.
+
+Each structure is a table of (name, format, offset) in numpy's spelling; its numpy
+dtype (``MSG_STRUC``, ``DPM_LAYOUT`` ...) is built from the table when first asked
+for. The offsets, sizes and the card's own writes (``pack_field``) read the tables
+themselves: numpy costs a process 0.1 s of CPU to import, and a card that is never
+configured, ``cifemu configure`` or ``cifemu 309 exec`` do not need it (docs/testing.md,
+*Start-up*).
 """
 
 from __future__ import annotations
 
-from typing import Any
+import struct
+from dataclasses import dataclass
+from functools import cache
+from typing import TYPE_CHECKING, Any
 
-import numpy as np
-import numpy.typing as npt
+if TYPE_CHECKING:
+    import numpy as np
+    import numpy.typing as npt
 
 DPM_SIZE = 8192
 """Size of the emulated card's dual-port memory (bDpmSize 8 KiB)."""
@@ -25,20 +36,37 @@ LAST_KB = DPM_SIZE - 1024
 MSG_DATA_SIZE = 255
 MSG_HEADER_SIZE = 8
 
-
-def _packed(fields: list[tuple[str, Any, int]], itemsize: int) -> np.dtype[Any]:
-    """A packed little-endian record dtype with explicit offsets."""
-    return np.dtype(
-        {
-            "names": [f[0] for f in fields],
-            "formats": [f[1] for f in fields],
-            "offsets": [f[2] for f in fields],
-            "itemsize": itemsize,
-        }
-    )
+_SCALARS = {"u1": 1, "<u2": 2, "<u4": 4}
+"""The integer formats the tables use, with their sizes; ``Sn`` is n bytes of text."""
 
 
-MSG_STRUC = _packed(
+@dataclass(frozen=True)
+class Packed:
+    """A packed little-endian record: (name, format, offset) fields and its size. A
+    format is a scalar (``"u1"``, ``"<u2"``, ``"S4"``), another ``Packed``, or
+    (either of them, count) for an array."""
+
+    fields: tuple[tuple[str, Any, int], ...]
+    itemsize: int
+
+
+def _packed(fields: list[tuple[str, Any, int]], itemsize: int) -> Packed:
+    return Packed(tuple(fields), itemsize)
+
+
+def _element(form: Any) -> tuple[Any, int]:
+    """An array's element and count; (form, 1) for anything else."""
+    return (form[0], form[1]) if isinstance(form, tuple) else (form, 1)
+
+
+def _size(form: Any) -> int:
+    element, count = _element(form)
+    if isinstance(element, Packed):
+        return element.itemsize * count
+    return (int(element[1:]) if element.startswith("S") else _SCALARS[element]) * count
+
+
+_MSG_STRUC = _packed(
     [
         ("rx", "u1", 0),
         ("tx", "u1", 1),
@@ -54,7 +82,7 @@ MSG_STRUC = _packed(
     288,
 )
 
-VERSIONINFO = _packed(
+_VERSIONINFO = _packed(
     [
         ("ulDate", "<u4", 0),
         ("ulDeviceNo", "<u4", 4),
@@ -68,9 +96,9 @@ VERSIONINFO = _packed(
     32,
 )
 
-FIRMWAREINFO = _packed([("abFirmwareName", "S16", 0), ("abFirmwareVersion", "S16", 16)], 32)
+_FIRMWAREINFO = _packed([("abFirmwareName", "S16", 0), ("abFirmwareVersion", "S16", 16)], 32)
 
-COM_PLC_PARAMETER = _packed(
+_COM_PLC_PARAMETER = _packed(
     [
         ("bMode", "u1", 0),
         ("usWatchDogTime", "<u2", 1),
@@ -84,7 +112,7 @@ COM_PLC_PARAMETER = _packed(
 """Task2Parameter of the CANopen card: protocol parameters plus the node
 connection-status bits (seed manual 2 and 3) at 0x1EF0..0x1EFF."""
 
-COM_DIAGNOSTICS = _packed(
+_COM_DIAGNOSTICS = _packed(
     [
         ("bGlobalBits", "u1", 0),
         ("bCAN_State", "u1", 1),
@@ -103,13 +131,13 @@ COM_DIAGNOSTICS = _packed(
 )
 """Task2State of the CANopen card (seed manual 4)."""
 
-TASKINFO_ENTRY = _packed(
+_TASKINFO_ENTRY = _packed(
     [("abTaskName", "S8", 0), ("usVersion", "<u2", 8), ("bCondition", "u1", 10),
      ("abReserved", ("u1", 5), 11)],
     16,
 )
 
-RCSINFO = _packed(
+_RCSINFO = _packed(
     [
         ("usRcsVersion", "<u2", 0),
         ("bRcsError", "u1", 2),
@@ -122,27 +150,27 @@ RCSINFO = _packed(
     8,
 )
 
-DEVINFO = _packed(
+_DEVINFO = _packed(
     [("bDpmSize", "u1", 0), ("bDevType", "u1", 1), ("bDevModel", "u1", 2),
      ("abDevIdentifier", "S3", 3)],
     6,
 )
 
-DPM_LAYOUT = _packed(
+_DPM_LAYOUT = _packed(
     [
         ("SndPd", ("u1", IO_AREA_SIZE), 0x0000),
         ("RcvPd", ("u1", IO_AREA_SIZE), 0x0E00),
-        ("DevMbx", MSG_STRUC, 0x1C00),
-        ("VersionInfo", VERSIONINFO, 0x1D20),
-        ("PcMbx", MSG_STRUC, 0x1D40),
-        ("FirmwareInfo", FIRMWAREINFO, 0x1E60),
+        ("DevMbx", _MSG_STRUC, 0x1C00),
+        ("VersionInfo", _VERSIONINFO, 0x1D20),
+        ("PcMbx", _MSG_STRUC, 0x1D40),
+        ("FirmwareInfo", _FIRMWAREINFO, 0x1E60),
         ("Task1Parameter", ("u1", 64), 0x1E80),
-        ("Task2Parameter", COM_PLC_PARAMETER, 0x1EC0),
+        ("Task2Parameter", _COM_PLC_PARAMETER, 0x1EC0),
         ("Task1State", ("u1", 64), 0x1F00),
-        ("Task2State", COM_DIAGNOSTICS, 0x1F40),
-        ("TaskInfo", (TASKINFO_ENTRY, 7), 0x1F80),
-        ("RcsInfo", RCSINFO, 0x1FF0),
-        ("DevInfo", DEVINFO, 0x1FF8),
+        ("Task2State", _COM_DIAGNOSTICS, 0x1F40),
+        ("TaskInfo", (_TASKINFO_ENTRY, 7), 0x1F80),
+        ("RcsInfo", _RCSINFO, 0x1FF0),
+        ("DevInfo", _DEVINFO, 0x1FF8),
         ("HostFlags", "u1", 0x1FFE),
         ("DevFlags", "u1", 0x1FFF),
     ],
@@ -150,27 +178,43 @@ DPM_LAYOUT = _packed(
 )
 
 
-def offset_of(path: str) -> int:
-    """Absolute image offset of a field, e.g. ``offset_of("Task2State.abNd_cfg")``."""
-    dtype: np.dtype[Any] = DPM_LAYOUT
+def _walk(path: str) -> tuple[int, Any]:
+    """Absolute offset and format of a field; into an array of records, its first."""
+    form: Any = _DPM_LAYOUT
     offset = 0
     for name in path.split("."):
-        if dtype.fields is None or name not in dtype.fields:
+        record = _element(form)[0]
+        if not isinstance(record, Packed):
             raise KeyError(path)
-        sub, off = dtype.fields[name][:2]
-        offset += off
-        dtype = sub.base if sub.subdtype is not None else sub
-    return offset
+        for field, sub, off in record.fields:
+            if field == name:
+                offset += off
+                form = sub
+                break
+        else:
+            raise KeyError(path)
+    return offset, form
+
+
+def offset_of(path: str) -> int:
+    """Absolute image offset of a field, e.g. ``offset_of("Task2State.abNd_cfg")``."""
+    return _walk(path)[0]
 
 
 def size_of(path: str) -> int:
     """Size in bytes of a field of the image (the whole field, arrays included)."""
-    parent, _, name = path.rpartition(".")
-    dtype: np.dtype[Any] = DPM_LAYOUT
-    for part in parent.split(".") if parent else []:
-        sub = dtype.fields[part][0]  # type: ignore[index]
-        dtype = sub.base if sub.subdtype is not None else sub
-    return int(dtype.fields[name][0].itemsize)  # type: ignore[index]
+    return _size(_walk(path)[1])
+
+
+@cache
+def pack_field(path: str) -> tuple[int, struct.Struct]:
+    """Where a scalar field of the image is and how it is packed, for ``pack_into`` and
+    ``unpack_from``: a number little-endian, a text NUL-padded (as numpy writes it)."""
+    offset, form = _walk(path)
+    if not isinstance(form, str):
+        raise KeyError(f"{path} is not a scalar field")
+    code = f"{form[1:]}s" if form.startswith("S") else {1: "B", 2: "H", 4: "I"}[_SCALARS[form]]
+    return offset, struct.Struct("<" + code)
 
 
 # Hot-path offsets, derived once from the layout.
@@ -199,6 +243,51 @@ HOST_FLAGS = offset_of("HostFlags")
 DEV_FLAGS = offset_of("DevFlags")
 
 
+def _dtype(form: Any) -> Any:
+    """numpy's spelling of a format: a record becomes its dtype."""
+    element, count = _element(form)
+    spelled = dtype_of(element) if isinstance(element, Packed) else element
+    return (spelled, count) if isinstance(form, tuple) else spelled
+
+
+@cache
+def dtype_of(record: Packed) -> np.dtype[Any]:
+    """The numpy dtype of a record, with explicit offsets."""
+    import numpy as np
+
+    return np.dtype({"names": [f[0] for f in record.fields],
+                     "formats": [_dtype(f[1]) for f in record.fields],
+                     "offsets": [f[2] for f in record.fields],
+                     "itemsize": record.itemsize})
+
+
+_RECORDS = {"MSG_STRUC": _MSG_STRUC, "VERSIONINFO": _VERSIONINFO,
+            "FIRMWAREINFO": _FIRMWAREINFO, "COM_PLC_PARAMETER": _COM_PLC_PARAMETER,
+            "COM_DIAGNOSTICS": _COM_DIAGNOSTICS, "TASKINFO_ENTRY": _TASKINFO_ENTRY,
+            "RCSINFO": _RCSINFO, "DEVINFO": _DEVINFO, "DPM_LAYOUT": _DPM_LAYOUT}
+
+if TYPE_CHECKING:
+    MSG_STRUC: np.dtype[Any]
+    VERSIONINFO: np.dtype[Any]
+    FIRMWAREINFO: np.dtype[Any]
+    COM_PLC_PARAMETER: np.dtype[Any]
+    COM_DIAGNOSTICS: np.dtype[Any]
+    TASKINFO_ENTRY: np.dtype[Any]
+    RCSINFO: np.dtype[Any]
+    DEVINFO: np.dtype[Any]
+    DPM_LAYOUT: np.dtype[Any]
+
+
+def __getattr__(name: str) -> Any:
+    """The records' numpy dtypes (``MSG_STRUC``, ``DPM_LAYOUT`` ...), built when first
+    asked for."""
+    if name in _RECORDS:
+        return dtype_of(_RECORDS[name])
+    raise AttributeError(f"module 'dpm.layout' has no attribute {name!r}")
+
+
 def image_view(buffer: Any) -> npt.NDArray[Any]:
     """A 0-d structured array over an 8 KiB buffer (an mmap or a bytearray)."""
-    return np.ndarray(shape=(), dtype=DPM_LAYOUT, buffer=buffer)
+    import numpy as np
+
+    return np.ndarray(shape=(), dtype=dtype_of(_DPM_LAYOUT), buffer=buffer)

@@ -17,7 +17,7 @@ flash's start-up takes a ``Card`` and ``WholeCard`` names the flash.
 from __future__ import annotations
 
 import mmap
-from typing import Any, Protocol
+from typing import Protocol
 
 from dbm_tools.parameters import NodeParameterSet
 from dpm.doorbell import DeviceBell
@@ -63,10 +63,6 @@ class Card(Protocol):
 
     @property
     def mm(self) -> mmap.mmap: ...
-
-    @property
-    def view(self) -> Any:
-        """The image as numpy structured views (``dpm.layout.image_view``)."""
 
     @property
     def bell(self) -> DeviceBell: ...

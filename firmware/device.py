@@ -30,7 +30,7 @@ from collections import deque
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 from dpm import flags as fl
 from dpm.doorbell import POLL_INTERVAL, AdaptivePoll, DeviceBell
@@ -52,7 +52,7 @@ from dpm.layout import (
     PC_MBX,
     TASK2_STATE,
     TASK_STATE_SIZE,
-    image_view,
+    pack_field,
 )
 from dpm.message import MSG_MAX_SIZE, Ext, Message
 from dpm.task2 import CanState
@@ -156,7 +156,6 @@ class Device:
             self.mm.close()
             self.files.close()
             raise
-        self.view: Any = image_view(self.mm)
         self.bell = DeviceBell(self.files, self.path)
         self.faults = CardFaults(self)
         """[ours] Card-side faults on demand (firmware/faults.py, docs/faults.md)."""
@@ -291,7 +290,6 @@ class Device:
         if recorder is not None:
             recorder.close()
         self.bell.close()
-        del self.view
         self.mm.flush()
         self.mm.close()
         self._instance_lock.release()
@@ -356,14 +354,24 @@ class Device:
         self.mm[HOST_FLAGS] = value
         self._ring = True
 
-    def _toggle_unrecorded(self, bits: int) -> int:
+    def _toggle_unrecorded(self, bits: int, ring: bool = True) -> int:
         """``toggle_host_flags`` for a change the caller records with its message (one
-        event instead of two: docs/recording.md, what it costs); returns the flags before."""
+        event instead of two: docs/recording.md, what it costs); returns the flags before.
+        ``ring``: the hosts hear of it at the end of the turn."""
         mm = self.mm
         before = mm[HOST_FLAGS]
         mm[HOST_FLAGS] = before ^ bits
-        self._ring = True
+        if ring:
+            self._ring = True
         return before
+
+    def _ring_for_mailbox(self) -> None:
+        """Ring the hosts once the device mailbox is free, if one asked (``DeviceBell``'s
+        ``mailbox_wanted``): it may have asked after the card took the message."""
+        mm = self.mm
+        if self.bell.mailbox_wanted and not (mm[HOST_FLAGS] ^ mm[DEV_FLAGS]) & fl.DEV_MBX:
+            self.bell.mailbox_wanted = False
+            self._ring = True
 
     def toggle_host_flags(self, bits: int) -> None:
         self.write_host_flags(self.mm[HOST_FLAGS] ^ bits)
@@ -387,13 +395,22 @@ class Device:
         self._state_sent = bytes(TASK_STATE_SIZE)
         self._shown_can_state = CanState.OFFLINE
 
+    def _state(self, name: str) -> int:
+        """A number of Task2State (``dpm.layout.pack_field``: no numpy at start-up)."""
+        offset, packing = pack_field(f"Task2State.{name}")
+        value: int = packing.unpack_from(self.mm, offset)[0]
+        return value
+
+    def _set_state(self, name: str, value: int) -> None:
+        offset, packing = pack_field(f"Task2State.{name}")
+        packing.pack_into(self.mm, offset, value)
+
     def set_global_bit(self, bit: int, on: bool) -> None:
         with self.state_lock:
-            state = self.view["Task2State"]
-            value = int(state["bGlobalBits"])
+            value = self._state("bGlobalBits")
             new = value | bit if on else value & ~bit
             if new != value:
-                state["bGlobalBits"] = new
+                self._set_state("bGlobalBits", new)
                 self._wake()
 
     def set_node_bit(self, field: str, address: int, on: bool) -> None:
@@ -424,28 +441,25 @@ class Device:
                 self._wake()
 
     def _show_error(self) -> None:
-        state = self.view["Task2State"]
         if self._errors:
             node = min(self._errors)
-            state["bErr_rem_adr"] = node
-            state["bErr_event"] = self._errors[node]
+            self._set_state("bErr_rem_adr", node)
+            self._set_state("bErr_event", self._errors[node])
         else:
-            state["bErr_rem_adr"] = 0
-            state["bErr_event"] = 0
+            self._set_state("bErr_rem_adr", 0)
+            self._set_state("bErr_event", 0)
 
     def count(self, counter: str, by: int = 1) -> None:
         """Increment a Task2State counter (usBus_Error_Cnt ...), saturating at 65535."""
         with self.state_lock:
-            state = self.view["Task2State"]
-            state[counter] = min(0xFFFF, int(state[counter]) + by)
+            self._set_state(counter, min(0xFFFF, self._state(counter) + by))
         self._wake()
 
     def reset_counters(self) -> None:
         with self.state_lock:
-            state = self.view["Task2State"]
             for counter in ("usBus_Error_Cnt", "usBus_Off_Cnt", "usMsg_Time_Out",
                             "usRx_Overflow"):
-                state[counter] = 0
+                self._set_state(counter, 0)
         self._wake()
 
     def descript_records(self) -> dict[int, bytes] | None:
@@ -465,7 +479,7 @@ class Device:
 
     def fill_info(self) -> None:
         """The identification areas, at every start (``RcsTask.start``)."""
-        info.fill(self.view, self.board)
+        info.fill(self.mm, self.board)
         self.faults.started()
 
     # --- the loop's work ---------------------------------------------------------------
@@ -501,6 +515,7 @@ class Device:
         self.plc.service(mm[HOST_FLAGS], mm[DEV_FLAGS])
         self._state_field()
         self._set_level(fl.SPCACK, bool(mm[DEV_FLAGS] & fl.SPCCOM))
+        self._ring_for_mailbox()
         self._flush()
 
     def _current_can_state(self) -> CanState:
@@ -516,7 +531,7 @@ class Device:
         state = self._current_can_state()
         if state != self._shown_can_state:
             self._shown_can_state = state
-            self.view["Task2State"]["bCAN_State"] = state
+            self._set_state("bCAN_State", state)
         run = state != CanState.OFFLINE and not self.can.run_withdrawn
         return (fl.RUN if run else 0) | (
             fl.COM if state == CanState.OPERATE else 0)
@@ -532,7 +547,9 @@ class Device:
         # disagree (every ln of 0..255 fits the slot). The tasks answer a message
         # that is malformed for its command with their own msg.f.
         raw = self.mm[DEV_MBX : DEV_MBX + MSG_MAX_SIZE]
-        before = self._toggle_unrecorded(fl.DEVACK)
+        # No ring for DEVACK alone: a host waiting for the free mailbox asks for one
+        # (``_ring_for_mailbox``); its answer, now or later, rings the one that waits for it.
+        before = self._toggle_unrecorded(fl.DEVACK, ring=False)
         recorder = self.recorder
         if recorder is not None:
             recorder.put(raw, before, before ^ fl.DEVACK)

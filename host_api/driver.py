@@ -40,6 +40,7 @@ from dpm.doorbell import HostBell
 from dpm.errors import Drv
 from dpm.image import MAX_DEV_BOARDS, dpm_dir, image_path, lock_path, open_image
 from dpm.layout import (
+    DEV_FLAGS,
     DEV_IDENTIFIER,
     DEV_INFO,
     DEV_MBX,
@@ -281,41 +282,41 @@ def DevPutMessage(number: int, msg: Message | bytes, timeout: int) -> int:
     except MessageError:
         return Drv.DRV_USR_SIZE_INVALID
     deadline = time.monotonic() + timeout / 1000.0
-    if not board.transaction.enter(timeout / 1000.0):
+    transaction = board.transaction
+    if not transaction.enter(timeout / 1000.0):
         return Drv.DRV_CMD_ACTIVE
     try:
         if not _take(board.put_lock, deadline):
             return Drv.DRV_CMD_ACTIVE
         try:
-            free = board.wait_for(
-                lambda: not fl.pending(board.host(), board.dev(), fl.DEV_MBX),
-                _left_ms(deadline))
-            if not free:
+            mm = board.mm
+            # The card rings for a message it took only when asked (dpm/doorbell.py).
+            if fl.pending(mm[HOST_FLAGS], mm[DEV_FLAGS], fl.DEV_MBX) and not board.wait_for(
+                    lambda: not fl.pending(board.host(), board.dev(), fl.DEV_MBX),
+                    _left_ms(deadline), lambda: board.bell.ring_device(want_mailbox=True)):
                 return (Drv.DRV_DEV_MAILBOX_FULL if timeout <= 0
                         else board.timed_out(Drv.DRV_DEV_PUT_TIMEOUT))
-            board.mm[DEV_MBX : DEV_MBX + len(raw)] = raw
+            mm[DEV_MBX : DEV_MBX + len(raw)] = raw
             # recorded before the card can see it: a host killed now leaves it in the ledger
-            board.transaction.sent(message)
+            transaction.sent(message)
             board.change_dev_flags(toggle=fl.DEVCOM)
-            board.counters.write += 1
-            board.counters.last_function = FKT_WRITE
+            counters = board.counters
+            counters.write += 1
+            counters.last_function = FKT_WRITE
             return Drv.DRV_NO_ERROR
         finally:
             board.put_lock.release()
     finally:
-        board.transaction.leave()
-
-
-def _left(deadline: float) -> float:
-    """Seconds left of a call's time-out."""
-    return max(0.0, deadline - time.monotonic())
+        transaction.leave()
 
 
 def _take(channel: threading.Lock, deadline: float) -> bool:
     """The put or get channel of this process, waited for until the call's deadline; the
     transaction lock the call holds already keeps every other host out (``MappedBoard``)."""
-    left = _left(deadline)
-    return channel.acquire(timeout=left) if left > 0 else channel.acquire(False)
+    if channel.acquire(False):  # the usual case: free, and no clock read
+        return True
+    left = deadline - time.monotonic()
+    return left > 0 and channel.acquire(timeout=left)
 
 
 def _left_ms(deadline: float) -> int:
@@ -336,46 +337,49 @@ def DevGetMessage(number: int, size: int, timeout: int) -> tuple[int, Message | 
     if not isinstance(board, _Board):
         return board, None
     deadline = time.monotonic() + timeout / 1000.0
+    transaction = board.transaction
     # a host expecting nothing still waits for other hosts' transactions to finish
-    if not board.transaction.enter(timeout / 1000.0):
+    if not transaction.enter(timeout / 1000.0):
         return Drv.DRV_CMD_ACTIVE, None
     try:
         if not _take(board.get_lock, deadline):
             return Drv.DRV_CMD_ACTIVE, None
         try:
-            return _take_message(board, size, timeout, deadline)
+            return _take_message(board, transaction, size, timeout, deadline)
         finally:
             board.get_lock.release()
     finally:
-        board.transaction.leave()
+        transaction.leave()
 
 
-def _take_message(board: _Board, size: int, timeout: int,
+def _take_message(board: _Board, transaction: Transaction, size: int, timeout: int,
                   deadline: float) -> tuple[int, Message | None]:
     """DevGetMessage with its locks held."""
     mm = board.mm
     while True:
-        if not board.wait_for(lambda: fl.pending(board.host(), board.dev(), fl.HOST_MBX),
-                              _left_ms(deadline)):
+        if not fl.pending(mm[HOST_FLAGS], mm[DEV_FLAGS], fl.HOST_MBX) and not board.wait_for(
+                lambda: fl.pending(board.host(), board.dev(), fl.HOST_MBX),
+                _left_ms(deadline)):
             if timeout <= 0:
                 return Drv.DRV_DEV_GET_NO_MESSAGE, None
             # [ours] an answer that did not come in time frees the board for other hosts,
             # and is discarded by whichever host reads it later
-            board.transaction.give_up()
+            transaction.give_up()
             return board.timed_out(Drv.DRV_DEV_GET_TIMEOUT), None
         length = 8 + mm[PC_MBX + 2]
         msg = Message.decode(mm[PC_MBX : PC_MBX + length])
-        stale = board.transaction.is_stale(msg)
+        stale = transaction.is_stale(msg)
         if not stale and length > size:
             return Drv.DRV_USR_MSG_BUF_TOO_SHORT, None
         # The device polls anyway; a ring only speeds up answers it has queued.
         board.change_dev_flags(toggle=fl.HOSTACK, ring=stale or board.bell.device_wants_ack)
         # after the handshake: a host killed in between leaves a discarded answer's
         # request in the ledger, never an answer nobody discards
-        if board.transaction.answered(msg) is Answer.STALE:
+        if transaction.answered(msg) is Answer.STALE:
             continue
-        board.counters.read += 1
-        board.counters.last_function = FKT_READ
+        counters = board.counters
+        counters.read += 1
+        counters.last_function = FKT_READ
         return Drv.DRV_NO_ERROR, msg
 
 
@@ -416,6 +420,8 @@ def _exchange(
             board.bell.ring_device()  # [ours] the card sends changed outputs when rung
         if recv_size:
             received = mm[RCV_PD + recv_offset : RCV_PD + recv_offset + recv_size]
+            if not send_data:
+                board.poll_inputs(received)  # [ours] a host polling lets the card run
         rc: int = Drv.DRV_NO_ERROR
     else:
         if not board.io_lock.acquire(timeout / 1000.0):

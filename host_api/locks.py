@@ -50,6 +50,11 @@ STALE_MS = 30_000
 it or never (the driver's longest wait is DevDownload's 15 s)."""
 
 
+_LINE = LINE.encode("ascii")
+_LINE_END = _LINE + END
+"""A ledger line, and one followed by the ledger's end, as bytes: a request is formatted and
+appended in one step, with no text to encode and no concatenation."""
+
 _NAK, _SEQ_MASK = int(Ext.NAK), int(Ext.SEQ_MASK)
 _FIRST, _CONT, _LAST = int(Ext.FIRST), int(Ext.CONT), int(Ext.LAST)
 """msg.e's bits as plain ints, for the ledger's work on every request and answer."""
@@ -108,7 +113,8 @@ class ChannelLock:
     def __exit__(
         self, t: type[BaseException] | None, v: BaseException | None, tb: TracebackType | None
     ) -> None:
-        self.release()
+        fcntl.flock(self._fd, fcntl.LOCK_UN)  # release's body: this runs twice a round trip
+        self._thread.release()
 
     def reopen_after_fork(self) -> None:
         """In a forked child: a file description of its own (the parent's flocks stay the
@@ -153,8 +159,8 @@ class Request(NamedTuple):
     given_up: bool = False
     """In memory: a get timed out waiting for it (it keeps the lock no more)."""
 
-    def line(self) -> str:
-        return LINE % self[:8]
+    def line(self) -> bytes:
+        return _LINE % self[:8]
 
     @classmethod
     def parse(cls, line: str, now_ms: int) -> Request | None:
@@ -251,8 +257,9 @@ class Transaction:
         """The call ends: the lock goes back when no call is inside and no answer is
         awaited (answers a timed-out get gave up on do not keep it)."""
         with self._state:
-            self._users = max(0, self._users - 1)
-            if (self._held and self._users == 0
+            if self._users:
+                self._users -= 1
+            if (self._held and not self._users
                     and all(r.given_up for r in self._own)):
                 fcntl.flock(self._fd, fcntl.LOCK_UN)
                 self._held = False
@@ -268,27 +275,30 @@ class Transaction:
         request = Request(self._pid, self._owner, msg.nr, msg.b, msg.rx, msg.tx,
                           int(sequence == _FIRST), _now_ms())
         with self._state:
+            own = self._own
             changed = False
-            if sequence in (_CONT, _LAST) and self._own:
+            if own and sequence in (_CONT, _LAST):
                 # It continues a sequence (the load function's transfers): the first request
                 # of that command, answered with a part marked FIRST, was no long upload.
-                kept = [r for r in self._own if not (
+                kept = [r for r in own if not (
                     r.multi == 2 and (r.b, r.rx, r.tx) == (msg.b, msg.rx, msg.tx))]
-                changed = len(kept) != len(self._own)
-                self._own = kept
-            if len(self._own) + len(self._stale) >= LEDGER_MAX:
-                (self._stale or self._own).pop(0)
+                changed = len(kept) != len(own)
+                self._own = own = kept
+            if len(own) + len(self._stale) >= LEDGER_MAX:
+                (self._stale or own).pop(0)
                 changed = True
-            self._own.append(request)
+            own.append(request)
             if changed:
                 self._store()
             else:
-                line = request.line().encode("ascii")
-                os.pwrite(self._fd, line + END, self._length)
-                self._length += len(line)
+                line = _LINE_END % request[:8]
+                os.pwrite(self._fd, line, self._length)
+                self._length += len(line) - len(END)
 
     def is_stale(self, msg: Message) -> bool:
         """Whether the answer waiting in the mailbox is one to discard."""
+        if not self._stale:  # read without the lock: only taking the flock (``enter``, which
+            return False    # the caller has done) fills it
         with self._state:
             return any(r.answered_by(msg) for r in self._stale)
 
@@ -296,17 +306,25 @@ class Transaction:
         """After the answer was taken from the mailbox: whose it was. Stale requests were
         sent first, so the card answers them first."""
         with self._state:
-            for kind, requests in ((Answer.STALE, self._stale), (Answer.OWN, self._own)):
-                for i, request in enumerate(requests):
-                    if request.answered_by(msg):
-                        rest = request.after(msg)
-                        if rest is None:
-                            del requests[i]
-                        else:
-                            requests[i] = rest
-                        self._store()
-                        return kind
+            if self._stale and self._settle(self._stale, msg):
+                return Answer.STALE
+            if self._own and self._settle(self._own, msg):
+                return Answer.OWN
             return Answer.OTHER
+
+    def _settle(self, requests: list[Request], msg: Message) -> bool:
+        """Whether ``msg`` answers one of ``requests``; that one goes, or waits for its
+        next part, in memory and in the file."""
+        for i, request in enumerate(requests):
+            if request.answered_by(msg):
+                rest = request.after(msg)
+                if rest is None:
+                    del requests[i]
+                else:
+                    requests[i] = rest
+                self._store()
+                return True
+        return False
 
     def give_up(self) -> None:
         """A get timed out: the answers awaited keep the lock no more."""
@@ -367,7 +385,7 @@ class Transaction:
                 os.pwrite(self._fd, END, 0)
                 self._length = 0
             return
-        text = "".join(r.line() for r in (*self._stale, *self._own)).encode("ascii")
+        text = b"".join(r.line() for r in (*self._stale, *self._own))
         os.pwrite(self._fd, text + END, 0)
         self._length = len(text)
 

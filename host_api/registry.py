@@ -38,6 +38,13 @@ from host_api.locks import ChannelLock, Transaction
 
 SPIN_SECONDS = 100e-6
 """How long a waiting call watches the flags before it sleeps on the bell."""
+POLLS_BEFORE_YIELD = 8
+"""[ours] Uncontrolled exchanges in a row that read the same inputs, after which a host
+polling the card gives up its CPU once (``MappedBoard.poll_inputs``): every 10-30 µs of a
+Python host's spinning (a call takes 1.4-4 µs here), one system call per eight calls."""
+POLL_WINDOW_NS = 1_000_000
+"""[ours] ... when those calls came within this many ns: a host polling, not a periodic
+control loop (a 1 kHz one takes eight milliseconds for eight calls)."""
 
 
 @dataclass
@@ -72,6 +79,12 @@ class MappedBoard:
     transaction: Transaction
     counters: Counters
     """The registry's for this board number (``Registry.counters``), kept past DevExitBoard."""
+    polled: bytes = b""
+    """The inputs the last uncontrolled exchange read (``poll_inputs``)."""
+    polls: int = 0
+    """Uncontrolled exchanges since, that read ``polled`` again."""
+    polls_since: int = 0
+    """When the first of them returned (perf_counter_ns)."""
 
     def host(self) -> int:
         return self.mm[HOST_FLAGS]
@@ -88,18 +101,47 @@ class MappedBoard:
         alive = firmware_liveness(self.path.parent, self.number).alive
         return code if alive else Drv.DRV_DEV_NOT_READY
 
+    def poll_inputs(self, inputs: bytes) -> None:
+        """[ours] A host that spins on the uncontrolled exchange lets the card run.
+
+        Called after each uncontrolled DevExchangeIO that only read, ``inputs``. Every
+        ``POLLS_BEFORE_YIELD``-th such call in a row that reads the same inputs, within
+        ``POLL_WINDOW_NS`` of the first, comes from a host polling for a change that only
+        the card can make: it gives up its CPU (``sched_yield``) to whatever waits for one.
+        A real card has a CPU of its own; this one's threads run on the host's. A host
+        spinning on one of two cores left each of the card's wake-ups in a PDO round trip
+        (device loop, node, receive thread) that the scheduler put behind it waiting for
+        the next scheduler tick, up to 4 ms: the loop's p99 was 10-22 times canopen's,
+        whose host blocks on a condition. A host alone on its CPU loses a system call
+        (about a microsecond) every eight polls. Never yields: a periodic control loop,
+        whose calls are further apart, and a call that also writes outputs (a host that
+        exchanges as fast as it can, ``bench.exchange_io``, keeps its CPU as before).
+        """
+        if inputs != self.polled:
+            self.polled, self.polls = inputs, 0
+            return
+        self.polls += 1
+        if self.polls == 1:
+            self.polls_since = time.perf_counter_ns()
+        elif self.polls >= POLLS_BEFORE_YIELD:
+            self.polls = 0
+            if time.perf_counter_ns() - self.polls_since < POLL_WINDOW_NS:
+                os.sched_yield()
+
     def change_dev_flags(
         self, set_bits: int = 0, clear_bits: int = 0, toggle: int = 0, ring: bool = True
     ) -> None:
         """Read-modify-write DevFlags under the flags lock, then ring the device."""
+        mm = self.mm
         with self.flags_lock:
-            value = self.dev()
-            self.mm[DEV_FLAGS] = ((value | set_bits) & ~clear_bits & 0xFF) ^ toggle
+            mm[DEV_FLAGS] = ((mm[DEV_FLAGS] | set_bits) & ~clear_bits & 0xFF) ^ toggle
         if ring:
             self.bell.ring_device()
 
-    def wait_for(self, condition: Callable[[], bool], timeout_ms: int) -> bool:
-        """Wait on the bell (polling as a fallback) until ``condition`` or the timeout."""
+    def wait_for(self, condition: Callable[[], bool], timeout_ms: int,
+                 before_sleep: Callable[[], None] | None = None) -> bool:
+        """Wait on the bell (polling as a fallback) until ``condition`` or the timeout;
+        ``before_sleep`` runs once, before the first sleep on the bell."""
         if condition():
             return True
         if timeout_ms <= 0:
@@ -115,6 +157,8 @@ class MappedBoard:
             while time.perf_counter() < spin_end:
                 if condition():
                     return True
+        if before_sleep is not None:
+            before_sleep()
         while True:
             remaining = deadline - time.monotonic()
             if remaining <= 0:
@@ -189,10 +233,10 @@ def lookup(number: int) -> MappedBoard | int:
 
 def ready_board(number: int) -> MappedBoard | int:
     """``lookup``, and DRV_DEV_NOT_READY (-11) while the card has not set READY."""
-    board = lookup(number)
-    if isinstance(board, MappedBoard) and not board.ready():
-        return Drv.DRV_DEV_NOT_READY
-    return board
+    board = registry.boards.get(number)  # on every mailbox call: one look-up, no calls
+    if board is None:
+        return lookup(number)
+    return board if board.mm[HOST_FLAGS] & fl.READY else Drv.DRV_DEV_NOT_READY
 
 
 def transaction_lock(number: int) -> Transaction | None:

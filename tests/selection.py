@@ -28,7 +28,7 @@ PROCESS_MODULES = frozenset({
     "test_raw_dpm", "test_readme", "test_seed_fidelity", "test_can_master_services", "test_shm_bus",
     "test_sim", "test_soak", "test_top", "test_vcan_tools", "test_vcan_vm",
     "test_cia309_slots", "test_libcif_hosts", "test_local_users", "test_newcomer",
-    "test_pytest_plugin", "test_seed_second_pass", "test_seed_node_pass", "test_idle",
+    "test_pytest_plugin", "test_bus_parameter_set", "test_node_handlers", "test_idle",
     "test_remote_bus", "test_bridges_vcan", "test_bus_options", "test_busy_board",
     "test_dbm_export", "test_demo_view", "test_layers", "test_off_terminal", "test_parser_fuzz",
     "test_reset", "test_send", "test_record_replay", "test_socketcand_link",

@@ -28,7 +28,8 @@ def test_a_card_count_beyond_the_drivers_boards_is_refused_in_plain_words() -> N
 
 
 def test_a_tiny_run_gives_every_section_beside_its_baseline() -> None:
-    run = bench_scaling("--quick", "--nodes", "2", "--cards", "2")
+    run = bench_scaling("--quick", "--nodes", "2", "--cards", "2", "--cards-seconds",
+                       "1")
     assert run.returncode == 0, run.stderr[-2000:]
     document: dict[str, Any] = json.loads(run.stdout)
     assert document["benchmark"] == "scaling"
@@ -44,6 +45,7 @@ def test_a_tiny_run_gives_every_section_beside_its_baseline() -> None:
         assert nodes[side]["sdo"]["expedited_uploads_per_s"] > 0, side
     assert nodes["ratio_to_baseline"]["pdo_loop_p50"] > 0
 
+    assert document["cards"]["seconds"] == 1  # --cards-seconds: the hosts loop for 1 s
     (cards,) = document["cards"]["runs"]
     assert cards["cards"] == 2
     assert [card["board"] for card in cards["per_card"]] == [0, 1]

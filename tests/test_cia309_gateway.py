@@ -23,6 +23,7 @@ from dpm.com import CanFrame
 from dpm.commands import AREA_BUS, COM_UPLOAD, MAX_LEN_DATA_UNIT
 from dpm.message import Message, Task
 from dpm.task2 import CanState
+from firmware.can.sdo import DEFAULT_SDO_TIMEOUT
 from host_api.cia309.gateway import VENDOR_ID, Gateway, SdoUploadInFlight
 from host_api.cia309.model import (
     ALL_NODES,
@@ -204,16 +205,26 @@ def test_sdo_upload_sent_without_waiting(gw: Gateway) -> None:
     assert flight is not None
     assert done[0].wait(5)
     assert flight.result() == struct.pack("<I", 0x000F0191)
-    absent = gw.try_sdo_upload(0x1000, 0, lambda: None, node_id=42)  # not on the bus
-    assert absent is not None
-    assert gw.try_sdo_upload(0x1000, 0, lambda: None, node_id=42) is None
-    assert absent.abandon().error == ErrorCode.TIME_OUT
-    sent: list[SdoUploadInFlight | None] = []  # None while the card's mailbox is still full
-    wait_until(lambda: sent.append(gw.try_sdo_upload(0x1000, 0, done[1].set, node_id=42))
-               or sent[-1] is not None, 5, "node 42's channel free again")
-    again = sent[-1]
-    assert again is not None and done[1].wait(5)  # refused (42's transfer runs) or timed out
-    assert reason(again.result).error in (ErrorCode.TIME_OUT, ErrorCode.INTERNAL_STATE)
+    # A transfer to node 42 that an earlier test gave up on may still run in the card, which
+    # then refuses the next one at once (f 54: 102): wait for one that runs its whole time.
+    wait_until(lambda: reason(lambda: gw.sdo_upload(0x1000, 0, node_id=42)).error
+               == ErrorCode.TIME_OUT, 5, "node 42's earlier transfer over")
+    # The card's own SDO time-out (0.5 s by default) must outlast the two calls below: a
+    # test beside busy processes can be held that long between them.
+    gw.configure_sdo_timeout(3000)
+    try:
+        absent = gw.try_sdo_upload(0x1000, 0, lambda: None, node_id=42)  # not on the bus
+        assert absent is not None
+        assert gw.try_sdo_upload(0x1000, 0, lambda: None, node_id=42) is None
+        assert absent.abandon().error == ErrorCode.TIME_OUT
+        sent: list[SdoUploadInFlight | None] = []  # None while the card's mailbox is full
+        wait_until(lambda: sent.append(gw.try_sdo_upload(0x1000, 0, done[1].set, node_id=42))
+                   or sent[-1] is not None, 5, "node 42's channel free again")
+        again = sent[-1]
+        assert again is not None and done[1].wait(10)  # refused (42's runs) or timed out
+        assert reason(again.result).error in (ErrorCode.TIME_OUT, ErrorCode.INTERNAL_STATE)
+    finally:
+        gw.configure_sdo_timeout(int(DEFAULT_SDO_TIMEOUT * 1000))
     wrong: list[SdoUploadInFlight | None] = []
     wait_until(lambda: wrong.append(gw.try_sdo_upload(0x2345, 0, done[2].set, node_id=2))
                or wrong[-1] is not None, 5, "the card's mailbox free")

@@ -9,6 +9,7 @@ import stat
 import struct
 import subprocess
 import sys
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -16,11 +17,20 @@ import pytest
 from dpm.message import Message
 from dpm.task2 import ComPlcParameter
 from host_api.board import Board, CifError
-from tests.conftest import ROOT, Card, start_card, wait_until
+from tests.conftest import HOST_FLAGS, READY, ROOT, Card, start_card, wait_until
 
 
-def test_image_is_created_8k_with_mode_0660(card: Card) -> None:
-    st = card.path.stat()
+@pytest.fixture(scope="module")
+def untouched_card(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Card]:
+    """A card just started, for the tests that only look at it (its file, its image, a
+    second firmware's refusal, ``cifemu status``): one firmware start for them all."""
+    running = start_card(tmp_path_factory.mktemp("untouched"))
+    yield running
+    running.stop()
+
+
+def test_image_is_created_8k_with_mode_0660(untouched_card: Card) -> None:
+    st = untouched_card.path.stat()
     assert st.st_size == 8192
     assert stat.S_IMODE(st.st_mode) == 0o660
 
@@ -37,8 +47,8 @@ def test_image_is_0660_whatever_the_umask(tmp_path: Path) -> None:
         card.stop()
 
 
-def test_identification_areas(card: Card) -> None:
-    image = card.map()
+def test_identification_areas(untouched_card: Card) -> None:
+    image = untouched_card.map()
     assert image[0x1E60:0x1E80] == b"CANopen Master  V1.070 cifemu   "
     assert image[0x1F90:0x1F98] == b"PLC     " and image[0x1FA0:0x1FA8] == b"CAN     "
     assert image[0x1FF8:0x1FFE] == bytes([8, 0x32, 5]) + b"CIF"
@@ -47,15 +57,15 @@ def test_identification_areas(card: Card) -> None:
     assert image[0x1FFE] == 0x80  # READY; no configuration: no RUN, no COM
 
 
-def test_a_second_firmware_for_the_same_board_refuses(card: Card) -> None:
+def test_a_second_firmware_for_the_same_board_refuses(untouched_card: Card) -> None:
     second = subprocess.run(
         [sys.executable, "-m", "cifemu", "firmware", "--board", "0", "--dpm-dir",
-         str(card.directory)],
+         str(untouched_card.directory)],
         capture_output=True, text=True, timeout=30,
     )
     assert second.returncode == 1
     assert "board 0 refused" in second.stderr and "already serves this board" in second.stderr
-    assert card.proc.poll() is None and card.map()[0x1FFE] & 0x80
+    assert untouched_card.proc.poll() is None and untouched_card.map()[0x1FFE] & 0x80
 
 
 def test_another_board_in_the_same_directory_runs(card: Card) -> None:
@@ -118,16 +128,17 @@ def test_bus_parameter_download_starts_the_network(card: Card) -> None:
         assert image[0x1FFE] & 0xE0 == 0x80
 
 
-def test_status_command_shows_a_running_card(card: Card) -> None:
+def test_status_command_shows_a_running_card(untouched_card: Card) -> None:
     out = subprocess.run(
-        [sys.executable, "-m", "cifemu", "status", "--dpm-dir", str(card.directory)],
+        [sys.executable, "-m", "cifemu", "status", "--dpm-dir", str(untouched_card.directory)],
         capture_output=True, text=True, timeout=30, cwd=ROOT,
     )
     assert out.returncode == 0
     assert "READY" in out.stdout and "CANopen Master" in out.stdout
     assert "Task2State" in out.stdout and "OFFLINE" in out.stdout
     data = json.loads(subprocess.run(
-        [sys.executable, "-m", "cifemu", "status", "--json", "--dpm-dir", str(card.directory)],
+        [sys.executable, "-m", "cifemu", "status", "--json", "--dpm-dir",
+         str(untouched_card.directory)],
         capture_output=True, text=True, timeout=30, check=True,
     ).stdout)
     assert "READY" in data["host_flags"]
@@ -182,3 +193,32 @@ def test_demo_runs_the_bundled_network_until_ctrl_c(tmp_path: Path, extra: list[
     finally:
         demo.send_signal(signal.SIGINT)
         assert demo.wait(timeout=20) == 0, demo.stderr.read().decode() if demo.stderr else ""
+
+
+# --- start-up: what a card that no option asked for does not load (docs/testing.md) ---------
+
+COMPOSITION = ("cifemu.online_configure", "cifemu.commands.configure", "dbm_tools.builder",
+               "host_api", "firmware.sim")
+"""What only --configure (a host inside the card) and --simulate need."""
+
+
+def test_firmware_command_loads_no_composition_until_an_option_asks() -> None:
+    """The tests start some thousand firmwares: --configure's host (the DBM builder,
+    host_api's Board) was a fifth of each start's CPU although few ask for it."""
+    probe = ("import sys\nfrom cifemu.cli import main\n"
+             "try:\n    main(['firmware', '--help'])\nexcept SystemExit:\n    pass\n"
+             f"prefixes = {COMPOSITION!r}\n"
+             "print(sorted(m for m in sys.modules if m.startswith(prefixes) or m == 'numpy'))\n")
+    out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True,
+                         timeout=60, cwd=ROOT)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.splitlines()[-1] == "[]"
+
+
+def test_a_card_without_configuration_maps_no_numpy(card: Card) -> None:
+    """numpy costs a process 0.1 s of CPU to import; the card needs it only to compare
+    outputs (``OutputWatch``), so a card that was never configured has not loaded it: its
+    process maps none of numpy's libraries."""
+    maps = Path(f"/proc/{card.proc.pid}/maps").read_text()
+    assert "numpy" not in maps
+    assert card.map()[HOST_FLAGS] & READY  # and it serves

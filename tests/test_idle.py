@@ -8,7 +8,9 @@ post from another thread or a due timer, with a fallback poll that backs off to
 comes or power-off wakes it. So does the CAN master's thread, which used to
 wake every millisecond too: it wakes when the device loop saw the host change its
 outputs, and when a deadline of its own comes (supervision, inhibit times, time-outs).
-The figures here come from /proc: CPU time and voluntary context switches (each one a
+The CiA 309 gateway (``cifemu 309 serve``) sleeps too: its mailbox reader waits for the
+card's ring, and a host that never waits on its bell no longer silences the card's rings
+to the others. The figures here come from /proc: CPU time and voluntary context switches (each one a
 sleep that ended), which a loaded machine hardly changes, unlike wall time.
 """
 
@@ -17,9 +19,11 @@ from __future__ import annotations
 import mmap
 import statistics
 import subprocess
+import sys
 import time
 import uuid
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
@@ -30,12 +34,15 @@ from dpm.doorbell import (
     DEVICE_POLL_IDLE,
     DEVICE_POLL_QUIET,
     DEVICE_QUIET_AFTER,
+    HostBell,
 )
 from dpm.flags import DevFlag, HostFlag
 from dpm.layout import DEV_FLAGS, HOST_FLAGS
 from dpm.task2 import ComPlcParameter, PlcMode
 from host_api import driver as d
 from host_api.board import Board
+from host_api.cia309.events import MONITOR_PERIOD_QUIET
+from host_api.cia309.link import READER_POLL_QUIET
 from host_api.online import configure_online
 from tests.can_net import candump, start_sim
 from tests.conftest import Card, start_card, wait_until
@@ -80,37 +87,24 @@ SUPERVISION_SLACK_S = 0.25
 node leave Nd_state: the master's wake-up, the host's poll."""
 
 
-@pytest.fixture
-def card(tmp_path: Path) -> Iterator[Card]:
-    running = start_card(tmp_path)
+@pytest.fixture(scope="module")
+def card(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Card]:
+    """One card for the raw hosts' tests: each waits for the poll to back off itself, and
+    each toggles SPCCOM an even number of times, so the next finds the flags as they were."""
+    running = start_card(tmp_path_factory.mktemp("idle-card"))
     try:
         yield running
     finally:
         running.stop()
 
 
-def _main_thread(pid: int) -> tuple[int, int]:
-    """(ns on the CPU, voluntary context switches) of ``pid``'s main thread: the device loop."""
-    task = Path(f"/proc/{pid}/task/{pid}")
-    cpu_ns = int((task / "schedstat").read_text().split()[0])
-    switches = 0
-    for line in (task / "status").read_text().splitlines():
-        if line.startswith("voluntary_ctxt_switches:"):
-            switches = int(line.split()[1])
-    return cpu_ns, switches
-
-
-def test_an_idle_card_s_device_loop_sleeps(card: Card) -> None:
-    pid = card.proc.pid
-    # The start's flag changes age: the loop backs off to its quiet poll.
-    time.sleep(DEVICE_QUIET_AFTER + 2 * DEVICE_POLL_QUIET)
-    cpu_before, switches_before = _main_thread(pid)
-    start = time.monotonic()
-    time.sleep(WINDOW_S)  # the measurement window, not a wait on a condition
-    cpu_after, switches_after = _main_thread(pid)
-    wall = time.monotonic() - start
-    cpu_pct = 100.0 * (cpu_after - cpu_before) / 1e9 / wall
-    wakeups = (switches_after - switches_before) / wall
+def test_an_idle_card_s_device_loop_sleeps(idle_window: Callable[[str], IdleWindow]) -> None:
+    """The device loop is the card's main thread; its window is the one of the no-network
+    card of ``test_every_thread_of_an_idle_card_sleeps``."""
+    window = idle_window("none")
+    (cpu_before, switches_before), (cpu_after, switches_after) = window.main_thread()
+    cpu_pct = 100.0 * (cpu_after - cpu_before) / 1e9 / window.wall
+    wakeups = (switches_after - switches_before) / window.wall
     assert wakeups < MAX_WAKEUPS_PER_S, f"device loop woke {wakeups:.0f} times a second"
     assert cpu_pct < MAX_LOOP_CPU_PCT, f"device loop used {cpu_pct:.2f} % of a core"
 
@@ -165,6 +159,31 @@ def test_a_host_that_never_rings_is_served_after_a_long_pause(card: Card) -> Non
         image.close()
 
 
+RINGS = 400
+"""More of the device's rings than its send buffer held for a host that never takes them
+(about 280, when hosts' bells were connected to the device's)."""
+RING_WAIT_S = 5.0
+
+
+def test_a_host_that_never_waits_on_its_bell_does_not_silence_it(card: Card) -> None:
+    """One host has the board's bell and never waits on it (a tool that configured the card
+    and sits there); another host is still rung for every answer of the card, however many:
+    a host that waits for rings only (the CiA 309 gateway) must not fall back to its poll."""
+    idle, waiting = HostBell(card.path), HostBell(card.path)
+    image = card.map()
+    try:
+        idle.ring_device()  # the device knows it from now on
+        wait_until(lambda: image[HOST_FLAGS] & HostFlag.READY, what="READY")
+        for ring in range(RINGS):
+            image[DEV_FLAGS] ^= DevFlag.SPCCOM
+            waiting.ring_device()
+            assert waiting.wait(RING_WAIT_S), f"no ring for the card's answer {ring}"
+    finally:
+        image.close()
+        idle.close()
+        waiting.close()
+
+
 # --- the card's threads ------------------------------------------------------------------------
 
 
@@ -183,13 +202,24 @@ def _threads(pid: int) -> dict[int, tuple[int, int]]:
     return threads
 
 
-@pytest.mark.parametrize("bus", ["none", "shm"])
-def test_every_thread_of_an_idle_card_sleeps(tmp_path: Path, bus: str) -> None:
-    """No network (``virtual``) and on ``shm`` with no nodes: the whole card wakes a few times
-    a second, not every 50 ms (the device loop's poll, the ``shm`` reader) or 100 ms
-    (python-can's Notifier, which the card's power-off waited for)."""
+@dataclass
+class IdleWindow:
+    """Every thread of a card with nothing to do, over WINDOW_S, and how the card ended."""
+
+    pid: int
+    before: dict[int, tuple[int, int]]
+    after: dict[int, tuple[int, int]]
+    wall: float
+    returncode: int | None
+
+    def main_thread(self) -> tuple[tuple[int, int], tuple[int, int]]:
+        """(ns on the CPU, voluntary context switches) of the device loop, before and after."""
+        return self.before[self.pid], self.after[self.pid]
+
+
+def _measure_idle(directory: Path, bus: str) -> IdleWindow:
     extra = ("--interface", "shm", "--channel", f"test-{uuid.uuid4().hex}") if bus == "shm" else ()
-    running = start_card(tmp_path, 0, *extra)
+    running = start_card(directory, 0, *extra)
     try:
         time.sleep(DEVICE_QUIET_AFTER + 2 * DEVICE_POLL_QUIET)  # the loop's poll backs off
         before = _threads(running.proc.pid)
@@ -199,9 +229,69 @@ def test_every_thread_of_an_idle_card_sleeps(tmp_path: Path, bus: str) -> None:
         wall = time.monotonic() - start
     finally:
         running.stop()
-    wakeups = sum(after[t][1] - before.get(t, (0, 0))[1] for t in after) / wall
+    return IdleWindow(running.proc.pid, before, after, wall, running.proc.returncode)
+
+
+@pytest.fixture(scope="module")
+def idle_window(tmp_path_factory: pytest.TempPathFactory) -> Callable[[str], IdleWindow]:
+    """The idle window of a card on ``bus``, measured once for the tests that read it: the
+    device loop's test and the whole card's look at the same card (4.5 s of waiting each)."""
+    measured: dict[str, IdleWindow] = {}
+
+    def measure(bus: str) -> IdleWindow:
+        if bus not in measured:
+            measured[bus] = _measure_idle(tmp_path_factory.mktemp(f"idle-{bus}"), bus)
+        return measured[bus]
+
+    return measure
+
+
+@pytest.mark.parametrize("bus", ["none", "shm"])
+def test_every_thread_of_an_idle_card_sleeps(idle_window: Callable[[str], IdleWindow],
+                                             bus: str) -> None:
+    """No network (``virtual``) and on ``shm`` with no nodes: the whole card wakes a few times
+    a second, not every 50 ms (the device loop's poll, the ``shm`` reader) or 100 ms
+    (python-can's Notifier, which the card's power-off waited for)."""
+    window = idle_window(bus)
+    before, after = window.before, window.after
+    wakeups = sum(after[t][1] - before.get(t, (0, 0))[1] for t in after) / window.wall
     assert wakeups < MAX_IDLE_CARD_WAKEUPS_PER_S, f"the card woke {wakeups:.1f} times a second"
-    assert running.proc.returncode == 0
+    assert window.returncode == 0
+
+
+MAX_GATEWAY_WAKEUPS_PER_S = 30
+"""Every thread of ``cifemu 309 serve`` on a card nobody asks anything: the mailbox reader's
+and the Task2State monitor's fallback looks (4 a second each once backed off). It woke
+1,050-1,100 times a second when the reader waited in 20 ms DevGetMessage calls, which
+re-check the flags every millisecond, and the monitor looked every 10 ms."""
+MAX_GATEWAY_CPU_PCT = 1.0
+"""The idle gateway's CPU time: 2.5-4 % of a core with the 1 ms and 10 ms polls."""
+
+
+def test_an_idle_309_gateway_sleeps(card: Card) -> None:
+    """``cifemu 309 serve`` with no client: its threads sleep until the card rings, a client
+    connects or a fallback look is due, instead of polling every millisecond."""
+    serve = subprocess.Popen(
+        [sys.executable, "-m", "cifemu", "309", "serve", "--dpm-dir", str(card.directory),
+         "--port", "0"], stderr=subprocess.PIPE, text=True)
+    try:
+        assert serve.stderr is not None
+        line = serve.stderr.readline()  # the server's one line once it listens
+        assert "listening on" in line, line
+        # The gateway's start-up looks age: both fallback polls back off to their longest.
+        time.sleep(2 * (READER_POLL_QUIET + MONITOR_PERIOD_QUIET))
+        before = _threads(serve.pid)
+        start = time.monotonic()
+        time.sleep(WINDOW_S)  # the measurement window, not a wait on a condition
+        after = _threads(serve.pid)
+        wall = time.monotonic() - start
+    finally:
+        serve.terminate()
+        serve.wait(timeout=10)
+    wakeups = sum(after[t][1] - before.get(t, (0, 0))[1] for t in after) / wall
+    cpu_pct = 100.0 * sum(after[t][0] - before.get(t, (0, 0))[0] for t in after) / 1e9 / wall
+    assert wakeups < MAX_GATEWAY_WAKEUPS_PER_S, f"the gateway woke {wakeups:.0f} times a second"
+    assert cpu_pct < MAX_GATEWAY_CPU_PCT, f"the gateway used {cpu_pct:.2f} % of a core"
 
 
 class ShmNetwork:

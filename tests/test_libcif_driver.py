@@ -44,6 +44,27 @@ def board(card: Card, d: Any) -> int:
     return 0
 
 
+@pytest.fixture(scope="module")
+def shared_card(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Card]:
+    """One card for the tests that leave it as they found it: no start, no reset, no
+    network, no counter they read (a firmware start per test was most of their time)."""
+    running = start_card(tmp_path_factory.mktemp("shared-card"))
+    yield running
+    running.stop()
+
+
+@pytest.fixture
+def shared_board(shared_card: Card, d: Any) -> Iterator[int]:
+    """Board 0 of ``shared_card``; an answer a failed test left unread is taken, so that the
+    next test finds an empty mailbox."""
+    assert shared_card.proc.poll() is None, "the shared card died in an earlier test"
+    assert d.DevOpenDriver(shared_card.directory) == 0
+    assert d.DevInitBoard(0) == 0
+    yield 0
+    while d.DevGetMessage(0, 288, 0)[0] == 0:
+        pass
+
+
 def shm(nr: int, header: bytes, payload: bytes = b"") -> Message:
     return Message(rx=2, tx=16, b=17, nr=nr, data=header + payload)
 
@@ -108,7 +129,7 @@ def test_open_driver_needs_the_image_directory(tmp_path: Path, d: Any) -> None:
     assert d.DevOpenDriver(tmp_path / "missing") == Drv.DRV_USR_OPEN_ERROR
 
 
-def test_board_info_lists_the_running_board(board: int, d: Any) -> None:
+def test_board_info_lists_the_running_board(shared_board: int, d: Any) -> None:
     rc, raw = d.DevGetBoardInfo()
     assert rc == 0 and len(raw) == 16 + 4 * 10 + 2
     assert raw[:6] == b"cifemu"
@@ -173,38 +194,39 @@ def test_stopped_firmware_leaves_a_board_that_is_not_ready(card: Card, board: in
 # --- mailboxes -----------------------------------------------------------------------------
 
 
-def test_put_message_rejects_a_malformed_message(board: int, d: Any) -> None:
+def test_put_message_rejects_a_malformed_message(shared_board: int, d: Any) -> None:
     """msg.ln 9 with no data bytes behind it: a Python caller's bytes can say so (C passes a
     MSG_STRUC whose bytes are always there)."""
     if d is not PYTHON_DRIVER:
         pytest.skip("a C caller's MSG_STRUC always holds its ln bytes")
-    assert d.DevPutMessage(board, bytes([2, 16, 9, 0, 0, 0, 17, 0]), 0) == Drv.DRV_USR_SIZE_INVALID
+    assert (d.DevPutMessage(shared_board, bytes([2, 16, 9, 0, 0, 0, 17, 0]), 0)
+            == Drv.DRV_USR_SIZE_INVALID)
 
 
-def test_put_and_get_message_round_trip(board: int, d: Any) -> None:
-    answer = transact(d, board, shm(7, SHM_READ_RECEIVE))
+def test_put_and_get_message_round_trip(shared_board: int, d: Any) -> None:
+    answer = transact(d, shared_board, shm(7, SHM_READ_RECEIVE))
     assert (answer.rx, answer.tx, answer.a, answer.b, answer.nr, answer.f) == (16, 2, 17, 0, 7, 0)
     assert answer.data == SHM_READ_RECEIVE + bytes(4)
-    assert d.DevGetMBXState(board) == (0, d.DEVICE_MBX_EMPTY, d.HOST_MBX_EMPTY)
+    assert d.DevGetMBXState(shared_board) == (0, d.DEVICE_MBX_EMPTY, d.HOST_MBX_EMPTY)
 
 
-def test_get_message_without_a_message(board: int, d: Any) -> None:
-    assert d.DevGetMessage(board, 288, 0) == (Drv.DRV_DEV_GET_NO_MESSAGE, None)
+def test_get_message_without_a_message(shared_board: int, d: Any) -> None:
+    assert d.DevGetMessage(shared_board, 288, 0) == (Drv.DRV_DEV_GET_NO_MESSAGE, None)
     started = time.monotonic()
-    assert d.DevGetMessage(board, 288, 50) == (Drv.DRV_DEV_GET_TIMEOUT, None)
+    assert d.DevGetMessage(shared_board, 288, 50) == (Drv.DRV_DEV_GET_TIMEOUT, None)
     assert time.monotonic() - started >= 0.045
 
 
 @pytest.mark.parametrize("size", [0, 289, 65535])
-def test_get_message_size_must_fit_a_mailbox(board: int, d: Any, size: int) -> None:
-    assert d.DevGetMessage(board, size, 0)[0] == Drv.DRV_USR_SIZE_INVALID
+def test_get_message_size_must_fit_a_mailbox(shared_board: int, d: Any, size: int) -> None:
+    assert d.DevGetMessage(shared_board, size, 0)[0] == Drv.DRV_USR_SIZE_INVALID
 
 
-def test_a_message_longer_than_the_buffer_stays_in_the_mailbox(board: int, d: Any) -> None:
-    assert d.DevPutMessage(board, shm(1, SHM_READ_RECEIVE), 1000) == 0
-    wait_until(lambda: d.DevGetMBXState(board)[2] == d.HOST_MBX_FULL, what="answer")
-    assert d.DevGetMessage(board, 12, 0) == (Drv.DRV_USR_MSG_BUF_TOO_SHORT, None)
-    rc, answer = d.DevGetMessage(board, 20, 0)
+def test_a_message_longer_than_the_buffer_stays_in_the_mailbox(shared_board: int, d: Any) -> None:
+    assert d.DevPutMessage(shared_board, shm(1, SHM_READ_RECEIVE), 1000) == 0
+    wait_until(lambda: d.DevGetMBXState(shared_board)[2] == d.HOST_MBX_FULL, what="answer")
+    assert d.DevGetMessage(shared_board, 12, 0) == (Drv.DRV_USR_MSG_BUF_TOO_SHORT, None)
+    rc, answer = d.DevGetMessage(shared_board, 20, 0)
     assert rc == 0 and answer is not None and answer.nr == 1
 
 
@@ -269,10 +291,10 @@ def test_a_waiting_call_is_woken_by_the_doorbell(card: Card, board: int, d: Any)
     assert irq_count >= 1
 
 
-def test_unknown_task_and_unknown_command_are_answered(board: int, d: Any) -> None:
-    assert transact(d, board, Message(rx=9, tx=16, b=1, nr=3)).f == 153
-    assert transact(d, board, Message(rx=2, tx=16, b=99, nr=4)).f == 152
-    assert transact(d, board, Message(rx=0, tx=16, b=99, nr=5)).f == 152
+def test_unknown_task_and_unknown_command_are_answered(shared_board: int, d: Any) -> None:
+    assert transact(d, shared_board, Message(rx=9, tx=16, b=1, nr=3)).f == 153
+    assert transact(d, shared_board, Message(rx=2, tx=16, b=99, nr=4)).f == 152
+    assert transact(d, shared_board, Message(rx=0, tx=16, b=99, nr=5)).f == 152
 
 
 def test_nak_suppresses_only_successful_answers(board: int, d: Any) -> None:
@@ -283,14 +305,14 @@ def test_nak_suppresses_only_successful_answers(board: int, d: Any) -> None:
     assert d.DevGetMessage(board, 288, 0)[0] == Drv.DRV_DEV_GET_NO_MESSAGE
 
 
-def test_unread_answers_push_back_on_the_host(board: int, d: Any) -> None:
+def test_unread_answers_push_back_on_the_host(shared_board: int, d: Any) -> None:
     """A host that never reads answers sees a full mailbox, not lost answers."""
     sent = 0
-    while d.DevPutMessage(board, shm(sent & 0xFF, SHM_READ_RECEIVE), 200) == 0:
+    while d.DevPutMessage(shared_board, shm(sent & 0xFF, SHM_READ_RECEIVE), 200) == 0:
         sent += 1
         assert sent < 200
     received = 0
-    while d.DevGetMessage(board, 288, 200)[0] == 0:
+    while d.DevGetMessage(shared_board, 288, 200)[0] == 0:
         received += 1
     assert received == sent
 
@@ -437,10 +459,10 @@ def test_watchdog_is_answered_and_expires(card: Card, board: int, d: Any) -> Non
     assert d.DevTriggerWatchDog(board, 7)[0] == Drv.DRV_USR_MODE_INVALID
 
 
-def test_special_control_is_mirrored(board: int, d: Any) -> None:
-    assert d.DevSpecialControl(board, 1) == (0, 1)
-    assert d.DevSpecialControl(board, 0) == (0, 0)
-    assert d.DevSpecialControl(board, 3)[0] == Drv.DRV_USR_MODE_INVALID
+def test_special_control_is_mirrored(shared_board: int, d: Any) -> None:
+    assert d.DevSpecialControl(shared_board, 1) == (0, 1)
+    assert d.DevSpecialControl(shared_board, 0) == (0, 0)
+    assert d.DevSpecialControl(shared_board, 3)[0] == Drv.DRV_USR_MODE_INVALID
 
 
 # --- information and parameters ------------------------------------------------------------------
@@ -449,11 +471,11 @@ def test_special_control_is_mirrored(board: int, d: Any) -> None:
 @pytest.mark.parametrize(
     ("area", "size"), [(1, 33), (2, 32), (3, 32), (4, 112), (5, 8), (6, 6), (7, 6), (8, 3584)]
 )
-def test_get_info_areas(board: int, d: Any, area: int, size: int) -> None:
-    rc, data = d.DevGetInfo(board, area, size)
+def test_get_info_areas(shared_board: int, d: Any, area: int, size: int) -> None:
+    rc, data = d.DevGetInfo(shared_board, area, size)
     assert rc == 0 and len(data) == size
-    assert d.DevGetInfo(board, area, size + 1)[0] == Drv.DRV_USR_SIZE_TOO_LONG
-    assert d.DevGetInfo(board, area, 0)[0] == Drv.DRV_USR_SIZE_ZERO
+    assert d.DevGetInfo(shared_board, area, size + 1)[0] == Drv.DRV_USR_SIZE_TOO_LONG
+    assert d.DevGetInfo(shared_board, area, 0)[0] == Drv.DRV_USR_SIZE_ZERO
 
 
 def test_get_info_contents(board: int, d: Any) -> None:

@@ -3,9 +3,9 @@
 Each test starts ``cifemu firmware --simulate NETWORK.toml``; the master on the host reaches
 the slaves only through the card's layer-2 access (COM_CfgRx_Layer2, COM_Tx_CAN_Layer2 and
 the COM_Rx_CAN_Layer2 indications). The unconfigured slaves' LSS addresses have few 1-bits,
-because each 1-bit costs fastscan one unanswered step. The master waits 0.3 s for an answer
-(not its default 0.5 s): most tests expect a time-out somewhere, and 0.3 s is still a wide
-margin over the stalls a loaded machine causes.
+because each 1-bit costs fastscan one unanswered step. The master waits TIMEOUT_S for an
+answer it expects, and SILENCE_S where no slave may answer (``expect_silence``): most tests
+check such a silence somewhere, and waited 1 s for each.
 """
 
 from __future__ import annotations
@@ -15,6 +15,7 @@ import struct
 import threading
 import time
 from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from functools import partial
 from pathlib import Path
 
@@ -40,6 +41,11 @@ TIMEOUT_S = 1.0
 """How long a confirmed LSS service waits for its answer. It ends every expected answer on
 that answer and costs its full length only in the tests of silence; 0.3 s lost a slave's
 answer with two busy processes beside the suite."""
+SILENCE_S = 0.3
+"""How long a service that no slave may answer listens for an answer. A right slave never
+answers, so the length costs only time: a wrong answer comes within milliseconds, and only
+one a loaded machine delays past 0.3 s (answers came later than that with two busy processes
+beside the suite) would go unseen in that run."""
 
 
 class Rig:
@@ -98,6 +104,16 @@ def make_rig(tmp_path: Path) -> Iterator[Callable[..., Rig]]:
         rig.card.stop()
 
 
+@contextmanager
+def expect_silence(lss: LssMaster) -> Iterator[None]:
+    """The services inside get no answer from any slave: the master listens SILENCE_S."""
+    lss.timeout = SILENCE_S
+    try:
+        yield
+    finally:
+        lss.timeout = TIMEOUT_S
+
+
 def lss_error(call: Callable[[], object]) -> LssError:
     with pytest.raises(LssError) as caught:
         call()
@@ -124,16 +140,19 @@ def test_selected_slave_inquiry_and_configure_errors(make_rig: Callable[..., Rig
     lss.store_configuration()
     assert lss.inquire_node_id() == UNCONFIGURED  # pending until the slave starts up
     lss.switch_state_global(WAITING)
-    error = lss_error(lss.inquire_node_id)  # nobody in configuration state any more
-    assert (error.code, error.lss_error) == (LssErrorCode.TIME_OUT, None)
-    assert lss_error(lss.store_configuration).code == LssErrorCode.TIME_OUT
+    with expect_silence(lss):
+        error = lss_error(lss.inquire_node_id)  # nobody in configuration state any more
+        assert (error.code, error.lss_error) == (LssErrorCode.TIME_OUT, None)
+        assert lss_error(lss.store_configuration).code == LssErrorCode.TIME_OUT
 
 
 def test_wrong_address_selects_nobody(make_rig: Callable[..., Rig]) -> None:
     lss = make_rig().lss
     wrong = SLAVES[0]._replace(serial=99)
-    assert lss_error(partial(lss.switch_state_selective, *wrong)).code == LssErrorCode.TIME_OUT
-    assert lss_error(lss.inquire_address).code == LssErrorCode.TIME_OUT
+    with expect_silence(lss):
+        assert (lss_error(partial(lss.switch_state_selective, *wrong)).code
+                == LssErrorCode.TIME_OUT)
+        assert lss_error(lss.inquire_address).code == LssErrorCode.TIME_OUT
 
 
 def test_switch_global_configures_every_slave(make_rig: Callable[..., Rig]) -> None:
@@ -167,12 +186,14 @@ def test_identify_remote_and_non_configured(make_rig: Callable[..., Rig]) -> Non
     lss = make_rig().lss
     assert lss.identify_remote_slave(0x1234, 2, 3, 3, 0, 1)  # revision 3, serial 1
     assert lss.identify_remote_slave(0x1234, 2, 4, 0xFFFF_FFFF, 4, 4)  # the revision-5 one
-    assert not lss.identify_remote_slave(0x1234, 2, 6, 9, 0, 0xFFFF_FFFF)
-    assert not lss.identify_remote_slave(0x1235, 2, 0, 9, 0, 9)
+    with expect_silence(lss):
+        assert not lss.identify_remote_slave(0x1234, 2, 6, 9, 0, 0xFFFF_FFFF)
+        assert not lss.identify_remote_slave(0x1235, 2, 0, 9, 0, 9)
     assert lss.identify_remote_slave(NODE_5.vendor, NODE_5.product, 0, 0xFFFF_FFFF, 5, 5)
     assert lss.identify_non_configured_slave()
     lss.complete_node_id_configuration(start_id=10)
-    assert not lss.identify_non_configured_slave()
+    with expect_silence(lss):
+        assert not lss.identify_non_configured_slave()
 
 
 def test_bit_timing_switch_delay_silences_the_slave(make_rig: Callable[..., Rig]) -> None:
@@ -181,7 +202,8 @@ def test_bit_timing_switch_delay_silences_the_slave(make_rig: Callable[..., Rig]
     lss.configure_bit_timing(0, 2)  # 500 kbit/s
     start = time.monotonic()
     lss.activate_bit_timing(300)
-    assert lss_error(lss.inquire_node_id).code == LssErrorCode.TIME_OUT
+    with expect_silence(lss):
+        assert lss_error(lss.inquire_node_id).code == LssErrorCode.TIME_OUT
 
     def answers() -> bool:
         try:
@@ -222,8 +244,9 @@ def test_fastscan_finds_the_unconfigured_slaves_lowest_first(
 
 def test_fastscan_without_unconfigured_slaves(make_rig: Callable[..., Rig]) -> None:
     lss = make_rig("[[node]]\nid = 5\n").lss
-    assert lss.fastscan() is None
-    assert not lss.identify_non_configured_slave()
+    with expect_silence(lss):  # not even fastscan's reset step is answered
+        assert lss.fastscan() is None
+        assert not lss.identify_non_configured_slave()
 
 
 def test_assign_node_id_to_lss_address(make_rig: Callable[..., Rig]) -> None:
@@ -231,7 +254,8 @@ def test_assign_node_id_to_lss_address(make_rig: Callable[..., Rig]) -> None:
     rig.listen(0x70C)
     rig.lss.assign_node_id(SLAVES[2], 12)
     assert rig.frames_on(0x70C) == b"\x00"  # stored, and started up under node-ID 12
-    error = lss_error(partial(rig.lss.assign_node_id, SLAVES[2]._replace(serial=7), 13))
+    with expect_silence(rig.lss):  # nobody has the address: its selection is not answered
+        error = lss_error(partial(rig.lss.assign_node_id, SLAVES[2]._replace(serial=7), 13))
     assert error.code == LssErrorCode.TIME_OUT
 
 

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import os
+import select
 import shlex
 import shutil
 import signal
@@ -139,7 +140,8 @@ def test_every_command_the_demo_prints_works_in_a_second_terminal(tmp_path: Path
                                                                        "monitor"], hints
         second = tmp_path / "second"
         second.mkdir()
-        limits = {"top": " --once", "status": "", "monitor": " --duration 0.5"}
+        # each stops by itself: top after one sample of the bus (0.5 s, not its 1.5)
+        limits = {"top": " --once --sample 0.5", "status": "", "monitor": " --duration 0.5"}
         for hint in hints:
             sub = hint.split(" --")[0].rsplit(" ", 1)[1]
             pasted = subprocess.run(["bash", "-c", hint + limits[sub]], cwd=second, env=env,
@@ -321,16 +323,26 @@ def test_the_readmes_card_line_and_app_c_exchange_process_data(tmp_path: Path) -
 
 def test_monitor_says_it_waits_for_a_sync_that_does_not_come(tmp_path: Path) -> None:
     """`monitor --type sync --count 3` on a card that sends no SYNC waited for ever in
-    silence; after two quiet seconds it says what it waits for, and why none may come."""
+    silence; after two quiet seconds it says what it waits for, and why none may come.
+    Once it has said so, Ctrl-C ends it: its own --duration would only add a wait."""
     network = tmp_path / "net.toml"
     network.write_text(NO_SYNC)
     card = start_card(tmp_path, 0, "--simulate", str(network), "--configure")
     try:
-        done = cifemu("monitor", "--dpm-dir", str(tmp_path), "--type", "sync", "--count", "3",
-                      "--duration", "4")
+        monitor = subprocess.Popen([sys.executable, "-m", "cifemu", "monitor", "--dpm-dir",
+                                    str(tmp_path), "--type", "sync", "--count", "3",
+                                    "--duration", "60"], stdout=subprocess.PIPE,
+                                   stderr=subprocess.PIPE, text=True)
+        try:
+            assert monitor.stderr is not None
+            said, _, _ = select.select([monitor.stderr], [], [], 30)
+            first = monitor.stderr.readline() if said else ""
+        finally:
+            monitor.send_signal(signal.SIGINT)
+            out, rest = monitor.communicate(timeout=60)
     finally:
         card.stop()
-    assert done.returncode == 0 and done.stdout == "", done.stderr
-    assert done.stderr.startswith("cifemu monitor: no sync frame in 2 s, still waiting"), \
-        done.stderr
-    assert "synchronous PDO" in done.stderr and done.stderr.count("\n") == 1
+    err = first + rest
+    assert monitor.returncode == 0 and out == "", err
+    assert err.startswith("cifemu monitor: no sync frame in 2 s, still waiting"), err
+    assert "synchronous PDO" in err and err.count("\n") == 1

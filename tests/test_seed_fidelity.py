@@ -10,6 +10,7 @@ import contextlib
 import os
 import struct
 import threading
+import time
 from collections.abc import Callable
 from pathlib import Path
 
@@ -90,6 +91,33 @@ def test_start_seq_time_out_expires_without_a_message(make_net: Callable[..., Ne
     assert net.send(69, b"\0").f == 48
     assert not net.diag().configured()
     assert net.send(69, b"\0").f == 57  # the sequence is gone
+
+
+# --- COM_Start_Seq (seed 5.2.3) ----------------------------------------------------------
+
+
+def test_an_expired_start_seq_blocks_no_other_download(make_net: Callable[..., Net]) -> None:
+    """Seed 5.2.3: Start_Seq's time-out ends the sequence. A single COM_Download for another
+    node after it is that node's download (f 0, configured), not a sequence error (57)."""
+    net = make_net("")
+    assert net.send(67, bytes([0, 4]) + struct.pack("<H", 20)).f == 0
+    started = time.monotonic()
+    wait_until(lambda: time.monotonic() - started > 0.1, what="the sequence time-out")
+    assert net.send(68, bytes([0, 5, 0, 0]) + node_set(5)).f == 0
+    assert net.diag().configured() == [5]
+
+
+@pytest.mark.parametrize(("request_data", "f"), [
+    (bytes([0, 0, 0, 0]), 52),  # Area_Code 0
+    (bytes([0, 127, 0, 0]), 52),  # the bus parameters have no sequence
+    (bytes([0]), 55),  # too short to read
+])
+def test_start_seq_error_answers_keep_the_table_layout(make_net: Callable[..., Net],
+                                                       request_data: bytes, f: int) -> None:
+    """Seed 5.2.3's answer table: msg.ln 1, d[0] 240 (Max_Len_Data_Unit); only f varies."""
+    net = make_net("")
+    answer = net.send(67, request_data)
+    assert (answer.f, answer.ln, answer.data) == (f, 1, bytes([240]))
 
 
 def test_global_start_waits_for_a_late_node_without_faults(make_net: Callable[..., Net],

@@ -764,3 +764,25 @@ def test_send_periodic_stays_a_thread_without_timer_process(channel: str,
         assert len(recv_n(receiver, 3)) == 3
     finally:
         task.stop()
+
+
+def test_shutdown_ends_an_unused_spare_timer_at_once(channel: str) -> None:
+    """A card's stop must not wait for the spare timer process's interpreter start: it had
+    no job, so it is killed, not asked to end by its input's end. The spare is held stopped
+    (SIGSTOP), as one still importing under load: the old wait for it (``_reap``'s 2 s,
+    then a kill) is the time asserted against; any wait for it at all would last that."""
+    before = child_pids(os.getpid())
+    bus = can.Bus(interface="shm", channel=channel, timer_process=True)
+    spares = child_pids(os.getpid()) - before
+    assert len(spares) == 1, spares
+    spare = spares.pop()
+    os.kill(spare, signal.SIGSTOP)
+    try:
+        started = time.monotonic()
+        bus.shutdown()
+        took = time.monotonic() - started
+    finally:
+        with contextlib.suppress(ProcessLookupError):
+            os.kill(spare, signal.SIGKILL)
+    assert not alive(spare)
+    assert took < 2.0, f"the shutdown waited {took:.1f} s for a spare that had no job"

@@ -150,7 +150,12 @@ def test_live_view_keys_act_on_the_selected_node(tmp_path: Path) -> None:
 
 def test_a_view_started_after_an_emcy_still_shows_it_and_a_trace_does_not(
         tmp_path: Path) -> None:
-    card = start_card(tmp_path, 0, "--simulate", str(DEMO), "--configure")
+    """The demo's network with node 4's burst 1 s after it is started, not 5: the tap below
+    subscribes as soon as the card is READY, before the card has started any node."""
+    network = tmp_path / "demo.toml"
+    network.write_text(DEMO.read_text().replace("after_s = 5.0", "after_s = 1.0"))
+    assert network.read_text() != DEMO.read_text()
+    card = start_card(tmp_path, 0, "--simulate", str(network), "--configure")
     tap = TapSubscriber(card.path)
     try:
         emcys = emcy_counter(tap, 4)

@@ -139,9 +139,11 @@ def cards_at_once(count: int, seconds: float) -> dict[str, Any]:
     }
 
 
-def several_cards(counts: tuple[int, ...], quick: bool = False) -> dict[str, Any]:
-    """The section's document: one entry per card count."""
-    seconds = QUICK_SECONDS if quick else SECONDS
+def several_cards(counts: tuple[int, ...], quick: bool = False,
+                  seconds: float | None = None) -> dict[str, Any]:
+    """The section's document: one entry per card count; ``seconds`` overrides the hosts'
+    window (``SECONDS``, ``QUICK_SECONDS``)."""
+    seconds = seconds or (QUICK_SECONDS if quick else SECONDS)
     return {
         "description": f"boards 0..K-1 in one image directory, each a firmware process with "
                        f"{NODES_PER_CARD} generic nodes in its own cifemu sim on its own shm "

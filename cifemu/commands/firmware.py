@@ -1,5 +1,10 @@
 """cifemu firmware: run one emulated card in the foreground."""
 
+# What only an option needs is imported when that option is given (docs/testing.md,
+# *Start-up*): the --configure host (the DBM builder, host_api's Board), the --simulate
+# nodes and the --record recorder. The tests start a firmware some thousand times, many
+# of them with none of these options.
+
 from __future__ import annotations
 
 import argparse
@@ -8,10 +13,10 @@ import signal
 import sys
 from pathlib import Path
 from types import FrameType
+from typing import TYPE_CHECKING
 
 import can
 
-from cifemu.online_configure import OnlineConfiguration
 from dbm_tools.bus_options import BusOptionError, add_bus_arguments, select_bus, with_options
 from dbm_tools.network import Network, NetworkError, load_network
 from dpm.faults import DIE_EXIT_STATUS
@@ -28,8 +33,9 @@ from firmware.can.bus import INTERFACE_ERRORS, BusConfig
 from firmware.device import Device
 from firmware.flash import FLASH_ENV
 from firmware.interpreter import SWITCH_INTERVAL
-from firmware.recorder import Recorder
-from firmware.sim import SimulatedNetwork
+
+if TYPE_CHECKING:
+    from firmware.sim import SimulatedNetwork
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -119,13 +125,17 @@ def _serve(args: argparse.Namespace, network: Network | None, configure_path: Pa
            bus: BusConfig) -> int:
     recorder = None
     if args.record is not None:  # before the card, as the bus: a refusal leaves no image
+        from firmware.recorder import Recorder
+
         try:
             recorder = Recorder.create(args.record, args.board, bus.channel)
         except (UnsafePathError, OSError) as exc:  # SessionExistsError is an OSError
             print(f"cifemu firmware: --record {args.record}: {exc}", file=sys.stderr)
             return 1
-    simulation = None
+    simulation: SimulatedNetwork | None = None
     if network is not None:  # before the card: a bus that cannot open leaves no image
+        from firmware.sim import SimulatedNetwork
+
         try:
             sim_bus = can.Bus(interface=bus.interface, channel=bus.channel, **bus.options)
         except INTERFACE_ERRORS as exc:
@@ -159,6 +169,8 @@ def _serve(args: argparse.Namespace, network: Network | None, configure_path: Pa
     logging.getLogger("firmware").info("board %d serving %s", args.board, device.path)
     configuring = None
     if configure_path is not None:
+        from cifemu.online_configure import OnlineConfiguration
+
         configuring = OnlineConfiguration(device, configure_path)
         configuring.start()
     try:

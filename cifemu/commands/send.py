@@ -43,7 +43,7 @@ class FrameSyntaxError(ValueError):
 
 def parse_frame(text: str) -> CanFrame:
     """A frame in cansend's syntax, e.g. ``123#DEADBEEF``, ``1F334455#11.22``, ``123#R2``."""
-    from dpm.com import CanFrame  # after parsing: dpm.com needs numpy, --help does not
+    from dpm.com import CanFrame  # after parsing: --help needs no codec
 
     match = FRAME.match(text)
     if match is None or (match["data"] or "").endswith("."):

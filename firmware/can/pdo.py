@@ -15,11 +15,10 @@ import threading
 import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
-from typing import Protocol
+from types import ModuleType
+from typing import TYPE_CHECKING, Protocol
 
 import can
-import numpy as np
-import numpy.typing as npt
 
 from dbm_tools.parameters import MSK_WORD_PDO, NodeParameterSet, PdoData
 from dpm.cia301 import ASYNC_RTR, SYNC_RTR
@@ -27,6 +26,40 @@ from dpm.errors import NodeEvent
 from dpm.layout import IO_AREA_SIZE
 from firmware.can.bus import CanBus
 from firmware.process_image import ProcessImage
+
+if TYPE_CHECKING:
+    import numpy as np
+    import numpy.typing as npt
+
+class _Numpy:
+    """numpy for ``OutputWatch``, imported beside the card's work when the first node is
+    configured (``import_ahead``), not with this module: a card that is never configured
+    does not pay its 0.1 s of CPU (docs/testing.md, *Start-up*). Not on first use either:
+    that is the device loop's turn, which an import under load held past a host's
+    2 s DevExchangeIO. Until it is in, ``OutputWatch`` compares node by node, as it does
+    when two nodes share output bytes."""
+
+    module: ModuleType | None = None
+    _started = False
+    _lock = threading.Lock()
+
+    @classmethod
+    def import_ahead(cls) -> None:
+        with cls._lock:
+            if cls._started:
+                return
+            cls._started = True
+        threading.Thread(target=cls._load, name="numpy-import", daemon=True).start()
+
+    @classmethod
+    def _load(cls) -> None:
+        import numpy
+
+        cls.module = numpy  # only once whole: a half-imported module is in sys.modules
+
+
+import_numpy_ahead = _Numpy.import_ahead
+
 
 RTR_PERIOD = 0.1
 """[ours] seconds between remote requests of an RTR-only (253) input PDO without SYNC, the
@@ -326,22 +359,25 @@ class OutputWatch:
         """The nodes whose output PDOs read differently in ``outputs`` than in ``before``.
 
         One vectorised comparison of the whole area instead of every node's
-        slices: at full bus load this runs thousands of times a second.
+        slices: at full bus load this runs thousands of times a second (once numpy is
+        in, ``_Numpy``).
         """
-        owners = self._owner_map(nodes)
-        if owners is None or len(before) != len(outputs):
+        numpy = _Numpy.module
+        owners = None if numpy is None else self._owner_map(numpy, nodes)
+        if numpy is None or owners is None or len(before) != len(outputs):
             return {h for h in nodes.values() if h.pdos.outputs_changed(outputs, before)}
-        diff = np.frombuffer(outputs, np.uint8) != np.frombuffer(before, np.uint8)
-        return {nodes[a] for a in np.unique(owners[diff]).tolist() if a in nodes}
+        diff = numpy.frombuffer(outputs, numpy.uint8) != numpy.frombuffer(before, numpy.uint8)
+        return {nodes[a] for a in numpy.unique(owners[diff]).tolist() if a in nodes}
 
-    def _owner_map(self, nodes: Mapping[int, OutputSender]) -> npt.NDArray[np.uint8] | None:
+    def _owner_map(self, numpy: ModuleType,
+                   nodes: Mapping[int, OutputSender]) -> npt.NDArray[np.uint8] | None:
         """Output byte -> node address; None when two nodes share output bytes."""
         if self._owners is None:
-            owners = np.zeros(IO_AREA_SIZE, np.uint8)
+            owners = numpy.zeros(IO_AREA_SIZE, numpy.uint8)
             for address, handler in list(nodes.items()):
                 for entry in handler.pdos.outputs:
                     span = owners[entry.offset:entry.offset + entry.pdo.data_length]
-                    if np.any((span != 0) & (span != address)):
+                    if numpy.any((span != 0) & (span != address)):
                         return None
                     span[:] = address
             self._owners = owners

@@ -3,9 +3,11 @@ Task2State monitor that makes most of them.
 
 * Subscribers are called from one dispatcher thread (:class:`EventDispatcher`), never from
   the mailbox reader, so a callback may itself call gateway services.
-* A :class:`Monitor` per board polls Task2State every 10 ms: Nd_state and Nd_diag changes,
-  CAN_state and the error counters become error control and emergency events
-  (COM_Node_Diag is read when a node's Nd_diag bit sets).
+* A :class:`Monitor` per board reads Task2State when the card's flags say it changed and,
+  as a fallback, every ``MONITOR_PERIOD`` while it changes, backing off to
+  ``MONITOR_PERIOD_QUIET``: Nd_state and Nd_diag changes, CAN_state and the error counters
+  become error control and emergency events (COM_Node_Diag is read when a node's Nd_diag
+  bit sets).
 """
 
 from __future__ import annotations
@@ -45,6 +47,13 @@ from host_api.cia309.model import (
 log = logging.getLogger(__name__)
 
 MONITOR_PERIOD = 0.01
+"""Seconds between two looks at Task2State while it changes."""
+MONITOR_PERIOD_QUIET = 0.25
+"""[ours] The longest time between two looks once Task2State stopped changing (each quiet
+look doubles the period): how late the gateway may see a change the card makes without
+toggling STATECOM (the state channel stays pending while no host acknowledges it, and the
+gateway leaves that to a host exchanging I/O). It looked every 10 ms before, 100 wake-ups
+a second of a gateway with nothing to do (issue 22)."""
 EMCY_HISTORY = 64
 """EMCYs the gateway keeps per node for ``read_device_error``."""
 
@@ -149,7 +158,8 @@ class EventDispatcher:
 
 
 class Monitor:
-    """Task2State of one board, read every MONITOR_PERIOD, as events.
+    """Task2State of one board, read when the card's flags changed and every
+    ``MONITOR_PERIOD`` to ``MONITOR_PERIOD_QUIET``, as events.
 
     It also keeps what the events need beyond one look: the NMT state the gateway's own
     command put a node in, the nodes it reset, the EMCY history ``read_device_error``
@@ -169,15 +179,20 @@ class Monitor:
         boots again within one monitor turn never shows a gap in Nd_state."""
         self._reported: dict[int, int] = {}
         self._last_state: ComDiagnostics | None = None
+        self._last_raw = b""
         self._can_state: int | None = None
         self._state_lock = threading.Lock()
         self._closing = threading.Event()
+        self._look = threading.Event()
+        """Set by the link's reader when the card's STATECOM, COM, RUN or READY changed."""
+        link.on_state_flags = self._look.set
         self._thread = threading.Thread(target=self._monitor_loop, daemon=True,
                                         name=f"cia309-monitor-{link.number}")
         self._thread.start()
 
     def close(self) -> None:
         self._closing.set()
+        self._look.set()
         if self._thread is not threading.current_thread():
             self._thread.join(timeout=2)
 
@@ -196,19 +211,30 @@ class Monitor:
                                      error=ErrorCode.CAN_INIT))
 
     def _monitor_loop(self) -> None:
-        while not self._closing.wait(MONITOR_PERIOD):
+        period = MONITOR_PERIOD
+        while True:
+            told = self._look.wait(period)
+            if self._closing.is_set():
+                return
+            self._look.clear()
+            changed = True
             try:
-                self._monitor_once()
+                changed = self._monitor_once()
             except Cia309Error as exc:
                 log.debug("board %d: monitor: %s", self.number, exc)
             except Exception:
                 log.exception("board %d: monitor failed", self.number)
+            quiet = not changed and not told
+            period = min(period * 2, MONITOR_PERIOD_QUIET) if quiet else MONITOR_PERIOD
 
-    def _monitor_once(self) -> None:
+    def _monitor_once(self) -> bool:
+        """One look; whether Task2State changed since the last (or could not be read)."""
         read_at = time.monotonic()
         code, raw = d.DevGetTaskState(self.number, 2, 64)
         if code != Drv.DRV_NO_ERROR:
-            return
+            return True
+        changed = raw != self._last_raw
+        self._last_raw = raw
         state = ComDiagnostics.decode(raw)
         # At the first look every pending diagnosis counts as new, so the EMCYs
         # collected before the gateway opened reach the history too.
@@ -251,6 +277,7 @@ class Monitor:
                 self._emit(ErrorControlEvent(self.network, node, self.expected[node]))
         for node in state.diagnostic():
             self.read_diagnosis(node, timeout, operating=node in operating)
+        return changed
 
     def read_diagnosis(self, node: int, timeout: float, *, operating: bool) -> int:
         """COM_Node_Diag: EMCYs into the history and out as events, a failure out as an

@@ -1,7 +1,8 @@
 """The link to the card: one board's host mailbox, its layer-2 access and the
 configuration the card holds, for the CiA 309 service layer.
 
-* One :class:`Link` per board owns the host mailbox: a single reader thread takes every
+* One :class:`Link` per board owns the host mailbox: a single reader (a thread, or the
+  309-3 server's event loop: ``Link.read_on``) sleeps on the card's doorbell, takes every
   message with ``DevGetMessage`` and routes answers by (``msg.a``, ``msg.nr``) to the
   waiting call and indications (layer-2 frames, boot-up) to the gateway's own listeners.
   Two readers would steal each other's answers, so the link also holds the board's
@@ -15,8 +16,11 @@ configuration the card holds, for the CiA 309 service layer.
 
 from __future__ import annotations
 
+import asyncio
+import contextlib
 import itertools
 import logging
+import os
 import queue
 import struct
 import threading
@@ -29,6 +33,7 @@ from types import TracebackType
 
 from dbm_tools.errors import DbmError
 from dbm_tools.parameters import NdFlag, NodeParameterSet
+from dpm import flags as fl
 from dpm.com import CanFrame, UploadRequest, decode_layer2_frames, encode_layer2_frame
 from dpm.commands import (
     AREA_BUS,
@@ -57,6 +62,7 @@ from dpm.commands import (
     MAX_LEN_DATA_UNIT,
     Com,
 )
+from dpm.doorbell import HostBell
 from dpm.errors import F_UNKNOWN_COMMAND, F_UNKNOWN_TASK, Drv
 from dpm.message import Ext, Message, MessageError, Task
 from host_api import driver as d
@@ -71,7 +77,7 @@ from host_api.cia309.model import (
 )
 from host_api.cia309.pdo import Pdo
 from host_api.online import download_data_set
-from host_api.registry import transaction_lock
+from host_api.registry import MappedBoard, lookup, transaction_lock
 
 log = logging.getLogger(__name__)
 
@@ -79,8 +85,18 @@ DEFAULT_ANSWER_TIMEOUT = 120.0
 """[ours] seconds a call waits for the card when no command time-out is set. The card
 answers every request itself (its SDO time-out runs out first); this only bounds the wait
 on a card that stopped."""
-READ_SLICE_MS = 20
-"""How long one DevGetMessage of the reader waits; a pause request waits at most this."""
+READER_POLL_FIRST = 0.005
+"""[ours] Seconds the mailbox reader sleeps without a ring after activity before it looks at
+the flags itself; each quiet look doubles it, up to ``READER_POLL_QUIET``."""
+READER_POLL_QUIET = 0.25
+"""[ours] The reader's longest sleep without a ring: what an indication waits when the card
+does not ring this host (started again after the gateway, or its ring taken by another
+thread of this process waiting on the same board). Four looks a second when idle."""
+LOOP_CALL_WAIT_S = 1.0
+"""How long a pause waits for the reading event loop to stop reading."""
+STATE_FLAGS = fl.STATECOM | fl.COM | fl.RUN | fl.READY
+"""HostFlags whose change tells the Task2State monitor to look now (the card toggles
+STATECOM when Task2State changed, while the state channel is free)."""
 ABANDONED_NR_S = 60.0
 """A message number whose caller gave up stays reserved this long for its late answer."""
 TRANSACTION_LOCK_WAIT_S = 5.0
@@ -386,6 +402,10 @@ class Link:
         self._reader_condition = threading.Condition()
         self._reader_paused = False
         self._reader_busy = False
+        self._wake_r, self._wake_w = os.pipe2(os.O_NONBLOCK | os.O_CLOEXEC)
+        self.on_state_flags: Callable[[], None] | None = None
+        """Called from the reader thread when the card's STATECOM, COM, RUN or READY
+        changed (the Task2State monitor looks at once)."""
         self._sdo_channels: dict[int, threading.Lock] = {}
         self._sdo_channels_lock = threading.Lock()
         self._listeners: list[FrameListener] = []
@@ -403,14 +423,26 @@ class Link:
         """Error control the gateway switched at run time, by node: "heartbeat",
         "guarding" or None; other nodes supervise as their data set says."""
         self._node_sets: dict[int, NodeParameterSet | None] = {}
-        self._reader = threading.Thread(target=self._read_loop, daemon=True,
-                                        name=f"cia309-reader-{number}")
-        self._reader.start()
+        self._reader: threading.Thread | None = None
+        self._reader_stop = threading.Event()
+        self._loop: asyncio.AbstractEventLoop | None = None
+        """The event loop that reads the mailbox instead of the reader thread (``read_on``)."""
+        self._loop_thread = 0
+        self._loop_reading = False
+        self._loop_active = False
+        self._loop_interval = READER_POLL_FIRST
+        self._loop_flags = -1
+        self._fallback: asyncio.TimerHandle | None = None
+        self._bell: HostBell | None = None
+        self._start_reader()
 
     def close(self) -> None:
         self._closing.set()
-        if self._reader is not threading.current_thread():
-            self._reader.join(timeout=2)
+        self._on_loop(self._pause_on_loop)
+        self._loop = None
+        self._stop_reader()
+        os.close(self._wake_r)
+        os.close(self._wake_w)
         if self._holding:
             self._transaction.release()
         self.board.close()
@@ -423,24 +455,218 @@ class Link:
     # --- the mailbox -------------------------------------------------------------------------
 
     def _read_loop(self) -> None:
-        while not self._closing.is_set():
+        """The reader thread: take each message as the card's ring announces it; sleep
+        while none comes.
+
+        It waits on the board's doorbell itself (``_wait_for_ring``) and reads the mailbox
+        without waiting (DevGetMessage with time-out 0): a DevGetMessage that waits
+        re-checks the flags every millisecond (the driver's fallback poll for a ring another
+        thread took), so a gateway with nothing to do woke 1,000 times a second (issue 22).
+        A ring is a hint (dpm.doorbell): a card started again does not know this host until
+        it rings it, so the reader still looks now and then, at ``READER_POLL_FIRST`` after
+        activity, backing off to ``READER_POLL_QUIET``."""
+        interval = READER_POLL_FIRST
+        flags = -1
+        stop = self._reader_stop
+        while not stop.is_set():
             with self._reader_condition:
-                while self._reader_paused and not self._closing.is_set():
-                    self._reader_condition.wait(0.1)
+                while self._reader_paused and not stop.is_set():
+                    self._reader_condition.wait()
                 self._reader_busy = True
+            code = self._take_while_busy()
+            if code != Drv.DRV_DEV_GET_NO_MESSAGE:
+                stop.wait(0.01)  # the card restarts (-11) or is gone
+                continue
+            flags = self._state_flags(flags)
+            if self._wait_for_ring(interval):
+                interval = READER_POLL_FIRST
+            else:
+                interval = min(interval * 2, READER_POLL_QUIET)
+
+    def _take_messages(self) -> int:
+        """Route every message waiting in the mailbox; the driver's code that ended it
+        (DRV_DEV_GET_NO_MESSAGE: the mailbox is empty)."""
+        while True:
+            code, msg = d.DevGetMessage(self.number, d.MSG_BUFFER_SIZE, 0)
+            if code != Drv.DRV_NO_ERROR or msg is None:
+                return int(code)
             try:
-                code, msg = d.DevGetMessage(self.number, d.MSG_BUFFER_SIZE, READ_SLICE_MS)
+                self._route(msg)
+            except Exception:
+                log.exception("board %d: routing %r failed", self.number, msg)
+
+    def _wait_for_ring(self, timeout: float) -> bool:
+        """Sleep until the card rings, ``wake`` is called or ``timeout`` seconds pass;
+        True unless the time ran out."""
+        board = lookup(self.number)
+        if not isinstance(board, MappedBoard):
+            self._reader_stop.wait(timeout)
+            return False
+        if board.bell.wait(timeout, (self._wake_r,)):
+            board.counters.irq += 1
+            return True
+        try:
+            os.read(self._wake_r, 64)
+        except BlockingIOError:
+            return False  # neither rung nor woken: the fallback look
+        return True
+
+    def wake(self) -> None:
+        """Make the reader thread look up from its wait (a pause, the end)."""
+        with contextlib.suppress(BlockingIOError):  # full: it is woken already
+            os.write(self._wake_w, b"w")
+
+    def _state_flags(self, seen: int) -> int:
+        """Tell ``on_state_flags`` when the card's STATECOM, COM, RUN or READY changed
+        since ``seen`` (a ring came with them); returns them."""
+        board = lookup(self.number)
+        if not isinstance(board, MappedBoard):
+            return seen
+        flags = board.host() & STATE_FLAGS
+        if flags != seen and seen >= 0 and self.on_state_flags is not None:
+            self.on_state_flags()
+        return flags
+
+    def _start_reader(self) -> None:
+        self._reader_stop = threading.Event()
+        self._reader = threading.Thread(target=self._read_loop, daemon=True,
+                                        name=f"cia309-reader-{self.number}")
+        self._reader.start()
+
+    def _stop_reader(self) -> None:
+        reader = self._reader
+        if reader is None:
+            return
+        self._reader = None
+        self._reader_stop.set()
+        self.wake()
+        with self._reader_condition:
+            self._reader_condition.notify_all()
+        if reader is not threading.current_thread():
+            reader.join(timeout=2)
+
+    # --- the mailbox read on an event loop ---------------------------------------------------
+
+    def read_on(self, loop: asyncio.AbstractEventLoop) -> bool:
+        """Read the mailbox on ``loop`` (call from its thread) instead of the reader thread,
+        until ``read_on_thread``; False when another loop reads it already.
+
+        Why: the 309-3 server sends its SDO reads from its event loop; with the reader in a
+        thread of its own, each answer costs one more thread wake-up (the reader, then the
+        event loop it hands the answer to), each a wait for a CPU and the interpreter lock.
+        On the loop the card's ring wakes the loop itself (``add_reader`` on the doorbell).
+        Blocking calls from other threads still get their answers: the loop routes them."""
+        if self._loop is not None or self._closing.is_set():
+            return False
+        board = lookup(self.number)
+        if not isinstance(board, MappedBoard):
+            return False
+        self._stop_reader()
+        self._loop = loop
+        self._loop_thread = threading.get_ident()
+        self._bell = board.bell
+        self._loop_flags = -1
+        self._loop_interval = READER_POLL_FIRST
+        self._loop_active = False
+        self._resume_on_loop()
+        return True
+
+    def read_on_thread(self) -> None:
+        """Back to the reader thread (from the loop's thread, before the loop ends)."""
+        if self._loop is None:
+            return
+        self._pause_on_loop()
+        self._loop = None
+        if not self._closing.is_set():
+            self._start_reader()
+
+    def _resume_on_loop(self) -> None:
+        loop = self._loop
+        if loop is None or self._loop_reading or self._reader_paused:
+            return
+        assert self._bell is not None
+        loop.add_reader(self._bell.fileno(), self._on_ring)
+        self._loop_reading = True
+        self._loop_turn()
+        self._fallback = loop.call_later(self._loop_interval, self._on_fallback)
+
+    def _pause_on_loop(self) -> None:
+        if not self._loop_reading or self._loop is None:
+            return
+        self._loop_reading = False
+        assert self._bell is not None
+        self._loop.remove_reader(self._bell.fileno())
+        if self._fallback is not None:
+            self._fallback.cancel()
+            self._fallback = None
+
+    def _on_ring(self) -> None:
+        assert self._bell is not None
+        if self._bell.take_rings():
+            self._loop_active = True
+            self._bell_counters()
+        self._loop_turn()
+
+    def _take_while_busy(self) -> int:
+        """``_take_messages`` by a reader its caller marked busy, then not busy again: a pause
+        for a card reset (``_reader_paused``) waits until no reader takes messages."""
+        try:
+            return self._take_messages()
+        finally:
+            with self._reader_condition:
+                self._reader_busy = False
+                self._reader_condition.notify_all()
+
+    def _bell_counters(self) -> None:
+        board = lookup(self.number)
+        if isinstance(board, MappedBoard):
+            board.counters.irq += 1
+
+    def _loop_turn(self) -> None:
+        with self._reader_condition:
+            if self._reader_paused or not self._loop_reading:
+                return
+            self._reader_busy = True
+        code = self._take_while_busy()
+        if code != Drv.DRV_DEV_GET_NO_MESSAGE:
+            self._loop_active = True  # the card restarts: look again soon
+        self._loop_flags = self._state_flags(self._loop_flags)
+
+    def _on_fallback(self) -> None:
+        """The loop's fallback look, as the reader thread's (``_read_loop``)."""
+        self._fallback = None
+        if not self._loop_reading or self._loop is None:
+            return
+        self._loop_turn()
+        if self._loop_active:
+            self._loop_interval = READER_POLL_FIRST
+        else:
+            self._loop_interval = min(self._loop_interval * 2, READER_POLL_QUIET)
+        self._loop_active = False
+        self._fallback = self._loop.call_later(self._loop_interval, self._on_fallback)
+
+    def _on_loop(self, call: Callable[[], None]) -> None:
+        """Run ``call`` on the reading loop and wait for it (at once on the loop's thread);
+        a loop that no longer runs reads nothing, and is not waited for."""
+        loop = self._loop
+        if loop is None:
+            return
+        if threading.get_ident() == self._loop_thread:
+            call()
+            return
+        done = threading.Event()
+
+        def run() -> None:
+            try:
+                call()
             finally:
-                with self._reader_condition:
-                    self._reader_busy = False
-                    self._reader_condition.notify_all()
-            if code == Drv.DRV_NO_ERROR and msg is not None:
-                try:
-                    self._route(msg)
-                except Exception:
-                    log.exception("board %d: routing %r failed", self.number, msg)
-            elif code not in (Drv.DRV_DEV_GET_TIMEOUT, Drv.DRV_DEV_GET_NO_MESSAGE):
-                self._closing.wait(0.01)  # the card restarts (-11) or is gone
+                done.set()
+
+        try:
+            loop.call_soon_threadsafe(run)
+        except RuntimeError:  # the loop is closed
+            return
+        done.wait(LOOP_CALL_WAIT_S)
 
     @contextmanager
     def reader_paused(self) -> Iterator[None]:
@@ -448,6 +674,9 @@ class Link:
         may, as only one thread of a process may wait there at a time."""
         with self._reader_condition:
             self._reader_paused = True
+        self.wake()
+        self._on_loop(self._pause_on_loop)
+        with self._reader_condition:
             while self._reader_busy:
                 self._reader_condition.wait()
         try:
@@ -456,6 +685,10 @@ class Link:
             with self._reader_condition:
                 self._reader_paused = False
                 self._reader_condition.notify_all()
+            loop = self._loop
+            if loop is not None:
+                with contextlib.suppress(RuntimeError):  # the loop is closed
+                    loop.call_soon_threadsafe(self._resume_on_loop)
 
     @contextmanager
     def mailbox_released(self) -> Iterator[None]:

@@ -625,6 +625,8 @@ class Server:
         self._server: asyncio.Server | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
         self._subscription = gateway.subscribe(self._on_event)
+        self._read_back: Callable[[], None] = _nothing
+        """Gives the mailboxes back to the gateway's reader threads (``Gateway.read_on``)."""
 
     @property
     def port(self) -> int:
@@ -640,6 +642,7 @@ class Server:
                              self._serve_client, loop=loop)
 
         self._server = await loop.create_server(protocol, self.config.host, self.config.port)
+        self._read_back = self.gateway.read_on(loop)
         for sock in self._server.sockets:  # accepted connections inherit them
             sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, SOCKET_BUFFER)
             sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, SOCKET_BUFFER)
@@ -652,6 +655,7 @@ class Server:
 
     async def close(self) -> None:
         self._subscription.cancel()
+        self._read_back()
         if self._server is not None:
             self._server.close()
         for connection in list(self._connections):
@@ -847,8 +851,10 @@ class Server:
 
         Why the upload apart: it is the request a 309-3 client repeats most, and a worker
         thread costs it two thread switches (to the worker, back to the event loop), each
-        of which waits for the interpreter lock; the gateway's mailbox reader wakes the
-        event loop directly instead (``Gateway.try_sdo_upload``)."""
+        of which waits for the interpreter lock. The server reads the mailbox on this loop
+        (``Gateway.read_on``), so the card's ring wakes the loop, which resolves the answer
+        at once; a gateway read by another loop's or its own thread wakes this loop
+        (``Gateway.try_sdo_upload``)."""
         dispatcher = self.dispatcher
         prepared = dispatcher.prepare(client, line)
         if isinstance(prepared, Answered):
@@ -857,7 +863,12 @@ class Server:
         if isinstance(prepared, SdoUpload):
             answered: asyncio.Future[None] = loop.create_future()
 
-            def on_done() -> None:  # in the mailbox reader's thread
+            here = threading.get_ident()
+
+            def on_done() -> None:  # where the mailbox is read: this loop, or a thread
+                if threading.get_ident() == here:  # read on this loop (``Gateway.read_on``)
+                    _resolve(answered)
+                    return
                 with contextlib.suppress(RuntimeError):  # the loop closed: nobody waits
                     loop.call_soon_threadsafe(_resolve, answered)
 
@@ -882,6 +893,10 @@ class Server:
                 except Cia309Error as exc:
                     return dispatcher.failure(prepared, exc)
         return await loop.run_in_executor(self._executor, dispatcher.execute, client, prepared)
+
+
+def _nothing() -> None:
+    pass
 
 
 def _resolve(future: asyncio.Future[None]) -> None:

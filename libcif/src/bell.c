@@ -13,6 +13,7 @@
 #include <unistd.h>
 
 #define RING_WANT_ACK 0x02
+#define RING_WANT_MAILBOX 0x03 /* dpm/doorbell.py _RING_WANT_MAILBOX */
 
 int cifemu_bell_open(cifemu_bell *bell, const char *image_path) {
   static const char suffix[] = ".bell";
@@ -55,12 +56,15 @@ void cifemu_bell_close(cifemu_bell *bell) {
   bell->fd = -1;
 }
 
-void cifemu_bell_ring(cifemu_bell *bell) {
-  static const unsigned char ring = 0x01;
+static void ring_with(cifemu_bell *bell, unsigned char ring) {
   /* A refused or full queue costs the device one poll interval, never correctness. */
   (void)sendto(bell->fd, &ring, 1, MSG_DONTWAIT | MSG_NOSIGNAL,
                (const struct sockaddr *)&bell->device, bell->device_len);
 }
+
+void cifemu_bell_ring(cifemu_bell *bell) { ring_with(bell, 0x01); }
+
+void cifemu_bell_ring_want_mailbox(cifemu_bell *bell) { ring_with(bell, RING_WANT_MAILBOX); }
 
 int cifemu_bell_wait(cifemu_bell *bell, long long timeout_ns) {
   struct pollfd pfd;

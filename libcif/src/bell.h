@@ -26,6 +26,9 @@ typedef struct cifemu_bell {
 int cifemu_bell_open(cifemu_bell *bell, const char *image_path);
 void cifemu_bell_close(cifemu_bell *bell);
 void cifemu_bell_ring(cifemu_bell *bell);
+/* Rings, and asks the device for a ring once its mailbox is free: the device rings for a
+   message it took only when asked (DevPutMessage, before it sleeps on a full mailbox). */
+void cifemu_bell_ring_want_mailbox(cifemu_bell *bell);
 /* Waits up to timeout_ns for a ring; 1 when rung, 0 otherwise. */
 int cifemu_bell_wait(cifemu_bell *bell, long long timeout_ns);
 

@@ -16,6 +16,7 @@
 #include <errno.h>
 #include <fcntl.h>
 #include <pthread.h>
+#include <sched.h>
 #include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
@@ -35,6 +36,8 @@
 #define SPIN_NS 100000LL          /* watch the flags this long before sleeping on the bell */
 #define POLL_INTERVAL_NS 1000000LL /* a waiting host's 1 ms poll, docs/dpm.md section 2 */
 #define SPECIAL_CONTROL_WAIT_MS 100UL
+#define POLLS_BEFORE_YIELD 8       /* [ours] host_api/registry.py's, docs/dpm.md section 2 */
+#define POLL_WINDOW_NS 1000000LL
 #define STATE_FLAG_UNKNOWN 0xFF
 
 CIF_API int hDevDrv = -1;
@@ -79,8 +82,11 @@ static void change_dev_flags(cifemu_board *b, unsigned char set, unsigned char c
 
 typedef int (*condition_fn)(const cifemu_board *b, int arg);
 
-/* Wait on the bell (polling as a fallback) until the condition or the timeout. */
-static int wait_for(cifemu_board *b, condition_fn cond, int arg, unsigned long timeout_ms) {
+/* Wait on the bell (polling as a fallback) until the condition or the timeout.
+   want_mailbox: ring the device before the first sleep, asking for a ring once the device
+   mailbox is free (it rings for a message it took only when asked). */
+static int wait_for_ringing(cifemu_board *b, condition_fn cond, int arg,
+                            unsigned long timeout_ms, int want_mailbox) {
   long long deadline, spin_end, now;
   if (cond(b, arg)) return 1;
   if (timeout_ms == 0) return 0;
@@ -92,6 +98,7 @@ static int wait_for(cifemu_board *b, condition_fn cond, int arg, unsigned long t
   spin_end = now + SPIN_NS;
   while (cifemu_now_ns() < spin_end)
     if (cond(b, arg)) return 1;
+  if (want_mailbox) cifemu_bell_ring_want_mailbox(&b->bell);
   for (;;) {
     long long remaining = deadline - cifemu_now_ns();
     if (remaining <= 0) return cond(b, arg);
@@ -99,6 +106,10 @@ static int wait_for(cifemu_board *b, condition_fn cond, int arg, unsigned long t
       count(&b->counters->irq);
     if (cond(b, arg)) return 1;
   }
+}
+
+static int wait_for(cifemu_board *b, condition_fn cond, int arg, unsigned long timeout_ms) {
+  return wait_for_ringing(b, cond, arg, timeout_ms, 0);
 }
 
 /* What is left of a call's time-out that started at `start` (CLOCK_MONOTONIC ns). */
@@ -547,7 +558,7 @@ static short put_message(cifemu_board *b, MSG_STRUC *ptMessage, unsigned long ul
     cifemu_txn_leave(&b->txn);
     return DRV_CMD_ACTIVE;
   }
-  if (!wait_for(b, cond_free, CH_DEV_MBX, remaining_ms(deadline, ulTimeout))) {
+  if (!wait_for_ringing(b, cond_free, CH_DEV_MBX, remaining_ms(deadline, ulTimeout), 1)) {
     rc = ulTimeout == 0 ? DRV_DEV_MAILBOX_FULL : timed_out(b, DRV_DEV_PUT_TIMEOUT);
   } else {
     /* the message is ln + 8 bytes; the caller's buffer may be no longer than that */
@@ -674,6 +685,39 @@ CIF_API short DevGetMBXData(unsigned short usDevNumber, unsigned short usHostSiz
 
 /* ---- process data --------------------------------------------------------- */
 
+/* [ours] A host that spins on the uncontrolled exchange lets the card run, as the Python
+   driver's MappedBoard.poll_inputs (docs/dpm.md section 2): every POLLS_BEFORE_YIELD-th
+   read-only call in a row that reads the same inputs, within POLL_WINDOW_NS of the first,
+   gives up the CPU. The emulated card's threads run on the host's CPUs; a wake-up of theirs
+   queued behind a spinning host waited for the end of its time slice. Per thread: a
+   thread polls, and it needs no lock. */
+static __thread struct {
+  const cifemu_board *board;
+  unsigned short offset, size;
+  unsigned polls;
+  long long since;
+  unsigned char inputs[IO_AREA_SIZE];
+} polled;
+
+static void poll_inputs(const cifemu_board *b, unsigned short offset, unsigned short size,
+                        const void *inputs) {
+  if (polled.board != b || polled.offset != offset || polled.size != size ||
+      memcmp(polled.inputs, inputs, size) != 0) {
+    polled.board = b;
+    polled.offset = offset;
+    polled.size = size;
+    polled.polls = 0;
+    memcpy(polled.inputs, inputs, size);
+    return;
+  }
+  if (++polled.polls == 1) {
+    polled.since = cifemu_now_ns();
+  } else if (polled.polls >= POLLS_BEFORE_YIELD) {
+    polled.polls = 0;
+    if (cifemu_now_ns() - polled.since < POLL_WINDOW_NS) sched_yield();
+  }
+}
+
 static short exchange(cifemu_board *b, unsigned mode, unsigned short usSendOffset,
                       unsigned short usSendSize, const void *pvSendData,
                       unsigned short usReceiveOffset, unsigned short usReceiveSize,
@@ -693,7 +737,10 @@ static short exchange(cifemu_board *b, unsigned mode, unsigned short usSendOffse
       memcpy(b->mm + OFS_SND_PD + usSendOffset, pvSendData, usSendSize);
       cifemu_bell_ring(&b->bell);
     }
-    if (usReceiveSize) memcpy(pvReceiveData, b->mm + OFS_RCV_PD + usReceiveOffset, usReceiveSize);
+    if (usReceiveSize) {
+      memcpy(pvReceiveData, b->mm + OFS_RCV_PD + usReceiveOffset, usReceiveSize);
+      if (!usSendSize) poll_inputs(b, usReceiveOffset, usReceiveSize, pvReceiveData);
+    }
     rc = DRV_NO_ERROR;
   } else {
     int device_controlled = mode == 1 || mode == 2;

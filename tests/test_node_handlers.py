@@ -1,9 +1,9 @@
-"""Seed fidelity, second pass (issue 23): what a legacy host still noticed of the node handlers.
+"""The node handlers as a host sees them: boot-up, supervision, Nd_state and NEXC.
 
 Each test brings a card up with simulated nodes, provokes one behaviour through the mailbox or
 the image, and asserts what the seed manual gives the host to see (Err_Event, Nd_state, NEXC,
 frames in the card's trace). Like ``tests/test_seed_fidelity.py`` it runs on every bus of
-``tests/test_can_task.py``'s back-to-back fixture; the test of a boot-up message injects its
+``tests/can_net.py``'s back-to-back fixture; the test of a boot-up message injects its
 frames on the ``shm`` bus (``tests/shm_rig.py``).
 """
 
@@ -36,7 +36,7 @@ def nexc(net: Net) -> bool:
     return bool(net.diag().global_bits & GlobalBits.NEXC)
 
 
-# --- 1: a 252 input whose node never answers the remote request ---------------------------
+# --- a 252 input whose node never answers the remote request ---------------------------
 
 
 def test_an_unanswered_252_remote_request_is_err_event_33(make_net: Callable[..., Net]) -> None:
@@ -69,7 +69,7 @@ transmission = 252
     assert actual_error(net, 1) == 33
 
 
-# --- 2: a node that finishes its boot-up after auto-clear ---------------------------------
+# --- a node that finishes its boot-up after auto-clear ---------------------------------
 
 
 def test_a_node_booting_after_auto_clear_is_stopped_on_the_bus(make_net: Callable[..., Net],
@@ -104,7 +104,7 @@ boot_delay_s = 2.0
     assert beats and beats[-1] == "04"
 
 
-# --- 3: Nd_state of a node without supervision after a start its boot did not send --------
+# --- Nd_state of a node without supervision after a start its boot did not send --------
 
 
 def test_unsupervised_nodes_show_in_nd_state_after_the_global_start(
@@ -156,7 +156,7 @@ error_control = "none"
     assert net.diag().bErr_event == 0
 
 
-# --- 6: the first TX-PDO is requested at boot, whatever its type --------------------------
+# --- the first TX-PDO is requested at boot, whatever its type --------------------------
 
 
 def test_the_first_tx_pdo_of_every_type_is_requested_after_the_boot(
@@ -192,7 +192,7 @@ transmission = 1
                 and t >= start], f"no remote request of node {node}'s TX-PDO"
 
 
-# --- 8: NEXC while nodes do not exchange data --------------------------------------------
+# --- NEXC while nodes do not exchange data --------------------------------------------
 
 
 def test_nexc_while_a_node_waits_for_its_start_and_while_the_host_is_not_ready(
@@ -249,7 +249,7 @@ def test_a_start_the_host_sends_while_the_node_boots_is_not_forgotten(rig: Rig) 
     assert rig.diag().bErr_event == 0
 
 
-# --- 10: no reaction on the boot-up message of an unsupervised node -----------------------
+# --- no reaction on the boot-up message of an unsupervised node -----------------------
 
 
 def test_the_boot_up_message_of_an_unsupervised_node_gets_no_reaction(rig: Rig) -> None:
@@ -266,7 +266,7 @@ def test_the_boot_up_message_of_an_unsupervised_node_gets_no_reaction(rig: Rig) 
     assert rig.diag().operating() == [NODE]
 
 
-# --- 11: a heartbeat node that refuses the write of 1017h ----------------------------------
+# --- a heartbeat node that refuses the write of 1017h ----------------------------------
 
 
 def test_a_heartbeat_node_refusing_1017h_still_boots(make_net: Callable[..., Net]) -> None:
@@ -380,7 +380,7 @@ sdo_abort = { "1014:0" = 0x06010002 }
     assert prm_fault(net, 1)
 
 
-# --- 12: auto-clear and a node that never booted ---------------------------------------------
+# --- auto-clear and a node that never booted ---------------------------------------------
 
 
 def test_auto_clear_leaves_the_network_running_when_a_node_fails_its_first_boot(
