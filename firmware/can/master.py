@@ -86,6 +86,8 @@ class Master:
         self.bus_params: BusParameterSet | None = None
         self._ext = ExtendedBusParameterSet()
         self.executor = ThreadPoolExecutor(max_workers=32, thread_name_prefix="node-boot")
+        """Threads that wait: the 309 gateway's error-control writes, and a boot-up whose
+        node's SDO channel another transfer holds (``NodeHandler.start_boot``)."""
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._thread_id: int | None = None
@@ -135,14 +137,6 @@ class Master:
     @property
     def closing(self) -> bool:
         return self._stop.is_set()
-
-    def wait_for(self, event: threading.Event, timeout: float) -> bool:
-        """Wait for ``event`` but give up at once when the card powers off."""
-        deadline = time.monotonic() + timeout
-        while not event.wait(min(0.05, max(0.0, deadline - time.monotonic()))):
-            if self._stop.is_set() or time.monotonic() >= deadline:
-                return False
-        return True
 
     def close(self) -> None:
         self._stop.set()
@@ -237,7 +231,8 @@ class Master:
         # node each time made a stored database of 127 nodes cost 127² questions at a start.
         sync_used = (_uses_sync(params) or self._sync_used) if old is None else any(
             _uses_sync(h.params) for h in self.nodes.values())
-        if sync_used != self._sync_used:
+        sync_changed = sync_used != self._sync_used
+        if sync_changed:
             self._sync_used = sync_used
             self.sync.wake()  # only SYNC use decides it here (``sync_period``)
         self.device.set_node_bit("abNd_cfg", address, params.active)
@@ -245,7 +240,10 @@ class Master:
         if self.nmt.running:
             handler.attach()
             self.nmt.boot(handler)
-            self.reschedule(handler)  # else nothing to look at: ``start_network`` reschedules
+            # Else nothing to look at: ``start_network`` reschedules. A change of SYNC use
+            # moves every node's deadline of its 252 remote requests (``NodePdos.next_due``),
+            # which only a look at every node notes.
+            self.reschedule(None if sync_changed else handler)
 
     def start_network(self, params: BusParameterSet) -> None:
         """The bus parameter download: (re)start the whole network."""

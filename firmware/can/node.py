@@ -3,7 +3,7 @@
 The seed calls them node handlers: "for every node station one state machine
 is implemented" (seed 5.2). The handler holds that state machine and the node's
 diagnosis; the services it composes each own their frames and their state: the
-boot-up (``boot``, in a worker thread, since it waits on SDO answers), error control
+boot-up (``boot``, driven by the node's answers in the bus thread), error control
 (``supervision``, from the master's thread), EMCY (``emcy``) and the PDOs (``pdo``).
 They report back an Err_Event; only the handler changes the node's state and tells
 the network (``Network``, ``NodeEvents``), which the master implements. The master's
@@ -28,11 +28,11 @@ from dpm.com import NodeDiagnosis as Diagnosis
 from dpm.com import NodeStatus
 from dpm.commands import NMT_STOP
 from dpm.errors import NodeEvent, err_event_text
-from firmware.can.boot import BootFailure, BootLink, BootSequence
+from firmware.can.boot import BootLink, BootSequence
 from firmware.can.bus import CanBus
 from firmware.can.emcy import EmcyConsumer
 from firmware.can.pdo import NodePdos, PdoLink
-from firmware.can.sdo import SdoChannels
+from firmware.can.sdo import SdoChannel, SdoChannels
 from firmware.can.supervision import ErrorControl
 
 log = logging.getLogger(__name__)
@@ -165,7 +165,7 @@ class NodeHandler:
     # --- boot-up ------------------------------------------------------------------------------
 
     def start_boot(self, reset_sent: bool = False) -> None:
-        """Begin (or begin again) the boot sequence in a worker thread.
+        """Begin (or begin again) the boot sequence, driven by the node's answers.
 
         ``reset_sent``: the host resets the node itself (COM_NMT_Module_Protocol);
         the sequence then waits for that boot-up instead of resetting it twice,
@@ -179,43 +179,52 @@ class NodeHandler:
         self.operational_expected = True
         self._host_started_at = None
         self.events.set_node_state(self.address, False)
-        self.network.executor.submit(self._boot, self._generation, reset_sent)
+        channel = self.network.sdo.channel(self.address)
+        if channel.lock.acquire(blocking=False):
+            self._begin_boot(self._generation, channel, reset_sent)
+        else:
+            # A host transfer, the gateway or a replaced boot-up holds the node's SDO
+            # channel: a worker waits for it, as the seed's node handler waits.
+            self.network.executor.submit(self._boot_when_free, self._generation, channel,
+                                         reset_sent)
         self.network.reschedule(self)
 
-    def _boot(self, generation: int, reset_sent: bool) -> None:
-        """The boot-up in its worker thread, which nobody joins.
+    def _boot_when_free(self, generation: int, channel: SdoChannel, reset_sent: bool) -> None:
+        """In a worker thread: take the channel, then boot, unless a newer start of the node
+        came meanwhile. Without that check, a host toggling NOTREADY queued boot after stale
+        boot (up to 3 s each), and a new configuration waited behind all of them."""
+        channel.lock.acquire()
+        if generation != self._generation:
+            channel.lock.release()
+            return
+        self._begin_boot(generation, channel, reset_sent)
 
-        The executor would keep any exception in a future nobody reads, leaving
-        the node in BOOTING for good and the host without an Err_Event; so an
-        unforeseen one fails the node (34, no response during its configuration)
-        and is logged. Not while the card powers off: a boot-up cut short then
-        (its bus shut, its image gone) is no error of the node.
+    def _begin_boot(self, generation: int, channel: SdoChannel, reset_sent: bool) -> None:
+        """Start the sequence with the channel taken; it gives the channel back when it ends.
+
+        An unforeseen exception fails the node (34, no response during its configuration)
+        and is logged, rather than leave it in BOOTING for good and the host without an
+        Err_Event. Not while the card powers off: a boot-up cut short then (its bus shut,
+        its image gone) is no error of the node.
         """
+        bus = self.network.bus
+        assert bus is not None
+
+        def done(event: int | None) -> None:
+            if event is None:
+                if generation == self._generation and self.state is State.BOOTING:
+                    self._operate()
+            else:
+                self._fail_boot(generation, event)
+
         try:
-            self._run_boot(generation, reset_sent)
+            self.boot.start(bus, self.network.sdo, channel.sdo.RESPONSE_TIMEOUT, reset_sent,
+                            channel.lock, lambda: generation == self._generation, done)
         except Exception:
             if self.network.closing:
                 return
             log.exception("node %d: boot-up failed unexpectedly", self.address)
             self._fail_boot(generation, NodeEvent.NO_RESPONSE)
-
-    def _run_boot(self, generation: int, reset_sent: bool) -> None:
-        try:
-            channel = self.network.sdo.channel(self.address)
-            with channel.lock:
-                if generation != self._generation:
-                    # A newer start of the node came while this one waited for the channel:
-                    # that one boots it. Without this, a host toggling NOTREADY queued boot
-                    # after stale boot (up to 3 s each), and a new configuration waited
-                    # behind all of them.
-                    return
-                self.boot.run(channel.sdo, reset_sent)
-        except BootFailure as failure:
-            self._fail_boot(generation, failure.event)
-            return
-        if generation != self._generation or self.state is not State.BOOTING:
-            return
-        self._operate()
 
     def _operate(self) -> None:
         """The boot-up succeeded: the node exchanges data from now on (Nd_state)."""
