@@ -16,6 +16,7 @@ a pool of 32 worker threads took 1.3-1.6 times as long as canopen for 127 nodes.
 
 from __future__ import annotations
 
+import collections
 import contextlib
 import functools
 import logging
@@ -49,6 +50,44 @@ RESET_GRACE = 1.0
 """[ours] seconds the card waits after a reset for a boot-up message before it reads 1000h."""
 HEARTBEAT_PRODUCER = 0x1017
 """CiA 301's producer heartbeat time, which only the node's own heartbeat depends on."""
+BOOTS_IN_FLIGHT = 64
+"""[ours] boot-ups under way at once; the others wait their turn (``BootSlots``). Twice the
+32 of the card's former pool of boot threads, so that 32 silent nodes (3 s each) hold up
+no other node; not all 127, whose requests at once a machine at load 28 answered late."""
+
+
+class BootSlots:
+    """At most ``BOOTS_IN_FLIGHT`` boot-ups under way; the others start in their order as
+    slots come free."""
+
+    def __init__(self, limit: int = BOOTS_IN_FLIGHT) -> None:
+        self._limit = limit
+        self._running = 0
+        self._waiting: collections.deque[Callable[[], bool]] = collections.deque()
+        self._lock = threading.Lock()
+
+    def take(self, start: Callable[[], bool]) -> None:
+        """Call ``start`` in a free slot, now or when one comes free; it returns False when
+        it did not start after all (a newer boot-up of its node came meanwhile), which
+        frees the slot at once."""
+        with self._lock:
+            if self._running >= self._limit:
+                self._waiting.append(start)
+                return
+            self._running += 1
+        if not start():
+            self.free()
+
+    def free(self) -> None:
+        """A boot-up ended: the next waiting one starts in its slot."""
+        while True:
+            with self._lock:
+                if not self._waiting:
+                    self._running -= 1
+                    return
+                start = self._waiting.popleft()
+            if start():
+                return
 
 
 class BootLink(Protocol):
@@ -126,10 +165,17 @@ class _Run:
     bus: CanBus
     channels: SdoChannels
     timeout: float
-    channel: threading.Lock
+    release: Callable[[], None]
     current: Callable[[], bool]
     done: Callable[[int | None], None]
     steps: Steps
+    ended: bool = False
+
+    def end(self) -> None:
+        """Give the SDO channel (and the boot slot) back, once."""
+        if not self.ended:
+            self.ended = True
+            self.release()
 
 
 class BootSequence:
@@ -186,16 +232,17 @@ class BootSequence:
             self._advance(True)
 
     def start(self, bus: CanBus, channels: SdoChannels, timeout: float, reset_sent: bool,
-              channel: threading.Lock, current: Callable[[], bool],
+              release: Callable[[], None], current: Callable[[], bool],
               done: Callable[[int | None], None]) -> None:
         """Begin every step the node's bitConfigNdState does not skip, each SDO request
-        waiting ``timeout`` seconds for its answer, with the node's SDO ``channel`` taken,
-        which the sequence gives back when it ends. ``done`` gets None when all steps
+        waiting ``timeout`` seconds for its answer, with the node's SDO channel taken:
+        ``release`` gives it back, once, when the sequence ends (``stop`` too, for a start
+        that failed unforeseen). ``done`` gets None when all steps
         succeeded, else the Err_Event the seed gives the failure, from the thread of the
         last answer (or time-out); never when ``current`` turned False (a newer boot-up of
         the node replaced this one), which the sequence asks before each step."""
         self._sdo_length_error = False
-        self._run = _Run(bus, channels, timeout, channel, current, done,
+        self._run = _Run(bus, channels, timeout, release, current, done,
                          self._steps(self.params.bitConfigNdState, reset_sent))
         self._advance(None)
 
@@ -207,7 +254,7 @@ class BootSequence:
         assert run is not None
         while True:
             if not run.current():
-                run.channel.release()
+                run.end()
                 return
             try:
                 step = run.steps.throw(error) if error is not None else run.steps.send(answer)
@@ -244,8 +291,13 @@ class BootSequence:
     @staticmethod
     def _end(run: _Run, event: int | None) -> None:
         """The channel back first: the handler may start the node's next boot-up at once."""
-        run.channel.release()
+        run.end()
         run.done(event)
+
+    def stop(self) -> None:
+        """The start failed unforeseen: give the channel back if the sequence has not."""
+        if self._run is not None:
+            self._run.end()
 
     def _grace_over(self, timer: _GraceTimer) -> None:
         with self._lock:

@@ -38,6 +38,7 @@ from dbm_tools.parameters import (
 )
 from dpm.errors import ERR_NODE_DEVICE, DeviceEvent
 from dpm.task2 import CanState, GlobalBits
+from firmware.can.boot import BootSlots
 from firmware.can.bus import (
     INTERFACE_ERRORS,
     LINK_CHECK_S,
@@ -88,6 +89,7 @@ class Master:
         self.executor = ThreadPoolExecutor(max_workers=32, thread_name_prefix="node-boot")
         """Threads that wait: the 309 gateway's error-control writes, and a boot-up whose
         node's SDO channel another transfer holds (``NodeHandler.start_boot``)."""
+        self.boot_slots = BootSlots()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._thread_id: int | None = None

@@ -28,7 +28,7 @@ from dpm.com import NodeDiagnosis as Diagnosis
 from dpm.com import NodeStatus
 from dpm.commands import NMT_STOP
 from dpm.errors import NodeEvent, err_event_text
-from firmware.can.boot import BootLink, BootSequence
+from firmware.can.boot import BootLink, BootSequence, BootSlots
 from firmware.can.bus import CanBus
 from firmware.can.emcy import EmcyConsumer
 from firmware.can.pdo import NodePdos, PdoLink
@@ -70,6 +70,9 @@ class Network(BootLink, PdoLink, Protocol):
 
     @property
     def executor(self) -> Executor: ...
+
+    @property
+    def boot_slots(self) -> BootSlots: ...
 
     @property
     def auto_clear(self) -> bool: ...
@@ -179,15 +182,24 @@ class NodeHandler:
         self.operational_expected = True
         self._host_started_at = None
         self.events.set_node_state(self.address, False)
+        generation = self._generation
+        self.network.boot_slots.take(lambda: self._take_channel(generation, reset_sent))
+        self.network.reschedule(self)
+
+    def _take_channel(self, generation: int, reset_sent: bool) -> bool:
+        """In a boot slot: begin the boot-up with the node's SDO channel; False when a newer
+        start of the node came while this one waited for the slot."""
+        if generation != self._generation:
+            return False
         channel = self.network.sdo.channel(self.address)
         if channel.lock.acquire(blocking=False):
-            self._begin_boot(self._generation, channel, reset_sent)
+            self._begin_boot(generation, channel, reset_sent)
         else:
             # A host transfer, the gateway or a replaced boot-up holds the node's SDO
             # channel: a worker waits for it, as the seed's node handler waits.
-            self.network.executor.submit(self._boot_when_free, self._generation, channel,
+            self.network.executor.submit(self._boot_when_free, generation, channel,
                                          reset_sent)
-        self.network.reschedule(self)
+        return True
 
     def _boot_when_free(self, generation: int, channel: SdoChannel, reset_sent: bool) -> None:
         """In a worker thread: take the channel, then boot, unless a newer start of the node
@@ -196,6 +208,7 @@ class NodeHandler:
         channel.lock.acquire()
         if generation != self._generation:
             channel.lock.release()
+            self.network.boot_slots.free()
             return
         self._begin_boot(generation, channel, reset_sent)
 
@@ -210,6 +223,10 @@ class NodeHandler:
         bus = self.network.bus
         assert bus is not None
 
+        def release() -> None:
+            channel.lock.release()
+            self.network.boot_slots.free()
+
         def done(event: int | None) -> None:
             if event is None:
                 if generation == self._generation and self.state is State.BOOTING:
@@ -219,8 +236,9 @@ class NodeHandler:
 
         try:
             self.boot.start(bus, self.network.sdo, channel.sdo.RESPONSE_TIMEOUT, reset_sent,
-                            channel.lock, lambda: generation == self._generation, done)
+                            release, lambda: generation == self._generation, done)
         except Exception:
+            self.boot.stop()
             if self.network.closing:
                 return
             log.exception("node %d: boot-up failed unexpectedly", self.address)
