@@ -8,10 +8,11 @@ bus parameter download. Baseline: canopen runs the card's boot sequence
 (NMT reset node, boot-up, upload 1000h, download 1017h, 1005h, 1014h and the
 node's SDO list from the database, NMT start) for the same 127 nodes, 32 nodes
 in parallel in a pool of threads, since canopen's client blocks (the card's boot-up is
-driven by the answering frames, every node's at once). Both meet the nodes in ``cifemu sim`` on a channel of
-the same kind (a fresh ``shm`` one each), so they ask the same of the same nodes
-over the same medium; the baseline's nodes once ran in its own process on the
-virtual bus, and it wrote 1017h once where the card writes it twice.
+driven by the answering frames, 64 nodes' at once: firmware.can.boot.BOOTS_IN_FLIGHT).
+Both meet the nodes in ``cifemu sim`` on a channel of the same kind (a fresh ``shm``
+one each), so they ask the same of the same nodes over the same medium; the baseline's
+nodes once ran in its own process on the virtual bus, and it wrote 1017h once where the
+card writes it twice.
 """
 
 from __future__ import annotations
