@@ -10,8 +10,9 @@ and the SDO responses whose length the SDO client never sees.
 It is driven by frames, not by a waiting thread (issue 22): each step is started by the
 frame that answers the one before (an SDO response, the boot-up message), in the bus
 thread, or by the master's thread when a time-out comes; so the sequences of many nodes
-are in flight together (``BOOTS_IN_FLIGHT``) and none costs a thread switch per answer. A blocking client in
-a pool of 32 worker threads took 1.3-1.6 times as long as canopen for 127 nodes.
+are in flight together (``BOOTS_IN_FLIGHT``) and none costs a thread switch per answer.
+A blocking client in a pool of 32 worker threads took 1.3-1.6 times as long as canopen
+for 127 nodes.
 """
 
 from __future__ import annotations
