@@ -19,6 +19,7 @@ from __future__ import annotations
 import mmap
 from typing import Protocol
 
+from dbm_tools.parameters import NodeParameterSet
 from dpm.doorbell import DeviceBell
 from dpm.message import Message
 from firmware.process_image import ProcessImage
@@ -41,8 +42,9 @@ class HostReadiness(Protocol):
 class Configurable(Protocol):
     """The CAN task's configuration entry points: 0 or the seed's msg.f for each data set.
 
-    The stored database hands its data sets to the same three the host's downloads take
-    (``StoredDatabase.configure``), so a database in flash is checked as a download is.
+    The stored database hands its data sets to the same entry points the host's downloads
+    take (``StoredDatabase.configure``), so a database in flash is checked as a download is;
+    its node sets go to ``take_node``, since ``check_dbm`` checked and decoded them already.
     """
 
     from_flash: bool
@@ -50,6 +52,8 @@ class Configurable(Protocol):
     def download_extended(self, data: bytes) -> int: ...
 
     def download_node(self, address: int, data: bytes) -> int: ...
+
+    def take_node(self, address: int, data: bytes, params: NodeParameterSet) -> int: ...
 
     def download_bus(self, data: bytes) -> int: ...
 

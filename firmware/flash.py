@@ -66,6 +66,7 @@ import platformdirs
 
 from dbm_tools.container import FIRST_TABLE, MAX_DATA_AREA, ROOT_WORDS, DbmFile, read_data_area
 from dbm_tools.errors import DbmError
+from dbm_tools.parameters import NodeParameterSet
 from dbm_tools.tables import (
     BUS_CAN,
     BUS_CAN_EXT,
@@ -356,7 +357,7 @@ class StoredDatabase:
                                f"unreadable: {exc}")])
         nodes = dbm.table(NODES)
         faults: list[tuple[int, int, str]] = []
-        for finding in check_dbm(dbm):
+        for finding in check_dbm(dbm, warnings=False):
             if finding.severity != "error":
                 continue
             node = ERR_NODE_DEVICE
@@ -424,7 +425,10 @@ class StoredDatabase:
             return
         nodes = self.dbm.table(NODES) if self.dbm is not None else None
         for record in nodes.records if nodes is not None else []:
-            if self._refused(device, record[0], NODES, can.download_node(record[0], record[1:])):
+            # Checked by check_dbm already (``load``): decoded once more, not checked again.
+            data = record[1:]
+            if self._refused(device, record[0], NODES,
+                             can.take_node(record[0], data, NodeParameterSet.decode(data))):
                 return
         bus = self._record(BUS_CAN)
         assert bus is not None  # check_dbm insists on it

@@ -19,7 +19,7 @@ import host_api as d
 from dbm_tools.builder import build_dbm
 from dbm_tools.container import data_area, read_data_area, save_dbm, write_dbm
 from dbm_tools.network import parse_network
-from dbm_tools.parameters import BusParameterSet
+from dbm_tools.parameters import BusParameterSet, NodeParameterSet
 from dbm_tools.tables import BUS_CAN, DESCRIPT, NODES, NodesRecord
 from dbm_tools.validate import check_dbm
 from dpm.errors import Drv
@@ -363,17 +363,18 @@ def test_a_faulty_database_in_flash_gives_the_seeds_err_event(
 def test_a_data_set_the_can_task_refuses_gives_212_at_its_node(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    """The CAN task runs the same checks as check_dbm, so no real database reaches this
-    path; the refusal is forced (the only stand-in in these tests) to show where it lands."""
+    """check_dbm checks the node sets the CAN task takes (``take_node``), so no real
+    database reaches this path; the refusal is forced (the only stand-in in these tests)
+    to show where it lands."""
     device = Device(0, tmp_path, flash_dir=tmp_path / "flash")
     device.flash.store(make_dbm(tmp_path).read_bytes()[44:])
     refused: list[int] = []
 
-    def refuse(address: int, data: bytes) -> int:
+    def refuse(address: int, data: bytes, params: NodeParameterSet) -> int:
         refused.append(address)
         return 62
 
-    monkeypatch.setattr(device.can, "download_node", refuse)
+    monkeypatch.setattr(device.can, "take_node", refuse)
     loop = threading.Thread(target=device.run)
     loop.start()
     try:

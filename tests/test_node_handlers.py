@@ -19,7 +19,7 @@ import pytest
 
 from dbm_tools.network import parse_network
 from dpm.message import Message
-from dpm.task2 import GlobalBits
+from dpm.task2 import ComDiagnostics, GlobalBits
 from host_api import driver as d
 from host_api.online import configure_online
 from tests.can_net import Net, actual_error, bus_parameters, candump, node_set, window
@@ -404,3 +404,27 @@ id = 2
     diag = net.diag()
     assert diag.can_state_name == "OPERATE" and not diag.global_bits & GlobalBits.ACLR
     assert diag.operating() == [2]
+
+
+# --- silent nodes do not hold up the boot-up of the others -----------------------------
+
+
+def test_a_node_boots_while_32_silent_nodes_wait_for_their_answers(
+        make_net: Callable[..., Net]) -> None:
+    """Each node's boot-up goes on when its node answers, whatever the others do (issue 22):
+    32 nodes that never answer (each fails with 34 after some 3 s of reset, boot-up wait and
+    reading 1000h) do not keep node 40, configured after them, from data exchange. A card
+    that boots in a pool of 32 waiting threads boots node 40 only after a silent node's
+    boot-up has ended, with its 34."""
+    silent = "".join(f"[[node]]\nid = {n}\n[node.sim]\nsilent = true\n" for n in range(1, 33))
+    net = make_net(silent + "[[node]]\nid = 40\n")
+    net.configure()
+    seen: list[ComDiagnostics] = []
+
+    def node_40_operating() -> bool:
+        seen[:] = [net.diag()]
+        return 40 in seen[0].operating()
+
+    wait_until(node_40_operating, 15, "node 40 in data exchange")
+    assert seen[0].bErr_event == 0, f"Err_Event {seen[0].bErr_event} came first"
+    wait_until(lambda: net.diag().bErr_event == 34, 15, "the silent nodes' 34")

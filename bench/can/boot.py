@@ -7,10 +7,12 @@ set, so the on-line figure (taken from phase 2) has 126 nodes, timed from the
 bus parameter download. Baseline: canopen runs the card's boot sequence
 (NMT reset node, boot-up, upload 1000h, download 1017h, 1005h, 1014h and the
 node's SDO list from the database, NMT start) for the same 127 nodes, 32 nodes
-in parallel as the card. Both meet the nodes in ``cifemu sim`` on a channel of
-the same kind (a fresh ``shm`` one each), so they ask the same of the same nodes
-over the same medium; the baseline's nodes once ran in its own process on the
-virtual bus, and it wrote 1017h once where the card writes it twice.
+in parallel in a pool of threads, since canopen's client blocks (the card's boot-up is
+driven by the answering frames, 64 nodes' at once: firmware.can.boot.BOOTS_IN_FLIGHT).
+Both meet the nodes in ``cifemu sim`` on a channel of the same kind (a fresh ``shm``
+one each), so they ask the same of the same nodes over the same medium; the baseline's
+nodes once ran in its own process on the virtual bus, and it wrote 1017h once where the
+card writes it twice.
 """
 
 from __future__ import annotations
@@ -59,7 +61,7 @@ from host_api.driver import (
 BOOT_NODES = 127
 BOOT_REPEATS = 3
 BOOT_WORKERS = 32
-"""The card's node-boot thread pool (firmware.can.master.Master.executor)."""
+"""The baseline's boot threads: the card's pool until its boot-up was driven by frames."""
 BOOTUP_TIMEOUT_S = 3.0
 BOOT_ATTEMPTS = 3
 """How often the baseline boots a node whose SDO answer did not come in time."""
@@ -141,7 +143,7 @@ def baseline_boot(count: int, bus: SeparateBus | None) -> dict[str, Any]:
                 "cifemu sim, on the same kind of channel as the card: NMT reset node, wait "
                 "for the boot-up, upload 1000h, download 1017h, 1005h, 1014h and the SDO "
                 "list of the database (1017h again), NMT start; "
-                f"{BOOT_WORKERS} nodes in parallel (the card's boot pool)",
+                f"{BOOT_WORKERS} nodes in parallel (canopen's client blocks a thread each)",
         "nodes": len(nodes),
         "sdo_per_node": 4 + len(writes[nodes[0]]),
         "runs_s": [round(r, 3) for r in runs],

@@ -1,27 +1,36 @@
 """The boot-up of one node: reset, identify, configure by SDO (seed 4.2, bitConfigNdState).
 
 Why a module of its own: the boot-up is the one part of a node handler that waits (on
-SDO answers, on the boot-up message), so it runs in a worker thread, and the one part
-that writes the node's object dictionary. It decides nothing about the node's state: it
-either returns, and the handler puts the node into operation, or raises ``BootFailure``
-with the seed's Err_Event, and the handler reports it. The frames it owns are the
-node's boot-up message (as an answer to its reset) and the SDO responses whose length
-canopen's client never sees.
+SDO answers, on the boot-up message), and the one part that writes the node's object
+dictionary. It decides nothing about the node's state: it ends with no event, and the
+handler puts the node into operation, or with the seed's Err_Event, which the handler
+reports. The frames it owns are the node's boot-up message (as an answer to its reset)
+and the SDO responses whose length the SDO client never sees.
+
+It is driven by frames, not by a waiting thread (issue 22): each step is started by the
+frame that answers the one before (an SDO response, the boot-up message), in the bus
+thread, or by the master's thread when a time-out comes; so the sequences of many nodes
+are in flight together (``BOOTS_IN_FLIGHT``) and none costs a thread switch per answer.
+A blocking client in a pool of 32 worker threads took 1.3-1.6 times as long as canopen
+for 127 nodes.
 """
 
 from __future__ import annotations
 
+import collections
 import contextlib
+import functools
 import logging
+import math
 import struct
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Generator
+from dataclasses import dataclass
 from typing import Protocol
 
 import can
-from canopen.sdo.client import SdoClient
-from canopen.sdo.exceptions import SdoAbortedError, SdoCommunicationError
+from canopen.sdo.exceptions import SdoAbortedError, SdoCommunicationError, SdoError
 
 from dbm_tools.parameters import ConfigNdState, NodeParameterSet
 from dpm.cia301 import COB_ID_SYNC, EMCY_BASE, ERROR_CONTROL_BASE
@@ -30,6 +39,7 @@ from dpm.commands import NMT_RESET_NODE as NMT_RESET
 from dpm.commands import NMT_START
 from dpm.errors import NodeEvent
 from firmware.can.bus import CanBus
+from firmware.can.sdo import HostSdoTransfer, SdoChannels, SdoResult
 from firmware.frames import SDO_FRAME_LENGTH
 
 log = logging.getLogger("firmware.can.node")
@@ -41,10 +51,48 @@ RESET_GRACE = 1.0
 """[ours] seconds the card waits after a reset for a boot-up message before it reads 1000h."""
 HEARTBEAT_PRODUCER = 0x1017
 """CiA 301's producer heartbeat time, which only the node's own heartbeat depends on."""
+BOOTS_IN_FLIGHT = 64
+"""[ours] boot-ups under way at once; the others wait their turn (``BootSlots``). Twice the
+32 of the card's former pool of boot threads, so that 32 silent nodes (3 s each) hold up
+no other node; not all 127, whose requests at once a machine at load 28 answered late."""
+
+
+class BootSlots:
+    """At most ``BOOTS_IN_FLIGHT`` boot-ups under way; the others start in their order as
+    slots come free."""
+
+    def __init__(self, limit: int = BOOTS_IN_FLIGHT) -> None:
+        self._limit = limit
+        self._running = 0
+        self._waiting: collections.deque[Callable[[], bool]] = collections.deque()
+        self._lock = threading.Lock()
+
+    def take(self, start: Callable[[], bool]) -> None:
+        """Call ``start`` in a free slot, now or when one comes free; it returns False when
+        it did not start after all (a newer boot-up of its node came meanwhile), which
+        frees the slot at once."""
+        with self._lock:
+            if self._running >= self._limit:
+                self._waiting.append(start)
+                return
+            self._running += 1
+        if not start():
+            self.free()
+
+    def free(self) -> None:
+        """A boot-up ended: the next waiting one starts in its slot."""
+        while True:
+            with self._lock:
+                if not self._waiting:
+                    self._running -= 1
+                    return
+                start = self._waiting.popleft()
+            if start():
+                return
 
 
 class BootLink(Protocol):
-    """What a boot-up uses of the network besides the node's SDO client."""
+    """What a boot-up uses of the network besides the node's SDO channel."""
 
     @property
     def closing(self) -> bool: ...
@@ -59,8 +107,6 @@ class BootLink(Protocol):
     def nodes_stopped(self) -> bool:
         """Auto-clear or HOST_NOT_READY stopped the network: a boot-up starts no node."""
 
-    def wait_for(self, event: threading.Event, timeout: float) -> bool: ...
-
     def send_nmt(self, command: int, node: int) -> None: ...
 
 
@@ -70,6 +116,67 @@ class BootFailure(Exception):
     def __init__(self, event: int) -> None:
         super().__init__(event)
         self.event = event
+
+
+@dataclass(frozen=True)
+class Sdo:
+    """A step: read (``value`` None) or write one object; the sequence gets the value read,
+    or ``SdoAbortedError`` / ``SdoCommunicationError`` thrown in, as canopen's client raised
+    them before."""
+
+    index: int
+    subindex: int
+    value: bytes | None = None
+
+
+@dataclass(frozen=True)
+class BootUp:
+    """A step: wait up to ``timeout`` seconds for the boot-up message; the sequence gets
+    whether it came."""
+
+    timeout: float
+
+
+Steps = Generator[Sdo | BootUp, bytes | bool | None, None]
+
+
+class _GraceTimer:
+    """The wait for a boot-up message, watched by the master's thread (``SdoChannels.watch``)
+    like an SDO time-out: it ends the wait unless the message ended it first."""
+
+    def __init__(self, timeout: float, expire: Callable[[_GraceTimer], None]) -> None:
+        self.deadline = time.monotonic() + timeout
+        self._expire = expire
+        self.finished = False
+
+    def check(self, now: float) -> float:
+        if self.finished:
+            return math.inf
+        if now >= self.deadline:
+            self.finished = True
+            self._expire(self)
+            return math.inf
+        return self.deadline
+
+
+@dataclass
+class _Run:
+    """One boot-up under way (``BootSequence.start``)."""
+
+    bus: CanBus
+    channels: SdoChannels
+    timeout: float
+    release: Callable[[], None]
+    current: Callable[[], bool]
+    done: Callable[[int | None], None]
+    steps: Steps
+    ended: bool = False
+
+    def end(self) -> None:
+        """Give the SDO channel (and the boot slot) back, once."""
+        if not self.ended:
+            self.ended = True
+            self.release()
 
 
 class BootSequence:
@@ -88,7 +195,13 @@ class BootSequence:
         """Wall-clock time (as frames are stamped) of the last NMT reset the card sent it."""
         self._sdo_length_error = False
         """An SDO response of another length than 8 came since the boot-up began. The
-        controller keeps it from canopen's client, which then times out: Err_Event 38."""
+        SDO client never sees it, and times out: Err_Event 38."""
+        self._lock = threading.Lock()
+        self._pending: object | None = None
+        """The step under way (an SDO transfer's token or a grace timer): its end, and only its,
+        advances the sequence; ``_lock`` lets the first of two ends (the boot-up message
+        and the grace timer) win."""
+        self._run: _Run | None = None
 
     def attach(self, bus: CanBus) -> None:
         bus.subscribe(0x580 + self.address, self._on_sdo_response)
@@ -111,29 +224,121 @@ class BootSequence:
         request comes."""
         if stamp is None or stamp >= self._reset_at:
             self._bootup.set()
+            with self._lock:
+                timer = self._pending
+                if not isinstance(timer, _GraceTimer):
+                    return
+                self._pending = None
+                timer.finished = True
+            self._advance(True)
 
-    def run(self, sdo: SdoClient, reset_sent: bool) -> None:
-        """Every step the node's bitConfigNdState does not skip; ``BootFailure`` when one
-        fails, with the Err_Event the seed gives it."""
+    def start(self, bus: CanBus, channels: SdoChannels, timeout: float, reset_sent: bool,
+              release: Callable[[], None], current: Callable[[], bool],
+              done: Callable[[int | None], None]) -> None:
+        """Begin every step the node's bitConfigNdState does not skip, each SDO request
+        waiting ``timeout`` seconds for its answer, with the node's SDO channel taken:
+        ``release`` gives it back, once, when the sequence ends (``stop`` too, for a start
+        that failed unforeseen). ``done`` gets None when all steps
+        succeeded, else the Err_Event the seed gives the failure, from the thread of the
+        last answer (or time-out); never when ``current`` turned False (a newer boot-up of
+        the node replaced this one), which the sequence asks before each step."""
         self._sdo_length_error = False
-        try:
-            self._steps(self.params.bitConfigNdState, sdo, reset_sent)
-        except SdoAbortedError as exc:
+        self._run = _Run(bus, channels, timeout, release, current, done,
+                         self._steps(self.params.bitConfigNdState, reset_sent))
+        self._advance(None)
+
+    def _advance(self, answer: bytes | bool | None, error: SdoError | None = None) -> None:
+        """Give the sequence the answer to its last step (or throw ``error`` in) and start
+        the next step; a step that needs no wait (a boot-up message already there) is
+        answered in the same loop."""
+        run = self._run
+        assert run is not None
+        while True:
+            if not run.current():
+                run.end()
+                return
+            try:
+                step = run.steps.throw(error) if error is not None else run.steps.send(answer)
+            except StopIteration:
+                self._end(run, None)
+                return
+            except BootFailure as failure:
+                self._end(run, failure.event)
+                return
+            except SdoError as exc:
+                self._end(run, self._failure(exc))
+                return
+            error = None
+            if isinstance(step, BootUp):
+                if self._bootup.is_set():
+                    answer = True
+                    continue
+                timer = _GraceTimer(step.timeout, self._grace_over)
+                with self._lock:
+                    self._pending = timer
+                run.channels.watch(timer)
+                if self._bootup.is_set():  # came between the look and the timer
+                    self.booted_up(None)
+                return
+            token = object()
+            transfer = HostSdoTransfer(run.bus, self.address, step.index, step.subindex,
+                                       step.value, run.timeout,
+                                       functools.partial(self._answered, token))
+            with self._lock:
+                self._pending = token
+            run.channels.start_host(transfer)
+            return
+
+    @staticmethod
+    def _end(run: _Run, event: int | None) -> None:
+        """The channel back first: the handler may start the node's next boot-up at once."""
+        run.end()
+        run.done(event)
+
+    def stop(self) -> None:
+        """The start failed unforeseen: give the channel back if the sequence has not."""
+        if self._run is not None:
+            self._run.end()
+
+    def _grace_over(self, timer: _GraceTimer) -> None:
+        with self._lock:
+            if self._pending is not timer:
+                return
+            self._pending = None
+        self._advance(False)
+
+    def _answered(self, token: object, result: SdoResult) -> None:
+        """An SDO step's end, in the bus thread (or the master's, at its time-out): the
+        first of the two, if both come (``token`` is the step's)."""
+        with self._lock:
+            if self._pending is not token:
+                return
+            self._pending = None
+        if result.failed:
+            self._advance(None, SdoCommunicationError(result.failed))
+        elif result.timed_out:
+            self._advance(None, SdoCommunicationError("No SDO response received"))
+        elif result.abort is not None:
+            self._advance(None, SdoAbortedError(result.abort))
+        else:
+            self._advance(result.data)
+
+    def _failure(self, exc: SdoError) -> int:
+        """The Err_Event of an SDO step the sequence did not handle itself."""
+        if isinstance(exc, SdoAbortedError):
             log.info("node %d: configuration aborted 0x%08X", self.address, exc.code)
             self.diag.status |= NodeStatus.PRM_FAULT
-            raise BootFailure(NodeEvent.NO_RESPONSE) from exc
-        except SdoCommunicationError as exc:
-            message = str(exc)
-            log.info("node %d: no configuration answer: %s", self.address, message)
-            unknown = "Unexpected response" in message or "unexpected" in message.lower()
-            if self._sdo_length_error and not unknown:
-                # The node did answer, with a frame the controller kept from canopen.
-                raise BootFailure(NodeEvent.SDO_LENGTH) from exc
-            self.diag.status |= 0 if unknown else NodeStatus.NO_RESPONSE
-            raise BootFailure(NodeEvent.UNKNOWN_SDO_RESPONSE if unknown
-                              else NodeEvent.NO_RESPONSE) from exc
+            return NodeEvent.NO_RESPONSE
+        message = str(exc)
+        log.info("node %d: no configuration answer: %s", self.address, message)
+        unknown = "unexpected" in message.lower()
+        if self._sdo_length_error and not unknown:
+            # The node did answer, with a frame the controller kept from the client.
+            return NodeEvent.SDO_LENGTH
+        self.diag.status |= 0 if unknown else NodeStatus.NO_RESPONSE
+        return NodeEvent.UNKNOWN_SDO_RESPONSE if unknown else NodeEvent.NO_RESPONSE
 
-    def _steps(self, skip: int, sdo: SdoClient, reset_sent: bool) -> None:
+    def _steps(self, skip: int, reset_sent: bool) -> Steps:
         params = self.params
         link = self.link
         if link.closing:
@@ -144,10 +349,11 @@ class BootSequence:
                 self._reset_at = time.time()
                 link.send_nmt(NMT_RESET, self.address)
             deadline = time.monotonic() + BOOTUP_TIMEOUT
-            if not link.wait_for(self._bootup, RESET_GRACE):
-                self._identify(sdo, deadline)
+            if not (yield BootUp(RESET_GRACE)):
+                yield from self._identify(deadline)
         if not skip & ConfigNdState.DEVICE:
-            raw = sdo.upload(0x1000, 0)
+            raw = yield Sdo(0x1000, 0)
+            assert isinstance(raw, bytes)
             if len(raw) < 4:
                 raise BootFailure(NodeEvent.UNKNOWN_SDO_RESPONSE)
             device_type = int.from_bytes(raw[:4], "little")
@@ -164,33 +370,33 @@ class BootSequence:
             if self._heartbeat():
                 if params.usGuardTime:
                     # [ours] the node produces at half the master's consumer time.
-                    self._write_producer_time(
-                        sdo, struct.pack("<H", max(1, params.usGuardTime // 2)))
+                    yield from self._write_producer_time(
+                        struct.pack("<H", max(1, params.usGuardTime // 2)))
             else:
                 if params.usGuardTime:
                     # CiA 301: a node that produces heartbeats does not answer guarding;
                     # switch its producer off (a node without 1017h may refuse: fine).
                     with contextlib.suppress(SdoAbortedError):
-                        sdo.download(HEARTBEAT_PRODUCER, 0, b"\0\0")
-                self._write_guarding(sdo, 0x100C, struct.pack("<H", params.usGuardTime))
-                self._write_guarding(sdo, 0x100D, struct.pack("<B", params.bLifeTimeFactor))
-                self._write_cob_id(sdo, 0x100E, params.usCobIDGuard,
-                                   ERROR_CONTROL_BASE + self.address)
+                        yield Sdo(HEARTBEAT_PRODUCER, 0, b"\0\0")
+                yield from self._write_guarding(0x100C, struct.pack("<H", params.usGuardTime))
+                yield from self._write_guarding(0x100D, struct.pack("<B", params.bLifeTimeFactor))
+                yield from self._write_cob_id(0x100E, params.usCobIDGuard,
+                                              ERROR_CONTROL_BASE + self.address)
         if not skip & ConfigNdState.SYNC:
-            self._write_cob_id(sdo, 0x1005, link.sync_cob_id, COB_ID_SYNC)
+            yield from self._write_cob_id(0x1005, link.sync_cob_id, COB_ID_SYNC)
         if not skip & ConfigNdState.EMCY:
-            self._write_cob_id(sdo, 0x1014, params.usCobIDEmcy, EMCY_BASE + self.address)
+            yield from self._write_cob_id(0x1014, params.usCobIDEmcy, EMCY_BASE + self.address)
         if not skip & ConfigNdState.SDO:
             for entry in params.atSdoCfgData:
                 value = bytes(entry.abSdoValue[: entry.bLength])
                 if (entry.usIndex, entry.bSubindex) == (HEARTBEAT_PRODUCER, 0):
-                    self._write_producer_time(sdo, value)
+                    yield from self._write_producer_time(value)
                 else:
-                    sdo.download(entry.usIndex, entry.bSubindex, value)
+                    yield Sdo(entry.usIndex, entry.bSubindex, value)
         if not skip & ConfigNdState.START and not link.global_start and not link.nodes_stopped:
             link.send_nmt(NMT_START, self.address)
 
-    def _identify(self, sdo: SdoClient, deadline: float) -> None:
+    def _identify(self, deadline: float) -> Steps:
         """A reset node that sent no boot-up message: read 1000h until it answers.
 
         The seed's card does not react to boot-up events (appendix: "Bootup Protocol, no
@@ -202,14 +408,14 @@ class BootSequence:
             if self.link.closing:
                 raise BootFailure(NodeEvent.NO_RESPONSE)
             try:
-                sdo.upload(0x1000, 0)
+                yield Sdo(0x1000, 0)
                 return
             except SdoCommunicationError:
                 if time.monotonic() >= deadline:
                     self.diag.status |= NodeStatus.NO_RESPONSE
                     raise BootFailure(NodeEvent.NO_RESPONSE) from None
 
-    def _write_producer_time(self, sdo: SdoClient, value: bytes) -> None:
+    def _write_producer_time(self, value: bytes) -> Steps:
         """1017h, the node's producer heartbeat time: from the GUARD step or the SDO list.
 
         [ours] The card only consumes heartbeats (seed 5.2.5.1.1: with HRTBT, usGuardTime
@@ -221,14 +427,14 @@ class BootSequence:
         Prm_Fault.
         """
         try:
-            sdo.download(HEARTBEAT_PRODUCER, 0, value)
+            yield Sdo(HEARTBEAT_PRODUCER, 0, value)
         except SdoAbortedError as exc:
             if not (self._heartbeat() and self.params.usGuardTime):
                 raise
             log.info("node %d: 1017h refused (0x%08X); it produces at its own rate",
                      self.address, exc.code)
 
-    def _write_guarding(self, sdo: SdoClient, index: int, value: bytes) -> None:
+    def _write_guarding(self, index: int, value: bytes) -> Steps:
         """100Ch (guard time) or 100Dh (life time factor), written by the GUARD step.
 
         [ours] With a guard time of 0 the node is not guarded at all, and the write only
@@ -239,14 +445,14 @@ class BootSequence:
         node that does not answer.
         """
         try:
-            sdo.download(index, 0, value)
+            yield Sdo(index, 0, value)
         except SdoAbortedError as exc:
             if self.params.usGuardTime:
                 raise
             log.info("node %d: %04Xh refused (0x%08X); it is not guarded",
                      self.address, index, exc.code)
 
-    def _write_cob_id(self, sdo: SdoClient, index: int, cob_id: int, default: int) -> None:
+    def _write_cob_id(self, index: int, cob_id: int, default: int) -> Steps:
         """A COB-ID the boot-up writes: 100Eh (usCobIDGuard), 1005h (the SYNC COB-ID), 1014h
         (usCobIDEmcy); seed 4.2 and 5.2.5.1.1: written "into the node object directory during
         its startup".
@@ -259,7 +465,7 @@ class BootSequence:
         Prm_Fault): the card would send or expect frames the node does not.
         """
         try:
-            sdo.download(index, 0, struct.pack("<I", cob_id))
+            yield Sdo(index, 0, struct.pack("<I", cob_id))
         except SdoAbortedError as exc:
             if cob_id != default:
                 raise
@@ -267,7 +473,7 @@ class BootSequence:
                      self.address, index, exc.code, default)
 
     def _on_sdo_response(self, msg: can.Message) -> None:
-        """Notes a response of the wrong length; canopen's client never sees it (``CanBus``)."""
+        """Notes a response of the wrong length; the SDO client never sees it."""
         if not msg.is_remote_frame and len(msg.data) != SDO_FRAME_LENGTH:
             log.info("node %d: SDO response of %d bytes", self.address, len(msg.data))
             self._sdo_length_error = True

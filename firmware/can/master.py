@@ -38,6 +38,7 @@ from dbm_tools.parameters import (
 )
 from dpm.errors import ERR_NODE_DEVICE, DeviceEvent
 from dpm.task2 import CanState, GlobalBits
+from firmware.can.boot import BootSlots
 from firmware.can.bus import (
     INTERFACE_ERRORS,
     LINK_CHECK_S,
@@ -86,6 +87,9 @@ class Master:
         self.bus_params: BusParameterSet | None = None
         self._ext = ExtendedBusParameterSet()
         self.executor = ThreadPoolExecutor(max_workers=32, thread_name_prefix="node-boot")
+        """Threads that wait: the 309 gateway's error-control writes, and a boot-up whose
+        node's SDO channel another transfer holds (``NodeHandler.start_boot``)."""
+        self.boot_slots = BootSlots()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._thread_id: int | None = None
@@ -95,7 +99,12 @@ class Master:
         self._due = math.inf
         """When the thread looks next; inf while it is looking (``wake_at``)."""
         self._general = True
-        """Set by ``reschedule``: the next look supervises every node and recomputes NEXC."""
+        """Set by ``reschedule()``: the next look supervises every node and recomputes NEXC."""
+        self._changed: set[NodeHandler] = set()
+        """Nodes whose state changed since the last look (``reschedule(handler)``, under
+        ``_due_lock``): the next look supervises them, and the nodes whose deadline came."""
+        self._dues: dict[NodeHandler, float] = {}
+        """Each node's deadline (``NodeHandler.next_due``) as its last supervision left it."""
         self._supervise_due = 0.0
         self._link_due = 0.0
         self._host_outputs = b""
@@ -130,14 +139,6 @@ class Master:
     @property
     def closing(self) -> bool:
         return self._stop.is_set()
-
-    def wait_for(self, event: threading.Event, timeout: float) -> bool:
-        """Wait for ``event`` but give up at once when the card powers off."""
-        deadline = time.monotonic() + timeout
-        while not event.wait(min(0.05, max(0.0, deadline - time.monotonic()))):
-            if self._stop.is_set() or time.monotonic() >= deadline:
-                return False
-        return True
 
     def close(self) -> None:
         self._stop.set()
@@ -232,7 +233,8 @@ class Master:
         # node each time made a stored database of 127 nodes cost 127² questions at a start.
         sync_used = (_uses_sync(params) or self._sync_used) if old is None else any(
             _uses_sync(h.params) for h in self.nodes.values())
-        if sync_used != self._sync_used:
+        sync_changed = sync_used != self._sync_used
+        if sync_changed:
             self._sync_used = sync_used
             self.sync.wake()  # only SYNC use decides it here (``sync_period``)
         self.device.set_node_bit("abNd_cfg", address, params.active)
@@ -240,7 +242,10 @@ class Master:
         if self.nmt.running:
             handler.attach()
             self.nmt.boot(handler)
-            self.reschedule()  # else nothing to look at: ``start_network`` reschedules
+            # Else nothing to look at: ``start_network`` reschedules. A change of SYNC use
+            # moves every node's deadline of its 252 remote requests (``NodePdos.next_due``),
+            # which only a look at every node notes.
+            self.reschedule(None if sync_changed else handler)
 
     def start_network(self, params: BusParameterSet) -> None:
         """The bus parameter download: (re)start the whole network."""
@@ -331,10 +336,18 @@ class Master:
                 self._due = when
                 self._wakeup.set()
 
-    def reschedule(self) -> None:
-        """A node changed state (any thread): look at once, supervise every node, recompute
-        its deadlines and NEXC."""
-        self._general = True
+    def reschedule(self, handler: NodeHandler | None = None) -> None:
+        """A node changed state (any thread): look at once, supervise ``handler`` (None:
+        every node), recompute its deadlines and NEXC.
+
+        Only the changed node: a boot of 127 nodes changes states some 250-400 times, and
+        supervising every node each time was a quadratic 127 deadlines per change (issue 22).
+        """
+        if handler is None:
+            self._general = True
+        else:
+            with self._due_lock:
+                self._changed.add(handler)
         self._wakeup.set()
 
     def notice_host(self) -> bool:
@@ -396,9 +409,10 @@ class Master:
     def _look(self, now: float, general: bool) -> float:
         """One look: what is due now, and when the next look is due (inf: on a wake only).
 
-        ``general``: a node changed state since the last look, so every node is supervised
-        now and their deadlines and NEXC computed again; else only when the earliest of
-        those deadlines has come.
+        ``general``: the network changed since the last look (a start, a new node set), so
+        every node is supervised now and their deadlines and NEXC computed again, as when
+        the earliest deadline came; else only the nodes that changed state
+        (``reschedule(handler)``).
         """
         return min(self._check_link(now), self._look_at_network(now, general))
 
@@ -421,15 +435,40 @@ class Master:
         nmt.follow_host()
         due = self.sdo.check(now)
         if not nmt.follow(now):
+            self._general |= general  # halted: every node again once it runs (changed wait)
             return due
-        if general or now >= self._supervise_due:
-            nodes = list(self.nodes.values())
-            for handler in nodes:
-                handler.tick(now)
-            nmt.update_nexc()
-            self._supervise_due = min((h.next_due() for h in nodes), default=math.inf)
-        outputs = self._follow_outputs(self.image.snapshot_outputs(), now, general)
+        with self._due_lock:
+            changed, self._changed = self._changed, set()
+        if general or changed or now >= self._supervise_due:
+            self._supervise(now, general, changed)
+        outputs = self._follow_outputs(self.image.snapshot_outputs(), now,
+                                       general or bool(changed))
         return min(due, self._supervise_due, outputs, nmt.heartbeat(now))
+
+    def _supervise(self, now: float, general: bool, changed: set[NodeHandler]) -> None:
+        """Tick every node when ``general`` or when the earliest deadline came, else only the
+        ``changed`` ones still configured; then their deadlines and NEXC anew.
+
+        A deadline that came ticks every node, as before: frames push the others' deadlines
+        back without a word (``NodeHandler.next_due``), and asking all of them at once
+        keeps an idle network's wakes at one per real deadline, not one per stale one.
+        """
+        nodes = self.nodes
+        every = general or now >= self._supervise_due
+        handlers = list(nodes.values()) if every else sorted(
+            (h for h in changed if nodes.get(h.address) is h), key=lambda h: h.address)
+        for handler in handlers:
+            handler.tick(now)
+        self.nmt.update_nexc()
+        if every:
+            self._dues = {h: h.next_due() for h in handlers}
+        else:
+            for handler in changed:
+                if nodes.get(handler.address) is handler:
+                    self._dues[handler] = handler.next_due()
+                else:
+                    self._dues.pop(handler, None)
+        self._supervise_due = min(self._dues.values(), default=math.inf)
 
     def _sync_active(self) -> bool:
         """SYNC goes out while the network exchanges data and the controller is on the bus

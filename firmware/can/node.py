@@ -3,7 +3,7 @@
 The seed calls them node handlers: "for every node station one state machine
 is implemented" (seed 5.2). The handler holds that state machine and the node's
 diagnosis; the services it composes each own their frames and their state: the
-boot-up (``boot``, in a worker thread, since it waits on SDO answers), error control
+boot-up (``boot``, driven by the node's answers in the bus thread), error control
 (``supervision``, from the master's thread), EMCY (``emcy``) and the PDOs (``pdo``).
 They report back an Err_Event; only the handler changes the node's state and tells
 the network (``Network``, ``NodeEvents``), which the master implements. The master's
@@ -28,11 +28,11 @@ from dpm.com import NodeDiagnosis as Diagnosis
 from dpm.com import NodeStatus
 from dpm.commands import NMT_STOP
 from dpm.errors import NodeEvent, err_event_text
-from firmware.can.boot import BootFailure, BootLink, BootSequence
+from firmware.can.boot import BootLink, BootSequence, BootSlots
 from firmware.can.bus import CanBus
 from firmware.can.emcy import EmcyConsumer
 from firmware.can.pdo import NodePdos, PdoLink
-from firmware.can.sdo import SdoChannels
+from firmware.can.sdo import SdoChannel, SdoChannels
 from firmware.can.supervision import ErrorControl
 
 log = logging.getLogger(__name__)
@@ -72,13 +72,17 @@ class Network(BootLink, PdoLink, Protocol):
     def executor(self) -> Executor: ...
 
     @property
+    def boot_slots(self) -> BootSlots: ...
+
+    @property
     def auto_clear(self) -> bool: ...
 
     @property
     def sdo(self) -> SdoChannels: ...
 
-    def reschedule(self) -> None:
-        """A node's state changed: the master supervises every node again at once."""
+    def reschedule(self, handler: NodeHandler | None = None) -> None:
+        """``handler``'s state changed (None: the network's): the master supervises it
+        again at once."""
 
 
 class NodeEvents(Protocol):
@@ -164,7 +168,7 @@ class NodeHandler:
     # --- boot-up ------------------------------------------------------------------------------
 
     def start_boot(self, reset_sent: bool = False) -> None:
-        """Begin (or begin again) the boot sequence in a worker thread.
+        """Begin (or begin again) the boot sequence, driven by the node's answers.
 
         ``reset_sent``: the host resets the node itself (COM_NMT_Module_Protocol);
         the sequence then waits for that boot-up instead of resetting it twice,
@@ -178,43 +182,67 @@ class NodeHandler:
         self.operational_expected = True
         self._host_started_at = None
         self.events.set_node_state(self.address, False)
-        self.network.executor.submit(self._boot, self._generation, reset_sent)
-        self.network.reschedule()
+        generation = self._generation
+        self.network.boot_slots.take(lambda: self._take_channel(generation, reset_sent))
+        self.network.reschedule(self)
 
-    def _boot(self, generation: int, reset_sent: bool) -> None:
-        """The boot-up in its worker thread, which nobody joins.
+    def _take_channel(self, generation: int, reset_sent: bool) -> bool:
+        """In a boot slot: begin the boot-up with the node's SDO channel; False when a newer
+        start of the node came while this one waited for the slot."""
+        if generation != self._generation:
+            return False
+        channel = self.network.sdo.channel(self.address)
+        if channel.lock.acquire(blocking=False):
+            self._begin_boot(generation, channel, reset_sent)
+        else:
+            # A host transfer, the gateway or a replaced boot-up holds the node's SDO
+            # channel: a worker waits for it, as the seed's node handler waits.
+            self.network.executor.submit(self._boot_when_free, generation, channel,
+                                         reset_sent)
+        return True
 
-        The executor would keep any exception in a future nobody reads, leaving
-        the node in BOOTING for good and the host without an Err_Event; so an
-        unforeseen one fails the node (34, no response during its configuration)
-        and is logged. Not while the card powers off: a boot-up cut short then
-        (its bus shut, its image gone) is no error of the node.
+    def _boot_when_free(self, generation: int, channel: SdoChannel, reset_sent: bool) -> None:
+        """In a worker thread: take the channel, then boot, unless a newer start of the node
+        came meanwhile. Without that check, a host toggling NOTREADY queued boot after stale
+        boot (up to 3 s each), and a new configuration waited behind all of them."""
+        channel.lock.acquire()
+        if generation != self._generation:
+            channel.lock.release()
+            self.network.boot_slots.free()
+            return
+        self._begin_boot(generation, channel, reset_sent)
+
+    def _begin_boot(self, generation: int, channel: SdoChannel, reset_sent: bool) -> None:
+        """Start the sequence with the channel taken; it gives the channel back when it ends.
+
+        An unforeseen exception fails the node (34, no response during its configuration)
+        and is logged, rather than leave it in BOOTING for good and the host without an
+        Err_Event. Not while the card powers off: a boot-up cut short then (its bus shut,
+        its image gone) is no error of the node.
         """
+        bus = self.network.bus
+        assert bus is not None
+
+        def release() -> None:
+            channel.lock.release()
+            self.network.boot_slots.free()
+
+        def done(event: int | None) -> None:
+            if event is None:
+                if generation == self._generation and self.state is State.BOOTING:
+                    self._operate()
+            else:
+                self._fail_boot(generation, event)
+
         try:
-            self._run_boot(generation, reset_sent)
+            self.boot.start(bus, self.network.sdo, channel.sdo.RESPONSE_TIMEOUT, reset_sent,
+                            release, lambda: generation == self._generation, done)
         except Exception:
+            self.boot.stop()
             if self.network.closing:
                 return
             log.exception("node %d: boot-up failed unexpectedly", self.address)
             self._fail_boot(generation, NodeEvent.NO_RESPONSE)
-
-    def _run_boot(self, generation: int, reset_sent: bool) -> None:
-        try:
-            channel = self.network.sdo.channel(self.address)
-            with channel.lock:
-                if generation != self._generation:
-                    # A newer start of the node came while this one waited for the channel:
-                    # that one boots it. Without this, a host toggling NOTREADY queued boot
-                    # after stale boot (up to 3 s each), and a new configuration waited
-                    # behind all of them.
-                    return
-                self.boot.run(channel.sdo, reset_sent)
-        except BootFailure as failure:
-            self._fail_boot(generation, failure.event)
-            return
-        if generation != self._generation or self.state is not State.BOOTING:
-            return
-        self._operate()
 
     def _operate(self) -> None:
         """The boot-up succeeded: the node exchanges data from now on (Nd_state)."""
@@ -246,7 +274,7 @@ class NodeHandler:
             self.send_outputs(force=True)
             if not self.awaiting_start:  # else when the start goes out (``start_sent``)
                 self.pdos.request_first(now)
-        self.network.reschedule()  # supervision and remote requests from now on
+        self.network.reschedule(self)  # supervision and remote requests from now on
 
     def start_sent(self, now: float, by_host: bool) -> bool:
         """A Start_Node went to the node (the global one, or the host's): from now on it must
@@ -274,7 +302,7 @@ class NodeHandler:
         if not self.params.bitConfigNdState & ConfigNdState.TXRXPDO:
             self.send_outputs(force=True)  # the first RX-PDO, now that the node takes it
             self.pdos.request_first(now)  # and the first TX-PDO
-        self.network.reschedule()  # in data exchange now: NEXC, remote requests
+        self.network.reschedule(self)  # in data exchange now: NEXC, remote requests
         return not self.control.supervised
 
     def _fail_boot(self, generation: int, event: int) -> None:
@@ -294,12 +322,12 @@ class NodeHandler:
             self.diag.status |= NodeStatus.GUARD_ACTIVE
         else:
             self.diag.status &= ~NodeStatus.GUARD_ACTIVE
-        self.network.reschedule()  # new deadlines
+        self.network.reschedule(self)  # new deadlines
 
     def expect_operational(self, on: bool) -> None:
         """The host started (True) or stopped or pre-operated (False) the node with NMT."""
         self.operational_expected = on
-        self.network.reschedule()  # in data exchange or not: NEXC, remote requests
+        self.network.reschedule(self)  # in data exchange or not: NEXC, remote requests
 
     def fail(self, event: int) -> None:
         """The node left data exchange: report it; retry or let auto-clear stop all."""
@@ -315,7 +343,7 @@ class NodeHandler:
         self._retry_at = time.monotonic() + RETRY_DELAY
         self.note_diag()  # before Err_Event: a host that sees the event sees Nd_diag too
         self.events.node_failed(self, event)
-        self.network.reschedule()  # the retry's deadline, a global start
+        self.network.reschedule(self)  # the retry's deadline, a global start
 
     def note_diag(self) -> None:
         """Nd_diag: set when Nodestatus_1 or Actual_Error differ from what the host last
@@ -332,7 +360,7 @@ class NodeHandler:
         self.state = State.DISCONNECTED
         self.events.set_node_state(self.address, False)
         self.network.send_nmt(NMT_STOP, self.address)
-        self.network.reschedule()
+        self.network.reschedule(self)
 
     def idle(self) -> None:
         """The network stopped (host not ready, watchdog, auto-clear)."""
@@ -341,7 +369,7 @@ class NodeHandler:
             self.state = State.WAITING
             self.connected = False
             self.events.set_node_state(self.address, False)
-            self.network.reschedule()
+            self.network.reschedule(self)
 
     def tick(self, now: float) -> None:
         """Supervision and retries; called by the master's thread when ``next_due`` has come

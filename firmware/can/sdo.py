@@ -1,17 +1,19 @@
 """SDO of the master: one channel per node, and host transfers driven by frames.
 
 Each node has one SDO channel (``SdoChannels``): canopen's blocking client, which the
-boot-up and the error-control commands use from worker threads, and a lock, which a host
-transfer takes as well, so the node's one SDO server sees one transfer at a time.
+error-control commands of the 309 gateway use from worker threads, and a lock, which a
+host transfer and a boot-up take as well, so the node's one SDO server sees one transfer
+at a time.
 
 Host transfers are driven by frames, not by a waiting thread (``HostSdoTransfer``):
 canopen's SdoClient blocks its caller until each answer arrives, so a host request
 would need a worker thread, and the hand-over to it costs more than the transfer
 itself. This client sends a request from the caller and advances on each answer in
 the bus thread, so a host's COM_SDO_Up_Download is answered from the frame that
-completes it. It speaks CiA 301 expedited and segmented transfers (the card's boot-up
-keeps canopen's client; the seed's card has no block transfers). Time-outs are checked
-by the master's thread, which wakes for the earliest of them.
+completes it. The boot-up (``firmware.can.boot``) drives its steps with the same client.
+It speaks CiA 301 expedited and segmented transfers (the seed's card has no block
+transfers). Time-outs are checked by the master's thread, which wakes for the earliest
+of them (``SdoChannels.watch``).
 """
 
 from __future__ import annotations
@@ -22,6 +24,7 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Protocol
 
 import can
 from canopen.objectdictionary import ObjectDictionary
@@ -41,11 +44,14 @@ _INITIATE = struct.Struct("<BHB")
 
 @dataclass
 class SdoResult:
-    """``data`` after a good transfer, ``abort`` the code of an abort, or ``timed_out``."""
+    """``data`` after a good transfer, ``abort`` the code of an abort, or ``timed_out``;
+    ``failed`` says what was wrong when the client aborted an answer it could not take
+    (the boot-up reports that as an unknown SDO response, not as the node's refusal)."""
 
     data: bytes = b""
     abort: int | None = None
     timed_out: bool = False
+    failed: str = ""
 
 
 class HostSdoTransfer:
@@ -144,7 +150,8 @@ class HostSdoTransfer:
             return
         if self._sent and command & 0xE0 == 0x00:  # upload segment response
             if (command >> 4) & 1 != self._toggle:
-                self._abort(ABORT_TOGGLE, SdoResult(abort=ABORT_TOGGLE))
+                self._abort(ABORT_TOGGLE, SdoResult(abort=ABORT_TOGGLE,
+                                                    failed="Toggle bit mismatch"))
                 return
             self._received += frame[1 : 8 - ((command >> 1) & 0x07)]
             if command & 0x01:
@@ -153,18 +160,21 @@ class HostSdoTransfer:
             self._toggle ^= 1
             self._send(bytes([0x60 | self._toggle << 4]) + bytes(7))
             return
-        self._abort(ABORT_UNKNOWN_COMMAND, SdoResult(abort=ABORT_UNKNOWN_COMMAND))
+        self._abort(ABORT_UNKNOWN_COMMAND, SdoResult(abort=ABORT_UNKNOWN_COMMAND,
+                                                     failed=f"Unexpected response 0x{command:02X}"))
 
     def _download(self, command: int) -> None:
         assert self.data is not None
         initiated = command == 0x60 and not self._initiated
         segment_done = command & 0xEF == 0x20 and self._initiated
         if not (initiated or segment_done):
-            self._abort(ABORT_UNKNOWN_COMMAND, SdoResult(abort=ABORT_UNKNOWN_COMMAND))
+            self._abort(ABORT_UNKNOWN_COMMAND, SdoResult(
+                abort=ABORT_UNKNOWN_COMMAND, failed=f"Unexpected response 0x{command:02X}"))
             return
         if segment_done:
             if (command >> 4) & 1 != self._toggle:
-                self._abort(ABORT_TOGGLE, SdoResult(abort=ABORT_TOGGLE))
+                self._abort(ABORT_TOGGLE, SdoResult(abort=ABORT_TOGGLE,
+                                                    failed="Toggle bit mismatch"))
                 return
             self._toggle ^= 1
             if self._sent >= len(self.data):
@@ -179,6 +189,20 @@ class HostSdoTransfer:
         last = 1 if self._sent >= len(self.data) else 0
         header = (self._toggle << 4) | ((7 - len(chunk)) << 1) | last
         self._send(bytes([header]) + chunk.ljust(7, b"\0"))
+
+
+class Deadline(Protocol):
+    """What the master's thread times out (``SdoChannels.watch``): an SDO transfer, or a
+    boot-up's wait for the boot-up message."""
+
+    @property
+    def finished(self) -> bool: ...
+
+    @property
+    def deadline(self) -> float: ...
+
+    def check(self, now: float) -> float:
+        """Give up when the deadline has come; when to look again (inf: over)."""
 
 
 @dataclass
@@ -200,7 +224,12 @@ class SdoChannels:
         self._wake_at = wake_at
         self._bus: CanBus | None = None
         self._channels: dict[int, SdoChannel] = {}
-        self._host_transfers: list[HostSdoTransfer] = []
+        self._watched: set[Deadline] = set()
+        """The transfers and waits under way whose time-outs the master's thread checks."""
+        self._watched_lock = threading.Lock()
+        self._next_check = math.inf
+        """No watched deadline comes before this: a look before it checks none of them (a
+        boot of 127 nodes has as many under way, and the master looks at every change)."""
         self.timeout = DEFAULT_SDO_TIMEOUT
         """Seconds a new channel waits for an answer (COM_Set_SDO_Timeout node 0)."""
 
@@ -231,12 +260,39 @@ class SdoChannels:
             self.channel(node).sdo.RESPONSE_TIMEOUT = seconds
 
     def start_host(self, transfer: HostSdoTransfer) -> None:
-        """A host SDO transfer; the master's thread watches its time-out (``check``)."""
-        self._host_transfers = [t for t in self._host_transfers if not t.finished] + [transfer]
+        """An SDO transfer of the host or of a boot-up; the master's thread watches its
+        time-out (``check``)."""
         transfer.start()
-        self._wake_at(transfer.deadline)
+        self.watch(transfer)
+
+    def watch(self, item: Deadline) -> None:
+        """Time ``item`` out from the master's thread when its deadline comes."""
+        deadline = item.deadline
+        with self._watched_lock:
+            self._watched.add(item)
+            wake = deadline < self._next_check
+            self._next_check = min(self._next_check, deadline)
+        if wake:
+            self._wake_at(deadline)
 
     def check(self, now: float) -> float:
-        """Time out the host transfers whose time has come; returns when the next one may
-        (inf: none runs)."""
-        return min((t.check(now) for t in self._host_transfers), default=math.inf)
+        """Time out what is watched whose time has come; returns when the next may (inf:
+        nothing is watched). A request's deadline moves later with each request, so the
+        earliest one noted may be stale: the look it causes notes the true one."""
+        with self._watched_lock:
+            if now < self._next_check:
+                return self._next_check
+            items = set(self._watched)
+        due = math.inf
+        over = set()
+        for item in items:
+            when = item.check(now)
+            if math.isinf(when):
+                over.add(item)
+            due = min(due, when)
+        with self._watched_lock:
+            self._watched.difference_update(over)
+            # one watched meanwhile noted its own deadline, which may come first
+            self._next_check = due = min(
+                (due, *(i.deadline for i in self._watched - items)))
+        return due
