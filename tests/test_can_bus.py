@@ -72,3 +72,40 @@ def test_host_transfers_do_not_pile_up_in_canopens_client(
     assert client.responses.qsize() == 0
     # canopen's client still gets its own answers once the host transfers are over.
     assert int.from_bytes(client.upload(0x1000, 0), "little") == GENERIC_DEVICE_TYPE
+
+
+def test_an_answer_for_another_object_is_refused() -> None:
+    """A node that answers 1000h with 1018h's value (a stale or crossed answer) must not
+    hand that value to the host or the boot-up as 1000h's: the client aborts (08000000h,
+    as a general error) and says which object came back, as canopen's client refuses it."""
+    channel = f"test-can-bus-{uuid.uuid4().hex}"
+    node_bus = can.Bus(interface="virtual", channel=channel)
+    bus = CanBus("virtual", channel)
+    aborts: list[bytes] = []
+    answered = threading.Event()
+
+    def crossed_node() -> None:
+        while not answered.is_set():
+            msg = node_bus.recv(0.05)
+            if msg is None or msg.arbitration_id != 0x601:
+                continue
+            if msg.data[0] == 0x80:
+                aborts.append(bytes(msg.data))
+                answered.set()
+            else:  # an expedited 4-byte answer, for 1018h sub 1
+                node_bus.send(can.Message(arbitration_id=0x581, is_extended_id=False,
+                                          data=bytes([0x43, 0x18, 0x10, 1, 1, 0, 0, 0])))
+
+    node = threading.Thread(target=crossed_node, daemon=True)
+    node.start()
+    try:
+        result = host_upload(bus, 0x1000)
+        assert result.abort == 0x08000000 and result.data == b""
+        assert "1018h" in result.failed
+        assert answered.wait(5), "the client sent no abort to the node"
+        assert aborts == [bytes([0x80, 0x00, 0x10, 0, 0, 0, 0, 8])]
+    finally:
+        answered.set()
+        node.join(5)
+        bus.shutdown()
+        node_bus.shutdown()

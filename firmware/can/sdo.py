@@ -39,6 +39,7 @@ DEFAULT_SDO_TIMEOUT = 0.5
 ABORT_TIMEOUT = 0x05040000
 ABORT_UNKNOWN_COMMAND = 0x05040001
 ABORT_TOGGLE = 0x05030000
+ABORT_GENERAL = 0x08000000
 _INITIATE = struct.Struct("<BHB")
 
 
@@ -137,10 +138,23 @@ class HostSdoTransfer:
         if self.data is None:
             self._upload(command, frame)
         else:
-            self._download(command)
+            self._download(command, frame)
+
+    def _other_object(self, frame: bytes) -> bool:
+        """An initiate response names the object it answers; one for another object is
+        no answer to this request (canopen's client refuses it too): abort, unknown."""
+        index, subindex = struct.unpack_from("<HB", frame, 1)
+        if (index, subindex) == (self.index, self.subindex):
+            return False
+        self._abort(ABORT_GENERAL, SdoResult(abort=ABORT_GENERAL, failed=(
+            f"answer for {index:04X}h sub {subindex} instead of "
+            f"{self.index:04X}h sub {self.subindex}")))
+        return True
 
     def _upload(self, command: int, frame: bytes) -> None:
         if self._sent == 0 and command & 0xE0 == 0x40:  # initiate upload response
+            if self._other_object(frame):
+                return
             self._sent = 1
             if command & 0x02:  # expedited
                 size = 4 - ((command >> 2) & 0x03) if command & 0x01 else 4
@@ -163,9 +177,11 @@ class HostSdoTransfer:
         self._abort(ABORT_UNKNOWN_COMMAND, SdoResult(abort=ABORT_UNKNOWN_COMMAND,
                                                      failed=f"Unexpected response 0x{command:02X}"))
 
-    def _download(self, command: int) -> None:
+    def _download(self, command: int, frame: bytes) -> None:
         assert self.data is not None
         initiated = command == 0x60 and not self._initiated
+        if initiated and self._other_object(frame):
+            return
         segment_done = command & 0xEF == 0x20 and self._initiated
         if not (initiated or segment_done):
             self._abort(ABORT_UNKNOWN_COMMAND, SdoResult(
