@@ -24,11 +24,14 @@ $(STAMP): pyproject.toml
 # mypy in it; libcif; libcifdev.so. The venv waits mostly on downloads, the builds on the
 # compiler: on a fresh clone that takes about a minute off. docs/testing.md says which
 # test runs where, and how long each part takes.
-TEST_WORKERS ?= 2
+# Three workers on two cores: about half of a test's time is waiting on the card's timers and
+# process starts, not CPU, so a third worker fills the other half (7.5 min for the parallel
+# pass where two took 8.5-10, docs/testing.md).
+TEST_WORKERS ?= 3
 
 test:
 	$(MAKE) --no-print-directory -j3 --output-sync=target lint build-libcif build-legacy
-	$(BIN)/python -m pytest -q -n $(TEST_WORKERS) --dist worksteal --durations=10 \
+	$(BIN)/python -m pytest -q -n $(TEST_WORKERS) --dist worksteal --durations=30 \
 		-m 'not vcan_vm and not serial'
 	$(BIN)/python -m pytest -q -m 'serial and not vcan_vm' $$($(BIN)/python -m tests.selection serial)
 

@@ -709,6 +709,34 @@ def test_switching_error_control_at_run_time(make_net: Callable[..., Net]) -> No
     assert after.operating() == [1] and after.bErr_event == 0 and 1 not in after.diagnostic()
 
 
+def test_a_node_lost_after_a_switch_to_guarding_comes_back_guarded(
+        make_net: Callable[..., Net]) -> None:
+    """The boot-up of a lost node writes the error control in force, not the configured one.
+
+    Configured with a heartbeat consumer (and the node's 1017h in its SDO list), switched to
+    guarding at run time, then reset: the card boots it again. Writing the configured
+    values (a consumer time as 100Ch, factor 0, then the SDO list's 1017h) left a node that
+    produced heartbeats and answered no guarding, lost again at every retry (Err_Event 30).
+    """
+    net = make_net("[[node]]\nid = 1\n")
+    net.configure()
+    net.wait_operating([1])
+    assert net.send(112, bytes([1, 0, 0, 0])).f == 0  # heartbeat consumer off
+    assert net.send(111, bytes([1, 1]) + struct.pack("<H", 500) + bytes([6])).f == 0
+    watch = net.watch()
+    since = watch.mark()
+    assert net.send(96, bytes([129, 1])).f == 0  # reset node 1: the card boots it again
+    watch.wait_for(frame(0x701, b"\x00"), 1, "the node's boot-up", since=since)
+    since = watch.mark()
+    watch.wait_for(frame(0x701, bytes([0x85])), 2,
+                   "two guarding answers in OPERATIONAL after the new boot-up", since=since)
+    assert net.sdo(1, 0x100C, 0).data[8:10] == struct.pack("<H", 500)
+    assert net.sdo(1, 0x100D, 0).data[8:9] == bytes([6])
+    assert net.sdo(1, 0x1017, 0).data[8:10] == bytes(2)  # its heartbeat stays off
+    wait_until(lambda: net.diag().operating() == [1] and net.diag().bErr_event == 0, 10,
+               "node 1 in data exchange, guarded")
+
+
 def test_emcy_consumer_off_ignores_emergencies(make_net: Callable[..., Net]) -> None:
     net = make_net("[[node]]\nid = 5\n[node.sim]\n"
                    "emcy_burst = { after_s = 1.5, count = 2, code = 0x2310 }\n")

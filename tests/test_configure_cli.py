@@ -68,9 +68,12 @@ def test_configure_does_not_call_a_node_that_refuses_operational_configured(
     """The card sets a node's Nd_state bit once it has started it; only the node's next
     heartbeat says whether it really runs. A node that stays out of OPERATIONAL (as a
     CANopenNode device does while its error register is set) is Err_Event 31 a moment
-    later: configure must report that, not a network in data exchange."""
+    later: configure must report that, not a network in data exchange. The consumer time is
+    1 s (the node's heartbeat every 0.5 s), not shorter: this test is not about the period,
+    and a 200 ms one was missed by a `cifemu sim` starved on a loaded machine (Err_Event 30
+    before the 31 looked for, at three pytest-xdist workers)."""
     network = tmp_path / "net.toml"
-    network.write_text("[[node]]\nid = 1\nheartbeat_ms = 200\n"
+    network.write_text("[[node]]\nid = 1\nheartbeat_ms = 1000\n"
                        "[node.sim]\nleave_operational_after_s = 0.0\n")
     card = start_card(tmp_path, 0, "--simulate", str(network))
     try:

@@ -179,17 +179,27 @@ class _Run:
             self.release()
 
 
+class InForce(Protocol):
+    """The node's error control as it is now (``ErrorControl``): the configured one until
+    the host switches it at run time (COM_Set_Guarding, COM_Set_Heartbeat_Consumer)."""
+
+    heartbeat: bool
+    guard_time: int
+    life_time_factor: int
+
+
 class BootSequence:
     """The boot steps of one node, as its bitConfigNdState leaves them to the card."""
 
     def __init__(self, address: int, params: NodeParameterSet, diag: NodeDiagnosis,
-                 link: BootLink, heartbeat: Callable[[], bool]) -> None:
+                 link: BootLink, control: InForce) -> None:
         self.address = address
         self.params = params
         self.diag = diag
         self.link = link
-        self._heartbeat = heartbeat
-        """Whether the node is supervised by heartbeat now (the host may switch it)."""
+        self._control = control
+        """[ours] The error control the GUARD step writes: the one in force, so a node lost
+        after a run-time switch comes back supervised as the host asked, not as configured."""
         self._bootup = threading.Event()
         self._reset_at = 0.0
         """Wall-clock time (as frames are stamped) of the last NMT reset the card sent it."""
@@ -366,20 +376,22 @@ class BootSequence:
             if params.usAddTypeInfo and params.usAddTypeInfo != self.diag.add_info:
                 self.diag.status |= NodeStatus.PRM_FAULT
                 raise BootFailure(NodeEvent.DEVICE_TYPE_MISMATCH)
+        control = self._control
         if not skip & ConfigNdState.GUARD:
-            if self._heartbeat():
-                if params.usGuardTime:
+            if control.heartbeat:
+                if control.guard_time:
                     # [ours] the node produces at half the master's consumer time.
                     yield from self._write_producer_time(
-                        struct.pack("<H", max(1, params.usGuardTime // 2)))
+                        struct.pack("<H", max(1, control.guard_time // 2)))
             else:
-                if params.usGuardTime:
+                if control.guard_time:
                     # CiA 301: a node that produces heartbeats does not answer guarding;
                     # switch its producer off (a node without 1017h may refuse: fine).
                     with contextlib.suppress(SdoAbortedError):
                         yield Sdo(HEARTBEAT_PRODUCER, 0, b"\0\0")
-                yield from self._write_guarding(0x100C, struct.pack("<H", params.usGuardTime))
-                yield from self._write_guarding(0x100D, struct.pack("<B", params.bLifeTimeFactor))
+                yield from self._write_guarding(0x100C, struct.pack("<H", control.guard_time))
+                yield from self._write_guarding(
+                    0x100D, struct.pack("<B", control.life_time_factor))
                 yield from self._write_cob_id(0x100E, params.usCobIDGuard,
                                               ERROR_CONTROL_BASE + self.address)
         if not skip & ConfigNdState.SYNC:
@@ -390,6 +402,12 @@ class BootSequence:
             for entry in params.atSdoCfgData:
                 value = bytes(entry.abSdoValue[: entry.bLength])
                 if (entry.usIndex, entry.bSubindex) == (HEARTBEAT_PRODUCER, 0):
+                    if control.guard_time and not control.heartbeat:
+                        # [ours] guarded: the GUARD step switched its heartbeat off, and a
+                        # node that produced one again would answer no guarding (CiA 301).
+                        log.info("node %d: SDO list's 1017h left out: the node is guarded",
+                                 self.address)
+                        continue
                     yield from self._write_producer_time(value)
                 else:
                     yield Sdo(entry.usIndex, entry.bSubindex, value)
@@ -429,7 +447,7 @@ class BootSequence:
         try:
             yield Sdo(HEARTBEAT_PRODUCER, 0, value)
         except SdoAbortedError as exc:
-            if not (self._heartbeat() and self.params.usGuardTime):
+            if not (self._control.heartbeat and self._control.guard_time):
                 raise
             log.info("node %d: 1017h refused (0x%08X); it produces at its own rate",
                      self.address, exc.code)
@@ -447,7 +465,7 @@ class BootSequence:
         try:
             yield Sdo(index, 0, value)
         except SdoAbortedError as exc:
-            if self.params.usGuardTime:
+            if self._control.guard_time:
                 raise
             log.info("node %d: %04Xh refused (0x%08X); it is not guarded",
                      self.address, index, exc.code)

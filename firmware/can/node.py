@@ -137,8 +137,7 @@ class NodeHandler:
         self._generation = 0
         """Bumped on every (re)boot so a stale boot thread gives up."""
         self.control = ErrorControl(params, network.bus_send)
-        self.boot = BootSequence(address, params, self.diag, network,
-                                 lambda: self.control.heartbeat)
+        self.boot = BootSequence(address, params, self.diag, network, self.control)
         self.emcy = EmcyConsumer(self.diag, params.usCobIDEmcy,
                                  lambda: events.set_node_diag(address, True))
         self.pdos = NodePdos(network, params, lambda: self.state is State.OPERATING)
