@@ -36,8 +36,11 @@ from dpm.doorbell import (
     DEVICE_QUIET_AFTER,
     HostBell,
 )
+from dpm.commands import COM_SHARED_MEMORY
+from dpm.errors import Drv
 from dpm.flags import DevFlag, HostFlag
 from dpm.layout import DEV_FLAGS, HOST_FLAGS
+from dpm.message import Message, Task, Tdt, TelegramHeader, Tfc
 from dpm.task2 import ComPlcParameter, PlcMode
 from host_api import driver as d
 from host_api.board import Board
@@ -157,6 +160,49 @@ def test_a_host_that_never_rings_is_served_after_a_long_pause(card: Card) -> Non
         assert follow_up[QUIET_TRIALS // 2] <= DEVICE_POLL_IDLE + SCHEDULING_SLACK_S, follow_up
     finally:
         image.close()
+
+
+PACED_REQUESTS = 40
+REQUEST_PERIOD_S = 0.02
+"""A host that asks something every 20 ms: a control loop's period, long beside a request."""
+MAX_LOOP_WAKEUPS_PER_REQUEST = 3.0
+"""The device loop's sleeps per request of a host that rings: its ring (1), now and then a
+wake-up from another thread or the quiet poll. When every ring started the 1 ms poll for
+50 ms, each request cost about 20 here (8-12 in the one-CPU VM, whose requests are slower)."""
+
+
+def _ask_mailbox(board: Board) -> None:
+    answer = board.transact(Message(rx=Task.PLC, tx=Task.USER, b=COM_SHARED_MEMORY,
+                                    data=TelegramHeader(data_area=1, data_cnt=8,
+                                                        data_type=Tdt.UINT8,
+                                                        function=Tfc.READ).encode()))
+    assert answer.f == 0, answer
+
+
+def _ask_exchange_io(board: Board) -> None:
+    # the buffered host-controlled handshake of a card without a network: no COM (-43)
+    code, _ = d.DevExchangeIO(board.number, 0, b"\x01", 0, 8, 1000)
+    assert code in (Drv.DRV_NO_ERROR, Drv.DRV_DEV_NO_COM_FLAG), code
+
+
+@pytest.mark.parametrize("ask", [_ask_mailbox, _ask_exchange_io], ids=["mailbox", "exchange_io"])
+def test_a_ringing_host_wakes_the_device_loop_once_per_request(
+        tmp_path: Path, ask: Callable[[Board], None]) -> None:
+    """A host that rings is served by its ring alone: the device loop does not poll the image
+    every millisecond after it as it does for a host that never rings (issue 22)."""
+    running = start_card(tmp_path)
+    try:
+        with Board(0, tmp_path, timeout=1000) as board:
+            ask(board)  # the card learns this host; its first turns are behind it
+            pid = running.proc.pid
+            before = _threads(pid)[pid][1]
+            for _ in range(PACED_REQUESTS):
+                ask(board)
+                time.sleep(REQUEST_PERIOD_S)  # the host's period, not a wait on a condition
+            wakeups = (_threads(pid)[pid][1] - before) / PACED_REQUESTS
+    finally:
+        running.stop()
+    assert wakeups <= MAX_LOOP_WAKEUPS_PER_REQUEST, f"{wakeups:.1f} wake-ups per request"
 
 
 RINGS = 400
