@@ -42,9 +42,10 @@ DEVICE_QUIET_AFTER = 1.0
 DEVICE_POLL_QUIET = 0.25
 """[ours] The device's longest poll interval, reached ``DEVICE_QUIET_AFTER`` after a raw
 host's last change, and the one it keeps while no raw host is about: the latency a host that
-never rings sees for its first request after a long pause (docs/dpm.md 2). Each turn costs this machine about 0.2 ms of CPU, mostly the wake-up
-itself: 20 turns a second (``DEVICE_POLL_IDLE``) were 0.3-0.45 % of a core, most of an idle
-card's cost; 4 a second are under 0.1 %."""
+never rings sees for its first request after a long pause (docs/dpm.md 2). Each turn costs
+this machine about 0.2 ms of CPU, mostly the wake-up itself: 20 turns a second
+(``DEVICE_POLL_IDLE``) were 0.3-0.45 % of a core, most of an idle card's cost; 4 a second are
+under 0.1 %."""
 
 DEVICE_FAST_WINDOW = 0.05
 """Seconds after a raw host's activity (or the card's answer to it) during which the device

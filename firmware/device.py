@@ -9,12 +9,14 @@ Tasks that work in threads of their own (the CAN task) hand answers over with
 ``post``; their Task2State writes wake the loop, which shows them (STATECOM).
 
 The fallback poll (``AdaptivePoll``) serves a host that writes the flags without
-ringing: every millisecond while the flags move, backing off to 50 ms when idle and
-to 250 ms after a second without activity, so that a card nobody uses costs (almost)
-nothing (issue 22). After each turn the
+ringing: every millisecond while such a host is busy, backing off to 50 ms when it pauses
+and to 250 ms a second after its last change. A host that rings starts no poll: its ring
+is what wakes the loop, once per request (issue 22). After each turn the
 loop tells the CAN master's thread, which sleeps too, when the host changed what it
 follows: the outputs, the connection bits, its readiness (``Master.notice_host``);
-those count as activity for the poll, as a flag change does.
+a change no ring announced marks a ring-less host, as a flag change does. The CAN
+master's thread wakes the loop when it halts or clears the network
+(``can_state_changed``), which the loop shows as bCAN_State, RUN and COM.
 """
 
 from __future__ import annotations

@@ -29,14 +29,16 @@ from pathlib import Path
 import pytest
 
 from dbm_tools.network import load_network
+from dpm.commands import COM_SHARED_MEMORY
 from dpm.doorbell import (
     DEVICE_FAST_WINDOW,
     DEVICE_POLL_IDLE,
     DEVICE_POLL_QUIET,
     DEVICE_QUIET_AFTER,
+    POLL_INTERVAL,
+    AdaptivePoll,
     HostBell,
 )
-from dpm.commands import COM_SHARED_MEMORY
 from dpm.errors import Drv
 from dpm.flags import DevFlag, HostFlag
 from dpm.layout import DEV_FLAGS, HOST_FLAGS
@@ -203,6 +205,45 @@ def test_a_ringing_host_wakes_the_device_loop_once_per_request(
     finally:
         running.stop()
     assert wakeups <= MAX_LOOP_WAKEUPS_PER_REQUEST, f"{wakeups:.1f} wake-ups per request"
+
+
+def _turns_per_request(poll: AdaptivePoll, requests: int, period: float,
+                       rang: bool) -> float:
+    """The device loop's turns per request of a host that asks every ``period`` seconds,
+    ringing (``rang``) or not, on the poll's own clock: each request is one turn, and the
+    poll's time-outs between requests are turns too."""
+    now, turns = 100.0, 0
+    for _ in range(requests):
+        interval = poll.next_interval(now, host_rang=rang, host_wrote=True, card_wrote=True)
+        turns += 1
+        due = now + period
+        while now + interval < due:
+            now += interval
+            interval = poll.next_interval(now, host_rang=False, host_wrote=False)
+            turns += 1
+        now = due
+    return turns / requests
+
+
+def test_the_fallback_poll_runs_for_a_host_that_never_rings_only() -> None:
+    """A ringing host's requests cost one turn each, once the poll has backed off; a host
+    that never rings keeps the 1 ms poll between its steps, 20 ms apart."""
+    ringing = AdaptivePoll()
+    _turns_per_request(ringing, 20, REQUEST_PERIOD_S, rang=True)  # the start's short polls
+    assert _turns_per_request(ringing, 50, REQUEST_PERIOD_S, rang=True) <= 1.1
+    assert _turns_per_request(AdaptivePoll(), 50, REQUEST_PERIOD_S, rang=False) >= 10
+
+
+def test_a_change_seen_before_its_ring_is_taken_back() -> None:
+    """A turn woken by something else (another thread) sees a ringing host's change before
+    its ring arrives: the poll starts as for a ring-less host, and the ring that follows with
+    nothing new puts back the interval before it, so the next requests cost no polls."""
+    poll = AdaptivePoll()
+    _turns_per_request(poll, 20, REQUEST_PERIOD_S, rang=True)
+    backed_off = poll.next_interval(200.0, host_rang=True, host_wrote=True)
+    assert poll.next_interval(200.02, host_rang=False, host_wrote=True) == POLL_INTERVAL
+    assert poll.next_interval(200.0201, host_rang=True, host_wrote=False) == backed_off
+    assert _turns_per_request(poll, 20, REQUEST_PERIOD_S, rang=True) <= 1.1
 
 
 RINGS = 400
