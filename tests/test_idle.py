@@ -4,7 +4,9 @@ The device loop used to wake every millisecond to poll the flags: 1,000 wake-ups
 second and 3-6 % of a core for a card nobody used. It now sleeps until a ring, a
 post from another thread or a due timer, with a fallback poll that backs off to
 ``DEVICE_POLL_IDLE`` and, after ``DEVICE_QUIET_AFTER`` without activity, to
-``DEVICE_POLL_QUIET`` (docs/dpm.md 2). The controller's receive thread sleeps until a frame
+``DEVICE_POLL_QUIET`` (docs/dpm.md 2); the 1 ms poll runs only while a host that never rings
+is busy, not after a ring, which woke the loop 15-18 times per request of a host asking
+every 20 ms. The controller's receive thread sleeps until a frame
 comes or power-off wakes it. So does the CAN master's thread, which used to
 wake every millisecond too: it wakes when the device loop saw the host change its
 outputs, and when a deadline of its own comes (supervision, inhibit times, time-outs).
