@@ -9,9 +9,10 @@ automatic abstract name, and the device learns it from the host's rings. A ring 
 both sides re-read the flags after every wake-up and also poll, so a lost ring
 (a full queue, a host that writes the image directly) costs at most one poll
 interval, never correctness. The device polls adaptively (``AdaptivePoll``): every
-millisecond while the flags move, backing off to ``DEVICE_POLL_IDLE`` when nothing
-happens and, after ``DEVICE_QUIET_AFTER`` without anything, to ``DEVICE_POLL_QUIET``, so an
-idle card sleeps instead of waking a thousand (or twenty) times a second.
+millisecond only while a host that writes without ringing is busy, backing off to
+``DEVICE_POLL_IDLE`` when it pauses and, ``DEVICE_QUIET_AFTER`` after its last change, to
+``DEVICE_POLL_QUIET``, so an idle card, and one whose hosts ring, sleeps instead of waking a
+thousand (or twenty) times a second.
 """
 
 from __future__ import annotations
@@ -29,24 +30,27 @@ POLL_INTERVAL = 0.001
 while the flags move (the 1 ms of docs/dpm.md 2)."""
 
 DEVICE_POLL_IDLE = 0.05
-"""[ours] The device's longest poll interval within ``DEVICE_QUIET_AFTER`` of the last
-activity: the latency a host that never rings sees for a request after a short pause
+"""[ours] The device's longest poll interval within ``DEVICE_QUIET_AFTER`` of the last change
+by a host that never rings: the latency such a host sees for a request after a short pause
 (docs/dpm.md 2)."""
 
 DEVICE_QUIET_AFTER = 1.0
-"""[ours] Seconds without activity after which the device polls at ``DEVICE_POLL_QUIET``: a
-raw host that pauses less than this between its exchanges keeps ``DEVICE_POLL_IDLE``."""
+"""[ours] Seconds after a ring-less host's last change after which the device polls at
+``DEVICE_POLL_QUIET``: a raw host that pauses less than this between its exchanges keeps
+``DEVICE_POLL_IDLE``, and the card's own answers keep its 1 ms poll."""
 
 DEVICE_POLL_QUIET = 0.25
-"""[ours] The device's longest poll interval, reached after ``DEVICE_QUIET_AFTER`` without
-activity: the latency a host that never rings sees for its first request after a long pause
-(docs/dpm.md 2). Each turn costs this machine about 0.2 ms of CPU, mostly the wake-up
-itself: 20 turns a second (``DEVICE_POLL_IDLE``) were 0.3-0.45 % of a core, most of an idle
-card's cost; 4 a second are under 0.1 %."""
+"""[ours] The device's longest poll interval, reached ``DEVICE_QUIET_AFTER`` after a raw
+host's last change, and the one it keeps while no raw host is about: the latency a host that
+never rings sees for its first request after a long pause (docs/dpm.md 2). Each turn costs
+this machine about 0.2 ms of CPU, mostly the wake-up itself: 20 turns a second
+(``DEVICE_POLL_IDLE``) were 0.3-0.45 % of a core, most of an idle card's cost; 4 a second are
+under 0.1 %."""
 
 DEVICE_FAST_WINDOW = 0.05
-"""Seconds after the last flag change during which the device keeps polling every
-``POLL_INTERVAL``: a raw host's next step of a handshake usually follows within that."""
+"""Seconds after a raw host's activity (or the card's answer to it) during which the device
+keeps polling every ``POLL_INTERVAL``: a raw host's next step of a handshake usually follows
+within that."""
 
 MAX_HOSTS = 64
 """Hosts the device keeps ringing; the longest silent one is dropped first."""
@@ -133,32 +137,53 @@ class _Endpoint:
 
 
 class AdaptivePoll:
-    """The device's fallback poll interval: short while things happen, long when idle.
+    """The device's fallback poll interval: short only while a host that never rings is busy.
 
-    A ring wakes the device at once whatever the interval; the poll only serves a host
-    that writes the flags without ringing. ``POLL_INTERVAL`` holds for
-    ``DEVICE_FAST_WINDOW`` after the last activity, then the interval doubles each quiet
-    turn up to ``DEVICE_POLL_IDLE``, and after ``DEVICE_QUIET_AFTER`` on up to
-    ``DEVICE_POLL_QUIET``. A raw host in the middle of its exchanges keeps the 1 ms
-    service, one that starts after a short pause waits at most ``DEVICE_POLL_IDLE``, and one
-    that starts after a long pause at most ``DEVICE_POLL_QUIET``; any activity snaps the
-    interval back to ``POLL_INTERVAL``.
+    A ring wakes the device at once whatever the interval; the poll only serves a host that
+    writes the image without ringing (a raw host). Such a host shows itself by changing what
+    hosts write (``host_wrote``) in a turn that no host's ring woke (``host_rang``). For
+    ``DEVICE_QUIET_AFTER`` after that, activity of any kind (its next steps, the card's own
+    answers) holds ``POLL_INTERVAL`` for ``DEVICE_FAST_WINDOW``, then the interval doubles
+    each quiet turn up to ``DEVICE_POLL_IDLE``; without a raw host about it doubles on up to
+    ``DEVICE_POLL_QUIET``. A host that rings never starts the 1 ms poll: its ring is what
+    wakes the card, and polling after it woke the card 8-12 times per request for nothing
+    (issue 22). A ringing host's change that a turn woken by something else saw before the
+    ring came looks like a raw host's; the ring that follows with nothing new takes that back.
+
+    ``waiting``: answers wait behind one the host has not acknowledged. A host acknowledges
+    without ringing unless the card's last ring asked for one, and the card may have queued
+    the next answer after that ring: the card looks every ``POLL_INTERVAL`` for
+    ``DEVICE_FAST_WINDOW`` from then on, then backs off, as for a raw host.
     """
 
     def __init__(self) -> None:
         self.interval = POLL_INTERVAL
         self._fast_until = 0.0
-        self._quiet_from = 0.0
+        self._raw_until = 0.0
+        self._waiting = False
+        self._undo: tuple[float, float, float] | None = None
+        """What a turn that took a change for a raw host's replaced: the ring that comes
+        next, with nothing new, puts it back."""
 
-    def next_interval(self, active: bool, now: float) -> float:
-        """The interval until the next poll, after a turn at ``now`` (``active``: it saw
-        a ring or a flag change)."""
-        if active:
+    def next_interval(self, now: float, *, host_rang: bool, host_wrote: bool,
+                      card_wrote: bool = False, waiting: bool = False) -> float:
+        """The interval until the next poll, after a turn at ``now``. ``host_rang``: a
+        host's ring woke it; ``host_wrote``: what hosts write changed since the last turn;
+        ``card_wrote``: the card changed its flags; ``waiting``: see the class."""
+        undo, self._undo = self._undo, None
+        if host_wrote and not host_rang:
+            self._undo = (self._raw_until, self._fast_until, self.interval)
+            self._raw_until = now + DEVICE_QUIET_AFTER
+        elif host_rang and not host_wrote and undo is not None:
+            self._raw_until, self._fast_until, self.interval = undo
+            return self.interval
+        began_waiting, self._waiting = waiting and not self._waiting, waiting
+        raw_about = now < self._raw_until
+        if began_waiting or (raw_about and (host_wrote or host_rang or card_wrote)):
             self._fast_until = now + DEVICE_FAST_WINDOW
-            self._quiet_from = now + DEVICE_QUIET_AFTER
             self.interval = POLL_INTERVAL
         elif now >= self._fast_until:
-            longest = DEVICE_POLL_QUIET if now >= self._quiet_from else DEVICE_POLL_IDLE
+            longest = DEVICE_POLL_IDLE if raw_about else DEVICE_POLL_QUIET
             self.interval = min(self.interval * 2, longest)
         return self.interval
 
@@ -182,6 +207,9 @@ class DeviceBell(_Endpoint):
         self.mailbox_wanted = False
         """A host rang that it waits for the device mailbox (``_RING_WANT_MAILBOX``): the
         device rings its hosts once the mailbox is free, and clears this."""
+        self.host_rang = False
+        """A host (not the device itself) rang since the device loop last cleared this: what
+        it wrote was announced, so it needs no fallback poll (``AdaptivePoll``)."""
 
     def close(self) -> None:
         super().close()
@@ -191,6 +219,7 @@ class DeviceBell(_Endpoint):
         for payload, address in rings:
             if not address or address == self.address:
                 continue
+            self.host_rang = True
             if payload == _RING_WANT_MAILBOX:
                 self.mailbox_wanted = True
             self._hosts[address] = None

@@ -118,6 +118,11 @@ class CanTask(Task):
     def next_indication(self) -> Message | None:
         return self.master.layer2.next_indication()
 
+    def indication_waiting(self) -> bool:
+        """An indication waits for the host mailbox (read without the queue's lock: a hint
+        for the device loop's poll and rings, which look again)."""
+        return bool(self.master.layer2.indications)
+
     # --- the configuration entry points (also used at start-up from flash) ---------------------
 
     def download_node(self, address: int, data: bytes) -> int:

@@ -98,6 +98,9 @@ class Card(Protocol):
 
     def count(self, counter: str, by: int = 1) -> None: ...
 
+    def can_state_changed(self) -> None:
+        """The CAN master changed its state from its own thread (``Device.can_state_changed``)."""
+
     def reset_counters(self) -> None: ...
 
     def descript_records(self) -> dict[int, bytes] | None: ...

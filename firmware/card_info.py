@@ -69,6 +69,10 @@ def publish(device: WholeCard) -> None:
     config = master.config
     bus = master.bus
     params = master.bus_params
+    # One look at the link: on SocketCAN each runs ``ip`` from the device loop, about a
+    # second inside the one-CPU VM, where a bus parameter download's answer took 4 s (three
+    # looks) and a host's 5 s wait for it failed now and then (2026-12-02).
+    bitrate = bus.bitrate if bus is not None else None
     info = {
         "pid": os.getpid(),
         "board": device.board,
@@ -76,8 +80,8 @@ def publish(device: WholeCard) -> None:
         "flash": str(device.flash.path),
         "database": database,
         "bus": {"interface": config.interface, "channel": config.channel,
-                "bitrate": bus.bitrate if bus is not None else None,
-                "sets_bitrate": bus is not None and bus.takes_bitrate,
+                "bitrate": bitrate,
+                "sets_bitrate": bus is not None and (bus.sets_bitrate or bitrate is not None),
                 "baud_rate": BAUD_RATES_KBIT[params.Baud_rate] * 1000 if params else None,
                 "fatal": device.can.fatal},
         "tap": os.fsdecode(config.tap) if config.tap else None,

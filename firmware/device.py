@@ -9,12 +9,14 @@ Tasks that work in threads of their own (the CAN task) hand answers over with
 ``post``; their Task2State writes wake the loop, which shows them (STATECOM).
 
 The fallback poll (``AdaptivePoll``) serves a host that writes the flags without
-ringing: every millisecond while the flags move, backing off to 50 ms when idle and
-to 250 ms after a second without activity, so that a card nobody uses costs (almost)
-nothing (issue 22). After each turn the
+ringing: every millisecond while such a host is busy, backing off to 50 ms when it pauses
+and to 250 ms a second after its last change. A host that rings starts no poll: its ring
+is what wakes the loop, once per request (issue 22). After each turn the
 loop tells the CAN master's thread, which sleeps too, when the host changed what it
 follows: the outputs, the connection bits, its readiness (``Master.notice_host``);
-those count as activity for the poll, as a flag change does.
+a change no ring announced marks a ring-less host, as a flag change does. The CAN
+master's thread wakes the loop when it halts or clears the network
+(``can_state_changed``), which the loop shows as bCAN_State, RUN and COM.
 """
 
 from __future__ import annotations
@@ -212,31 +214,45 @@ class Device:
             self.rcs.start(Start.COLD)
             self._flush()
             poll = AdaptivePoll()
-            seen = self._flag_bytes()
+            self.can.master.notice_host()  # what the start set up is no host's change
+            host_seen = self._host_bytes()
+            card_seen = self.mm[HOST_FLAGS]
             timeout = POLL_INTERVAL
             while not self._stopping:
-                rung = self.bell.wait(timeout)
+                self.bell.wait(timeout)
                 with self._turn:
                     self._wake_pending = False  # before service reads what woke it
+                    host_rang, self.bell.host_rang = self.bell.host_rang, False
                     now = time.monotonic()
                     self.service(now)
                     recorder = self.recorder
                     if recorder is not None:
                         recorder.settle()  # after the ring: off the way of the host's answer
+                    waiting = self._answers_waiting()
                 # The CAN master sleeps until told: of new outputs, connection bits, NOTREADY.
                 host_wrote = self.can.master.notice_host()
-                current = self._flag_bytes()
-                interval = poll.next_interval(rung or current != seen or host_wrote, now)
-                seen = current
+                host_now, card_now = self._host_bytes(), self.mm[HOST_FLAGS]
+                interval = poll.next_interval(
+                    now, host_rang=host_rang, host_wrote=host_wrote or host_now != host_seen,
+                    card_wrote=card_now != card_seen, waiting=waiting)
+                host_seen, card_seen = host_now, card_now
                 timeout = self._until_due(now, interval)
         finally:
             self._power_off()
 
-    def _flag_bytes(self) -> tuple[int, int, int]:
-        """What a host that never rings changes: its flags and its watchdog trigger; and
-        what the card changed in a turn: its flags."""
+    def _host_bytes(self) -> tuple[int, int]:
+        """What a host that never rings changes: its flags and its watchdog trigger. Not
+        HOSTACK: the drivers take an answer without ringing unless the card asked for one
+        (``waiting`` in ``AdaptivePoll`` covers that)."""
         mm = self.mm
-        return mm[DEV_FLAGS], mm[HOST_FLAGS], mm[DEV_WATCHDOG]
+        return mm[DEV_FLAGS] & ~fl.HOSTACK, mm[DEV_WATCHDOG]
+
+    def _answers_waiting(self) -> bool:
+        """Answers or indications wait behind one the host has not acknowledged yet: a host
+        acknowledges without ringing unless the card's last ring asked it to."""
+        mm = self.mm
+        return (bool((mm[HOST_FLAGS] ^ mm[DEV_FLAGS]) & fl.HOST_MBX)
+                and (bool(self.outbox) or self.can.indication_waiting()))
 
     def _until_due(self, now: float, interval: float) -> float:
         """Seconds to sleep: the poll ``interval``, or less when the host watchdog is due."""
@@ -254,6 +270,11 @@ class Device:
         if threading.get_ident() != self._loop_thread and not self._wake_pending:
             self._wake_pending = True
             self.bell.ring_self()
+
+    def can_state_changed(self) -> None:
+        """The CAN master's thread changed its state (halted, cleared): the loop derives
+        bCAN_State, RUN and COM from it, and shows them now, not at its next fallback poll."""
+        self._wake()
 
     def stop(self) -> None:
         """Ask the loop to end; safe from signal handlers and other threads: a flag, a
@@ -376,7 +397,7 @@ class Device:
     def _flush(self) -> None:
         if self._ring:
             self._ring = False
-            self.bell.ring_hosts(want_ack=bool(self.outbox))
+            self.bell.ring_hosts(want_ack=bool(self.outbox) or self.can.indication_waiting())
 
     # --- Task2State ----------------------------------------------------------------------
 

@@ -4,7 +4,9 @@ The device loop used to wake every millisecond to poll the flags: 1,000 wake-ups
 second and 3-6 % of a core for a card nobody used. It now sleeps until a ring, a
 post from another thread or a due timer, with a fallback poll that backs off to
 ``DEVICE_POLL_IDLE`` and, after ``DEVICE_QUIET_AFTER`` without activity, to
-``DEVICE_POLL_QUIET`` (docs/dpm.md 2). The controller's receive thread sleeps until a frame
+``DEVICE_POLL_QUIET`` (docs/dpm.md 2); the 1 ms poll runs only while a host that never rings
+is busy, not after a ring, which woke the loop 15-18 times per request of a host asking
+every 20 ms. The controller's receive thread sleeps until a frame
 comes or power-off wakes it. So does the CAN master's thread, which used to
 wake every millisecond too: it wakes when the device loop saw the host change its
 outputs, and when a deadline of its own comes (supervision, inhibit times, time-outs).
@@ -29,15 +31,20 @@ from pathlib import Path
 import pytest
 
 from dbm_tools.network import load_network
+from dpm.commands import COM_SHARED_MEMORY
 from dpm.doorbell import (
     DEVICE_FAST_WINDOW,
     DEVICE_POLL_IDLE,
     DEVICE_POLL_QUIET,
     DEVICE_QUIET_AFTER,
+    POLL_INTERVAL,
+    AdaptivePoll,
     HostBell,
 )
+from dpm.errors import Drv
 from dpm.flags import DevFlag, HostFlag
 from dpm.layout import DEV_FLAGS, HOST_FLAGS
+from dpm.message import Message, Task, Tdt, TelegramHeader, Tfc
 from dpm.task2 import ComPlcParameter, PlcMode
 from host_api import driver as d
 from host_api.board import Board
@@ -157,6 +164,88 @@ def test_a_host_that_never_rings_is_served_after_a_long_pause(card: Card) -> Non
         assert follow_up[QUIET_TRIALS // 2] <= DEVICE_POLL_IDLE + SCHEDULING_SLACK_S, follow_up
     finally:
         image.close()
+
+
+PACED_REQUESTS = 40
+REQUEST_PERIOD_S = 0.02
+"""A host that asks something every 20 ms: a control loop's period, long beside a request."""
+MAX_LOOP_WAKEUPS_PER_REQUEST = 3.0
+"""The device loop's sleeps per request of a host that rings: its ring (1), now and then a
+wake-up from another thread or the quiet poll. When every ring started the 1 ms poll for
+50 ms, each request cost about 20 here (8-12 in the one-CPU VM, whose requests are slower)."""
+
+
+def _ask_mailbox(board: Board) -> None:
+    answer = board.transact(Message(rx=Task.PLC, tx=Task.USER, b=COM_SHARED_MEMORY,
+                                    data=TelegramHeader(data_area=1, data_cnt=8,
+                                                        data_type=Tdt.UINT8,
+                                                        function=Tfc.READ).encode()))
+    assert answer.f == 0, answer
+
+
+def _ask_exchange_io(board: Board) -> None:
+    # the buffered host-controlled handshake of a card without a network: no COM (-43)
+    code, _ = d.DevExchangeIO(board.number, 0, b"\x01", 0, 8, 1000)
+    assert code in (Drv.DRV_NO_ERROR, Drv.DRV_DEV_NO_COM_FLAG), code
+
+
+@pytest.mark.parametrize("ask", [_ask_mailbox, _ask_exchange_io], ids=["mailbox", "exchange_io"])
+def test_a_ringing_host_wakes_the_device_loop_once_per_request(
+        tmp_path: Path, ask: Callable[[Board], None]) -> None:
+    """A host that rings is served by its ring alone: the device loop does not poll the image
+    every millisecond after it as it does for a host that never rings (issue 22)."""
+    running = start_card(tmp_path)
+    try:
+        with Board(0, tmp_path, timeout=1000) as board:
+            ask(board)  # the card learns this host; its first turns are behind it
+            pid = running.proc.pid
+            before = _threads(pid)[pid][1]
+            for _ in range(PACED_REQUESTS):
+                ask(board)
+                time.sleep(REQUEST_PERIOD_S)  # the host's period, not a wait on a condition
+            wakeups = (_threads(pid)[pid][1] - before) / PACED_REQUESTS
+    finally:
+        running.stop()
+    assert wakeups <= MAX_LOOP_WAKEUPS_PER_REQUEST, f"{wakeups:.1f} wake-ups per request"
+
+
+def _turns_per_request(poll: AdaptivePoll, requests: int, period: float,
+                       rang: bool) -> float:
+    """The device loop's turns per request of a host that asks every ``period`` seconds,
+    ringing (``rang``) or not, on the poll's own clock: each request is one turn, and the
+    poll's time-outs between requests are turns too."""
+    now, turns = 100.0, 0
+    for _ in range(requests):
+        interval = poll.next_interval(now, host_rang=rang, host_wrote=True, card_wrote=True)
+        turns += 1
+        due = now + period
+        while now + interval < due:
+            now += interval
+            interval = poll.next_interval(now, host_rang=False, host_wrote=False)
+            turns += 1
+        now = due
+    return turns / requests
+
+
+def test_the_fallback_poll_runs_for_a_host_that_never_rings_only() -> None:
+    """A ringing host's requests cost one turn each, once the poll has backed off; a host
+    that never rings keeps the 1 ms poll between its steps, 20 ms apart."""
+    ringing = AdaptivePoll()
+    _turns_per_request(ringing, 20, REQUEST_PERIOD_S, rang=True)  # the start's short polls
+    assert _turns_per_request(ringing, 50, REQUEST_PERIOD_S, rang=True) <= 1.1
+    assert _turns_per_request(AdaptivePoll(), 50, REQUEST_PERIOD_S, rang=False) >= 10
+
+
+def test_a_change_seen_before_its_ring_is_taken_back() -> None:
+    """A turn woken by something else (another thread) sees a ringing host's change before
+    its ring arrives: the poll starts as for a ring-less host, and the ring that follows with
+    nothing new puts back the interval before it, so the next requests cost no polls."""
+    poll = AdaptivePoll()
+    _turns_per_request(poll, 20, REQUEST_PERIOD_S, rang=True)
+    backed_off = poll.next_interval(200.0, host_rang=True, host_wrote=True)
+    assert poll.next_interval(200.02, host_rang=False, host_wrote=True) == POLL_INTERVAL
+    assert poll.next_interval(200.0201, host_rang=True, host_wrote=False) == backed_off
+    assert _turns_per_request(poll, 20, REQUEST_PERIOD_S, rang=True) <= 1.1
 
 
 RINGS = 400

@@ -159,6 +159,7 @@ class NmtMaster:
         log.warning("auto-clear: stopping all nodes")
         self._zero_outputs()
         self.cleared = True
+        self._card.can_state_changed()
         self._sync_changed()  # an outside SYNC timer stops now, not at the next look
         self._stop_nodes()
         self._card.set_global_bit(GlobalBits.ACLR, True)
@@ -253,11 +254,13 @@ class NmtMaster:
             log.info("host stopped: outputs to zero, PDO traffic stopped")
             self._zero_outputs()
             self.halted = True
+            self._card.can_state_changed()
             self._sync_changed()
             if self._card.rcs.host_not_ready:  # HOST_NOT_READY, not the watchdog's 220
                 self._stop_nodes()
         elif driving and self.halted and not self.cleared:
             self.halted = False
+            self._card.can_state_changed()
             self._sync_changed()
             for handler in self._nodes.values():
                 if handler.state in (State.WAITING, State.FAILED):
