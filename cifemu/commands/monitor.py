@@ -17,7 +17,7 @@ file's suffix (.asc, .blf, .log = candump, .csv, .trc, ...).
 Frames the card's tap sent but this monitor lost (it read too slowly) are never
 lost unseen [ours]: a line "N frames lost (tap reader too slow)" stands where they
 are missing (with --json a record of kind "lost"), the --log file has an RX
-overflow error frame there (``dpm.tap.gap_frame``), and the total is on stderr at
+overflow error frame there (a SocketCAN controller error frame), and the total is on stderr at
 the end.
 """
 
