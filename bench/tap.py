@@ -23,6 +23,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -53,23 +54,29 @@ def _work(msg: can.Message, out: io.StringIO) -> None:
     out.seek(0)
 
 
-def _read_batched(image: Path) -> dict[str, Any]:
-    bus = TapBus(image, log_losses=False)
+def _read_burst(receive: Callable[[], can.Message | None]) -> int:
+    """Say "ready", then take frames until the end marker (or silence), saying "heard" at
+    the first hello, doing the monitor's work on each burst frame; how many came."""
     out = io.StringIO()
     received = 0
     heard = False
     print("ready", flush=True)
+    while True:
+        msg = receive()
+        if msg is None or msg.arbitration_id == END_ID:
+            return received
+        if msg.arbitration_id == BURST_ID:
+            received += 1
+            _work(msg, out)
+        elif msg.arbitration_id == HELLO_ID and not heard:
+            heard = True
+            print("heard", flush=True)
+
+
+def _read_batched(image: Path) -> dict[str, Any]:
+    bus = TapBus(image, log_losses=False)
     try:
-        while True:
-            msg = bus.recv(WAIT_S)
-            if msg is None or msg.arbitration_id == END_ID:
-                break
-            if msg.arbitration_id == BURST_ID:
-                received += 1
-                _work(msg, out)
-            elif msg.arbitration_id == HELLO_ID and not heard:
-                heard = True
-                print("heard", flush=True)
+        received = _read_burst(lambda: bus.recv(WAIT_S))
         return {"received": received, "reported_lost": bus.lost_frames}
     finally:
         bus.shutdown()
@@ -79,21 +86,8 @@ def _read_single(address: bytes) -> dict[str, Any]:
     sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
     sock.bind(address)
     sock.settimeout(WAIT_S)
-    out = io.StringIO()
-    received = 0
-    heard = False
-    print("ready", flush=True)
     try:
-        while True:
-            msg, _ = decode_frame(sock.recv(128))
-            if msg.arbitration_id == END_ID:
-                break
-            if msg.arbitration_id == BURST_ID:
-                received += 1
-                _work(msg, out)
-            elif msg.arbitration_id == HELLO_ID and not heard:
-                heard = True
-                print("heard", flush=True)
+        received = _read_burst(lambda: decode_frame(sock.recv(128))[0])
         return {"received": received, "reported_lost": None}
     finally:
         sock.close()

@@ -16,7 +16,7 @@ import signal
 import subprocess
 import sys
 import threading
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import can
@@ -65,6 +65,24 @@ def subscribed(publisher: TapPublisher, has_frame: object) -> None:
     wait_until(hello, 20, "the tap's first frame to the reader")
 
 
+def burst(publisher: TapPublisher, sent: int) -> None:
+    """Offer frames 0..sent-1 at the card's full speed, as its bus thread would."""
+    for number in range(sent):
+        publisher.publish(frame(BURST_ID, number), received=False)
+
+
+def read_to_the_last(read: Callable[[], list[int]], sent: int, timeout: float = 30) -> list[int]:
+    """The burst's frame numbers ``read`` gives, in order, up to its last frame's."""
+    numbers: list[int] = []
+
+    def last_came() -> bool:
+        numbers.extend(read())
+        return bool(numbers) and numbers[-1] == sent - 1
+
+    wait_until(last_came, timeout, "the burst's last frame")
+    return numbers
+
+
 def test_a_paused_subscriber_is_told_exactly_how_many_frames_it_lost(
         card_tap: tuple[TapPublisher, Path]) -> None:
     """The reader reads nothing until the whole burst is offered (it is paused on that
@@ -85,22 +103,18 @@ def test_a_paused_subscriber_is_told_exactly_how_many_frames_it_lost(
             assert batch.lost == 0
         lost_before = reader.lost
         sent = 20_000
-        for number in range(sent):
-            publisher.publish(frame(BURST_ID, number), received=False)
-        burst: list[int] = []
+        burst(publisher, sent)
 
-        def read_to_the_last() -> bool:
+        def read_batch() -> list[int]:
             batch = reader.recv(0.05)
-            for f in batch.frames if batch else []:
-                burst.append(number_of(decode_frame(f)[0]))
-            return bool(burst) and burst[-1] == sent - 1
+            return [number_of(decode_frame(f)[0]) for f in (batch.frames if batch else [])]
 
-        wait_until(read_to_the_last, 30, "the burst's last frame")
+        numbers = read_to_the_last(read_batch, sent)
     finally:
         reader.close()
     assert lost_before == 0
-    assert burst == sorted(burst) and len(set(burst)) == len(burst)
-    assert 0 < reader.lost == sent - len(burst)
+    assert numbers == sorted(numbers) and len(set(numbers)) == len(numbers)
+    assert 0 < reader.lost == sent - len(numbers)
 
 
 def test_a_tap_bus_at_normal_speed_loses_nothing(card_tap: tuple[TapPublisher, Path]) -> None:
@@ -114,18 +128,13 @@ def test_a_tap_bus_at_normal_speed_loses_nothing(card_tap: tuple[TapPublisher, P
         while bus.recv(0.05) is not None:
             pass
         sent = 4_000
-        for number in range(sent):
-            publisher.publish(frame(BURST_ID, number), received=False)
-        numbers: list[int] = []
+        burst(publisher, sent)
 
-        def read_to_the_last() -> bool:
+        def read_frame() -> list[int]:
             msg = bus.recv(0.05)
-            if msg is not None and msg.arbitration_id == BURST_ID:
-                numbers.append(number_of(msg))
-            return bool(numbers) and numbers[-1] == sent - 1
+            return [number_of(msg)] if msg is not None and msg.arbitration_id == BURST_ID else []
 
-        wait_until(read_to_the_last, 30, "the burst's last frame")
-        assert numbers == list(range(sent))
+        assert read_to_the_last(read_frame, sent) == list(range(sent))
         assert bus.lost_frames == 0
     finally:
         bus.shutdown()
@@ -143,20 +152,13 @@ def test_a_tap_bus_user_who_stops_reading_gets_a_warning_and_the_count(
         while bus.recv(0.05) is not None:
             pass
         sent = 2 * QUEUE_FRAMES + 10_000
-        for number in range(sent):
-            publisher.publish(frame(BURST_ID, number), received=False)
-        received = 0
-        last = -1
+        burst(publisher, sent)
         with caplog.at_level(logging.WARNING, logger="host_api.monitor.tap_bus"):
-            def read_to_the_last() -> bool:
-                nonlocal received, last
+            def read_any() -> list[int]:
                 msg = bus.recv(0.05)
-                if msg is not None:
-                    received += 1
-                    last = number_of(msg)
-                return last == sent - 1
+                return [] if msg is None else [number_of(msg)]
 
-            wait_until(read_to_the_last, 60, "the burst's last frame")
+            received = len(read_to_the_last(read_any, sent, 60))
         assert 0 < bus.lost_frames == sent - received
         warned = [r.getMessage() for r in caplog.records if "frames lost" in r.getMessage()]
         assert warned and warned[-1].endswith(f"; {bus.lost_frames} so far")

@@ -49,6 +49,10 @@ FOREIGN_CLOCK_S = 60.0
 own clock: its stamp says nothing about when it was on the bus relative to the card's
 resets and starts (``wall_stamp``)."""
 
+CHANNEL_WAIT_LOOK_S = 0.5
+"""How often a boot-up waiting for its node's SDO channel looks whether the card powers off
+(it waits on the channel's lock, which a power-off does not release)."""
+
 
 class State(enum.Enum):
     INACTIVE = "inactive"
@@ -203,8 +207,15 @@ class NodeHandler:
     def _boot_when_free(self, generation: int, channel: SdoChannel, reset_sent: bool) -> None:
         """In a worker thread: take the channel, then boot, unless a newer start of the node
         came meanwhile. Without that check, a host toggling NOTREADY queued boot after stale
-        boot (up to 3 s each), and a new configuration waited behind all of them."""
-        channel.lock.acquire()
+        boot (up to 3 s each), and a new configuration waited behind all of them.
+
+        The wait gives up when the card powers off: the boot-up holding the channel ends at
+        its next answer or time-out, which the master's thread no longer times then, and a
+        worker blocked for good kept the firmware process from exiting."""
+        while not channel.lock.acquire(timeout=CHANNEL_WAIT_LOOK_S):
+            if self.network.closing:
+                self.network.boot_slots.free()
+                return
         if generation != self._generation:
             channel.lock.release()
             self.network.boot_slots.free()
