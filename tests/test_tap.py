@@ -65,6 +65,19 @@ def subscribed(publisher: TapPublisher, has_frame: object) -> None:
     wait_until(hello, 20, "the tap's first frame to the reader")
 
 
+def quiet_tap_bus(publisher: TapPublisher, image: Path) -> TapBus:
+    """A ``TapBus`` the card sends to, with the hellos that showed it already read."""
+    bus = TapBus(image)
+    try:
+        subscribed(publisher, lambda: bus.recv(0.05) is not None)
+        while bus.recv(0.05) is not None:
+            pass
+    except BaseException:
+        bus.shutdown()
+        raise
+    return bus
+
+
 def burst(publisher: TapPublisher, sent: int) -> None:
     """Offer frames 0..sent-1 at the card's full speed, as its bus thread would."""
     for number in range(sent):
@@ -122,11 +135,8 @@ def test_a_tap_bus_at_normal_speed_loses_nothing(card_tap: tuple[TapPublisher, P
     usual: all arrive and nothing is reported lost. The old tap kept 10 datagrams of one
     frame each for a reader the scheduler had not run yet."""
     publisher, image = card_tap
-    bus = TapBus(image)
+    bus = quiet_tap_bus(publisher, image)
     try:
-        subscribed(publisher, lambda: bus.recv(0.05) is not None)
-        while bus.recv(0.05) is not None:
-            pass
         sent = 4_000
         burst(publisher, sent)
 
@@ -146,11 +156,8 @@ def test_a_tap_bus_user_who_stops_reading_gets_a_warning_and_the_count(
     then every frame ``recv`` returns plus ``lost_frames`` is the burst, and the log says
     how many were lost."""
     publisher, image = card_tap
-    bus = TapBus(image)
+    bus = quiet_tap_bus(publisher, image)
     try:
-        subscribed(publisher, lambda: bus.recv(0.05) is not None)
-        while bus.recv(0.05) is not None:
-            pass
         sent = 2 * QUEUE_FRAMES + 10_000
         burst(publisher, sent)
         with caplog.at_level(logging.WARNING, logger="host_api.monitor.tap_bus"):
