@@ -17,6 +17,7 @@
 #include <fcntl.h>
 #include <pthread.h>
 #include <sched.h>
+#include <signal.h>
 #include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
@@ -215,27 +216,55 @@ static void image_path(char *out, size_t size, unsigned short number) {
  * board<N>.firmware.lock), as host_api.liveness asks: a killed firmware leaves READY set
  * in the image, so only its lock tells. Read from /proc/locks, since a probing flock
  * could make a firmware starting in that instant refuse itself; without /proc, a shared
- * non-blocking flock that fails means a holder. */
+ * non-blocking flock that fails means a holder. The kernel hands /proc/locks out a page
+ * per read, and a lock falls between two pages when locks listed before it go meanwhile:
+ * a "not held" is read again while the pid recorded in the lock file still runs. */
+#define LOCK_TABLE_READS 5 /* as host_api/liveness.py */
+
+/* 1 held, 0 not held, -1 no /proc/locks. */
+static int lock_table_holds(const char *device) {
+  char line[256];
+  FILE *locks = fopen("/proc/locks", "r");
+  int held = 0;
+  if (locks == NULL) return -1;
+  while (!held && fgets(line, sizeof line, locks) != NULL) {
+    char kind[16], where[64];
+    if (strstr(line, "->") != NULL) continue; /* a waiter, not a holder */
+    if (sscanf(line, "%*s %15s %*s %*s %*s %63s", kind, where) == 2 &&
+        strcmp(kind, "FLOCK") == 0 && strcmp(where, device) == 0)
+      held = 1;
+  }
+  fclose(locks);
+  return held;
+}
+
+/* Whether the pid written in the lock file names a process that exists. */
+static int recorded_pid_runs(const char *path) {
+  char text[32];
+  ssize_t n;
+  long pid;
+  int fd = open(path, O_RDONLY | O_CLOEXEC);
+  if (fd < 0) return 0;
+  n = read(fd, text, sizeof text - 1);
+  close(fd);
+  if (n <= 0) return 0;
+  text[n] = '\0';
+  pid = strtol(text, NULL, 10);
+  return pid > 0 && (kill((pid_t)pid, 0) == 0 || errno == EPERM);
+}
+
 static int firmware_alive(const char *path) {
-  char line[256], device[64];
+  char device[64];
   struct stat st;
-  FILE *locks;
-  int alive = 0, fd;
+  int alive = 0, fd, held = 0, i;
   if (stat(path, &st) != 0) return 0;
   snprintf(device, sizeof device, "%02x:%02x:%lu", major(st.st_dev), minor(st.st_dev),
            (unsigned long)st.st_ino);
-  locks = fopen("/proc/locks", "r");
-  if (locks != NULL) {
-    while (!alive && fgets(line, sizeof line, locks) != NULL) {
-      char kind[16], where[64];
-      if (strstr(line, "->") != NULL) continue; /* a waiter, not a holder */
-      if (sscanf(line, "%*s %15s %*s %*s %*s %63s", kind, where) == 2 &&
-          strcmp(kind, "FLOCK") == 0 && strcmp(where, device) == 0)
-        alive = 1;
-    }
-    fclose(locks);
-    return alive;
+  for (i = 0; i < LOCK_TABLE_READS; i++) {
+    held = lock_table_holds(device);
+    if (held != 0 || !recorded_pid_runs(path)) break;
   }
+  if (held >= 0) return held;
   fd = open(path, O_RDONLY | O_CLOEXEC);
   if (fd < 0) return 0;
   if (flock(fd, LOCK_SH | LOCK_NB) != 0) alive = errno == EWOULDBLOCK;
