@@ -46,3 +46,51 @@ EVENT_MANUFACTURER = 254
 EVENT_PROFILE = 255
 EVENT_TYPES = (EVENT_MANUFACTURER, EVENT_PROFILE)
 """Event-driven: manufacturer-specific (254) and device-profile (255)."""
+
+# SDO abort codes (CiA 301 7.2.4.3.17, table 22). The master's SDO client, the simulated
+# nodes' servers and the CiA 309 gateway all send or read them; the texts a 309-3 answer
+# carries are the gateway's (host_api.cia309.formatters).
+ABORT_TOGGLE = 0x0503_0000
+"""Toggle bit not alternated."""
+ABORT_TIMEOUT = 0x0504_0000
+"""SDO protocol timed out."""
+ABORT_UNKNOWN_COMMAND = 0x0504_0001
+"""Client/server command specifier not valid or unknown."""
+ABORT_BLOCK_SIZE = 0x0504_0002
+ABORT_SEQUENCE_NUMBER = 0x0504_0003
+ABORT_CRC = 0x0504_0004
+ABORT_OUT_OF_MEMORY = 0x0504_0005
+ABORT_UNSUPPORTED_ACCESS = 0x0601_0000
+ABORT_WRITE_ONLY = 0x0601_0001
+"""Attempt to read a write-only object."""
+ABORT_READ_ONLY = 0x0601_0002
+"""Attempt to write a read-only object."""
+ABORT_NO_OBJECT = 0x0602_0000
+ABORT_NOT_MAPPABLE = 0x0604_0041
+ABORT_PDO_LENGTH = 0x0604_0042
+"""The objects to be mapped would exceed the PDO's length."""
+ABORT_PARAMETER_INCOMPATIBLE = 0x0604_0043
+ABORT_INTERNAL_INCOMPATIBLE = 0x0604_0047
+ABORT_HARDWARE = 0x0606_0000
+ABORT_TYPE_LENGTH_MISMATCH = 0x0607_0010
+"""Data type does not match, length of service parameter does not match."""
+ABORT_TYPE_LENGTH_HIGH = 0x0607_0012
+ABORT_TYPE_LENGTH_LOW = 0x0607_0013
+ABORT_NO_SUBINDEX = 0x0609_0011
+ABORT_VALUE_RANGE = 0x0609_0030
+"""Invalid value for parameter (download only)."""
+ABORT_VALUE_HIGH = 0x0609_0031
+ABORT_VALUE_LOW = 0x0609_0032
+ABORT_MAX_BELOW_MIN = 0x0609_0036
+ABORT_NO_SDO_CONNECTION = 0x060A_0023
+"""Resource not available: SDO connection."""
+ABORT_GENERAL = 0x0800_0000
+ABORT_CANNOT_STORE = 0x0800_0020
+"""Data cannot be transferred or stored to the application."""
+ABORT_LOCAL_CONTROL = 0x0800_0021
+"""... because of local control."""
+ABORT_DEVICE_STATE = 0x0800_0022
+"""... because of the present device state."""
+ABORT_NO_DICTIONARY = 0x0800_0023
+"""Object dictionary dynamic generation fails or no object dictionary is present."""
+ABORT_NO_DATA = 0x0800_0024

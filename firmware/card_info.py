@@ -69,9 +69,8 @@ def publish(device: WholeCard) -> None:
     config = master.config
     bus = master.bus
     params = master.bus_params
-    # One look at the link: on SocketCAN each runs ``ip`` from the device loop, about a
-    # second inside the one-CPU VM, where a bus parameter download's answer took 4 s (three
-    # looks) and a host's 5 s wait for it failed now and then (2026-12-02).
+    # One look at the link: a SocketCAN link's rate comes from ``ip`` (read once per
+    # opening, ``firmware.can.bus.LinkRate``); the first look after the opening waits for it.
     bitrate = bus.bitrate if bus is not None else None
     info = {
         "pid": os.getpid(),

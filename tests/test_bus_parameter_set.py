@@ -8,6 +8,8 @@ runs as a real firmware process with simulated nodes on the back-to-back buses o
 
 from __future__ import annotations
 
+import os
+import shutil
 import struct
 import uuid
 from collections.abc import Callable
@@ -21,7 +23,8 @@ from dbm_tools.container import save_dbm
 from dbm_tools.network import load_network
 from dpm.card_info import read_card_info
 from dpm.com import ACCEPT_ALL_MASK, acceptance_long
-from dpm.message import Message
+from dpm.commands import COM_SHARED_MEMORY
+from dpm.message import Message, Tdt, TelegramHeader, Tfc
 from firmware.can.bus import bitrate_of_link
 from firmware.frames import (
     CAN_ERR_CRTL,
@@ -31,10 +34,11 @@ from firmware.frames import (
     CAN_ERR_CRTL_TX_WARNING,
 )
 from host_api import driver as d
-from host_api.board import Board
+from host_api.board import Board, CifError
 from host_api.download import CONFIGURATION_DOWNLOAD, DevDownload
+from tests.buses import socketcan_missing
 from tests.can_net import Net, bus_parameters, candump, exchange, node_set, window
-from tests.conftest import start_card, wait_until
+from tests.conftest import TIME_SCALE, start_card, wait_until
 
 pytest_plugins = ["tests.can_net"]
 """The back-to-back fixtures: this module's tests run on every bus that file's run on."""
@@ -178,6 +182,65 @@ def test_no_false_56_where_the_link_has_no_rate(make_net: Callable[..., Net]) ->
     diag = net.diag()
     assert (diag.bErr_rem_adr, diag.bErr_event) == (0, 0)
     assert not diag.bGlobalBits & CTRL
+
+
+HELD_IP = """#!/bin/sh
+# iproute2's ip, held while {hold} exists (tests/test_bus_parameter_set.py)
+if [ -e {hold} ]; then echo "held $*" >> {calls}; else echo "$*" >> {calls}; fi
+while [ -e {hold} ]; do sleep 0.05; done
+exec {real} "$@"
+"""
+
+
+@pytest.mark.vcan
+def test_the_device_loop_answers_while_ip_is_slow(tmp_path: Path,
+                                                  monkeypatch: pytest.MonkeyPatch) -> None:
+    """A bus parameter download on SocketCAN compares Baud_rate with the link's rate, which
+    ``ip`` reports, about a second a call inside User-Mode Linux. The card reads it once,
+    when it opens the link, not from the device loop at each download: with ``ip`` held,
+    the download and a COM_Shared_Memory behind it are both answered, in order, f 0, and
+    no ``ip`` held them back (the card waited up to 2 s for each, twice per download on
+    vcan, and answered nothing meanwhile).
+
+    The ``ip`` first on the firmware's PATH is a stand-in that holds while a file exists:
+    the real one cannot be slowed. It runs the real one after, and logs every call, which
+    shows the card did look at vcan0's rate through it, and which calls were held."""
+    reason = socketcan_missing()
+    if reason is not None:
+        pytest.skip(reason)
+    real = shutil.which("ip")
+    if real is None:
+        pytest.skip("no ip (iproute2) on this machine")
+    bin_dir, card_dir = tmp_path / "bin", tmp_path / "card"
+    bin_dir.mkdir()
+    card_dir.mkdir()
+    hold, calls = tmp_path / "hold", tmp_path / "ip-calls"
+    fake = bin_dir / "ip"
+    fake.write_text(HELD_IP.format(hold=hold, calls=calls, real=real), encoding="utf-8")
+    fake.chmod(0o755)
+    monkeypatch.setenv("PATH", f"{bin_dir}{os.pathsep}{os.environ['PATH']}")
+    card = start_card(card_dir, 0, "--interface", "socketcan", "--channel", "vcan0")
+    timeout = int(5000 * TIME_SCALE)
+    try:
+        wait_until(lambda: calls.exists() and "vcan0" in calls.read_text(encoding="utf-8"),
+                   5 * TIME_SCALE, "the card looked at vcan0's rate through the stand-in ip")
+        hold.touch()
+        read = TelegramHeader(data_area=1, data_cnt=8, data_type=Tdt.UINT8,
+                              function=Tfc.READ).encode()
+        with Board(0, card_dir, timeout=timeout) as board:
+            board.put_message(Message(rx=3, tx=16, b=68, data=bus_parameters()))
+            try:
+                board.put_message(Message(rx=2, tx=16, b=COM_SHARED_MEMORY, nr=7, data=read))
+                answers = [board.get_message() for _ in range(2)]
+            except CifError as exc:
+                pytest.fail(f"the card answered nothing while ip was held ({exc})")
+        held = [line for line in calls.read_text(encoding="utf-8").splitlines()
+                if line.startswith("held")]
+        assert not held, f"the answers waited for ip: {held}"
+        assert [(a.a, a.f) for a in answers] == [(68, 0), (COM_SHARED_MEMORY, 0)]
+    finally:
+        hold.unlink(missing_ok=True)
+        card.stop()
 
 
 def test_the_rate_of_a_socketcan_link_is_its_bit_timing() -> None:

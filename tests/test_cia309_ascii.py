@@ -15,6 +15,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from dpm.cia301 import ABORT_TYPE_LENGTH_MISMATCH
 from dpm.cia305 import LssAddress
 from host_api.cia309.datatypes import (
     DataTypeError,
@@ -44,7 +45,6 @@ from host_api.cia309.formatters import (
 )
 from host_api.cia309.framing import DEFAULT_MAX_LINE, LineFramer, OverlongLine
 from host_api.cia309.model import (
-    TYPE_LENGTH_MISMATCH,
     BootUpEvent,
     DataType,
     EmergencyEvent,
@@ -283,7 +283,7 @@ def test_visible_string_dialects() -> None:
 def test_length_mismatch_carries_the_abort_code() -> None:
     with pytest.raises(DataTypeError) as caught:
         format_value(DataType.UNSIGNED32, b"\x01\x02", CO)
-    assert caught.value.abort_code == TYPE_LENGTH_MISMATCH == 0x06070010
+    assert caught.value.abort_code == ABORT_TYPE_LENGTH_MISMATCH == 0x06070010
 
 
 def test_reserved_time_bits_are_not_shown() -> None:

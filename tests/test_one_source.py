@@ -7,7 +7,10 @@ class-level assignments are checked:
   the seed uses for a family of numbers (``COM_``, ``NMT_``, ``F_``, ``ERR_``, ``LOAD_``,
   ``MODE_``, ``AREA_``), a name containing ``Err_Event``, a task number's name
   (``CAN_TASK``, ``USER``, ...), or any name ``dpm`` itself exports with an int value;
-- a ``struct.Struct`` layout, unless it is listed below as no card message (with why).
+- a ``struct.Struct`` layout, unless it is listed below as no card message (with why);
+- anywhere in the code, a CiA 301 SDO abort code (``dpm.cia301.ABORT_*``) written as a
+  number, or as ``0x`` and eight hex digits in a string that is no docstring: the master,
+  the simulated nodes, the gateway and the benchmarks name them from ``dpm.cia301``.
 
 Timeouts, CANopen object indexes and the like stay where they are used: their names
 match none of these rules.
@@ -22,6 +25,7 @@ import re
 from pathlib import Path
 
 import dpm
+from dpm import cia301
 
 ROOT = Path(__file__).resolve().parents[1]
 PACKAGES = ("firmware", "host_api", "dbm_tools", "bench", "cifemu")
@@ -30,6 +34,10 @@ PROTOCOL_NAME = re.compile(
     r"^(COM_|NMT_|F_|ERR_|LOAD_|MODE_|AREA_)|Err_Event|ERR_EVENT"
     r"|^(CAN_TASK|USER|PLC_TASK|RCS_TASK|GET_CONFIGURATION)$"
 )
+
+SDO_ABORT_CODES = frozenset(value for name, value in vars(cia301).items()
+                            if name.startswith("ABORT_"))
+HEX_CODE = re.compile(r"0x([0-9A-Fa-f]{8})\b")
 
 NOT_CARD_LAYOUTS: dict[tuple[str, str], str] = {
     ("firmware/shm/bus.py", "_HEADER"): "the shm bus's file header [ours]",
@@ -109,6 +117,26 @@ def offences(path: Path, reserved: frozenset[str]) -> list[str]:
     return found
 
 
+def abort_literals(path: Path) -> list[str]:
+    """Every SDO abort code ``path`` spells as a number or as ``0x`` text, one line each;
+    docstrings (any string standing alone as a statement) may quote one."""
+    relative = path.relative_to(ROOT).as_posix() if path.is_relative_to(ROOT) else path.name
+    tree = ast.parse(path.read_text(encoding="utf-8"), filename=relative)
+    docstrings = {id(node.value) for node in ast.walk(tree)
+                  if isinstance(node, ast.Expr) and isinstance(node.value, ast.Constant)}
+    found: list[tuple[int, str]] = []
+    for node in ast.walk(tree):
+        if not isinstance(node, ast.Constant) or id(node) in docstrings:
+            continue
+        if type(node.value) is int and node.value in SDO_ABORT_CODES:
+            found.append((node.lineno, f"0x{node.value:08X}"))
+        elif isinstance(node.value, str):
+            found += [(node.lineno, f"{match.group(0)!r} in a string")
+                      for match in HEX_CODE.finditer(node.value)
+                      if int(match.group(1), 16) in SDO_ABORT_CODES]
+    return [f"{relative}:{line}: {what}" for line, what in sorted(found)]
+
+
 def modules() -> list[Path]:
     return sorted(p for package in PACKAGES for p in (ROOT / package).rglob("*.py"))
 
@@ -128,6 +156,33 @@ def test_the_rules_catch_what_they_must(tmp_path: Path) -> None:
     assert [line.split(": ", 1)[1].split(" =")[0] for line in found] == [
         "COM_X", "COM_Y", "AREA_BUS", "F_TIMEOUT", "CAN_TASK", "USER", "T.NMT_START", "REQUEST",
         "DPM_SIZE"]
+
+
+def test_the_abort_rule_catches_what_it_must(tmp_path: Path) -> None:
+    """Abort codes as numbers or 0x text are caught wherever they stand; docstrings, other
+    numbers and the names from dpm.cia301 are not."""
+    source = (
+        '"""Aborts 0x05040000 on a time-out."""\n'
+        "from dpm.cia301 import ABORT_TIMEOUT\n"
+        "TEXTS = {0x0503_0000: 'toggle', ABORT_TIMEOUT: 'time-out'}\n"
+        "def f(code: int) -> bool:\n"
+        "    '''Is it 0x06090011?'''\n"
+        "    return code != 0x06090011 and code != 0x05040006\n"
+        "LOGGED = 'aborted with code 0x08000000'\n"
+        "MASK = 0x0800_0001\n"
+    )
+    path = tmp_path / "sample.py"
+    path.write_text(source, encoding="utf-8")
+    assert [line.split(": ", 1)[1] for line in abort_literals(path)] == [
+        "0x05030000", "0x06090011", "'0x08000000' in a string"]
+
+
+def test_no_module_outside_dpm_spells_an_sdo_abort_code() -> None:
+    """A copy drifts: the master's time-out abort and the gateway's mapping of it to 309-3
+    error 103 must be one number."""
+    assert len(SDO_ABORT_CODES) > 25 and 0x0504_0000 in SDO_ABORT_CODES
+    found = [line for path in modules() for line in abort_literals(path)]
+    assert not found, "SDO abort codes outside dpm.cia301:\n" + "\n".join(found)
 
 
 def test_every_exempted_layout_exists() -> None:

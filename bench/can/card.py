@@ -34,6 +34,7 @@ from dbm_tools.builder import build_dbm
 from dbm_tools.network import GENERIC_DEVICE_TYPE, Network
 from dbm_tools.parameters import NodeParameterSet
 from dbm_tools.tables import NODES
+from dpm.cia301 import ABORT_TIMEOUT
 from dpm.image import image_path
 from dpm.layout import IO_AREA_SIZE
 from dpm.task2 import BMODE_TO_EXCHANGE_MODE, ComDiagnostics, ComPlcParameter, PlcMode
@@ -64,7 +65,7 @@ SYNC_COB_ID = 0x080
 DEVICE_TYPE_BYTES = GENERIC_DEVICE_TYPE.to_bytes(4, "little")
 """Object 1000h of the generic node, as an SDO upload returns it."""
 
-SDO_TIMEOUT_TEXT = "0x05040000"
+SDO_TIMEOUT_TEXT = f"0x{ABORT_TIMEOUT:08X}"
 """canopen's SDO client logs its timeout abort with this code."""
 
 

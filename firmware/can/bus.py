@@ -107,7 +107,8 @@ link set can0 type can bitrate N``, as root), an ``shm`` channel's its first sta
 ``virtual`` and ``udp_multicast`` have none. Where the link's rate is known, the card
 compares its Baud_rate with it (``link_bitrate``)."""
 IP_TIMEOUT_S = 2.0
-"""How long reading a SocketCAN link's rate from ``ip`` may take."""
+"""How long reading a SocketCAN link's rate from ``ip`` may take; a look at the rate waits
+for a lookup under way as long, and more for the start of ``ip`` itself (``LinkRate``)."""
 SELECTABLE_INTERFACES = ("socketcan", "udp_multicast")
 """Interfaces whose ``fileno`` is readable exactly while a frame waits (one frame per
 datagram, nothing buffered in Python): the receive thread waits on it with ``select``,
@@ -204,6 +205,37 @@ def socketcan_bitrate(channel: str) -> int | None:
         return bitrate_of_link(json.loads(done.stdout))
     except ValueError:
         return None
+
+
+class LinkRate:
+    """A SocketCAN link's rate, read once per opening of the controller, in a thread.
+
+    ``ip`` takes about a second inside User-Mode Linux, and the looks at the rate came from
+    the device loop: a bus parameter download looked twice (vcan) to three times (a CAN
+    link) and the card's facts once more, and the loop answered nothing meanwhile, not even
+    COM_Shared_Memory. The kernel changes a CAN link's rate only while the link is down,
+    which the card meets as a failed transport and opens anew (``CanBus.on_error``), with
+    a new look. [ours] A rate changed while the card neither sends nor reopens shows at the
+    card's next start or reopening, not at the next bus parameter set.
+    """
+
+    def __init__(self, channel: str) -> None:
+        self._rate: int | None = None
+        self._known = threading.Event()
+        threading.Thread(target=self._look, args=(channel,), name="can-link-rate",
+                         daemon=True).start()
+
+    def _look(self, channel: str) -> None:
+        try:
+            self._rate = socketcan_bitrate(channel)
+        finally:
+            self._known.set()
+
+    def get(self) -> int | None:
+        """The rate; only a look right after the opening waits, for the lookup under way
+        (at most ``IP_TIMEOUT_S`` and the start of ``ip``; None: unknown)."""
+        self._known.wait(2 * IP_TIMEOUT_S)
+        return self._rate
 
 
 CAN_ERR_CRTL_WARNINGS = CAN_ERR_CRTL_RX_WARNING | CAN_ERR_CRTL_TX_WARNING
@@ -371,6 +403,7 @@ class CanBus(can.Listener):
         """The connection ``check_link`` watches (``HIDDEN_CLOSE_INTERFACES`` only)."""
         self.bus = self._open(kwargs)
         self._open_kwargs = kwargs
+        self._link_rate = LinkRate(channel) if interface == "socketcan" else None
         self._bitrate = bitrate if self.sets_bitrate else None
         self.network = _MasterNetwork(self)
         # Copy-on-write: subscribing replaces a tuple, so the receive thread reads
@@ -574,6 +607,8 @@ class CanBus(can.Listener):
                 log.debug("CAN interface %s still away: %s", self.interface, exc)
                 continue
             self.bus = bus
+            if self._link_rate is not None:
+                self._link_rate = LinkRate(self.channel)  # its rate may have changed meanwhile
             self._receiver = _Receiver(bus, self.interface, self)
             self._lost.clear()
             log.warning("CAN interface %s channel %s is back", self.interface, self.channel)
@@ -685,12 +720,13 @@ class CanBus(can.Listener):
     def link_bitrate(self) -> int | None:
         """The rate of a link whose rate the card cannot set, where it is known.
 
-        SocketCAN: what the kernel reports for the link (None for ``vcan``, which has no
-        bit timing). ``shm``: the channel's rate [ours], set by its first station opened
-        with one. ``virtual`` and ``udp_multicast``: None, they have no rate.
+        SocketCAN: what the kernel reported for the link when the controller opened it
+        (``LinkRate``; None for ``vcan``, which has no bit timing). ``shm``: the channel's
+        rate [ours], set by its first station opened with one. ``virtual`` and
+        ``udp_multicast``: None, they have no rate.
         """
-        if self.interface == "socketcan":
-            return socketcan_bitrate(self.channel)
+        if self._link_rate is not None:
+            return self._link_rate.get()
         rate = getattr(self.bus, "bitrate", None) if self.interface == "shm" else None
         return rate if isinstance(rate, int) else None
 

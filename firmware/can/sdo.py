@@ -30,16 +30,13 @@ import can
 from canopen.objectdictionary import ObjectDictionary
 from canopen.sdo.client import SdoClient
 
+from dpm.cia301 import ABORT_GENERAL, ABORT_TIMEOUT, ABORT_TOGGLE, ABORT_UNKNOWN_COMMAND
 from firmware.can.bus import CanBus
 
 DEFAULT_SDO_TIMEOUT = 0.5
 """[ours] seconds an SDO request waits for its answer until COM_Set_SDO_Timeout; canopen's
 0.3 s lets a busy 2-core machine abort boot-ups that would have succeeded."""
 
-ABORT_TIMEOUT = 0x05040000
-ABORT_UNKNOWN_COMMAND = 0x05040001
-ABORT_TOGGLE = 0x05030000
-ABORT_GENERAL = 0x08000000
 _INITIATE = struct.Struct("<BHB")
 
 

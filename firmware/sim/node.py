@@ -24,7 +24,7 @@ from canopen.objectdictionary.datatypes import UNSIGNED32
 from canopen.sdo.exceptions import SdoAbortedError
 
 from dbm_tools.network import NodeDescription
-from dpm.cia301 import INITIALISING, OPERATIONAL, PRE_OPERATIONAL, STOPPED
+from dpm.cia301 import ABORT_VALUE_RANGE, INITIALISING, OPERATIONAL, PRE_OPERATIONAL, STOPPED
 from firmware.frames import (
     CAN_ERR_ACK,
     CAN_ERR_BUSOFF,
@@ -54,7 +54,6 @@ ERROR_REGISTER = 0x1001
 ERROR_FIELD = 0x1003
 ERROR_BEHAVIOUR = 0x1029
 GUARD_COB_ID = 0x100E
-ABORT_VALUE_RANGE = 0x06090030
 COMMUNICATION_AREA = range(0x1000, 0x2000)
 PDO_PARAMETERS = range(0x1400, 0x1C00)
 EMCY_INVALID = 1 << 31

@@ -17,21 +17,16 @@ from __future__ import annotations
 from typing import TYPE_CHECKING
 
 from canopen.objectdictionary import ODArray
-from canopen.sdo.constants import (
-    ABORT_GENERAL_ERROR,
-    ABORT_INVALID_COMMAND_SPECIFIER,
-    NO_MORE_DATA,
-    SDO_STRUCT,
-)
+from canopen.sdo.constants import NO_MORE_DATA, SDO_STRUCT
 from canopen.sdo.exceptions import SdoAbortedError
 from canopen.sdo.server import SdoServer
 
+from dpm.cia301 import ABORT_GENERAL, ABORT_NO_SUBINDEX, ABORT_UNKNOWN_COMMAND
 from firmware.frames import SDO_FRAME_LENGTH
 
 if TYPE_CHECKING:
     from firmware.sim.node import SimulatedNode
 
-ABORT_NO_SUBINDEX = 0x06090011
 UNKNOWN_COMMAND = 0xE0
 """Command byte of server command specifier 7, which CiA 301 leaves undefined."""
 SHORT_LENGTH = 4
@@ -69,27 +64,27 @@ class SimSdoServer(SdoServer):
 
     def segmented_upload(self, command: int) -> None:
         if self._segmented != "upload":
-            raise SdoAbortedError(ABORT_INVALID_COMMAND_SPECIFIER)
+            raise SdoAbortedError(ABORT_UNKNOWN_COMMAND)
         super().segmented_upload(command)  # type: ignore[no-untyped-call]
         if not self._buffer:
             self._segmented = None
 
     def segmented_download(self, command: int, request: bytearray) -> None:
         if self._segmented != "download":
-            raise SdoAbortedError(ABORT_INVALID_COMMAND_SPECIFIER)
+            raise SdoAbortedError(ABORT_UNKNOWN_COMMAND)
         super().segmented_download(command, request)  # type: ignore[no-untyped-call]
         if command & NO_MORE_DATA:
             self._segmented = None
 
     def block_download(self, data: bytearray) -> None:
         _, self._index, self._subindex = SDO_STRUCT.unpack_from(data)
-        raise SdoAbortedError(ABORT_INVALID_COMMAND_SPECIFIER)  # not supported
+        raise SdoAbortedError(ABORT_UNKNOWN_COMMAND)  # not supported
 
     def request_aborted(self, data: bytearray) -> None:
         self._segmented = None
         super().request_aborted(data)  # type: ignore[no-untyped-call]
 
-    def abort(self, abort_code: int = ABORT_GENERAL_ERROR) -> None:
+    def abort(self, abort_code: int = ABORT_GENERAL) -> None:
         self._segmented = None
         super().abort(abort_code)  # type: ignore[no-untyped-call]
 

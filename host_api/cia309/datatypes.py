@@ -32,9 +32,9 @@ import re
 import struct
 from enum import Enum, StrEnum
 
+from dpm.cia301 import ABORT_TYPE_LENGTH_MISMATCH
 from host_api.cia309.model import (
     TIME_MS_MASK,
-    TYPE_LENGTH_MISMATCH,
     Cia309Error,
     DataType,
     ErrorCode,
@@ -58,7 +58,7 @@ class DataTypeError(Cia309Error, ValueError):
 
     ``abort_code`` is None for malformed or out-of-range text, which a 309-3 answer reports
     as error 101 (syntax, ``error``). For bytes of the wrong length it is the CiA 301 abort
-    code the answer carries instead (:data:`~host_api.cia309.model.TYPE_LENGTH_MISMATCH`).
+    code the answer carries instead (:data:`~dpm.cia301.ABORT_TYPE_LENGTH_MISMATCH`).
     """
 
     def __init__(self, message: str, *, abort_code: int | None = None) -> None:
@@ -208,14 +208,15 @@ def parse_value(dtype: DataType, text: str, dialect: Dialect = Dialect.CANOPENNO
 def format_value(dtype: DataType, data: bytes, dialect: Dialect = Dialect.CANOPENNODE) -> str:
     """The text an upload answer carries for ``data`` of type ``dtype``.
 
-    Raises DataTypeError with :data:`TYPE_LENGTH_MISMATCH` when a fixed-size type gets a
-    different number of bytes; CANopenNode's gateway then falls back to ``hex`` (see
-    ``format_upload`` in the formatters module), Lely's answers with the abort code.
+    Raises DataTypeError with :data:`~dpm.cia301.ABORT_TYPE_LENGTH_MISMATCH` when a
+    fixed-size type gets a different number of bytes; CANopenNode's gateway then falls back
+    to ``hex`` (see ``format_upload`` in the formatters module), Lely's answers with the
+    abort code.
     """
     if dtype.size is not None and len(data) != dtype.size:
         raise DataTypeError(
             f"{len(data)} bytes are no {dtype.value} value ({dtype.size} bytes)",
-            abort_code=TYPE_LENGTH_MISMATCH,
+            abort_code=ABORT_TYPE_LENGTH_MISMATCH,
         )
     kind = _KINDS[dtype]
     if kind is _Kind.BOOLEAN:

@@ -17,6 +17,39 @@ from __future__ import annotations
 
 from datetime import datetime
 
+from dpm.cia301 import (
+    ABORT_BLOCK_SIZE,
+    ABORT_CANNOT_STORE,
+    ABORT_CRC,
+    ABORT_DEVICE_STATE,
+    ABORT_GENERAL,
+    ABORT_HARDWARE,
+    ABORT_INTERNAL_INCOMPATIBLE,
+    ABORT_LOCAL_CONTROL,
+    ABORT_MAX_BELOW_MIN,
+    ABORT_NO_DATA,
+    ABORT_NO_DICTIONARY,
+    ABORT_NO_OBJECT,
+    ABORT_NO_SDO_CONNECTION,
+    ABORT_NO_SUBINDEX,
+    ABORT_NOT_MAPPABLE,
+    ABORT_OUT_OF_MEMORY,
+    ABORT_PARAMETER_INCOMPATIBLE,
+    ABORT_PDO_LENGTH,
+    ABORT_READ_ONLY,
+    ABORT_SEQUENCE_NUMBER,
+    ABORT_TIMEOUT,
+    ABORT_TOGGLE,
+    ABORT_TYPE_LENGTH_HIGH,
+    ABORT_TYPE_LENGTH_LOW,
+    ABORT_TYPE_LENGTH_MISMATCH,
+    ABORT_UNKNOWN_COMMAND,
+    ABORT_UNSUPPORTED_ACCESS,
+    ABORT_VALUE_HIGH,
+    ABORT_VALUE_LOW,
+    ABORT_VALUE_RANGE,
+    ABORT_WRITE_ONLY,
+)
 from dpm.cia305 import LssAddress
 from host_api.cia309.datatypes import DataTypeError, Dialect, format_value
 from host_api.cia309.model import (
@@ -38,44 +71,46 @@ _LELY_ERROR_TEXTS = {
 """Lely's ``co_gw_iec2str`` shortens these two."""
 
 SDO_ABORT_TEXTS: dict[int, str] = {
-    0x0503_0000: "Toggle bit not alternated",
-    0x0504_0000: "SDO protocol timed out",
-    0x0504_0001: "Client/server command specifier not valid or unknown",
-    0x0504_0002: "Invalid block size (block mode only)",
-    0x0504_0003: "Invalid sequence number (block mode only)",
-    0x0504_0004: "CRC error (block mode only)",
-    0x0504_0005: "Out of memory",
-    0x0601_0000: "Unsupported access to an object",
-    0x0601_0001: "Attempt to read a write only object",
-    0x0601_0002: "Attempt to write a read only object",
-    0x0602_0000: "Object does not exist in the object dictionary",
-    0x0604_0041: "Object cannot be mapped to the PDO",
-    0x0604_0042: "The number and length of the objects to be mapped would exceed PDO length",
-    0x0604_0043: "General parameter incompatibility reason",
-    0x0604_0047: "General internal incompatibility in the device",
-    0x0606_0000: "Access failed due to a hardware error",
-    0x0607_0010: "Data type does not match, length of service parameter does not match",
-    0x0607_0012: "Data type does not match, length of service parameter too high",
-    0x0607_0013: "Data type does not match, length of service parameter too low",
-    0x0609_0011: "Sub-index does not exist",
-    0x0609_0030: "Invalid value for parameter (download only)",
-    0x0609_0031: "Value of parameter written too high (download only)",
-    0x0609_0032: "Value of parameter written too low (download only)",
-    0x0609_0036: "Maximum value is less than minimum value",
-    0x060A_0023: "Resource not available: SDO connection",
-    0x0800_0000: "General error",
-    0x0800_0020: "Data cannot be transferred or stored to the application",
-    0x0800_0021: (
+    ABORT_TOGGLE: "Toggle bit not alternated",
+    ABORT_TIMEOUT: "SDO protocol timed out",
+    ABORT_UNKNOWN_COMMAND: "Client/server command specifier not valid or unknown",
+    ABORT_BLOCK_SIZE: "Invalid block size (block mode only)",
+    ABORT_SEQUENCE_NUMBER: "Invalid sequence number (block mode only)",
+    ABORT_CRC: "CRC error (block mode only)",
+    ABORT_OUT_OF_MEMORY: "Out of memory",
+    ABORT_UNSUPPORTED_ACCESS: "Unsupported access to an object",
+    ABORT_WRITE_ONLY: "Attempt to read a write only object",
+    ABORT_READ_ONLY: "Attempt to write a read only object",
+    ABORT_NO_OBJECT: "Object does not exist in the object dictionary",
+    ABORT_NOT_MAPPABLE: "Object cannot be mapped to the PDO",
+    ABORT_PDO_LENGTH: "The number and length of the objects to be mapped would exceed PDO length",
+    ABORT_PARAMETER_INCOMPATIBLE: "General parameter incompatibility reason",
+    ABORT_INTERNAL_INCOMPATIBLE: "General internal incompatibility in the device",
+    ABORT_HARDWARE: "Access failed due to a hardware error",
+    ABORT_TYPE_LENGTH_MISMATCH: (
+        "Data type does not match, length of service parameter does not match"
+    ),
+    ABORT_TYPE_LENGTH_HIGH: "Data type does not match, length of service parameter too high",
+    ABORT_TYPE_LENGTH_LOW: "Data type does not match, length of service parameter too low",
+    ABORT_NO_SUBINDEX: "Sub-index does not exist",
+    ABORT_VALUE_RANGE: "Invalid value for parameter (download only)",
+    ABORT_VALUE_HIGH: "Value of parameter written too high (download only)",
+    ABORT_VALUE_LOW: "Value of parameter written too low (download only)",
+    ABORT_MAX_BELOW_MIN: "Maximum value is less than minimum value",
+    ABORT_NO_SDO_CONNECTION: "Resource not available: SDO connection",
+    ABORT_GENERAL: "General error",
+    ABORT_CANNOT_STORE: "Data cannot be transferred or stored to the application",
+    ABORT_LOCAL_CONTROL: (
         "Data cannot be transferred or stored to the application because of local control"
     ),
-    0x0800_0022: (
+    ABORT_DEVICE_STATE: (
         "Data cannot be transferred or stored to the application because of the present "
         "device state"
     ),
-    0x0800_0023: (
+    ABORT_NO_DICTIONARY: (
         "Object dictionary dynamic generation fails or no object dictionary is present"
     ),
-    0x0800_0024: "No data available",
+    ABORT_NO_DATA: "No data available",
 }
 """The SDO abort codes of CiA 301 with the standard's texts; a 309-3 answer to a failed SDO
 transfer carries the code instead of a 309-3 error number."""

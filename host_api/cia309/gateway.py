@@ -48,6 +48,7 @@ from dbm_tools.tables import (
     checksum_crc,
 )
 from dbm_tools.validate import check_dbm
+from dpm.cia301 import ABORT_NO_SUBINDEX
 from dpm.com import CanFrame, NodeSwitch, SdoTimeoutRequest
 from dpm.commands import (
     AREA_BUS,
@@ -351,7 +352,7 @@ class Gateway:
             try:
                 result[subindex] = self._upload(link, node, index, subindex)
             except Cia309Error as exc:
-                if exc.abort_code != 0x0609_0011:
+                if exc.abort_code != ABORT_NO_SUBINDEX:
                     raise
         return result
 

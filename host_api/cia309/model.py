@@ -14,6 +14,13 @@ import struct
 from dataclasses import dataclass
 from enum import IntEnum, StrEnum
 
+from dpm.cia301 import (
+    ABORT_OUT_OF_MEMORY,
+    ABORT_PDO_LENGTH,
+    ABORT_TIMEOUT,
+    ABORT_TYPE_LENGTH_MISMATCH,
+)
+
 # --------------------------------------------------------------------------- limits
 
 ALL_NODES = 0
@@ -25,10 +32,6 @@ base64 on one 309-3 line, with room for the rest of the request."""
 MAX_NODE_ID = 127
 MAX_PDO_NUMBER = 512
 MAX_PDO_OBJECTS = 64
-
-TYPE_LENGTH_MISMATCH = 0x06070010
-"""CiA 301 SDO abort code: data type does not match, length of service parameter does not
-match. Uploaded bytes that cannot be a value of the requested type answer with it (Lely)."""
 
 TIME_MS_MASK = 0x0FFF_FFFF
 """TIME_OF_DAY / TIME_DIFFERENCE keep milliseconds in the low 28 bits; the top 4 are reserved."""
@@ -107,9 +110,9 @@ _GATEWAY_ERROR_TEXTS: dict[ErrorCode, str] = {
 
 
 _ABORT_ERRORS: dict[int, ErrorCode] = {
-    0x0504_0000: ErrorCode.TIME_OUT,
-    0x0504_0005: ErrorCode.OUT_OF_MEMORY,
-    0x0604_0042: ErrorCode.PDO_LENGTH_EXCEEDED,
+    ABORT_TIMEOUT: ErrorCode.TIME_OUT,
+    ABORT_OUT_OF_MEMORY: ErrorCode.OUT_OF_MEMORY,
+    ABORT_PDO_LENGTH: ErrorCode.PDO_LENGTH_EXCEEDED,
 }
 """SDO abort codes that have a 309-3 error number of their own (as Lely's gateway maps them)."""
 
@@ -338,7 +341,7 @@ def decode_value(data_type: DataType, data: bytes) -> int | float | str | bytes 
     size = data_type.size
     if size is not None and len(data) != size:
         raise Cia309Error(None, f"{len(data)} bytes are no {data_type.value} value",
-                          abort_code=TYPE_LENGTH_MISMATCH)
+                          abort_code=ABORT_TYPE_LENGTH_MISMATCH)
     if data_type in _TIMES:
         return int.from_bytes(data[4:], "little"), int.from_bytes(data[:4], "little") & (
             TIME_MS_MASK
