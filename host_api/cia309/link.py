@@ -86,8 +86,9 @@ DEFAULT_ANSWER_TIMEOUT = 120.0
 answers every request itself (its SDO time-out runs out first); this only bounds the wait
 on a card that stopped."""
 READER_POLL_FIRST = 0.005
-"""[ours] Seconds the mailbox reader sleeps without a ring after activity before it looks at
-the flags itself; each quiet look doubles it, up to ``READER_POLL_QUIET``."""
+"""[ours] Seconds the mailbox reader sleeps without a ring, after it found a message the card
+did not ring for (or the card restarted), before it looks at the flags itself; each look
+that finds nothing unannounced doubles it, up to ``READER_POLL_QUIET``."""
 READER_POLL_QUIET = 0.25
 """[ours] The reader's longest sleep without a ring: what an indication waits when the card
 does not ring this host (started again after the gateway, or its ring taken by another
@@ -202,8 +203,13 @@ class IndicationQueue:
 
 class _Backoff:
     """How long a mailbox reader sleeps without a ring before it looks at the flags itself:
-    ``READER_POLL_FIRST`` after activity, doubled by each quiet look up to
-    ``READER_POLL_QUIET``. One for the reader thread and the event loop that reads instead."""
+    ``READER_POLL_FIRST`` after activity the card did not ring for, doubled by each other
+    look up to ``READER_POLL_QUIET``. One for the reader thread and the event loop that reads
+    instead.
+
+    A ring is not such activity: a card that rings this host needs no look. While a 309-3
+    client read, the card's rings held the look at 5 ms, an extra wake-up and mailbox turn
+    every 5 ms (one or two per read under User-Mode Linux, issue 22)."""
 
     def __init__(self) -> None:
         self.interval = READER_POLL_FIRST
@@ -421,6 +427,8 @@ class Link:
         self._reader_paused = False
         self._reader_busy = False
         self._wake_r, self._wake_w = os.pipe2(os.O_NONBLOCK | os.O_CLOEXEC)
+        self.taken = 0
+        """Messages taken from the mailbox so far (a look that took any found activity)."""
         self.on_state_flags: Callable[[], None] | None = None
         """Called from the reader thread when the card's STATECOM, COM, RUN or READY
         changed (the Task2State monitor looks at once)."""
@@ -482,21 +490,27 @@ class Link:
         thread took), so a gateway with nothing to do woke 1,000 times a second (issue 22).
         A ring is a hint (dpm.doorbell): a card started again does not know this host until
         it rings it, so the reader still looks now and then, at ``READER_POLL_FIRST`` after
-        activity, backing off to ``READER_POLL_QUIET``."""
+        activity it did not ring for, backing off to ``READER_POLL_QUIET`` (``_Backoff``)."""
         backoff = _Backoff()
         flags = -1
         stop = self._reader_stop
+        rung = True  # the first look: nothing to judge by
+        restarted = False
         while not stop.is_set():
             with self._reader_condition:
                 while self._reader_paused and not stop.is_set():
                     self._reader_condition.wait()
                 self._reader_busy = True
+            taken = self.taken
             code = self._take_while_busy()
             if code != Drv.DRV_DEV_GET_NO_MESSAGE:
+                restarted = True
                 stop.wait(0.01)  # the card restarts (-11) or is gone
                 continue
             flags = self._state_flags(flags)
-            backoff.after(self._wait_for_ring(backoff.interval))
+            backoff.after(restarted or (not rung and self.taken != taken))
+            restarted = False
+            rung = self._wait_for_ring(backoff.interval)
 
     def _take_messages(self) -> int:
         """Route every message waiting in the mailbox; the driver's code that ended it
@@ -511,6 +525,7 @@ class Link:
             code, msg = d.DevGetMessage(self.number, d.MSG_BUFFER_SIZE, 0)
             if code != Drv.DRV_NO_ERROR or msg is None:
                 return int(code)
+            self.taken += 1
             try:
                 self._route(msg)
             except Exception:
@@ -638,7 +653,6 @@ class Link:
     def _on_ring(self) -> None:
         assert self._bell is not None
         if self._bell.take_rings():
-            self._loop_active = True
             self._count_ring(self._mapped())
         self._loop_turn()
 
@@ -667,8 +681,9 @@ class Link:
         self._fallback = None
         if not self._loop_reading or self._loop is None:
             return
+        taken = self.taken
         self._loop_turn()
-        interval = self._loop_backoff.after(self._loop_active)
+        interval = self._loop_backoff.after(self._loop_active or self.taken != taken)
         self._loop_active = False
         self._fallback = self._loop.call_later(interval, self._on_fallback)
 

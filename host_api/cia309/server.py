@@ -566,11 +566,11 @@ class _Protocol(asyncio.StreamReaderProtocol):
 @dataclass(eq=False)
 class _FastRead:
     """An SDO upload the fast path sent (``Server._fast_line``): its request, the flight,
-    the timer that gives it up."""
+    and when (event-loop time) it is given up."""
 
     request: SdoUpload
     flight: SdoUploadInFlight | None = None
-    timer: asyncio.TimerHandle | None = None
+    deadline: float = 0.0
 
 
 @dataclass(eq=False)
@@ -597,6 +597,9 @@ class _Connection:
     """An SDO upload of it that the fast path sent and has not answered yet."""
     settled: asyncio.Future[None] | None = None
     """What its task waits on until ``fast`` is answered, made when it has to wait."""
+    fast_timer: asyncio.TimerHandle | None = None
+    """Gives up ``fast`` at its deadline: one timer for the reads that follow, moved on
+    when it runs (``Server._fast_due``), not one scheduled and cancelled per read."""
 
     def waiting_input(self) -> bool:
         """Bytes of it have arrived that the server has not read: in the stream, or still
@@ -839,6 +842,12 @@ class Server:
         protocol = writer.transport.get_protocol()
         assert isinstance(protocol, _Protocol)
         writer.transport.set_write_buffer_limits(WRITE_HIGH, WRITE_LOW)
+        if hasattr(writer.transport, "max_size"):
+            # asyncio's selector transport receives into a new bytes object of max_size
+            # (256 KiB) for every read: above glibc's mmap threshold, that was an mmap, an
+            # mremap and a munmap per request line (system calls, each a ptrace round trip
+            # under User-Mode Linux). READ_CHUNK is what the task reads at once anyway.
+            writer.transport.max_size = READ_CHUNK
         client = Client(self.gateway.session(), LineFramer(self.config.max_line))
         connection = _Connection(client, writer, protocol, loop.time())
         self._connections.append(connection)
@@ -994,10 +1003,15 @@ class Server:
         loop = self._loop
         assert loop is not None
         fast.flight = flight
-        fast.timer = loop.call_later(flight.timeout, self._fast_timed_out, connection, fast)
+        connection.last_active = now = loop.time()
+        fast.deadline = now + flight.timeout
         connection.fast = fast
         connection.serving = True
-        connection.last_active = loop.time()
+        timer = connection.fast_timer
+        if timer is None or timer.when() > fast.deadline:  # a command time-out made shorter
+            if timer is not None:
+                timer.cancel()
+            connection.fast_timer = loop.call_at(fast.deadline, self._fast_due, connection)
         return True
 
     def _on_fast_done(self, connection: _Connection, fast: _FastRead) -> Callable[[], None]:
@@ -1019,8 +1033,7 @@ class Server:
     def _fast_done(self, connection: _Connection, fast: _FastRead) -> None:
         if connection.fast is not fast:
             return  # given up (time-out, the server closing)
-        assert fast.flight is not None and fast.timer is not None
-        fast.timer.cancel()
+        assert fast.flight is not None
         request = fast.request
         try:
             text = format_upload(request.sequence, request.dtype, fast.flight.result(),
@@ -1029,8 +1042,18 @@ class Server:
             text = self.dispatcher.failure(request, exc)
         self._fast_answer(connection, text)
 
-    def _fast_timed_out(self, connection: _Connection, fast: _FastRead) -> None:
-        if connection.fast is not fast:
+    def _fast_due(self, connection: _Connection) -> None:
+        """The fast path's timer: gives up the read out now when its time has run out, else
+        waits on for the one out then; ends when none is out. Under User-Mode Linux each
+        clock read is a system call, and a timer per read took one more."""
+        loop = self._loop
+        assert loop is not None
+        connection.fast_timer = None
+        fast = connection.fast
+        if fast is None:
+            return
+        if loop.time() < fast.deadline:
+            connection.fast_timer = loop.call_at(fast.deadline, self._fast_due, connection)
             return
         assert fast.flight is not None
         self._fast_answer(connection, self.dispatcher.failure(fast.request,
