@@ -255,11 +255,16 @@ class _Gate:
     """Requests share a link; a reset or a flash transfer takes it alone.
 
     The thread holding it alone may still send requests (re-configuring after a reset).
+    ``try_shared`` and ``leave_shared``, on the 309-3 server's path of every read, take no
+    lock (under User-Mode Linux each lock taken reads the clock, a system call): a sharer
+    adds its token, then looks for an owner; ``exclusive`` sets the owner, then looks for
+    tokens (each step one under the interpreter lock), so at least one sees the other.
     """
 
     def __init__(self) -> None:
         self._condition = threading.Condition()
-        self._active = 0
+        self._active: list[None] = []
+        """One token per request inside."""
         self._owner: int | None = None
 
     @contextmanager
@@ -269,27 +274,29 @@ class _Gate:
             if self._owner != me:
                 while self._owner is not None:
                     self._condition.wait()
-            self._active += 1
+            self._active.append(None)
         try:
             yield
         finally:
             with self._condition:
-                self._active -= 1
+                self._active.pop()
                 self._condition.notify_all()
 
     def try_shared(self) -> bool:
-        """Enter shared, without waiting: False while a thread holds the gate alone."""
-        with self._condition:
-            if self._owner is not None:
-                return False
-            self._active += 1
-            return True
+        """Enter shared, without waiting: False while a thread holds the gate alone (or
+        waits to)."""
+        self._active.append(None)
+        if self._owner is not None:
+            self.leave_shared()
+            return False
+        return True
 
     def leave_shared(self) -> None:
-        """End a ``try_shared``."""
-        with self._condition:
-            self._active -= 1
-            self._condition.notify_all()
+        """End a ``try_shared``; an owner waiting for the sharers to leave is told."""
+        self._active.pop()
+        if self._owner is not None:
+            with self._condition:
+                self._condition.notify_all()
 
     @contextmanager
     def exclusive(self) -> Iterator[None]:
@@ -359,9 +366,10 @@ class InFlight:
         """Seconds its owner waits for the answer, as ``Link.request`` would."""
         self._channel = channel
         self._on_done = on_done
-        self._open = True
-        self._lock = threading.Lock()
-        """The reader thread (answer complete) and the owner (``abandon``) may both end it."""
+        self._open = [True]
+        """The reader thread (answer complete) and the owner (``abandon``) may both end it:
+        the first to take the token (``list.pop``, one step under the interpreter lock) does.
+        Not a lock: under User-Mode Linux each lock taken reads the clock, a system call."""
 
     @property
     def messages(self) -> list[Message]:
@@ -376,9 +384,10 @@ class InFlight:
 
     def _close(self) -> bool:
         """Whether it was still open: the first of the reader and the owner to end it."""
-        with self._lock:
-            was_open, self._open = self._open, False
-        return was_open
+        try:
+            return self._open.pop()
+        except IndexError:
+            return False
 
     def _let_go(self) -> None:
         if self._channel is not None:
@@ -662,15 +671,25 @@ class Link:
         try:
             return self._take_messages()
         finally:
+            self._not_busy()
+
+    def _not_busy(self) -> None:
+        """The reader is done with the mailbox; a pause waiting for that is told.
+
+        The lock is taken only when a pause waits: set busy, then look at paused, while a
+        pause sets paused, then looks at busy (each step one under the interpreter lock),
+        so at least one of them sees the other. Under User-Mode Linux each lock taken reads
+        the clock, a system call (issue 22)."""
+        self._reader_busy = False
+        if self._reader_paused:
             with self._reader_condition:
-                self._reader_busy = False
                 self._reader_condition.notify_all()
 
     def _loop_turn(self) -> None:
-        with self._reader_condition:
-            if self._reader_paused or not self._loop_reading:
-                return
-            self._reader_busy = True
+        self._reader_busy = True  # before paused is looked at: see ``_not_busy``
+        if self._reader_paused or not self._loop_reading:
+            self._not_busy()
+            return
         code = self._take_while_busy()
         if code != Drv.DRV_DEV_GET_NO_MESSAGE:
             self._loop_active = True  # the card restarts: look again soon
@@ -750,14 +769,15 @@ class Link:
         if msg.a == 0:
             self._indication(msg)
             return
-        with self._pending_lock:
-            pending = self._pending.get(msg.nr)
-            if pending is None or pending.b != msg.a:
-                log.debug("board %d: no caller for %r", self.number, msg)
-                return
-            if pending.abandoned_at is not None:
-                del self._pending[msg.nr]
-                return
+        pending = self._pending.get(msg.nr)
+        if pending is None or pending.b != msg.a:
+            log.debug("board %d: no caller for %r", self.number, msg)
+            return
+        if pending.abandoned_at is not None:
+            with self._pending_lock:  # not one registered meanwhile under the same number
+                if self._pending.get(msg.nr) is pending:
+                    del self._pending[msg.nr]
+            return
         pending.deliver(msg)
 
     def request(
@@ -788,9 +808,9 @@ class Link:
             return pending.messages
 
     def forget(self, nr: int) -> None:
-        """A request's number is free again (its answer came)."""
-        with self._pending_lock:
-            self._pending.pop(nr, None)
+        """A request's number is free again (its answer came): only its owner calls this,
+        so the entry is its own (one step under the interpreter lock, no lock taken)."""
+        self._pending.pop(nr, None)
 
     def no_answer(self, b: int, timeout: float) -> Cia309Error:
         return Cia309Error(ErrorCode.TIME_OUT,
@@ -886,18 +906,22 @@ class Link:
         self, b: int, multipart: bool, on_part: Callable[[Message], None] | None,
         *, wait: bool = True,
     ) -> tuple[int, _Pending]:
-        now = time.monotonic()
-        with self._pending_lock:
-            for nr, old in list(self._pending.items()):
-                if old.abandoned_at is not None and now - old.abandoned_at > ABANDONED_NR_S:
-                    del self._pending[nr]
-            for _ in range(255):
-                nr = next(self._numbers)
-                if nr not in self._pending:
-                    pending = _Pending(b, multipart, on_part,
-                                       done=threading.Event() if wait else None)
-                    self._pending[nr] = pending
-                    return nr, pending
+        """A number for a request and its entry. Without a lock or a clock read on the usual
+        path (under User-Mode Linux each is a system call): a number is claimed with one
+        ``setdefault`` (one step under the interpreter lock); only numbers given up on are
+        looked at under the lock, for the time they stay reserved."""
+        entries = list(self._pending.values())
+        if any(entry.abandoned_at is not None for entry in entries):
+            now = time.monotonic()
+            with self._pending_lock:
+                for nr, old in list(self._pending.items()):
+                    if old.abandoned_at is not None and now - old.abandoned_at > ABANDONED_NR_S:
+                        del self._pending[nr]
+        pending = _Pending(b, multipart, on_part, done=threading.Event() if wait else None)
+        for _ in range(255):
+            nr = next(self._numbers)
+            if self._pending.setdefault(nr, pending) is pending:
+                return nr, pending
         raise Cia309Error(ErrorCode.OUT_OF_MEMORY,
                           f"board {self.number}: 255 requests wait for answers")
 
