@@ -10,7 +10,10 @@ Layers, as pymodbus splits framer, PDU codec and transport:
 * :class:`Server` is the asyncio TCP server: one ``Client`` per connection with its own
   line framer, sequence and gateway session (so its own default network and node-ID,
   command time-out and command size), requests of one client answered in order, clients
-  served at once, and events fanned out to every client.
+  served at once, and events fanned out to every client. A line that arrives alone
+  while its client waits for nothing (the usual read: one line, one answer) is answered
+  without the client's task: an SDO upload from the mailbox reader's callback on the event
+  loop (``Server._fast_line``).
 
 Events follow the dialect: Lely's ``coctl`` reads unsolicited lines (``1 5 BOOT_UP``,
 ``1 pdo 1 2 0x1 0x2``) between answers, so in that dialect every client gets them as
