@@ -232,6 +232,33 @@ def test_sdo_upload_sent_without_waiting(gw: Gateway) -> None:
     assert reason(wrong[-1].result).abort_code == 0x06020000
 
 
+def test_the_mailbox_reader_does_not_poll_after_the_card_rang(gw: Gateway) -> None:
+    """A card that rang for its answers needs no fallback look: the reader thread looks at
+    the mailbox when rung, and its look without a ring backs off as when nothing happens.
+    Before, every ring restarted that look at 5 ms (then 10, 20, 40 ms...): a wake-up and a
+    mailbox turn for nothing after each read, one or two per read under User-Mode Linux,
+    where reads are 3-10 ms apart (issue 22). The fallback is for a card that does not
+    ring this host (one started again)."""
+    link = gw._link(1)
+    for _ in range(50):  # each read answered after a ring
+        assert gw.sdo_upload(0x1000, 0, node_id=1) == struct.pack("<I", 0x000F0191)
+    looks = 0
+    take = link._take_messages
+
+    def counting() -> int:
+        nonlocal looks
+        looks += 1
+        return take()
+
+    link._take_messages = counting  # type: ignore[method-assign]
+    try:
+        # Not a wait for a condition: the window in which the looks are counted.
+        threading.Event().wait(0.2)
+    finally:
+        del link._take_messages
+    assert looks <= 1, f"{looks} looks within 0.2 s after the last answer"
+
+
 # --- 4.2 PDO ----------------------------------------------------------------------------------
 
 

@@ -29,6 +29,7 @@ from pathlib import Path
 import pytest
 
 from cifemu.commands.cia309 import Remote, open_lss
+from firmware.can.sdo import DEFAULT_SDO_TIMEOUT
 from host_api.cia309.datatypes import Dialect
 from host_api.cia309.gateway import Gateway
 from host_api.cia309.server import BackgroundServer, ServerConfig
@@ -215,6 +216,58 @@ def test_several_clients_at_once(connect: Connect) -> None:
     for thread in threads:
         thread.join(30)
     assert not failures
+
+
+def test_a_client_waiting_for_each_answer_costs_two_loop_turns_per_read(
+        servers: dict[str, BackgroundServer], connect: Connect) -> None:
+    """A read of a client that waits for each answer wakes the server's event loop twice:
+    once for its line, once for the card's ring with the answer, which is written from
+    there (not from the client's task, woken by a future; not four turns, with the mailbox
+    looked at every 5 ms while the card rings). Each turn is a poll of the selector: under
+    User-Mode Linux every system call is a ptrace round trip of the host (issue 22)."""
+    server = servers["canopennode"]
+    client = connect("canopennode")
+    assert client.ask("[1] 1 read 0x1000 0 u32\n") == "[1] 983441\r\n"  # connected, warm
+    loop = server.server._loop
+    assert loop is not None
+    selector = loop._selector  # type: ignore[attr-defined]
+    polled = selector.select
+    turns = 0
+
+    def counting(timeout: float | None = None) -> list[object]:
+        nonlocal turns
+        turns += 1
+        return polled(timeout)  # type: ignore[no-any-return]
+
+    reads = 200
+    selector.select = counting
+    try:
+        for n in range(2, reads + 2):
+            assert client.ask(f"[{n}] 1 read 0x1000 0 u32\n") == f"[{n}] 983441\r\n"
+    finally:
+        del selector.select
+    assert turns <= 2.25 * reads, f"{turns / reads:.2f} turns of the event loop per read"
+
+
+def test_a_read_the_card_answers_too_late_is_a_time_out_and_the_next_is_served(
+        connect: Connect) -> None:
+    """The client's command time-out bounds a read answered without its task (the fast
+    path's timer): 103 when it runs out, long before the card's answer, also when it was
+    made shorter between two reads; then the next read is answered."""
+    c = connect("canopennode")
+    assert c.ask("[1] set command_timeout 5000\n") == "[1] OK\r\n"
+    assert c.ask("[2] 1 read 0x1000 0 u32\n") == "[2] 983441\r\n"
+    assert c.ask("[3] set sdo_timeout 4000\n") == "[3] OK\r\n"
+    try:
+        assert c.ask("[4] set command_timeout 50\n") == "[4] OK\r\n"
+        began = time.monotonic()  # node 43 is not on the bus: the card answers in 4 s
+        assert c.ask("[5] 43 read 0x1000 0 u32\n") == "[5] ERROR:103 #Time-out.\r\n"
+        assert time.monotonic() - began < 3
+        assert c.ask("[6] set command_timeout 5000\n") == "[6] OK\r\n"
+        assert c.ask("[7] 1 read 0x1000 0 u32\n") == "[7] 983441\r\n"
+    finally:
+        timeout = int(DEFAULT_SDO_TIMEOUT * 1000)
+        assert c.ask(f"[8] set sdo_timeout {timeout}\n") == "[8] OK\r\n"
 
 
 def test_a_new_client_ends_the_one_idle_longest(connect: Connect) -> None:

@@ -78,6 +78,24 @@ class LineFramer:
         """A line has begun and its end has not arrived (held, or dropped as overlong)."""
         return bool(self._buffer) or self._discarding
 
+    def whole_line(self, data: bytes) -> str | None:
+        """The line ``data`` is, when it is exactly one whole line (ended by LF or CR LF,
+        within ``max_line``) and nothing of an earlier line is held; else None, with
+        nothing taken (``feed`` it then). What ``feed`` would return for it, without its
+        search: a client that waits for each answer sends one line at a time, and the
+        server's fast path (``Server``) answers such a line without its client's task."""
+        if self._buffer or self._discarding or self._after_cr:
+            return None
+        if data.endswith(b"\r\n"):
+            body = data[:-2]
+        elif data.endswith(b"\n"):
+            body = data[:-1]
+        else:
+            return None
+        if len(body) > self.max_line or b"\n" in body or b"\r" in body:
+            return None
+        return body.decode("latin-1")
+
     def feed(self, data: bytes) -> list[str | OverlongLine]:
         """Take the next received bytes; return the lines (and overlong reports) they end."""
         out: list[str | OverlongLine] = []

@@ -86,8 +86,9 @@ DEFAULT_ANSWER_TIMEOUT = 120.0
 answers every request itself (its SDO time-out runs out first); this only bounds the wait
 on a card that stopped."""
 READER_POLL_FIRST = 0.005
-"""[ours] Seconds the mailbox reader sleeps without a ring after activity before it looks at
-the flags itself; each quiet look doubles it, up to ``READER_POLL_QUIET``."""
+"""[ours] Seconds the mailbox reader sleeps without a ring, after it found a message the card
+did not ring for (or the card restarted), before it looks at the flags itself; each look
+that finds nothing unannounced doubles it, up to ``READER_POLL_QUIET``."""
 READER_POLL_QUIET = 0.25
 """[ours] The reader's longest sleep without a ring: what an indication waits when the card
 does not ring this host (started again after the gateway, or its ring taken by another
@@ -202,8 +203,13 @@ class IndicationQueue:
 
 class _Backoff:
     """How long a mailbox reader sleeps without a ring before it looks at the flags itself:
-    ``READER_POLL_FIRST`` after activity, doubled by each quiet look up to
-    ``READER_POLL_QUIET``. One for the reader thread and the event loop that reads instead."""
+    ``READER_POLL_FIRST`` after activity the card did not ring for, doubled by each other
+    look up to ``READER_POLL_QUIET``. One for the reader thread and the event loop that reads
+    instead.
+
+    A ring is not such activity: a card that rings this host needs no look. While a 309-3
+    client read, the card's rings held the look at 5 ms, an extra wake-up and mailbox turn
+    every 5 ms (one or two per read under User-Mode Linux, issue 22)."""
 
     def __init__(self) -> None:
         self.interval = READER_POLL_FIRST
@@ -249,11 +255,16 @@ class _Gate:
     """Requests share a link; a reset or a flash transfer takes it alone.
 
     The thread holding it alone may still send requests (re-configuring after a reset).
+    ``try_shared`` and ``leave_shared``, on the 309-3 server's path of every read, take no
+    lock (under User-Mode Linux each lock taken reads the clock, a system call): a sharer
+    adds its token, then looks for an owner; ``exclusive`` sets the owner, then looks for
+    tokens (each step one under the interpreter lock), so at least one sees the other.
     """
 
     def __init__(self) -> None:
         self._condition = threading.Condition()
-        self._active = 0
+        self._active: list[None] = []
+        """One token per request inside."""
         self._owner: int | None = None
 
     @contextmanager
@@ -263,27 +274,29 @@ class _Gate:
             if self._owner != me:
                 while self._owner is not None:
                     self._condition.wait()
-            self._active += 1
+            self._active.append(None)
         try:
             yield
         finally:
             with self._condition:
-                self._active -= 1
+                self._active.pop()
                 self._condition.notify_all()
 
     def try_shared(self) -> bool:
-        """Enter shared, without waiting: False while a thread holds the gate alone."""
-        with self._condition:
-            if self._owner is not None:
-                return False
-            self._active += 1
-            return True
+        """Enter shared, without waiting: False while a thread holds the gate alone (or
+        waits to)."""
+        self._active.append(None)
+        if self._owner is not None:
+            self.leave_shared()
+            return False
+        return True
 
     def leave_shared(self) -> None:
-        """End a ``try_shared``."""
-        with self._condition:
-            self._active -= 1
-            self._condition.notify_all()
+        """End a ``try_shared``; an owner waiting for the sharers to leave is told."""
+        self._active.pop()
+        if self._owner is not None:
+            with self._condition:
+                self._condition.notify_all()
 
     @contextmanager
     def exclusive(self) -> Iterator[None]:
@@ -353,9 +366,10 @@ class InFlight:
         """Seconds its owner waits for the answer, as ``Link.request`` would."""
         self._channel = channel
         self._on_done = on_done
-        self._open = True
-        self._lock = threading.Lock()
-        """The reader thread (answer complete) and the owner (``abandon``) may both end it."""
+        self._open = [True]
+        """The reader thread (answer complete) and the owner (``abandon``) may both end it:
+        the first to take the token (``list.pop``, one step under the interpreter lock) does.
+        Not a lock: under User-Mode Linux each lock taken reads the clock, a system call."""
 
     @property
     def messages(self) -> list[Message]:
@@ -370,9 +384,10 @@ class InFlight:
 
     def _close(self) -> bool:
         """Whether it was still open: the first of the reader and the owner to end it."""
-        with self._lock:
-            was_open, self._open = self._open, False
-        return was_open
+        try:
+            return self._open.pop()
+        except IndexError:
+            return False
 
     def _let_go(self) -> None:
         if self._channel is not None:
@@ -421,6 +436,8 @@ class Link:
         self._reader_paused = False
         self._reader_busy = False
         self._wake_r, self._wake_w = os.pipe2(os.O_NONBLOCK | os.O_CLOEXEC)
+        self.taken = 0
+        """Messages taken from the mailbox so far (a look that took any found activity)."""
         self.on_state_flags: Callable[[], None] | None = None
         """Called from the reader thread when the card's STATECOM, COM, RUN or READY
         changed (the Task2State monitor looks at once)."""
@@ -482,21 +499,27 @@ class Link:
         thread took), so a gateway with nothing to do woke 1,000 times a second (issue 22).
         A ring is a hint (dpm.doorbell): a card started again does not know this host until
         it rings it, so the reader still looks now and then, at ``READER_POLL_FIRST`` after
-        activity, backing off to ``READER_POLL_QUIET``."""
+        activity it did not ring for, backing off to ``READER_POLL_QUIET`` (``_Backoff``)."""
         backoff = _Backoff()
         flags = -1
         stop = self._reader_stop
+        rung = True  # the first look: nothing to judge by
+        restarted = False
         while not stop.is_set():
             with self._reader_condition:
                 while self._reader_paused and not stop.is_set():
                     self._reader_condition.wait()
                 self._reader_busy = True
+            taken = self.taken
             code = self._take_while_busy()
             if code != Drv.DRV_DEV_GET_NO_MESSAGE:
+                restarted = True
                 stop.wait(0.01)  # the card restarts (-11) or is gone
                 continue
             flags = self._state_flags(flags)
-            backoff.after(self._wait_for_ring(backoff.interval))
+            backoff.after(restarted or (not rung and self.taken != taken))
+            restarted = False
+            rung = self._wait_for_ring(backoff.interval)
 
     def _take_messages(self) -> int:
         """Route every message waiting in the mailbox; the driver's code that ended it
@@ -511,6 +534,7 @@ class Link:
             code, msg = d.DevGetMessage(self.number, d.MSG_BUFFER_SIZE, 0)
             if code != Drv.DRV_NO_ERROR or msg is None:
                 return int(code)
+            self.taken += 1
             try:
                 self._route(msg)
             except Exception:
@@ -638,7 +662,6 @@ class Link:
     def _on_ring(self) -> None:
         assert self._bell is not None
         if self._bell.take_rings():
-            self._loop_active = True
             self._count_ring(self._mapped())
         self._loop_turn()
 
@@ -648,15 +671,25 @@ class Link:
         try:
             return self._take_messages()
         finally:
+            self._not_busy()
+
+    def _not_busy(self) -> None:
+        """The reader is done with the mailbox; a pause waiting for that is told.
+
+        The lock is taken only when a pause waits: set busy, then look at paused, while a
+        pause sets paused, then looks at busy (each step one under the interpreter lock),
+        so at least one of them sees the other. Under User-Mode Linux each lock taken reads
+        the clock, a system call (issue 22)."""
+        self._reader_busy = False
+        if self._reader_paused:
             with self._reader_condition:
-                self._reader_busy = False
                 self._reader_condition.notify_all()
 
     def _loop_turn(self) -> None:
-        with self._reader_condition:
-            if self._reader_paused or not self._loop_reading:
-                return
-            self._reader_busy = True
+        self._reader_busy = True  # before paused is looked at: see ``_not_busy``
+        if self._reader_paused or not self._loop_reading:
+            self._not_busy()
+            return
         code = self._take_while_busy()
         if code != Drv.DRV_DEV_GET_NO_MESSAGE:
             self._loop_active = True  # the card restarts: look again soon
@@ -667,8 +700,9 @@ class Link:
         self._fallback = None
         if not self._loop_reading or self._loop is None:
             return
+        taken = self.taken
         self._loop_turn()
-        interval = self._loop_backoff.after(self._loop_active)
+        interval = self._loop_backoff.after(self._loop_active or self.taken != taken)
         self._loop_active = False
         self._fallback = self._loop.call_later(interval, self._on_fallback)
 
@@ -735,14 +769,15 @@ class Link:
         if msg.a == 0:
             self._indication(msg)
             return
-        with self._pending_lock:
-            pending = self._pending.get(msg.nr)
-            if pending is None or pending.b != msg.a:
-                log.debug("board %d: no caller for %r", self.number, msg)
-                return
-            if pending.abandoned_at is not None:
-                del self._pending[msg.nr]
-                return
+        pending = self._pending.get(msg.nr)
+        if pending is None or pending.b != msg.a:
+            log.debug("board %d: no caller for %r", self.number, msg)
+            return
+        if pending.abandoned_at is not None:
+            with self._pending_lock:  # not one registered meanwhile under the same number
+                if self._pending.get(msg.nr) is pending:
+                    del self._pending[msg.nr]
+            return
         pending.deliver(msg)
 
     def request(
@@ -773,9 +808,9 @@ class Link:
             return pending.messages
 
     def forget(self, nr: int) -> None:
-        """A request's number is free again (its answer came)."""
-        with self._pending_lock:
-            self._pending.pop(nr, None)
+        """A request's number is free again (its answer came): only its owner calls this,
+        so the entry is its own (one step under the interpreter lock, no lock taken)."""
+        self._pending.pop(nr, None)
 
     def no_answer(self, b: int, timeout: float) -> Cia309Error:
         return Cia309Error(ErrorCode.TIME_OUT,
@@ -871,18 +906,22 @@ class Link:
         self, b: int, multipart: bool, on_part: Callable[[Message], None] | None,
         *, wait: bool = True,
     ) -> tuple[int, _Pending]:
-        now = time.monotonic()
-        with self._pending_lock:
-            for nr, old in list(self._pending.items()):
-                if old.abandoned_at is not None and now - old.abandoned_at > ABANDONED_NR_S:
-                    del self._pending[nr]
-            for _ in range(255):
-                nr = next(self._numbers)
-                if nr not in self._pending:
-                    pending = _Pending(b, multipart, on_part,
-                                       done=threading.Event() if wait else None)
-                    self._pending[nr] = pending
-                    return nr, pending
+        """A number for a request and its entry. Without a lock or a clock read on the usual
+        path (under User-Mode Linux each is a system call): a number is claimed with one
+        ``setdefault`` (one step under the interpreter lock); only numbers given up on are
+        looked at under the lock, for the time they stay reserved."""
+        entries = list(self._pending.values())
+        if any(entry.abandoned_at is not None for entry in entries):
+            now = time.monotonic()
+            with self._pending_lock:
+                for nr, old in list(self._pending.items()):
+                    if old.abandoned_at is not None and now - old.abandoned_at > ABANDONED_NR_S:
+                        del self._pending[nr]
+        pending = _Pending(b, multipart, on_part, done=threading.Event() if wait else None)
+        for _ in range(255):
+            nr = next(self._numbers)
+            if self._pending.setdefault(nr, pending) is pending:
+                return nr, pending
         raise Cia309Error(ErrorCode.OUT_OF_MEMORY,
                           f"board {self.number}: 255 requests wait for answers")
 

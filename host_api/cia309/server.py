@@ -10,7 +10,10 @@ Layers, as pymodbus splits framer, PDU codec and transport:
 * :class:`Server` is the asyncio TCP server: one ``Client`` per connection with its own
   line framer, sequence and gateway session (so its own default network and node-ID,
   command time-out and command size), requests of one client answered in order, clients
-  served at once, and events fanned out to every client.
+  served at once, and events fanned out to every client. A line that arrives alone
+  while its client waits for nothing (the usual read: one line, one answer) is answered
+  without the client's task: an SDO upload from the mailbox reader's callback on the event
+  loop (``Server._fast_line``).
 
 Events follow the dialect: Lely's ``coctl`` reads unsolicited lines (``1 5 BOOT_UP``,
 ``1 pdo 1 2 0x1 0x2``) between answers, so in that dialect every client gets them as
@@ -82,7 +85,7 @@ from host_api.cia309.formatters import (
     format_version,
 )
 from host_api.cia309.framing import DEFAULT_MAX_LINE, LineFramer, OverlongLine
-from host_api.cia309.gateway import Gateway
+from host_api.cia309.gateway import Gateway, SdoUploadInFlight
 from host_api.cia309.model import Cia309Error, ErrorCode, Event
 from host_api.cia309.parser import parse_request
 from host_api.cia309.requests import (
@@ -547,13 +550,30 @@ class ServerConfig:
 
 class _Protocol(asyncio.StreamReaderProtocol):
     """asyncio's stream protocol, counting the bytes received: a client whose request has
-    arrived but has not been read yet is not idle, and must not lose its slot."""
+    arrived but has not been read yet is not idle, and must not lose its slot.
+
+    ``fast`` (``Server._fast_line``) may take the bytes first: a line it answers never
+    reaches the stream, nor the client's task."""
 
     received = 0
+    fast: Callable[[bytes], bool] | None = None
 
     def data_received(self, data: bytes) -> None:
+        fast = self.fast
+        if fast is not None and fast(data):
+            return
         self.received += len(data)
         super().data_received(data)
+
+
+@dataclass(eq=False)
+class _FastRead:
+    """An SDO upload the fast path sent (``Server._fast_line``): its request, the flight,
+    and when (event-loop time) it is given up."""
+
+    request: SdoUpload
+    flight: SdoUploadInFlight | None = None
+    deadline: float = 0.0
 
 
 @dataclass(eq=False)
@@ -574,6 +594,15 @@ class _Connection:
     """Its requests wait until it reads its answers."""
     answered: bool = False
     """It has had an answer."""
+    reading: bool = False
+    """Its task waits for its next bytes, every line before them served."""
+    fast: _FastRead | None = None
+    """An SDO upload of it that the fast path sent and has not answered yet."""
+    settled: asyncio.Future[None] | None = None
+    """What its task waits on until ``fast`` is answered, made when it has to wait."""
+    fast_timer: asyncio.TimerHandle | None = None
+    """Gives up ``fast`` at its deadline: one timer for the reads that follow, moved on
+    when it runs (``Server._fast_due``), not one scheduled and cancelled per read."""
 
     def waiting_input(self) -> bool:
         """Bytes of it have arrived that the server has not read: in the stream, or still
@@ -655,6 +684,11 @@ class Server:
 
     async def close(self) -> None:
         self._subscription.cancel()
+        for connection in self._connections:
+            fast = connection.fast
+            if fast is not None and fast.flight is not None:
+                connection.fast = None
+                fast.flight.abandon()
         self._read_back()
         if self._server is not None:
             self._server.close()
@@ -757,14 +791,29 @@ class Server:
         finally:
             self._newcomers -= 1
 
-    def _read_timeout(self, client: Client, now: float) -> float | None:
+    def _read_timeout(self, connection: _Connection, now: float) -> float | None:
         """How long the next read may wait: what is left of the line-assembly time while a
-        line is unfinished, else the idle time-out (None: no limit)."""
+        line is unfinished, else of the idle time-out since its last byte or answer (None:
+        no limit); the whole idle time-out while the fast path serves it (it is not idle,
+        and is looked at again then)."""
         config = self.config
+        client = connection.client
         if client.framer.partial and config.line_timeout > 0:
             assert client.line_started is not None
             return max(0.0, client.line_started + config.line_timeout - now)
-        return config.idle_timeout if config.idle_timeout > 0 else None
+        if config.idle_timeout <= 0:
+            return None
+        if connection.fast is not None:
+            return config.idle_timeout
+        return max(0.0, connection.last_active + config.idle_timeout - now)
+
+    def _active(self, connection: _Connection, now: float) -> bool:
+        """Its read timed out, but the fast path served it meanwhile (or serves it now): the
+        idle time runs from its last byte or answer, which its task did not see."""
+        if connection.client.framer.partial:
+            return False
+        return (connection.fast is not None
+                or now - connection.last_active < self.config.idle_timeout)
 
     async def _drain(self, connection: _Connection) -> bool:
         """Back-pressure: while more than WRITE_HIGH bytes of answers wait, wait for the
@@ -796,18 +845,31 @@ class Server:
         protocol = writer.transport.get_protocol()
         assert isinstance(protocol, _Protocol)
         writer.transport.set_write_buffer_limits(WRITE_HIGH, WRITE_LOW)
+        if hasattr(writer.transport, "max_size"):
+            # asyncio's selector transport receives into a new bytes object of max_size
+            # (256 KiB) for every read: above glibc's mmap threshold, that was an mmap, an
+            # mremap and a munmap per request line (system calls, each a ptrace round trip
+            # under User-Mode Linux). READ_CHUNK is what the task reads at once anyway.
+            writer.transport.max_size = READ_CHUNK
         client = Client(self.gateway.session(), LineFramer(self.config.max_line))
         connection = _Connection(client, writer, protocol, loop.time())
         self._connections.append(connection)
+        protocol.fast = lambda data: self._fast_line(connection, data)
         try:
             while connection in self._connections:
+                connection.reading = True
                 try:  # asyncio.timeout, not wait_for: no task of its own for every read
-                    async with asyncio.timeout(self._read_timeout(client, loop.time())):
+                    async with asyncio.timeout(self._read_timeout(connection, loop.time())):
                         data = await reader.read(READ_CHUNK)
                 except TimeoutError:
+                    if self._active(connection, loop.time()):
+                        continue
                     what = "line unfinished" if client.framer.partial else "idle"
                     self._end(connection, f"{what} for too long", flush=False)
                     break
+                finally:
+                    connection.reading = False
+                await self._settled(connection)
                 if not data:
                     break
                 connection.consumed += len(data)
@@ -839,6 +901,7 @@ class Server:
         except ConnectionError:
             log.debug("a client went away")
         finally:
+            protocol.fast = None
             with contextlib.suppress(ValueError):
                 self._connections.remove(connection)
             if not writer.transport.is_closing():
@@ -859,7 +922,8 @@ class Server:
         prepared = dispatcher.prepare(client, line)
         if isinstance(prepared, Answered):
             return prepared.text
-        loop = asyncio.get_running_loop()
+        loop = self._loop
+        assert loop is not None
         if isinstance(prepared, SdoUpload):
             answered: asyncio.Future[None] = loop.create_future()
 
@@ -897,6 +961,128 @@ class Server:
                 except Cia309Error as exc:
                     return dispatcher.failure(prepared, exc)
         return await loop.run_in_executor(self._executor, dispatcher.execute, client, prepared)
+
+    # --- the fast path: a line answered without its client's task --------------------------
+
+    def _fast_line(self, connection: _Connection, data: bytes) -> bool:
+        """Answer ``data`` as it arrives, when it is one whole line that needs no thread:
+        an SDO upload the card takes now (``Gateway.try_sdo_upload``), answered from the
+        mailbox's reader when the card answers, or a line answered without a request (an
+        empty one, one that does not parse). False, with nothing taken, otherwise: the
+        client's task reads it as before.
+
+        Only while the task waits for bytes with every earlier line answered and nothing of
+        the client's output waiting, so the answers keep their order and back-pressure
+        stays the task's. Why: a client that waits for each answer (cocomm, the
+        benchmarks) cost the task two wake-ups per read (the bytes, then the answer), each
+        an extra turn of the event loop, a poll and asyncio's timers and futures around the
+        read; under User-Mode Linux each system call is a ptrace round trip of the host
+        (docs/benchmarks.md, issue 22)."""
+        if (not connection.reading or connection.fast is not None
+                or connection.protocol.received != connection.consumed
+                or _waiting(connection.writer.transport)):
+            return False
+        client = connection.client
+        line = client.framer.whole_line(data)
+        if line is None:
+            return False
+        dispatcher = self.dispatcher
+        prepared = dispatcher.prepare(client, line)  # again by the task if it is not taken
+        if isinstance(prepared, Answered):
+            self._fast_answer(connection, prepared.text)
+            return True
+        if not isinstance(prepared, SdoUpload):
+            return False
+        fast = _FastRead(prepared)
+        try:
+            flight = client.gateway.try_sdo_upload(
+                prepared.index, prepared.subindex, self._on_fast_done(connection, fast),
+                network=prepared.net, node_id=prepared.node)
+        except Cia309Error as exc:
+            self._fast_answer(connection, dispatcher.failure(prepared, exc))
+            return True
+        if flight is None:
+            return False  # it would wait: the task's worker thread makes the call
+        loop = self._loop
+        assert loop is not None
+        fast.flight = flight
+        connection.last_active = now = loop.time()
+        fast.deadline = now + flight.timeout
+        connection.fast = fast
+        connection.serving = True
+        timer = connection.fast_timer
+        if timer is None or timer.when() > fast.deadline:  # a command time-out made shorter
+            if timer is not None:
+                timer.cancel()
+            connection.fast_timer = loop.call_at(fast.deadline, self._fast_due, connection)
+        return True
+
+    def _on_fast_done(self, connection: _Connection, fast: _FastRead) -> Callable[[], None]:
+        """The flight's ``on_done``: the answer from the thread that read it, when that is
+        the event loop's (``Gateway.read_on``), else handed to the loop."""
+        loop = self._loop
+        assert loop is not None
+        here = threading.get_ident()
+
+        def on_done() -> None:
+            if threading.get_ident() == here:
+                self._fast_done(connection, fast)
+                return
+            with contextlib.suppress(RuntimeError):  # the loop closed: nobody waits
+                loop.call_soon_threadsafe(self._fast_done, connection, fast)
+
+        return on_done
+
+    def _fast_done(self, connection: _Connection, fast: _FastRead) -> None:
+        if connection.fast is not fast:
+            return  # given up (time-out, the server closing)
+        assert fast.flight is not None
+        request = fast.request
+        try:
+            text = format_upload(request.sequence, request.dtype, fast.flight.result(),
+                                 self.dispatcher.dialect)
+        except Cia309Error as exc:
+            text = self.dispatcher.failure(request, exc)
+        self._fast_answer(connection, text)
+
+    def _fast_due(self, connection: _Connection) -> None:
+        """The fast path's timer: gives up the read out now when its time has run out, else
+        waits on for the one out then; ends when none is out. Under User-Mode Linux each
+        clock read is a system call, and a timer per read took one more."""
+        loop = self._loop
+        assert loop is not None
+        connection.fast_timer = None
+        fast = connection.fast
+        if fast is None:
+            return
+        if loop.time() < fast.deadline:
+            connection.fast_timer = loop.call_at(fast.deadline, self._fast_due, connection)
+            return
+        assert fast.flight is not None
+        self._fast_answer(connection, self.dispatcher.failure(fast.request,
+                                                              fast.flight.abandon()))
+
+    def _fast_answer(self, connection: _Connection, text: str | None) -> None:
+        """A fast line's answer: written, and the task let go on when it waits for it."""
+        assert self._loop is not None
+        connection.fast = None
+        connection.serving = False
+        connection.last_active = self._loop.time()
+        connection.answered = True
+        if text:
+            self._write(connection, text.encode("latin-1"))
+        settled, connection.settled = connection.settled, None
+        if settled is not None and not settled.done():
+            settled.set_result(None)
+
+    async def _settled(self, connection: _Connection) -> None:
+        """Until the fast path's request of this client is answered (its task read more)."""
+        if connection.fast is None:
+            return
+        assert self._loop is not None
+        if connection.settled is None:
+            connection.settled = self._loop.create_future()
+        await connection.settled
 
 
 def _nothing() -> None:
