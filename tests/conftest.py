@@ -14,6 +14,7 @@ from pathlib import Path
 
 import pytest
 
+from bench.cpu import START_CPU_S, START_STALL_S, StartProgress
 from host_api import driver
 from host_api.liveness import firmware_liveness
 from tests.selection import HELPER_MODULES, forbid_processes, marks_of_module
@@ -83,13 +84,17 @@ class Card:
 
 
 def start_card(directory: Path, board: int = 0, *extra: str) -> Card:
+    """Start a firmware and wait until it is READY, for as long as its start advances
+    (``bench.cpu.StartProgress``): it fails when the firmware exits, gets no CPU for 15 s or
+    spends 10 s of CPU without READY. A loaded machine makes the start slower, not a
+    failure: at a load of 20-35 a fixed 15 s of wall time failed 13 tests of a run."""
     proc = subprocess.Popen(
         [sys.executable, "-m", "cifemu", "firmware", "--board", str(board),
          "--dpm-dir", str(directory), "--log-level", "WARNING", *extra],
         stderr=subprocess.PIPE,
     )
     card = Card(directory, board, proc)
-    deadline = time.monotonic() + 15 * TIME_SCALE
+    start = StartProgress(proc.pid, START_STALL_S * TIME_SCALE, START_CPU_S * TIME_SCALE)
     while True:
         if proc.poll() is not None:
             stderr = proc.stderr.read().decode() if proc.stderr else ""
@@ -100,9 +105,10 @@ def start_card(directory: Path, board: int = 0, *extra: str) -> Card:
                 # READY from this process, not from a killed predecessor's image
                 if f.read(1)[0] & READY and firmware_liveness(directory, board).pid == proc.pid:
                     return card
-        if time.monotonic() > deadline:
+        problem = start.problem()
+        if problem is not None:
             card.stop()
-            raise RuntimeError("firmware did not become READY")
+            raise RuntimeError(f"firmware did not become READY: its start {problem}")
         time.sleep(0.005)
 
 
