@@ -160,6 +160,24 @@ def share(before: CpuSample, after: CpuSample, pid: int) -> dict[str, Any]:
     }
 
 
+def runqueue_wait_ns(pids: list[int]) -> dict[int, int]:
+    """Nanoseconds each live thread of ``pids`` has waited for a CPU while it could run
+    (``/proc/PID/task/TID/schedstat``'s second field; thread id -> ns). On an idle machine
+    it hardly moves; on a loaded one it is the time load took from the thread."""
+    waited: dict[int, int] = {}
+    for pid in pids:
+        try:
+            tasks = list(Path(f"/proc/{pid}/task").iterdir())
+        except OSError:
+            continue
+        for task in tasks:
+            try:
+                waited[int(task.name)] = int((task / "schedstat").read_text().split()[1])
+            except (OSError, ValueError, IndexError):
+                continue
+    return waited
+
+
 def descendants(pid: int) -> list[int]:
     """The live child processes of ``pid`` and theirs (a card's SYNC timer process).
 
