@@ -43,6 +43,48 @@ def stat_cpu_ns(pid: int) -> int:
     return (int(fields[11]) + int(fields[12])) * TICK_NS  # utime, stime: fields 14 and 15
 
 
+START_CPU_S = 10.0
+"""CPU seconds a process may spend on its start before the start counts as failed: about
+20 times what a firmware's start costs (0.4-0.6 s: the interpreter, the imports, the
+flash), which load hardly changes."""
+START_STALL_S = 15.0
+"""Wall seconds a starting process may go without any CPU time before its start counts as
+stuck (blocked, stopped): a runnable process gets its share of the cores however busy they
+are, so its CPU time moves within a second even at a load of 30 on two cores."""
+
+
+class StartProgress:
+    """Whether a process's start is getting on: a wait for it to be ready follows its CPU
+    time, not the wall clock. At a load of 30 on two cores a firmware's start takes 10-20 s
+    of wall time for the same half second of CPU; a fixed 15 s deadline failed there, and
+    a wider one would only fail later. The start fails when it has spent ``cpu_limit_s``
+    of CPU (busy, never ready) or got none for ``stall_s`` (stuck)."""
+
+    def __init__(self, pid: int, stall_s: float = START_STALL_S,
+                 cpu_limit_s: float = START_CPU_S) -> None:
+        self._pid = pid
+        self._stall_s = stall_s
+        self._cpu_limit_ns = int(cpu_limit_s * 1e9)
+        self._cpu_ns = -1
+        self._advanced = time.monotonic()
+
+    def problem(self) -> str | None:
+        """None while the start advances; else what went wrong, as the end of "its start
+        ..." (a process that has ended gives None: its exit status says more)."""
+        try:
+            cpu_ns = stat_cpu_ns(self._pid)
+        except (OSError, ValueError, IndexError):
+            return None
+        now = time.monotonic()
+        if cpu_ns != self._cpu_ns:
+            self._cpu_ns, self._advanced = cpu_ns, now
+        if cpu_ns > self._cpu_limit_ns:
+            return f"spent {cpu_ns / 1e9:.1f} s of CPU"
+        if now - self._advanced > self._stall_s:
+            return f"got no CPU for {self._stall_s:g} s"
+        return None
+
+
 def _wakeups(task: Path) -> int:
     """Voluntary context switches of a thread: each one a sleep (a wait, a poll) that ended."""
     try:
@@ -116,6 +158,24 @@ def share(before: CpuSample, after: CpuSample, pid: int) -> dict[str, Any]:
         "per_thread": per_thread,
         "wall_s": round(wall / 1e9, 3),
     }
+
+
+def runqueue_wait_ns(pids: list[int]) -> dict[int, int]:
+    """Nanoseconds each live thread of ``pids`` has waited for a CPU while it could run
+    (``/proc/PID/task/TID/schedstat``'s second field; thread id -> ns). On an idle machine
+    it hardly moves; on a loaded one it is the time load took from the thread."""
+    waited: dict[int, int] = {}
+    for pid in pids:
+        try:
+            tasks = list(Path(f"/proc/{pid}/task").iterdir())
+        except OSError:
+            continue
+        for task in tasks:
+            try:
+                waited[int(task.name)] = int((task / "schedstat").read_text().split()[1])
+            except (OSError, ValueError, IndexError):
+                continue
+    return waited
 
 
 def descendants(pid: int) -> list[int]:

@@ -133,6 +133,11 @@ class FrameWatch:
             return len(self._frames)
 
     def matching(self, match: Callable[[can.Message], bool], since: int = 0) -> list[can.Message]:
+        """The frames since the mark ``since`` that ``match``; a frame the tap lost fails the
+        test here, so that it never passes for one the card did not send (or for none)."""
+        if self._bus.lost_frames:
+            pytest.fail(f"the frame tap lost {self._bus.lost_frames} frames (its reader was "
+                        "starved): what this watch saw is not what the card sent")
         with self._lock:
             return [msg for msg in self._frames[since:] if match(msg)]
 

@@ -14,6 +14,13 @@ from pathlib import Path
 
 import pytest
 
+from bench.cpu import (
+    START_CPU_S,
+    START_STALL_S,
+    StartProgress,
+    descendants,
+    runqueue_wait_ns,
+)
 from host_api import driver
 from host_api.liveness import firmware_liveness
 from tests.selection import HELPER_MODULES, forbid_processes, marks_of_module
@@ -38,13 +45,57 @@ waits for the card's own work (a start, a condition) get four times longer there
 card must do in a given time (supervision, SYNC) is not scaled."""
 
 
+STRETCH_LIMIT = 20.0
+"""How far load may stretch a wait's deadline (``wait_until``): 20 times its time-out.
+Beyond it the test's processes had less than a twentieth of the time they waited for."""
+
+
+class LoadClock:
+    """Seconds the test's processes could run: wall time minus the time their threads
+    waited for a CPU (``bench.cpu.runqueue_wait_ns``), summed over this test process and
+    the firmwares, ``cifemu sim`` and commands it started, and theirs. On an idle machine
+    it runs with the wall clock; with two busy processes and other workers on two cores,
+    a card's every step waits in the run queue, and a deadline in wall time failed where
+    the card had done nothing wrong (at a load of 15 a runnable process gets about a
+    seventh of a core)."""
+
+    def __init__(self, start: float) -> None:
+        self._start = start
+        self._waited = self._sample()
+
+    @staticmethod
+    def _sample() -> dict[int, int]:
+        return runqueue_wait_ns([os.getpid(), *descendants(os.getpid())])
+
+    def elapsed(self) -> float:
+        """Wall seconds since ``start``, less the time load took from the test's processes
+        since the clock was made, but never less than a ``STRETCH_LIMIT``-th of them."""
+        wall = time.monotonic() - self._start
+        stolen = sum(ns - self._waited.get(tid, 0) for tid, ns in self._sample().items()) / 1e9
+        return max(wall - stolen, wall / STRETCH_LIMIT)
+
+
 def wait_until(condition: Callable[[], object], timeout: float = 5.0, what: str = "") -> None:
-    """Poll ``condition`` until true; fail the test with ``what`` at the deadline."""
+    """Poll ``condition`` until true; fail the test with ``what`` at the deadline.
+
+    ``timeout`` counts the time the test's processes could run (``LoadClock``): wall time
+    on an idle machine; on a loaded one the deadline moves by the time load took from them.
+    """
     timeout *= TIME_SCALE
-    deadline = time.monotonic() + timeout
+    start = time.monotonic()
+    deadline = start + timeout  # when the load clock is first read
+    clock: LoadClock | None = None
     while not condition():
-        if time.monotonic() > deadline:
-            pytest.fail(f"timed out after {timeout} s waiting for {what or condition}")
+        if clock is None:  # a wait not over at once: /proc is read for its baseline
+            clock = LoadClock(start)
+        now = time.monotonic()
+        if now > deadline:
+            elapsed = clock.elapsed()
+            if elapsed > timeout:
+                pytest.fail(f"timed out after {timeout} s waiting for {what or condition}"
+                            + (f" ({now - start:.1f} s of wall time on a loaded machine)"
+                               if now - start > timeout + 0.5 else ""))
+            deadline = now + min(timeout - elapsed, 0.05)  # the next look at the clock
         time.sleep(0.001)
 
 
@@ -83,13 +134,17 @@ class Card:
 
 
 def start_card(directory: Path, board: int = 0, *extra: str) -> Card:
+    """Start a firmware and wait until it is READY, for as long as its start advances
+    (``bench.cpu.StartProgress``): it fails when the firmware exits, gets no CPU for 15 s or
+    spends 10 s of CPU without READY. A loaded machine makes the start slower, not a
+    failure: at a load of 20-35 a fixed 15 s of wall time failed 13 tests of a run."""
     proc = subprocess.Popen(
         [sys.executable, "-m", "cifemu", "firmware", "--board", str(board),
          "--dpm-dir", str(directory), "--log-level", "WARNING", *extra],
         stderr=subprocess.PIPE,
     )
     card = Card(directory, board, proc)
-    deadline = time.monotonic() + 15 * TIME_SCALE
+    start = StartProgress(proc.pid, START_STALL_S * TIME_SCALE, START_CPU_S * TIME_SCALE)
     while True:
         if proc.poll() is not None:
             stderr = proc.stderr.read().decode() if proc.stderr else ""
@@ -100,9 +155,10 @@ def start_card(directory: Path, board: int = 0, *extra: str) -> Card:
                 # READY from this process, not from a killed predecessor's image
                 if f.read(1)[0] & READY and firmware_liveness(directory, board).pid == proc.pid:
                     return card
-        if time.monotonic() > deadline:
+        problem = start.problem()
+        if problem is not None:
             card.stop()
-            raise RuntimeError("firmware did not become READY")
+            raise RuntimeError(f"firmware did not become READY: its start {problem}")
         time.sleep(0.005)
 
 

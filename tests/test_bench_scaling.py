@@ -7,17 +7,50 @@ reports each figure where the README's table takes it from, beside its baseline.
 
 from __future__ import annotations
 
+import contextlib
 import json
+import os
+import signal
 import subprocess
 import sys
+import time
 from typing import Any
 
 from tests.conftest import ROOT
 
+STOP_S = 10.0
+"""Seconds the bench's processes have after SIGTERM before they are killed: a firmware on
+``shm`` stops its SYNC timer process and unmaps its image, slower on a loaded machine."""
 
-def bench_scaling(*args: str, timeout: float = 300) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([sys.executable, "-m", "bench.scaling", *args], cwd=ROOT,
-                          capture_output=True, text=True, timeout=timeout)
+
+def bench_scaling(*args: str) -> subprocess.CompletedProcess[str]:
+    """``python -m bench.scaling`` in a process group of its own, ended with everything it
+    started on every path out: a failure, pytest-timeout's interruption, a Ctrl-C. The
+    bench stops its firmwares and ``cifemu sim`` itself when it ends normally; killed, it
+    left them running, orphaned."""
+    command = [sys.executable, "-m", "bench.scaling", *args]
+    bench = subprocess.Popen(command, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                             text=True, start_new_session=True)
+    try:
+        stdout, stderr = bench.communicate()
+    finally:
+        end_group(bench)
+    return subprocess.CompletedProcess(command, bench.returncode, stdout, stderr)
+
+
+def end_group(leader: subprocess.Popen[str]) -> None:
+    """SIGTERM to every process of ``leader``'s group (the firmwares stop cleanly on it),
+    SIGKILL to those left after ``STOP_S``; returns once the group is empty."""
+    group = leader.pid
+    deadline = time.monotonic() + STOP_S
+    with contextlib.suppress(ProcessLookupError):
+        os.killpg(group, signal.SIGTERM)
+        while True:
+            leader.poll()  # reaps the leader: a zombie still counts as the group's
+            os.killpg(group, 0)  # ProcessLookupError: the group is empty
+            if time.monotonic() > deadline:
+                os.killpg(group, signal.SIGKILL)
+            time.sleep(0.05)
 
 
 def test_a_card_count_beyond_the_drivers_boards_is_refused_in_plain_words() -> None:

@@ -34,7 +34,7 @@ from tests.cia309_clients import (
     read_line,
     serving,
 )
-from tests.conftest import wait_until
+from tests.conftest import LoadClock, wait_until
 
 EXAMPLES = int(os.environ.get("CIFEMU_FUZZ_EXAMPLES", "60"))
 ROUNDS = max(3, EXAMPLES // 20)
@@ -74,9 +74,9 @@ def _closed_by_server(sock: socket.socket, timeout: float) -> bool:
 def steady(server: Server) -> Iterator[Steady]:
     client = Steady(server.port)
     client.start()
-    began = time.monotonic()
+    clock = LoadClock(time.monotonic())
     yield client
-    client.stop(time.monotonic() - began)
+    client.stop(clock)
 
 
 def _served(port: int) -> bool:

@@ -158,26 +158,41 @@ boot_delay_s = 1.5
 def test_start_bit_leaves_the_node_as_it_is(make_net: Callable[..., Net],
                                             tmp_path: Path) -> None:
     """bitConfigNdState START set: the card sends no Start_Node and supervises the node in
-    PRE-OPERATIONAL: no Err_Event 31, no reboot, Nd_state 0 until the host starts it."""
+    PRE-OPERATIONAL: no Err_Event 31, no reboot, Nd_state 0 until the host starts it.
+
+    Supervision is not the subject: a 3 s heartbeat consumer time, so a `cifemu sim` starved
+    on a loaded machine is not lost (Err_Event 30) and booted again. The reboot is asserted
+    on the frames after node 1's boot (Guard_active in its COM_Node_Diag): no Reset Node
+    for it. A count of the whole run's resets (2) saw 3 on a loaded machine, where a node
+    that fails is booted again, which is not the START bit's doing."""
     trace = tmp_path / "trace.log"
     net = make_net("""[[node]]
 id = 1
+heartbeat_ms = 3000
 boot = ["reset", "device", "guard", "sync", "emcy", "sdo", "pdo"]
 [[node]]
 id = 2
+heartbeat_ms = 3000
 """, "--trace", str(trace))
     net.configure()
     net.wait_operating([2])
-    watch = net.watch()  # five heartbeats (2.5 s) of node 1 supervised in PRE-OPERATIONAL
-    watch.wait_for(frame(0x701, b"\x7f"), 5, "node 1's heartbeats", since=watch.mark())
+
+    def guarded() -> bool:  # COM_Node_Diag of node 1: Nodestatus_1 says Guard_active
+        return bool(net.send(66, bytes([1, 0, 0, 0, 0, 0, 5, 1])).data[8] & 0x08)
+
+    wait_until(guarded, 10, "node 1 booted and supervised (Guard_active)")
+    watch = net.watch()
+    booted = watch.mark()  # two heartbeats (3 s) of node 1 supervised in PRE-OPERATIONAL
+    watch.wait_for(frame(0x701, b"\x7f"), 2, "node 1's heartbeats", since=booted)
     diag = net.diag()
-    assert diag.operating() == [2] and diag.bErr_event == 0
+    assert diag.operating() == [2] and diag.bErr_event == 0 and guarded()
+    assert watch.matching(lambda msg: msg.arbitration_id == 0 and bytes(msg.data[:1]) == b"\x81"
+                          and msg.data[1] in (0, 1), since=booted) == []  # no reboot
     assert net.send(96, bytes([0x01, 1])).f == 0  # COM_NMT_Module_Protocol: start node 1
     net.wait_operating([1, 2])
     net.card.stop()
     frames = candump(trace)
     assert not [d for _, ident, d in frames if ident == 0 and d == "0101"][:-1]  # host's only
-    assert len([d for _, ident, d in frames if ident == 0 and d.startswith("81")]) == 2
 
 
 EDS = Path(__file__).parent / "data" / "cia309_node.eds"
