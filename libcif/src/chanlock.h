@@ -65,6 +65,8 @@ typedef struct cifemu_txn {
   int held;              /* this process holds the flock */
   unsigned users;        /* calls and sessions (DevDownload) inside */
   unsigned n_own, n_stale;
+  size_t length; /* the ledger's length up to its end (a NUL or the file's end) as this
+                    process last read or wrote it while holding the flock */
   cifemu_request own[CIFEMU_LEDGER_MAX];   /* this process's requests awaiting answers */
   cifemu_request stale[CIFEMU_LEDGER_MAX]; /* other processes' requests: discard */
 } cifemu_txn;
