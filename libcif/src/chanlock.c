@@ -192,6 +192,7 @@ static unsigned long long new_owner(const cifemu_txn *txn) {
 
 static void txn_reset(cifemu_txn *txn) {
   txn->owner = new_owner(txn);
+  txn->pid = (long)getpid();
   txn->held = 0;
   txn->users = txn->n_own = txn->n_stale = 0;
   txn->length = 0;
@@ -279,7 +280,7 @@ static void drop_sequence_start(cifemu_txn *txn, const cifemu_request *next) {
 void cifemu_txn_sent(cifemu_txn *txn, const unsigned char *header) {
   cifemu_request r;
   if (header[7] & NAK_MASK) return; /* answered only when it fails: none is awaited */
-  r.pid = (long)getpid();
+  r.pid = txn->pid;
   r.owner = txn->owner;
   r.rx = header[0];
   r.tx = header[1];

@@ -62,6 +62,8 @@ typedef struct cifemu_request {
 typedef struct cifemu_txn {
   cifemu_chanlock lock;  /* fd: the flock; mutex: guards the fields below, never held long */
   unsigned long long owner; /* this process's number in the ledger (new after a fork) */
+  long pid;              /* getpid() at open and after a fork: a ledger line's first field,
+                            without a system call per request (glibc does not cache it) */
   int held;              /* this process holds the flock */
   unsigned users;        /* calls and sessions (DevDownload) inside */
   unsigned n_own, n_stale;
