@@ -154,15 +154,18 @@ class MappedBoard:
             return True
         if timeout_ms <= 0:
             return False
-        deadline = time.monotonic() + timeout_ms / 1000.0
+        start = time.monotonic()
+        deadline = start + timeout_ms / 1000.0
         # A card answers most requests within tens of microseconds: checking the
         # flags for that long first saves the sleep and wake-up of the bell. Only a
         # single-threaded host spins: in a host with more threads the spinning one
         # would hold the interpreter lock the others need (the CiA 309 gateway's
         # mailbox reader and its callers).
+        skipped = False
         if threading.active_count() == 1:
             if self.spin_skip:
                 self.spin_skip -= 1
+                skipped = True
             elif self._spin(condition):
                 return True
         if before_sleep is not None:
@@ -174,6 +177,8 @@ class MappedBoard:
             if self.bell.wait(min(remaining, POLL_INTERVAL)):
                 self.counters.irq += 1
             if condition():
+                if skipped and time.monotonic() - start < SPIN_SECONDS:
+                    self.spin_misses = self.spin_skip = 0  # a watch would have seen it
                 return True
 
     def _spin(self, condition: Callable[[], bool]) -> bool:
@@ -181,8 +186,9 @@ class MappedBoard:
 
         [ours] A watch the answer outlasts cost its whole CPU time for nothing, and on a
         busy machine it takes that time from the card, whose threads wait for a CPU to
-        answer: the next 1, 3, 7 ... (``SPIN_BACKOFF_MAX``) waits sleep at once, and one
-        watch that sees its answer spins again. Beside two busy processes on two cores
+        answer: the next 1, 3, 7 ... (``SPIN_BACKOFF_MAX``) waits sleep at once, until a
+        watch sees its answer or a wait that slept at once ends within ``SPIN_SECONDS``
+        (a watch would have seen it: the machine is quiet again). Beside two busy processes on two cores
         (load average 12-16) a mailbox round trip cost the host 87-123 µs of CPU and took
         107-200 µs at p50 with a watch every time, 43-65 µs and 55-98 µs with the
         back-off (three alternating pairs, issue 22)."""

@@ -86,8 +86,9 @@ typedef int (*condition_fn)(const cifemu_board *b, int arg);
 /* Watch the flags for SPIN_NS from `now`: 1 when the condition came true.
    [ours] A watch the answer outlasted cost its whole CPU time for nothing, and on a busy
    machine it takes that time from the card, whose threads wait for a CPU to answer: the
-   next 1, 3, 7 ... (SPIN_BACKOFF_MAX) waits sleep at once, and one watch that sees its
-   answer spins again (host_api/registry.py, MappedBoard._spin). */
+   next 1, 3, 7 ... (SPIN_BACKOFF_MAX) waits sleep at once, until a watch sees its answer
+   or a wait that slept at once ends within SPIN_NS (a watch would have seen it: the
+   machine is quiet again; host_api/registry.py, MappedBoard._spin). */
 static int spin(cifemu_board *b, condition_fn cond, int arg, long long now) {
   long long spin_end = now + SPIN_NS;
   unsigned misses;
@@ -128,7 +129,13 @@ static int wait_for_ringing(cifemu_board *b, condition_fn cond, int arg,
     if (remaining <= 0) return cond(b, arg);
     if (cifemu_bell_wait(&b->bell, remaining < POLL_INTERVAL_NS ? remaining : POLL_INTERVAL_NS))
       count(&b->counters->irq);
-    if (cond(b, arg)) return 1;
+    if (cond(b, arg)) {
+      if (skip > 0 && cifemu_now_ns() - now < SPIN_NS) { /* a watch would have seen it */
+        __atomic_store_n(&b->spin_misses, 0U, __ATOMIC_RELAXED);
+        __atomic_store_n(&b->spin_skip, 0U, __ATOMIC_RELAXED);
+      }
+      return 1;
+    }
   }
 }
 
