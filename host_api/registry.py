@@ -188,10 +188,11 @@ class MappedBoard:
         busy machine it takes that time from the card, whose threads wait for a CPU to
         answer: the next 1, 3, 7 ... (``SPIN_BACKOFF_MAX``) waits sleep at once, until a
         watch sees its answer or a wait that slept at once ends within ``SPIN_SECONDS``
-        (a watch would have seen it: the machine is quiet again). Beside two busy processes on two cores
-        (load average 12-16) a mailbox round trip cost the host 87-123 µs of CPU and took
-        107-200 µs at p50 with a watch every time, 43-65 µs and 55-98 µs with the
-        back-off (three alternating pairs, issue 22)."""
+        (a watch would have seen it: the machine is quiet again). Beside two busy
+        processes on two cores (load average 12-16) a mailbox round trip cost the host
+        87-123 µs of CPU and took 107-200 µs at p50 with a watch every time, 43-65 µs and
+        55-98 µs with the back-off (three alternating pairs, issue 22; docs/dpm.md
+        section 2)."""
         spin_end = time.perf_counter() + SPIN_SECONDS
         while time.perf_counter() < spin_end:
             if condition():
