@@ -9,10 +9,11 @@ The format lives here, apart from the locking (``host_api.locks``), so both side
 definition.
 
 [ours] The ledger ends at the file's end or at its first NUL byte (``END``), whichever comes
-first. host_api ends it with a NUL instead of truncating the file: on the tmpfs under the
-image, emptying a file frees its page and the next request allocates one again, twice the
-cost of the write itself, on every mailbox round trip. libcif writes exact lengths and
-truncates; its reader, like every reader here, stops at the NUL (``ledger_text``).
+first. host_api and libcif end it with a NUL, in the same write as the lines, instead of
+truncating the file: on the tmpfs under the image, emptying a file frees its page and the
+next request allocates one again, twice the cost of the write itself, and the truncation
+is a system call more, on every mailbox round trip. Every reader stops at the NUL
+(``ledger_text``).
 """
 
 from __future__ import annotations

@@ -483,3 +483,30 @@ def test_lines_after_the_ledgers_end_are_no_requests(built: None, card: Card, im
     finally:
         while driver.DevCloseDriver() == 0:
             pass
+
+
+@pytest.mark.parametrize("impl", ["python", "c"])
+def test_python_and_c_hosts_end_the_ledger_alike_without_truncating_it(
+        built: None, card: Card, impl: str) -> None:
+    """[ours] A request goes into the ledger with its END (a NUL) in the same write, and the
+    last answer empties it by an END at the start: one system call per change, the file
+    never truncated (libcif truncated it after every write, two calls per change; issue
+    22). What follows the END is left from a longer ledger and no request."""
+    path = card.directory / "board0.transaction.lock"
+    leftover = b"\0" + b"9" * 200
+    path.write_bytes(leftover)
+    driver: Any = d if impl == "python" else CDriver()
+    assert driver.DevOpenDriver(card.directory) == 0 and driver.DevInitBoard(0) == 0
+    try:
+        request = tagged(3)
+        assert driver.DevPutMessage(0, request, 5000) == 0
+        line = ledger(path)
+        assert line.endswith(f" {request.nr} 17 2 16 0 {line.split()[-1]}\n")
+        assert line.count("\n") == 1
+        rc, got = driver.DevGetMessage(0, 288, 5000)
+        assert rc == Drv.DRV_NO_ERROR and tag_of(got) == 3
+        raw = path.read_bytes()
+        assert ledger(path) == "" and len(raw) == len(leftover), raw[:80]
+    finally:
+        while driver.DevCloseDriver() == 0:
+            pass

@@ -121,20 +121,25 @@ void cifemu_chanlock_release(cifemu_chanlock *lock) {
 
 static long long now_ms(void) { return cifemu_now_ns() / 1000000LL; }
 
-/* The ledger as the file holds it: the stale requests, then this process's. */
+/* The ledger as the file holds it: the stale requests, then this process's, ended by a
+   NUL in the same write [ours]. The file is not truncated: whatever follows the NUL is
+   left from a longer ledger, and every reader stops there (dpm/ledger.py). One system
+   call per change instead of two, on every mailbox round trip (issue 22); an empty ledger
+   is not written again. */
 static void ledger_store(cifemu_txn *txn) {
-  char text[CIFEMU_LEDGER_MAX * LEDGER_LINE];
+  char text[CIFEMU_LEDGER_MAX * LEDGER_LINE + 1];
   size_t used = 0;
   unsigned i;
   for (i = 0; i < txn->n_stale + txn->n_own; i++) {
     const cifemu_request *r = i < txn->n_stale ? &txn->stale[i] : &txn->own[i - txn->n_stale];
-    int n = snprintf(text + used, sizeof text - used, "%ld %llu %u %u %u %u %u %lld\n", r->pid,
-                     r->owner, r->nr, r->b, r->rx, r->tx, r->multi, r->sent_ms);
-    if (n < 0 || (size_t)n >= sizeof text - used) break;
+    int n = snprintf(text + used, sizeof text - 1 - used, "%ld %llu %u %u %u %u %u %lld\n",
+                     r->pid, r->owner, r->nr, r->b, r->rx, r->tx, r->multi, r->sent_ms);
+    if (n < 0 || (size_t)n >= sizeof text - 1 - used) break;
     used += (size_t)n;
   }
-  if (used > 0 && pwrite(txn->lock.fd, text, used, 0) != (ssize_t)used) return;
-  if (ftruncate(txn->lock.fd, (off_t)used) != 0) return;
+  if (used == 0 && txn->length == 0) return;
+  text[used] = '\0';
+  if (pwrite(txn->lock.fd, text, used + 1, 0) == (ssize_t)(used + 1)) txn->length = used;
 }
 
 /* The file's requests as a new holder sees them: another owner's are stale (its sender
@@ -147,8 +152,10 @@ static void ledger_load(cifemu_txn *txn) {
   long long now = now_ms();
   unsigned dropped = 0;
   txn->n_stale = txn->n_own = 0;
+  txn->length = 0;
   if (got <= 0) return;
   text[got] = '\0';
+  txn->length = strlen(text);
   for (line = text; line != NULL && *line != '\0'; line = next) {
     cifemu_request r;
     unsigned nr, b, rx, tx, multi;
@@ -185,8 +192,10 @@ static unsigned long long new_owner(const cifemu_txn *txn) {
 
 static void txn_reset(cifemu_txn *txn) {
   txn->owner = new_owner(txn);
+  txn->pid = (long)getpid();
   txn->held = 0;
   txn->users = txn->n_own = txn->n_stale = 0;
+  txn->length = 0;
 }
 
 int cifemu_txn_open(cifemu_txn *txn, const char *path) {
@@ -271,7 +280,7 @@ static void drop_sequence_start(cifemu_txn *txn, const cifemu_request *next) {
 void cifemu_txn_sent(cifemu_txn *txn, const unsigned char *header) {
   cifemu_request r;
   if (header[7] & NAK_MASK) return; /* answered only when it fails: none is awaited */
-  r.pid = (long)getpid();
+  r.pid = txn->pid;
   r.owner = txn->owner;
   r.rx = header[0];
   r.tx = header[1];

@@ -62,9 +62,13 @@ typedef struct cifemu_request {
 typedef struct cifemu_txn {
   cifemu_chanlock lock;  /* fd: the flock; mutex: guards the fields below, never held long */
   unsigned long long owner; /* this process's number in the ledger (new after a fork) */
+  long pid;              /* getpid() at open and after a fork: a ledger line's first field,
+                            without a system call per request (glibc does not cache it) */
   int held;              /* this process holds the flock */
   unsigned users;        /* calls and sessions (DevDownload) inside */
   unsigned n_own, n_stale;
+  size_t length; /* the ledger's length up to its end (a NUL or the file's end) as this
+                    process last read or wrote it while holding the flock */
   cifemu_request own[CIFEMU_LEDGER_MAX];   /* this process's requests awaiting answers */
   cifemu_request stale[CIFEMU_LEDGER_MAX]; /* other processes' requests: discard */
 } cifemu_txn;

@@ -35,6 +35,7 @@
 #define DRIVER_VERSION "cifemu V0.1.0"
 #define DEFAULT_DPM_DIR "/dev/shm/cif"
 #define SPIN_NS 100000LL          /* watch the flags this long before sleeping on the bell */
+#define SPIN_BACKOFF_MAX 6U        /* [ours] host_api/registry.py's: up to 63 waits sleep at once */
 #define POLL_INTERVAL_NS 1000000LL /* a waiting host's 1 ms poll, docs/dpm.md section 2 */
 #define SPECIAL_CONTROL_WAIT_MS 100UL
 #define POLLS_BEFORE_YIELD 8       /* [ours] host_api/registry.py's, docs/dpm.md section 2 */
@@ -83,12 +84,34 @@ static void change_dev_flags(cifemu_board *b, unsigned char set, unsigned char c
 
 typedef int (*condition_fn)(const cifemu_board *b, int arg);
 
+/* Watch the flags for SPIN_NS from `now`: 1 when the condition came true.
+   [ours] A watch the answer outlasted cost its whole CPU time for nothing, and on a busy
+   machine it takes that time from the card, whose threads wait for a CPU to answer: the
+   next 1, 3, 7 ... (SPIN_BACKOFF_MAX) waits sleep at once, until a watch sees its answer
+   or a wait that slept at once ends within SPIN_NS (a watch would have seen it: the
+   machine is quiet again; host_api/registry.py, MappedBoard._spin). */
+static int spin(cifemu_board *b, condition_fn cond, int arg, long long now) {
+  long long spin_end = now + SPIN_NS;
+  unsigned misses;
+  while (cifemu_now_ns() < spin_end)
+    if (cond(b, arg)) {
+      __atomic_store_n(&b->spin_misses, 0U, __ATOMIC_RELAXED);
+      return 1;
+    }
+  misses = __atomic_load_n(&b->spin_misses, __ATOMIC_RELAXED) + 1U;
+  if (misses > SPIN_BACKOFF_MAX) misses = SPIN_BACKOFF_MAX;
+  __atomic_store_n(&b->spin_misses, misses, __ATOMIC_RELAXED);
+  __atomic_store_n(&b->spin_skip, (1U << misses) - 1U, __ATOMIC_RELAXED);
+  return 0;
+}
+
 /* Wait on the bell (polling as a fallback) until the condition or the timeout.
    want_mailbox: ring the device before the first sleep, asking for a ring once the device
    mailbox is free (it rings for a message it took only when asked). */
 static int wait_for_ringing(cifemu_board *b, condition_fn cond, int arg,
                             unsigned long timeout_ms, int want_mailbox) {
-  long long deadline, spin_end, now;
+  long long deadline, now;
+  unsigned skip;
   if (cond(b, arg)) return 1;
   if (timeout_ms == 0) return 0;
   if (timeout_ms > 2000000000UL) timeout_ms = 2000000000UL;
@@ -96,16 +119,24 @@ static int wait_for_ringing(cifemu_board *b, condition_fn cond, int arg,
   deadline = now + (long long)timeout_ms * 1000000LL;
   /* A card answers most requests within tens of microseconds: watching the flags
      that long first saves the sleep and wake-up of the bell. */
-  spin_end = now + SPIN_NS;
-  while (cifemu_now_ns() < spin_end)
-    if (cond(b, arg)) return 1;
+  skip = __atomic_load_n(&b->spin_skip, __ATOMIC_RELAXED);
+  if (skip > 0)
+    __atomic_store_n(&b->spin_skip, skip - 1U, __ATOMIC_RELAXED);
+  else if (spin(b, cond, arg, now))
+    return 1;
   if (want_mailbox) cifemu_bell_ring_want_mailbox(&b->bell);
   for (;;) {
     long long remaining = deadline - cifemu_now_ns();
     if (remaining <= 0) return cond(b, arg);
     if (cifemu_bell_wait(&b->bell, remaining < POLL_INTERVAL_NS ? remaining : POLL_INTERVAL_NS))
       count(&b->counters->irq);
-    if (cond(b, arg)) return 1;
+    if (cond(b, arg)) {
+      if (skip > 0 && cifemu_now_ns() - now < SPIN_NS) { /* a watch would have seen it */
+        __atomic_store_n(&b->spin_misses, 0U, __ATOMIC_RELAXED);
+        __atomic_store_n(&b->spin_skip, 0U, __ATOMIC_RELAXED);
+      }
+      return 1;
+    }
   }
 }
 

@@ -23,6 +23,10 @@ typedef struct cifemu_board {
   cifemu_bell bell;
   cifemu_chanlock put_lock, get_lock, io_lock, flags_lock;
   cifemu_counters *counters;
+  /* [ours] The spin's back-off (wait_for_ringing), shared by the board's threads (a race
+     costs one watch more or less): watches in a row that the answer outlasted, and the
+     waits left that sleep on the bell at once. */
+  unsigned spin_misses, spin_skip;
   /* The board's transaction lock as this process holds it across calls [ours]: from a
      DevPutMessage until its answer is read, so that another host's transaction (a Python
      host's Board.transact, another C host) never takes this host's answers, nor this

@@ -264,7 +264,7 @@ static int real_fcntl(int fd, int cmd, void *arg) {
      finds no other call in flight, see board_maintenance).
    libcif's calls reach these through the linker's --wrap (libcif/Makefile), so libcif's
    sources stay as they are: every call libcif makes on a descriptor (open, socket, bind,
-   close, dup2, fcntl, flock, sendto, recv, poll, fstat, mmap, pread, pwrite, ftruncate)
+   close, dup2, fcntl, flock, sendto, recv, poll, fstat, mmap, pread, pwrite)
    checks it first and answers EBADF for a stale one, so that a ledger line or a lock
    never goes into a program's file that took the number. The preload's own fstat calls
    below go to libc's (__real_fstat): they are the check. */
@@ -404,7 +404,6 @@ int __real_flock(int fd, int operation);
 void *__real_mmap(void *address, size_t length, int protection, int flags, int fd, off_t offset);
 ssize_t __real_pread(int fd, void *buf, size_t count, off_t offset);
 ssize_t __real_pwrite(int fd, const void *buf, size_t count, off_t offset);
-int __real_ftruncate(int fd, off_t length);
 ssize_t __real_sendto(int fd, const void *buf, size_t len, int flags,
                       const struct sockaddr *to, socklen_t to_len);
 ssize_t __real_recv(int fd, void *buf, size_t len, int flags);
@@ -425,7 +424,6 @@ int __wrap_fstat(int fd, struct stat *st);
 void *__wrap_mmap(void *address, size_t length, int protection, int flags, int fd, off_t offset);
 ssize_t __wrap_pread(int fd, void *buf, size_t count, off_t offset);
 ssize_t __wrap_pwrite(int fd, const void *buf, size_t count, off_t offset);
-int __wrap_ftruncate(int fd, off_t length);
 
 /* EBADF unless fd is the preload's and still its own file. */
 static int refuse_stale(int fd) {
@@ -494,10 +492,6 @@ ssize_t __wrap_pread(int fd, void *buf, size_t count, off_t offset) {
 
 ssize_t __wrap_pwrite(int fd, const void *buf, size_t count, off_t offset) {
   return refuse_stale(fd) ? -1 : __real_pwrite(fd, buf, count, offset);
-}
-
-int __wrap_ftruncate(int fd, off_t length) {
-  return refuse_stale(fd) ? -1 : __real_ftruncate(fd, length);
 }
 
 /* A forked child's lock files (cifemu_chanlock_reopen): the new description goes onto the
