@@ -437,6 +437,48 @@ def test_an_idle_reader_sleeps_until_rung(channel: str, open_bus: Opener) -> Non
     assert got[-1] is marker
 
 
+def _woke_within(native_id: int, seconds: float) -> bool:
+    """Whether the thread slept again after a wake-up within ``seconds``: a deadline on
+    something that must not happen (its voluntary switches count its sleeps)."""
+    before = _voluntary_switches(native_id)
+    deadline = time.monotonic() + seconds
+    while time.monotonic() < deadline:
+        if _voluntary_switches(native_id) > before:
+            return True
+        time.sleep(0.002)
+    return False
+
+
+def test_a_sender_does_not_wake_its_own_stations_reader(channel: str, open_bus: Opener) -> None:
+    """Issue 22: the card sends an SDO request from its device loop while its receive thread
+    sleeps on the same station; that thread does not take the card's own frames, so a ring
+    for them only cost a thread switch per frame sent. Each send here gets a quarter of a
+    second for the sleeping reader to wake; it wakes at most once in all (its one-second
+    net, ``MAX_SLEEP_S``), and still for a frame of another station."""
+    station, other = open_bus(channel), open_bus(channel)
+    frames = 4
+    got: list[can.Message | None] = []
+    native_id: list[int] = []
+
+    def receive() -> None:
+        native_id.append(threading.get_native_id())
+        got.append(station.recv(timeout=30))
+
+    thread = threading.Thread(target=receive, daemon=True)
+    thread.start()
+    wait_until(lambda: bool(native_id))
+    wait_until(lambda: _voluntary_switches(native_id[0]) > 0)  # asleep in its recv
+    woken = 0
+    for i in range(frames):
+        station.send(counter_frame(i))
+        woken += _woke_within(native_id[0], 0.25)
+    assert counters(recv_n(other, frames)) == list(range(frames))
+    assert woken <= 1, f"the station's own reader woke for {woken} of its {frames} frames"
+    other.send(counter_frame(99))
+    thread.join(timeout=10)
+    assert counters([frame for frame in got if frame is not None]) == [99]
+
+
 def test_frames_written_counts_every_stations_frames_without_a_station(
         channel: str, open_bus: Opener) -> None:
     """``python -m bench scaling`` counts a card's traffic by ``frames_written``: every

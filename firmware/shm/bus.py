@@ -31,7 +31,10 @@ as when a CAN controller's receive FIFO overflows. Writers never wait.
 A reader with nothing to read marks itself waiting and sleeps on a datagram
 socket in Linux's abstract namespace; a writer rings only the waiting ones.
 Mark and publish are each followed by a memory fence, so one of the two
-always sees the other (Dekker). The sleep is bounded anyway (``MAX_SLEEP_S``),
+always sees the other (Dekker). A writer does not ring its own station's reader, which
+does not take the station's own frames (unless ``receive_own_messages``): that woke the
+card's receive thread for nothing after every frame the card sent, a thread switch per
+SDO request (issue 22). The sleep is bounded anyway (``MAX_SLEEP_S``),
 as a net for a ring that never came (a writer killed between its record and its
 ring), but long enough that an idle reader hardly wakes; ``loop_back``
 ends a reader's wait from another thread of its process.
@@ -269,11 +272,13 @@ class ShmBus(can.BusABC):
             seqs[index] = seq + 1  # publishes the record (one aligned 8-byte store)
             with self._fence:
                 pass
+            own = -1 if self.receive_own_messages else _WAITING_AT + index
             sleeper = mapped.find(b"\x01", _WAITING_AT, _WAITING_AT + MAX_STATIONS)
             while sleeper >= 0:
-                station = sleeper - _WAITING_AT
-                mapped[sleeper] = 0
-                self._ring(self._bell_name(station, self._station(station)[2]))
+                if sleeper != own:  # its own reader would wake to find nothing (issue 22)
+                    station = sleeper - _WAITING_AT
+                    mapped[sleeper] = 0
+                    self._ring(self._bell_name(station, self._station(station)[2]))
                 sleeper = mapped.find(b"\x01", sleeper + 1, _WAITING_AT + MAX_STATIONS)
 
     def _send_periodic_internal(
