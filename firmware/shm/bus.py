@@ -31,7 +31,10 @@ as when a CAN controller's receive FIFO overflows. Writers never wait.
 A reader with nothing to read marks itself waiting and sleeps on a datagram
 socket in Linux's abstract namespace; a writer rings only the waiting ones.
 Mark and publish are each followed by a memory fence, so one of the two
-always sees the other (Dekker). The sleep is bounded anyway (``MAX_SLEEP_S``),
+always sees the other (Dekker). A writer does not ring its own station's reader, which
+does not take the station's own frames (unless ``receive_own_messages``): that woke the
+card's receive thread for nothing after every frame the card sent, a thread switch per
+SDO request (issue 22). The sleep is bounded anyway (``MAX_SLEEP_S``),
 as a net for a ring that never came (a writer killed between its record and its
 ring), but long enough that an idle reader hardly wakes; ``loop_back``
 ends a reader's wait from another thread of its process.
@@ -91,7 +94,8 @@ _BITRATE_SIZE = 4
 (see ``ShmBus.bitrate``). The spare bytes of a file from before it read 0."""
 _SEQS_AT = 64
 """Per station: records ever written (u64, written only by the station)."""
-_WAITING_AT = _SEQS_AT + 8 * MAX_STATIONS
+_SEQS_BYTES = 8 * MAX_STATIONS
+_WAITING_AT = _SEQS_AT + _SEQS_BYTES
 """Per station: 1 while it sleeps on its bell."""
 _STATIONS_AT = _WAITING_AT + MAX_STATIONS
 _STATION = struct.Struct("<IIQ")  # in use, pid, opened (ns; part of the bell's name)
@@ -162,6 +166,9 @@ class ShmBus(can.BusABC):
         self._ring_at = _RINGS_AT + self._index * _RING_BYTES
         self._cursors = self._seqs.copy()
         """Per station: the records this station has taken."""
+        self._written_seen = b""
+        """The stations' counters as ``_read`` last copied them, before it took what they
+        announced: while they read the same, there is nothing new."""
         self._timers: SpareTimer | None = None
         if timer_process:  # only once the station is open: a failed open leaves no spare
             from firmware.shm.tasks import SpareTimer  # only a bus that asks pays for it
@@ -269,11 +276,13 @@ class ShmBus(can.BusABC):
             seqs[index] = seq + 1  # publishes the record (one aligned 8-byte store)
             with self._fence:
                 pass
+            own = -1 if self.receive_own_messages else _WAITING_AT + index
             sleeper = mapped.find(b"\x01", _WAITING_AT, _WAITING_AT + MAX_STATIONS)
             while sleeper >= 0:
-                station = sleeper - _WAITING_AT
-                mapped[sleeper] = 0
-                self._ring(self._bell_name(station, self._station(station)[2]))
+                if sleeper != own:  # its own reader would wake to find nothing (issue 22)
+                    station = sleeper - _WAITING_AT
+                    mapped[sleeper] = 0
+                    self._ring(self._bell_name(station, self._station(station)[2]))
                 sleeper = mapped.find(b"\x01", sleeper + 1, _WAITING_AT + MAX_STATIONS)
 
     def _send_periodic_internal(
@@ -353,6 +362,13 @@ class ShmBus(can.BusABC):
         with self._read_lock:
             if self._closed:
                 return False
+            # Nothing written since the last look: one 512-byte compare instead of numpy's
+            # (9 µs), twice per frame a reader takes (before and after it marks itself
+            # waiting; issue 22). Any counter read later than this copy is no lower.
+            written = self._map[_SEQS_AT:_SEQS_AT + _SEQS_BYTES]
+            if written == self._written_seen:
+                return bool(self._pending)
+            self._written_seen = written
             mapped, seqs, cursors = self._map, self._seqs, self._cursors
             changed = np.flatnonzero(seqs != cursors)
             batches: list[tuple[int, bytes]] = []
