@@ -51,8 +51,7 @@ class Diagnosis:
 
     def com_reset_err_event(self, msg: Message) -> Message:
         """Clear TOUT, EVE and the four counters (seed 5.2.12); never an error."""
-        self.card.reset_counters()
-        self.card.set_global_bit(GlobalBits.TOUT | GlobalBits.EVE, False)
+        self.card.reset_counters(GlobalBits.TOUT | GlobalBits.EVE)
         return msg.answer()
 
     def get_configuration(self, msg: Message) -> Message:

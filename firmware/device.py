@@ -462,17 +462,23 @@ class Device:
             self._set_state("bErr_rem_adr", 0)
             self._set_state("bErr_event", 0)
 
-    def count(self, counter: str, by: int = 1) -> None:
-        """Increment a Task2State counter (usBus_Error_Cnt ...), saturating at 65535."""
+    def count(self, counter: str, by: int = 1, bit: int = 0) -> None:
+        """Increment a Task2State counter (usBus_Error_Cnt ...), saturating at 65535, and
+        raise the global ``bit`` that goes with it in the same step: a COM_Reset_Err_Event
+        between the two left TOUT set beside a cleared usMsg_Time_Out."""
         with self.state_lock:
             self._set_state(counter, min(0xFFFF, self._state(counter) + by))
+            if bit:
+                self.set_global_bit(bit, True)
         self._wake()
 
-    def reset_counters(self) -> None:
+    def reset_counters(self, bits: int) -> None:
+        """The four error counters to 0 and the global ``bits`` down, in one step."""
         with self.state_lock:
             for counter in ("usBus_Error_Cnt", "usBus_Off_Cnt", "usMsg_Time_Out",
                             "usRx_Overflow"):
                 self._set_state(counter, 0)
+            self.set_global_bit(bits, False)
         self._wake()
 
     def descript_records(self) -> dict[int, bytes] | None:

@@ -512,15 +512,11 @@ class Master:
             self.device.count("usRx_Overflow", lost)
             return
         if error_class & CAN_ERR_BUSOFF:
-            self.device.count("usBus_Off_Cnt")
+            self.device.count("usBus_Off_Cnt", bit=GlobalBits.EVE)
         elif overstep:
             # Seed 4.3: Bus_Error_Cnt counts the oversteps of the controller's error limits,
             # not each error frame (a protocol error alone is no event; bus.ErrorEscalation).
-            self.device.count("usBus_Error_Cnt")
-        else:
-            return
-        self.device.set_global_bit(GlobalBits.EVE, True)
+            self.device.count("usBus_Error_Cnt", bit=GlobalBits.EVE)
 
     def _on_send_timeout(self) -> None:
-        self.device.count("usMsg_Time_Out")
-        self.device.set_global_bit(GlobalBits.TOUT, True)
+        self.device.count("usMsg_Time_Out", bit=GlobalBits.TOUT)
