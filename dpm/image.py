@@ -327,3 +327,15 @@ def open_image(path: Path, *, readonly: bool = False) -> mmap.mmap:
         return mmap.mmap(fd, DPM_SIZE, access=access)
     finally:
         os.close(fd)
+
+
+def process_exists(pid: int) -> bool:
+    """Whether process ``pid`` exists (a zombie, or another user's process, counts): the pid
+    a lock file or a shared segment recorded may outlive its process."""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True

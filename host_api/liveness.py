@@ -22,7 +22,7 @@ import os
 from dataclasses import dataclass
 from pathlib import Path
 
-from dpm.image import lock_path
+from dpm.image import lock_path, process_exists
 
 PROC_LOCKS = Path("/proc/locks")
 LOCK_TABLE_READS = 5
@@ -90,17 +90,6 @@ def firmware_liveness(directory: Path, board: int) -> FirmwareLiveness:
         if holders:
             # A pid of 0 is a holder in another pid namespace: trust the file's.
             return FirmwareLiveness(True, holders[0] or recorded)
-        if recorded is None or not _running(recorded):
+        if recorded is None or not process_exists(recorded):
             break  # a clean stop or a dead firmware: the common "no", read once
     return FirmwareLiveness(False, recorded)
-
-
-def _running(pid: int) -> bool:
-    """Whether process ``pid`` exists (a zombie, or another user's process, counts)."""
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True

@@ -73,6 +73,7 @@ import can
 import numpy as np
 import numpy.typing as npt
 
+from dpm.image import process_exists
 from firmware.frames import CAN_ERR_CRTL, CAN_ERR_CRTL_RX_OVERFLOW
 
 if TYPE_CHECKING:
@@ -247,7 +248,7 @@ class ShmBus(can.BusABC):
         """Free the entries of stations whose process is gone (under the exclusive lock)."""
         for index in range(MAX_STATIONS):
             in_use, pid, _ = self._station(index)
-            if in_use and not _alive(pid):
+            if in_use and not process_exists(pid):
                 self._set_station(index, 0, 0, 0)
 
     def _set_station(self, index: int, in_use: int, pid: int, opened: int) -> None:
@@ -447,16 +448,6 @@ def _copy(mapped: mmap.mmap, ring_at: int, first: int, end: int) -> bytes:
 
 def _stamp(record: tuple[Any, ...]) -> float:
     return float(record[0])
-
-
-def _alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True
 
 
 def frames_written(channel: str) -> int:
