@@ -370,6 +370,9 @@ def _node(table: dict[str, Any], where: str, base: Path) -> NodeDescription:
         if not isinstance(entry, dict):
             raise NetworkError(f"{sdo_where}: expected a table")
         _take(entry, sdo_where, {"index": int, "subindex": int, "value": int, "size": int})
+        missing = {"index", "subindex", "value"} - set(entry)
+        if missing:
+            raise NetworkError(f"{sdo_where}: missing {', '.join(sorted(missing))}")
         sdo = SdoEntry(**entry)
         _range(f"{sdo_where}.index", sdo.index, 0, 0xFFFF)
         _range(f"{sdo_where}.subindex", sdo.subindex, 0, 0xFF)

@@ -279,6 +279,8 @@ offset = 3580
     ("[[node]]\nid = 255\nlss = { vendor = 1, product = 2, revision = 3, serial = 4 }\n",
      "node 255"),
     ('[[node]]\nid = 4\neds = "missing.eds"\n', "not found"),
+    ("[[node]]\nid = 4\n[[node.sdo]]\nindex = 0x1017\n",
+     r"node 4\.sdo\[0\]: missing subindex, value"),
 ])
 def test_descriptions_the_card_would_refuse_are_build_errors(text: str, message: str) -> None:
     with pytest.raises((BuildError, NetworkError), match=message):
