@@ -926,19 +926,10 @@ class Server:
         assert loop is not None
         if isinstance(prepared, SdoUpload):
             answered: asyncio.Future[None] = loop.create_future()
-
-            here = threading.get_ident()
-
-            def on_done() -> None:  # where the mailbox is read: this loop, or a thread
-                if threading.get_ident() == here:  # read on this loop (``Gateway.read_on``)
-                    _resolve(answered)
-                    return
-                with contextlib.suppress(RuntimeError):  # the loop closed: nobody waits
-                    loop.call_soon_threadsafe(_resolve, answered)
-
             try:
                 flight = client.gateway.try_sdo_upload(
-                    prepared.index, prepared.subindex, on_done, network=prepared.net,
+                    prepared.index, prepared.subindex,
+                    self._on_loop(lambda: _resolve(answered)), network=prepared.net,
                     node_id=prepared.node)
             except Cia309Error as exc:
                 return dispatcher.failure(prepared, exc)
@@ -955,12 +946,33 @@ class Server:
                     raise
                 finally:
                     timer.cancel()
-                try:
-                    return format_upload(prepared.sequence, prepared.dtype, flight.result(),
-                                         dispatcher.dialect)
-                except Cia309Error as exc:
-                    return dispatcher.failure(prepared, exc)
+                return self._upload_answer(prepared, flight)
         return await loop.run_in_executor(self._executor, dispatcher.execute, client, prepared)
+
+    def _on_loop(self, action: Callable[[], None]) -> Callable[[], None]:
+        """A flight's ``on_done`` that runs ``action`` on this server's event loop: at once
+        when the mailbox is read there (``Gateway.read_on``), else handed to the loop by the
+        thread that read it."""
+        loop = self._loop
+        assert loop is not None
+        here = threading.get_ident()
+
+        def on_done() -> None:
+            if threading.get_ident() == here:
+                action()
+                return
+            with contextlib.suppress(RuntimeError):  # the loop closed: nobody waits
+                loop.call_soon_threadsafe(action)
+
+        return on_done
+
+    def _upload_answer(self, request: SdoUpload, flight: SdoUploadInFlight) -> str:
+        """The answer line to a finished upload: its value, or the error it ended in."""
+        try:
+            return format_upload(request.sequence, request.dtype, flight.result(),
+                                 self.dispatcher.dialect)
+        except Cia309Error as exc:
+            return self.dispatcher.failure(request, exc)
 
     # --- the fast path: a line answered without its client's task --------------------------
 
@@ -996,7 +1008,8 @@ class Server:
         fast = _FastRead(prepared)
         try:
             flight = client.gateway.try_sdo_upload(
-                prepared.index, prepared.subindex, self._on_fast_done(connection, fast),
+                prepared.index, prepared.subindex,
+                self._on_loop(lambda: self._fast_done(connection, fast)),
                 network=prepared.net, node_id=prepared.node)
         except Cia309Error as exc:
             self._fast_answer(connection, dispatcher.failure(prepared, exc))
@@ -1017,33 +1030,11 @@ class Server:
             connection.fast_timer = loop.call_at(fast.deadline, self._fast_due, connection)
         return True
 
-    def _on_fast_done(self, connection: _Connection, fast: _FastRead) -> Callable[[], None]:
-        """The flight's ``on_done``: the answer from the thread that read it, when that is
-        the event loop's (``Gateway.read_on``), else handed to the loop."""
-        loop = self._loop
-        assert loop is not None
-        here = threading.get_ident()
-
-        def on_done() -> None:
-            if threading.get_ident() == here:
-                self._fast_done(connection, fast)
-                return
-            with contextlib.suppress(RuntimeError):  # the loop closed: nobody waits
-                loop.call_soon_threadsafe(self._fast_done, connection, fast)
-
-        return on_done
-
     def _fast_done(self, connection: _Connection, fast: _FastRead) -> None:
         if connection.fast is not fast:
             return  # given up (time-out, the server closing)
         assert fast.flight is not None
-        request = fast.request
-        try:
-            text = format_upload(request.sequence, request.dtype, fast.flight.result(),
-                                 self.dispatcher.dialect)
-        except Cia309Error as exc:
-            text = self.dispatcher.failure(request, exc)
-        self._fast_answer(connection, text)
+        self._fast_answer(connection, self._upload_answer(fast.request, fast.flight))
 
     def _fast_due(self, connection: _Connection) -> None:
         """The fast path's timer: gives up the read out now when its time has run out, else
