@@ -188,8 +188,15 @@ transmission = 3
     assert any(changed <= t <= after[0][0] for t in syncs)
     type3 = [t for t, ident, _ in frames if ident == 0x202 and quiet <= t <= changed]
     assert len(quiet_syncs) / 3 - 3 <= len(type3) <= len(quiet_syncs) / 3 + 3
-    remote = [t for t, ident, data in frames if ident == 0x181 and data == "R"]
-    assert len([t for t in remote if quiet <= t <= changed]) >= len(quiet_syncs) - 3
+    # A remote request at each quiet SYNC: counted in the trace's order, the card's, from
+    # the first quiet SYNC to the first SYNC after the window, since a card answers a SYNC
+    # as it receives it, and by time stamps its requests lag behind a stall: in the
+    # one-CPU VM it sent three within a millisecond, and 41 of 48 fell before the change.
+    first = next(i for i, (t, ident, _) in enumerate(frames) if ident == SYNC_ID and t >= quiet)
+    end = next((i for i, (t, ident, _) in enumerate(frames) if ident == SYNC_ID and t > changed),
+               len(frames))
+    remote = [t for t, ident, data in frames[first:end] if ident == 0x181 and data == "R"]
+    assert len(remote) >= len(quiet_syncs) - 3
     requested, answered = requested_and_answered(frames)
     assert answered >= requested - 3
 
