@@ -55,12 +55,11 @@ from bench.common import (
     ratio,
     scratch_root,
     stop_process,
-    wait_ready,
 )
 from bench.cpu import CpuSample
 from dbm_tools.network import parse_network
-from dpm.image import image_path
 from host_api.board import Board
+from host_api.ready import wait_ready
 
 CHANNEL = "vcan0"
 BOARD = 0
@@ -371,7 +370,7 @@ def card_on_vcan(directory: Path) -> Iterator[SimCard]:
             stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=stderr)
     card = SimCard(directory, proc, None, stderr_path)
     try:
-        wait_ready(proc, image_path(directory, BOARD), FIRMWARE_START_S)
+        wait_ready(proc, directory, BOARD, FIRMWARE_START_S)
         card.board = Board(BOARD, directory, timeout=5000).open()
         configure(card, parse_network(text))
         try:

@@ -26,15 +26,15 @@ from multiprocessing.connection import Connection
 from pathlib import Path
 from typing import Any
 
-from bench.cpu import START_STALL_S, StartProgress, thread_cpu_ns
-from dpm.flags import HostFlag
+from bench.cpu import thread_cpu_ns
 from dpm.image import image_path
-from dpm.layout import HOST_FLAGS
 from host_api.driver import DevCloseDriver, DevExitBoard, DevInitBoard, DevOpenDriver
+from host_api.ready import START_STALL_S, wait_ready
 
 STARTUP_TIMEOUT = START_STALL_S
 """Seconds a starting firmware may go without CPU time before its start counts as stuck
-(``wait_ready``); how long the start takes on a loaded machine is not bounded here."""
+(``host_api.ready.wait_ready``); how long the start takes on a loaded machine is not
+bounded here."""
 
 STOP_TIMEOUT = 5.0
 """Seconds a firmware may take to end after SIGTERM before it is killed."""
@@ -65,37 +65,6 @@ def scratch_root() -> str | None:
     """/dev/shm (where real images live, docs/dpm.md 3) when usable, else the default temp dir."""
     shm = "/dev/shm"
     return shm if os.path.isdir(shm) and os.access(shm, os.W_OK) else None
-
-
-def _host_flags(image: Path) -> int | None:
-    """HostFlags of an image file, or None while the file is missing or short."""
-    try:
-        fd = os.open(image, os.O_RDONLY)
-    except FileNotFoundError:
-        return None
-    try:
-        raw = os.pread(fd, 1, HOST_FLAGS)
-    finally:
-        os.close(fd)
-    return raw[0] if raw else None
-
-
-def wait_ready(proc: subprocess.Popen[bytes], image: Path, stall_s: float) -> None:
-    """Until ``image`` shows READY, for as long as the firmware's start advances
-    (``StartProgress``: CPU time, not wall time); RuntimeError when the firmware ends,
-    gets no CPU for ``stall_s`` or spends ``START_CPU_S`` of it without READY."""
-    start = StartProgress(proc.pid, stall_s)
-    while True:
-        flags = _host_flags(image)
-        if flags is not None and flags & HostFlag.READY:
-            return
-        code = proc.poll()
-        if code is not None:
-            raise RuntimeError(f"firmware exited with code {code} before READY")
-        problem = start.problem()
-        if problem is not None:
-            raise RuntimeError(f"firmware not READY ({image}): its start {problem}")
-        time.sleep(0.005)
 
 
 def stop_process(proc: subprocess.Popen[bytes]) -> None:
@@ -142,7 +111,7 @@ def running_cards(records: tuple[bool, ...], *, startup_timeout: float = STARTUP
                 proc = _start_firmware(directory, board, record, extra)
                 procs.append(proc)
                 card = Card(directory, board, proc.pid)
-                wait_ready(proc, card.image, startup_timeout)
+                wait_ready(proc, card.directory, card.board, startup_timeout)
                 progress(f"firmware pid {proc.pid} READY on {card.image}"
                          + (" (recording)" if record else ""))
                 cards.append(card)
@@ -165,7 +134,7 @@ def running_card(board: int = 0, *, startup_timeout: float = STARTUP_TIMEOUT,
         proc = _start_firmware(Path(tmp), board, False, extra)
         try:
             card = Card(Path(tmp), board, proc.pid)
-            wait_ready(proc, card.image, startup_timeout)
+            wait_ready(proc, card.directory, card.board, startup_timeout)
             progress(f"firmware pid {proc.pid} READY on {card.image}")
             yield card
         finally:

@@ -4,12 +4,12 @@ CPU time, unlike wall time, hardly moves when the machine is loaded: a shared bo
 with a load average of 15 still gives a fair figure of what a process costs.
 ``/proc/PID/task/TID/schedstat`` counts nanoseconds on the CPU per thread;
 ``/proc/PID/stat`` (utime + stime, clock ticks) counts the whole process including
-threads that have ended, at a resolution of 10 ms, as a cross-check.
+threads that have ended, at a resolution of 10 ms, as a cross-check (``stat_cpu_ns``,
+``host_api.ready``'s: the wait for a firmware's start follows the same figure).
 """
 
 from __future__ import annotations
 
-import os
 import subprocess
 import sys
 import time
@@ -19,7 +19,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-TICK_NS = 1_000_000_000 // os.sysconf("SC_CLK_TCK")
+from host_api.ready import stat_cpu_ns
 
 
 def _schedstat_ns(path: Path) -> int | None:
@@ -34,55 +34,6 @@ def _comm(task: Path) -> str:
         return (task / "comm").read_text().strip()
     except OSError:
         return "?"
-
-
-def stat_cpu_ns(pid: int) -> int:
-    """utime + stime of the whole process (every thread, also ended ones), in ns."""
-    raw = Path(f"/proc/{pid}/stat").read_text()
-    fields = raw[raw.rindex(")") + 2 :].split()
-    return (int(fields[11]) + int(fields[12])) * TICK_NS  # utime, stime: fields 14 and 15
-
-
-START_CPU_S = 10.0
-"""CPU seconds a process may spend on its start before the start counts as failed: about
-20 times what a firmware's start costs (0.4-0.6 s: the interpreter, the imports, the
-flash), which load hardly changes."""
-START_STALL_S = 15.0
-"""Wall seconds a starting process may go without any CPU time before its start counts as
-stuck (blocked, stopped): a runnable process gets its share of the cores however busy they
-are, so its CPU time moves within a second even at a load of 30 on two cores."""
-
-
-class StartProgress:
-    """Whether a process's start is getting on: a wait for it to be ready follows its CPU
-    time, not the wall clock. At a load of 30 on two cores a firmware's start takes 10-20 s
-    of wall time for the same half second of CPU; a fixed 15 s deadline failed there, and
-    a wider one would only fail later. The start fails when it has spent ``cpu_limit_s``
-    of CPU (busy, never ready) or got none for ``stall_s`` (stuck)."""
-
-    def __init__(self, pid: int, stall_s: float = START_STALL_S,
-                 cpu_limit_s: float = START_CPU_S) -> None:
-        self._pid = pid
-        self._stall_s = stall_s
-        self._cpu_limit_ns = int(cpu_limit_s * 1e9)
-        self._cpu_ns = -1
-        self._advanced = time.monotonic()
-
-    def problem(self) -> str | None:
-        """None while the start advances; else what went wrong, as the end of "its start
-        ..." (a process that has ended gives None: its exit status says more)."""
-        try:
-            cpu_ns = stat_cpu_ns(self._pid)
-        except (OSError, ValueError, IndexError):
-            return None
-        now = time.monotonic()
-        if cpu_ns != self._cpu_ns:
-            self._cpu_ns, self._advanced = cpu_ns, now
-        if cpu_ns > self._cpu_limit_ns:
-            return f"spent {cpu_ns / 1e9:.1f} s of CPU"
-        if now - self._advanced > self._stall_s:
-            return f"got no CPU for {self._stall_s:g} s"
-        return None
 
 
 def _wakeups(task: Path) -> int:

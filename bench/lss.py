@@ -51,14 +51,13 @@ from bench.common import (
     scratch_root,
     source_fingerprint,
     stop_process,
-    wait_ready,
 )
 from dbm_tools.network import parse_network
 from dpm.cia305 import WAITING, LssAddress
-from dpm.image import image_path
 from firmware.sim import SimulatedNetwork
 from host_api.board import Board
 from host_api.cia309.lss import DEFAULT_SCAN_TIMEOUT_S, DEFAULT_TIMEOUT_S, SETTLE_S, LssMaster
+from host_api.ready import wait_ready
 
 NAME = "lss"
 NODES = 8
@@ -97,7 +96,7 @@ def simulated_card(description: str) -> Iterator[Board]:
                    "--flash", str(Path(tmp) / "flash")]
         proc = subprocess.Popen(command, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL)
         try:
-            wait_ready(proc, image_path(Path(tmp), BOARD), STARTUP_TIMEOUT)
+            wait_ready(proc, Path(tmp), BOARD, STARTUP_TIMEOUT)
             progress(f"firmware pid {proc.pid} READY with {NODES} unconfigured LSS slaves")
             board = Board(BOARD, tmp, timeout=5000).open()
             try:

@@ -84,7 +84,6 @@ from bench.common import (
     source_fingerprint,
     stop_process,
     timed,
-    wait_ready,
 )
 from bench.vcan import HOST_LOADAVG
 from dbm_tools.network import parse_network
@@ -94,6 +93,7 @@ from dpm.task2 import ComDiagnostics
 from firmware.shm.bus import channel_path
 from host_api.board import Board, CifError
 from host_api.driver import DevExchangeIO, DevGetTaskState
+from host_api.ready import wait_ready
 
 NAME = "remote"
 DEFAULTS = (200, 20)
@@ -414,7 +414,7 @@ def rig(bridge: str) -> Iterator[Rig]:
                      "--flash", str(directory / "flash")],
                     stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=stderr)
             card = SimCard(directory, proc, None, stderr_path, sim=sim)
-            wait_ready(proc, directory / f"board{BOARD}.dpm", STARTUP_TIMEOUT)
+            wait_ready(proc, directory, BOARD, STARTUP_TIMEOUT)
             card.board = Board(BOARD, directory, timeout=5000).open()
             yield Rig(bridge, card, toml, nodes, card_side, link)
         finally:

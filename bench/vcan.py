@@ -68,12 +68,11 @@ from bench.common import (
     progress,
     scratch_root,
     stop_process,
-    wait_ready,
 )
 from dbm_tools.network import parse_network
-from dpm.image import image_path
 from host_api.board import Board
 from host_api.errors import HostApiError
+from host_api.ready import wait_ready
 
 CHANNEL = "vcan0"
 BOARD = 0
@@ -233,7 +232,7 @@ def card_sync_run(period_ms: int) -> dict[str, Any]:
         card = SimCard(directory, proc, None, stderr_path, sim=sim)
         receiver = bus()
         try:
-            wait_ready(proc, image_path(directory, BOARD), STARTUP_TIMEOUT)
+            wait_ready(proc, directory, BOARD, STARTUP_TIMEOUT)
             card.board = Board(BOARD, directory, timeout=5000).open()
             select_uncontrolled(card.board)
             configure(card, network)

@@ -55,14 +55,16 @@ from dpm.record_socket import Attachment, RecordingError, attach
 from dpm.task2 import TASK_AREA_SIZE, ComDiagnostics
 from dpm.transcript import transcript as transcript_of
 from host_api import faults
-from host_api.liveness import firmware_liveness
+from host_api.ready import StartError, wait_ready
 from host_api.status import health, read_image, snapshot
 
 NETWORK_MARKER = "cif_network"
 RECORD_MARKER = "cif_record"
 START_TIMEOUT_S = 60.0
-"""How long a card may take to show READY. Generous: a loaded machine starts Python
-slowly, and the wait ends as soon as READY shows."""
+"""Seconds a starting card may go without CPU time before its start counts as stuck
+(``host_api.ready.wait_ready``, which also fails a start that spends ``START_CPU_S`` of
+CPU there without READY). How long a start takes on a loaded machine is not bounded: the
+wait follows the firmware's CPU time and ends as soon as READY shows."""
 OPERATING_TIMEOUT_S = 60.0
 STOP_TIMEOUT_S = 30.0
 """SIGTERM stops a card cleanly in milliseconds; after this the process group is killed."""
@@ -76,29 +78,6 @@ TRANSCRIPT_LINES = 200
 class CardError(RuntimeError):
     """The card did not do what the test asked of it (start, reach data exchange);
     the message says what it showed instead, with the end of the firmware's log."""
-
-
-def wait_ready(process: subprocess.Popen[bytes], directory: Path, board: int,
-               timeout: float = START_TIMEOUT_S) -> None:
-    """Return once the firmware ``process`` serves board ``board`` in ``directory``.
-
-    READY alone is not enough: a killed predecessor leaves READY set in its image. The
-    card is this process's once the firmware lock names its pid (``host_api.liveness``).
-    Raises CardError when the process exits first or ``timeout`` passes.
-    """
-    deadline = time.monotonic() + timeout
-    while True:
-        code = process.poll()
-        if code is not None:
-            raise CardError(f"the firmware (pid {process.pid}) exited with status {code} "
-                            "before it was READY")
-        image = read_image(board, str(directory))
-        if (image is not None and image[HOST_FLAGS] & fl.READY
-                and firmware_liveness(directory, board).pid == process.pid):
-            return
-        if time.monotonic() > deadline:
-            raise CardError(f"the firmware (pid {process.pid}) was not READY after {timeout} s")
-        time.sleep(POLL_S)
 
 
 @dataclass
@@ -164,7 +143,7 @@ class CifCard:
             wait_ready(self._process, self.directory, self.board, timeout)
             if self.record_into is not None:
                 self._record()
-        except CardError as exc:
+        except (StartError, CardError) as exc:
             self.stop()
             raise CardError(f"board {self.board}: {exc}\n{self.log_tail()}") from None
 

@@ -14,15 +14,9 @@ from pathlib import Path
 
 import pytest
 
-from bench.cpu import (
-    START_CPU_S,
-    START_STALL_S,
-    StartProgress,
-    descendants,
-    runqueue_wait_ns,
-)
+from bench.cpu import descendants, runqueue_wait_ns
 from host_api import driver
-from host_api.liveness import firmware_liveness
+from host_api.ready import START_CPU_S, START_STALL_S, StartError, wait_ready
 from tests.selection import HELPER_MODULES, forbid_processes, marks_of_module
 
 REQUIRE_SOCKETCAN = "CIFEMU_REQUIRE_SOCKETCAN"
@@ -134,32 +128,25 @@ class Card:
 
 
 def start_card(directory: Path, board: int = 0, *extra: str) -> Card:
-    """Start a firmware and wait until it is READY, for as long as its start advances
-    (``bench.cpu.StartProgress``): it fails when the firmware exits, gets no CPU for 15 s or
-    spends 10 s of CPU without READY. A loaded machine makes the start slower, not a
-    failure: at a load of 20-35 a fixed 15 s of wall time failed 13 tests of a run."""
+    """Start a firmware and wait until it serves (``host_api.ready.wait_ready``: READY from
+    this process, for as long as its start advances); a firmware that exits first fails
+    with its stderr, one whose start stops advancing is stopped. The bounds scale with
+    ``TIME_SCALE``, as every wait of the suite does."""
     proc = subprocess.Popen(
         [sys.executable, "-m", "cifemu", "firmware", "--board", str(board),
          "--dpm-dir", str(directory), "--log-level", "WARNING", *extra],
         stderr=subprocess.PIPE,
     )
     card = Card(directory, board, proc)
-    start = StartProgress(proc.pid, START_STALL_S * TIME_SCALE, START_CPU_S * TIME_SCALE)
-    while True:
-        if proc.poll() is not None:
-            stderr = proc.stderr.read().decode() if proc.stderr else ""
-            raise RuntimeError(f"firmware exited: {stderr}")
-        if card.path.exists() and card.path.stat().st_size == IMAGE_SIZE:
-            with open(card.path, "rb") as f:
-                f.seek(HOST_FLAGS)
-                # READY from this process, not from a killed predecessor's image
-                if f.read(1)[0] & READY and firmware_liveness(directory, board).pid == proc.pid:
-                    return card
-        problem = start.problem()
-        if problem is not None:
+    try:
+        wait_ready(proc, directory, board, START_STALL_S * TIME_SCALE, START_CPU_S * TIME_SCALE)
+    except StartError as exc:
+        if exc.status is None:
             card.stop()
-            raise RuntimeError(f"firmware did not become READY: its start {problem}")
-        time.sleep(0.005)
+            raise RuntimeError(str(exc)) from None
+        stderr = proc.stderr.read().decode() if proc.stderr else ""
+        raise RuntimeError(f"{exc}: {stderr}") from None
+    return card
 
 
 def pytest_configure(config: pytest.Config) -> None:

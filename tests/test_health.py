@@ -11,6 +11,8 @@ import sys
 import time
 from pathlib import Path
 
+import pytest
+
 from dbm_tools.builder import build_dbm
 from dbm_tools.container import write_dbm
 from dbm_tools.network import load_network
@@ -19,6 +21,7 @@ from dpm.message import Message
 from host_api import driver as d
 from host_api.download import CONFIGURATION_DOWNLOAD, DevDownload
 from host_api.liveness import firmware_liveness
+from host_api.ready import StartError, wait_ready
 from tests.conftest import ROOT, Card, start_card, wait_until
 
 DEMO = ROOT / "cifemu" / "examples" / "demo.toml"
@@ -54,6 +57,27 @@ def test_status_reports_a_killed_firmware_as_dead_with_its_last_pid(tmp_path: Pa
         assert health["pid"] == card.proc.pid
     finally:
         card.stop()  # a failed assertion must not leave the firmware running
+
+
+def test_a_start_takes_ready_only_from_the_process_it_started(tmp_path: Path) -> None:
+    """The one wait for a start (``host_api.ready``: the suite's, the benchmarks', the
+    plugin's) ignores the READY a SIGKILLed firmware left in its image: a process that
+    never serves fails it, by its CPU time (none for 1 s), instead of passing it at once
+    (the benchmarks' own wait did, before the three waits were one)."""
+    card = start_card(tmp_path)
+    kill(card)
+    assert card.map()[0x1FFE] & 0x80  # the image still says READY
+    stand_in = subprocess.Popen([sys.executable, "-c", "import signal; print(flush=True); "
+                                 "signal.pause()"], stdout=subprocess.PIPE)
+    try:
+        assert stand_in.stdout is not None
+        stand_in.stdout.readline()  # started: from here on it sleeps, it takes no CPU
+        with pytest.raises(StartError, match="got no CPU for 1 s") as refused:
+            wait_ready(stand_in, tmp_path, 0, stall_s=1.0)
+        assert refused.value.status is None
+    finally:
+        stand_in.kill()
+        stand_in.wait()
 
 
 def test_a_cleanly_stopped_firmware_leaves_no_pid(tmp_path: Path) -> None:

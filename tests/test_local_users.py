@@ -23,7 +23,6 @@ import stat
 import subprocess
 import sys
 import tempfile
-import time
 import traceback
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -39,9 +38,9 @@ from dpm.image import CardDirectory
 from dpm.tap import SUBSCRIBE, tap_address
 from host_api.board import Board
 from host_api.download import CONFIGURATION_DOWNLOAD
-from host_api.liveness import firmware_liveness
 from host_api.network_view import remember_network
-from tests.conftest import IMAGE_SIZE, READY, ROOT, TIME_SCALE, start_card, wait_until
+from host_api.ready import START_CPU_S, START_STALL_S, StartError, wait_ready
+from tests.conftest import IMAGE_SIZE, ROOT, TIME_SCALE, start_card, wait_until
 
 pytestmark = pytest.mark.skipif(os.geteuid() != 0, reason="becoming another user needs root")
 
@@ -107,18 +106,13 @@ def firmware(directory: Path, *extra: str) -> subprocess.Popen[bytes]:
 
 
 def serving(proc: subprocess.Popen[bytes], directory: Path) -> bool:
-    """Wait until the firmware ends (False) or serves board 0 with READY (True)."""
-    image = directory / "board0.dpm"
-    deadline = time.monotonic() + 15 * TIME_SCALE
-    while proc.poll() is None and time.monotonic() < deadline:
-        try:
-            ready = image.stat().st_size == IMAGE_SIZE and image.read_bytes()[0x1FFE] & READY
-        except OSError:
-            ready = False
-        if ready and firmware_liveness(directory, 0).pid == proc.pid:
-            return True
-        time.sleep(0.005)
-    return proc.poll() is None
+    """Wait until the firmware ends (False) or serves board 0 (True), by the suite's one wait
+    for a start (``host_api.ready``); a start that stops advancing gives True: it still runs."""
+    try:
+        wait_ready(proc, directory, 0, START_STALL_S * TIME_SCALE, START_CPU_S * TIME_SCALE)
+    except StartError as exc:
+        return exc.status is None
+    return True
 
 
 def ended(proc: subprocess.Popen[bytes]) -> str:

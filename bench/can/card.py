@@ -28,14 +28,12 @@ from bench.common import (
     progress,
     scratch_root,
     stop_process,
-    wait_ready,
 )
 from dbm_tools.builder import build_dbm
 from dbm_tools.network import GENERIC_DEVICE_TYPE, Network
 from dbm_tools.parameters import NodeParameterSet
 from dbm_tools.tables import NODES
 from dpm.cia301 import ABORT_TIMEOUT
-from dpm.image import image_path
 from dpm.layout import IO_AREA_SIZE
 from dpm.task2 import BMODE_TO_EXCHANGE_MODE, ComDiagnostics, ComPlcParameter, PlcMode
 from host_api.board import Board
@@ -45,6 +43,7 @@ from host_api.driver import (
     DevGetTaskState,
 )
 from host_api.online import configure_online
+from host_api.ready import wait_ready
 
 BOARD = 0
 CHANNEL = "cifemu-bench"
@@ -168,7 +167,7 @@ def simulated_card(description: str, *, trace: bool = False, separate: bool = Fa
         card = SimCard(directory, proc, trace_path, stderr_path, sim=sim, interface=interface,
                        channel=channel)
         try:
-            wait_ready(proc, image_path(images, board), STARTUP_TIMEOUT)
+            wait_ready(proc, images, board, STARTUP_TIMEOUT)
             card.board = Board(board, images, timeout=5000).open()
             yield card
         finally:
