@@ -5,9 +5,9 @@ the lock file beside the image) can only wait. Waiting makes sense for a short h
 download, a ``cifemu configure``), not for one that keeps the mailbox for its life, as
 the CiA 309 gateway does (``host_api.cia309.link``): there every wait ends in
 DRV_CMD_ACTIVE, seconds later and without a name. ``lock_holder`` names the holder from
-the kernel's table of file locks (/proc/locks: an flock's pid and the file's device and
-inode) and its /proc/PID/cmdline; ``Holder.long_lived`` says whether waiting is futile,
-and ``Holder.advice`` what to do instead.
+the kernel's table of file locks (/proc/locks, ``host_api.lock_table``: an flock's pid
+and the file's device and inode) and its /proc/PID/cmdline; ``Holder.long_lived`` says
+whether waiting is futile, and ``Holder.advice`` what to do instead.
 """
 
 from __future__ import annotations
@@ -17,8 +17,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from dpm.image import dpm_dir, lock_path
+from host_api.lock_table import flock_holders
 
-PROC_LOCKS = Path("/proc/locks")
 TCP_LISTEN = "0A"
 """The state column of a listening socket in /proc/net/tcp."""
 GATEWAY_WORDS = ("309", "serve")
@@ -107,19 +107,8 @@ def _listening_port(pid: int) -> int | None:
 
 def lock_holder(path: Path) -> Holder | None:
     """The other process holding an flock on ``path``; None when none does (or the kernel's
-    table cannot be read)."""
-    try:
-        st = os.stat(path)
-        table = PROC_LOCKS.read_text()
-    except OSError:
-        return None
-    where = f"{os.major(st.st_dev):02x}:{os.minor(st.st_dev):02x}:{st.st_ino}"
-    for line in table.splitlines():
-        fields = line.split()
-        # "1: FLOCK  ADVISORY  WRITE 18121 fe:00:10004389 0 EOF"; "->" marks a waiter
-        if len(fields) < 6 or fields[1] != "FLOCK" or fields[5] != where:
-            continue
-        pid = int(fields[4]) if fields[4].isdigit() else 0
+    table cannot be read). A holder in another pid namespace (pid 0) cannot be named."""
+    for pid in flock_holders(path) or ():
         if pid and pid != os.getpid():
             return Holder(pid, _cmdline(pid))
     return None

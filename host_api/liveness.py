@@ -5,9 +5,9 @@ life and writes its pid into it; a clean stop empties the file, so a pid that is
 still there while nobody holds the lock is the last pid of a firmware that died
 (SIGKILL, crash). The image cannot tell: a killed firmware leaves READY set.
 
-The lock is looked up in /proc/locks rather than probed with ``flock``: a probe
-holds the lock for an instant, and a firmware starting in that instant would be
-refused as a second firmware. The kernel hands that table out a page at a time, and a
+The lock is looked up in /proc/locks (``host_api.lock_table``) rather than probed with
+``flock``: a probe holds the lock for an instant, and a firmware starting in that instant
+would be refused as a second firmware. The kernel hands that table out a page at a time, and a
 lock can fall between two pages when locks listed before it go meanwhile (measured: 11
 misses in 434 reads beside two processes taking and dropping 1,000 flocks each; a CI run
 beside a loaded suite saw one), so a "nobody holds it" while the recorded pid still runs
@@ -23,8 +23,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from dpm.image import lock_path, process_exists
+from host_api.lock_table import flock_holders
 
-PROC_LOCKS = Path("/proc/locks")
 LOCK_TABLE_READS = 5
 """How often a "not held" is read while the recorded firmware pid still runs: a miss needs
 locks listed before ours to go between two pages, and five in a row were never seen."""
@@ -44,24 +44,6 @@ def _recorded_pid(path: Path) -> int | None:
     except OSError:
         return None
     return int(text) if text.isdigit() else None
-
-
-def _flock_holders(path: Path) -> list[int] | None:
-    """Pids holding an flock on ``path`` per /proc/locks; None when it cannot be read."""
-    try:
-        stat = path.stat()
-        lines = PROC_LOCKS.read_text().splitlines()
-    except OSError:
-        return None
-    device = f"{os.major(stat.st_dev):02x}:{os.minor(stat.st_dev):02x}:{stat.st_ino}"
-    holders = []
-    for line in lines:
-        fields = line.split()
-        if "->" in fields:  # a waiter, not a holder
-            continue
-        if len(fields) >= 6 and fields[1] == "FLOCK" and fields[5] == device:
-            holders.append(int(fields[4]))
-    return holders
 
 
 def _probe(path: Path) -> bool:
@@ -84,7 +66,7 @@ def firmware_liveness(directory: Path, board: int) -> FirmwareLiveness:
     path = lock_path(directory, board)
     recorded = _recorded_pid(path)
     for _ in range(LOCK_TABLE_READS):
-        holders = _flock_holders(path)
+        holders = flock_holders(path)
         if holders is None:
             return FirmwareLiveness(_probe(path), recorded)
         if holders:
