@@ -58,6 +58,7 @@ from bench.common import (
 )
 from bench.cpu import CpuSample
 from dbm_tools.network import parse_network
+from dpm.cia301 import ERROR_CONTROL_BASE, SDO_REQUEST_BASE, SDO_RESPONSE_BASE
 from host_api.board import Board
 from host_api.ready import wait_ready
 
@@ -177,18 +178,19 @@ def wait_boot_up(bus: can.BusABC, node: int, timeout: float = BOOT_UP_TIMEOUT_S)
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
         msg = bus.recv(0.1)
-        if msg is not None and msg.arbitration_id == 0x700 + node and bytes(msg.data) == b"\0":
+        if (msg is not None and msg.arbitration_id == ERROR_CONTROL_BASE + node
+                and bytes(msg.data) == b"\0"):
             return
     raise RuntimeError(f"no boot-up from the CANopenNode device {node} within {timeout} s")
 
 
 def store_defaults(bus: can.BusABC, node: int, timeout: float = BOOT_UP_TIMEOUT_S) -> None:
     """1010h sub 1 = "save" by a raw SDO download; RuntimeError unless the device confirms."""
-    bus.send(can.Message(arbitration_id=0x600 + node, data=SAVE, is_extended_id=False))
+    bus.send(can.Message(arbitration_id=SDO_REQUEST_BASE + node, data=SAVE, is_extended_id=False))
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
         msg = bus.recv(0.1)
-        if msg is None or msg.arbitration_id != 0x580 + node:
+        if msg is None or msg.arbitration_id != SDO_RESPONSE_BASE + node:
             continue
         if msg.data[0] == 0x60:
             return

@@ -49,7 +49,6 @@ import numpy as np
 from bench import canopennode
 from bench.can import document
 from bench.can.card import (
-    SYNC_COB_ID,
     SeparateBus,
     SimCard,
     configure,
@@ -70,6 +69,7 @@ from bench.common import (
     stop_process,
 )
 from dbm_tools.network import parse_network
+from dpm.cia301 import COB_ID_SYNC
 from host_api.board import Board
 from host_api.errors import HostApiError
 from host_api.ready import wait_ready
@@ -150,7 +150,7 @@ def record_syncs(receiver: can.BusABC, seconds: float) -> np.ndarray[Any, np.dty
     end = start + seconds
     while time.time() < end:
         msg = receiver.recv(0.1)
-        if (msg is not None and msg.arbitration_id == SYNC_COB_ID and not msg.is_extended_id
+        if (msg is not None and msg.arbitration_id == COB_ID_SYNC and not msg.is_extended_id
                 and start <= msg.timestamp <= end):
             stamps.append(msg.timestamp)
     return np.array(stamps, dtype=np.float64)
@@ -178,9 +178,9 @@ def periodic_sync_run(interface: str, what: str) -> dict[str, Any]:
     receiver = bus(interface)
     try:
         task = sender.send_periodic(
-            can.Message(arbitration_id=SYNC_COB_ID, data=b"", is_extended_id=False), PERIOD_S)
+            can.Message(arbitration_id=COB_ID_SYNC, data=b"", is_extended_id=False), PERIOD_S)
         deadline = time.monotonic() + FIRST_SYNC_TIMEOUT_S
-        while (msg := receiver.recv(0.1)) is None or msg.arbitration_id != SYNC_COB_ID:
+        while (msg := receiver.recv(0.1)) is None or msg.arbitration_id != COB_ID_SYNC:
             if time.monotonic() > deadline:
                 raise RuntimeError(f"no SYNC from the {what}")
         time.sleep(0.2)

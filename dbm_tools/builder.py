@@ -92,6 +92,7 @@ from dbm_tools.tables import (
     checksum_crc,
 )
 from dbm_tools.validate import PROCESS_IMAGE_SIZE, check_dbm
+from dpm.cia301 import RPDO_BASES, TPDO_BASES
 from dpm.cia305 import UNCONFIGURED
 from dpm.com import acceptance_long
 
@@ -134,8 +135,8 @@ def _node_pdos(node: NodeDescription, eds: EdsDevice | None) -> list[PdoDescript
             for pdo in eds.pdos
         ]
     return [
-        PdoDescription("output", 0x200 + node.id, GENERIC_PDO_LENGTH),
-        PdoDescription("input", 0x180 + node.id, GENERIC_PDO_LENGTH),
+        PdoDescription("output", RPDO_BASES[0] + node.id, GENERIC_PDO_LENGTH),
+        PdoDescription("input", TPDO_BASES[0] + node.id, GENERIC_PDO_LENGTH),
     ]
 
 

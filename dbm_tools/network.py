@@ -23,6 +23,7 @@ from typing import Any
 
 from dbm_tools.container import FILE_MAGIC
 from dbm_tools.errors import DbmError
+from dpm.cia301 import COB_ID_SYNC, EMCY_BASE, ERROR_CONTROL_BASE
 from dpm.cia305 import UNCONFIGURED, LssAddress
 
 BITRATES: dict[int, int] = {
@@ -55,7 +56,7 @@ class NetworkError(DbmError, ValueError):
 @dataclass
 class BusDescription:
     bitrate: int = 500_000
-    sync_cob_id: int = 0x80
+    sync_cob_id: int = COB_ID_SYNC
     sync_period_ms: int = 0
     auto_clear: bool = False
     byte_order: str = "intel"
@@ -173,11 +174,11 @@ class NodeDescription:
 
     @property
     def cob_id_emcy(self) -> int:
-        return self.emcy_cob_id if self.emcy_cob_id is not None else 0x80 + self.id
+        return self.emcy_cob_id if self.emcy_cob_id is not None else EMCY_BASE + self.id
 
     @property
     def cob_id_guard(self) -> int:
-        return self.guard_cob_id if self.guard_cob_id is not None else 0x700 + self.id
+        return self.guard_cob_id if self.guard_cob_id is not None else ERROR_CONTROL_BASE + self.id
 
     @property
     def config_nd_state(self) -> int:

@@ -18,6 +18,7 @@ from enum import IntFlag
 
 from dbm_tools._binary import fixed, pack, unpack
 from dbm_tools.errors import DbmError
+from dpm import cia301
 from dpm.cia301 import SYNC_RTR, SYNC_TYPES_MAX
 from dpm.errors import CanF
 
@@ -312,7 +313,7 @@ class BusParameterSet:
     """The bus parameter data set (BUS_CAN); its download starts the network."""
 
     Baud_rate: int = 4
-    COB_ID_SYNC: int = 0x80
+    COB_ID_SYNC: int = cia301.COB_ID_SYNC
     SYNC_Timer: int = 0
     Auto_Clear: int = ACLR_INACTIVE
     Intel_Motorola: int = INTEL

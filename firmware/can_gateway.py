@@ -14,6 +14,7 @@ from typing import TYPE_CHECKING
 
 from canopen.sdo.exceptions import SdoAbortedError, SdoCommunicationError
 
+from dpm.cia301 import EMCY_BASE
 from dpm.com import NodeSwitch, SdoTimeoutRequest, decode_word
 from dpm.commands import (
     COM_BOOTUP_FORWARDING,
@@ -129,7 +130,7 @@ class GatewayCommands:
         handler, on, cob_id = parsed
         if cob_id > 0x7FF:
             return msg.answer(f=CanF.FAULTY_PARAMETER)
-        handler.set_emcy_consumer((cob_id or 0x80 + handler.address) if on else None)
+        handler.set_emcy_consumer((cob_id or EMCY_BASE + handler.address) if on else None)
         return msg.answer()
 
     def com_set_heartbeat_producer(self, msg: Message) -> Message:

@@ -22,12 +22,13 @@ from dbm_tools.eds import import_od
 from dbm_tools.network import Network, NodeDescription, load_network
 from dbm_tools.parameters import NodeParameterSet
 from dbm_tools.tables import NODES
+from dpm.cia301 import RPDO_BASES, TPDO_BASES
 from dpm.image import CardDirectory, UnsafePathError
 
 RPDO_MAPPING = 0x1600
 TPDO_MAPPING = 0x1A00
 """CiA 301: the mapping parameter objects of the first RPDO and TPDO."""
-PREDEFINED_BASES = {"input": (0x180, 0x280, 0x380, 0x480), "output": (0x200, 0x300, 0x400, 0x500)}
+PREDEFINED_BASES = {"input": TPDO_BASES, "output": RPDO_BASES}
 """CiA 301's predefined connection set: TPDO1..4 and RPDO1..4 at these COB-IDs + node-ID."""
 
 log = logging.getLogger(__name__)

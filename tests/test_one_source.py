@@ -11,6 +11,12 @@ class-level assignments are checked:
 - anywhere in the code, a CiA 301 SDO abort code (``dpm.cia301.ABORT_*``) written as a
   number, or as ``0x`` and eight hex digits in a string that is no docstring: the master,
   the simulated nodes, the gateway and the benchmarks name them from ``dpm.cia301``.
+- anywhere in the code, a CiA 301 COB-ID base (``dpm.cia301``'s ``*_BASE``/``*_BASES``:
+  080h, 180h ... 700h) written as a number where it is one: added to a node-ID
+  (``0x580 + node``), taken off an identifier (``can_id - 0x700``), compared with one
+  (``0x580 < ident < 0x600``), a table of them (``(0x180, 0x280)``), or 080h bound to a
+  SYNC name (``sync_cob_id = 0x80``). 080h alone is also a bit and an SDO command byte:
+  compared or in a table it is left alone.
 
 Timeouts, CANopen object indexes and the like stay where they are used: their names
 match none of these rules.
@@ -38,6 +44,10 @@ PROTOCOL_NAME = re.compile(
 SDO_ABORT_CODES = frozenset(value for name, value in vars(cia301).items()
                             if name.startswith("ABORT_"))
 HEX_CODE = re.compile(r"0x([0-9A-Fa-f]{8})\b")
+COB_ID_BASES = frozenset({cia301.EMCY_BASE, *cia301.TPDO_BASES, *cia301.RPDO_BASES,
+                          cia301.SDO_RESPONSE_BASE, cia301.SDO_REQUEST_BASE,
+                          cia301.ERROR_CONTROL_BASE})
+SYNC_NAME = re.compile(r"sync", re.IGNORECASE)
 
 NOT_CARD_LAYOUTS: dict[tuple[str, str], str] = {
     ("firmware/shm/bus.py", "_HEADER"): "the shm bus's file header [ours]",
@@ -137,6 +147,55 @@ def abort_literals(path: Path) -> list[str]:
     return [f"{relative}:{line}: {what}" for line, what in sorted(found)]
 
 
+def _base(node: ast.expr) -> int | None:
+    """The COB-ID base ``node`` spells as a literal, else None."""
+    if isinstance(node, ast.Constant) and type(node.value) is int and node.value in COB_ID_BASES:
+        return node.value
+    return None
+
+
+def _bound_defaults(node: ast.AST) -> list[tuple[str, ast.expr]]:
+    """(name, value) of what ``node`` binds: an assignment's targets, a function's defaults."""
+    if isinstance(node, ast.Assign):
+        return [b for t in node.targets for b in _bindings(t, node.value)]
+    if isinstance(node, ast.AnnAssign) and node.value is not None:
+        return _bindings(node.target, node.value)
+    if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef):
+        positional = node.args.posonlyargs + node.args.args
+        pairs = list(zip(positional[len(positional) - len(node.args.defaults):],
+                         node.args.defaults, strict=True))
+        pairs += [(a, d) for a, d in zip(node.args.kwonlyargs, node.args.kw_defaults,
+                                         strict=True) if d is not None]
+        return [(a.arg, d) for a, d in pairs]
+    return []
+
+
+def cob_id_literals(path: Path) -> list[str]:
+    """Every CiA 301 COB-ID base ``path`` spells as a number where it means one, one line
+    each (the module docstring's rules)."""
+    relative = path.relative_to(ROOT).as_posix() if path.is_relative_to(ROOT) else path.name
+    tree = ast.parse(path.read_text(encoding="utf-8"), filename=relative)
+    found: list[tuple[int, str]] = []
+    for node in ast.walk(tree):
+        spelled: list[int | None] = []
+        if isinstance(node, ast.BinOp) and isinstance(node.op, ast.Add):
+            spelled = [_base(node.left), _base(node.right)]
+        elif isinstance(node, ast.BinOp) and isinstance(node.op, ast.Sub):
+            spelled = [_base(node.right)]
+        elif isinstance(node, ast.Compare):
+            spelled = [_base(n) for n in (node.left, *node.comparators)
+                       if _base(n) != cia301.EMCY_BASE]
+        elif isinstance(node, ast.Tuple) and len(node.elts) > 1:
+            bases = [_base(e) for e in node.elts]
+            spelled = bases if None not in bases and cia301.EMCY_BASE not in bases else []
+        spelled += [cia301.COB_ID_SYNC for name, value in _bound_defaults(node)
+                    if SYNC_NAME.search(name) and isinstance(value, ast.Constant)
+                    and type(value.value) is int and value.value == cia301.COB_ID_SYNC]
+        found += [(node.lineno, f"0x{base:03X} in {ast.unparse(node).splitlines()[0]}")
+                  for base in spelled if base is not None]
+    return [f"{relative}:{line}: {what}" for line, what in sorted(set(found))]
+
+
 def modules() -> list[Path]:
     return sorted(p for package in PACKAGES for p in (ROOT / package).rglob("*.py"))
 
@@ -183,6 +242,34 @@ def test_no_module_outside_dpm_spells_an_sdo_abort_code() -> None:
     assert len(SDO_ABORT_CODES) > 25 and 0x0504_0000 in SDO_ABORT_CODES
     found = [line for path in modules() for line in abort_literals(path)]
     assert not found, "SDO abort codes outside dpm.cia301:\n" + "\n".join(found)
+
+
+def test_the_cob_id_rule_catches_what_it_must(tmp_path: Path) -> None:
+    """COB-ID bases with a node-ID, against an identifier, in a table or as a SYNC default
+    are caught; the same numbers as sizes, bits, masks or command bytes are not."""
+    source = (
+        "from dpm.cia301 import SDO_RESPONSE_BASE\n"
+        "BASES = (0x180, 0x280)\n"
+        "SYNC_COB_ID = 0x080\n"
+        "def f(node: int, can_id: int, sync_cob_id: int = 0x80) -> int:\n"
+        "    if 0x580 < can_id < 0x600 or can_id - 0x700 == node:\n"
+        "        return 0x600 + node\n"
+        "    return SDO_RESPONSE_BASE + node\n"
+        "SIZE, BIT = 0x200, 0x80\n"
+        "def g(byte: int, code: int) -> bool:\n"
+        "    return byte & 0x80 == 0x80 or 128 - code > 0 or byte | 0x700 > 0\n"
+    )
+    path = tmp_path / "sample.py"
+    path.write_text(source, encoding="utf-8")
+    assert [line.split(": ", 1)[1].split(" in ")[0] for line in cob_id_literals(path)] == [
+        "0x180", "0x280", "0x080", "0x080", "0x580", "0x600", "0x700", "0x600"]
+
+
+def test_no_module_outside_dpm_spells_a_cob_id_base() -> None:
+    """A copy drifts: the master's SDO channel, the simulated node's server and the
+    benchmarks' clients must meet on one identifier per node."""
+    found = [line for path in modules() for line in cob_id_literals(path)]
+    assert not found, "CiA 301 COB-ID bases outside dpm.cia301:\n" + "\n".join(found)
 
 
 def test_every_exempted_layout_exists() -> None:

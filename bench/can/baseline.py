@@ -13,7 +13,7 @@ from canopen.objectdictionary import ObjectDictionary
 from canopen.sdo.client import SdoClient
 
 from dbm_tools.network import Network
-from dpm.cia301 import COB_ID_NMT, INITIALISING, OPERATIONAL
+from dpm.cia301 import COB_ID_NMT, INITIALISING, OPERATIONAL, SDO_REQUEST_BASE, SDO_RESPONSE_BASE
 from dpm.commands import NMT_START
 from firmware.sim import SimulatedNetwork
 
@@ -36,10 +36,10 @@ def in_process(network: Network) -> Iterator[tuple[SimulatedNetwork, canopen.Net
 
 
 def sdo_client(client: canopen.Network, node: int) -> SdoClient:
-    sdo = SdoClient(0x600 + node, 0x580 + node,  # type: ignore[no-untyped-call]
+    sdo = SdoClient(SDO_REQUEST_BASE + node, SDO_RESPONSE_BASE + node,  # type: ignore[no-untyped-call]
                     ObjectDictionary())  # type: ignore[no-untyped-call]
     sdo.network = client
-    client.subscribe(0x580 + node, sdo.on_response)
+    client.subscribe(SDO_RESPONSE_BASE + node, sdo.on_response)
     return sdo
 
 

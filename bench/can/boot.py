@@ -30,7 +30,6 @@ from bench.can.baseline import sdo_client
 from bench.can.card import (
     DEVICE_TYPE_BYTES,
     RESET_TIMEOUT_MS,
-    SYNC_COB_ID,
     SeparateBus,
     board_of,
     network_toml,
@@ -49,7 +48,7 @@ from dbm_tools.container import write_dbm
 from dbm_tools.network import Network, parse_network
 from dbm_tools.parameters import NodeParameterSet
 from dbm_tools.tables import NODES
-from dpm.cia301 import COB_ID_NMT
+from dpm.cia301 import COB_ID_NMT, COB_ID_SYNC, EMCY_BASE, ERROR_CONTROL_BASE
 from dpm.commands import NMT_RESET_NODE, NMT_START
 from firmware.can.sdo import DEFAULT_SDO_TIMEOUT
 from host_api.download import CONFIGURATION_DOWNLOAD, DevDownload
@@ -169,10 +168,10 @@ def _boot_with_canopen(client: canopen.Network, nodes: list[int],
     def on_error_control(can_id: int, data: bytearray, timestamp: float) -> None:
         del timestamp
         if data and data[0] == 0:
-            bootups[can_id - 0x700].set()
+            bootups[can_id - ERROR_CONTROL_BASE].set()
 
     for node in nodes:
-        client.subscribe(0x700 + node, on_error_control)
+        client.subscribe(ERROR_CONTROL_BASE + node, on_error_control)
     clients = {node: sdo_client(client, node) for node in nodes}
     for sdo in clients.values():
         sdo.RESPONSE_TIMEOUT = DEFAULT_SDO_TIMEOUT  # the card's, not canopen's 0.3 s
@@ -201,8 +200,8 @@ def _boot_with_canopen(client: canopen.Network, nodes: list[int],
         if bytes(sdo.upload(0x1000, 0)) != DEVICE_TYPE_BYTES:
             raise RuntimeError(f"node {node}: wrong device type")
         sdo.download(0x1017, 0, struct.pack("<H", 500))
-        sdo.download(0x1005, 0, struct.pack("<I", SYNC_COB_ID))
-        sdo.download(0x1014, 0, struct.pack("<I", 0x80 + node))
+        sdo.download(0x1005, 0, struct.pack("<I", COB_ID_SYNC))
+        sdo.download(0x1014, 0, struct.pack("<I", EMCY_BASE + node))
         for index, subindex, value in writes[node]:
             sdo.download(index, subindex, value)
         client.send_message(COB_ID_NMT, bytes([NMT_START, node]))

@@ -33,7 +33,7 @@ from dbm_tools.builder import build_dbm
 from dbm_tools.network import GENERIC_DEVICE_TYPE, Network
 from dbm_tools.parameters import NodeParameterSet
 from dbm_tools.tables import NODES
-from dpm.cia301 import ABORT_TIMEOUT
+from dpm.cia301 import ABORT_TIMEOUT, RPDO_BASES, TPDO_BASES
 from dpm.layout import IO_AREA_SIZE
 from dpm.task2 import BMODE_TO_EXCHANGE_MODE, ComDiagnostics, ComPlcParameter, PlcMode
 from host_api.board import Board
@@ -59,8 +59,6 @@ UNCONTROLLED_BMODE = PlcMode.UNCONTROLLED
 """Task2Parameter bMode that selects the uncontrolled handshake at a warm start."""
 UNCONTROLLED_EXCHANGE_MODE = BMODE_TO_EXCHANGE_MODE[UNCONTROLLED_BMODE]
 
-SYNC_COB_ID = 0x080
-"""CiA 301's SYNC identifier, as the network descriptions of the phases leave it."""
 DEVICE_TYPE_BYTES = GENERIC_DEVICE_TYPE.to_bytes(4, "little")
 """Object 1000h of the generic node, as an SDO upload returns it."""
 
@@ -237,9 +235,9 @@ def network_toml(nodes: Sequence[int], *, sync_period_ms: int = 0, eds: Path | N
         if eds is not None:
             lines.append(f'eds = "{eds}"')
         elif sync_period_ms and number == 0:
-            lines += ["[[node.pdo]]", 'direction = "output"', f"cob_id = {0x200 + node}",
-                      "[[node.pdo]]", 'direction = "input"', f"cob_id = {0x180 + node}",
-                      "[[node.pdo]]", 'direction = "output"', f"cob_id = {0x300 + node}",
+            lines += ["[[node.pdo]]", 'direction = "output"', f"cob_id = {RPDO_BASES[0] + node}",
+                      "[[node.pdo]]", 'direction = "input"', f"cob_id = {TPDO_BASES[0] + node}",
+                      "[[node.pdo]]", 'direction = "output"', f"cob_id = {RPDO_BASES[1] + node}",
                       "length = 1", "transmission = 1", f"offset = {IO_AREA_SIZE - 1}"]
     return "\n".join(lines) + "\n"
 

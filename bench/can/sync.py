@@ -27,7 +27,6 @@ import numpy as np
 import numpy.typing as npt
 
 from bench.can.card import (
-    SYNC_COB_ID,
     SeparateBus,
     io_offsets,
     network_toml,
@@ -42,6 +41,7 @@ from bench.common import (
     ratio,
 )
 from dbm_tools.network import parse_network
+from dpm.cia301 import COB_ID_SYNC
 from firmware.shm.cyclic import REALTIME_PRIORITY
 from host_api.errors import HostApiError
 
@@ -111,7 +111,7 @@ def card_sync(count: int, bus: SeparateBus | None) -> dict[str, Any]:
             raise RuntimeError("the card ran without a trace")
         trace = read_trace(card.trace)
         firmware_log = card.log()
-    syncs = trace.stamps[trace.idents == SYNC_COB_ID]
+    syncs = trace.stamps[trace.idents == COB_ID_SYNC]
     loaded = (window.wall_start, window.wall_end)
     return {
         "nodes": len(nodes),
@@ -143,7 +143,7 @@ def baseline_sync() -> dict[str, Any]:
         try:
             progress(f"sync (baseline): python-can send_periodic for {SYNC_SECONDS} s")
             task = sender.send_periodic(
-                can.Message(arbitration_id=SYNC_COB_ID, is_extended_id=False, data=b""),
+                can.Message(arbitration_id=COB_ID_SYNC, is_extended_id=False, data=b""),
                 SYNC_PERIOD_MS / 1e3)
             time.sleep(SYNC_SETTLE_S)
             since = time.time()
@@ -157,7 +157,7 @@ def baseline_sync() -> dict[str, Any]:
             sender.shutdown()
         trace = read_trace(path)
     stamps = trace.stamps
-    syncs = stamps[(trace.idents == SYNC_COB_ID) & (stamps >= since) & (stamps <= until)]
+    syncs = stamps[(trace.idents == COB_ID_SYNC) & (stamps >= since) & (stamps <= until)]
     return {"name": "python-can send_periodic(0x080, 1 ms) on a virtual bus, logged to a candump "
                     "trace by a can.Logger on a second bus object (this process)",
             **sync_stats(syncs, SYNC_PERIOD_MS / 1e3, until - since)}

@@ -33,7 +33,7 @@ import can
 from canopen.sdo.exceptions import SdoAbortedError, SdoCommunicationError, SdoError
 
 from dbm_tools.parameters import ConfigNdState, NodeParameterSet
-from dpm.cia301 import COB_ID_SYNC, EMCY_BASE, ERROR_CONTROL_BASE
+from dpm.cia301 import COB_ID_SYNC, EMCY_BASE, ERROR_CONTROL_BASE, SDO_RESPONSE_BASE
 from dpm.com import NodeDiagnosis, NodeStatus
 from dpm.commands import NMT_RESET_NODE as NMT_RESET
 from dpm.commands import NMT_START
@@ -214,10 +214,10 @@ class BootSequence:
         self._run: _Run | None = None
 
     def attach(self, bus: CanBus) -> None:
-        bus.subscribe(0x580 + self.address, self._on_sdo_response)
+        bus.subscribe(SDO_RESPONSE_BASE + self.address, self._on_sdo_response)
 
     def detach(self, bus: CanBus) -> None:
-        bus.unsubscribe(0x580 + self.address, self._on_sdo_response)
+        bus.unsubscribe(SDO_RESPONSE_BASE + self.address, self._on_sdo_response)
 
     @property
     def reset_at(self) -> float:

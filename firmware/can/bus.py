@@ -36,6 +36,7 @@ from typing import Any
 import can
 import canopen
 
+from dpm.cia301 import SDO_REQUEST_BASE, SDO_RESPONSE_BASE
 from firmware.can.tap import TapPublisher
 from firmware.errors import BusSetupError
 from firmware.frames import (
@@ -543,7 +544,8 @@ class CanBus(can.Listener):
         # response of another length never reaches them: canopen unpacks fixed offsets
         # (struct.error on a short abort) or takes a short one for data. The node
         # handler, subscribed above, reports it as Err_Event 38 when its boot-up times out.
-        if (0x580 < ident < 0x600 and not msg.is_extended_id and not msg.is_remote_frame
+        if (SDO_RESPONSE_BASE < ident < SDO_REQUEST_BASE and not msg.is_extended_id
+                and not msg.is_remote_frame
                 and len(msg.data) == SDO_FRAME_LENGTH and not held):
             self.network.notify(ident, msg.data, msg.timestamp)
 

@@ -17,6 +17,7 @@ from collections.abc import Callable
 import can
 
 from dbm_tools.parameters import ExtendedBusParameterSet, ExtendedState
+from dpm.cia301 import ERROR_CONTROL_BASE
 from dpm.com import (
     CanFrame,
     accepts_extended,
@@ -83,7 +84,8 @@ class Layer2:
             kind, msg = self.indications.popleft()
             if kind == COM_BOOTUP_INDICATION:
                 return Message(rx=Task.USER, tx=Task.CAN, b=COM_BOOTUP_INDICATION,
-                               data=encode_bootup_indication(msg.arbitration_id - 0x700))
+                               data=encode_bootup_indication(
+                                   msg.arbitration_id - ERROR_CONTROL_BASE))
             if kind == COM_RECEIVE_TRANSPARENT:
                 data = encode_transparent_2b(CanFrame(msg.arbitration_id, bytes(msg.data),
                                                       msg.is_remote_frame, msg.dlc, True))

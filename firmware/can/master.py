@@ -36,6 +36,7 @@ from dbm_tools.parameters import (
     ExtendedState,
     NodeParameterSet,
 )
+from dpm.cia301 import COB_ID_SYNC, ERROR_CONTROL_BASE, SDO_REQUEST_BASE, SDO_RESPONSE_BASE
 from dpm.errors import ERR_NODE_DEVICE, DeviceEvent
 from dpm.task2 import CanState, GlobalBits
 from firmware.can.boot import BootSlots
@@ -186,7 +187,7 @@ class Master:
 
     @property
     def sync_cob_id(self) -> int:
-        return self.bus_params.COB_ID_SYNC if self.bus_params else 0x80
+        return self.bus_params.COB_ID_SYNC if self.bus_params else COB_ID_SYNC
 
     @property
     def sync_period(self) -> float:
@@ -286,7 +287,8 @@ class Master:
             return True
         for address, handler in self.nodes.items():
             params = handler.params
-            used = {0x580 + address, 0x600 + address, 0x700 + address, params.usCobIDEmcy,
+            used = {SDO_RESPONSE_BASE + address, SDO_REQUEST_BASE + address,
+                    ERROR_CONTROL_BASE + address, params.usCobIDEmcy,
                     params.usCobIDGuard, *(p.usPdoCOBId for p in params.atPdoCfgData)}
             if cob_id in used:
                 return True

@@ -21,6 +21,7 @@ from collections.abc import Callable
 from typing import TYPE_CHECKING, Protocol
 
 from dbm_tools.parameters import ExtendedBusParameterSet
+from dpm.cia301 import ERROR_CONTROL_BASE
 from dpm.commands import NMT_RESET_COMM, NMT_START, NMT_STOP
 from dpm.commands import NMT_RESET_NODE as NMT_RESET
 from dpm.errors import NodeEvent
@@ -296,5 +297,5 @@ class NmtMaster:
             return math.inf
         if now >= self._heartbeat_due:
             self._heartbeat_due = now + period
-            self._send(0x700 + ext.bNodeID, b"\x05")
+            self._send(ERROR_CONTROL_BASE + ext.bNodeID, b"\x05")
         return self._heartbeat_due

@@ -23,7 +23,7 @@ from typing import Protocol
 import can
 
 from dbm_tools.parameters import ConfigNdState, NodeParameterSet
-from dpm.cia301 import BOOT_UP, OPERATIONAL
+from dpm.cia301 import BOOT_UP, ERROR_CONTROL_BASE, OPERATIONAL
 from dpm.com import NodeDiagnosis as Diagnosis
 from dpm.com import NodeStatus
 from dpm.commands import NMT_STOP
@@ -151,10 +151,11 @@ class NodeHandler:
     def attach(self) -> None:
         bus = self.network.bus
         assert bus is not None
-        bus.subscribe(0x700 + self.address, self._on_error_control)
+        bus.subscribe(ERROR_CONTROL_BASE + self.address, self._on_error_control)
         self.boot.attach(bus)
-        if self.params.usCobIDGuard and self.params.usCobIDGuard != 0x700 + self.address:
-            bus.subscribe(self.params.usCobIDGuard, self._on_error_control)
+        guard = self.params.usCobIDGuard
+        if guard and guard != ERROR_CONTROL_BASE + self.address:
+            bus.subscribe(guard, self._on_error_control)
         self.emcy.attach(bus)
         self.pdos.attach(bus)
 
@@ -162,7 +163,7 @@ class NodeHandler:
         bus = self.network.bus
         if bus is None:
             return
-        bus.unsubscribe(0x700 + self.address, self._on_error_control)
+        bus.unsubscribe(ERROR_CONTROL_BASE + self.address, self._on_error_control)
         self.boot.detach(bus)
         bus.unsubscribe(self.params.usCobIDGuard, self._on_error_control)
         self.emcy.detach(bus)
@@ -448,7 +449,7 @@ class NodeHandler:
         stamp = wall_stamp(msg)
         value = msg.data[0]
         state = value & 0x7F
-        if state == BOOT_UP and msg.arbitration_id == 0x700 + self.address:
+        if state == BOOT_UP and msg.arbitration_id == ERROR_CONTROL_BASE + self.address:
             # Seed 8.1: "Bootup Protocol, no reaction on Bootup Events of a Node": a node
             # without error control stays as it is. [ours] A supervised node's boot-up is its
             # state report as well (CiA 301: state 0), which its next heartbeat or guarding

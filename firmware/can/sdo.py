@@ -30,7 +30,14 @@ import can
 from canopen.objectdictionary import ObjectDictionary
 from canopen.sdo.client import SdoClient
 
-from dpm.cia301 import ABORT_GENERAL, ABORT_TIMEOUT, ABORT_TOGGLE, ABORT_UNKNOWN_COMMAND
+from dpm.cia301 import (
+    ABORT_GENERAL,
+    ABORT_TIMEOUT,
+    ABORT_TOGGLE,
+    ABORT_UNKNOWN_COMMAND,
+    SDO_REQUEST_BASE,
+    SDO_RESPONSE_BASE,
+)
 from firmware.can.bus import CanBus
 
 DEFAULT_SDO_TIMEOUT = 0.5
@@ -77,8 +84,8 @@ class HostSdoTransfer:
         self._finished = False
 
     def start(self) -> None:
-        self.bus.subscribe(0x580 + self.node, self._on_frame)
-        self.bus.hold_from_canopen(0x580 + self.node, True)
+        self.bus.subscribe(SDO_RESPONSE_BASE + self.node, self._on_frame)
+        self.bus.hold_from_canopen(SDO_RESPONSE_BASE + self.node, True)
         head = _INITIATE.pack(0, self.index, self.subindex)[1:]
         if self.data is None:
             self._send(bytes([0x40]) + head + bytes(4))
@@ -109,18 +116,18 @@ class HostSdoTransfer:
 
     def _send(self, frame: bytes) -> None:
         self._deadline = time.monotonic() + self.timeout
-        self.bus.send(0x600 + self.node, frame)
+        self.bus.send(SDO_REQUEST_BASE + self.node, frame)
 
     def _finish(self, result: SdoResult) -> None:
         if self._finished:
             return
         self._finished = True
-        self.bus.unsubscribe(0x580 + self.node, self._on_frame)
-        self.bus.hold_from_canopen(0x580 + self.node, False)
+        self.bus.unsubscribe(SDO_RESPONSE_BASE + self.node, self._on_frame)
+        self.bus.hold_from_canopen(SDO_RESPONSE_BASE + self.node, False)
         self._done(result)
 
     def _abort(self, code: int, result: SdoResult) -> None:
-        self.bus.send(0x600 + self.node, bytes([0x80]) + _INITIATE.pack(0, self.index,
+        self.bus.send(SDO_REQUEST_BASE + self.node, bytes([0x80]) + _INITIATE.pack(0, self.index,
                       self.subindex)[1:] + struct.pack("<I", code))
         self._finish(result)
 
@@ -255,11 +262,11 @@ class SdoChannels:
         if channel is None:
             assert self._bus is not None
             client = SdoClient(  # type: ignore[no-untyped-call]
-                0x600 + address, 0x580 + address, ObjectDictionary()  # type: ignore[no-untyped-call]
+                SDO_REQUEST_BASE + address, SDO_RESPONSE_BASE + address, ObjectDictionary()  # type: ignore[no-untyped-call]
             )
             client.network = self._bus.network
             client.RESPONSE_TIMEOUT = self.timeout
-            self._bus.network.subscribe(0x580 + address, client.on_response)
+            self._bus.network.subscribe(SDO_RESPONSE_BASE + address, client.on_response)
             channel = self._channels[address] = SdoChannel(client, threading.Lock())
         return channel
 

@@ -23,6 +23,7 @@ from pathlib import Path
 
 import can
 
+from dpm.cia301 import COB_ID_TIME, EMCY_BASE
 from dpm.image import CardDirectory
 from dpm.tap import (
     BATCH_FRAMES,
@@ -38,8 +39,8 @@ log = logging.getLogger(__name__)
 DRAIN_INTERVAL_S = 0.1
 """How often the publisher looks for new subscribers (only while frames flow)."""
 MAX_SUBSCRIBERS = 8
-EMCY_IDS = range(0x081, 0x100)
-"""CiA 301's predefined EMCY identifiers (080h + node-ID)."""
+EMCY_IDS = range(EMCY_BASE + 1, COB_ID_TIME)
+"""CiA 301's predefined EMCY identifiers (080h + node-ID 1..127, up to TIME's 100h)."""
 SEND_BUFFER_BYTES = 1 << 20
 """A subscriber socket's SO_SNDBUF (the kernel doubles it, up to net.core.wmem_max). A
 Unix datagram socket counts the datagrams its peer has not read against its own send

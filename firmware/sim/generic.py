@@ -23,6 +23,7 @@ from dbm_tools.network import (
     GENERIC_VENDOR_ID,
     NodeDescription,
 )
+from dpm.cia301 import COB_ID_SYNC, ERROR_CONTROL_BASE, RPDO_BASES, TPDO_BASES
 from dpm.cia305 import LssAddress
 
 GENERIC_REVISION = 0x00010000
@@ -87,7 +88,7 @@ def _error_field() -> ODArray:
     return array
 
 
-def generic_object_dictionary(node: NodeDescription, sync_cob_id: int = 0x80
+def generic_object_dictionary(node: NodeDescription, sync_cob_id: int = COB_ID_SYNC
                               ) -> ObjectDictionary:
     """The object dictionary of the generic I/O module described by ``node``."""
     ident = node.lss or LssAddress(GENERIC_VENDOR_ID, GENERIC_PRODUCT_CODE, GENERIC_REVISION,
@@ -107,7 +108,7 @@ def generic_object_dictionary(node: NodeDescription, sync_cob_id: int = 0x80
              node.life_time_factor if guarding else 0),
         # 100Eh starts at the default: a card that configures another guarding COB-ID
         # must write it here, as the seed's card does at start-up.
-        _var("COB-ID guarding", 0x100E, 0, od.UNSIGNED32, "rw", 0x700 + node.id),
+        _var("COB-ID guarding", 0x100E, 0, od.UNSIGNED32, "rw", ERROR_CONTROL_BASE + node.id),
         _var("COB-ID EMCY", 0x1014, 0, od.UNSIGNED32, "rw", node.cob_id_emcy),
         _var("Producer heartbeat time", 0x1017, 0, od.UNSIGNED16, "rw", heartbeat),
         _record("Identity object", 0x1018, [
@@ -117,12 +118,12 @@ def generic_object_dictionary(node: NodeDescription, sync_cob_id: int = 0x80
             _var("Serial number", 0x1018, 4, od.UNSIGNED32, "ro", ident.serial),
         ]),
         _record("RPDO1 communication parameter", 0x1400, [
-            _var("COB-ID used by RPDO", 0x1400, 1, od.UNSIGNED32, "rw", 0x200 + node.id),
+            _var("COB-ID used by RPDO", 0x1400, 1, od.UNSIGNED32, "rw", RPDO_BASES[0] + node.id),
             _var("Transmission type", 0x1400, 2, od.UNSIGNED8, "rw", 255),
         ]),
         _pdo_mapping("RPDO1 mapping parameter", 0x1600, OUTPUTS),
         _record("TPDO1 communication parameter", 0x1800, [
-            _var("COB-ID used by TPDO", 0x1800, 1, od.UNSIGNED32, "rw", 0x180 + node.id),
+            _var("COB-ID used by TPDO", 0x1800, 1, od.UNSIGNED32, "rw", TPDO_BASES[0] + node.id),
             _var("Transmission type", 0x1800, 2, od.UNSIGNED8, "rw", 255),
             _var("Inhibit time", 0x1800, 3, od.UNSIGNED16, "rw", 0),
             _var("Event timer", 0x1800, 5, od.UNSIGNED16, "rw", 0),

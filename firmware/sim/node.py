@@ -24,7 +24,15 @@ from canopen.objectdictionary.datatypes import UNSIGNED32
 from canopen.sdo.exceptions import SdoAbortedError
 
 from dbm_tools.network import NodeDescription
-from dpm.cia301 import ABORT_VALUE_RANGE, INITIALISING, OPERATIONAL, PRE_OPERATIONAL, STOPPED
+from dpm.cia301 import (
+    ABORT_VALUE_RANGE,
+    EMCY_BASE,
+    ERROR_CONTROL_BASE,
+    INITIALISING,
+    OPERATIONAL,
+    PRE_OPERATIONAL,
+    STOPPED,
+)
 from firmware.frames import (
     CAN_ERR_ACK,
     CAN_ERR_BUSOFF,
@@ -290,7 +298,7 @@ class SimulatedNode(LocalNode):
         # once and may look at the node's state (or send it a request) right away.
         self.nmt.enter(PRE_OPERATIONAL)
         if not sim.no_bootup:
-            self.network.send_message(0x700 + self.node_id, b"\x00")
+            self.network.send_message(ERROR_CONTROL_BASE + self.node_id, b"\x00")
         log.info("node %d: boot-up, PRE-OPERATIONAL", self.node_id)
         self.pdo_engine.configure()
         self.nmt.start_heartbeat(self.value(0x1017, 0, 0))
@@ -384,7 +392,7 @@ class SimulatedNode(LocalNode):
         return [sub for sub in field.subindices if sub]
 
     def _send_emcy(self, code: int) -> None:
-        cob_id = self.value(0x1014, 0, 0x80 + self.node_id)
+        cob_id = self.value(0x1014, 0, EMCY_BASE + self.node_id)
         if self.nmt.code not in (PRE_OPERATIONAL, OPERATIONAL) or cob_id & EMCY_INVALID:
             return
         self.emcy.cob_id = cob_id & 0x7FF

@@ -35,7 +35,7 @@ from typing import TYPE_CHECKING
 from canopen.network import Callback
 from canopen.pdo import PdoMap, PdoMaps
 
-from dpm.cia301 import EVENT_TYPES, OPERATIONAL, SYNC_RTR, SYNC_TYPES_MAX
+from dpm.cia301 import COB_ID_SYNC, EVENT_TYPES, OPERATIONAL, SYNC_RTR, SYNC_TYPES_MAX
 from firmware.sim.scheduler import Timer
 
 if TYPE_CHECKING:
@@ -121,7 +121,7 @@ class PdoEngine:
                 # another device on that COB-ID must not overwrite our data.
                 network.unsubscribe(tpdo.cob_id, tpdo.on_message)
                 self._tpdos.append(_Tpdo(tpdo, plan=byte_plan(tpdo)))
-        sync = (self._node.value(0x1005, 0, 0x80) & 0x7FF, self.on_sync)
+        sync = (self._node.value(0x1005, 0, COB_ID_SYNC) & 0x7FF, self.on_sync)
         network.subscribe(*sync)
         self._subscriptions.append(sync)
 

@@ -21,7 +21,13 @@ from canopen.sdo.constants import NO_MORE_DATA, SDO_STRUCT
 from canopen.sdo.exceptions import SdoAbortedError
 from canopen.sdo.server import SdoServer
 
-from dpm.cia301 import ABORT_GENERAL, ABORT_NO_SUBINDEX, ABORT_UNKNOWN_COMMAND
+from dpm.cia301 import (
+    ABORT_GENERAL,
+    ABORT_NO_SUBINDEX,
+    ABORT_UNKNOWN_COMMAND,
+    SDO_REQUEST_BASE,
+    SDO_RESPONSE_BASE,
+)
 from firmware.frames import SDO_FRAME_LENGTH
 
 if TYPE_CHECKING:
@@ -35,7 +41,7 @@ SHORT_LENGTH = 4
 class SimSdoServer(SdoServer):
     def __init__(self, node: SimulatedNode) -> None:
         node_id = node.node_id
-        super().__init__(0x600 + node_id, 0x580 + node_id, node)  # type: ignore[no-untyped-call]
+        super().__init__(SDO_REQUEST_BASE + node_id, SDO_RESPONSE_BASE + node_id, node)  # type: ignore[no-untyped-call]
         self._sim = node
         # canopen's abort() packs these; they stay None until a valid request otherwise.
         self._index = 0
