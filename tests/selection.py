@@ -17,7 +17,8 @@ import pytest
 TESTS = Path(__file__).resolve().parent
 
 PROCESS_MODULES = frozenset({
-    "test_bench_can", "test_bench_scaling", "test_can_bus", "test_can_late_frames", "test_can_task",
+    "test_bench_can", "test_bench_frame_cost", "test_bench_scaling", "test_can_bus",
+    "test_can_late_frames", "test_can_task",
     "test_can_unsupervised", "test_chaos", "test_cia309_gateway", "test_cia309_limits",
     "test_cia309_server", "test_configure_cli", "test_dbm_by_hand", "test_dbm_cli",
     "test_download", "test_suite_guards", "test_firmware", "test_fuzz_mailbox",
@@ -41,9 +42,9 @@ open a socket or a shared-memory bus, or wait for a card's timers: not ``fast``.
 VCAN_VM_MODULES = frozenset({"test_vcan_vm"})
 """Modules that start a virtual machine (tools/vcan-vm's qemu, 2 minutes): ``make test-vcan``."""
 
-SERIAL_MODULES = frozenset({"test_soak"})
-"""Modules that measure the machine's time (the soak's invariants): alone on it, never beside
-another pytest-xdist worker."""
+SERIAL_MODULES = frozenset({"test_bench_frame_cost", "test_soak"})
+"""Modules that measure the machine's time or throughput (the scaling bench's frame rates,
+the soak's invariants): alone on it, never beside another pytest-xdist worker."""
 
 HELPER_MODULES = tuple(
     f"tests.{path.stem}" for path in sorted(TESTS.glob("*.py"))
