@@ -23,6 +23,9 @@ SDO_REQUEST_BASE = 0x600
 ERROR_CONTROL_BASE = 0x700
 """Heartbeat, node guarding and boot-up messages."""
 
+NODE_ID_MAX = 127
+"""The highest node-ID (CiA 301: 1..127; 0 is NMT's "all nodes" where a command allows it)."""
+
 # NMT states, as a node reports them: the low 7 bits of its heartbeat or guarding answer
 # (CiA 301 7.2.8.3.2). Here once for the card's node handlers, the simulated nodes and the
 # bus monitor.

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING
 
+from dpm.cia301 import NODE_ID_MAX
 from dpm.com import NmtRequest, decode_layer2_frames, decode_rx_filters, decode_transparent
 from dpm.commands import (
     COM_CFGRX_LAYER2,
@@ -45,7 +46,7 @@ class BusAccess:
             request = NmtRequest.decode(msg.data)
         except MessageError:
             return msg.answer(f=CanF.FAULTY_PARAMETER)
-        if request.command not in NMT_COMMANDS or request.node > 127:
+        if request.command not in NMT_COMMANDS or request.node > NODE_ID_MAX:
             return msg.answer(f=CanF.FAULTY_PARAMETER)
         if not self.master.nmt.running:
             return msg.answer(f=CanF.NOT_CONFIGURED)

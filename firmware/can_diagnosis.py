@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING
 
+from dpm.cia301 import NODE_ID_MAX
 from dpm.com import NodeDiagnosis, NodeStatus, configuration_answer, node_diag_answer
 from dpm.commands import COM_NODE_DIAG, COM_RESET_ERR_EVENT, GET_CONFIGURATION
 from dpm.errors import CanF
@@ -41,7 +42,7 @@ class Diagnosis:
         except MessageError:
             return msg.answer(f=CanF.FAULTY_PARAMETER)
         address = head.device_adr
-        if not 1 <= address <= 127:
+        if not 1 <= address <= NODE_ID_MAX:
             return msg.answer(f=CanF.NODE_DIAG_ADDRESS)
         handler = self.master.nodes.get(address)
         raw = (handler.read_diagnosis() if handler

@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING
 
 from canopen.sdo.exceptions import SdoAbortedError, SdoCommunicationError
 
-from dpm.cia301 import EMCY_BASE
+from dpm.cia301 import EMCY_BASE, NODE_ID_MAX
 from dpm.com import NodeSwitch, SdoTimeoutRequest, decode_word
 from dpm.commands import (
     COM_BOOTUP_FORWARDING,
@@ -59,7 +59,7 @@ class GatewayCommands:
             request = NodeSwitch.decode(msg.data, guarding=ln == 5)
         except MessageError:
             return msg.answer(f=CanF.FAULTY_PARAMETER)
-        if not 1 <= request.node <= 127:
+        if not 1 <= request.node <= NODE_ID_MAX:
             return msg.answer(f=CanF.FAULTY_PARAMETER)
         if not self.master.nmt.running:
             return msg.answer(f=CanF.NOT_CONFIGURED)
@@ -73,7 +73,7 @@ class GatewayCommands:
             request = SdoTimeoutRequest.decode(msg.data)
         except MessageError:
             return msg.answer(f=CanF.FAULTY_PARAMETER)
-        if request.node > 127 or request.timeout_ms == 0:
+        if request.node > NODE_ID_MAX or request.timeout_ms == 0:
             return msg.answer(f=CanF.FAULTY_PARAMETER)
         if request.node and self.master.bus is None:
             return msg.answer(f=CanF.NOT_CONFIGURED)
@@ -142,7 +142,7 @@ class GatewayCommands:
         return msg.answer()
 
     def com_set_node_id(self, msg: Message) -> Message:
-        if msg.ln != 1 or not 1 <= msg.data[0] <= 127:
+        if msg.ln != 1 or not 1 <= msg.data[0] <= NODE_ID_MAX:
             return msg.answer(f=CanF.FAULTY_PARAMETER)
         if msg.data[0] in self.master.nodes:
             return msg.answer(f=CanF.DOUBLE_ADDRESS)

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING
 
+from dpm.cia301 import NODE_ID_MAX
 from dpm.com import encode_sdo_abort
 from dpm.commands import COM_SDO_UP_DOWNLOAD, LONG_SDO_LIMIT, SDO_MAX_DATA
 from dpm.errors import CanF
@@ -44,7 +45,7 @@ class HostSdo:
         except MessageError:
             return msg.answer(f=CanF.FAULTY_PARAMETER)
         address = head.device_adr
-        if not 1 <= address <= 127:
+        if not 1 <= address <= NODE_ID_MAX:
             return msg.answer(f=CanF.FAULTY_PARAMETER, data=msg.data[:8])
         if head.function not in (Tfc.READ, Tfc.WRITE):
             return msg.answer(f=CanF.SDO_FUNCTION, data=msg.data[:8])

@@ -20,6 +20,7 @@ from typing import TYPE_CHECKING
 
 from cifemu.cli_options import add_card_options
 from cifemu.cli_output import fail
+from dpm.cia301 import NODE_ID_MAX
 from dpm.commands import COM_NMT_MODULE_PROTOCOL, COM_SEND_CANMSG_TRANSPARENT, Nmt
 from dpm.errors import CanF, Drv
 from host_api.next_steps import card_options
@@ -85,7 +86,7 @@ def request(args: argparse.Namespace) -> tuple[int, bytes, str]:
     word, node = args.nmt
     if word not in NMT_WORDS:
         raise FrameSyntaxError(f"NMT command {word!r}: one of {', '.join(NMT_WORDS)}")
-    if not node.isdigit() or int(node) > 127:
+    if not node.isdigit() or int(node) > NODE_ID_MAX:
         raise FrameSyntaxError(f"NMT node {node!r}: 1..127, or 0 for every node")
     target = f"node {int(node)}" if int(node) else "every node"
     return (COM_NMT_MODULE_PROTOCOL, NmtRequest(NMT_WORDS[word], int(node)).encode(),

@@ -59,6 +59,7 @@ from functools import partial
 from typing import TYPE_CHECKING
 
 from dbm_tools.network import NodeDescription
+from dpm.cia301 import NODE_ID_MAX
 from dpm.cia305 import (
     ACTIVATE_BIT_TIMING,
     BIT_TIMING_TABLE,
@@ -101,7 +102,7 @@ log = logging.getLogger(__name__)
 
 
 def _valid_node_id(node_id: int) -> bool:
-    return 1 <= node_id <= 127 or node_id == UNCONFIGURED
+    return 1 <= node_id <= NODE_ID_MAX or node_id == UNCONFIGURED
 
 
 def _answer(cs: int, payload: bytes = b"") -> bytes:

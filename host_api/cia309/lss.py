@@ -56,6 +56,7 @@ from collections.abc import Callable, Iterable
 from enum import IntEnum
 from typing import Concatenate, ParamSpec, TypeVar
 
+from dpm.cia301 import NODE_ID_MAX
 from dpm.cia305 import (
     ACTIVATE_BIT_TIMING,
     CONFIGURATION,
@@ -89,7 +90,6 @@ DEFAULT_TIMEOUT_S = 0.5
 DEFAULT_SCAN_TIMEOUT_S = 0.05
 SETTLE_S = 0.002
 FASTSCAN_ATTEMPTS = 3
-MAX_NODE_ID = 127
 
 P = ParamSpec("P")
 R = TypeVar("R")
@@ -474,7 +474,7 @@ class LssMaster:
         while (address := self.fastscan(timeout=timeout)) is not None:
             while node_id in taken:
                 node_id += 1
-            if not 1 <= node_id <= MAX_NODE_ID:
+            if not 1 <= node_id <= NODE_ID_MAX:
                 self.switch_state_global(WAITING)
                 raise LssError(LssErrorCode.NODE_ID_NOT_SUPPORTED,
                                f"no node-ID left for the slave {address}")

@@ -19,6 +19,7 @@ from dpm.cia301 import (
     ABORT_PDO_LENGTH,
     ABORT_TIMEOUT,
     ABORT_TYPE_LENGTH_MISMATCH,
+    NODE_ID_MAX,
 )
 
 # --------------------------------------------------------------------------- limits
@@ -29,7 +30,7 @@ MAX_COMMAND_SIZE = 131072
 """[ours] the largest command size ``set_command_size`` accepts: a 64 KiB DOMAIN in
 base64 on one 309-3 line, with room for the rest of the request."""
 
-MAX_NODE_ID = 127
+MAX_NODE_ID = NODE_ID_MAX
 MAX_PDO_NUMBER = 512
 MAX_PDO_OBJECTS = 64
 
