@@ -8,8 +8,7 @@ a real bus, the card then shares nothing but the bus with them); on ``socketcan`
 
 Use it from a test module with ``pytest_plugins = ["tests.can_net"]`` and a ``make_net``
 argument: every test of the module then runs on each interface. The helpers (``Net``,
-``exchange``, ``candump`` with ``booting`` and ``first_outputs_after_start`` (a node the
-card booted again in a trace), ``start_sim``, ``FrameWatch``, ``window``, the data sets
+``exchange``, ``candump``, ``start_sim``, ``FrameWatch``, ``window``, the data sets
 ``node_set`` and ``bus_parameters``, ``actual_error``) are imported as usual.
 A helper module, not a test module: no test module imports another (tests/test_suite_rules.py).
 """
@@ -254,42 +253,6 @@ def exchange(net: Net, outputs: bytes, offset: int = 0, size: int = 8) -> bytes:
     assert rc == 0
     return data
 
-
-
-def booting(frames: list[tuple[float, int, str]], node: int) -> set[int]:
-    """Indices of the trace's frames while the card exchanged no PDOs with ``node`` because
-    it booted the node again: from the last PDO frame the card sent the node (an RX-PDO, a
-    remote request of a TX-PDO) before its Reset Node or Reset Communication (the failure
-    that made the card stop leaves no frame) to the Start_Node that ends the boot-up."""
-    inside: set[int] = set()
-    last_pdo = -1
-    since: int | None = None
-    for i, (_, ident, data) in enumerate(frames):
-        if since is None and (ident == 0x200 + node or (ident == 0x180 + node and data == "R")):
-            last_pdo = i
-        elif ident == 0 and data[2:] in (f"{node:02X}", "00"):
-            if data[:2] in ("81", "82") and since is None:
-                since = last_pdo + 1
-            elif data[:2] == "01" and since is not None:
-                inside.update(range(since, i + 1))
-                since = None
-    if since is not None:
-        inside.update(range(since, len(frames)))
-    return inside
-
-
-def first_outputs_after_start(frames: list[tuple[float, int, str]], node: int) -> set[int]:
-    """Indices of the first RX-PDO (0x200 + ``node``) after each Start_Node of a boot-up of
-    ``node`` that the trace shows (``booting``): the outputs a booted node gets anyway."""
-    starts = sorted(i for i in booting(frames, node) if frames[i][1] == 0
-                    and frames[i][2][:2] == "01")
-    found: set[int] = set()
-    for start in starts:
-        first = next((i for i in range(start + 1, len(frames))
-                      if frames[i][1] == 0x200 + node), None)
-        if first is not None:
-            found.add(first)
-    return found
 
 
 def candump(trace: Path) -> list[tuple[float, int, str]]:
