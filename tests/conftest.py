@@ -7,7 +7,9 @@ import os
 import signal
 import subprocess
 import sys
+import threading
 import time
+import weakref
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -44,18 +46,107 @@ STRETCH_LIMIT = 20.0
 Beyond it the test's processes had less than a twentieth of the time they waited for."""
 
 
+GUEST_STALL_PERIOD = 0.01
+"""How often ``GuestStalls``'s thread looks at the clock while a wait runs (seconds)."""
+GUEST_STALL_MIN = 0.02
+"""Lateness of that look, beyond its own run-queue wait, that counts as a stall (seconds):
+more than the interpreter's switch interval (5 ms) a busy main thread may hold it back."""
+
+
+class GuestStalls:
+    """Seconds the whole virtual machine stood still while a wait ran (``tools/vcan-vm``).
+
+    User-Mode Linux's guest has one CPU, one host thread pinned to one host CPU, and on the
+    shared machine it stalls as a whole for 0.2 to 1.3 s a few times a minute (the host runs
+    something else). The guest's clocks jump over such a stall, /proc/stat books it as idle,
+    UML has no steal time, and ``runqueue_wait_ns`` shows it only when the guest books it as
+    run-queue wait of the thread it wakes first afterwards, which may be none of the test's
+    (measured with the guest stopped from the host for 2 s: CLOCK_MONOTONIC moved 2.012 s,
+    a sleeping probe's CPU time and run-queue wait not at all, 201 idle ticks). So a thread
+    looks at the clock every ``GUEST_STALL_PERIOD`` while a wait runs; a look later than
+    ``GUEST_STALL_MIN``, less the thread's own run-queue wait since its last late look, is a
+    stall of the machine, not of the test's processes. (A stall the guest also booked as a
+    test thread's run-queue wait counts twice: the deadline moves by up to twice the stall.)
+    Runs only under ``tools/vcan-vm`` (``VCAN_VM_BACKEND``): on a host, a late look is the
+    run-queue wait that ``LoadClock`` counts already."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._waits = 0
+        self._stalled = 0.0
+        self._waiting = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    def watch(self) -> Callable[[], float]:
+        """Measure from now while the returned function lives; it gives the seconds of
+        stall since this call."""
+        with self._lock:
+            self._waits += 1
+            self._waiting.set()
+            if self._thread is None:
+                self._thread = threading.Thread(target=self._measure, name="guest-stalls",
+                                                daemon=True)
+                self._thread.start()
+            at = self._stalled
+
+        def since() -> float:
+            with self._lock:
+                return self._stalled - at
+
+        weakref.finalize(since, self._end)
+        return since
+
+    def _end(self) -> None:
+        with self._lock:
+            self._waits -= 1
+            if not self._waits:
+                self._waiting.clear()
+
+    def _measure(self) -> None:
+        schedstat = Path(f"/proc/self/task/{threading.get_native_id()}/schedstat")
+
+        def queued() -> float:
+            return int(schedstat.read_text().split()[1]) / 1e9
+
+        while True:
+            self._waiting.wait()
+            waited = queued()
+            last = time.monotonic()
+            while self._waiting.is_set():
+                time.sleep(GUEST_STALL_PERIOD)
+                now = time.monotonic()
+                late = now - last - GUEST_STALL_PERIOD
+                last = now
+                if late > GUEST_STALL_MIN:  # read /proc only then: a read costs here
+                    before, waited = waited, queued()
+                    stall = late - (waited - before)
+                    if stall > 0:
+                        with self._lock:
+                            self._stalled += stall
+
+
+GUEST_STALLS = GuestStalls() if os.environ.get("VCAN_VM_BACKEND") else None
+"""The virtual machine's stalls (``GuestStalls``); None outside ``tools/vcan-vm``."""
+
+
 class LoadClock:
     """Seconds the test's processes could run: wall time minus the time their threads
     waited for a CPU (``bench.cpu.runqueue_wait_ns``), summed over this test process and
-    the firmwares, ``cifemu sim`` and commands it started, and theirs. On an idle machine
-    it runs with the wall clock; with two busy processes and other workers on two cores,
-    a card's every step waits in the run queue, and a deadline in wall time failed where
-    the card had done nothing wrong (at a load of 15 a runnable process gets about a
-    seventh of a core)."""
+    the firmwares, ``cifemu sim`` and commands it started, and theirs, and under
+    ``tools/vcan-vm`` minus the time the whole guest stood still (``GuestStalls``). On an
+    idle machine it runs with the wall clock; with two busy processes and other workers on
+    two cores, a card's every step waits in the run queue, and a deadline in wall time
+    failed where the card had done nothing wrong (at a load of 15 a runnable process gets
+    about a seventh of a core)."""
 
-    def __init__(self, start: float) -> None:
+    def __init__(self, start: float, stalls: Callable[[], float] | None = None) -> None:
+        """``stalls``: a ``GuestStalls.watch`` started with the wait (one is started here
+        when the guest has none given)."""
         self._start = start
         self._waited = self._sample()
+        if stalls is None and GUEST_STALLS is not None:
+            stalls = GUEST_STALLS.watch()
+        self._stalls = stalls
 
     @staticmethod
     def _sample() -> dict[int, int]:
@@ -63,9 +154,12 @@ class LoadClock:
 
     def elapsed(self) -> float:
         """Wall seconds since ``start``, less the time load took from the test's processes
-        since the clock was made, but never less than a ``STRETCH_LIMIT``-th of them."""
+        (and stalls of the guest) since the clock was made, but never less than a
+        ``STRETCH_LIMIT``-th of them."""
         wall = time.monotonic() - self._start
         stolen = sum(ns - self._waited.get(tid, 0) for tid, ns in self._sample().items()) / 1e9
+        if self._stalls is not None:
+            stolen += self._stalls()
         return max(wall - stolen, wall / STRETCH_LIMIT)
 
 
@@ -73,15 +167,19 @@ def wait_until(condition: Callable[[], object], timeout: float = 5.0, what: str 
     """Poll ``condition`` until true; fail the test with ``what`` at the deadline.
 
     ``timeout`` counts the time the test's processes could run (``LoadClock``): wall time
-    on an idle machine; on a loaded one the deadline moves by the time load took from them.
+    on an idle machine; on a loaded one (or in a stalled virtual machine) the deadline moves
+    by the time load took from them.
     """
     timeout *= TIME_SCALE
     start = time.monotonic()
     deadline = start + timeout  # when the load clock is first read
+    # In the guest, stalls count from the start: the first look may block through one (a
+    # DevExchangeIO waiting for the card's answer).
+    stalls = GUEST_STALLS.watch() if GUEST_STALLS is not None else None
     clock: LoadClock | None = None
     while not condition():
         if clock is None:  # a wait not over at once: /proc is read for its baseline
-            clock = LoadClock(start)
+            clock = LoadClock(start, stalls)
         now = time.monotonic()
         if now > deadline:
             elapsed = clock.elapsed()

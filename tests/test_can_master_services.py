@@ -178,27 +178,88 @@ transmission = 3
     syncs = [t for t, ident, _ in frames if ident == SYNC_ID]
     quiet_syncs = [t for t in syncs if quiet <= t <= changed]
     assert len(quiet_syncs) > 40
-    type0 = [(t, data) for t, ident, data in frames if ident == 0x201]
+    # A node that (re)boots has none of the card's outputs: its boot-up ends with Start_Node
+    # and the first RX-PDO, whatever its type (seed 5.2.5.1.1, TXRXPDO). In the one-CPU VM a
+    # stall of the whole guest outlasts a heartbeat consumer time now and then, and the card
+    # boots node 1 again (Reset Node, boot-up, Start_Node, then 201h with the unchanged data,
+    # inside the quiet window: last fresh-clone CI's vcan lane). Such a PDO is excused, and
+    # only such: the first after a Start_Node of the node, which the trace shows.
+    restarted = first_outputs_after_start(frames, 1)
+    type0 = [(t, data) for i, (t, ident, data) in enumerate(frames)
+             if ident == 0x201 and i not in restarted]
     assert not [t for t, _ in type0 if quiet <= t <= changed]
+    assert {frames[i][2] for i in restarted if quiet <= frames[i][0] <= changed} <= {"5A" * 8}
     after = [(t, data) for t, data in type0 if t > changed]
-    assert [data for _, data in after] == ["A5" * 8]  # once, when it changed
-    # It waited for a SYNC: one came between the change and the PDO. (A card sending at
-    # the change would have one in between only if a SYNC fell into its own reaction time;
-    # the half-period bound this replaces also failed a right card delayed 12 ms in the VM.)
-    assert any(changed <= t <= after[0][0] for t in syncs)
-    type3 = [t for t, ident, _ in frames if ident == 0x202 and quiet <= t <= changed]
-    assert len(quiet_syncs) / 3 - 3 <= len(type3) <= len(quiet_syncs) / 3 + 3
-    # A remote request at each quiet SYNC: counted in the trace's order, the card's, from
-    # the first quiet SYNC to the first SYNC after the window, since a card answers a SYNC
-    # as it receives it, and by time stamps its requests lag behind a stall: in the
-    # one-CPU VM it sent three within a millisecond, and 41 of 48 fell before the change.
+    if not after:  # node 1 booted again before the next SYNC: its first RX-PDO carried it
+        assert [i for i in restarted if frames[i][0] > changed and frames[i][2] == "A5" * 8]
+    else:
+        assert [data for _, data in after] == ["A5" * 8]  # once, when it changed
+        # It waited for a SYNC: one came between the change and the PDO. (A card sending at
+        # the change would have one in between only if a SYNC fell into its own reaction
+        # time; the half-period bound this replaces also failed a right card delayed 12 ms
+        # in the VM.)
+        assert any(changed <= t <= after[0][0] for t in syncs)
+    # Type 3 counts the SYNCs while node 2 is in data exchange (not while it fails and boots
+    # again); each boot-up's RX-PDO starts the count of three anew, so every re-boot in the
+    # window may shift it by one.
+    booting2, restarted2 = booting(frames, 2), first_outputs_after_start(frames, 2)
+    running2 = [t for i, (t, ident, _) in enumerate(frames) if ident == SYNC_ID
+                and quiet <= t <= changed and i not in booting2]
+    type3 = [t for i, (t, ident, _) in enumerate(frames) if ident == 0x202
+             and quiet <= t <= changed and i not in restarted2]
+    slack = 3 + len([i for i in restarted2 if quiet <= frames[i][0] <= changed])
+    assert len(running2) / 3 - slack <= len(type3) <= len(running2) / 3 + slack
+    # A remote request at each quiet SYNC while node 1 is in data exchange (a failed node
+    # gets none until its boot-up ends, and its answers came late): counted in the
+    # trace's order, the card's, from the first quiet SYNC to the first SYNC after the
+    # window, since a card answers a SYNC as it receives it, and by time stamps its requests
+    # lag behind a stall: in the one-CPU VM it sent three within a millisecond, and 41 of 48
+    # fell before the change.
     first = next(i for i, (t, ident, _) in enumerate(frames) if ident == SYNC_ID and t >= quiet)
     end = next((i for i, (t, ident, _) in enumerate(frames) if ident == SYNC_ID and t > changed),
                len(frames))
+    booting1 = booting(frames, 1)
+    running1 = [i for i in range(first, end) if frames[i][1] == SYNC_ID and i not in booting1]
     remote = [t for t, ident, data in frames[first:end] if ident == 0x181 and data == "R"]
-    assert len(remote) >= len(quiet_syncs) - 3
+    assert len(remote) >= len(running1) - 3
     requested, answered = requested_and_answered(frames)
     assert answered >= requested - 3
+
+
+def booting(frames: list[tuple[float, int, str]], node: int) -> set[int]:
+    """Indices of the trace's frames while the card exchanged no PDOs with ``node`` because
+    it booted the node again: from the last PDO frame the card sent the node (an RX-PDO, a
+    remote request of a TX-PDO) before its Reset Node or Reset Communication (the failure
+    that made the card stop leaves no frame) to the Start_Node that ends the boot-up."""
+    inside: set[int] = set()
+    last_pdo = -1
+    since: int | None = None
+    for i, (_, ident, data) in enumerate(frames):
+        if since is None and (ident == 0x200 + node or (ident == 0x180 + node and data == "R")):
+            last_pdo = i
+        elif ident == 0 and data[2:] in (f"{node:02X}", "00"):
+            if data[:2] in ("81", "82") and since is None:
+                since = last_pdo + 1
+            elif data[:2] == "01" and since is not None:
+                inside.update(range(since, i + 1))
+                since = None
+    if since is not None:
+        inside.update(range(since, len(frames)))
+    return inside
+
+
+def first_outputs_after_start(frames: list[tuple[float, int, str]], node: int) -> set[int]:
+    """Indices of the first RX-PDO (0x200 + ``node``) after each Start_Node of a boot-up of
+    ``node`` that the trace shows (``booting``): the outputs a booted node gets anyway."""
+    starts = sorted(i for i in booting(frames, node) if frames[i][1] == 0
+                    and frames[i][2][:2] == "01")
+    found: set[int] = set()
+    for start in starts:
+        first = next((i for i in range(start + 1, len(frames))
+                      if frames[i][1] == 0x200 + node), None)
+        if first is not None:
+            found.add(first)
+    return found
 
 
 # --- an inactive node, no supervision ------------------------------------------------------------
