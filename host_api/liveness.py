@@ -10,8 +10,11 @@ The lock is looked up in /proc/locks (``host_api.lock_table``) rather than probe
 would be refused as a second firmware. The kernel hands that table out a page at a time, and a
 lock can fall between two pages when locks listed before it go meanwhile (measured: 11
 misses in 434 reads beside two processes taking and dropping 1,000 flocks each; a CI run
-beside a loaded suite saw one), so a "nobody holds it" while the recorded pid still runs
-is read again before it is believed.
+beside a loaded suite saw one). Reading the table again while the recorded pid runs was not
+enough: under load all five reads of a row missed (a loaded suite, twice on 2026-12-03). So
+a "nobody holds it" is not believed while the recorded pid names the process that wrote it:
+one that runs (not a zombie) and started no later than the file's last write. A pid used
+again after a firmware died belongs to a process started after that write.
 """
 
 from __future__ import annotations
@@ -19,15 +22,16 @@ from __future__ import annotations
 import errno
 import fcntl
 import os
+import time
 from dataclasses import dataclass
 from pathlib import Path
 
 from dpm.image import lock_path, process_exists
 from host_api.lock_table import flock_holders
 
-LOCK_TABLE_READS = 5
-"""How often a "not held" is read while the recorded firmware pid still runs: a miss needs
-locks listed before ours to go between two pages, and five in a row were never seen."""
+START_SLACK_S = 0.02
+"""Rounding between a process's start (clock ticks of 10 ms) and a file's time stamp (the
+kernel's coarse clock); a firmware writes its pid some 100 ms after its start at the least."""
 
 
 @dataclass(frozen=True)
@@ -61,17 +65,33 @@ def _probe(path: Path) -> bool:
     return False
 
 
+def wrote_the_file(pid: int, path: Path) -> bool:
+    """Whether ``pid`` runs (not a zombie) and started no later than ``path``'s last write,
+    so that it may be the process that wrote its pid there (see the module docstring).
+    Without /proc, whether the pid exists."""
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_bytes()
+        written = path.stat().st_mtime
+    except FileNotFoundError:
+        return False
+    except OSError:
+        return process_exists(pid)
+    fields = stat[stat.rindex(b")") + 2:].split()
+    if fields[0] in (b"Z", b"X"):
+        return False  # dead, not yet reaped: its lock went with its files
+    age = time.clock_gettime(time.CLOCK_BOOTTIME) - int(fields[19]) / os.sysconf("SC_CLK_TCK")
+    return age + START_SLACK_S >= time.time() - written
+
+
 def firmware_liveness(directory: Path, board: int) -> FirmwareLiveness:
     """Whether board ``board``'s firmware in ``directory`` runs, and its (last) pid."""
     path = lock_path(directory, board)
     recorded = _recorded_pid(path)
-    for _ in range(LOCK_TABLE_READS):
-        holders = flock_holders(path)
-        if holders is None:
-            return FirmwareLiveness(_probe(path), recorded)
-        if holders:
-            # A pid of 0 is a holder in another pid namespace: trust the file's.
-            return FirmwareLiveness(True, holders[0] or recorded)
-        if recorded is None or not process_exists(recorded):
-            break  # a clean stop or a dead firmware: the common "no", read once
-    return FirmwareLiveness(False, recorded)
+    holders = flock_holders(path)
+    if holders is None:
+        return FirmwareLiveness(_probe(path), recorded)
+    if holders:
+        # A pid of 0 is a holder in another pid namespace: trust the file's.
+        return FirmwareLiveness(True, holders[0] or recorded)
+    # The table can miss a held lock (module docstring): the pid that wrote the file decides.
+    return FirmwareLiveness(recorded is not None and wrote_the_file(recorded, path), recorded)

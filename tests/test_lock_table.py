@@ -10,16 +10,19 @@ nothing is mocked.
 
 from __future__ import annotations
 
+import os
 import shutil
 import subprocess
 import sys
+import time
 from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
 
-from host_api.liveness import firmware_liveness
-from tests.conftest import Card
+from dpm.image import lock_path
+from host_api.liveness import FirmwareLiveness, firmware_liveness
+from tests.conftest import Card, wait_until
 from tests.libcif_host import C_TESTS, CC, build_libcif, compile_program, run
 
 CHURN = """
@@ -65,3 +68,27 @@ def test_c_hosts_are_never_refused_a_running_card(card: Card, churning: None,
     build_libcif("all")
     program = compile_program(C_TESTS / "init_loop.c", tmp_path / "init_loop", "plain")
     assert run(program, card.path.parent, "300") == "refused 0\n"
+
+
+def test_a_recorded_pid_counts_only_for_the_process_that_wrote_it(tmp_path: Path) -> None:
+    """With nobody holding the lock, the recorded pid decides (the table may have missed
+    the holder): a process started after the file's last write is a pid used again, and a
+    zombie's lock went with its files; both are a dead firmware."""
+    path = lock_path(tmp_path, 0)
+    sleeper = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+    try:
+        path.write_text(f"{sleeper.pid}\n")
+        assert firmware_liveness(tmp_path, 0) == FirmwareLiveness(True, sleeper.pid)
+        long_ago = time.time() - 3600  # the pid was written before this process started
+        os.utime(path, (long_ago, long_ago))
+        assert firmware_liveness(tmp_path, 0) == FirmwareLiveness(False, sleeper.pid)
+        path.write_text(f"{sleeper.pid}\n")
+        sleeper.kill()
+        stat = Path(f"/proc/{sleeper.pid}/stat")
+        wait_until(lambda: stat.read_text().rsplit(")", 1)[1].split()[0] == "Z", 5,
+                   "the killed process a zombie (not yet reaped)")
+        assert firmware_liveness(tmp_path, 0) == FirmwareLiveness(False, sleeper.pid)
+    finally:
+        sleeper.kill()
+        sleeper.wait()
+    assert firmware_liveness(tmp_path, 0) == FirmwareLiveness(False, sleeper.pid)

@@ -248,9 +248,11 @@ static void image_path(char *out, size_t size, unsigned short number) {
  * in the image, so only its lock tells. Read from /proc/locks, since a probing flock
  * could make a firmware starting in that instant refuse itself; without /proc, a shared
  * non-blocking flock that fails means a holder. The kernel hands /proc/locks out a page
- * per read, and a lock falls between two pages when locks listed before it go meanwhile:
- * a "not held" is read again while the pid recorded in the lock file still runs. */
-#define LOCK_TABLE_READS 5 /* as host_api/liveness.py */
+ * per read, and a lock falls between two pages when locks listed before it go meanwhile
+ * (under load, five reads in a row missed): a "not held" is not believed while the pid
+ * recorded in the lock file names the process that wrote it, one that runs and started no
+ * later than the file's last write (a pid used again belongs to a later process). */
+#define START_SLACK_S 0.02 /* as host_api/liveness.py */
 
 /* 1 held, 0 not held, -1 no /proc/locks. */
 static int lock_table_holds(const char *device) {
@@ -269,9 +271,19 @@ static int lock_table_holds(const char *device) {
   return held;
 }
 
-/* Whether the pid written in the lock file names a process that exists. */
-static int recorded_pid_runs(const char *path) {
-  char text[32];
+static double seconds(clockid_t clock) {
+  struct timespec t;
+  clock_gettime(clock, &t);
+  return (double)t.tv_sec + (double)t.tv_nsec / 1e9;
+}
+
+/* Whether the pid written in the lock file runs (not a zombie) and started no later than
+ * the file's last write (`st`); without /proc, whether it exists. */
+static int recorded_pid_wrote(const char *path, const struct stat *st) {
+  char text[32], stat_path[64], proc[1024];
+  const char *fields;
+  unsigned long long start = 0;
+  char state = '?';
   ssize_t n;
   long pid;
   int fd = open(path, O_RDONLY | O_CLOEXEC);
@@ -281,21 +293,38 @@ static int recorded_pid_runs(const char *path) {
   if (n <= 0) return 0;
   text[n] = '\0';
   pid = strtol(text, NULL, 10);
-  return pid > 0 && (kill((pid_t)pid, 0) == 0 || errno == EPERM);
+  if (pid <= 0) return 0;
+  snprintf(stat_path, sizeof stat_path, "/proc/%ld/stat", pid);
+  fd = open(stat_path, O_RDONLY | O_CLOEXEC);
+  if (fd < 0) {
+    if (errno == ENOENT) return 0;
+    return kill((pid_t)pid, 0) == 0 || errno == EPERM;
+  }
+  n = read(fd, proc, sizeof proc - 1);
+  close(fd);
+  if (n <= 0) return 0;
+  proc[n] = '\0';
+  fields = strrchr(proc, ')');
+  if (fields == NULL ||
+      sscanf(fields + 1, " %c %*d %*d %*d %*d %*d %*u %*u %*u %*u %*u %*u %*u %*d %*d %*d %*d"
+             " %*d %*d %llu", &state, &start) != 2)
+    return 0;
+  if (state == 'Z' || state == 'X') return 0; /* dead, not yet reaped */
+  return seconds(CLOCK_BOOTTIME) - (double)start / (double)sysconf(_SC_CLK_TCK) + START_SLACK_S >=
+         seconds(CLOCK_REALTIME) -
+             ((double)st->st_mtim.tv_sec + (double)st->st_mtim.tv_nsec / 1e9);
 }
 
 static int firmware_alive(const char *path) {
   char device[64];
   struct stat st;
-  int alive = 0, fd, held = 0, i;
+  int alive = 0, fd, held;
   if (stat(path, &st) != 0) return 0;
   snprintf(device, sizeof device, "%02x:%02x:%lu", major(st.st_dev), minor(st.st_dev),
            (unsigned long)st.st_ino);
-  for (i = 0; i < LOCK_TABLE_READS; i++) {
-    held = lock_table_holds(device);
-    if (held != 0 || !recorded_pid_runs(path)) break;
-  }
-  if (held >= 0) return held;
+  held = lock_table_holds(device);
+  if (held == 0) return recorded_pid_wrote(path, &st);
+  if (held > 0) return 1;
   fd = open(path, O_RDONLY | O_CLOEXEC);
   if (fd < 0) return 0;
   if (flock(fd, LOCK_SH | LOCK_NB) != 0) alive = errno == EWOULDBLOCK;
