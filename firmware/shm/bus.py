@@ -472,7 +472,7 @@ def frames_written(channel: str) -> int:
         raw = os.pread(fd, 8 * MAX_STATIONS, _SEQS_AT)
     finally:
         os.close(fd)
-    return sum(struct.unpack(f"<{MAX_STATIONS}Q", raw))
+    return sum(_COUNTERS.unpack(raw))
 
 
 FRAME_STAMP_ID = np.dtype({"names": ["stamp", "ident"], "formats": ["<f8", "<u4"],
