@@ -31,6 +31,7 @@ from pathlib import Path
 import pytest
 
 from dbm_tools.network import load_network
+from dbm_tools.parameters import NdFlag, NodeParameterSet
 from dpm.commands import COM_SHARED_MEMORY
 from dpm.doorbell import (
     DEVICE_FAST_WINDOW,
@@ -41,11 +42,12 @@ from dpm.doorbell import (
     AdaptivePoll,
     HostBell,
 )
-from dpm.errors import Drv
+from dpm.errors import Drv, NodeEvent
 from dpm.flags import DevFlag, HostFlag
 from dpm.layout import DEV_FLAGS, HOST_FLAGS
 from dpm.message import Message, Task, Tdt, TelegramHeader, Tfc
 from dpm.task2 import ComPlcParameter, PlcMode
+from firmware.can.supervision import HEARTBEAT_LOOK_LATE_S, ErrorControl
 from host_api import driver as d
 from host_api.board import Board
 from host_api.cia309.events import MONITOR_PERIOD_QUIET
@@ -456,6 +458,38 @@ def test_an_idle_card_with_16_nodes_sleeps(shm_net: ShmNetwork) -> None:
     total = sum(wakeups.values())
     assert total < MAX_CARD_WAKEUPS_PER_S, f"the card woke {total:.0f} times a second"
     assert cpu_pct < MAX_CARD_CPU_PCT, f"the card used {cpu_pct:.2f} % of a core"
+
+
+TAKEN_LATE_S = 0.002
+"""How long after its moment a heartbeat reaches the node's supervision on an idle machine, at
+most: the producer's timer, the ``shm`` ring, the receive thread's wake-up (0.1-0.5 ms)."""
+
+
+def _sent(*frame: object, **options: object) -> bool:
+    """The bus's send, for error control that sends nothing here (heartbeats are consumed)."""
+    return True
+
+
+def test_a_heartbeat_that_comes_with_its_consumer_deadline_is_taken_before_the_master_looks(
+) -> None:
+    """A node producing at half the consumer time (as ``cifemu sim`` does) sends a heartbeat
+    just as the deadline counted from the one before last comes. The master looks at the
+    deadline a little later (``HEARTBEAT_LOOK_LATE_S``), so that this heartbeat is taken first
+    and its next look is a whole consumer time on: one wake-up per consumer time, not one per
+    heartbeat (issue 22: 1.5-2.3 looks a second for a lone node at 1 s; each of them 100-200 us
+    of CPU, a third of what the node cost an idle card). A lost node is still found at the
+    master's look, at most ``HEARTBEAT_LOOK_LATE_S`` after its deadline."""
+    control = ErrorControl(NodeParameterSet(bNd_Flag=NdFlag.ACTIVE | NdFlag.HRTBT,
+                                            usGuardTime=1000), _sent)
+    control.restart(0.0)
+    control.answered(0x05, 0.5)  # the heartbeats at 0.0 and 0.5, the next at 1.0 ...
+    look = control.next_due()
+    assert look >= 1.5 + TAKEN_LATE_S, "the master looks before the heartbeat at 1.5 is taken"
+    assert look <= 1.5 + HEARTBEAT_LOOK_LATE_S
+    assert control.check(look) == NodeEvent.GUARDING_FAILED  # none came: found at the look
+    control.answered(0x05, 1.5 + TAKEN_LATE_S)
+    assert control.check(look) == 0
+    assert control.next_due() >= 2.5 + TAKEN_LATE_S
 
 
 def test_a_ringing_host_s_new_outputs_reach_the_bus_at_once(shm_net: ShmNetwork) -> None:

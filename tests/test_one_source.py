@@ -53,6 +53,8 @@ NOT_CARD_LAYOUTS: dict[tuple[str, str], str] = {
     ("firmware/shm/bus.py", "_HEADER"): "the shm bus's file header [ours]",
     ("firmware/shm/bus.py", "_STATION"): "a station record of the shm bus [ours]",
     ("firmware/shm/bus.py", "_RECORD"): "a frame record of the shm bus's rings [ours]",
+    ("firmware/shm/bus.py", "_COUNTERS"): "the shm bus's station counters [ours]",
+    ("firmware/shm/bus.py", "_COUNTER"): "one station counter of the shm bus [ours]",
     ("firmware/can/sdo.py", "_INITIATE"): "a CiA 301 SDO frame on the bus, not a message",
     ("host_api/driver.py", "DRIVERINFO"): "the C driver's DRIVERINFO structure",
     ("host_api/driver.py", "IOINFO"): "the C driver's IOINFO structure",

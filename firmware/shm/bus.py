@@ -96,6 +96,8 @@ _BITRATE_SIZE = 4
 _SEQS_AT = 64
 """Per station: records ever written (u64, written only by the station)."""
 _SEQS_BYTES = 8 * MAX_STATIONS
+_COUNTERS = struct.Struct(f"<{MAX_STATIONS}Q")
+_COUNTER = struct.Struct("<Q")
 _WAITING_AT = _SEQS_AT + _SEQS_BYTES
 """Per station: 1 while it sleeps on its bell."""
 _STATIONS_AT = _WAITING_AT + MAX_STATIONS
@@ -165,11 +167,12 @@ class ShmBus(can.BusABC):
             self._release()
             raise
         self._ring_at = _RINGS_AT + self._index * _RING_BYTES
-        self._cursors = self._seqs.copy()
-        """Per station: the records this station has taken."""
-        self._written_seen = b""
+        self._written_seen = self._map[_SEQS_AT:_SEQS_AT + _SEQS_BYTES]
         """The stations' counters as ``_read`` last copied them, before it took what they
         announced: while they read the same, there is nothing new."""
+        self._cursors: tuple[int, ...] = _COUNTERS.unpack(self._written_seen)
+        """Per station: the records this station has taken (the counters of
+        ``_written_seen``, as Python integers: see ``_read``)."""
         self._timers: SpareTimer | None = None
         if timer_process:  # only once the station is open: a failed open leaves no spare
             from firmware.shm.tasks import SpareTimer  # only a bus that asks pays for it
@@ -330,12 +333,9 @@ class ShmBus(can.BusABC):
                 rung = select.select((self._bell,), (), (), remaining)[0]
             except (OSError, ValueError):  # shut down by another thread meanwhile
                 return None, False
-            if rung:
-                try:
-                    while True:
-                        self._bell.recv(16)
-                except OSError:
-                    pass
+            if rung:  # one ring taken: a second one (rare) only ends the next wait at once
+                with contextlib.suppress(OSError):  # shut down by another thread meanwhile
+                    self._bell.recv(16)
         return None, False
 
     def loop_back(self, msg: can.Message) -> None:
@@ -356,38 +356,45 @@ class ShmBus(can.BusABC):
     def _read(self) -> bool:
         """Take every new record of the other stations into ``_pending``; True when any.
 
-        A ring's counter is read before its records and again after copying
-        them: records a writer may have overwritten meanwhile (the reader was a
-        whole ring behind) are dropped and counted as lost, never delivered torn.
+        A ring's records are copied up to its counter as ``written`` holds it, and its
+        counter is read again after copying them: records a writer may have overwritten
+        meanwhile (the reader was a whole ring behind) are dropped and counted as lost,
+        never delivered torn.
+
+        Plain Python on this path, no numpy: the receive thread runs it once per wake-up,
+        with cold caches, where numpy's compare and ``flatnonzero`` of the 64 counters took
+        55-60 us and ``heapq.merge`` of one station's batch 15 us, most of the 190-230 us of
+        CPU a frame's wake-up cost the thread, against 20-40 us for a thread woken by a
+        datagram (issue 22: the idle card's cost per node is its heartbeats' wake-ups).
         """
         with self._read_lock:
             if self._closed:
                 return False
-            # Nothing written since the last look: one 512-byte compare instead of numpy's
-            # (9 µs), twice per frame a reader takes (before and after it marks itself
-            # waiting; issue 22). Any counter read later than this copy is no lower.
+            # Nothing written since the last look: one 512-byte compare, twice per frame a
+            # reader takes (before and after it marks itself waiting; issue 22). Each
+            # counter copied here is no lower than any read before, and every record it
+            # counts was published before it (x86-64 keeps loads in order, see the top).
             written = self._map[_SEQS_AT:_SEQS_AT + _SEQS_BYTES]
             if written == self._written_seen:
                 return bool(self._pending)
             self._written_seen = written
-            mapped, seqs, cursors = self._map, self._seqs, self._cursors
-            changed = np.flatnonzero(seqs != cursors)
-            batches: list[tuple[int, bytes]] = []
+            mapped, cursors = self._map, self._cursors
+            counters = _COUNTERS.unpack(written)
+            self._cursors = counters
+            batches: list[bytes] = []
             lost = 0
-            for station in changed.tolist():
-                if station == self._index and not self.receive_own_messages:
-                    cursors[station] = seqs[station]
+            for station, (cursor, seq) in enumerate(zip(cursors, counters, strict=True)):
+                if seq == cursor or (station == self._index and not self.receive_own_messages):
                     continue
-                cursor, seq = int(cursors[station]), int(seqs[station])
                 first = max(cursor, seq - CAPACITY)
                 raw = _copy(mapped, _RINGS_AT + station * _RING_BYTES, first, seq)
-                overwritten = int(seqs[station]) - CAPACITY - first
+                now_at = _COUNTER.unpack_from(mapped, _SEQS_AT + 8 * station)[0]
+                overwritten = now_at - CAPACITY - first  # meanwhile, by the writer
                 if overwritten > 0:
                     raw = raw[overwritten * RECORD_SIZE:]
                     first += overwritten
                 lost += first - cursor
-                cursors[station] = seq
-                batches.append((station, raw))
+                batches.append(raw)
         if lost:
             self.rx_overflows += lost
             self._pending.append(can.Message(
@@ -395,7 +402,8 @@ class ShmBus(can.BusABC):
                 is_extended_id=False, dlc=8, channel=self.channel,
                 data=bytes([0, CAN_ERR_CRTL_RX_OVERFLOW, 0, 0, 0, 0, 0, 0])))
         # Each station's records stay in their order whatever their time stamps say.
-        records = heapq.merge(*(_RECORD.iter_unpack(raw) for _, raw in batches), key=_stamp)
+        records = (_RECORD.iter_unpack(batches[0]) if len(batches) == 1 else
+                   heapq.merge(*(_RECORD.iter_unpack(raw) for raw in batches), key=_stamp))
         channel = self.channel
         for stamp, ident, flags, dlc, _, data in records:
             remote = bool(flags & _REMOTE)
@@ -464,7 +472,7 @@ def frames_written(channel: str) -> int:
         raw = os.pread(fd, 8 * MAX_STATIONS, _SEQS_AT)
     finally:
         os.close(fd)
-    return sum(struct.unpack(f"<{MAX_STATIONS}Q", raw))
+    return sum(_COUNTERS.unpack(raw))
 
 
 FRAME_STAMP_ID = np.dtype({"names": ["stamp", "ident"], "formats": ["<f8", "<u4"],
