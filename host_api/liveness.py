@@ -65,19 +65,26 @@ def _probe(path: Path) -> bool:
     return False
 
 
-def wrote_the_file(pid: int, path: Path) -> bool:
+def stat_fields(pid: int) -> list[str]:
+    """/proc/PID/stat's fields from the third (the state) on, so that proc(5)'s field N is
+    index N - 3: they follow the command name, which may hold spaces and parentheses.
+    OSError when the process or /proc is not there."""
+    raw = Path(f"/proc/{pid}/stat").read_text()
+    return raw[raw.rindex(")") + 2 :].split()
+
+
+def _wrote_the_file(pid: int, path: Path) -> bool:
     """Whether ``pid`` runs (not a zombie) and started no later than ``path``'s last write,
     so that it may be the process that wrote its pid there (see the module docstring).
     Without /proc, whether the pid exists."""
     try:
-        stat = Path(f"/proc/{pid}/stat").read_bytes()
+        fields = stat_fields(pid)
         written = path.stat().st_mtime
     except FileNotFoundError:
         return False
     except OSError:
         return process_exists(pid)
-    fields = stat[stat.rindex(b")") + 2:].split()
-    if fields[0] in (b"Z", b"X"):
+    if fields[0] in ("Z", "X"):
         return False  # dead, not yet reaped: its lock went with its files
     age = time.clock_gettime(time.CLOCK_BOOTTIME) - int(fields[19]) / os.sysconf("SC_CLK_TCK")
     return age + START_SLACK_S >= time.time() - written
@@ -94,4 +101,4 @@ def firmware_liveness(directory: Path, board: int) -> FirmwareLiveness:
         # A pid of 0 is a holder in another pid namespace: trust the file's.
         return FirmwareLiveness(True, holders[0] or recorded)
     # The table can miss a held lock (module docstring): the pid that wrote the file decides.
-    return FirmwareLiveness(recorded is not None and wrote_the_file(recorded, path), recorded)
+    return FirmwareLiveness(recorded is not None and _wrote_the_file(recorded, path), recorded)

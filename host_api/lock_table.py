@@ -3,8 +3,8 @@
 Two questions of the host side are answered there: whether a board's firmware lives
 (``host_api.liveness``: the firmware lock's holder) and who keeps a board's mailbox
 (``host_api.holders``: the transaction lock's holder). The table's format is read here
-only; each caller keeps its own policy over the answer (liveness reads again when the
-table's paging may have hidden a holder, holders pass over pid 0 and the caller).
+only; each caller keeps its own policy over the answer (liveness asks the recorded pid
+when the table's paging may have hidden a holder, holders pass over pid 0 and the caller).
 """
 
 from __future__ import annotations

@@ -24,7 +24,7 @@ from dpm.flags import HostFlag
 from dpm.image import image_path
 from dpm.layout import HOST_FLAGS
 from host_api.errors import HostApiError
-from host_api.liveness import firmware_liveness
+from host_api.liveness import firmware_liveness, stat_fields
 
 TICK_NS = 1_000_000_000 // os.sysconf("SC_CLK_TCK")
 START_CPU_S = 10.0
@@ -49,8 +49,7 @@ class StartError(HostApiError, RuntimeError):
 
 def stat_cpu_ns(pid: int) -> int:
     """utime + stime of the whole process (every thread, also ended ones), in ns."""
-    raw = Path(f"/proc/{pid}/stat").read_text()
-    fields = raw[raw.rindex(")") + 2 :].split()
+    fields = stat_fields(pid)
     return (int(fields[11]) + int(fields[12])) * TICK_NS  # utime, stime: fields 14 and 15
 
 
