@@ -25,6 +25,10 @@ ERROR_CONTROL_BASE = 0x700
 
 NODE_ID_MAX = 127
 """The highest node-ID (CiA 301: 1..127; 0 is NMT's "all nodes" where a command allows it)."""
+FUNCTION_CODE_MASK = 0x780
+"""The function code of a predefined connection set identifier; the rest is the node-ID."""
+NODE_ID_MASK = 0x7F
+"""The node-ID's bits of such an identifier."""
 
 # NMT states, as a node reports them: the low 7 bits of its heartbeat or guarding answer
 # (CiA 301 7.2.8.3.2). Here once for the card's node handlers, the simulated nodes and the
@@ -35,6 +39,10 @@ BOOT_UP = INITIALISING
 STOPPED = 4
 OPERATIONAL = 5
 PRE_OPERATIONAL = 127
+STATE_MASK = 0x7F
+"""The state's bits in a heartbeat or guarding answer's one byte."""
+TOGGLE_BIT = 0x80
+"""Node guarding's toggle bit, beside the state in the answer's byte (always 0 in a heartbeat)."""
 
 # PDO transmission types (1400h/1800h sub 2)
 SYNC_ACYCLIC = 0

@@ -12,7 +12,7 @@ from canopen.emcy import EmcyError
 from canopen.nmt import NMT_STATES
 from canopen.sdo.exceptions import SdoAbortedError
 
-from dpm.cia301 import BOOT_UP
+from dpm.cia301 import BOOT_UP, STATE_MASK
 from dpm.commands import Nmt
 
 NMT_COMMAND_TEXT: dict[int, str] = {
@@ -67,7 +67,7 @@ def sdo_abort_text(code: int) -> str:
 
 def nmt_state_text(state: int) -> str:
     """The NMT state of a heartbeat or guarding answer (toggle bit removed)."""
-    state &= 0x7F
+    state &= STATE_MASK
     if state == BOOT_UP:
         return "BOOT-UP"
     return str(NMT_STATES.get(state, f"state {state}"))

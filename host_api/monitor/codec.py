@@ -147,7 +147,7 @@ def decode(can_id: int, data: bytes, *, extended: bool = False, remote: bool = F
     slot = view.slot_for(can_id) if view is not None and not remote else None
     if slot is not None:
         return Meaning("pdo", slot.node, _pdo(slot, data))
-    function, node = can_id & 0x780, can_id & 0x7F
+    function, node = can_id & cia301.FUNCTION_CODE_MASK, can_id & cia301.NODE_ID_MASK
     if can_id == cia301.COB_ID_NMT:
         if len(data) < 2:
             return Meaning("nmt", None, f"NMT of {len(data)} bytes (CiA 301 wants 2)")
@@ -182,8 +182,8 @@ def decode(can_id: int, data: bytes, *, extended: bool = False, remote: bool = F
         if not data:
             return Meaning("heartbeat", node, f"error control node {node} without data")
         state = nmt_state_text(data[0])
-        if data[0] & 0x7F == 0:
+        if data[0] & cia301.STATE_MASK == cia301.BOOT_UP:
             return Meaning("heartbeat", node, f"boot-up node {node}")
-        toggle = f" toggle {data[0] >> 7}" if data[0] & 0x80 else ""
+        toggle = " toggle 1" if data[0] & cia301.TOGGLE_BIT else ""
         return Meaning("heartbeat", node, f"heartbeat node {node} {state}{toggle}")
     return Meaning("other", node, "")

@@ -15,6 +15,7 @@ from collections import deque
 from dataclasses import dataclass, field
 
 from dbm_tools.network import Network
+from dpm.cia301 import BOOT_UP, STATE_MASK
 from dpm.errors import ERR_NODE_DEVICE, err_event_text
 from dpm.layout import IO_AREA_SIZE, RCV_PD, SND_PD, TASK2_STATE, TASK_STATE_SIZE
 from dpm.task2 import ComDiagnostics
@@ -170,7 +171,7 @@ class CardModel:
                 row = self._node(node)
                 row.last_seen = timestamp
                 state = nmt_state_text(data[0])
-                if data[0] & 0x7F == 0:
+                if data[0] & STATE_MASK == BOOT_UP:
                     self.log(timestamp, f"boot-up node {node}")
                 row.nmt_state = "PRE-OPERATIONAL" if state == "BOOT-UP" else state
             elif meaning.kind == "emcy" and node is not None:
