@@ -40,25 +40,24 @@ static void pause_retry(void) {
 }
 
 int cifemu_chanlock_open(cifemu_chanlock *lock, const char *path) {
-  lock->fd = open(path, LOCK_FILE_FLAGS, 0660);
-  if (lock->fd < 0) return -1;
+  lock->fd = path == NULL ? CIFEMU_CHANLOCK_THREAD : open(path, LOCK_FILE_FLAGS, 0660);
+  if (lock->fd == -1) return -1;
   pthread_mutex_init(&lock->mutex, NULL);
   return 0;
 }
 
 void cifemu_chanlock_close(cifemu_chanlock *lock) {
-  if (lock->fd >= 0) {
-    close(lock->fd);
-    pthread_mutex_destroy(&lock->mutex);
-  }
+  if (lock->fd >= 0) close(lock->fd);
+  if (lock->fd != -1) pthread_mutex_destroy(&lock->mutex);
   lock->fd = -1;
 }
 
 int cifemu_chanlock_reopen(cifemu_chanlock *lock, const char *path) {
   int fd;
-  if (lock->fd < 0) return 0;
+  if (lock->fd == -1) return 0;
   /* The parent's threads do not exist here: a mutex one of them held would stay locked. */
   pthread_mutex_init(&lock->mutex, NULL);
+  if (lock->fd == CIFEMU_CHANLOCK_THREAD) return 0;
   fd = open(path, LOCK_FILE_FLAGS, 0660);
   if (fd < 0) return -1;
   if (fd == lock->fd) return 0;
@@ -84,7 +83,7 @@ int cifemu_chanlock_acquire(cifemu_chanlock *lock, unsigned long timeout_ms) {
   unsigned long long ms = clamp_ms(timeout_ms);
   long long deadline;
   if (pthread_mutex_trylock(&lock->mutex) == 0) { /* the uncontended case, without clocks */
-    if (flock(lock->fd, LOCK_EX | LOCK_NB) == 0) return 1;
+    if (lock->fd == CIFEMU_CHANLOCK_THREAD || flock(lock->fd, LOCK_EX | LOCK_NB) == 0) return 1;
     deadline = cifemu_now_ns() + (long long)ms * 1000000LL;
   } else {
     struct timespec until;
@@ -99,6 +98,7 @@ int cifemu_chanlock_acquire(cifemu_chanlock *lock, unsigned long timeout_ms) {
     }
     if (pthread_mutex_timedlock(&lock->mutex, &until) != 0) return 0;
   }
+  if (lock->fd == CIFEMU_CHANLOCK_THREAD) return 1;
   /* The mutex stays held while the flock is awaited: the flock is the open file
      description's, so a thread without the mutex would get it too. */
   if (flock_until(lock->fd, deadline)) return 1;
@@ -106,14 +106,8 @@ int cifemu_chanlock_acquire(cifemu_chanlock *lock, unsigned long timeout_ms) {
   return 0;
 }
 
-void cifemu_chanlock_take(cifemu_chanlock *lock) {
-  pthread_mutex_lock(&lock->mutex);
-  while (flock(lock->fd, LOCK_EX) != 0 && errno == EINTR) {
-  }
-}
-
 void cifemu_chanlock_release(cifemu_chanlock *lock) {
-  flock(lock->fd, LOCK_UN);
+  if (lock->fd != CIFEMU_CHANLOCK_THREAD) flock(lock->fd, LOCK_UN);
   pthread_mutex_unlock(&lock->mutex);
 }
 
