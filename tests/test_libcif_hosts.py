@@ -489,11 +489,10 @@ def test_lines_after_the_ledgers_end_are_no_requests(built: None, card: Card, im
 def test_python_and_c_hosts_end_the_ledger_alike_without_truncating_it(
         built: None, card: Card, impl: str) -> None:
     """[ours] A request goes into the ledger with its END (a NUL) in the same write, and the
-    last answer empties it by an END at the start: one system call per change in libcif,
-    none in a Python host, which writes through its map of the file (grown to the
-    ledger's longest first); the file never truncated (libcif truncated it after every
-    write, two calls per change; issue 22). What follows the END is left from a longer
-    ledger and no request."""
+    last answer empties it by an END at the start, through each host's map of the file
+    (grown to the ledger's longest first), without a system call; the file never truncated
+    (libcif truncated it after every write, two calls per change; issue 22). What follows
+    the END is left from a longer ledger and no request."""
     path = card.directory / "board0.transaction.lock"
     leftover = b"\0" + b"9" * 200
     path.write_bytes(leftover)
@@ -508,8 +507,7 @@ def test_python_and_c_hosts_end_the_ledger_alike_without_truncating_it(
         rc, got = driver.DevGetMessage(0, 288, 5000)
         assert rc == Drv.DRV_NO_ERROR and tag_of(got) == 3
         raw = path.read_bytes()
-        grown = LEDGER_BYTES if impl == "python" else len(leftover)
-        assert ledger(path) == "" and len(raw) == grown, raw[:80]
+        assert ledger(path) == "" and len(raw) == LEDGER_BYTES, raw[:80]
         assert raw[len(line) + 1 : len(leftover)] == leftover[len(line) + 1 :]
     finally:
         while driver.DevCloseDriver() == 0:

@@ -75,6 +75,7 @@ typedef struct cifemu_txn {
   unsigned n_own, n_stale;
   size_t length; /* the ledger's length up to its end (a NUL or the file's end) as this
                     process last read or wrote it while holding the flock */
+  unsigned char *map; /* the ledger file mapped (chanlock.c ledger_map); NULL: not open */
   cifemu_request own[CIFEMU_LEDGER_MAX];   /* this process's requests awaiting answers */
   cifemu_request stale[CIFEMU_LEDGER_MAX]; /* other processes' requests: discard */
 } cifemu_txn;

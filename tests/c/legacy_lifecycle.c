@@ -22,8 +22,8 @@
  *       (so no call starts with the preload's check of its descriptors), the program
  *       closes the transaction ledger's descriptor with a raw system call and its own
  *       SCRATCH lands on that number (dup3 by system call). Its PUTMSG then writes the
- *       ledger (libcif/src/chanlock.c: pwrite) and A reads the answer (the
- *       ledger again). SCRATCH must stay as it was, and the card must go on working.
+ *       ledger (libcif/src/chanlock.c: through its map; a rewrite is a pwrite) and A
+ *       reads the answer (the ledger again). SCRATCH must stay as it was, and the card must go on working.
  *
  * Prints one "name=value" line per step; tests/test_legacy.py compares them.
  */
