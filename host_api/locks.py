@@ -2,11 +2,11 @@
 
 The real driver lets one call at a time wait on a mailbox and answers a
 second one with DRV_CMD_ACTIVE. Across processes sharing an image we do the
-same with a lock per channel (a thread lock plus an flock on a file beside
-the image): a call waits for the channel up to its own timeout and gets -4
-when another caller holds it longer than that. The Python driver's put and get
-channels are thread locks only: it takes them inside the transaction lock, as
-libcif does its put and get flocks, so no other process can be inside them.
+same with a lock per channel (``ChannelLock``: a thread lock plus an flock on a
+file beside the image, the exchange's): a call waits for the channel up to its
+own timeout and gets -4 when another caller holds it longer than that. The put
+and get channels are thread locks only, in libcif too: both drivers take them
+inside the transaction lock, so no other process can be inside them.
 
 [ours] The transaction lock (``Transaction``) keeps request and answer
 together: a host process holds its flock from a DevPutMessage until that
