@@ -226,17 +226,14 @@ def _open_board(number: int, path: Path, mm: mmap.mmap) -> _Board | None:
         with ExitStack() as opened:
             bell = HostBell(path)
             opened.callback(bell.close)
-            locks: list[ChannelLock] = []
-            for what in ("io", "flags"):
-                locks.append(ChannelLock(lock_path(directory, number, what)))
-                opened.callback(locks[-1].close)
+            io = ChannelLock(lock_path(directory, number, "io"))
+            opened.callback(io.close)
             transaction = Transaction(lock_path(directory, number, "transaction"))
             opened.pop_all()
     except OSError:
         return None
-    io, flags = locks
-    return _Board(number, path, mm, bell, threading.Lock(), threading.Lock(), io, flags,
-                  transaction, _driver.counters.setdefault(number, _Counters()))
+    return _Board(number, path, mm, bell, threading.Lock(), threading.Lock(), io, transaction,
+                  _driver.counters.setdefault(number, _Counters()))
 
 
 def _check_card(mm: mmap.mmap) -> int:

@@ -2,11 +2,11 @@
 
 The real driver lets one call at a time wait on a mailbox and answers a
 second one with DRV_CMD_ACTIVE. Across processes sharing an image we do the
-same with a lock per channel (a thread lock plus an flock on a file beside
-the image): a call waits for the channel up to its own timeout and gets -4
-when another caller holds it longer than that. The Python driver's put and get
-channels are thread locks only: it takes them inside the transaction lock, as
-libcif does its put and get flocks, so no other process can be inside them.
+same with a lock per channel (``ChannelLock``: a thread lock plus an flock on a
+file beside the image, the exchange's): a call waits for the channel up to its
+own timeout and gets -4 when another caller holds it longer than that. The put
+and get channels are thread locks only, in libcif too: both drivers take them
+inside the transaction lock, so no other process can be inside them.
 
 [ours] The transaction lock (``Transaction``) keeps request and answer
 together: a host process holds its flock from a DevPutMessage until that
@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import errno
 import fcntl
+import mmap
 import os
 import secrets
 import threading
@@ -36,7 +37,7 @@ from pathlib import Path
 from types import TracebackType
 from typing import NamedTuple
 
-from dpm.ledger import END, LINE, decode_line, ledger_text
+from dpm.ledger import END, LINE, decode_line
 from dpm.message import Ext, Message
 from host_api.holders import Holder, lock_holder
 
@@ -45,6 +46,9 @@ _OPEN_FLAGS = os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW | os.O_CLOEXEC
 
 LEDGER_MAX = 128
 """Requests the ledger keeps at most; beyond that the oldest goes."""
+LEDGER_BYTES = LEDGER_MAX * 96 + 1
+"""The ledger file's size at least (96: libcif's longest line; 1: ``END``), so that the
+whole of it is mapped."""
 STALE_MS = 30_000
 """A dead host's request is forgotten this long after it was sent: a card answers within
 it or never (the driver's longest wait is DevDownload's 15 s)."""
@@ -67,6 +71,18 @@ _FIRST, _CONT, _LAST = int(Ext.FIRST), int(Ext.CONT), int(Ext.LAST)
 def _open(path: Path) -> int:
     """The lock file, opened or created; a planted symbolic link is refused (ELOOP)."""
     return os.open(path, _OPEN_FLAGS, 0o660)
+
+
+def _map_ledger(fd: int) -> mmap.mmap:
+    """The transaction lock file mapped, grown to ``LEDGER_BYTES`` first when shorter.
+
+    [ours] The ledger is read and written through the map, without a pread and two pwrite
+    per mailbox round trip (issue 22). libcif reads and writes it with pread and pwrite:
+    both reach the same page cache. Growing the file adds zeros after its end, which every
+    reader takes as the ledger's end (``dpm.ledger``); the file is never cut."""
+    if os.fstat(fd).st_size < LEDGER_BYTES:
+        os.ftruncate(fd, LEDGER_BYTES)
+    return mmap.mmap(fd, LEDGER_BYTES)
 
 
 class ChannelLock:
@@ -204,6 +220,11 @@ class Transaction:
     def __init__(self, path: Path) -> None:
         self.path = path
         self._fd = _open(path)
+        try:
+            self._ledger = _map_ledger(self._fd)
+        except BaseException:
+            os.close(self._fd)
+            raise
         self._state = threading.Lock()
         """Guards the fields below; held for one attempt at the flock at a time."""
         self._session = threading.Lock()
@@ -299,9 +320,7 @@ class Transaction:
             if changed:
                 self._store()
             else:
-                line = self._prefix + _TAIL_END % request[2:8]
-                os.pwrite(self._fd, line, self._length)
-                self._length += len(line) - 1  # END is one byte
+                self._append(self._prefix + _TAIL_END % request[2:8])
 
     def is_stale(self, msg: Message) -> bool:
         """Whether the answer waiting in the mailbox is one to discard."""
@@ -370,8 +389,9 @@ class Transaction:
         """The file's requests as a new holder sees them: another owner's are stale (its
         sender died, or gave up waiting and let the lock go), this process's own ones are
         given up. Malformed and expired lines are dropped."""
-        raw = os.pread(self._fd, LEDGER_MAX * 96, 0)  # 96: libcif's longest line
-        text = ledger_text(raw)
+        ledger = self._ledger
+        end = ledger.find(END)
+        text = ledger[: end if end >= 0 else LEDGER_BYTES]
         self._length = len(text)
         if not text:  # the ledger of a board nobody awaits answers from
             self._own, self._stale = [], []
@@ -382,15 +402,27 @@ class Transaction:
         kept = kept[:LEDGER_MAX]
         self._own = [r for r in kept if r.owner == self._owner]
         self._stale = [r for r in kept if r.owner != self._owner]
-        if len(kept) != len(lines):
+        if end < 0 or len(kept) != len(lines):  # no END: a file someone else wrote
             self._store()
+
+    def _append(self, line: bytes) -> None:
+        """A request's line and ``END`` after the ledger's last line, through the map.
+
+        A host killed while it writes leaves the ledger as it was, or with the whole line:
+        the line after its first byte goes first, then that byte over the old ``END``."""
+        at = self._length
+        self._ledger[at + 1 : at + len(line)] = line[1:]
+        self._ledger[at] = line[0]
+        self._length = at + len(line) - 1  # END is one byte
 
     def _store(self) -> None:
         """The ledger rewritten from memory, ended by ``END``: the file is not truncated
-        (``dpm.ledger``)."""
+        (``dpm.ledger``). Emptied (an answer read, on every round trip) by one byte
+        written in the map; rewritten by one pwrite, which a host killed meanwhile either
+        made whole or not at all."""
         if not self._own and not self._stale:
             if self._length:
-                os.pwrite(self._fd, END, 0)
+                self._ledger[0] = END[0]
                 self._length = 0
             return
         text = b"".join(r.line() for r in (*self._stale, *self._own))
@@ -412,6 +444,9 @@ class Transaction:
         fd = _open(self.path)
         os.dup2(fd, self._fd, inheritable=False)
         os.close(fd)
+        self._ledger.close()  # the map of the file now at the path, as the flock's
+        self._ledger = _map_ledger(self._fd)
 
     def close(self) -> None:
+        self._ledger.close()
         os.close(self._fd)

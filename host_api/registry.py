@@ -33,6 +33,7 @@ from dpm.doorbell import POLL_INTERVAL, HostBell
 from dpm.errors import Drv
 from dpm.image import MAX_DEV_BOARDS
 from dpm.layout import DEV_FLAGS, HOST_FLAGS
+from host_api._devflags import change as _change_flags
 from host_api.liveness import firmware_liveness
 from host_api.locks import ChannelLock, Transaction
 
@@ -78,7 +79,6 @@ class MappedBoard:
     process at a time holds (``host_api.locks.Transaction``). An flock of their own would
     exclude nobody more and cost four system calls per round trip (issue 22)."""
     io_lock: ChannelLock
-    flags_lock: ChannelLock
     transaction: Transaction
     counters: Counters
     """The registry's for this board number (``Registry.counters``), kept past DevExitBoard."""
@@ -139,10 +139,13 @@ class MappedBoard:
     def change_dev_flags(
         self, set_bits: int = 0, clear_bits: int = 0, toggle: int = 0, ring: bool = True
     ) -> None:
-        """Read-modify-write DevFlags under the flags lock, then ring the device."""
-        mm = self.mm
-        with self.flags_lock:
-            mm[DEV_FLAGS] = ((mm[DEV_FLAGS] | set_bits) & ~clear_bits & 0xFF) ^ toggle
+        """Change DevFlags by one atomic read-modify-write, then ring the device.
+
+        [ours] Every host process writes DevFlags, C hosts too: the byte is changed by a
+        compare-and-swap (``host_api._devflags``, as libcif's change_dev_flags), so no
+        host's toggle is lost, without the flock round (four system calls per mailbox round
+        trip) that guarded it before (issue 22; docs/dpm.md section 2)."""
+        _change_flags(self.mm, DEV_FLAGS, set_bits, clear_bits, toggle)
         if ring:
             self.bell.ring_device()
 
@@ -202,13 +205,9 @@ class MappedBoard:
         self.spin_skip = (1 << misses) - 1
         return False
 
-    def channel_locks(self) -> tuple[ChannelLock, ...]:
-        return self.io_lock, self.flags_lock
-
     def after_fork(self) -> None:
         """In a forked child: its own lock files, thread locks and doorbell."""
-        for lock in self.channel_locks():
-            lock.reopen_after_fork()
+        self.io_lock.reopen_after_fork()
         # a parent's thread that held one is not here
         self.put_lock, self.get_lock = threading.Lock(), threading.Lock()
         self.transaction.reopen_after_fork()
@@ -218,8 +217,7 @@ class MappedBoard:
 
     def close(self) -> None:
         self.bell.close()
-        for lock in self.channel_locks():
-            lock.close()
+        self.io_lock.close()
         self.transaction.close()
         self.mm.close()
 

@@ -28,7 +28,7 @@ from dpm.ledger import ledger_text
 from dpm.message import Ext, Message
 from host_api import driver as d
 from host_api.board import Board
-from host_api.locks import Answer, Transaction
+from host_api.locks import LEDGER_BYTES, Answer, Transaction
 from tests.conftest import Card
 from tests.libcif_host import C_TESTS, CC, STRICT, CDriver, build_libcif, compile_program, run
 
@@ -489,9 +489,10 @@ def test_lines_after_the_ledgers_end_are_no_requests(built: None, card: Card, im
 def test_python_and_c_hosts_end_the_ledger_alike_without_truncating_it(
         built: None, card: Card, impl: str) -> None:
     """[ours] A request goes into the ledger with its END (a NUL) in the same write, and the
-    last answer empties it by an END at the start: one system call per change, the file
-    never truncated (libcif truncated it after every write, two calls per change; issue
-    22). What follows the END is left from a longer ledger and no request."""
+    last answer empties it by an END at the start, through each host's map of the file
+    (grown to the ledger's longest first), without a system call; the file never truncated
+    (libcif truncated it after every write, two calls per change; issue 22). What follows
+    the END is left from a longer ledger and no request."""
     path = card.directory / "board0.transaction.lock"
     leftover = b"\0" + b"9" * 200
     path.write_bytes(leftover)
@@ -506,7 +507,8 @@ def test_python_and_c_hosts_end_the_ledger_alike_without_truncating_it(
         rc, got = driver.DevGetMessage(0, 288, 5000)
         assert rc == Drv.DRV_NO_ERROR and tag_of(got) == 3
         raw = path.read_bytes()
-        assert ledger(path) == "" and len(raw) == len(leftover), raw[:80]
+        assert ledger(path) == "" and len(raw) == LEDGER_BYTES, raw[:80]
+        assert raw[len(line) + 1 : len(leftover)] == leftover[len(line) + 1 :]
     finally:
         while driver.DevCloseDriver() == 0:
             pass

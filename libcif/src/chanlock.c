@@ -11,12 +11,16 @@
 #include <stdlib.h>
 #include <string.h>
 #include <sys/file.h>
+#include <sys/mman.h>
+#include <sys/stat.h>
 #include <time.h>
 #include <unistd.h>
 
 #define FLOCK_RETRY_NS 200000L /* as host_api/locks.py */
 #define LOCK_FILE_FLAGS (O_RDWR | O_CREAT | O_NOFOLLOW | O_CLOEXEC)
 #define LEDGER_LINE 96 /* "pid owner nr b rx tx multi sent_ms\n" fits */
+/* The ledger file's size at least, all of it mapped: as host_api/locks.py LEDGER_BYTES */
+#define LEDGER_BYTES (CIFEMU_LEDGER_MAX * LEDGER_LINE + 1)
 #define SEQ_MASK 0x0C
 #define SEQ_FIRST 0x04
 #define SEQ_CONT 0x08
@@ -40,25 +44,24 @@ static void pause_retry(void) {
 }
 
 int cifemu_chanlock_open(cifemu_chanlock *lock, const char *path) {
-  lock->fd = open(path, LOCK_FILE_FLAGS, 0660);
-  if (lock->fd < 0) return -1;
+  lock->fd = path == NULL ? CIFEMU_CHANLOCK_THREAD : open(path, LOCK_FILE_FLAGS, 0660);
+  if (lock->fd == -1) return -1;
   pthread_mutex_init(&lock->mutex, NULL);
   return 0;
 }
 
 void cifemu_chanlock_close(cifemu_chanlock *lock) {
-  if (lock->fd >= 0) {
-    close(lock->fd);
-    pthread_mutex_destroy(&lock->mutex);
-  }
+  if (lock->fd >= 0) close(lock->fd);
+  if (lock->fd != -1) pthread_mutex_destroy(&lock->mutex);
   lock->fd = -1;
 }
 
 int cifemu_chanlock_reopen(cifemu_chanlock *lock, const char *path) {
   int fd;
-  if (lock->fd < 0) return 0;
+  if (lock->fd == -1) return 0;
   /* The parent's threads do not exist here: a mutex one of them held would stay locked. */
   pthread_mutex_init(&lock->mutex, NULL);
+  if (lock->fd == CIFEMU_CHANLOCK_THREAD) return 0;
   fd = open(path, LOCK_FILE_FLAGS, 0660);
   if (fd < 0) return -1;
   if (fd == lock->fd) return 0;
@@ -84,7 +87,7 @@ int cifemu_chanlock_acquire(cifemu_chanlock *lock, unsigned long timeout_ms) {
   unsigned long long ms = clamp_ms(timeout_ms);
   long long deadline;
   if (pthread_mutex_trylock(&lock->mutex) == 0) { /* the uncontended case, without clocks */
-    if (flock(lock->fd, LOCK_EX | LOCK_NB) == 0) return 1;
+    if (lock->fd == CIFEMU_CHANLOCK_THREAD || flock(lock->fd, LOCK_EX | LOCK_NB) == 0) return 1;
     deadline = cifemu_now_ns() + (long long)ms * 1000000LL;
   } else {
     struct timespec until;
@@ -99,6 +102,7 @@ int cifemu_chanlock_acquire(cifemu_chanlock *lock, unsigned long timeout_ms) {
     }
     if (pthread_mutex_timedlock(&lock->mutex, &until) != 0) return 0;
   }
+  if (lock->fd == CIFEMU_CHANLOCK_THREAD) return 1;
   /* The mutex stays held while the flock is awaited: the flock is the open file
      description's, so a thread without the mutex would get it too. */
   if (flock_until(lock->fd, deadline)) return 1;
@@ -106,14 +110,8 @@ int cifemu_chanlock_acquire(cifemu_chanlock *lock, unsigned long timeout_ms) {
   return 0;
 }
 
-void cifemu_chanlock_take(cifemu_chanlock *lock) {
-  pthread_mutex_lock(&lock->mutex);
-  while (flock(lock->fd, LOCK_EX) != 0 && errno == EINTR) {
-  }
-}
-
 void cifemu_chanlock_release(cifemu_chanlock *lock) {
-  flock(lock->fd, LOCK_UN);
+  if (lock->fd != CIFEMU_CHANLOCK_THREAD) flock(lock->fd, LOCK_UN);
   pthread_mutex_unlock(&lock->mutex);
 }
 
@@ -122,10 +120,13 @@ void cifemu_chanlock_release(cifemu_chanlock *lock) {
 static long long now_ms(void) { return cifemu_now_ns() / 1000000LL; }
 
 /* The ledger as the file holds it: the stale requests, then this process's, ended by a
-   NUL in the same write [ours]. The file is not truncated: whatever follows the NUL is
-   left from a longer ledger, and every reader stops there (dpm/ledger.py). One system
-   call per change instead of two, on every mailbox round trip (issue 22); an empty ledger
-   is not written again. */
+   NUL [ours]. The file is not truncated: whatever follows the NUL is left from a longer
+   ledger, and every reader stops there (dpm/ledger.py); an empty ledger is not written
+   again. Written through the map, without a system call (issue 22), when the change
+   empties it (one byte) or appends lines (a request sent, on every round trip): the new
+   lines and their NUL after their first byte, then that byte over the old NUL, so a host
+   killed meanwhile leaves the ledger as it was or whole. Any other change is one pwrite,
+   which a killed host made whole or not at all. */
 static void ledger_store(cifemu_txn *txn) {
   char text[CIFEMU_LEDGER_MAX * LEDGER_LINE + 1];
   size_t used = 0;
@@ -139,6 +140,17 @@ static void ledger_store(cifemu_txn *txn) {
   }
   if (used == 0 && txn->length == 0) return;
   text[used] = '\0';
+  if (used == 0) {
+    __atomic_store_n(txn->map, (unsigned char)0, __ATOMIC_RELEASE);
+    txn->length = 0;
+    return;
+  }
+  if (used > txn->length && memcmp(txn->map, text, txn->length) == 0) {
+    memcpy(txn->map + txn->length + 1, text + txn->length + 1, used - txn->length);
+    __atomic_store_n(txn->map + txn->length, (unsigned char)text[txn->length], __ATOMIC_RELEASE);
+    txn->length = used;
+    return;
+  }
   if (pwrite(txn->lock.fd, text, used + 1, 0) == (ssize_t)(used + 1)) txn->length = used;
 }
 
@@ -147,15 +159,15 @@ static void ledger_store(cifemu_txn *txn) {
    Malformed lines and requests older than CIFEMU_STALE_MS (or from the future: another
    boot's clock) are dropped. */
 static void ledger_load(cifemu_txn *txn) {
-  char text[CIFEMU_LEDGER_MAX * LEDGER_LINE + 1], *line, *next;
-  ssize_t got = pread(txn->lock.fd, text, sizeof text - 1, 0);
+  char text[LEDGER_BYTES], *line, *next;
+  size_t got = strnlen((const char *)txn->map, sizeof text - 1); /* read through the map */
   long long now = now_ms();
   unsigned dropped = 0;
   txn->n_stale = txn->n_own = 0;
-  txn->length = 0;
-  if (got <= 0) return;
+  memcpy(text, txn->map, got);
   text[got] = '\0';
-  txn->length = strlen(text);
+  txn->length = got;
+  if (got == sizeof text - 1) dropped++; /* no NUL: a file someone else wrote */
   for (line = text; line != NULL && *line != '\0'; line = next) {
     cifemu_request r;
     unsigned nr, b, rx, tx, multi;
@@ -198,16 +210,44 @@ static void txn_reset(cifemu_txn *txn) {
   txn->length = 0;
 }
 
-int cifemu_txn_open(cifemu_txn *txn, const char *path) {
-  txn_reset(txn);
-  return cifemu_chanlock_open(&txn->lock, path);
+/* [ours] The ledger file mapped, grown to LEDGER_BYTES first when shorter (zeros: the
+   ledger's end to every reader): read and written without a pread and two pwrite per
+   mailbox round trip (issue 22), as a Python host does. 0, else -1. */
+static int ledger_map(cifemu_txn *txn) {
+  struct stat st;
+  void *map;
+  if (fstat(txn->lock.fd, &st) != 0 ||
+      (st.st_size < LEDGER_BYTES && ftruncate(txn->lock.fd, LEDGER_BYTES) != 0))
+    return -1;
+  map = mmap(NULL, LEDGER_BYTES, PROT_READ | PROT_WRITE, MAP_SHARED, txn->lock.fd, 0);
+  if (map == MAP_FAILED) return -1;
+  txn->map = (unsigned char *)map;
+  return 0;
 }
 
-void cifemu_txn_close(cifemu_txn *txn) { cifemu_chanlock_close(&txn->lock); }
+static void ledger_unmap(cifemu_txn *txn) {
+  if (txn->map != NULL) munmap(txn->map, LEDGER_BYTES);
+  txn->map = NULL;
+}
+
+int cifemu_txn_open(cifemu_txn *txn, const char *path) {
+  txn_reset(txn);
+  txn->map = NULL;
+  if (cifemu_chanlock_open(&txn->lock, path) != 0) return -1;
+  return ledger_map(txn);
+}
+
+void cifemu_txn_close(cifemu_txn *txn) {
+  ledger_unmap(txn);
+  cifemu_chanlock_close(&txn->lock);
+}
 
 int cifemu_txn_reopen(cifemu_txn *txn, const char *path) {
   txn_reset(txn);
-  return cifemu_chanlock_reopen(&txn->lock, path);
+  if (txn->lock.fd < 0) return 0;
+  if (cifemu_chanlock_reopen(&txn->lock, path) != 0) return -1;
+  ledger_unmap(txn); /* the map of the file now at the path, as the flock's */
+  return ledger_map(txn);
 }
 
 int cifemu_txn_enter(cifemu_txn *txn, unsigned long timeout_ms) {

@@ -8,6 +8,11 @@
  * inside. A caller waits for the channel up to its own timeout, in all; the driver then
  * answers -4.
  *
+ * [ours] A channel lock opened without a path is a thread lock only (the put and get
+ * channels): every put and get is made inside the transaction lock, which one process at
+ * a time holds, so an flock of their own excluded nobody more and cost four system calls
+ * per mailbox round trip (issue 22), as the Python driver's put and get channels.
+ *
  * The transaction lock [ours]: an flock on <dir>/board<N>.transaction.lock that a host
  * process holds from a DevPutMessage until that request is answered, so that another
  * host never reads its answer. The file is the lock's ledger: one line per request whose
@@ -23,12 +28,15 @@
 
 #include <pthread.h>
 
+#define CIFEMU_CHANLOCK_THREAD (-2) /* fd of a thread lock only (opened without a path) */
+
 typedef struct cifemu_chanlock {
   pthread_mutex_t mutex;
-  int fd; /* -1 while not open */
+  int fd; /* -1 while not open, CIFEMU_CHANLOCK_THREAD: no file */
 } cifemu_chanlock;
 
-/* Opens (O_NOFOLLOW: a planted link is refused) or creates the lock file: 0, else -1. */
+/* Opens (O_NOFOLLOW: a planted link is refused) or creates the lock file: 0, else -1.
+   path NULL: a thread lock only, no file. */
 int cifemu_chanlock_open(cifemu_chanlock *lock, const char *path);
 void cifemu_chanlock_close(cifemu_chanlock *lock);
 /* In a forked child: a lock file description of its own at the same descriptor number
@@ -36,8 +44,6 @@ void cifemu_chanlock_close(cifemu_chanlock *lock);
 int cifemu_chanlock_reopen(cifemu_chanlock *lock, const char *path);
 /* 1 when taken within timeout_ms (0: only if free now), else 0. */
 int cifemu_chanlock_acquire(cifemu_chanlock *lock, unsigned long timeout_ms);
-/* Blocks: for locks held only for microseconds (the DevFlags read-modify-write). */
-void cifemu_chanlock_take(cifemu_chanlock *lock);
 void cifemu_chanlock_release(cifemu_chanlock *lock);
 
 long long cifemu_now_ns(void); /* CLOCK_MONOTONIC */
@@ -69,6 +75,7 @@ typedef struct cifemu_txn {
   unsigned n_own, n_stale;
   size_t length; /* the ledger's length up to its end (a NUL or the file's end) as this
                     process last read or wrote it while holding the flock */
+  unsigned char *map; /* the ledger file mapped (chanlock.c ledger_map); NULL: not open */
   cifemu_request own[CIFEMU_LEDGER_MAX];   /* this process's requests awaiting answers */
   cifemu_request stale[CIFEMU_LEDGER_MAX]; /* other processes' requests: discard */
 } cifemu_txn;

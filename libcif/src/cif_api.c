@@ -71,14 +71,19 @@ static int pending(const cifemu_board *b, unsigned char channel) {
   return ((host_flags(b) ^ dev_flags(b)) & channel) != 0;
 }
 
-/* Read-modify-write DevFlags under the flags lock, then ring the device. */
+/* Change DevFlags by one atomic read-modify-write, then ring the device. [ours] Every
+   host process writes DevFlags, Python hosts too: a compare-and-swap on the byte (as
+   host_api/_devflags.c) loses no host's toggle, without the flock round on
+   board<N>.flags.lock (four system calls per mailbox round trip) that guarded it before
+   issue 22. seq_cst: what the host wrote before (a message in DevMbx) is seen first. */
 static void change_dev_flags(cifemu_board *b, unsigned char set, unsigned char clear,
                              unsigned char toggle, int ring) {
-  unsigned char value;
-  cifemu_chanlock_take(&b->flags_lock);
-  value = (unsigned char)(((dev_flags(b) | set) & ~clear & 0xFF) ^ toggle);
-  __atomic_store_n(b->mm + OFS_DEV_FLAGS, value, __ATOMIC_RELEASE);
-  cifemu_chanlock_release(&b->flags_lock);
+  unsigned char *flags = b->mm + OFS_DEV_FLAGS;
+  unsigned char old = __atomic_load_n(flags, __ATOMIC_RELAXED), value;
+  do {
+    value = (unsigned char)(((old | set) & ~clear & 0xFF) ^ toggle);
+  } while (!__atomic_compare_exchange_n(flags, &old, value, 0, __ATOMIC_SEQ_CST,
+                                        __ATOMIC_RELAXED));
   if (ring) cifemu_bell_ring(&b->bell);
 }
 
@@ -346,7 +351,6 @@ static void board_close(cifemu_board *b) {
   cifemu_chanlock_close(&b->put_lock);
   cifemu_chanlock_close(&b->get_lock);
   cifemu_chanlock_close(&b->io_lock);
-  cifemu_chanlock_close(&b->flags_lock);
   cifemu_txn_close(&b->txn);
   munmap(b->mm, DPM_SIZE);
   free(b);
@@ -379,18 +383,11 @@ typedef int (*txn_fn)(cifemu_txn *txn, const char *path);
 
 /* Every lock of board b, in turn, until one fails: 0, else -1. */
 static int each_lock(cifemu_board *b, chanlock_fn channel, txn_fn transaction) {
-  static const char *const names[4] = {"put", "get", "io", "flags"};
-  cifemu_chanlock *locks[4];
   char path[PATH_MAX + 32];
-  int i;
-  locks[0] = &b->put_lock;
-  locks[1] = &b->get_lock;
-  locks[2] = &b->io_lock;
-  locks[3] = &b->flags_lock;
-  for (i = 0; i < 4; i++) {
-    lock_path(path, sizeof path, b->number, names[i]);
-    if (channel(locks[i], path) != 0) return -1;
-  }
+  /* put and get: thread locks only, inside the transaction lock (chanlock.h) */
+  if (channel(&b->put_lock, NULL) != 0 || channel(&b->get_lock, NULL) != 0) return -1;
+  lock_path(path, sizeof path, b->number, "io");
+  if (channel(&b->io_lock, path) != 0) return -1;
   lock_path(path, sizeof path, b->number, "transaction");
   return transaction(&b->txn, path);
 }
@@ -590,7 +587,7 @@ CIF_API short DevInitBoard(unsigned short usDevNumber) {
   }
   b = (cifemu_board *)calloc(1, sizeof *b);
   if (b != NULL) { /* nothing open yet: closing it must not close descriptor 0 */
-    b->bell.fd = b->put_lock.fd = b->get_lock.fd = b->io_lock.fd = b->flags_lock.fd = -1;
+    b->bell.fd = b->put_lock.fd = b->get_lock.fd = b->io_lock.fd = -1;
     b->txn.lock.fd = -1;
     b->number = usDevNumber;
     memcpy(b->firmware_lock, firmware_lock, sizeof firmware_lock);

@@ -21,7 +21,8 @@ typedef struct cifemu_board {
   unsigned short number;
   unsigned char *mm; /* the map; flag bytes are read through flag_get (volatile) */
   cifemu_bell bell;
-  cifemu_chanlock put_lock, get_lock, io_lock, flags_lock;
+  /* put and get: thread locks only, inside the transaction lock (chanlock.h) */
+  cifemu_chanlock put_lock, get_lock, io_lock;
   cifemu_counters *counters;
   /* [ours] The spin's back-off (wait_for_ringing), shared by the board's threads (a race
      costs one watch more or less): watches in a row that the answer outlasted, and the

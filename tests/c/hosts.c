@@ -6,8 +6,9 @@
  *
  * Usage: CIF_DPM_DIR=<dir> hosts MODE ARGS
  *   threads GETTERS COUNT   one thread puts COUNT requests while GETTERS threads read the
- *                           answers, and another open file description of the get and put
- *                           locks takes their flocks again and again (another host);
+ *                           answers, and another open file description of the
+ *                           transaction lock takes its flock again and again (another
+ *                           host; the put and get channels are thread locks inside it);
  *                           every answer must be read exactly once
  *   pairs THREADS COUNT BASE  THREADS threads each pair COUNT raw put/get calls (tags BASE
  *                           + thread * COUNT + i); the process must read each of its
@@ -39,7 +40,7 @@
 #include <string.h>
 #include <sys/file.h>
 #include <sys/stat.h>
-#include <sys/sysmacros.h>
+#include <sys/syscall.h>
 #include <sys/wait.h>
 #include <time.h>
 #include <unistd.h>
@@ -128,31 +129,27 @@ static void *getter(void *unused) {
   return NULL;
 }
 
-/* Another host on the same channels: the flocks taken through descriptions of its own. */
+/* Another host on the same board: the transaction lock's flock taken through a description
+   of its own, whenever this host's calls let it go (no answer awaited). */
 static void *contender(void *unused) {
   char path[4096];
-  const char *dir = getenv("CIF_DPM_DIR");
   struct timespec hold = {0, 300000};
-  int get_fd, put_fd;
+  int fd;
   (void)unused;
-  snprintf(path, sizeof path, "%s/board0.get.lock", dir);
-  get_fd = open(path, O_RDWR | O_CLOEXEC);
-  snprintf(path, sizeof path, "%s/board0.put.lock", dir);
-  put_fd = open(path, O_RDWR | O_CLOEXEC);
-  if (get_fd < 0 || put_fd < 0) {
+  snprintf(path, sizeof path, "%s/board0.transaction.lock", getenv("CIF_DPM_DIR"));
+  fd = open(path, O_RDWR | O_CLOEXEC);
+  if (fd < 0) {
     fail("contender: open", 0, errno);
     return NULL;
   }
-  while (!__atomic_load_n(&done, __ATOMIC_RELAXED)) { /* one at a time, as a host does */
-    flock(get_fd, LOCK_EX);
+  while (!__atomic_load_n(&done, __ATOMIC_RELAXED)) {
+    if (flock(fd, LOCK_EX | LOCK_NB) == 0) {
+      nanosleep(&hold, NULL);
+      flock(fd, LOCK_UN);
+    }
     nanosleep(&hold, NULL);
-    flock(get_fd, LOCK_UN);
-    flock(put_fd, LOCK_EX);
-    nanosleep(&hold, NULL);
-    flock(put_fd, LOCK_UN);
   }
-  close(get_fd);
-  close(put_fd);
+  close(fd);
   return NULL;
 }
 
@@ -310,29 +307,29 @@ static short waiter_rc;
 static long waiter_tag;
 static unsigned waiter_done;
 
+static long waiter_tid;
+
 static void *waiter(void *unused) {
   (void)unused;
+  __atomic_store_n(&waiter_tid, (long)syscall(SYS_gettid), __ATOMIC_RELEASE);
   waiter_tag = get_tagged(waiter_timeout, &waiter_rc);
   __atomic_store_n(&waiter_done, 1u, __ATOMIC_RELEASE);
   return NULL;
 }
 
-/* Whether this process holds the flock of board 0's get channel: a DevGetMessage is
-   inside its wait (it takes the flock before it waits, and keeps it). */
+/* Whether the waiter sleeps in its DevGetMessage's wait: on the bell, in poll (syscall 7,
+   or ppoll, 271, as /proc/self/task/TID/syscall says). The get channel is a thread lock
+   inside the transaction lock, which a put before holds already: no file lock tells. */
 static int inside_get(void) {
-  char path[4096], line[256], want[96];
-  struct stat st;
-  FILE *locks;
-  int found = 0;
-  snprintf(path, sizeof path, "%s/board0.get.lock", getenv("CIF_DPM_DIR"));
-  if (stat(path, &st) != 0 || (locks = fopen("/proc/locks", "r")) == NULL) return 0;
-  snprintf(want, sizeof want, " %ld %02x:%02x:%lu ", (long)getpid(), major(st.st_dev),
-           minor(st.st_dev), (unsigned long)st.st_ino);
-  while (!found && fgets(line, sizeof line, locks) != NULL)
-    found = strstr(line, "FLOCK") != NULL && strstr(line, "->") == NULL &&
-            strstr(line, want) != NULL;
-  fclose(locks);
-  return found;
+  char path[64];
+  long tid = __atomic_load_n(&waiter_tid, __ATOMIC_ACQUIRE), call = -1;
+  FILE *f;
+  if (tid == 0) return 0;
+  snprintf(path, sizeof path, "/proc/self/task/%ld/syscall", tid);
+  if ((f = fopen(path, "r")) == NULL) return 0;
+  if (fscanf(f, "%ld", &call) != 1) call = -1;
+  fclose(f);
+  return call == 7 || call == 271;
 }
 
 /* Whether board 0's image is mapped into this process. */

@@ -22,8 +22,8 @@
  *       (so no call starts with the preload's check of its descriptors), the program
  *       closes the transaction ledger's descriptor with a raw system call and its own
  *       SCRATCH lands on that number (dup3 by system call). Its PUTMSG then writes the
- *       ledger (libcif/src/chanlock.c: pwrite) and A reads the answer (the
- *       ledger again). SCRATCH must stay as it was, and the card must go on working.
+ *       ledger (libcif/src/chanlock.c: through its map; a rewrite is a pwrite) and A
+ *       reads the answer (the ledger again). SCRATCH must stay as it was, and the card must go on working.
  *
  * Prints one "name=value" line per step; tests/test_legacy.py compares them.
  */
@@ -364,7 +364,7 @@ static int flocked_here(const char *path) {
 
 static int close_ledger(const char *scratch) {
   unsigned char original[4096], now[4096];
-  char get_lock[4096], ledger_path[4096];
+  char txn_lock[4096], ledger_path[4096];
   int original_size, ledger, scratch_fd, moved = -1, inside = 0;
   struct stat scratch_st;
   pthread_t thread;
@@ -378,10 +378,11 @@ static int close_ledger(const char *scratch) {
   SHOW("round_trip", round_trip(device));
   /* A waits in GETMSG until the answer to the PUTMSG below comes */
   waiter_timeout = 20000;
-  if (find_fd("/board0.get.lock", get_lock, sizeof get_lock) < 0) return 1;
+  /* the round trip above let the transaction lock go: the waiter's GETMSG takes it */
+  if (find_fd("/board0.transaction.lock", txn_lock, sizeof txn_lock) < 0) return 1;
   if (pthread_create(&thread, NULL, waiter, NULL) != 0) return 1;
   deadline = now_ms() + 10000;
-  while (now_ms() < deadline && !(inside = flocked_here(get_lock))) sched_yield();
+  while (now_ms() < deadline && !(inside = flocked_here(txn_lock))) sched_yield();
   SHOW("waiter_inside", inside);
 
   ledger = find_fd("/board0.transaction.lock", ledger_path, sizeof ledger_path);
