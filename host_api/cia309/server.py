@@ -1100,10 +1100,12 @@ class WakeClockLoop(asyncio.SelectorEventLoop):
     answer, six readings per 309-3 read. Under User-Mode Linux each is a system call (no
     vDSO), a ptrace round trip of the host (issue 22). Here the reading after the wait
     serves the callbacks that run on that wake-up and the time-out of the next wait: a
-    timer is late by at most what the callbacks of one turn ran (the loop's callbacks do
-    not block: the gateway's blocking calls run in worker threads), and a callback that
-    loops over many lines (a client's task with pipelined requests) reads the clock anew
-    for each (``fresh_time``), so no timer is set from a reading older than one line."""
+    timer set by a callback counts from the wake-up (early by what ran before it in that
+    turn), and the next wait is long by what the turn's callbacks ran. Both are short: the
+    loop's callbacks do not block (the gateway's blocking calls run in worker threads), and
+    a callback that loops over many lines (a client's task with pipelined requests) reads
+    the clock anew for each (``fresh_time``), so no timer is set from a reading older than
+    one line."""
 
     def __init__(self) -> None:
         self._wake_selector = _WakeSelector()
