@@ -24,7 +24,9 @@ the gateway below it.
 from __future__ import annotations
 
 import argparse
+import os
 import socket
+import threading
 from typing import Any
 
 from bench.can import configure, in_process, network_toml, sdo_client, simulated_card, start_all
@@ -40,10 +42,12 @@ from bench.common import (
     ratio,
     source_fingerprint,
 )
+from bench.cpu import thread_cpu_ns
 from dbm_tools.network import parse_network
 from host_api.cia309.gateway import Gateway
 from host_api.cia309.model import Cia309Error
 from host_api.cia309.server import BackgroundServer, ServerConfig
+from host_api.ready import stat_cpu_ns
 
 NAME = "cia309"
 DEFAULT_COUNT = 2_000
@@ -100,8 +104,10 @@ def measure_baseline(count: int, warmup: int) -> Measured:
         return measure(upload, count, warmup, frozenset({0}))
 
 
-def measure_card(count: int, warmup: int) -> tuple[Measured, Measured, Measured]:
-    """(gateway, tcp, tcp empty line) against one card."""
+def measure_card(count: int, warmup: int
+                 ) -> tuple[Measured, Measured, Measured, dict[str, float]]:
+    """(gateway, tcp, tcp empty line, CPU per TCP read) against one card: the server's
+    event-loop thread (which serves a read whole, issue 22) and the card's process."""
     description = network_toml([NODE])
     with simulated_card(description) as card:
         configure(card, parse_network(description))
@@ -121,13 +127,33 @@ def measure_card(count: int, warmup: int) -> tuple[Measured, Measured, Measured]
             client = _LineClient(server.port)
             try:
                 progress("timing the 309-3 TCP server")
+                loop_thread = _server_thread()
+                before = _cpu_ns(loop_thread, card.proc.pid)
                 tcp = measure(client.read, count, warmup, frozenset({0}))
+                after = _cpu_ns(loop_thread, card.proc.pid)
+                calls = warmup + 2 * count
+                cpu_us = {
+                    "server_loop_cpu_us_per_read": round((after[0] - before[0]) / calls / 1e3, 1),
+                    "card_cpu_us_per_read": round((after[1] - before[1]) / calls / 1e3, 1)}
                 progress("timing the 309-3 TCP server's empty line (no gateway)")
                 empty = measure(client.empty, count, warmup, frozenset({0}))
             finally:
                 client.close()
                 server.close()
-    return direct, tcp, empty
+    return direct, tcp, empty, cpu_us
+
+
+def _server_thread() -> int:
+    """The kernel's id of the server's event-loop thread (``BackgroundServer``'s)."""
+    for thread in threading.enumerate():
+        if thread.name == "cia309-server" and thread.native_id is not None:
+            return thread.native_id
+    raise RuntimeError("no cia309-server thread")
+
+
+def _cpu_ns(thread: int, card_pid: int) -> tuple[int, int]:
+    """CPU nanoseconds so far of the server's loop thread and of the card's process."""
+    return thread_cpu_ns(os.getpid()).get(thread, 0), stat_cpu_ns(card_pid)
 
 
 def run(count: int | None = None, warmup: int | None = None) -> dict[str, Any]:
@@ -135,7 +161,7 @@ def run(count: int | None = None, warmup: int | None = None) -> dict[str, Any]:
     warmup = DEFAULT_WARMUP if warmup is None else warmup
     progress("timing python canopen straight on the bus (baseline)")
     baseline = measure_baseline(count, warmup)
-    direct, tcp, empty = measure_card(count, warmup)
+    direct, tcp, empty, cpu_us = measure_card(count, warmup)
     rates = {name: m.per_second for name, m in
              (("tcp", tcp), ("gateway", direct), ("baseline", baseline), ("empty", empty))}
     floor_us = 1e6 / rates["empty"] + 1e6 / rates["gateway"]
@@ -144,7 +170,7 @@ def run(count: int | None = None, warmup: int | None = None) -> dict[str, Any]:
         "what": "expedited SDO upload of 1000h from a simulated generic node, round trips",
         "count": count,
         "warmup": warmup,
-        "tcp_309_3": tcp.summary("round_trips_per_s"),
+        "tcp_309_3": {**tcp.summary("round_trips_per_s"), **cpu_us},
         "gateway": direct.summary("round_trips_per_s"),
         "baseline_canopen": baseline.summary("round_trips_per_s"),
         "tcp_empty_line": empty.summary("round_trips_per_s"),

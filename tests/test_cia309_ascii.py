@@ -57,7 +57,7 @@ from host_api.cia309.model import (
     SdoProgressEvent,
     VersionInfo,
 )
-from host_api.cia309.parser import parse_request
+from host_api.cia309.parser import _parse_stripped, _plain_read, parse_request
 from host_api.cia309.requests import (
     ConfigureRpdo,
     ConfigureTpdo,
@@ -702,6 +702,50 @@ def test_parser_on_near_miss_requests(words: list[str], dialect: Dialect) -> Non
         assert error.sequence == 1
     else:
         assert request is None or request.sequence == 1
+
+
+READ_NUMBERS = ["0", "1", "4", "9", "01", "010", "08", "127", "128", "255", "256", "4119",
+                "65535", "65536", "99999", "0x0", "0x1", "0X1", "0x1017", "0xFFFF", "0xffff",
+                "0x10000", "0x00001", "-1", "+1", "999999999", "4294967295", "4294967296"]
+READ_WORDS = ["r", "read", "R", "Read", "rd", "u32", "U32", "x8", "hex", "i16", "vs", "r64",
+              "u", "p", "#", '"a"']
+
+
+@settings(max_examples=EXAMPLES * 10, deadline=None)
+@given(st.lists(st.sampled_from(READ_NUMBERS), min_size=1, max_size=3),
+       st.lists(st.sampled_from(READ_NUMBERS + READ_WORDS), max_size=4),
+       st.sampled_from(READ_NUMBERS), st.sampled_from(["r", "read", "R", "w"]),
+       st.sampled_from([" ", "  ", "\t", ""]), st.sampled_from(DIALECTS))
+def test_plain_reads_parse_as_the_general_parser_parses_them(
+        head: list[str], tail: list[str], sequence: str, command: str, space: str,
+        dialect: Dialect) -> None:
+    """Issue 22: the server's shortcut for the plain read (``_plain_read``) makes exactly
+    the request the general parser makes of the same line, or leaves the line to it; lines
+    near the plain form (other spellings of numbers, ranges, case, spaces, extra words)."""
+    words = [f"[{sequence}]", *head[:-1], head[-1], command, *tail]
+    line = space.join(words) if space else " ".join(words).replace(" ", "", 1)
+    try:
+        general: Request | ParseError | None = _parse_stripped(line.strip(), dialect)
+    except ParseError as error:
+        general = error
+    plain = _plain_read(line.strip())
+    if plain is not None:
+        assert plain == general
+    try:
+        assert parse_request(line, dialect) == general
+    except ParseError as error:
+        assert isinstance(general, ParseError)
+        assert (error.error, error.sequence) == (general.error, general.sequence)
+
+
+def test_plain_reads_take_the_shortcut() -> None:
+    """The reads 309-3 clients send take the shortcut, and come out as the general parser
+    reads them."""
+    for line in ("[1] 4 read 0x1000 0 u32", "[23] 2 5 r 0x1017 0 u16", "[0] 127 r 0 255",
+                 "[999999999] 1 read 65535 0x1 hex"):
+        plain = _plain_read(line)
+        assert plain is not None
+        assert plain == _parse_stripped(line, Dialect.CANOPENNODE)
 
 
 # --------------------------------------------------------------------------- answers

@@ -249,6 +249,38 @@ def test_a_client_waiting_for_each_answer_costs_two_loop_turns_per_read(
     assert turns <= 2.25 * reads, f"{turns / reads:.2f} turns of the event loop per read"
 
 
+def test_a_read_reads_the_event_loops_clock_once_per_turn(
+        servers: dict[str, BackgroundServer], connect: Connect,
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """The server's event loop reads the clock once per turn, after its wait (two readings
+    per read), not six times (asyncio before and after each wait, the fast path at the
+    line and at the answer): under User-Mode Linux each reading is a system call, a ptrace
+    round trip of the host (issue 22). Counted are the readings the loop's thread makes
+    for the loop's time; the clock itself is the real one."""
+    server = servers["canopennode"]
+    client = connect("canopennode")
+    assert client.ask("[1] 1 read 0x1000 0 u32\n") == "[1] 983441\r\n"  # connected, warm
+    loop = server.server._loop
+    assert loop is not None
+    loop_thread = server._thread.ident
+    clock = time.monotonic
+    readings = 0
+
+    def counting() -> float:
+        nonlocal readings
+        caller = sys._getframe(1).f_code.co_name
+        if threading.get_ident() == loop_thread and caller in ("time", "fresh_time"):
+            readings += 1
+        return clock()
+
+    reads = 200
+    monkeypatch.setattr(time, "monotonic", counting)
+    for n in range(2, reads + 2):
+        assert client.ask(f"[{n}] 1 read 0x1000 0 u32\n") == f"[{n}] 983441\r\n"
+    monkeypatch.undo()
+    assert readings <= 2.25 * reads, f"{readings / reads:.2f} clock readings per read"
+
+
 def test_a_read_the_card_answers_too_late_is_a_time_out_and_the_next_is_served(
         connect: Connect) -> None:
     """The client's command time-out bounds a read answered without its task (the fast

@@ -54,6 +54,7 @@ from host_api.cia309.server import (
     LssServices,
     Server,
     ServerConfig,
+    new_event_loop,
     serve,
 )
 
@@ -251,8 +252,9 @@ def _serve(args: argparse.Namespace) -> int:
     config = ServerConfig(args.host, args.port, args.dialect, args.read_only,
                           args.max_clients, args.max_line, args.idle_timeout,
                           args.line_timeout, args.max_output)
-    with Gateway(_boards(args), args.dpm_dir) as gateway:
-        asyncio.run(_serve_until_signal(gateway, config, open_lss(gateway)))
+    with Gateway(_boards(args), args.dpm_dir) as gateway, \
+            asyncio.Runner(loop_factory=new_event_loop) as runner:
+        runner.run(_serve_until_signal(gateway, config, open_lss(gateway)))
     return 0
 
 

@@ -57,10 +57,12 @@ import asyncio
 import contextlib
 import fcntl
 import logging
+import selectors
 import socket
 import sys
 import termios
 import threading
+import time
 from collections import deque
 from collections.abc import Callable, Iterable
 from concurrent.futures import ThreadPoolExecutor
@@ -721,6 +723,8 @@ class Server:
         if writer.is_closing():
             return
         writer.write(data)
+        if not _waiting(writer.transport):
+            return  # all sent at once: the output waiting did not grow, nothing to count
         while (total := self._output()) > self.config.max_output:
             largest = max((other.writer.transport for other in self._connections),
                           key=_waiting, default=None)
@@ -883,7 +887,7 @@ class Server:
                         answer = await self._answer(client, line)
                     finally:
                         connection.serving = False
-                    connection.last_active = loop.time()
+                    connection.last_active = _fresh_time(loop)
                     connection.answered = True
                     if writer.is_closing():
                         break
@@ -1076,6 +1080,62 @@ class Server:
         await connection.settled
 
 
+class _WakeSelector(selectors.DefaultSelector):
+    """The platform's selector, noting each return from its wait for ``WakeClockLoop``."""
+
+    woke = True
+
+    def select(self, timeout: float | None = None) -> list[tuple[selectors.SelectorKey, int]]:
+        ready = super().select(timeout)
+        self.woke = True
+        return ready
+
+
+class WakeClockLoop(asyncio.SelectorEventLoop):
+    """An event loop that reads the clock once per wake-up: ``time`` is the clock's reading
+    after the last return from the selector's wait, read when first asked after it.
+
+    Why: asyncio reads the clock before each wait (the time-out to the next timer) and
+    after it (which timers are due), and the server once per request and once per
+    answer, six readings per 309-3 read. Under User-Mode Linux each is a system call (no
+    vDSO), a ptrace round trip of the host (issue 22). Here the reading after the wait
+    serves the callbacks that run on that wake-up and the time-out of the next wait: a
+    timer set by a callback counts from the wake-up (early by what ran before it in that
+    turn), and the next wait is long by what the turn's callbacks ran. Both are short: the
+    loop's callbacks do not block (the gateway's blocking calls run in worker threads), and
+    a callback that loops over many lines (a client's task with pipelined requests) reads
+    the clock anew for each (``fresh_time``), so no timer is set from a reading older than
+    one line."""
+
+    def __init__(self) -> None:
+        self._wake_selector = _WakeSelector()
+        super().__init__(self._wake_selector)
+        self._wake_time = time.monotonic()
+
+    def time(self) -> float:
+        selector = self._wake_selector
+        if selector.woke:
+            selector.woke = False
+            self._wake_time = time.monotonic()
+        return self._wake_time
+
+    def fresh_time(self) -> float:
+        """The clock read now; ``time`` returns this reading until the next wake-up."""
+        self._wake_selector.woke = False
+        self._wake_time = time.monotonic()
+        return self._wake_time
+
+
+def _fresh_time(loop: asyncio.AbstractEventLoop) -> float:
+    """The loop's time read now: on a ``WakeClockLoop`` not the reading of its wake-up."""
+    return loop.fresh_time() if isinstance(loop, WakeClockLoop) else loop.time()
+
+
+def new_event_loop() -> asyncio.AbstractEventLoop:
+    """The event loop a server runs on (``WakeClockLoop``), for ``asyncio.Runner``."""
+    return WakeClockLoop()
+
+
 def _nothing() -> None:
     pass
 
@@ -1113,7 +1173,7 @@ class BackgroundServer:
 
     def __init__(self, gateway: Gateway, config: ServerConfig,
                  lss: LssFactory | None = None) -> None:
-        self._loop = asyncio.new_event_loop()
+        self._loop = new_event_loop()
         self._thread = threading.Thread(target=self._loop.run_forever, daemon=True,
                                         name="cia309-server")
         self._thread.start()
