@@ -651,6 +651,23 @@ def test_bus_errors_are_counted(make_net: Callable[..., Net], kind: str, counter
     assert struct.unpack_from("<H", image, counter)[0] == 0 and not image[0x1F40] & bit
 
 
+def test_simulated_nodes_power_on_once_the_card_listens(tmp_path: Path) -> None:
+    """``cifemu firmware --simulate``: the nodes power on once the card's controller is on
+    the bus, so the card hears what they send from power-on. They powered on first, and the
+    error frames of test_bus_errors_are_counted[virtual-warning], 0.2 s after power-on, were
+    lost when the card's own start took longer (a run at load 24)."""
+    network = tmp_path / "network.toml"
+    network.write_text("[[node]]\nid = 1\n[node.sim]\n"
+                       "bus_errors = { after_s = 0.0, count = 3, kind = \"warning\" }\n")
+    card = start_card(tmp_path, 0, "--simulate", str(network))
+    try:
+        image = card.map()
+        wait_until(lambda: struct.unpack_from("<H", image, 0x1F44)[0] == 3, 5,
+                   "the 3 warning errors node 1 sent at power-on")
+    finally:
+        card.stop()
+
+
 def test_a_controller_receive_overflow_counts_into_rx_overflow(
         make_net: Callable[..., Net]) -> None:
     """SocketCAN reports a receive FIFO overflow as a controller error frame (no count)."""
