@@ -203,8 +203,13 @@ class Device:
 
     # --- life cycle -----------------------------------------------------------------
 
-    def run(self) -> None:
-        """Power on (a cold start), then serve the image until ``stop``."""
+    def run(self, started: Callable[[], None] | None = None) -> None:
+        """Power on (a cold start), then serve the image until ``stop``.
+
+        ``started`` is called once the card serves (READY), before the first turn: what must
+        only begin once the controller is on the bus (``--simulate``'s nodes, whose power-on
+        frames the controller must hear), and no sooner.
+        """
         self._loop_thread = threading.get_ident()
         try:
             self.faults.start()
@@ -213,6 +218,8 @@ class Device:
             self._record_socket = RecordSocket(self)  # before READY: a host may attach then
             self.rcs.start(Start.COLD)
             self._flush()
+            if started is not None:
+                started()
             poll = AdaptivePoll()
             self.can.master.notice_host()  # what the start set up is no host's change
             host_seen = self._host_bytes()

@@ -69,17 +69,38 @@ def test_the_tap_shows_a_configuration_decoded_on_the_virtual_bus(tmp_path: Path
 
 
 def test_filters_by_node_and_type_and_shows_the_emcy_meaning(tmp_path: Path) -> None:
-    card = start_card(tmp_path, 0, "--simulate", str(DEMO), "--configure")
+    """Node 4 sends its EMCY burst once, 5 s after its start: the monitor listens before the
+    network is configured (its first line, node 4's heartbeat, says so). Started after the
+    card's own configuration, the monitor came up after the burst on a loaded machine (load
+    24: no EMCY in its 20 s)."""
+    card = start_card(tmp_path, 0, "--simulate", str(DEMO))
     try:
-        seen = records(monitor("--dpm-dir", str(tmp_path), "--json", "--node", "4",
-                               "--type", "emcy", "--count", "2", "--duration", "20"))
+        watching = monitor("--dpm-dir", str(tmp_path), "--json", "--node", "4", "--type", "emcy",
+                           "--type", "heartbeat", "--duration", "120")
+        lines: list[str] = []
+        reader = threading.Thread(target=lambda: lines.extend(iter(watching.stdout.readline,
+                                                                   "")), daemon=True)
+        reader.start()
+        wait_until(lambda: lines, 30, "node 4's first heartbeat in the monitor")
+        configured = subprocess.run([sys.executable, "-m", "cifemu", "configure", str(DEMO),
+                                     "--dpm-dir", str(tmp_path)], capture_output=True,
+                                    timeout=60, cwd=ROOT)
+        assert configured.returncode == 0, configured.stderr
+        wait_until(lambda: sum('"emcy"' in line for line in list(lines)) >= 2, 30,
+                   "two of node 4's EMCYs in the monitor")
+        watching.send_signal(signal.SIGINT)
+        watching.wait(timeout=30)
+        reader.join(timeout=30)
+        assert watching.returncode == 0, watching.stderr.read()
         guarding = records(monitor("--dpm-dir", str(tmp_path), "--json", "--node", "3",
                                    "--count", "4", "--duration", "10"))
     finally:
         card.stop()
-    assert len(seen) == 2
-    assert all(r["kind"] == "emcy" and r["node"] == 4 for r in seen)
-    assert "4210h Temperature: device temperature" in str(seen[0]["text"])
+    seen = [json.loads(line) for line in lines]
+    assert {r["node"] for r in seen} == {4}
+    assert {r["kind"] for r in seen} == {"heartbeat", "emcy"}
+    emcys = [r for r in seen if r["kind"] == "emcy"]
+    assert "4210h Temperature: device temperature" in str(emcys[0]["text"])
     assert {r["node"] for r in guarding} == {3}
     assert {r["kind"] for r in guarding} <= {"guarding", "heartbeat", "sdo", "pdo"}
 

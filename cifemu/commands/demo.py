@@ -28,7 +28,6 @@ from cifemu.commands.configure import configure
 from dbm_tools.builder import BuildError, build_dbm
 from dbm_tools.container import write_dbm
 from dbm_tools.network import Network, NetworkError, load_network
-from dpm.flags import READY
 from dpm.image import (
     DEFAULT_DPM_DIR,
     MAX_DEV_BOARDS,
@@ -37,7 +36,6 @@ from dpm.image import (
     dpm_dir,
     image_path,
 )
-from dpm.layout import HOST_FLAGS
 from host_api import driver as d
 from host_api import status as status_cli
 from host_api.board import Board, CifError
@@ -46,21 +44,17 @@ from host_api.driver import COLDSTART
 from host_api.liveness import firmware_liveness
 from host_api.network_view import network_view, remember_network
 from host_api.online import ConfigurationError
+from host_api.ready import StartError, wait_ready
 from host_api.top.app import TopApp
 from host_api.top.feed import CardFeed
 from host_api.top.model import CardModel
 from host_api.top.render import natural_width, nodes_table
 
 EXAMPLE_NETWORK = Path(__file__).parents[1] / "examples" / "demo.toml"
-START_TIMEOUT_S = 15.0
 NETWORK_WAIT_S = 10.0
 FIRST_TABLE_S = 1.5
 """How long the demo listens before its first node table off a terminal: one heartbeat
 of each of the example's nodes (1 s)."""
-
-
-def _ready(image: bytes | None) -> bool:
-    return image is not None and bool(image[HOST_FLAGS] & READY)
 
 
 def _board_files(directory: Path, board: int) -> set[Path]:
@@ -147,7 +141,11 @@ def run(args: argparse.Namespace) -> int:
             return 0
         finally:
             card.terminate()
-            card.wait(timeout=10)
+            try:
+                card.wait(timeout=10)
+            except subprocess.TimeoutExpired:  # stopped (SIGSTOP) or hung: not left behind
+                card.kill()
+                card.wait()
             for path in _board_files(directory, args.board) - before:
                 path.unlink(missing_ok=True)
             if created_dir and not any(directory.iterdir()):
@@ -158,12 +156,11 @@ def _show(args: argparse.Namespace, directory: Path, network_path: Path, network
           card: subprocess.Popen[bytes]) -> int:
     console = Console()
     board_no = args.board
-    deadline = time.monotonic() + START_TIMEOUT_S
-    while not _ready(status_cli.read_image(board_no, str(directory))):
-        if card.poll() is not None or time.monotonic() > deadline:
-            print("cifemu demo: the firmware did not start", file=sys.stderr)
-            return 1
-        time.sleep(0.05)
+    try:  # for as long as its start advances: a loaded machine takes 10-20 s of wall time
+        wait_ready(card, directory, board_no)
+    except StartError as exc:
+        print(f"cifemu demo: the firmware did not start: {exc}", file=sys.stderr)
+        return 1
     try:
         with Board(board_no, directory) as board:
             if args.from_dbm:

@@ -157,8 +157,6 @@ def _serve(args: argparse.Namespace, network: Network | None, configure_path: Pa
     if recorder is not None:
         recorder.start(device.files, device.mm, device.plc.image.outputs)
         device.record(recorder)
-    if simulation is not None:
-        simulation.start()
 
     def on_signal(signum: int, frame: FrameType | None) -> None:
         del signum, frame
@@ -173,8 +171,8 @@ def _serve(args: argparse.Namespace, network: Network | None, configure_path: Pa
 
         configuring = OnlineConfiguration(device, configure_path)
         configuring.start()
-    try:
-        device.run()
+    try:  # the nodes power on once the card's controller listens, not before
+        device.run(started=simulation.start if simulation is not None else None)
     except INTERFACE_ERRORS as exc:
         if device.can.master.bus is not None:
             raise  # the controller was up: not an interface error

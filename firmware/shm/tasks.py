@@ -14,6 +14,7 @@ import json
 import subprocess
 import sys
 import threading
+import time
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -24,8 +25,12 @@ from can.broadcastmanager import (
     RestartableCyclicTaskABC,
 )
 
-START_TIMEOUT_S = 10.0
-"""How long ``start`` waits for the timer process to open its station (an interpreter start)."""
+START_STALL_S = 10.0
+"""How long ``start`` waits for the timer process to open its station while the process gets
+no CPU time (stuck or stopped). Not a bound on wall time: on a loaded machine an interpreter
+start took over 10 s of it (a run at load 24), for the same CPU time."""
+START_CPU_S = 10.0
+"""CPU seconds the timer process may spend before it is ready (its start costs a few tenths)."""
 
 
 def encode_frames(messages: Sequence[can.Message]) -> str:
@@ -133,7 +138,7 @@ class ShmCyclicSendTask(LimitedDurationCyclicSendTaskABC, ModifiableCyclicTaskAB
             process.kill()
             _reap(process)
             raise can.CanOperationError(f"shm timer process did not start: {exc}") from exc
-        ready = _read_line(process, START_TIMEOUT_S)
+        ready = _read_line(process)
         if not ready.startswith("ready "):
             process.kill()
             _reap(process)
@@ -169,8 +174,18 @@ class ShmCyclicSendTask(LimitedDurationCyclicSendTaskABC, ModifiableCyclicTaskAB
             _reap(process)
 
 
-def _read_line(process: subprocess.Popen[str], timeout: float) -> str:
-    """The child's first line, or "" when it does not come within ``timeout``."""
+def _cpu_s(pid: int) -> float | None:
+    """CPU seconds process ``pid`` has run (/proc/PID/schedstat's first field); None once
+    it is gone."""
+    try:
+        return int(Path(f"/proc/{pid}/schedstat").read_text().split()[0]) / 1e9
+    except (OSError, ValueError, IndexError):
+        return None
+
+
+def _read_line(process: subprocess.Popen[str]) -> str:
+    """The child's first line, or "" when it ends first or its start stops advancing: no CPU
+    time for ``START_STALL_S``, or ``START_CPU_S`` of it spent."""
     stdout = process.stdout
     assert stdout is not None
     lines: list[str] = []
@@ -180,5 +195,17 @@ def _read_line(process: subprocess.Popen[str], timeout: float) -> str:
 
     reader = threading.Thread(target=read, daemon=True)
     reader.start()
-    reader.join(timeout)
+    cpu = _cpu_s(process.pid) or 0.0
+    advanced = time.monotonic()
+    while True:
+        reader.join(0.1)
+        if not reader.is_alive():
+            break
+        now_cpu = _cpu_s(process.pid)
+        if now_cpu is None or now_cpu > START_CPU_S:
+            break
+        if now_cpu > cpu:
+            cpu, advanced = now_cpu, time.monotonic()
+        elif time.monotonic() - advanced > START_STALL_S:
+            break
     return lines[0].strip() if lines else ""
