@@ -33,7 +33,7 @@ from firmware.can.bus import CanBus
 from firmware.can.emcy import EmcyConsumer
 from firmware.can.pdo import NodePdos, PdoLink
 from firmware.can.sdo import SdoChannel, SdoChannels
-from firmware.can.supervision import ErrorControl
+from firmware.can.supervision import ErrorControl, HeartbeatWatch
 
 log = logging.getLogger(__name__)
 
@@ -83,6 +83,10 @@ class Network(BootLink, PdoLink, Protocol):
 
     @property
     def sdo(self) -> SdoChannels: ...
+
+    @property
+    def heartbeats(self) -> HeartbeatWatch:
+        """Where the heartbeat consumers' deadlines go for the receive thread to keep."""
 
     def reschedule(self, handler: NodeHandler | None = None) -> None:
         """``handler``'s state changed (None: the network's): the master supervises it
@@ -140,7 +144,7 @@ class NodeHandler:
         self._retry_at = 0.0
         self._generation = 0
         """Bumped on every (re)boot so a stale boot thread gives up."""
-        self.control = ErrorControl(params, network.bus_send)
+        self.control = ErrorControl(params, network.bus_send, network.heartbeats)
         self.boot = BootSequence(address, params, self.diag, network, self.control)
         self.emcy = EmcyConsumer(self.diag, params.usCobIDEmcy,
                                  lambda: events.set_node_diag(address, True))
@@ -164,6 +168,7 @@ class NodeHandler:
         if bus is None:
             return
         bus.unsubscribe(ERROR_CONTROL_BASE + self.address, self._on_error_control)
+        self.control.unwatch()
         self.boot.detach(bus)
         bus.unsubscribe(self.params.usCobIDGuard, self._on_error_control)
         self.emcy.detach(bus)
@@ -395,19 +400,21 @@ class NodeHandler:
         if event:
             self.fail(event)
 
-    def next_due(self) -> float:
+    def next_due(self, timed: bool = False) -> float:
         """When ``tick`` has something to do next (monotonic seconds; inf: nothing).
 
         Every change that brings a deadline forward (a new state, a start, new supervision
         settings) asks the master to look again (``reschedule``); frames only push the
         deadlines back (a heartbeat, a guarding answer, an answered remote request).
+        ``timed``: without the heartbeat consumer's deadline, which the receive thread keeps
+        (``HeartbeatWatch``): what the master's own timer must meet.
         """
         if self.state is State.FAILED:
             retrying = not self.network.auto_clear or not self.connected
             return self._retry_at if retrying else math.inf
         if self.state is not State.OPERATING:
             return math.inf
-        due = self.control.next_due()
+        due = self.control.timed_due() if timed else self.control.next_due()
         return min(due, self.pdos.next_due()) if self.exchanging else due
 
     def on_sync(self, now: float) -> None:
