@@ -27,7 +27,8 @@ error-control frame it sent before the start can reach the master after it."""
 
 HEARTBEAT_LOOK_LATE_S = 0.010
 """[ours] How long after a heartbeat consumer's deadline the master looks at it, at most a
-tenth of the consumer time: a lost node is found this much later than its deadline.
+tenth of the consumer time: a lost node is found this much later than its deadline. The
+receive thread ends its wait for frames then (``HeartbeatWatch``) and wakes the master.
 
 Why: a node produces at a fraction of the consumer time (``cifemu sim``, like many
 configurations, at half of it), so a deadline counted from the last heartbeat comes just as
