@@ -98,8 +98,9 @@ class TapPublisher:
         self._sock.setblocking(False)
         self._requests = select.poll()
         """Whether a subscription waits on ``_sock``: asked before reading it, because an
-        empty socket's ``recvfrom`` raises, 14 us of CPU against 1.6 us for the look, and the
-        drain runs with every frame of a quiet bus, a lone node's heartbeats (issue 22)."""
+        empty socket's ``recvfrom`` raises (2.1 us of CPU in a hot loop against 0.6 us for
+        the look, more on a cold wake-up), and the drain runs with every frame of a quiet
+        bus, a lone node's heartbeats (issue 22)."""
         self._requests.register(self._sock, select.POLLIN)
         self._directory: CardDirectory | None = None
         try:
