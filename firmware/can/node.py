@@ -4,7 +4,8 @@ The seed calls them node handlers: "for every node station one state machine
 is implemented" (seed 5.2). The handler holds that state machine and the node's
 diagnosis; the services it composes each own their frames and their state: the
 boot-up (``boot``, driven by the node's answers in the bus thread), error control
-(``supervision``, from the master's thread), EMCY (``emcy``) and the PDOs (``pdo``).
+(``supervision``, from the master's thread; the heartbeat deadlines kept by the bus thread's
+wait), EMCY (``emcy``) and the PDOs (``pdo``).
 They report back an Err_Event; only the handler changes the node's state and tells
 the network (``Network``, ``NodeEvents``), which the master implements. The master's
 thread sleeps until something is due: the handler says when (``next_due``) and asks it
