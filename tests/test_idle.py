@@ -460,6 +460,37 @@ def test_an_idle_card_with_16_nodes_sleeps(shm_net: ShmNetwork) -> None:
     assert cpu_pct < MAX_CARD_CPU_PCT, f"the card used {cpu_pct:.2f} % of a core"
 
 
+LONE_NODE_WINDOW_S = 4.0
+"""Wall time over which a card with one heartbeat node is watched: four of the master's old
+looks at a consumer time of 1 s, eight heartbeats."""
+
+
+def test_a_lone_heartbeat_node_wakes_only_the_receive_thread(shm_net: ShmNetwork) -> None:
+    """One operational node producing heartbeats (consumer time 1 s, ``cifemu sim`` produces
+    every 0.5 s), a host that holds the board and does nothing: besides the device loop's
+    quiet poll, only the controller's receive thread wakes, once per heartbeat. Its wait ends
+    at the consumer's deadline, which each heartbeat moves later (``HeartbeatWatch``); the
+    CAN master's thread used to wake once per consumer time to find it moved, 200-250 us of
+    CPU a look, 40 % of what a lone node cost an idle card (issue 22). That the loss of a
+    heartbeat is still found at its deadline is
+    ``test_heartbeat_and_guarding_losses_are_found_at_their_deadlines``'s."""
+    board = shm_net.start("[[node]]\nid = 1\n")
+    wait_until(lambda: board.diagnostics().operating() == [1], 15, "node 1 operating")
+    time.sleep(DEVICE_FAST_WINDOW + 1.0)  # boot-up and start-up work end
+    before = _threads(shm_net.pid)
+    start = time.monotonic()
+    time.sleep(LONE_NODE_WINDOW_S)  # the measurement window, not a wait on a condition
+    after = _threads(shm_net.pid)
+    wall = time.monotonic() - start
+    woken = sorted((after[tid][1] - before.get(tid, (0, 0))[1], tid) for tid in after
+                   if tid != shm_net.pid)
+    receive_thread = woken[-1]
+    assert receive_thread[0] >= (wall / 0.5) / 2, f"no thread took the heartbeats: {woken}"
+    others = [count for count, _ in woken[:-1]]
+    assert max(others) <= 1, f"threads besides the receive thread woke {others} times"
+    assert board.diagnostics().operating() == [1]
+
+
 TAKEN_LATE_S = 0.002
 """How long after its moment a heartbeat reaches the node's supervision on an idle machine, at
 most: the producer's timer, the ``shm`` ring, the receive thread's wake-up (0.1-0.5 ms)."""

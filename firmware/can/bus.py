@@ -11,7 +11,9 @@ canopen's network for its SDO clients.
 The receive thread (``_Receiver``) is the controller's own, not python-can's
 ``Notifier``: the Notifier returns from ``recv`` every 100 ms to see whether it
 should stop, ten wake-ups a second of a card with nothing to do. This one blocks
-until a frame comes, and power-off wakes it (issue 22).
+until a frame comes, and power-off wakes it (issue 22). It also keeps deadlines that
+only the frames it takes move later (``Deadlines``: the heartbeat consumers'): its wait
+ends at the earliest, and ``on_deadline`` tells the master when one came.
 """
 
 from __future__ import annotations
@@ -19,6 +21,7 @@ from __future__ import annotations
 import contextlib
 import json
 import logging
+import math
 import os
 import queue
 import select
@@ -31,7 +34,7 @@ from collections import deque
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 import can
 import canopen
@@ -326,6 +329,28 @@ class BusConfig:
     opens the interface again with them (a new Baud_rate, a lost link)."""
 
 
+class Deadlines(Protocol):
+    """Deadlines that the frames the receive thread takes only move later
+    (``firmware.can.supervision.HeartbeatWatch``)."""
+
+    def due(self) -> float:
+        """The earliest (monotonic seconds; inf: none)."""
+
+    def take(self, now: float) -> bool:
+        """Drop those that came by ``now``; True when one did."""
+
+
+class _NoDeadlines:
+    """The receive thread's deadlines before anyone gives it some: none."""
+
+    def due(self) -> float:
+        return math.inf
+
+    def take(self, now: float) -> bool:
+        del now
+        return False
+
+
 class _Receiver:
     """The controller's receive thread: waits until a frame comes or ``stop`` wakes it.
 
@@ -339,13 +364,16 @@ class _Receiver:
       ``recv`` waits on until its time-out.)
     - any other: ``recv(RECV_POLL_S)``, as python-can's ``Notifier``.
 
+    Every wait ends by the earliest of the controller's ``deadlines`` too; once one came
+    (frames may keep the thread awake past it), the controller's ``on_deadline`` is called.
+
     A frame that arrives while it stops is dropped, as the Notifier drops the frames after
     its last ``recv``. An exception from the interface or a frame handler goes to the
     controller's ``on_error``, as the Notifier's did; then the thread ends: ``on_error``
     opens the interface again with a new receiver, or the controller is closing.
     """
 
-    def __init__(self, bus: can.BusABC, interface: str, listener: can.Listener) -> None:
+    def __init__(self, bus: can.BusABC, interface: str, listener: CanBus) -> None:
         self._bus = bus
         self._listener = listener
         self._stopping = False
@@ -372,20 +400,29 @@ class _Receiver:
         self._thread.start()
 
     def _run(self) -> None:
+        listener = self._listener
         try:
             while not self._stopping:
-                msg = self._next()
+                due = listener.deadlines.due()
+                msg = self._next(due)
                 if msg is not None and not self._stopping and msg is not self._wake_frame:
-                    self._listener.on_message_received(msg)
+                    listener.on_message_received(msg)
+                if due <= (now := time.monotonic()) and listener.deadlines.take(now):
+                    listener.on_deadline()
         except Exception as exc:  # the transport failed, or a frame handler did
             if not self._stopping:
-                self._listener.on_error(exc)
+                listener.on_error(exc)
 
-    def _next(self) -> can.Message | None:
+    def _next(self, due: float) -> can.Message | None:
+        """The next frame, or None when the wait ended without one (``stop``, a time-out,
+        ``due``)."""
         if self._fd >= 0:
-            ready = select.select((self._fd, self._wake_r), (), ())[0]
+            wait = None if math.isinf(due) else max(0.0, due - time.monotonic())
+            ready = select.select((self._fd, self._wake_r), (), (), wait)[0]
             return self._bus.recv(0) if self._fd in ready else None
-        return self._bus.recv(self._timeout)
+        if math.isinf(due):
+            return self._bus.recv(self._timeout)
+        return self._bus.recv(max(0.0, min(self._timeout, due - time.monotonic())))
 
     def stop(self) -> None:
         """End the thread: wake it, and wait for it (unless called from it, by a frame
@@ -449,6 +486,12 @@ class CanBus(can.Listener):
         self.on_send_timeout: Callable[[], None] = lambda: None
         self.on_link_back: Callable[[], None] = lambda: None
         """Called once a lost link is open again (``on_error``), from the reopening thread."""
+        self.deadlines: Deadlines = _NoDeadlines()
+        """What the receive thread keeps besides frames (see ``_Receiver``)."""
+        self.on_deadline: Callable[[], None] = lambda: None
+        """Called from the receive thread when one of ``deadlines`` came, and from whichever
+        thread finds the transport failed: no receive thread keeps them until it is back
+        (``receiving``)."""
         self._trace: can.Listener | None = can.Logger(str(trace)) if trace else None
         self.record: Callable[[can.Message, bool], None] | None = None
         """A recording's frame hook (``firmware.recorder``; frame, received), set and
@@ -567,7 +610,14 @@ class CanBus(can.Listener):
         log.warning("CAN interface %s channel %s failed (%s: %s); opening it again every "
                     "%.0f s", self.interface, self.channel, type(exc).__name__, exc, REOPEN_S)
         self.on_error_frame(can.Message(is_error_frame=True, arbitration_id=CAN_ERR_BUSOFF))
+        self.on_deadline()  # the receive thread ends: its deadlines go back to the master
         threading.Thread(target=self._reopen, name="can-reopen", daemon=True).start()
+
+    @property
+    def receiving(self) -> bool:
+        """Whether a receive thread runs and keeps ``deadlines`` (not while a lost link is
+        opened again, nor after ``shutdown``)."""
+        return not (self._lost.is_set() or self._closed.is_set())
 
     @property
     def watches_link(self) -> bool:

@@ -11,7 +11,9 @@ The thread sleeps until something is due, not for a fixed tick (issue 22): a wak
 the device loop when the host changed its connection bits or readiness (``notice_host``;
 new outputs the device loop sends itself), a node's change of state (``reschedule``), or
 the earliest deadline of what it times itself: supervision, boot retries, remote
-requests, inhibit times, host SDO time-outs and the master's heartbeat. A card nobody
+requests, inhibit times, host SDO time-outs and the master's heartbeat. The heartbeat
+consumers' deadlines, which every heartbeat moves later, are the receive thread's to keep
+while it runs (``HeartbeatWatch``): it wakes the master when one came. A card nobody
 uses costs (almost) nothing.
 """
 
@@ -52,6 +54,7 @@ from firmware.can.nmt import NmtMaster
 from firmware.can.node import NodeHandler
 from firmware.can.pdo import OutputWatch, import_numpy_ahead, zero_outputs
 from firmware.can.sdo import DEFAULT_SDO_TIMEOUT, SdoChannels
+from firmware.can.supervision import HeartbeatWatch
 from firmware.can.sync import SyncProducer
 from firmware.frames import (
     CAN_ERR_ACK,
@@ -106,7 +109,16 @@ class Master:
         ``_due_lock``): the next look supervises them, and the nodes whose deadline came."""
         self._dues: dict[NodeHandler, float] = {}
         """Each node's deadline (``NodeHandler.next_due``) as its last supervision left it."""
+        self._timed_dues: dict[NodeHandler, float] = {}
+        """The same without the heartbeat deadlines that the receive thread keeps."""
         self._supervise_due = 0.0
+        self._timed_due = 0.0
+        """The earliest of ``_timed_dues``: the master's own timer, while the receive thread
+        keeps the heartbeat deadlines (``CanBus.receiving``)."""
+        self._deadline_came = False
+        """Set by ``deadline_came`` (under ``_due_lock``): the next look supervises every node."""
+        self.heartbeats = HeartbeatWatch()
+        """The heartbeat consumers' deadlines, kept by the controller's receive thread."""
         self._link_due = 0.0
         self._host_outputs = b""
         self._host_state: tuple[bytes, bool] | None = None
@@ -131,6 +143,8 @@ class Master:
         self.bus.on_error_frame = self._on_error_frame
         self.bus.on_send_timeout = self._on_send_timeout
         self.bus.on_link_back = lambda: self._send_all_outputs(force=True)
+        self.bus.deadlines = self.heartbeats
+        self.bus.on_deadline = self.deadline_came
         self.bus.subscribe_all(self.layer2.on_frame)
         self.sdo.open(self.bus)
         self._thread = threading.Thread(target=self._loop, name="can-master", daemon=True)
@@ -338,6 +352,14 @@ class Master:
                 self._due = when
                 self._wakeup.set()
 
+    def deadline_came(self) -> None:
+        """A heartbeat consumer's deadline came (the receive thread), or the receive thread
+        stopped keeping them (a lost link): supervise every node at once, as at a deadline
+        of the master's own."""
+        with self._due_lock:
+            self._deadline_came = True
+        self._wakeup.set()
+
     def reschedule(self, handler: NodeHandler | None = None) -> None:
         """A node changed state (any thread): look at once, supervise ``handler`` (None:
         every node), recompute its deadlines and NEXC.
@@ -441,22 +463,26 @@ class Master:
             return due
         with self._due_lock:
             changed, self._changed = self._changed, set()
-        if general or changed or now >= self._supervise_due:
-            self._supervise(now, general, changed)
+            came, self._deadline_came = self._deadline_came, False
+        every = general or came or now >= self._supervise_due
+        if every or changed:
+            self._supervise(now, every, changed)
         outputs = self._follow_outputs(self.image.snapshot_outputs(), now,
                                        general or bool(changed))
-        return min(due, self._supervise_due, outputs, nmt.heartbeat(now))
+        bus = self.bus
+        supervise_due = (self._timed_due if bus is not None and bus.receiving
+                         else self._supervise_due)
+        return min(due, supervise_due, outputs, nmt.heartbeat(now))
 
-    def _supervise(self, now: float, general: bool, changed: set[NodeHandler]) -> None:
-        """Tick every node when ``general`` or when the earliest deadline came, else only the
-        ``changed`` ones still configured; then their deadlines and NEXC anew.
+    def _supervise(self, now: float, every: bool, changed: set[NodeHandler]) -> None:
+        """Tick every node when ``every`` (the network changed, the earliest deadline came),
+        else only the ``changed`` ones still configured; then their deadlines and NEXC anew.
 
         A deadline that came ticks every node, as before: frames push the others' deadlines
         back without a word (``NodeHandler.next_due``), and asking all of them at once
         keeps an idle network's wakes at one per real deadline, not one per stale one.
         """
         nodes = self.nodes
-        every = general or now >= self._supervise_due
         handlers = list(nodes.values()) if every else sorted(
             (h for h in changed if nodes.get(h.address) is h), key=lambda h: h.address)
         for handler in handlers:
@@ -464,13 +490,17 @@ class Master:
         self.nmt.update_nexc()
         if every:
             self._dues = {h: h.next_due() for h in handlers}
+            self._timed_dues = {h: h.next_due(timed=True) for h in handlers}
         else:
             for handler in changed:
                 if nodes.get(handler.address) is handler:
                     self._dues[handler] = handler.next_due()
+                    self._timed_dues[handler] = handler.next_due(timed=True)
                 else:
                     self._dues.pop(handler, None)
+                    self._timed_dues.pop(handler, None)
         self._supervise_due = min(self._dues.values(), default=math.inf)
+        self._timed_due = min(self._timed_dues.values(), default=math.inf)
 
     def _sync_active(self) -> bool:
         """SYNC goes out while the network exchanges data and the controller is on the bus

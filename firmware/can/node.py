@@ -4,7 +4,8 @@ The seed calls them node handlers: "for every node station one state machine
 is implemented" (seed 5.2). The handler holds that state machine and the node's
 diagnosis; the services it composes each own their frames and their state: the
 boot-up (``boot``, driven by the node's answers in the bus thread), error control
-(``supervision``, from the master's thread), EMCY (``emcy``) and the PDOs (``pdo``).
+(``supervision``, from the master's thread; the heartbeat deadlines kept by the bus thread's
+wait), EMCY (``emcy``) and the PDOs (``pdo``).
 They report back an Err_Event; only the handler changes the node's state and tells
 the network (``Network``, ``NodeEvents``), which the master implements. The master's
 thread sleeps until something is due: the handler says when (``next_due``) and asks it
@@ -33,7 +34,7 @@ from firmware.can.bus import CanBus
 from firmware.can.emcy import EmcyConsumer
 from firmware.can.pdo import NodePdos, PdoLink
 from firmware.can.sdo import SdoChannel, SdoChannels
-from firmware.can.supervision import ErrorControl
+from firmware.can.supervision import ErrorControl, HeartbeatWatch
 
 log = logging.getLogger(__name__)
 
@@ -83,6 +84,10 @@ class Network(BootLink, PdoLink, Protocol):
 
     @property
     def sdo(self) -> SdoChannels: ...
+
+    @property
+    def heartbeats(self) -> HeartbeatWatch:
+        """Where the heartbeat consumers' deadlines go for the receive thread to keep."""
 
     def reschedule(self, handler: NodeHandler | None = None) -> None:
         """``handler``'s state changed (None: the network's): the master supervises it
@@ -140,7 +145,7 @@ class NodeHandler:
         self._retry_at = 0.0
         self._generation = 0
         """Bumped on every (re)boot so a stale boot thread gives up."""
-        self.control = ErrorControl(params, network.bus_send)
+        self.control = ErrorControl(params, network.bus_send, network.heartbeats)
         self.boot = BootSequence(address, params, self.diag, network, self.control)
         self.emcy = EmcyConsumer(self.diag, params.usCobIDEmcy,
                                  lambda: events.set_node_diag(address, True))
@@ -164,6 +169,7 @@ class NodeHandler:
         if bus is None:
             return
         bus.unsubscribe(ERROR_CONTROL_BASE + self.address, self._on_error_control)
+        self.control.unwatch()
         self.boot.detach(bus)
         bus.unsubscribe(self.params.usCobIDGuard, self._on_error_control)
         self.emcy.detach(bus)
@@ -395,19 +401,21 @@ class NodeHandler:
         if event:
             self.fail(event)
 
-    def next_due(self) -> float:
+    def next_due(self, timed: bool = False) -> float:
         """When ``tick`` has something to do next (monotonic seconds; inf: nothing).
 
         Every change that brings a deadline forward (a new state, a start, new supervision
         settings) asks the master to look again (``reschedule``); frames only push the
         deadlines back (a heartbeat, a guarding answer, an answered remote request).
+        ``timed``: without the heartbeat consumer's deadline, which the receive thread keeps
+        (``HeartbeatWatch``): what the master's own timer must meet.
         """
         if self.state is State.FAILED:
             retrying = not self.network.auto_clear or not self.connected
             return self._retry_at if retrying else math.inf
         if self.state is not State.OPERATING:
             return math.inf
-        due = self.control.next_due()
+        due = self.control.timed_due() if timed else self.control.next_due()
         return min(due, self.pdos.next_due()) if self.exchanging else due
 
     def on_sync(self, now: float) -> None:

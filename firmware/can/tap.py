@@ -96,6 +96,12 @@ class TapPublisher:
         path = Path(os.fsdecode(address))
         self._sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
         self._sock.setblocking(False)
+        self._requests = select.poll()
+        """Whether a subscription waits on ``_sock``: asked before reading it, because an
+        empty socket's ``recvfrom`` raises (2.1 us of CPU in a hot loop against 0.6 us for
+        the look, more on a cold wake-up), and the drain runs with every frame of a quiet
+        bus, a lone node's heartbeats (issue 22)."""
+        self._requests.register(self._sock, select.POLLIN)
         self._directory: CardDirectory | None = None
         try:
             self._directory = CardDirectory(path.parent)
@@ -108,10 +114,10 @@ class TapPublisher:
                 self._directory = None
 
     def _drain(self, now: float) -> None:
-        while True:
+        while self._requests.poll(0):
             try:
                 payload, peer = self._sock.recvfrom(16)
-            except (BlockingIOError, OSError):
+            except OSError:  # taken meanwhile, or the socket is closing
                 break
             if payload != SUBSCRIBE or not isinstance(peer, bytes) or not peer:
                 continue
