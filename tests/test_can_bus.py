@@ -109,3 +109,46 @@ def test_an_answer_for_another_object_is_refused() -> None:
         node.join(5)
         bus.shutdown()
         node_bus.shutdown()
+
+
+def test_a_frame_that_finds_the_receive_thread_idle_is_handled_by_its_sender_in_order() -> None:
+    """On ``virtual`` a frame sent while the controller's receive thread has nothing to do
+    is handled in the sending thread (a simulated node's: no wake-up of the receive thread
+    and no wait for the interpreter lock behind the node, issue 22); frames that meet one
+    being handled wait for the thread, and all come in the order they were sent."""
+    channel = f"test-can-bus-{uuid.uuid4().hex}"
+    station = can.Bus(interface="virtual", channel=channel)
+    bus = CanBus("virtual", channel)
+    handled: list[tuple[int, int]] = []
+    first_in = threading.Event()
+    release = threading.Event()
+    last = threading.Event()
+
+    def handler(msg: can.Message) -> None:
+        handled.append((msg.data[0], threading.get_ident()))
+        if msg.data[0] == 0:
+            first_in.set()
+            assert release.wait(5), "the test never let the first frame go"
+        if msg.data[0] == 11:
+            last.set()
+
+    def send(number: int) -> None:
+        station.send(can.Message(arbitration_id=0x123, is_extended_id=False, data=[number]))
+
+    bus.subscribe(0x123, handler)
+    first = threading.Thread(target=send, args=(0,), daemon=True)
+    try:
+        first.start()
+        assert first_in.wait(5), "the first frame was not handled"
+        for number in range(1, 11):  # these meet the first one still being handled
+            send(number)
+        release.set()
+        first.join(5)
+        send(11)
+        assert last.wait(5), "not every frame was handled"
+        assert [number for number, _ in handled] == list(range(12))
+        assert handled[0][1] == first.ident
+    finally:
+        release.set()
+        bus.shutdown()
+        station.shutdown()

@@ -361,7 +361,8 @@ class _Receiver:
     - ``virtual`` and ``shm``: ``recv(RECV_IDLE_S)``; ``stop`` hands the station a frame of
       its own (``VirtualBus.queue``, ``ShmBus.loop_back``), which ends the wait and which
       the thread drops. (A ``recv`` that only returned None would not do: python-can's
-      ``recv`` waits on until its time-out.)
+      ``recv`` waits on until its time-out.) On ``virtual``, a frame that finds the
+      thread idle is dispatched by its sender's thread instead (``_InlineQueue``);
     - any other: ``recv(RECV_POLL_S)``, as python-can's ``Notifier``.
 
     Every wait ends by the earliest of the controller's ``deadlines`` too; once one came
@@ -383,6 +384,10 @@ class _Receiver:
         self._wake_w = -1
         """The pipe's end that ``stop`` writes (``SELECTABLE_INTERFACES``)."""
         self._hand_over: Callable[[can.Message], None] | None = None
+        self._dispatching = threading.Lock()
+        """Held while a frame is dispatched, by this thread or by a sender (``_InlineQueue``):
+        the frame handlers never run twice at once."""
+        self._inline: _InlineQueue | None = None
         if interface in SELECTABLE_INTERFACES:
             with contextlib.suppress(NotImplementedError, OSError):
                 self._fd = bus.fileno()
@@ -392,6 +397,8 @@ class _Receiver:
             # descriptor that the thread may still select on.
             weakref.finalize(self, _close_pipe, self._wake_r, self._wake_w)
         elif interface == "virtual" and isinstance(getattr(bus, "queue", None), queue.Queue):
+            if not getattr(bus, "receive_own_messages", True):
+                self._inline = _InlineQueue.install(bus.queue, self)  # type: ignore[attr-defined]
             self._hand_over = bus.queue.put_nowait  # type: ignore[attr-defined]
         elif callable(getattr(bus, "loop_back", None)):
             self._hand_over = bus.loop_back  # type: ignore[attr-defined]
@@ -405,13 +412,35 @@ class _Receiver:
             while not self._stopping:
                 due = listener.deadlines.due()
                 msg = self._next(due)
-                if msg is not None and not self._stopping and msg is not self._wake_frame:
-                    listener.on_message_received(msg)
+                if msg is not None:
+                    try:
+                        if msg is not self._wake_frame:
+                            with self._dispatching:
+                                if not self._stopping:
+                                    listener.on_message_received(msg)
+                    finally:
+                        if self._inline is not None:
+                            self._inline.dispatched()
                 if due <= (now := time.monotonic()) and listener.deadlines.take(now):
                     listener.on_deadline()
         except Exception as exc:  # the transport failed, or a frame handler did
             if not self._stopping:
                 listener.on_error(exc)
+
+    def try_dispatch(self, msg: can.Message) -> bool:
+        """Dispatch ``msg`` in the calling thread, a sender's, unless a frame is being
+        dispatched (``_InlineQueue.put`` has seen that none waits). False: not done."""
+        if msg is self._wake_frame or not self._dispatching.acquire(blocking=False):
+            return False
+        try:
+            if not self._stopping:
+                self._listener.on_message_received(msg)
+        except Exception as exc:  # as in the thread: the controller's failure, not the sender's
+            if not self._stopping:
+                self._listener.on_error(exc)
+        finally:
+            self._dispatching.release()
+        return True
 
     def _next(self, due: float) -> can.Message | None:
         """The next frame, or None when the wait ended without one (``stop``, a time-out,
@@ -437,6 +466,58 @@ class _Receiver:
                 self._hand_over(self._wake_frame)
         if threading.current_thread() is not self._thread:
             self._thread.join(RECEIVER_JOIN_S)
+
+
+class _InlineQueue(queue.Queue[can.Message]):
+    """A ``virtual`` station's receive queue whose frame, when the receive thread is idle,
+    is dispatched by the thread that sends it.
+
+    python-can's ``virtual`` interface puts a copy of each frame into every other station's
+    queue, in the sender's thread. The card's receive thread then woke for it and waited
+    once more for the interpreter lock, which the sender held until its own next wait. With
+    the nodes of ``--simulate`` in the card's process, an expedited host SDO crossed four
+    threads (host, device loop, node, receive thread); dispatched by the node's thread, it
+    crosses three, as many as canopen's client and node (issue 22).
+
+    Still one frame at a time, in the order sent: a sender dispatches only when no frame
+    waits in the queue or has been taken from it and not yet dispatched (``_taken``, kept
+    under the queue's own mutex) and none is being dispatched (the receiver's dispatch
+    lock, held by whoever dispatches); otherwise its frame is queued for the thread as
+    before. The senders are other stations of this process (the simulated nodes, a test's
+    bus), never the card itself (a station that receives its own messages keeps the
+    thread). A sender runs the card's frame handlers, which take only the card's own locks,
+    never a sender's: a node's thread holding its network's lock waits for no card thread.
+    """
+
+    _receiver: _Receiver
+    _taken: int
+    """Frames the receive thread took from the queue and has not dispatched yet."""
+
+    @classmethod
+    def install(cls, station: queue.Queue[can.Message], receiver: _Receiver) -> _InlineQueue:
+        """Make the station's own queue object an ``_InlineQueue``, in place, under its
+        mutex: python-can's ``send`` may hold the object already, and frames in it stay."""
+        with station.mutex:
+            station.__class__ = cls
+            inline: _InlineQueue = station  # type: ignore[assignment]
+            inline._receiver = receiver
+            inline._taken = 0
+        return inline
+
+    def put(self, item: can.Message, block: bool = True, timeout: float | None = None) -> None:
+        with self.mutex:
+            idle = not self._qsize() and not self._taken
+        if not (idle and self._receiver.try_dispatch(item)):
+            super().put(item, block, timeout)
+
+    def _get(self) -> can.Message:
+        self._taken += 1  # under the mutex: Queue.get holds it
+        return super()._get()
+
+    def dispatched(self) -> None:
+        """The receive thread is done with the frame it took last."""
+        with self.mutex:
+            self._taken -= 1
 
 
 def _close_pipe(*fds: int) -> None:
