@@ -19,6 +19,8 @@ sleep that ended), which a loaded machine hardly changes, unlike wall time.
 from __future__ import annotations
 
 import mmap
+import os
+import signal
 import statistics
 import subprocess
 import sys
@@ -48,6 +50,7 @@ from dpm.layout import DEV_FLAGS, HOST_FLAGS
 from dpm.message import Message, Task, Tdt, TelegramHeader, Tfc
 from dpm.task2 import ComPlcParameter, PlcMode
 from firmware.can.supervision import HEARTBEAT_LOOK_LATE_S, ErrorControl
+from firmware.shm.bus import ShmBus
 from host_api import driver as d
 from host_api.board import Board
 from host_api.cia309.events import MONITOR_PERIOD_QUIET
@@ -580,3 +583,53 @@ guarding_fail_after_s = 1.0
                  and t < left[2])
     assert 0.2 <= left[1] - heartbeat <= 0.2 + SUPERVISION_SLACK_S, left[1] - heartbeat
     assert 2 * 0.1 <= left[2] - answer <= 3 * 0.1 + SUPERVISION_SLACK_S, left[2] - answer
+
+
+CARD_STOPS = 8
+
+
+def test_a_node_whose_heartbeats_wait_unread_is_not_failed(shm_net: ShmNetwork) -> None:
+    """The card's process stopped (SIGSTOP) past node 1's heartbeat consumer time while the
+    node goes on beating: when it runs again, its master's guarding look at node 2 finds node
+    1's deadline passed by the frames taken so far, but node 1's heartbeats came in time and
+    wait unread in the card's receive queue. The master judges only once the receive thread
+    has taken them [ours]: node 1 is never failed. (Before, it was failed in most stops:
+    whichever of the two threads ran first after the stop decided.)"""
+    board = shm_net.start("""[[node]]
+id = 1
+heartbeat_ms = 200
+[[node]]
+id = 2
+error_control = "guarding"
+guard_time_ms = 100
+life_time_factor = 30
+""")
+    wait_until(lambda: board.diagnostics().operating() == [1, 2], 15, "both operating")
+    station = ShmBus(shm_net.channel)
+
+    def seen(ident: int, count: int, remote: bool = False) -> Callable[[], bool]:
+        left = [count]
+
+        def look() -> bool:
+            msg = station.recv(0.05)
+            if msg is not None and msg.arbitration_id == ident and (
+                    msg.is_remote_frame == remote):
+                left[0] -= 1
+            return left[0] <= 0
+        return look
+
+    try:
+        for stop in range(CARD_STOPS):
+            os.kill(shm_net.pid, signal.SIGSTOP)
+            try:  # four heartbeats at half the consumer time: its deadline has passed
+                wait_until(seen(0x701, 4), 10, f"stop {stop}: node 1's heartbeats")
+            finally:
+                os.kill(shm_net.pid, signal.SIGCONT)
+            # The master has looked (a guarding request to node 2) and node 1 beat since.
+            wait_until(seen(0x702, 1, remote=True), 10, f"stop {stop}: a guarding request")
+            wait_until(seen(0x701, 2), 10, f"stop {stop}: node 1's heartbeats after it")
+        diagnostics = board.diagnostics()
+        assert (diagnostics.bErr_event, diagnostics.bErr_rem_adr) == (0, 0)
+        assert diagnostics.operating() == [1, 2]
+    finally:
+        station.shutdown()

@@ -126,6 +126,9 @@ RECV_POLL_S = 0.1
 """How long the receive thread waits in ``recv`` on an interface it has no other way to wake
 (a bridge's client, a vendor's driver): python-can's ``Notifier`` waited as long, and the
 card's power-off waits at most this for the thread."""
+TAKE_RECEIVED_MAX = 4096
+"""[ours] The most frames the receive thread takes at once before the master judges a late
+node (``_Receiver.take_then``): a second and more of a busy 1 Mbit/s bus."""
 RECEIVER_JOIN_S = 5.0
 """How long ``_Receiver.stop`` waits for the thread (python-can's ``Notifier.stop``'s
 default); a frame handler that takes longer is left to end on its own."""
@@ -388,6 +391,8 @@ class _Receiver:
         """Held while a frame is dispatched, by this thread or by a sender (``_InlineQueue``):
         the frame handlers never run twice at once."""
         self._inline: _InlineQueue | None = None
+        self._after_taking: Callable[[], None] | None = None
+        """Set by ``take_then``: called by this thread once the frames received are taken."""
         if interface in SELECTABLE_INTERFACES:
             with contextlib.suppress(NotImplementedError, OSError):
                 self._fd = bus.fileno()
@@ -413,19 +418,50 @@ class _Receiver:
                 due = listener.deadlines.due()
                 msg = self._next(due)
                 if msg is not None:
-                    try:
-                        if msg is not self._wake_frame:
-                            with self._dispatching:
-                                if not self._stopping:
-                                    listener.on_message_received(msg)
-                    finally:
-                        if self._inline is not None:
-                            self._inline.dispatched()
+                    self._dispatch(msg)
+                callback = self._after_taking
+                if callback is not None:
+                    self._after_taking = None
+                    self._take_received()
+                    callback()
                 if due <= (now := time.monotonic()) and listener.deadlines.take(now):
                     listener.on_deadline()
         except Exception as exc:  # the transport failed, or a frame handler did
             if not self._stopping:
                 listener.on_error(exc)
+
+    def _dispatch(self, msg: can.Message) -> None:
+        try:
+            if msg is not self._wake_frame:
+                with self._dispatching:
+                    if not self._stopping:
+                        self._listener.on_message_received(msg)
+        finally:
+            if self._inline is not None:
+                self._inline.dispatched()
+
+    def _take_received(self) -> None:
+        """Dispatch the frames received by now, without waiting for more (``take_then``);
+        at most ``TAKE_RECEIVED_MAX``, so that a bus faster than the card cannot hold it."""
+        for _ in range(TAKE_RECEIVED_MAX):
+            if self._stopping or (
+                    self._fd >= 0 and not select.select((self._fd,), (), (), 0)[0]):
+                return
+            msg = self._bus.recv(0)
+            if msg is None:
+                return
+            self._dispatch(msg)
+
+    def take_then(self, callback: Callable[[], None]) -> None:
+        """Have this thread dispatch every frame received by now, then call ``callback``
+        (from any thread; ``Master._verdict_waits``)."""
+        self._after_taking = callback
+        if self._wake_w >= 0:
+            with contextlib.suppress(BlockingIOError):  # full: the thread is awake anyway
+                os.write(self._wake_w, b"t")
+        elif self._hand_over is not None:
+            with contextlib.suppress(queue.Full):  # a full queue wakes the thread anyway
+                self._hand_over(self._wake_frame)
 
     def try_dispatch(self, msg: can.Message) -> bool:
         """Dispatch ``msg`` in the calling thread, a sender's, unless a frame is being
@@ -448,6 +484,9 @@ class _Receiver:
         if self._fd >= 0:
             wait = None if math.isinf(due) else max(0.0, due - time.monotonic())
             ready = select.select((self._fd, self._wake_r), (), (), wait)[0]
+            if self._wake_r in ready and not self._stopping:  # take_then's: read, or spin
+                with contextlib.suppress(BlockingIOError):
+                    os.read(self._wake_r, 64)
             return self._bus.recv(0) if self._fd in ready else None
         if math.isinf(due):
             return self._bus.recv(self._timeout)
@@ -460,7 +499,7 @@ class _Receiver:
             return
         self._stopping = True
         if self._wake_w >= 0:
-            os.write(self._wake_w, b"s")  # the only byte: the pipe has room
+            os.write(self._wake_w, b"s")  # the pipe has room: take_then's bytes are read
         if self._hand_over is not None:
             with contextlib.suppress(queue.Full):  # a full queue wakes the thread anyway
                 self._hand_over(self._wake_frame)
@@ -693,6 +732,15 @@ class CanBus(can.Listener):
         self.on_error_frame(can.Message(is_error_frame=True, arbitration_id=CAN_ERR_BUSOFF))
         self.on_deadline()  # the receive thread ends: its deadlines go back to the master
         threading.Thread(target=self._reopen, name="can-reopen", daemon=True).start()
+
+    def take_then(self, callback: Callable[[], None]) -> None:
+        """Call ``callback`` once the receive thread has taken every frame received by now,
+        at once when none runs (``receiving``; the master judges a late node after,
+        ``Master._verdict_waits``)."""
+        if self.receiving:
+            self._receiver.take_then(callback)
+        else:
+            callback()
 
     @property
     def receiving(self) -> bool:

@@ -117,6 +117,9 @@ class Master:
         keeps the heartbeat deadlines (``CanBus.receiving``)."""
         self._deadline_came = False
         """Set by ``deadline_came`` (under ``_due_lock``): the next look supervises every node."""
+        self._verdict_ready = False
+        """Set by ``_frames_taken`` (under ``_due_lock``): the frames the controller had
+        received when a node was found late are taken; the next supervision judges."""
         self.heartbeats = HeartbeatWatch()
         """The heartbeat consumers' deadlines, kept by the controller's receive thread."""
         self._link_due = 0.0
@@ -485,6 +488,8 @@ class Master:
         nodes = self.nodes
         handlers = list(nodes.values()) if every else sorted(
             (h for h in changed if nodes.get(h.address) is h), key=lambda h: h.address)
+        if self._verdict_waits(now, handlers):
+            return
         for handler in handlers:
             handler.tick(now)
         self.nmt.update_nexc()
@@ -501,6 +506,35 @@ class Master:
                     self._timed_dues.pop(handler, None)
         self._supervise_due = min(self._dues.values(), default=math.inf)
         self._timed_due = min(self._timed_dues.values(), default=math.inf)
+
+    def _verdict_waits(self, now: float, handlers: list[NodeHandler]) -> bool:
+        """[ours] A node found late by its guarding or heartbeat is failed only after the
+        frames the controller has received by now are taken: True while they are.
+
+        Why: the receive thread can fall behind the bus (a loaded machine, a guest's one CPU
+        under User-Mode Linux: SYNCs read 0.5-4.5 s after the kernel stamped them), and the
+        master judged a node by the frames taken so far, so an answer that had come in time
+        and waited unread failed the node. The controller's receive thread takes every frame
+        it has by then and wakes the master again (``CanBus.take_then``); the wait costs one
+        hand-over only when a node is late. Without a receive thread (a lost link reopening)
+        there is nothing to wait for.
+        """
+        with self._due_lock:
+            ready, self._verdict_ready = self._verdict_ready, False
+        bus = self.bus
+        if ready or bus is None or not bus.receiving or not any(
+                handler.overdue(now) for handler in handlers):
+            return False
+        self._supervise_due = self._timed_due = math.inf  # until the frames are taken
+        bus.take_then(self._frames_taken)
+        return True
+
+    def _frames_taken(self) -> None:
+        """The receive thread took the frames it had (``_verdict_waits``): judge now."""
+        with self._due_lock:
+            self._verdict_ready = True
+            self._deadline_came = True
+        self._wakeup.set()
 
     def _sync_active(self) -> bool:
         """SYNC goes out while the network exchanges data and the controller is on the bus

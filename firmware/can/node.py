@@ -401,6 +401,10 @@ class NodeHandler:
         if event:
             self.fail(event)
 
+    def overdue(self, now: float) -> bool:
+        """Whether ``tick`` at ``now`` would fail the node for its error control."""
+        return self.state is State.OPERATING and self.control.overdue(now)
+
     def next_due(self, timed: bool = False) -> float:
         """When ``tick`` has something to do next (monotonic seconds; inf: nothing).
 

@@ -196,6 +196,16 @@ class ErrorControl:
             self._send(self._guard_cob_id, remote=True, dlc=1)
         return 0
 
+    def overdue(self, now: float) -> bool:
+        """Whether ``check`` at ``now`` would find the node lost (GUARDING_FAILED), without
+        doing any of its work: the master asks before it judges (``Master._verdict_waits``)."""
+        if not self.supervised:
+            return False
+        if self.heartbeat:
+            return now >= self._last_heartbeat + self.guard_time / 1000.0
+        return (now >= self._next_guard and self._guard_pending
+                and self._guard_misses + 1 >= max(1, self.life_time_factor))
+
     def answered(self, value: int, now: float) -> int:
         """An error-control frame of an operating node (its first byte): GUARD_SEQUENCE
         when guarding sees the toggle bit repeated, else 0."""
