@@ -281,7 +281,11 @@ def test_a_host_that_never_waits_on_its_bell_does_not_silence_it(card: Card) -> 
 # --- the card's threads ------------------------------------------------------------------------
 
 
-def _threads(pid: int) -> dict[int, tuple[int, int]]:
+Threads = dict[int, tuple[int, int]]
+"""Per thread id: (ns on the CPU, voluntary context switches)."""
+
+
+def _threads(pid: int) -> Threads:
     """Per thread of ``pid``: (ns on the CPU, voluntary context switches)."""
     threads = {}
     for task in Path(f"/proc/{pid}/task").iterdir():
@@ -294,6 +298,16 @@ def _threads(pid: int) -> dict[int, tuple[int, int]]:
                         if line.startswith("voluntary_ctxt_switches:"))
         threads[int(task.name)] = (cpu_ns, switches)
     return threads
+
+
+def _watch_threads(pid: int, seconds: float) -> tuple[Threads, Threads, float]:
+    """``_threads`` of a card that has settled (boot-ups and start-up work over), before and
+    after a window of ``seconds``, and the window's wall time."""
+    time.sleep(DEVICE_FAST_WINDOW + 1.0)  # boot-ups and start-up work end
+    before = _threads(pid)
+    start = time.monotonic()
+    time.sleep(seconds)  # the measurement window, not a wait on a condition
+    return before, _threads(pid), time.monotonic() - start
 
 
 @dataclass
@@ -448,12 +462,7 @@ def test_an_idle_card_with_16_nodes_sleeps(shm_net: ShmNetwork) -> None:
     everyone = list(range(1, IDLE_NODES + 1))
     wait_until(lambda: board.diagnostics().operating() == everyone, 30,
                "16 nodes in data exchange")
-    time.sleep(DEVICE_FAST_WINDOW + 1.0)  # boot-ups and start-up work end
-    before = _threads(shm_net.pid)
-    start = time.monotonic()
-    time.sleep(WINDOW_S)  # the measurement window, not a wait on a condition
-    after = _threads(shm_net.pid)
-    wall = time.monotonic() - start
+    before, after, wall = _watch_threads(shm_net.pid, WINDOW_S)
     wakeups = {tid: (after[tid][1] - before.get(tid, (0, 0))[1]) / wall for tid in after}
     cpu_pct = 100.0 * sum(after[t][0] - before.get(t, (0, 0))[0] for t in after) / 1e9 / wall
     busiest = max(wakeups.values())
@@ -479,12 +488,7 @@ def test_a_lone_heartbeat_node_wakes_only_the_receive_thread(shm_net: ShmNetwork
     ``test_heartbeat_and_guarding_losses_are_found_at_their_deadlines``'s."""
     board = shm_net.start("[[node]]\nid = 1\n")
     wait_until(lambda: board.diagnostics().operating() == [1], 15, "node 1 operating")
-    time.sleep(DEVICE_FAST_WINDOW + 1.0)  # boot-up and start-up work end
-    before = _threads(shm_net.pid)
-    start = time.monotonic()
-    time.sleep(LONE_NODE_WINDOW_S)  # the measurement window, not a wait on a condition
-    after = _threads(shm_net.pid)
-    wall = time.monotonic() - start
+    before, after, wall = _watch_threads(shm_net.pid, LONE_NODE_WINDOW_S)
     woken = sorted((after[tid][1] - before.get(tid, (0, 0))[1], tid) for tid in after
                    if tid != shm_net.pid)
     receive_thread = woken[-1]
