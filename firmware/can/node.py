@@ -24,7 +24,7 @@ from typing import Protocol
 import can
 
 from dbm_tools.parameters import ConfigNdState, NodeParameterSet
-from dpm.cia301 import BOOT_UP, ERROR_CONTROL_BASE, OPERATIONAL
+from dpm.cia301 import BOOT_UP, ERROR_CONTROL_BASE, OPERATIONAL, STATE_MASK
 from dpm.com import NodeDiagnosis as Diagnosis
 from dpm.com import NodeStatus
 from dpm.commands import NMT_STOP
@@ -460,7 +460,7 @@ class NodeHandler:
         now = time.monotonic()
         stamp = wall_stamp(msg)
         value = msg.data[0]
-        state = value & 0x7F
+        state = value & STATE_MASK
         if state == BOOT_UP and msg.arbitration_id == ERROR_CONTROL_BASE + self.address:
             # Seed 8.1: "Bootup Protocol, no reaction on Bootup Events of a Node": a node
             # without error control stays as it is. [ours] A supervised node's boot-up is its

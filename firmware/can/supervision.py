@@ -19,6 +19,7 @@ import time
 from collections.abc import Callable
 
 from dbm_tools.parameters import NdFlag, NodeParameterSet
+from dpm.cia301 import TOGGLE_BIT
 from dpm.errors import NodeEvent
 
 START_GRACE = 0.5
@@ -178,27 +179,24 @@ class ErrorControl:
         """The deadlines, from the master's thread once ``next_due`` has come: GUARDING_FAILED
         or 0.
 
-        Guarding sends the next remote request here when its time has come.
+        Guarding sends the next remote request here when its time has come. Whether the
+        node is lost is ``overdue``'s, which the master also asks before it judges.
         """
-        if not self.supervised:
-            return 0
-        period = self.guard_time / 1000.0
-        if self.heartbeat:
-            if now >= self._last_heartbeat + period:
-                return NodeEvent.GUARDING_FAILED
-        elif now >= self._next_guard:
-            if self._guard_pending:
+        if self.overdue(now):
+            if not self.heartbeat:
                 self._guard_misses += 1
-                if self._guard_misses >= max(1, self.life_time_factor):
-                    return NodeEvent.GUARDING_FAILED
+            return NodeEvent.GUARDING_FAILED
+        if self.supervised and not self.heartbeat and now >= self._next_guard:
+            if self._guard_pending:
+                self._guard_misses += 1  # one more unanswered, still within the life time
             self._guard_pending = True
-            self._next_guard = now + period
+            self._next_guard = now + self.guard_time / 1000.0
             self._send(self._guard_cob_id, remote=True, dlc=1)
         return 0
 
     def overdue(self, now: float) -> bool:
-        """Whether ``check`` at ``now`` would find the node lost (GUARDING_FAILED), without
-        doing any of its work: the master asks before it judges (``Master._verdict_waits``)."""
+        """Whether ``check`` at ``now`` finds the node lost (GUARDING_FAILED), without doing
+        any of its work: the master asks before it judges (``Master._verdict_waits``)."""
         if not self.supervised:
             return False
         if self.heartbeat:
@@ -215,7 +213,7 @@ class ErrorControl:
         elif self.supervised:  # guarding; [ours] unsupervised: the node's own heartbeat
             self._guard_pending = False
             self._guard_misses = 0
-            toggle = value & 0x80
+            toggle = value & TOGGLE_BIT
             if self._toggle is not None and toggle == self._toggle:
                 return NodeEvent.GUARD_SEQUENCE
             self._toggle = toggle
