@@ -72,7 +72,7 @@ from dpm.commands import (
     SDO_MAX_DATA,
 )
 from dpm.errors import Drv, RcsF, err_event_text
-from dpm.message import Ext, Message, TelegramHeader, Tfc
+from dpm.message import TELEGRAM_HEADER, Ext, Message, TelegramHeader, Tfc
 from host_api import driver as d
 from host_api.board import Board, CifError
 from host_api.cia309.events import EventDispatcher, EventStream, Monitor, Subscription
@@ -400,7 +400,8 @@ class Gateway:
                     ) -> bytes:
         if not 0 <= index <= 0xFFFF or not 0 <= subindex <= 0xFF:
             raise syntax_error(f"multiplexer {index:#x}:{subindex}")
-        return TelegramHeader(node, 0, index, subindex, count, 0, function).encode()
+        # TelegramHeader(...).encode() without the object: on every 309-3 read
+        return TELEGRAM_HEADER.pack(node, 0, index, subindex, count, 0, function)
 
     def try_sdo_upload(self, index: int, subindex: int, on_done: Callable[[], None], *,
                        network: int | None = None, node_id: int | None = None
@@ -1033,15 +1034,12 @@ class SdoUploadInFlight:
         self._flight = flight
         self._object = (node, index, subindex)
         """What an error names; its text is made only for an error."""
-
-    @property
-    def timeout(self) -> float:
+        self.timeout = flight.timeout
         """Seconds to wait for the answer: the session's command time-out."""
-        return self._flight.timeout
 
     def result(self) -> bytes:
         """The object's data, once ``on_done`` was called; raises as ``sdo_upload`` does."""
-        messages = self._flight.messages
+        messages = self._flight.pending.messages  # not ``messages``: a call less per read
         if len(messages) == 1 and not messages[0].f:  # an upload's usual answer
             return messages[0].data[TelegramHeader.SIZE :]
         return _upload_data(messages, _upload_what(*self._object))

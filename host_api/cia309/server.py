@@ -56,6 +56,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import fcntl
+import functools
 import logging
 import selectors
 import socket
@@ -719,11 +720,11 @@ class Server:
         """Queue ``data`` for the client; then, while the output waiting for all clients
         (ended ones whose last answers still leave included) is over ``max_output``, cut the
         connection with the most (``abort``: ``close`` would keep its queue until it reads)."""
-        writer = connection.writer
-        if writer.is_closing():
+        transport = connection.writer.transport  # the stream writer's calls, one call less each
+        if transport.is_closing():
             return
-        writer.write(data)
-        if not _waiting(writer.transport):
+        transport.write(data)
+        if not transport.get_write_buffer_size():
             return  # all sent at once: the output waiting did not grow, nothing to count
         while (total := self._output()) > self.config.max_output:
             largest = max((other.writer.transport for other in self._connections),
@@ -858,7 +859,7 @@ class Server:
         client = Client(self.gateway.session(), LineFramer(self.config.max_line))
         connection = _Connection(client, writer, protocol, loop.time())
         self._connections.append(connection)
-        protocol.fast = lambda data: self._fast_line(connection, data)
+        protocol.fast = functools.partial(self._fast_line, connection)  # no frame of its own
         try:
             while connection in self._connections:
                 connection.reading = True
@@ -996,7 +997,7 @@ class Server:
         (docs/benchmarks.md, issue 22)."""
         if (not connection.reading or connection.fast is not None
                 or connection.protocol.received != connection.consumed
-                or _waiting(connection.writer.transport)):
+                or connection.writer.transport.get_write_buffer_size()):
             return False
         client = connection.client
         line = client.framer.whole_line(data)
@@ -1012,8 +1013,7 @@ class Server:
         fast = _FastRead(prepared)
         try:
             flight = client.gateway.try_sdo_upload(
-                prepared.index, prepared.subindex,
-                self._on_loop(lambda: self._fast_done(connection, fast)),
+                prepared.index, prepared.subindex, self._fast_on_done(connection, fast),
                 network=prepared.net, node_id=prepared.node)
         except Cia309Error as exc:
             self._fast_answer(connection, dispatcher.failure(prepared, exc))
@@ -1034,11 +1034,35 @@ class Server:
             connection.fast_timer = loop.call_at(fast.deadline, self._fast_due, connection)
         return True
 
+    def _fast_on_done(self, connection: _Connection, fast: _FastRead) -> Callable[[], None]:
+        """``_on_loop`` for ``_fast_done``, without the lambda between them (one call less
+        per read on the loop's thread)."""
+        loop = self._loop
+        assert loop is not None
+        here = threading.get_ident()
+        fast_done = self._fast_done
+
+        def on_done() -> None:
+            if threading.get_ident() == here:
+                fast_done(connection, fast)
+                return
+            with contextlib.suppress(RuntimeError):  # the loop closed: nobody waits
+                loop.call_soon_threadsafe(fast_done, connection, fast)
+
+        return on_done
+
     def _fast_done(self, connection: _Connection, fast: _FastRead) -> None:
         if connection.fast is not fast:
             return  # given up (time-out, the server closing)
-        assert fast.flight is not None
-        self._fast_answer(connection, self._upload_answer(fast.request, fast.flight))
+        flight = fast.flight
+        assert flight is not None
+        request = fast.request
+        try:  # ``_upload_answer`` written out: one call less per read
+            text = format_upload(request.sequence, request.dtype, flight.result(),
+                                 self.dispatcher.dialect)
+        except Cia309Error as exc:
+            text = self.dispatcher.failure(request, exc)
+        self._fast_answer(connection, text)
 
     def _fast_due(self, connection: _Connection) -> None:
         """The fast path's timer: gives up the read out now when its time has run out, else
