@@ -304,7 +304,12 @@ def test_a_read_costs_the_loop_few_calls_of_the_gateways_own_python(
 
     def profiling(on: bool) -> None:
         done = threading.Event()
-        loop.call_soon_threadsafe(lambda: (sys.setprofile(counting if on else None), done.set()))
+
+        def switch() -> None:  # on the loop's thread: a profile function is per thread
+            sys.setprofile(counting if on else None)
+            done.set()
+
+        loop.call_soon_threadsafe(switch)
         assert done.wait(10)
 
     reads = 200
