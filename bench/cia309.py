@@ -108,8 +108,9 @@ def measure_card(count: int, warmup: int
                  ) -> tuple[Measured, Measured, Measured, dict[str, float]]:
     """(gateway, tcp, tcp empty line, CPU per TCP read) against one card: the server's
     event-loop thread (which serves a read whole, issue 22) and the card's process, and the
-    loop thread's wake-ups (voluntary context switches) per read: on this VM each costs
-    50-150 us of wall time, so they bound the read as much as the CPU does."""
+    loop thread's and the card's threads' wake-ups (voluntary context switches) per read: on
+    this VM each costs 50-150 us of wall time and 100-200 us of CPU, so they bound the read
+    as much as the interpreter's work does."""
     description = network_toml([NODE])
     with simulated_card(description) as card:
         configure(card, parse_network(description))
@@ -132,14 +133,17 @@ def measure_card(count: int, warmup: int
                 loop_thread = _server_thread()
                 before = _cpu_ns(loop_thread, card.proc.pid)
                 woken = thread_wakeups(os.getpid()).get(loop_thread, 0)
+                card_woken = sum(thread_wakeups(card.proc.pid).values())
                 tcp = measure(client.read, count, warmup, frozenset({0}))
                 after = _cpu_ns(loop_thread, card.proc.pid)
                 woken = thread_wakeups(os.getpid()).get(loop_thread, 0) - woken
+                card_woken = sum(thread_wakeups(card.proc.pid).values()) - card_woken
                 calls = warmup + 2 * count
                 cpu_us = {
                     "server_loop_cpu_us_per_read": round((after[0] - before[0]) / calls / 1e3, 1),
                     "server_loop_wakeups_per_read": round(woken / calls, 2),
-                    "card_cpu_us_per_read": round((after[1] - before[1]) / calls / 1e3, 1)}
+                    "card_cpu_us_per_read": round((after[1] - before[1]) / calls / 1e3, 1),
+                    "card_wakeups_per_read": round(card_woken / calls, 2)}
                 progress("timing the 309-3 TCP server's empty line (no gateway)")
                 empty = measure(client.empty, count, warmup, frozenset({0}))
             finally:
