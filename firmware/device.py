@@ -84,11 +84,6 @@ wake-up exactly on it would find the watchdog still alive and sleep once more.""
 
 _NAK = int(Ext.NAK)
 """msg.e's no-answer bit as a plain int, for the test on every message."""
-_START_BITS = fl.RESET | fl.INIT
-_DEV_MBX, _HOST_MBX, _SPCACK, _SPCCOM = fl.DEV_MBX, fl.HOST_MBX, fl.SPCACK, fl.SPCCOM
-_LEVELS = fl.RUN | fl.COM
-"""The flag bits of every turn as module constants: a module attribute lookup per bit
-per turn added up (``Device.service``)."""
 
 STATE_MODE_EVENT = 4
 """[ours] low nibble of bDriverType: the state field is event driven."""
@@ -516,12 +511,7 @@ class Device:
     # --- the loop's work ---------------------------------------------------------------
 
     def service(self, now: float) -> None:
-        """One turn of the device loop.
-
-        It runs once per host request, and under load every microsecond of it is latency
-        (issue 22): the flag bytes are read into locals, the bits as plain ints, and what
-        a turn usually leaves as it was (RUN, COM, SPCACK, the state field) is only
-        written when it changed."""
+        """One turn of the device loop."""
         while self._calls:
             self._calls.popleft()()
         if self.faults.before_turn():  # [ours] a card that hangs, or its start afterwards
@@ -532,28 +522,25 @@ class Device:
         recorder = self.recorder
         if recorder is not None:
             recorder.dev_flags(dev, now)
-        if dev & _START_BITS:
+        if dev & (fl.RESET | fl.INIT):
             self.rcs.start(Start.from_flags(dev))
             self._flush()
             return
         self.rcs.service(dev, now)
-        if ((mm[HOST_FLAGS] ^ mm[DEV_FLAGS]) & _DEV_MBX and len(self.outbox) < OUTBOX_LIMIT
+        if ((mm[HOST_FLAGS] ^ mm[DEV_FLAGS]) & fl.DEV_MBX and len(self.outbox) < OUTBOX_LIMIT
                 and not self.faults.stalled):
             self._receive()
         self._levels()  # after the message: RUN as it left it (delete database), before its answer
-        if not (mm[HOST_FLAGS] ^ mm[DEV_FLAGS]) & _HOST_MBX:
+        if not (mm[HOST_FLAGS] ^ mm[DEV_FLAGS]) & fl.HOST_MBX:
             if not self.outbox:
                 indication = self.can.next_indication()
                 if indication is not None:
                     self.outbox.append(indication)
             if self.outbox:
                 self._deliver()
-        dev = mm[DEV_FLAGS]
-        self.plc.service(mm[HOST_FLAGS], dev)
+        self.plc.service(mm[HOST_FLAGS], mm[DEV_FLAGS])
         self._state_field()
-        host = mm[HOST_FLAGS]
-        if (host ^ (_SPCACK if dev & _SPCCOM else 0)) & _SPCACK:
-            self.write_host_flags(host ^ _SPCACK)
+        self._set_level(fl.SPCACK, bool(mm[DEV_FLAGS] & fl.SPCCOM))
         self._ring_for_mailbox()
         self._flush()
 
@@ -577,9 +564,8 @@ class Device:
 
     def _levels(self) -> None:
         levels = self.level_flags()
-        if (self.mm[HOST_FLAGS] ^ levels) & _LEVELS:  # one write each, as the recorder saw them
-            self._set_level(fl.RUN, bool(levels & fl.RUN))
-            self._set_level(fl.COM, bool(levels & fl.COM))
+        self._set_level(fl.RUN, bool(levels & fl.RUN))
+        self._set_level(fl.COM, bool(levels & fl.COM))
 
     def _receive(self) -> None:
         # One copy of the whole message slot, decoded from the copy: a host that
