@@ -52,7 +52,7 @@ from firmware.can.bus import (
 from firmware.can.layer2 import Layer2
 from firmware.can.nmt import NmtMaster
 from firmware.can.node import NodeHandler
-from firmware.can.pdo import OutputWatch, import_numpy_ahead, zero_outputs
+from firmware.can.pdo import FEW_NODES, OutputWatch, import_numpy_ahead, zero_outputs
 from firmware.can.sdo import DEFAULT_SDO_TIMEOUT, SdoChannels
 from firmware.can.supervision import HeartbeatWatch
 from firmware.can.sync import SyncProducer
@@ -246,7 +246,8 @@ class Master:
         handler = NodeHandler(self, self.nmt, address, params)
         self.nodes[address] = handler
         self.outputs.nodes_changed()
-        import_numpy_ahead()
+        if len(self.nodes) > FEW_NODES:  # a smaller network compares without numpy
+            import_numpy_ahead()
         # A new node can only add SYNC use; a replaced one may take it away. Asking every
         # node each time made a stored database of 127 nodes cost 127² questions at a start.
         sync_used = (_uses_sync(params) or self._sync_used) if old is None else any(
