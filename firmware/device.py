@@ -167,6 +167,8 @@ class Device:
         self.outbox: deque[Message] = deque()
         self._calls: deque[Callable[[], None]] = deque()
         self._turn = threading.Lock()
+        self._serving = False
+        """The loop's thread is inside ``service`` (set by it, for ``hand_over``)."""
         """Held by the device loop for each turn; ``post`` takes it to answer at once."""
         self._stopping = False
         self._stop_r, self._stop_w = os.pipe2(os.O_CLOEXEC | os.O_NONBLOCK)
@@ -231,7 +233,11 @@ class Device:
                     self._wake_pending = False  # before service reads what woke it
                     host_rang, self.bell.host_rang = self.bell.host_rang, False
                     now = time.monotonic()
-                    self.service(now)
+                    self._serving = True
+                    try:
+                        self.service(now)
+                    finally:
+                        self._serving = False
                     recorder = self.recorder
                     if recorder is not None:
                         recorder.settle()  # after the ring: off the way of the host's answer
@@ -357,8 +363,15 @@ class Device:
         When the loop is between turns, nothing is queued before it and the
         host's mailbox is free, the calling thread hands ``msg`` over itself:
         waking the loop for it costs a thread switch, a third of an expedited
-        SDO transfer here. Otherwise the loop's next turn delivers it.
+        SDO transfer here. Otherwise the loop's next turn delivers it. The loop's
+        own thread, inside a turn (a host SDO answered while its request went out,
+        ``firmware.inline.answered_here``), leaves it to that turn, which delivers
+        the outbox after the message it took, rather than ringing itself for one more.
         """
+        if (threading.get_ident() == self._loop_thread and self._serving
+                and not self._calls):
+            self.outbox.append(msg)
+            return
         if self._turn.acquire(blocking=False):
             try:
                 mm = self.mm
