@@ -3,8 +3,8 @@
 One ``canopen.Network`` over the given bus carries every node; its notifier
 thread delivers frames to the nodes (on ``virtual``, the card's host SDO
 requests may be handled by the card's thread instead: ``_NodeNotifier``), a
-``Scheduler`` thread runs their timers, and one lock serialises both. The bus belongs to the caller: it is
-neither opened nor shut down here.
+``Scheduler`` thread runs their timers, and one lock serialises both. The
+bus belongs to the caller: it is neither opened nor shut down here.
 
 A python-can bus object hears only other bus objects, never its own frames,
 and feeds a single ``can.Notifier``. So a master in the same process needs
