@@ -103,12 +103,16 @@ class _NodeNotifier(can.Notifier):
     def __init__(self, bus: can.BusABC, listeners: list[can.Listener], timeout: float,
                  lock: threading.RLock) -> None:
         self._network_lock = lock
+        self._ready = False
+        """Set once ``Notifier.__init__`` has made the lock that ``try_dispatch`` takes: the
+        queue takes frames for it from the moment it is installed, before the thread runs."""
         self._inline: InlineQueue | None = None
         station = getattr(bus, "queue", None)
         if (isinstance(bus, VirtualBus)
                 and isinstance(station, queue.Queue) and not bus.receive_own_messages):
             self._inline = InlineQueue.install(station, self, asked_only=True)
         super().__init__(bus, listeners, timeout)
+        self._ready = True
 
     def _on_message_received(self, msg: can.Message) -> None:
         """This thread's handling (after ``recv`` took ``msg`` from the queue)."""
@@ -121,7 +125,7 @@ class _NodeNotifier(can.Notifier):
     def try_dispatch(self, msg: can.Message) -> bool:
         lock = self._network_lock
         owned: bool = lock._is_owned()  # type: ignore[attr-defined]  # RLock's, as Condition's
-        if self._stopped or owned or not self._lock.acquire(blocking=False):
+        if not self._ready or self._stopped or owned or not self._lock.acquire(blocking=False):
             return False
         try:
             if not lock.acquire(blocking=False):
