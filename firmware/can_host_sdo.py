@@ -82,7 +82,7 @@ class HostSdo:
         self.master.sdo.start_host(HostSdoTransfer(
             self.master.bus, address, head.data_adr, head.data_idx,
             None if head.function == Tfc.READ else head.payload,
-            client.sdo.RESPONSE_TIMEOUT, done))
+            client.sdo.RESPONSE_TIMEOUT, done, answered_here=True))
         return None
 
     def _gather(self, msg: Message, head: TelegramHeader) -> Message | TelegramHeader:

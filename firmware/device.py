@@ -168,6 +168,9 @@ class Device:
         self._calls: deque[Callable[[], None]] = deque()
         self._turn = threading.Lock()
         """Held by the device loop for each turn; ``post`` takes it to answer at once."""
+        self._receiving = False
+        """The loop's thread hands the host's message to its task (``_receive``), after
+        which the turn delivers the outbox (set by that thread, for ``hand_over``)."""
         self._stopping = False
         self._stop_r, self._stop_w = os.pipe2(os.O_CLOEXEC | os.O_NONBLOCK)
         """``stop`` writes a byte here for ``sleep``. Not a ``threading.Event``: ``stop``
@@ -357,8 +360,16 @@ class Device:
         When the loop is between turns, nothing is queued before it and the
         host's mailbox is free, the calling thread hands ``msg`` over itself:
         waking the loop for it costs a thread switch, a third of an expedited
-        SDO transfer here. Otherwise the loop's next turn delivers it.
+        SDO transfer here. Otherwise the loop's next turn delivers it. The loop's
+        own thread, while its task handles the host's message (a host SDO answered
+        where its request went out, ``firmware.inline.answered_here``), leaves it to
+        the turn under way, which delivers the outbox right after, rather than ringing
+        itself for one more turn [ours].
         """
+        if (threading.get_ident() == self._loop_thread and self._receiving
+                and not self._calls):
+            self.outbox.append(msg)
+            return
         if self._turn.acquire(blocking=False):
             try:
                 mm = self.mm
@@ -529,7 +540,11 @@ class Device:
         self.rcs.service(dev, now)
         if ((mm[HOST_FLAGS] ^ mm[DEV_FLAGS]) & fl.DEV_MBX and len(self.outbox) < OUTBOX_LIMIT
                 and not self.faults.stalled):
-            self._receive()
+            self._receiving = True
+            try:
+                self._receive()
+            finally:
+                self._receiving = False
         self._levels()  # after the message: RUN as it left it (delete database), before its answer
         if not (mm[HOST_FLAGS] ^ mm[DEV_FLAGS]) & fl.HOST_MBX:
             if not self.outbox:

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import threading
 import uuid
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 
 import can
 import pytest
@@ -152,3 +152,108 @@ def test_a_frame_that_finds_the_receive_thread_idle_is_handled_by_its_sender_in_
         release.set()
         bus.shutdown()
         station.shutdown()
+
+
+def _sdo_answers(monitor: can.BusABC, count: int) -> list[int]:
+    """The identifiers of the next ``count`` SDO frames (requests and answers) a third
+    station on the channel sees, in its order."""
+    seen: list[int] = []
+    while len(seen) < count:
+        msg = monitor.recv(5)
+        assert msg is not None, f"the monitor saw only {seen}"
+        if 0x581 <= msg.arbitration_id <= 0x67F:
+            seen.append(msg.arbitration_id)
+    return seen
+
+
+@pytest.fixture
+def two_nodes() -> Iterator[tuple[CanBus, SimulatedNetwork, can.BusABC]]:
+    """A controller, simulated generic nodes 1 and 2 (booted), and a third station that
+    only watches, on one virtual channel."""
+    channel = f"test-can-bus-{uuid.uuid4().hex}"
+    node_bus = can.Bus(interface="virtual", channel=channel)
+    sim = SimulatedNetwork(parse_network("[[node]]\nid = 1\n\n[[node]]\nid = 2\n"), node_bus)
+    bus = CanBus("virtual", channel)
+    monitor = can.Bus(interface="virtual", channel=channel)
+    booted = {1: threading.Event(), 2: threading.Event()}
+    bus.subscribe(0x701, lambda msg: booted[1].set())
+    bus.subscribe(0x702, lambda msg: booted[2].set())
+    sim.start()
+    try:
+        assert all(event.wait(10) for event in booted.values()), "a node sent no boot-up"
+        with sim.lock:  # the boot-up is sent from inside the boot's timer: let it end
+            pass
+        yield bus, sim, monitor
+    finally:
+        bus.shutdown()
+        sim.stop()
+        node_bus.shutdown()
+        monitor.shutdown()
+
+
+def test_a_host_sdo_request_that_finds_the_nodes_idle_is_answered_in_the_sending_thread(
+        two_nodes: tuple[CanBus, SimulatedNetwork, can.BusABC]) -> None:
+    """A host transfer's request (``answered_here``) to simulated nodes in the card's
+    process whose thread has nothing to do is handled by the sending thread, and the
+    node's answer by the controller in that thread too: the transfer is over when its
+    request has gone out, and no thread woke for it (issue 22). The bus shows the request
+    before the answer, to every station."""
+    bus, _, monitor = two_nodes
+    results: list[tuple[SdoResult, int]] = []
+    trace: list[int] = []
+    bus.record = lambda msg, received: trace.append(msg.arbitration_id)
+    transfer = HostSdoTransfer(bus, 1, 0x1000, 0, None, 1.0,
+                               lambda result: results.append((result, threading.get_ident())),
+                               answered_here=True)
+    transfer.start()
+    assert transfer.finished, "the answer was left to another thread"
+    [(result, thread)] = results
+    assert thread == threading.get_ident()
+    assert int.from_bytes(result.data, "little") == GENERIC_DEVICE_TYPE
+    assert [ident for ident in trace if ident in (0x581, 0x601)] == [0x601, 0x581]
+    assert _sdo_answers(monitor, 2) == [0x601, 0x581]
+
+
+def test_a_host_sdo_request_that_meets_a_node_busy_waits_for_the_nodes_thread_in_order(
+        two_nodes: tuple[CanBus, SimulatedNetwork, can.BusABC]) -> None:
+    """While node code runs (a timer holds the network's lock), a request sent with
+    ``answered_here`` is not handled in the sending thread, which never waits for the
+    nodes: it goes to the nodes' own thread, and a request sent after it, which would
+    find that thread busy, is handled after it. The nodes handle one frame at a time
+    and answer in the order asked."""
+    bus, sim, monitor = two_nodes
+    results: dict[int, tuple[SdoResult, int]] = {}
+    both = threading.Event()
+
+    def done(node: int) -> Callable[[SdoResult], None]:
+        def record(result: SdoResult) -> None:
+            results[node] = (result, threading.get_ident())
+            if len(results) == 2:
+                both.set()
+        return record
+
+    held, release = threading.Event(), threading.Event()
+
+    def timer() -> None:  # a node timer that runs long
+        with sim.lock:
+            held.set()
+            release.wait(5)
+
+    holder = threading.Thread(target=timer, daemon=True)
+    holder.start()
+    try:
+        assert held.wait(5)
+        first = HostSdoTransfer(bus, 1, 0x1000, 0, None, 1.0, done(1), answered_here=True)
+        first.start()
+        second = HostSdoTransfer(bus, 2, 0x1000, 0, None, 1.0, done(2), answered_here=True)
+        second.start()
+        assert not first.finished and not second.finished  # the sender did not wait
+    finally:
+        release.set()
+        holder.join(5)
+    assert both.wait(5), f"answered: {sorted(results)}"
+    assert _sdo_answers(monitor, 4) == [0x601, 0x602, 0x581, 0x582]
+    for node in (1, 2):
+        result, thread = results[node]
+        assert int.from_bytes(result.data, "little") == GENERIC_DEVICE_TYPE
+        assert thread != threading.get_ident()

@@ -52,6 +52,7 @@ from firmware.frames import (
     CAN_ERR_RESTARTED,
     SDO_FRAME_LENGTH,
 )
+from firmware.inline import InlineQueue
 
 log = logging.getLogger(__name__)
 
@@ -365,7 +366,7 @@ class _Receiver:
       its own (``VirtualBus.queue``, ``ShmBus.loop_back``), which ends the wait and which
       the thread drops. (A ``recv`` that only returned None would not do: python-can's
       ``recv`` waits on until its time-out.) On ``virtual``, a frame that finds the
-      thread idle is dispatched by its sender's thread instead (``_InlineQueue``);
+      thread idle is dispatched by its sender's thread instead (``InlineQueue``);
     - any other: ``recv(RECV_POLL_S)``, as python-can's ``Notifier``.
 
     Every wait ends by the earliest of the controller's ``deadlines`` too; once one came
@@ -388,9 +389,9 @@ class _Receiver:
         """The pipe's end that ``stop`` writes (``SELECTABLE_INTERFACES``)."""
         self._hand_over: Callable[[can.Message], None] | None = None
         self._dispatching = threading.Lock()
-        """Held while a frame is dispatched, by this thread or by a sender (``_InlineQueue``):
+        """Held while a frame is dispatched, by this thread or by a sender (``InlineQueue``):
         the frame handlers never run twice at once."""
-        self._inline: _InlineQueue | None = None
+        self._inline: InlineQueue | None = None
         self._after_taking: Callable[[], None] | None = None
         """Set by ``take_then``: called by this thread once the frames received are taken."""
         if interface in SELECTABLE_INTERFACES:
@@ -403,7 +404,7 @@ class _Receiver:
             weakref.finalize(self, _close_pipe, self._wake_r, self._wake_w)
         elif interface == "virtual" and isinstance(getattr(bus, "queue", None), queue.Queue):
             if not getattr(bus, "receive_own_messages", True):
-                self._inline = _InlineQueue.install(bus.queue, self)  # type: ignore[attr-defined]
+                self._inline = InlineQueue.install(bus.queue, self)  # type: ignore[attr-defined]
             self._hand_over = bus.queue.put_nowait  # type: ignore[attr-defined]
         elif callable(getattr(bus, "loop_back", None)):
             self._hand_over = bus.loop_back  # type: ignore[attr-defined]
@@ -465,7 +466,14 @@ class _Receiver:
 
     def try_dispatch(self, msg: can.Message) -> bool:
         """Dispatch ``msg`` in the calling thread, a sender's, unless a frame is being
-        dispatched (``_InlineQueue.put`` has seen that none waits). False: not done."""
+        dispatched (``InlineQueue.put`` has seen that none waits). False: not done.
+
+        The senders are other stations of this process: a simulated node's thread, or the
+        card's own device loop when a simulated node answered its host SDO request there
+        (``firmware.inline.answered_here``). The card's frame handlers take only the card's
+        own locks, never a sender's: a node's thread holding its network's lock waits for
+        no card thread, and the device loop's ``_turn`` is only ever tried
+        (``Device.hand_over``)."""
         if msg is self._wake_frame or not self._dispatching.acquire(blocking=False):
             return False
         try:
@@ -505,58 +513,6 @@ class _Receiver:
                 self._hand_over(self._wake_frame)
         if threading.current_thread() is not self._thread:
             self._thread.join(RECEIVER_JOIN_S)
-
-
-class _InlineQueue(queue.Queue[can.Message]):
-    """A ``virtual`` station's receive queue whose frame, when the receive thread is idle,
-    is dispatched by the thread that sends it.
-
-    python-can's ``virtual`` interface puts a copy of each frame into every other station's
-    queue, in the sender's thread. The card's receive thread then woke for it and waited
-    once more for the interpreter lock, which the sender held until its own next wait. With
-    the nodes of ``--simulate`` in the card's process, an expedited host SDO crossed four
-    threads (host, device loop, node, receive thread); dispatched by the node's thread, it
-    crosses three, as many as canopen's client and node (issue 22).
-
-    Still one frame at a time, in the order sent: a sender dispatches only when no frame
-    waits in the queue or has been taken from it and not yet dispatched (``_taken``, kept
-    under the queue's own mutex) and none is being dispatched (the receiver's dispatch
-    lock, held by whoever dispatches); otherwise its frame is queued for the thread as
-    before. The senders are other stations of this process (the simulated nodes, a test's
-    bus), never the card itself (a station that receives its own messages keeps the
-    thread). A sender runs the card's frame handlers, which take only the card's own locks,
-    never a sender's: a node's thread holding its network's lock waits for no card thread.
-    """
-
-    _receiver: _Receiver
-    _taken: int
-    """Frames the receive thread took from the queue and has not dispatched yet."""
-
-    @classmethod
-    def install(cls, station: queue.Queue[can.Message], receiver: _Receiver) -> _InlineQueue:
-        """Make the station's own queue object an ``_InlineQueue``, in place, under its
-        mutex: python-can's ``send`` may hold the object already, and frames in it stay."""
-        with station.mutex:
-            station.__class__ = cls
-            inline: _InlineQueue = station  # type: ignore[assignment]
-            inline._receiver = receiver
-            inline._taken = 0
-        return inline
-
-    def put(self, item: can.Message, block: bool = True, timeout: float | None = None) -> None:
-        with self.mutex:
-            idle = not self._qsize() and not self._taken
-        if not (idle and self._receiver.try_dispatch(item)):
-            super().put(item, block, timeout)
-
-    def _get(self) -> can.Message:
-        self._taken += 1  # under the mutex: Queue.get holds it
-        return super()._get()
-
-    def dispatched(self) -> None:
-        """The receive thread is done with the frame it took last."""
-        with self.mutex:
-            self._taken -= 1
 
 
 def _close_pipe(*fds: int) -> None:

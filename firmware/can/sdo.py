@@ -39,6 +39,7 @@ from dpm.cia301 import (
     SDO_RESPONSE_BASE,
 )
 from firmware.can.bus import CanBus
+from firmware.inline import answered_here
 
 DEFAULT_SDO_TIMEOUT = 0.5
 """[ours] seconds an SDO request waits for its answer until COM_Set_SDO_Timeout; canopen's
@@ -63,8 +64,14 @@ class HostSdoTransfer:
     """One upload (``data`` None) or download to ``node``; ``done`` gets the result once."""
 
     def __init__(self, bus: CanBus, node: int, index: int, subindex: int, data: bytes | None,
-                 timeout: float, done: Callable[[SdoResult], None]) -> None:
+                 timeout: float, done: Callable[[SdoResult], None], *,
+                 answered_here: bool = False) -> None:
         self.bus = bus
+        self.answered_here = answered_here
+        """Send each request inside ``firmware.inline.answered_here``: a simulated node in
+        this process answers it in the sending thread (the host's transfers, sent by the
+        device loop, whose ``done`` posts the answer; not a boot-up's, whose steps run
+        on in the thread that sends)."""
         self.node = node
         self.index = index
         self.subindex = subindex
@@ -116,7 +123,11 @@ class HostSdoTransfer:
 
     def _send(self, frame: bytes) -> None:
         self._deadline = time.monotonic() + self.timeout
-        self.bus.send(SDO_REQUEST_BASE + self.node, frame)
+        if self.answered_here:
+            with answered_here():
+                self.bus.send(SDO_REQUEST_BASE + self.node, frame)
+        else:
+            self.bus.send(SDO_REQUEST_BASE + self.node, frame)
 
     def _finish(self, result: SdoResult) -> None:
         if self._finished:
@@ -283,7 +294,8 @@ class SdoChannels:
         """An SDO transfer of the host or of a boot-up; the master's thread watches its
         time-out (``check``)."""
         transfer.start()
-        self.watch(transfer)
+        if not transfer.finished:  # an answer handled in ``start`` (``answered_here``)
+            self.watch(transfer)
 
     def watch(self, item: Deadline) -> None:
         """Time ``item`` out from the master's thread when its deadline comes."""

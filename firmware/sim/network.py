@@ -1,9 +1,10 @@
 """The simulated nodes of a network description, live on one python-can bus.
 
 One ``canopen.Network`` over the given bus carries every node; its notifier
-thread delivers frames to the nodes, a ``Scheduler`` thread runs their
-timers, and one lock serialises both. The bus belongs to the caller: it is
-neither opened nor shut down here.
+thread delivers frames to the nodes (on ``virtual``, the card's host SDO
+requests may be handled by the card's thread instead: ``_NodeNotifier``), a
+``Scheduler`` thread runs their timers, and one lock serialises both. The
+bus belongs to the caller: it is neither opened nor shut down here.
 
 A python-can bus object hears only other bus objects, never its own frames,
 and feeds a single ``can.Notifier``. So a master in the same process needs
@@ -20,12 +21,14 @@ of the network description is needed for that.
 from __future__ import annotations
 
 import logging
+import queue
 import threading
 from dataclasses import dataclass
 from types import TracebackType
 
 import can
 import canopen
+from can.interfaces.virtual import VirtualBus
 from canopen.objectdictionary import ObjectDictionary
 
 from dbm_tools.eds import import_od
@@ -36,6 +39,7 @@ from dbm_tools.network import (
     NodeDescription,
 )
 from dpm.cia305 import UNCONFIGURED, LssAddress
+from firmware.inline import InlineQueue
 from firmware.sim.generic import generic_object_dictionary
 from firmware.sim.lss import LssBus
 from firmware.sim.node import SimulatedNode
@@ -81,6 +85,62 @@ class _RemoteFrames(can.Listener):
                 node.on_remote(msg.arbitration_id)
 
 
+class _NodeNotifier(can.Notifier):
+    """The nodes' receive thread (python-can's ``Notifier``, as canopen's ``connect`` makes
+    it), whose frames may also be handled by their sender's thread (``InlineQueue``).
+
+    On ``virtual`` the nodes handle a frame sent inside ``firmware.inline.answered_here``
+    (the card's host SDO requests, with ``--simulate`` in the card's process) in the
+    sender's thread when this thread is idle: an expedited host SDO then crosses the card's
+    device loop alone, request, node and answer (issue 22). Every other frame waits for
+    this thread as before. The sender runs the handlers only when it can take, without
+    waiting, the notifier's lock (held while this thread handles a frame) and the network's
+    lock (held by the timers and the nodes' entry points), and does not hold the network's
+    lock already: a node's own thread that sends (its timers) never runs node code inside
+    node code, and a card thread never waits for a node's.
+    """
+
+    def __init__(self, bus: can.BusABC, listeners: list[can.Listener], timeout: float,
+                 lock: threading.RLock) -> None:
+        self._network_lock = lock
+        self._ready = False
+        """Set once ``Notifier.__init__`` has made the lock that ``try_dispatch`` takes: the
+        queue takes frames for it from the moment it is installed, before the thread runs."""
+        self._inline: InlineQueue | None = None
+        station = getattr(bus, "queue", None)
+        if (isinstance(bus, VirtualBus)
+                and isinstance(station, queue.Queue) and not bus.receive_own_messages):
+            self._inline = InlineQueue.install(station, self, asked_only=True)
+        super().__init__(bus, listeners, timeout)
+        self._ready = True
+
+    def _on_message_received(self, msg: can.Message) -> None:
+        """This thread's handling (after ``recv`` took ``msg`` from the queue)."""
+        try:
+            super()._on_message_received(msg)
+        finally:
+            if self._inline is not None:
+                self._inline.dispatched()
+
+    def try_dispatch(self, msg: can.Message) -> bool:
+        lock = self._network_lock
+        owned: bool = lock._is_owned()  # type: ignore[attr-defined]  # RLock's, as Condition's
+        if not self._ready or self._stopped or owned or not self._lock.acquire(blocking=False):
+            return False
+        try:
+            if not lock.acquire(blocking=False):
+                return False
+            try:
+                super()._on_message_received(msg)
+            except Exception:  # the sender's send must not fail for a node's fault
+                log.exception("simulated node failed on frame 0x%X", msg.arbitration_id)
+            finally:
+                lock.release()
+        finally:
+            self._lock.release()
+        return True
+
+
 class SimulatedNetwork:
     """Every node of ``network`` as a simulated CiA 301 device on ``bus``.
 
@@ -103,7 +163,6 @@ class SimulatedNetwork:
                 self.nodes[node.id] = SimulatedNode(
                     node, object_dictionary(node, network.bus), self.scheduler, self.lock)
         self.canopen = canopen.Network(bus)
-        self.canopen.NOTIFIER_CYCLE = NOTIFIER_CYCLE_S
         self._live = [node for node in self.nodes.values() if not node.description.sim.silent]
         self.lss = LssBus(self, self._live, unconfigured)
         self.running = False
@@ -135,13 +194,13 @@ class SimulatedNetwork:
     def start(self) -> None:
         for node in self._live:
             self.canopen.add_node(node)
-        try:
-            self.canopen.connect()
+        try:  # canopen's ``connect`` with a notifier of its own (``_NodeNotifier``)
+            self.canopen.notifier = _NodeNotifier(
+                self.bus, [*self.canopen.listeners, _RemoteFrames(self._live)],
+                NOTIFIER_CYCLE_S, self.lock)
         except ValueError as exc:
             raise ValueError(f"{exc}: give the simulation its own bus object on the channel, "
                              "not the master's") from exc
-        assert self.canopen.notifier is not None
-        self.canopen.notifier.add_listener(_RemoteFrames(self._live))
         self.scheduler.start()
         with self.lock:
             for node in self._live:

@@ -1,0 +1,139 @@
+"""Frames on python-can's ``virtual`` interface handled by the thread that sends them [ours].
+
+python-can's ``virtual`` interface puts a copy of each frame into every other station's
+queue, in the sender's thread; the station's receive thread then wakes for it and waits
+for the interpreter lock, which the sender holds until its own next wait. With
+``--simulate`` the card and its nodes share one process, and each such hand-over cost an
+expedited host SDO a thread wake-up (50-150 µs here, issue 22). An ``InlineQueue`` lets
+the sender run the station's frame handlers itself when the station's receive thread has
+nothing to do, and queues the frame for the thread as before otherwise.
+
+Two kinds of station use it. The card's controller (``firmware.can.bus``) takes every
+frame that finds it idle. A simulated network (``firmware.sim.network``) takes only the
+frames its sender asked to have answered at once (``answered_here``): the card's host SDO
+requests; every other frame, from any thread, waits for the nodes' own thread as before,
+so that no other path of the card runs node code in its threads.
+"""
+
+from __future__ import annotations
+
+import queue
+import threading
+from collections.abc import Iterator
+from contextlib import contextmanager
+from typing import Protocol
+
+import can
+
+
+class Dispatcher(Protocol):
+    """The station's side: its frame handlers, run by a sender's thread."""
+
+    def try_dispatch(self, msg: can.Message) -> bool:
+        """Handle ``msg`` in the calling thread unless a frame is being handled or the
+        calling thread may not run the handlers; False: not done, the frame is queued."""
+
+
+class _Asked(threading.local):
+    """Per thread: whether it is inside ``answered_here``, and the frames it reserved."""
+
+    def __init__(self) -> None:
+        self.depth = 0
+        self.reserved: list[tuple[InlineQueue, can.Message]] = []
+
+
+_asked = _Asked()
+
+
+@contextmanager
+def answered_here() -> Iterator[None]:
+    """Frames sent inside this block to an ``asked_only`` station are handled by this
+    thread when the block ends, if that station is idle then (else by its own thread, in
+    the order sent).
+
+    At the end, not inside the send: python-can's ``virtual`` puts the frame into one
+    station after the other, and the card traces a sent frame once the send returns; an
+    answer handled inside the send would come before its request in the card's trace and
+    at the stations after the node. A frame reserved this way counts as taken from the
+    station's queue meanwhile, so frames sent after it by other threads wait behind it."""
+    state = _asked
+    state.depth += 1
+    try:
+        yield
+    finally:
+        state.depth -= 1
+        if not state.depth:
+            while state.reserved:
+                station, msg = state.reserved.pop(0)
+                station.deliver_reserved(msg)
+
+
+class InlineQueue(queue.Queue[can.Message]):
+    """A ``virtual`` station's receive queue whose frame, when the receive thread is idle,
+    is handled by the thread that sends it.
+
+    Still one frame at a time, in the order sent: a sender handles its frame only when no
+    frame waits in the queue or has been taken from it and not yet handled (``_taken``,
+    kept under the queue's own mutex) and the dispatcher's ``try_dispatch`` finds none being
+    handled; otherwise the frame is queued for the thread as before. The receive thread
+    reports each frame it has handled (``dispatched``). A station that receives its own
+    messages keeps the thread (its own sends would run its handlers inside them).
+    """
+
+    _dispatcher: Dispatcher
+    _taken: int
+    """Frames taken from the queue (by the receive thread, or reserved by ``answered_here``)
+    and not handled yet."""
+    _asked_only: bool
+
+    @classmethod
+    def install(cls, station: queue.Queue[can.Message], dispatcher: Dispatcher, *,
+                asked_only: bool = False) -> InlineQueue:
+        """Make the station's own queue object an ``InlineQueue``, in place, under its
+        mutex: python-can's ``send`` may hold the object already, and frames in it stay.
+        ``asked_only``: only frames sent inside ``answered_here``."""
+        with station.mutex:
+            station.__class__ = cls
+            inline: InlineQueue = station  # type: ignore[assignment]
+            inline._dispatcher = dispatcher
+            inline._taken = 0
+            inline._asked_only = asked_only
+        return inline
+
+    def put(self, item: can.Message, block: bool = True, timeout: float | None = None) -> None:
+        if self._asked_only:
+            if _asked.depth:
+                with self.mutex:
+                    reserved = not self._qsize() and not self._taken
+                    if reserved:
+                        self._taken += 1
+                if reserved:
+                    _asked.reserved.append((self, item))
+                    return
+        else:
+            with self.mutex:
+                idle = not self._qsize() and not self._taken
+            if idle and self._dispatcher.try_dispatch(item):
+                return
+        super().put(item, block, timeout)
+
+    def deliver_reserved(self, item: can.Message) -> None:
+        """A frame reserved in ``answered_here``: handled here, or else first in the queue
+        (frames sent after it by other threads wait behind it)."""
+        if self._dispatcher.try_dispatch(item):
+            self.dispatched()
+            return
+        with self.mutex:
+            self.queue.appendleft(item)
+            self._taken -= 1
+            self.unfinished_tasks += 1
+            self.not_empty.notify()
+
+    def _get(self) -> can.Message:
+        self._taken += 1  # under the mutex: Queue.get holds it
+        return super()._get()
+
+    def dispatched(self) -> None:
+        """A frame taken from the queue (or reserved) has been handled."""
+        with self.mutex:
+            self._taken -= 1
