@@ -20,11 +20,11 @@ from pathlib import Path
 
 import pytest
 
-from dbm_tools.network import parse_network
+from dbm_tools.network import GENERIC_PRODUCT_CODE, GENERIC_VENDOR_ID, parse_network
 from dpm.cia305 import CONFIGURATION, UNCONFIGURED, WAITING, LssAddress
 from dpm.commands import COM_CFGRX_LAYER2, COM_RX_CAN_LAYER2, COM_SDO_UP_DOWNLOAD, COM_TX_CAN_LAYER2
 from dpm.message import Message, Task
-from firmware.sim.generic import GENERIC_PRODUCT_CODE, GENERIC_REVISION, GENERIC_VENDOR_ID
+from firmware.sim.generic import GENERIC_REVISION
 from host_api.board import Board, CifError
 from host_api.cia309.lss import LssError, LssErrorCode, LssMaster
 from host_api.online import configure_online

@@ -31,10 +31,16 @@ from canopen.sdo.exceptions import SdoAbortedError, SdoCommunicationError
 
 from cifemu.cli import build_parser
 from cifemu.commands.sim import describe
-from dbm_tools.network import GENERIC_DEVICE_TYPE, NetworkError, parse_network
+from dbm_tools.network import (
+    GENERIC_DEVICE_TYPE,
+    GENERIC_PRODUCT_CODE,
+    GENERIC_VENDOR_ID,
+    NetworkError,
+    parse_network,
+)
 from dpm.cia305 import LssAddress
 from firmware.sim import SimulatedNetwork
-from firmware.sim.generic import GENERIC_PRODUCT_CODE, GENERIC_REVISION, GENERIC_VENDOR_ID
+from firmware.sim.generic import GENERIC_REVISION
 
 if TYPE_CHECKING:
     from tests.buses import CanChannel
@@ -218,7 +224,7 @@ class Bench:
 
     def node(self, node_id: int) -> canopen.RemoteNode:
         if node_id not in self.master:
-            self.master.add_node(node_id, canopen.ObjectDictionary())
+            self.master.add_node(node_id, canopen.ObjectDictionary())  # type: ignore[no-untyped-call]
         node = self.master[node_id]
         assert isinstance(node, canopen.RemoteNode)
         return node
