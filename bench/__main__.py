@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import argparse
 from collections.abc import Callable
-from contextlib import nullcontext
+from contextlib import AbstractContextManager, nullcontext
 from typing import Any
 
 from bench import (
@@ -70,7 +70,8 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"unknown benchmark {', '.join(unknown)}; choose from {', '.join(BENCHMARKS)}")
     names = args.names or list(BENCHMARKS)
     results = []
-    with busy_load(args.busy) if args.load else nullcontext([]) as busy:
+    load: AbstractContextManager[list[int]] = busy_load(args.busy) if args.load else nullcontext([])
+    with load as busy:
         for name in names:
             progress(f"running {name}")
             runner = QUICK.get(name, BENCHMARKS[name]) if args.quick else BENCHMARKS[name]

@@ -46,6 +46,7 @@ import time
 import uuid
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -159,9 +160,14 @@ def _image(card: SimCard) -> mmap.mmap:
         os.close(fd)
 
 
+def _hop(marks: Marks, index: int) -> int:
+    """Nanoseconds of hop ``index`` in one round trip."""
+    return marks[index + 1] - marks[index]
+
+
 def breakdown(names: list[str], rounds: list[Marks]) -> dict[str, Any]:
     """Per hop: p50, p90, p99 (µs) and the hop's share of the summed p50s."""
-    table = []
+    table: list[dict[str, Any]] = []
     for index, name in enumerate(names):
         spans = sorted(r[index + 1] - r[index] for r in rounds)
         table.append({"hop": name, "p50_us": round(percentile(spans, 50) / 1000, 1),
@@ -188,7 +194,7 @@ def tail(names: list[str], rounds: list[Marks]) -> dict[str, Any]:
     ends = sorted(r[-1] - r[0] for r in rounds)
     threshold = percentile(ends, 99)
     slow = [r for r in rounds if r[-1] - r[0] >= threshold]
-    longest = [max(range(len(names)), key=lambda i, r=r: r[i + 1] - r[i]) for r in slow]
+    longest = [max(range(len(names)), key=partial(_hop, r)) for r in slow]
     return {"round_trips": len(slow), "from_us": round(threshold / 1000, 1),
             "hops": [{"hop": name,
                       "mean_us": round(sum(r[i + 1] - r[i] for r in slow) / len(slow) / 1000, 1),

@@ -42,7 +42,9 @@ class FirmwareLiveness:
     pid: int | None
 
 
-def _recorded_pid(path: Path) -> int | None:
+def recorded_pid(path: Path) -> int | None:
+    """The pid a firmware lock file names: the holder's once it has cleared what a killed
+    predecessor left in the image (``dpm.image.ExclusiveLock``), else the last one."""
     try:
         text = path.read_text(errors="replace").strip()
     except OSError:
@@ -93,7 +95,7 @@ def _wrote_the_file(pid: int, path: Path) -> bool:
 def firmware_liveness(directory: Path, board: int) -> FirmwareLiveness:
     """Whether board ``board``'s firmware in ``directory`` runs, and its (last) pid."""
     path = lock_path(directory, board)
-    recorded = _recorded_pid(path)
+    recorded = recorded_pid(path)
     holders = flock_holders(path)
     if holders is None:
         return FirmwareLiveness(_probe(path), recorded)

@@ -5,7 +5,12 @@ must not talk to the card before it serves: this is their one wait. Two things m
 more than a look at HostFlags:
 
 - READY alone is not enough: a killed predecessor leaves READY set in its image. The
-  card is the new process's once the firmware lock names its pid (``host_api.liveness``).
+  card is the new process's once the firmware lock file names its pid, and READY counts
+  only when read after that: a firmware clears the stale READY the moment it holds the
+  lock and writes its pid after that (``dpm.image.ExclusiveLock``). Reading READY first,
+  then asking who holds the lock, took the predecessor's READY for the new firmware's when
+  the lock was taken between the two reads, or before the new firmware cleared it: a host
+  then found its DevInitBoard refused with -11 (not ready) "right after" the start.
 - A fixed deadline on the wall clock is wrong on a shared machine: at a load of 30 on two
   cores a firmware's start takes 10-20 s of wall time for the same half second of CPU, and
   a fixed 15 s failed 13 tests of a run. The wait follows the process's CPU time instead
@@ -21,10 +26,10 @@ import time
 from pathlib import Path
 
 from dpm.flags import HostFlag
-from dpm.image import image_path
+from dpm.image import image_path, lock_path
 from dpm.layout import HOST_FLAGS
 from host_api.errors import HostApiError
-from host_api.liveness import firmware_liveness, stat_fields
+from host_api.liveness import recorded_pid, stat_fields
 
 TICK_NS = 1_000_000_000 // os.sysconf("SC_CLK_TCK")
 START_CPU_S = 10.0
@@ -102,16 +107,17 @@ def wait_ready(process: subprocess.Popen[bytes], directory: Path, board: int,
     image shows READY and the firmware lock names its pid. StartError when the process
     ends first or its start stops advancing (``StartProgress(stall_s, cpu_limit_s)``)."""
     image = image_path(directory, board)
+    lock = lock_path(directory, board)
     start = StartProgress(process.pid, stall_s, cpu_limit_s)
     while True:
         status = process.poll()
         if status is not None:
             raise StartError(f"the firmware (pid {process.pid}) exited with status {status} "
                              "before it was READY", status)
-        flags = _host_flags(image)
-        if (flags is not None and flags & HostFlag.READY
-                and firmware_liveness(directory, board).pid == process.pid):
-            return
+        if recorded_pid(lock) == process.pid:  # first: READY only counts when read after it
+            flags = _host_flags(image)
+            if flags is not None and flags & HostFlag.READY:
+                return
         problem = start.problem()
         if problem is not None:
             raise StartError(f"the firmware (pid {process.pid}) was not READY ({image}): "

@@ -14,6 +14,7 @@ import shutil
 import subprocess
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -72,7 +73,7 @@ class PythonDriver:
     """host_api.driver's Dev* functions and constants, with DevDownload and its modes from
     host_api.download (the driver module does not import the download module)."""
 
-    def __getattr__(self, name: str) -> object:
+    def __getattr__(self, name: str) -> Any:
         from host_api import download, driver
 
         return getattr(driver if hasattr(driver, name) else download, name)

@@ -104,7 +104,8 @@ def get(mm: mmap.mmap) -> Answer:
     ln = mm[PC_MBX + 2]
     raw = bytes(mm[PC_MBX : PC_MBX + 8 + ln])  # only ln + 8 bytes, never the whole slot
     toggle(mm, HOST_MBX)
-    return Answer(*MSG_HEADER.unpack_from(raw), raw[8:])
+    rx, tx, ln, nr, a, f, b, e = MSG_HEADER.unpack_from(raw)
+    return Answer(rx, tx, ln, nr, a, f, b, e, raw[8:])
 
 
 def transact(mm: mmap.mmap, rx: int, b: int, data: bytes, nr: int, e: int = 0) -> Answer:

@@ -24,6 +24,7 @@ from dbm_tools.network import load_network
 from dpm.card_info import read_card_info
 from dpm.com import ACCEPT_ALL_MASK, acceptance_long
 from dpm.commands import COM_SHARED_MEMORY
+from dpm.errors import Drv
 from dpm.message import Message, Tdt, TelegramHeader, Tfc
 from firmware.can.bus import bitrate_of_link
 from firmware.frames import (
@@ -134,7 +135,7 @@ def test_the_acceptance_filter_reads_sja1000_registers(tmp_path: Path, code: int
                 assert indication.b == 65 and indication.ln == 13
                 got.append(int.from_bytes(indication.data[1:5], "big") >> 3)
             assert got == passed
-            assert d.DevGetMessage(0, 288, 300)[0] == d.Drv.DRV_DEV_GET_TIMEOUT
+            assert d.DevGetMessage(0, 288, 300)[0] == Drv.DRV_DEV_GET_TIMEOUT
     finally:
         sender.shutdown()
         card.stop()

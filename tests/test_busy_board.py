@@ -67,10 +67,15 @@ def test_a_gateway_holding_the_mailbox_is_named_within_a_second(tmp_path: Path) 
                              text=True)
     where = ("--dpm-dir", str(tmp_path))
     try:
-        assert serve.stderr is not None
+        stderr = serve.stderr
+        assert stderr is not None
         lines: queue.SimpleQueue[str] = queue.SimpleQueue()
-        threading.Thread(target=lambda: [lines.put(line) for line in serve.stderr],
-                         daemon=True).start()
+
+        def pump() -> None:
+            for line in stderr:
+                lines.put(line)
+
+        threading.Thread(target=pump, daemon=True).start()
         match = re.search(r"listening on 127\.0\.0\.1:(\d+)", lines.get(timeout=30))
         assert match is not None
         port = match.group(1)

@@ -21,7 +21,7 @@ TASKS = ("task", "rcs", "plc", "can_task", "can_download", "can_diagnosis", "can
 def imported(module: str) -> set[str]:
     """Every module ``firmware.<module>`` imports, under TYPE_CHECKING or lazily too."""
     path = ROOT / "firmware" / (module.replace(".", "/") + ".py")
-    found = set()
+    found: set[str] = set()
     for node in ast.walk(ast.parse(path.read_text(), str(path))):
         if isinstance(node, ast.Import):
             found.update(alias.name for alias in node.names)

@@ -35,8 +35,9 @@ from dpm.message import Message, Task
 from dpm.task2 import CanState, ComDiagnostics, GlobalBits
 from host_api import driver as d
 from host_api.board import Board, CifError
-from host_api.cia309.gateway import Cia309Error, Gateway
+from host_api.cia309.gateway import Gateway
 from host_api.cia309.lss import LssError, LssMaster
+from host_api.cia309.model import Cia309Error
 from host_api.download import CONFIGURATION_DOWNLOAD, DevDownload, upload_database
 from host_api.online import ConfigurationError, configure_online
 from tests.can_net import start_sim

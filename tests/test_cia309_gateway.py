@@ -10,11 +10,13 @@ tests (faults injected at power-on; store, restore, initialise, controller).
 
 from __future__ import annotations
 
+import operator
 import os
 import struct
 import threading
 import time
 from collections.abc import Callable, Iterator
+from functools import partial
 from pathlib import Path
 
 import pytest
@@ -218,18 +220,27 @@ def test_sdo_upload_sent_without_waiting(gw: Gateway) -> None:
         assert gw.try_sdo_upload(0x1000, 0, lambda: None, node_id=42) is None
         assert absent.abandon().error == ErrorCode.TIME_OUT
         sent: list[SdoUploadInFlight | None] = []  # None while the card's mailbox is full
-        wait_until(lambda: sent.append(gw.try_sdo_upload(0x1000, 0, done[1].set, node_id=42))
-                   or sent[-1] is not None, 5, "node 42's channel free again")
+
+        def sent_again() -> bool:
+            sent.append(gw.try_sdo_upload(0x1000, 0, done[1].set, node_id=42))
+            return sent[-1] is not None
+
+        wait_until(sent_again, 5, "node 42's channel free again")
         again = sent[-1]
         assert again is not None and done[1].wait(10)  # refused (42's runs) or timed out
         assert reason(again.result).error in (ErrorCode.TIME_OUT, ErrorCode.INTERNAL_STATE)
     finally:
         gw.configure_sdo_timeout(int(DEFAULT_SDO_TIMEOUT * 1000))
     wrong: list[SdoUploadInFlight | None] = []
-    wait_until(lambda: wrong.append(gw.try_sdo_upload(0x2345, 0, done[2].set, node_id=2))
-               or wrong[-1] is not None, 5, "the card's mailbox free")
-    assert done[2].wait(5)
-    assert reason(wrong[-1].result).abort_code == 0x06020000
+
+    def sent_to_node_2() -> bool:
+        wrong.append(gw.try_sdo_upload(0x2345, 0, done[2].set, node_id=2))
+        return wrong[-1] is not None
+
+    wait_until(sent_to_node_2, 5, "the card's mailbox free")
+    sent_last = wrong[-1]
+    assert sent_last is not None and done[2].wait(5)
+    assert reason(sent_last.result).abort_code == 0x06020000
 
 
 def test_the_mailbox_reader_does_not_poll_after_the_card_rang(gw: Gateway) -> None:
@@ -333,7 +344,7 @@ def test_nmt_services_and_their_events(gw: Gateway) -> None:
                                                              heartbeat), 10)
         gw.stop_node(ALL_NODES)
         for node in (1, 2, 3):
-            stream.wait_for(lambda e, n=node: e == ErrorControlEvent(1, n, NmtState.STOPPED), 5)
+            stream.wait_for(partial(operator.eq, ErrorControlEvent(1, node, NmtState.STOPPED)), 5)
         gw.start_node(ALL_NODES)
     wait_operating(0, [1, 2, 3])
     assert gw.default_node_id == 1  # "all" does not become the default

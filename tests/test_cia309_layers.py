@@ -30,7 +30,8 @@ def _imports(module: str) -> set[str]:
 def test_the_typed_layer_never_reaches_the_text_layer() -> None:
     assert {path.stem for path in PACKAGE.glob("*.py")} >= TYPED | TEXT
     for module in TYPED:
-        reached, todo = set(), [module]
+        reached: set[str] = set()
+        todo = [module]
         while todo:
             for imported in _imports(todo.pop()) - reached:
                 reached.add(imported)

@@ -162,8 +162,12 @@ def test_cocomm_requests_unchanged(connect: Connect) -> None:
     assert "vs (visible string" in helped and helped.count("\r\n") == 1
     assert c.ask("[11] 1 stop\n") == "[11] OK\r\n"
     logged: list[str] = []  # CANopenNode's events go to the log that 'log' prints
-    wait_until(lambda: logged.append(c.ask("[12] log\n")) or '"stopped" (4)' in logged[-1], 5,
-               "node 1's state change in the log")
+
+    def stopped_logged() -> bool:
+        logged.append(c.ask("[12] log\n"))
+        return '"stopped" (4)' in logged[-1]
+
+    wait_until(stopped_logged, 5, "node 1's state change in the log")
     assert re.fullmatch(r'\d{4}-\d\d-\d\d \d\d:\d\d:\d\d: CANopen Remote node ID = 0x01: '
                         r'NMT state changed to: "stopped" \(4\)\r\n', logged[-1])
     assert c.ask("[13] 1 start\n") == "[13] OK\r\n"
@@ -439,10 +443,15 @@ def test_cli_serve_exec_and_shell(servers: dict[str, BackgroundServer], director
         cifemu("serve", "--board", "1", "--dpm-dir", str(directory), "--port", "0"),
         stderr=subprocess.PIPE, text=True)
     try:
-        assert serve.stderr is not None
+        stderr = serve.stderr
+        assert stderr is not None
         lines: queue.SimpleQueue[str] = queue.SimpleQueue()
-        threading.Thread(target=lambda: [lines.put(line) for line in serve.stderr],
-                         daemon=True).start()
+
+        def pump() -> None:
+            for line in stderr:
+                lines.put(line)
+
+        threading.Thread(target=pump, daemon=True).start()
         match = re.search(r"listening on 127\.0\.0\.1:(\d+)", lines.get(timeout=20))
         assert match is not None
         port = match.group(1)

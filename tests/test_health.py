@@ -80,6 +80,65 @@ def test_a_start_takes_ready_only_from_the_process_it_started(tmp_path: Path) ->
         stand_in.wait()
 
 
+HELD_IN_THE_LOCK = """
+import mmap, sys
+from pathlib import Path
+from dpm.flags import HostFlag
+from dpm.image import CardDirectory, ExclusiveLock, image_path, lock_path
+from dpm.layout import HOST_FLAGS
+
+directory = Path(sys.argv[1])
+
+def set_host_flags(value):
+    with open(image_path(directory, 0), "r+b") as f, mmap.mmap(f.fileno(), 0) as mm:
+        mm[HOST_FLAGS] = value
+
+def held():
+    print("locked", flush=True)
+    sys.stdin.readline()
+    set_host_flags(0)  # what Device._clear_host_flags does at this point
+
+lock = ExclusiveLock(CardDirectory(directory), lock_path(directory, 0).name, on_acquired=held)
+set_host_flags(HostFlag.READY)
+print("ready", flush=True)
+sys.stdin.readline()
+"""
+"""A firmware's start around its lock (``dpm.image.ExclusiveLock``, as ``Device`` takes it),
+held where the test says: a firmware is in that instant between taking the lock and
+clearing its killed predecessor's READY, which no real firmware can be made to stay in."""
+
+
+def test_a_start_is_not_ready_while_the_predecessors_ready_is_still_there(
+        tmp_path: Path) -> None:
+    """The new firmware holds its lock before it clears the READY a SIGKILLed one left:
+    the start's wait read READY, then found the lock held by the new pid, and returned; the
+    host's DevInitBoard then met the image without READY: -11 right after the start (a
+    loaded ``-n 3`` run of test_download's SIGKILL test). READY now counts only when read
+    after the lock file names the new pid, which is written after the clearing."""
+    card = start_card(tmp_path)
+    kill(card)
+    assert card.map()[0x1FFE] & 0x80  # the image still says READY
+    stand_in = subprocess.Popen([sys.executable, "-c", HELD_IN_THE_LOCK, str(tmp_path)],
+                                stdin=subprocess.PIPE, stdout=subprocess.PIPE, cwd=ROOT)
+    try:
+        assert stand_in.stdin is not None and stand_in.stdout is not None
+        assert stand_in.stdout.readline() == b"locked\n"  # holds the lock, sleeps on stdin
+        assert card.map()[0x1FFE] & 0x80
+        with pytest.raises(StartError, match="got no CPU for 1 s"):
+            wait_ready(stand_in, tmp_path, 0, stall_s=1.0)
+        stand_in.stdin.write(b"\n")
+        stand_in.stdin.flush()
+        assert stand_in.stdout.readline() == b"ready\n"
+        wait_ready(stand_in, tmp_path, 0)
+        assert d.DevOpenDriver(tmp_path) == 0
+        assert d.DevInitBoard(0) == 0
+    finally:
+        while d.DevCloseDriver() == 0:
+            pass
+        stand_in.kill()
+        stand_in.wait()
+
+
 def test_a_cleanly_stopped_firmware_leaves_no_pid(tmp_path: Path) -> None:
     card = start_card(tmp_path)
     assert card.stop() == 0

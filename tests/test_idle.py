@@ -541,8 +541,11 @@ def test_a_ringing_host_s_new_outputs_reach_the_bus_at_once(shm_net: ShmNetwork)
         value = bytes([trial]) * 8
         written.append((time.time(), value.hex()))
         assert d.DevExchangeIO(0, 0, value, 0, 0, 1000)[0] == 0
-        wait_until(lambda v=value: d.DevExchangeIO(0, 0, b"", 0, 8, 1000)[1] == v, 5,
-                   f"node 1's echo of {value.hex()}")
+
+        def echoed(v: bytes = value) -> bool:
+            return bool(d.DevExchangeIO(0, 0, b"", 0, 8, 1000)[1] == v)
+
+        wait_until(echoed, 5, f"node 1's echo of {value.hex()}")
     shm_net.stop()
     frames = [(t, data) for t, ident, data in candump(shm_net.trace) if ident == 0x201]
     latencies = [next(t for t, data in frames if data == value and t >= at - 0.001) - at

@@ -81,7 +81,7 @@ def test_seed_addresses_of_the_canopen_fields() -> None:
 
 def test_sub_structures_are_packed_as_dpm_md_lists_them() -> None:
     assert layout.MSG_STRUC.itemsize == 288
-    assert layout.MSG_STRUC.fields["data"][1] == 8
+    assert layout.MSG_STRUC.fields is not None and layout.MSG_STRUC.fields["data"][1] == 8
     assert layout.VERSIONINFO.itemsize == 32
     assert layout.TASKINFO_ENTRY.itemsize == 16
     assert layout.offset_of("RcsInfo.bDriverType") == 0x1FF7

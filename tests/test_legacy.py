@@ -193,10 +193,10 @@ def test_every_other_file_is_left_alone(preloads: dict[str, Path], tmp_path: Pat
                           env={**os.environ, "LD_PRELOAD": str(preloads["x86-64"])})
     assert done.returncode == 0 and done.stdout == data.read_bytes()
     if stty is not None:  # an ioctl on a descriptor that is not the device: libc's answer
-        done = subprocess.run([stty, "size"], stdin=subprocess.DEVNULL, capture_output=True,
-                              text=True, check=False,
-                              env={**os.environ, "LD_PRELOAD": str(preloads["x86-64"])})
-        assert done.returncode != 0 and "Inappropriate ioctl" in done.stderr
+        sized = subprocess.run([stty, "size"], stdin=subprocess.DEVNULL, capture_output=True,
+                               text=True, check=False,
+                               env={**os.environ, "LD_PRELOAD": str(preloads["x86-64"])})
+        assert sized.returncode != 0 and "Inappropriate ioctl" in sized.stderr
 
 
 # --- shutdown with calls in flight, close-all loops (docs/legacy.md "Threads and descriptors")

@@ -17,7 +17,9 @@ import shutil
 import subprocess
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -230,9 +232,11 @@ def test_c_and_python_hosts_take_the_same_channel_locks(card: Card) -> None:
         request = Message(rx=2, tx=16, b=17, nr=1, data=bytes([0, 1, 0, 0, 0, 2, 5, 1]))
         # a Python host's put or get holds the transaction lock (its put and get channels
         # are thread locks inside it)
-        for lock, call in ((board.transaction, lambda: c.DevPutMessage(0, request, 30)),
-                           (board.transaction, lambda: c.DevGetMessage(0, 288, 30)[0]),
-                           (board.io_lock, lambda: c.DevExchangeIO(0, 0, b"x", 0, 1, 30)[0])):
+        calls: list[tuple[Any, Callable[[], int]]] = [
+            (board.transaction, lambda: c.DevPutMessage(0, request, 30)),
+            (board.transaction, lambda: c.DevGetMessage(0, 288, 30)[0]),
+            (board.io_lock, lambda: c.DevExchangeIO(0, 0, b"x", 0, 1, 30)[0])]
+        for lock, call in calls:
             assert lock.acquire(1.0)
             try:
                 assert call() == Drv.DRV_CMD_ACTIVE

@@ -459,7 +459,11 @@ def test_watchdog_is_answered_and_expires(card: Card, board: int, d: Any) -> Non
     wait_until(lambda: d.DevTriggerWatchDog(board, d.WATCHDOG_START)[1] == 2, what="answer")
     for _ in range(5):  # triggering in time keeps the card happy
         value = d.DevTriggerWatchDog(board, d.WATCHDOG_START)[1]
-        wait_until(lambda v=value: card.map()[0x1FF3] == v % 255 + 1, what="watchdog answer")
+
+        def answered(v: int = value) -> bool:
+            return bool(card.map()[0x1FF3] == v % 255 + 1)
+
+        wait_until(answered, what="watchdog answer")
     assert diagnostics(d, board).bErr_event == 0
     wait_until(lambda: diagnostics(d, board).bErr_event == 220, timeout=2, what="Err_Event 220")
     assert diagnostics(d, board).bErr_rem_adr == 255

@@ -109,7 +109,7 @@ EXPECTED: dict[str, int] = {
     "COM_ND_GUARD_ACTIVE": NodeStatus.GUARD_ACTIVE, "COM_ND_DEACT": NodeStatus.DEACTIVATED,
     **{f"COM_ND_STATE_{s.name}": s for s in cmd.NodeState},
     "COM_ND_FLAG_HRTBT": prm.NdFlag.HRTBT, "COM_ND_FLAG_ACTIVE": prm.NdFlag.ACTIVE,
-    **{f"COM_CFG_{f.name}": f for f in prm.ConfigNdState},  # type: ignore[misc]
+    **{f"COM_CFG_{f.name}": f for f in prm.ConfigNdState},
     "MSK_LENGTH": prm.MSK_LENGTH, "MSK_WORD_PDO": prm.MSK_WORD_PDO, **_BAUD,
     "ACLR_INACTIVE": prm.ACLR_INACTIVE, "ACLR_ACTIVE": prm.ACLR_ACTIVE,
     "INTEL": prm.INTEL, "MOTOROLA": prm.MOTOROLA,

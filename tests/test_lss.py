@@ -2,10 +2,9 @@
 
 Each test starts ``cifemu firmware --simulate NETWORK.toml``; the master on the host reaches
 the slaves only through the card's layer-2 access (COM_CfgRx_Layer2, COM_Tx_CAN_Layer2 and
-the COM_Rx_CAN_Layer2 indications). The unconfigured slaves' LSS addresses have few 1-bits,
-because each 1-bit costs fastscan one unanswered step. The master waits TIMEOUT_S for an
-answer it expects, and SILENCE_S where no slave may answer (``expect_silence``): most tests
-check such a silence somewhere, and waited 1 s for each.
+the COM_Rx_CAN_Layer2 indications). The master waits TIMEOUT_S for an answer it expects,
+and SILENCE_S where no slave may answer (``expect_silence``): most tests check such a
+silence somewhere, and waited 1 s for each.
 """
 
 from __future__ import annotations
@@ -21,11 +20,11 @@ from pathlib import Path
 
 import pytest
 
-from dbm_tools.network import parse_network
+from dbm_tools.network import GENERIC_PRODUCT_CODE, GENERIC_VENDOR_ID, parse_network
 from dpm.cia305 import CONFIGURATION, UNCONFIGURED, WAITING, LssAddress
 from dpm.commands import COM_CFGRX_LAYER2, COM_RX_CAN_LAYER2, COM_SDO_UP_DOWNLOAD, COM_TX_CAN_LAYER2
 from dpm.message import Message, Task
-from firmware.sim.generic import GENERIC_PRODUCT_CODE, GENERIC_REVISION, GENERIC_VENDOR_ID
+from firmware.sim.generic import GENERIC_REVISION
 from host_api.board import Board, CifError
 from host_api.cia309.lss import LssError, LssErrorCode, LssMaster
 from host_api.online import configure_online
@@ -240,6 +239,18 @@ def test_fastscan_finds_the_unconfigured_slaves_lowest_first(
     lss.switch_state_global(WAITING)
     assert lss.fastscan(vendor=0x9999) is None
     assert lss.fastscan_step(0, 0x80, 0, 0)  # 309-1 4.8.12 itself: the reset step
+
+
+def test_fastscan_reads_no_late_answer_as_a_1_bit(make_rig: Callable[..., Rig]) -> None:
+    """Every bit step's answer comes after the single-step wait when that wait is 0 s, as a
+    loaded machine made some come after 50 ms: each read as a 1-bit and then as the next
+    step's answer, the scans' confirmations failed (LssError 103 after three scans) or gave
+    a wrong address. The scan waits for the answer to the marker behind each step instead."""
+    rig = make_rig()
+    lss = LssMaster(rig.board, timeout=TIMEOUT_S, scan_timeout=0.0)
+    assert lss.fastscan() == min(SLAVES)
+    assert lss.inquire_address() == min(SLAVES)
+    lss.switch_state_global(WAITING)
 
 
 def test_fastscan_without_unconfigured_slaves(make_rig: Callable[..., Rig]) -> None:

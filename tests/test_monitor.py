@@ -9,6 +9,7 @@ import subprocess
 import sys
 import threading
 from pathlib import Path
+from typing import IO
 
 from tests.conftest import ROOT, start_card, wait_until
 
@@ -18,6 +19,12 @@ DEMO = ROOT / "cifemu" / "examples" / "demo.toml"
 def monitor(*args: str) -> subprocess.Popen[str]:
     return subprocess.Popen([sys.executable, "-m", "cifemu", "monitor", *args], cwd=ROOT,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+
+def pipes(proc: subprocess.Popen[str]) -> tuple[IO[str], IO[str]]:
+    """A ``monitor``'s stdout and stderr (both pipes)."""
+    assert proc.stdout is not None and proc.stderr is not None
+    return proc.stdout, proc.stderr
 
 
 def records(proc: subprocess.Popen[str]) -> list[dict[str, object]]:
@@ -34,8 +41,9 @@ def test_the_tap_shows_a_configuration_decoded_on_the_virtual_bus(tmp_path: Path
     try:
         watching = monitor("--dpm-dir", str(tmp_path), "--network", str(DEMO), "--json",
                            "--duration", "120", "--log", str(log))
+        out, err = pipes(watching)
         lines: list[str] = []
-        reader = threading.Thread(target=lambda: lines.extend(iter(watching.stdout.readline,
+        reader = threading.Thread(target=lambda: lines.extend(iter(out.readline,
                                                                     "")), daemon=True)
         reader.start()
         wait_until(lambda: (tmp_path / "trace.log").exists(), 20, "the monitor's log file")
@@ -50,7 +58,7 @@ def test_the_tap_shows_a_configuration_decoded_on_the_virtual_bus(tmp_path: Path
         watching.send_signal(signal.SIGINT)
         watching.wait(timeout=30)
         reader.join(timeout=30)
-        assert watching.returncode == 0, watching.stderr.read()
+        assert watching.returncode == 0, err.read()
         seen = [json.loads(line) for line in lines]
     finally:
         card.stop()
@@ -77,8 +85,9 @@ def test_filters_by_node_and_type_and_shows_the_emcy_meaning(tmp_path: Path) -> 
     try:
         watching = monitor("--dpm-dir", str(tmp_path), "--json", "--node", "4", "--type", "emcy",
                            "--type", "heartbeat", "--duration", "120")
+        out, err = pipes(watching)
         lines: list[str] = []
-        reader = threading.Thread(target=lambda: lines.extend(iter(watching.stdout.readline,
+        reader = threading.Thread(target=lambda: lines.extend(iter(out.readline,
                                                                    "")), daemon=True)
         reader.start()
         wait_until(lambda: lines, 30, "node 4's first heartbeat in the monitor")
@@ -91,7 +100,7 @@ def test_filters_by_node_and_type_and_shows_the_emcy_meaning(tmp_path: Path) -> 
         watching.send_signal(signal.SIGINT)
         watching.wait(timeout=30)
         reader.join(timeout=30)
-        assert watching.returncode == 0, watching.stderr.read()
+        assert watching.returncode == 0, err.read()
         guarding = records(monitor("--dpm-dir", str(tmp_path), "--json", "--node", "3",
                                    "--count", "4", "--duration", "10"))
     finally:

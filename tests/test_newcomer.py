@@ -163,7 +163,8 @@ def test_top_and_status_say_heartbeat_for_a_heartbeat_node(tmp_path: Path) -> No
     card = top_model(tmp_path)  # node 1: heartbeat (the default), node 2: guarding
     card.update_image(top_image(err=(1, 30)), 1.0)
     rows = {row.node: row for row in card.node_rows()}
-    assert rows[1].last_error[1].startswith(HEARTBEAT_FAILED)
+    last_error = rows[1].last_error
+    assert last_error is not None and last_error[1].startswith(HEARTBEAT_FAILED)
     assert f"Err_Event 30 at node 1: {HEARTBEAT_FAILED}" in card.new_events(0)[0]
 
     # status: the image of a card that reports it, and the network configure noted beside it

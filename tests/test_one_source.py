@@ -179,6 +179,8 @@ def cob_id_literals(path: Path) -> list[str]:
     tree = ast.parse(path.read_text(encoding="utf-8"), filename=relative)
     found: list[tuple[int, str]] = []
     for node in ast.walk(tree):
+        if not isinstance(node, ast.expr | ast.stmt):
+            continue  # only expressions and statements spell a number (and have a line)
         spelled: list[int | None] = []
         if isinstance(node, ast.BinOp) and isinstance(node.op, ast.Add):
             spelled = [_base(node.left), _base(node.right)]

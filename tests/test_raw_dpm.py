@@ -82,16 +82,18 @@ def shared_memory(
     return header, answer
 
 
-def shm_ok(mm: mmap.mmap, nr: int, *args: int, payload: bytes = b"", idx: int = 0) -> bytes:
+def shm_ok(mm: mmap.mmap, nr: int, area: int, adr: int, cnt: int, data_type: int, function: int,
+           payload: bytes = b"", idx: int = 0) -> bytes:
     """A COM_Shared_Memory command that must succeed; returns the data read (if any)."""
-    header, answer = shared_memory(mm, nr, *args, payload=payload, idx=idx)
+    header, answer = shared_memory(mm, nr, area, adr, cnt, data_type, function, payload, idx)
     assert answer.f == 0, f"f = {answer.f}"
     assert answer.data[:8] == header, "the answer must echo the telegram header"
     return answer.data[8:]
 
 
-def shm_error(mm: mmap.mmap, nr: int, *args: int, payload: bytes = b"", idx: int = 0) -> int:
-    _, answer = shared_memory(mm, nr, *args, payload=payload, idx=idx)
+def shm_error(mm: mmap.mmap, nr: int, area: int, adr: int, cnt: int, data_type: int,
+              function: int, payload: bytes = b"", idx: int = 0) -> int:
+    _, answer = shared_memory(mm, nr, area, adr, cnt, data_type, function, payload, idx)
     assert answer.ln == 0, "an error answer carries no data (seed 5.1.1: msg.ln 0)"
     return answer.f
 

@@ -88,10 +88,15 @@ def start_remote_server(channel: str, port: int = 0) -> Remote:
         [sys.executable, "-m", "can_remote", "-i", "shm", "-c", channel, "-H", "127.0.0.1",
          "-p", str(port)], stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
         stderr=subprocess.PIPE)
-    assert proc.stderr is not None
+    stderr = proc.stderr
+    assert stderr is not None
     lines: queue.Queue[bytes] = queue.Queue()
-    threading.Thread(target=lambda: [lines.put(line) for line in proc.stderr],  # type: ignore[union-attr]
-                     daemon=True).start()  # also keeps the pipe from filling
+
+    def pump() -> None:  # also keeps the pipe from filling
+        for line in stderr:
+            lines.put(line)
+
+    threading.Thread(target=pump, daemon=True).start()
     deadline = time.monotonic() + SERVER_START_S * TIME_SCALE
     while time.monotonic() < deadline:
         try:

@@ -20,6 +20,7 @@ from dbm_tools.builder import build_dbm
 from dbm_tools.container import save_dbm
 from dbm_tools.network import load_network
 from dpm.card_info import read_card_info
+from dpm.errors import Drv
 from dpm.message import Message
 from host_api import driver as d
 from host_api.board import Board
@@ -433,7 +434,7 @@ def test_bmode_0_and_4(make_net: Callable[..., Net], mode: int) -> None:
     diag = net.diag()
     assert (diag.bErr_rem_adr, diag.bErr_event) == (255, 52)
     rc, _ = d.DevExchangeIO(0, 0, b"\0", 0, 1, 100)
-    assert rc == d.Drv.DRV_DEV_COM_MODE_UNKNOWN  # -24: no exchange mode
+    assert rc == Drv.DRV_DEV_COM_MODE_UNKNOWN  # -24: no exchange mode
     assert d.DevPutTaskParameter(0, 2, struct.pack("<BH", 3, 0)) == 0
     assert d.DevReset(0, d.WARMSTART, 5000) == 0
     assert net.diag().bErr_event == 0

@@ -42,7 +42,7 @@ from bench.common import (
     progress,
     ratio,
 )
-from bench.cpu import stat_cpu_ns, tree_cpu_ns
+from bench.cpu import tree_cpu_ns
 from dbm_tools.builder import build_dbm
 from dbm_tools.container import write_dbm
 from dbm_tools.network import Network, parse_network
@@ -56,6 +56,7 @@ from host_api.driver import (
     COLDSTART,
     DevReset,
 )
+from host_api.ready import stat_cpu_ns
 
 BOOT_NODES = 127
 BOOT_REPEATS = 3

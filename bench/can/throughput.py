@@ -41,9 +41,9 @@ from bench.common import (
     progress,
     ratio,
 )
-from bench.cpu import stat_cpu_ns
 from dbm_tools.network import parse_network
 from dpm.cia301 import RPDO_BASES, TPDO_BASES
+from host_api.ready import stat_cpu_ns
 
 THROUGHPUT_NODES = 126
 THROUGHPUT_ACTIVE = (16, 126)

@@ -27,18 +27,25 @@ implementation-specific), 505 when the card refused the request or the driver ca
 Decisions [ours]:
 
 * Time-outs: CiA 305 leaves them to the master. A service that expects an answer waits
-  ``timeout`` (500 ms, as canopen's ``LssMaster``): it costs only when nobody answers. Each
-  fastscan bit step waits ``scan_timeout`` (50 ms), and every 1-bit of an LSS address costs
-  one such unanswered step. Through the emulated card an answer takes 0.3 ms (p50) to 2 ms
+  ``timeout`` (500 ms, as canopen's ``LssMaster``): it costs only when nobody answers. A
+  single fastscan request (``fastscan_step``, 309-1 4.8.12) waits ``scan_timeout`` (50 ms):
+  its silence is its answer. Through the emulated card an answer takes 0.3 ms (p50) to 2 ms
   (p99), but a loaded machine can hold a frame back for tens of milliseconds; on a real bus
   choose both to suit the slowest device.
+* A scan's bit step is followed, in the same message, by "identify non-configured remote
+  slave", which every slave taking part in fastscan answers (with 50h, where the bit step's
+  answer is 4Fh). A slave answers its requests in order, so once the marker's answer is in,
+  the bit step's answer, if any, is in too: a bit step no longer ends on a time-out, and an
+  answer a loaded machine delayed is not read as a 1-bit (and then taken for the next
+  step's answer). A step costs a round trip instead of 50 ms per 1-bit; one whose marker is
+  not answered within the scan's wait starts the scan over.
 * Several slaves may answer one identify or fastscan request, each with its own frame, and
   the later frames may reach the host after the first (up to 2 ms later, measured through
   the emulated card): after a positive answer the master takes the indications of the next
   ``SETTLE_S`` and discards them, so a late duplicate is not read as the answer to the next
-  request. A fastscan whose confirmation steps fail (an answer lost or late), or after which
-  no slave answers an inquiry (a late answer faked the last confirmation), starts over with
-  twice the bit-step time-out, up to ``FASTSCAN_ATTEMPTS`` scans.
+  request. A fastscan whose confirmation or marker is not answered (an answer lost or later
+  than the wait), or after which no slave answers an inquiry (a late answer faked the last
+  confirmation), starts over with twice the wait, up to ``FASTSCAN_ATTEMPTS`` scans.
 * Multi-frame requests (switch selective, identify remote slave) go in one COM_Tx_CAN_Layer2
   message, which the card sends back to back.
 * The services of one master are serialised: LSS addresses the whole bus, so two interleaved
@@ -198,7 +205,7 @@ class LssMaster:
         self.timeout = timeout
         """Seconds a confirmed service waits for its answer."""
         self.scan_timeout = scan_timeout
-        """Seconds a fastscan step waits: an unanswered step reads as a 1-bit."""
+        """Seconds ``fastscan_step`` waits: an unanswered step reads as a 1-bit."""
         self._indications = indications
         self._transact = transact or board.transact
         self._answers: deque[bytes] = deque()
@@ -403,13 +410,13 @@ class LssMaster:
 
         None when no unconfigured slave answers. A known LSS number is confirmed in one
         step instead of being scanned in 32 (CANopenNode's "match"); a known number no
-        unconfigured slave has also gives None. Each bit step waits ``timeout`` (default:
-        ``scan_timeout``), doubled for each scan that has to start over; the reset and
-        confirmation steps, which are answered unless something is wrong, wait the
-        longer ``self.timeout``.
+        unconfigured slave has also gives None. Each bit step waits for its marker's
+        answer (see the module's decisions) up to ``timeout`` (default: ``self.timeout``),
+        doubled for each scan that has to start over; the reset and confirmation steps,
+        which are answered unless something is wrong, wait ``self.timeout``.
         """
         known = (vendor, product, revision, serial)
-        wait = self.scan_timeout if timeout is None else timeout
+        wait = self.timeout if timeout is None else timeout
         for _ in range(FASTSCAN_ATTEMPTS):
             if not self.fastscan_step(0, FASTSCAN_RESET, 0, 0, self.timeout):
                 return None
@@ -417,10 +424,9 @@ class LssMaster:
             for lss_sub in range(4):
                 value = known[lss_sub]
                 if value is None:
-                    value = 0
-                    for bit in range(31, -1, -1):
-                        if not self.fastscan_step(value, bit, lss_sub, lss_sub, wait):
-                            value |= 1 << bit
+                    value = self._scan_number(lss_sub, wait)
+                    if value is None:
+                        break  # a marker went unanswered: scan again
                 next_sub = (lss_sub + 1) % 4
                 if not self.fastscan_step(value, 0, lss_sub, next_sub, self.timeout):
                     if known[lss_sub] is not None:
@@ -433,6 +439,38 @@ class LssMaster:
             wait *= 2  # answers come late here: give the next scan more time
         raise LssError(LssErrorCode.TIME_OUT,
                        f"fastscan: no slave confirmed its address in {FASTSCAN_ATTEMPTS} scans")
+
+    def _scan_number(self, lss_sub: int, wait: float) -> int | None:
+        """LSS number ``lss_sub`` of the lowest slave still in the scan, bit by bit from bit
+        31: a bit is 0 where a slave answered the step checking it, else 1. None when a
+        step's marker was not answered within ``wait``."""
+        value = 0
+        for bit in range(31, -1, -1):
+            payload = _u32(value) + bytes([bit, lss_sub, lss_sub])
+            self._send([_frame(FASTSCAN, payload), _frame(IDENTIFY_NON_CONFIGURED_REMOTE)])
+            answered = self._answered_before_marker(wait)
+            if answered is None:
+                return None
+            if not answered:
+                value |= 1 << bit
+        return value
+
+    def _answered_before_marker(self, wait: float) -> bool | None:
+        """Whether a fastscan answer (4Fh) came before the first answer to the marker (50h);
+        None when no marker answer came within ``wait``. The marker's duplicates from other
+        slaves are dropped with ``_settle``."""
+        deadline = time.monotonic() + wait
+        answered = False
+        while True:
+            while self._answers:
+                cs = self._answers.popleft()[0]
+                if cs == IDENTIFY_NON_CONFIGURED_SLAVE:
+                    self._settle()
+                    return answered
+                answered = answered or cs == IDENTIFY_SLAVE
+            remaining = deadline - time.monotonic()
+            if remaining <= 0 or self._read(remaining) is None:
+                return None
 
     def _selected(self) -> bool:
         """Whether a slave is in configuration state: a late answer can fake the last
