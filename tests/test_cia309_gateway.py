@@ -43,6 +43,7 @@ from host_api.cia309.model import (
     SdoProgressEvent,
     decode_value,
 )
+from host_api.registry import MappedBoard
 from tests.conftest import wait_until
 from tests.gateway_cards import EDS, diagnostics, start, wait_operating
 
@@ -256,10 +257,10 @@ def test_the_mailbox_reader_does_not_poll_after_the_card_rang(gw: Gateway) -> No
     looks = 0
     take = link._take_messages
 
-    def counting() -> int:
+    def counting(board: MappedBoard | None = None) -> int:
         nonlocal looks
         looks += 1
-        return take()
+        return take(board)
 
     link._take_messages = counting  # type: ignore[method-assign]
     try:
