@@ -127,8 +127,10 @@ class Master:
         self._host_state: tuple[bytes, bool] | None = None
         """The outputs, and the connection bits and readiness, at the device loop's last turn."""
         self.outputs = OutputWatch()
-        self._outputs_lock = threading.Lock()
-        """``outputs`` is followed by the device loop (a host's change) and this thread."""
+        self._outputs_lock = threading.RLock()
+        """``outputs`` is followed by the device loop (a host's change) and this thread; a
+        node's first RX-PDOs go under it too (``outputs_lock``). Reentrant: a frame sent
+        under it may be handled in the sending thread (firmware.inline)."""
         self.sdo = SdoChannels(self.wake_at)
         self.layer2 = Layer2(device, lambda: self.ext)
         self.nmt = NmtMaster(device, self, self.nodes, self.bus_send,
@@ -225,6 +227,11 @@ class Master:
     @property
     def motorola(self) -> bool:
         return bool(self.bus_params and self.bus_params.Intel_Motorola == MOTOROLA)
+
+    @property
+    def outputs_lock(self) -> threading.RLock:
+        """``Network.outputs_lock``: the lock the host's outputs are followed under."""
+        return self._outputs_lock
 
     @property
     def auto_clear(self) -> bool:

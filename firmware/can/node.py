@@ -19,6 +19,7 @@ import logging
 import math
 import time
 from concurrent.futures import Executor
+from contextlib import AbstractContextManager
 from typing import Protocol
 
 import can
@@ -88,6 +89,11 @@ class Network(BootLink, PdoLink, Protocol):
     @property
     def heartbeats(self) -> HeartbeatWatch:
         """Where the heartbeat consumers' deadlines go for the receive thread to keep."""
+
+    @property
+    def outputs_lock(self) -> AbstractContextManager[object]:
+        """Held while the host's outputs are followed (``OutputWatch``): a node's forced
+        RX-PDOs taken under it never interleave with a change going out."""
 
     def reschedule(self, handler: NodeHandler | None = None) -> None:
         """``handler``'s state changed (None: the network's): the master supervises it
@@ -277,9 +283,18 @@ class NodeHandler:
                         and self._host_started_at >= self.boot.reset_at)
         self.awaiting_start = ((bool(skip & ConfigNdState.START) or self.network.global_start)
                                and not host_started)
-        self.pdos.forget_sent()
-        self.state = State.OPERATING
-        self.connected = True
+        # The first RX-PDOs go before Nd_state tells the host the node runs, and under the
+        # outputs' lock: a host's change that follows waits for its inhibit time after them
+        # (CiA 301), and one that came first is in them. Before, a change written as Nd_state
+        # appeared went out a moment before them (two frames 0.35 ms apart at 100 ms inhibit).
+        # A node that waits for its start gets them when it goes out (``start_sent``).
+        with self.network.outputs_lock:
+            self.pdos.forget_sent()
+            self.state = State.OPERATING
+            self.connected = True
+            if not skip & ConfigNdState.TXRXPDO and not self.awaiting_start:
+                self.send_outputs(force=True)
+                self.pdos.request_first(now)
         if self.control.supervised:
             self.diag.status |= NodeStatus.GUARD_ACTIVE
         if recovered:  # before Nd_state, as above
@@ -287,10 +302,6 @@ class NodeHandler:
         else:  # [ours] a first boot is the normal state (seed 4.3: Nd_state 1, Nd_diag 0)
             self._diag_seen = (self.diag.status, self.diag.actual_error)
         self.events.node_booted(self)
-        if not skip & ConfigNdState.TXRXPDO:
-            self.send_outputs(force=True)
-            if not self.awaiting_start:  # else when the start goes out (``start_sent``)
-                self.pdos.request_first(now)
         self.network.reschedule(self)  # supervision and remote requests from now on
 
     def start_sent(self, now: float, by_host: bool) -> bool:
@@ -317,7 +328,8 @@ class NodeHandler:
         # else a node the host had stopped, or one running already
         self.control.started(now)
         if not self.params.bitConfigNdState & ConfigNdState.TXRXPDO:
-            self.send_outputs(force=True)  # the first RX-PDO, now that the node takes it
+            with self.network.outputs_lock:  # as in ``_operate``
+                self.send_outputs(force=True)  # the first RX-PDO, now that the node takes it
             self.pdos.request_first(now)  # and the first TX-PDO
         self.network.reschedule(self)  # in data exchange now: NEXC, remote requests
         return not self.control.supervised
