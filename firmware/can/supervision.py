@@ -89,6 +89,8 @@ class HeartbeatWatch:
         """Drop every live deadline that came by ``now``; True when there was one."""
         came = False
         while self.due() <= now:
+            # The top is still the entry ``due`` saw: another thread only pushes deadlines
+            # later than now, which sort below it.
             with self._lock:
                 heapq.heappop(self._heap)
             came = True
