@@ -512,7 +512,7 @@ class Device:
         if not self.plc.image.driving:
             # Seed 5.3.2.1: stopping removes the layer-2 filters, at once, so that a
             # stop and restart quicker than the CAN master looks still removes them.
-            self.can.master.layer2_filters.clear()
+            self.can.master.layer2.stop()
 
     def fill_info(self) -> None:
         """The identification areas, at every start (``RcsTask.start``)."""

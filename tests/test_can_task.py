@@ -909,4 +909,5 @@ def test_stopping_communication_removes_layer2_filters(make_net: Callable[..., N
         pass
     # Three heartbeats of node 9 later: an indication of the first two would be here.
     watch.wait_for(frame(0x709), 3, "three heartbeats of node 9", since=watch.mark())
-    assert d.DevGetMessage(0, 288, 0)[0] == Drv.DRV_DEV_GET_NO_MESSAGE
+    rc, late = d.DevGetMessage(0, 288, 0)
+    assert rc == Drv.DRV_DEV_GET_NO_MESSAGE, late

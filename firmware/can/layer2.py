@@ -53,6 +53,17 @@ class Layer2:
         with self._queue_lock:
             self.indications.clear()
 
+    def stop(self) -> None:
+        """The host stopped communication (seed 5.3.2.1): its filters go, and [ours] so do the
+        frames they let in that the host has not taken yet: a host that starts again has asked
+        for none of them. Under the queue's lock, as ``_queue`` checks the filter again under
+        it: no frame matched before the stop is queued after it."""
+        with self._queue_lock:
+            self.filters.clear()
+            kept = [item for item in self.indications if item[0] != COM_RX_CAN_LAYER2]
+            self.indications.clear()
+            self.indications.extend(kept)
+
     def on_frame(self, msg: can.Message) -> None:
         """Every frame on the bus, from the bus thread."""
         if (self.bootup_forwarding and not msg.is_extended_id and not msg.is_remote_frame
@@ -70,6 +81,8 @@ class Layer2:
 
     def _queue(self, kind: int, msg: can.Message) -> None:
         with self._queue_lock:
+            if kind == COM_RX_CAN_LAYER2 and msg.arbitration_id not in self.filters:
+                return  # ``stop`` came since ``on_frame`` looked
             if len(self.indications) >= QUEUE_LIMIT:
                 self._card.count("usRx_Overflow")
                 return

@@ -199,12 +199,6 @@ class Master:
         self.wake()  # the master's heartbeat may start, stop or change its period
 
     @property
-    def layer2_filters(self) -> set[int]:
-        """The layer-2 receive filters, which the device clears the moment the host stops
-        (seed 5.3.2.1)."""
-        return self.layer2.filters
-
-    @property
     def sync_cob_id(self) -> int:
         return self.bus_params.COB_ID_SYNC if self.bus_params else COB_ID_SYNC
 
