@@ -18,6 +18,7 @@ of them (``SdoChannels.watch``).
 
 from __future__ import annotations
 
+import contextlib
 import math
 import struct
 import threading
@@ -123,10 +124,7 @@ class HostSdoTransfer:
 
     def _send(self, frame: bytes) -> None:
         self._deadline = time.monotonic() + self.timeout
-        if self.answered_here:
-            with answered_here():
-                self.bus.send(SDO_REQUEST_BASE + self.node, frame)
-        else:
+        with answered_here() if self.answered_here else contextlib.nullcontext():
             self.bus.send(SDO_REQUEST_BASE + self.node, frame)
 
     def _finish(self, result: SdoResult) -> None:

@@ -1056,13 +1056,7 @@ class Server:
             return  # given up (time-out, the server closing)
         flight = fast.flight
         assert flight is not None
-        request = fast.request
-        try:  # ``_upload_answer`` written out: one call less per read
-            text = format_upload(request.sequence, request.dtype, flight.result(),
-                                 self.dispatcher.dialect)
-        except Cia309Error as exc:
-            text = self.dispatcher.failure(request, exc)
-        self._fast_answer(connection, text)
+        self._fast_answer(connection, self._upload_answer(fast.request, flight))
 
     def _fast_due(self, connection: _Connection) -> None:
         """The fast path's timer: gives up the read out now when its time has run out, else
