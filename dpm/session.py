@@ -44,11 +44,32 @@ KINDS = (PUT, ANSWER, HOST_FLAGS, DEV_FLAGS, EXCHANGE)
 
 AREAS = ("SndPd", "RcvPd")
 
-BATCH_FRAME = struct.Struct("<I")
-"""The length before each marshalled batch of events on the pipe from the recording firmware
-to its writer process (firmware/recorder.py, firmware/session_writer.py)."""
+# --- the spool: the pipe from the recording firmware to its writer process, and the file
+# the writer keeps it in until the recording ends (firmware/recorder.py,
+# firmware/session_writer.py). Both ends are the same build; nothing else reads it.
+
+SPOOL_PIECE = struct.Struct("<BI")
+"""Before each piece on the pipe: what it holds (``SPOOL_EVENTS``, ``SPOOL_FRAMES``) and its
+length. The events' pieces are one stream: a piece may end inside an event."""
+SPOOL_EVENTS, SPOOL_FRAMES = 0, 1
+SPOOL_FRAME_LENGTH = struct.Struct("<H")
+"""Before each CAN frame (``dpm.tap``'s datagram) of a ``SPOOL_FRAMES`` piece."""
 CAN_FRAME = "can"
-"""On that pipe only: a CAN frame (``dpm.tap``'s datagram), which goes to ``can.log``."""
+"""What the writer makes of a spooled frame: ``(CAN_FRAME, datagram)``, for ``can.log``."""
+
+# Each event: its code, ``t`` (CLOCK_MONOTONIC, a double), the HostFlags or DevFlags byte
+# before and after; then by kind:
+SPOOL_PUT = struct.Struct("<BdBBHH")
+"""... the message's length and the ledger's (up to its ``END``); then both."""
+SPOOL_ANSWER = struct.Struct("<BdBBH")
+"""... the message's length; then the message and Task2State (``TASK_STATE_SIZE``)."""
+SPOOL_HOST_FLAGS = struct.Struct("<BdBB")
+SPOOL_DEV_FLAGS = struct.Struct("<BdBBB")
+"""... 1 when Task2Parameter (``PARAMETER_SIZE`` bytes) follows, else 0."""
+SPOOL_EXCHANGE = struct.Struct("<BdBBB")
+"""... 1 when SndPd and RcvPd (2 x ``IO_AREA_SIZE``) follow, else 0 (both unchanged since
+the last exchange); then Task2State."""
+SPOOL_CODES = {PUT: 0, ANSWER: 1, HOST_FLAGS: 2, DEV_FLAGS: 3, EXCHANGE: 4}
 
 
 class SessionError(DpmError, ValueError):

@@ -2,21 +2,25 @@
 
 The device loop calls a ``Recorder`` at the points where it already looks: a message
 taken from DevMbx, an answer put into PcMbx, a HostFlags write, the DevFlags it read
-for its turn; the controller calls it for each frame. Each call appends a tuple to a
-deque (atomic, never blocking) and returns. A thread drains the deque every ``DRAIN_S``
-and hands the batch, marshalled, through a pipe to a child process
-(``firmware.session_writer``) that computes what changed and writes ``session.jsonl``
-and ``can.log``. Encoding lines in the firmware's own process, even by hand, cost the
-loop a third of its mailbox round trips on a loaded two-core machine (the writer held
-the interpreter lock the loop waits for). ``marshal``, not ``pickle``: both ends are
-the same interpreter, and marshal is four times faster; in pieces of ``CHUNK`` events,
-because one call holds the interpreter lock until it returns (pickling 50 ms of a
-mailbox loop in one piece held it for a third of a millisecond). So recording costs the
-loop a few attribute lookups, at most one clock read per event and, at a process-data
-handshake, one comparison of the two I/O areas (a copy when they changed), made after the
-card rang its hosts (``settle``); never a write or a lock. A message and the HostFlags
-toggle that takes or hands it over are one event, as are an exchange and its PDACK
-toggle: each call and tuple counts on a loop that turns every 25 us.
+for its turn; the controller calls it for each frame. Each event call packs the event into bytes
+(``dpm.session``'s spool layout: a cached ``struct`` packer, the copied bytes behind it)
+and appends them to one ``bytearray`` in a single operation, so an event is whole at any
+moment another thread looks (never blocking, no lock); the controller's frames go to a
+deque as python-can made them. A thread drains both every ``DRAIN_S``: it takes the bytes
+there are in pieces of ``PIECE`` (one copy each) and hands them through a pipe to a child
+process (``firmware.session_writer``) that computes what changed and writes
+``session.jsonl`` and ``can.log``. Encoding lines in the firmware's own process, even by
+hand, cost the loop a third of its mailbox round trips on a loaded two-core machine (the
+writer held the interpreter lock the loop waits for). Queued as tuples (until 2026-12-03)
+each event left a tuple, a float and its bytes to marshal and free in the drain thread,
+about 1 us a mailbox round trip of the interpreter lock the loop needs, and a ledger read
+of 512 bytes, mostly zeros, in the spool; packed, the drain copies bytes and nothing
+else. So recording costs the loop a few attribute lookups and one packing per event, at
+most one clock read and, at a process-data handshake, one comparison of the two I/O areas
+(a copy when they changed), made after the card rang its hosts (``settle``); never a
+write or a lock. A message and the HostFlags toggle that takes or hands it over are one
+event, as are an exchange and its PDACK toggle: each call counts on a loop that turns
+every 25 us.
 
 The writer gets open files, never a path: ``create`` makes them for ``cifemu firmware
 --record``, whose user chose the path; a ``cifemu record`` that attaches to a running
@@ -31,7 +35,6 @@ from __future__ import annotations
 import contextlib
 import fcntl
 import logging
-import marshal
 import os
 import subprocess
 import threading
@@ -55,7 +58,7 @@ from dpm.layout import (
     TASK2_STATE,
     TASK_STATE_SIZE,
 )
-from dpm.ledger import END
+from dpm.ledger import END, ledger_text
 from dpm.message import LN_OFFSET
 from dpm.tap import encode_frame
 from firmware import session_writer
@@ -67,14 +70,16 @@ DRAIN_S = 0.05
 PIPE_BYTES = 1 << 20
 """The pipe to the writer: half a second of a mailbox loop's events (the default 64 KiB held a
 third of a drain, and the drain thread waited for the writer in between)."""
-CHUNK = 256
-"""Events marshalled in one call: about 20 us of the interpreter lock."""
+PIECE = 256 * 1024
+"""Bytes the drain takes out of the queue in one copy: about 25 us of the interpreter lock
+(an exchange whose areas changed is 7 KiB)."""
 LEDGER_BYTES = 128 * 96
 """The ledger's largest size (host_api.locks.LEDGER_MAX lines of libcif's longest)."""
 LEDGER_FIRST_READ = 512
 """What the card reads of the ledger first: a dozen requests' lines; all of it only when
 that was not all (the ledger's END is not in it). The read's buffer is allocated for each
-message: 12 KiB each time cost the loop half a microsecond more than this."""
+message: 12 KiB each time cost the loop half a microsecond more than this. Only the ledger's
+lines are queued (hosts end them with END in a file of 12 KiB of zeros)."""
 
 _IO_END = RCV_PD + IO_AREA_SIZE
 _HEAD_SIZE, _LN = MSG_HEADER_SIZE, LN_OFFSET
@@ -82,10 +87,15 @@ _STATE_END = TASK2_STATE + TASK_STATE_SIZE
 _PARAMETER_END = TASK2_PARAMETER + s.PARAMETER_SIZE
 _STARTS = fl.RESET | fl.INIT
 _PDACK, _READY = fl.PDACK, fl.READY
-_PUT, _ANSWER, _HOST_FLAGS, _DEV_FLAGS, _EXCHANGE, _CAN = (
-    s.PUT, s.ANSWER, s.HOST_FLAGS, s.DEV_FLAGS, s.EXCHANGE, s.CAN_FRAME)
+_PUT, _ANSWER, _HOST_FLAGS, _DEV_FLAGS, _EXCHANGE = (
+    s.SPOOL_CODES[kind] for kind in (s.PUT, s.ANSWER, s.HOST_FLAGS, s.DEV_FLAGS, s.EXCHANGE))
+_put_head, _answer_head, _host_flags_head, _dev_flags_head, _exchange_head = (
+    s.SPOOL_PUT.pack, s.SPOOL_ANSWER.pack, s.SPOOL_HOST_FLAGS.pack, s.SPOOL_DEV_FLAGS.pack,
+    s.SPOOL_EXCHANGE.pack)
+_piece_head, _frame_length = s.SPOOL_PIECE.pack, s.SPOOL_FRAME_LENGTH.pack
 _monotonic = time.monotonic
 _pread = os.pread
+_join = b"".join
 
 
 class SessionExistsError(FileExistsError):
@@ -99,7 +109,6 @@ class Recorder:
     message and handshake of the card costs while it records."""
 
     __slots__ = (
-        "_append",
         "_append_frame",
         "_child",
         "_dev",
@@ -149,8 +158,8 @@ class Recorder:
         self._ledger_name = ""
         self._ledger = -1
         self._mm: Any = None
-        self._queue: deque[tuple[Any, ...]] = deque()
-        self._append = self._queue.append
+        self._queue = bytearray()
+        """The events packed (``dpm.session``'s spool layout), until the drain takes them."""
         self._frames: deque[tuple[can.Message, bool]] = deque()
         """Frames, apart from the events: they go to a file of their own (can.log)."""
         self._append_frame = self._frames.append
@@ -219,17 +228,22 @@ class Recorder:
             self.settle()
         ledger = self._ledger
         lines = _pread(ledger, LEDGER_FIRST_READ, 0) if ledger >= 0 else self._open_ledger()
-        if len(lines) == LEDGER_FIRST_READ and END not in lines:
-            lines = _pread(self._ledger, LEDGER_BYTES, 0)
-        self._append((_PUT, _monotonic(), raw[: _HEAD_SIZE + raw[_LN]], lines, before, after))
+        end = lines.find(END)
+        if end >= 0:
+            lines = lines[:end]
+        elif len(lines) == LEDGER_FIRST_READ:
+            lines = ledger_text(_pread(self._ledger, LEDGER_BYTES, 0))
+        msg = raw[: _HEAD_SIZE + raw[_LN]]
+        self._queue += (_put_head(_PUT, _monotonic(), before, after, len(msg), len(lines))
+                        + msg + lines)
 
     def answer(self, raw: bytes, before: int, after: int) -> None:
         """``raw``: the encoded answer, as the card writes it into PcMbx; ``before``,
         ``after``: the HostFlags change (HOSTCOM) that hands it over, in the same event."""
         if self._exchange is not None:
             self.settle()
-        self._append((_ANSWER, _monotonic(), raw, self._mm[TASK2_STATE:_STATE_END], before,
-                      after))
+        self._queue += (_answer_head(_ANSWER, _monotonic(), before, after, len(raw)) + raw
+                        + self._mm[TASK2_STATE:_STATE_END])
 
     def host_flags(self, before: int, after: int) -> None:
         if (before ^ after) & _PDACK and before & after & _READY:  # not a (re)start's
@@ -237,7 +251,7 @@ class Recorder:
         elif before != after:
             if self._exchange is not None:  # in the order the card wrote them
                 self.settle()
-            self._append((_HOST_FLAGS, _monotonic(), before, after))
+            self._queue += _host_flags_head(_HOST_FLAGS, _monotonic(), before, after)
 
     def dev_flags(self, value: int, now: float) -> None:
         """``value`` as the card read it at the start of its turn at ``now`` (the loop's
@@ -245,9 +259,11 @@ class Recorder:
         before = self._dev
         if value != before:
             self._dev = value
-            self._append((_DEV_FLAGS, now, before, value,
-                          self._mm[TASK2_PARAMETER:_PARAMETER_END] if value & ~before & _STARTS
-                          else b""))
+            if value & ~before & _STARTS:
+                self._queue += (_dev_flags_head(_DEV_FLAGS, now, before, value, 1)
+                                + self._mm[TASK2_PARAMETER:_PARAMETER_END])
+            else:
+                self._queue += _dev_flags_head(_DEV_FLAGS, now, before, value, 0)
 
     def settle(self) -> None:
         """The turn's exchange and its PDACK toggle, one event, queued at the end of the
@@ -266,11 +282,12 @@ class Recorder:
         # snapshot over exactly its length compares in place, where a slice would allocate
         # and fill 3.5 KiB first
         if outputs == self._sent and mm.find(self._received, RCV_PD, _IO_END) == RCV_PD:
-            io = None
+            self._queue += (_exchange_head(_EXCHANGE, _monotonic(), before, after, 0)
+                            + mm[TASK2_STATE:_STATE_END])
         else:
             self._sent, self._received = bytes(outputs), mm[RCV_PD:_IO_END]
-            io = self._sent + self._received
-        self._append((_EXCHANGE, _monotonic(), before, after, io, mm[TASK2_STATE:_STATE_END]))
+            self._queue += _join((_exchange_head(_EXCHANGE, _monotonic(), before, after, 1),
+                                  self._sent, self._received, mm[TASK2_STATE:_STATE_END]))
 
     def frame(self, msg: can.Message, received: bool) -> None:
         """A frame the controller sent or received (any of its threads): queued as it is,
@@ -320,22 +337,30 @@ class Recorder:
                 self._drain()
         except OSError as exc:  # the writer died: keep the loop's queue from growing
             log.error("the session writer is gone (%s); recording nothing more", exc)
-            self._append = deque[tuple[Any, ...]](maxlen=0).append
             self._append_frame = deque[tuple[can.Message, bool]](maxlen=0).append
+            queue = self._queue
+            while not self._stop.wait(DRAIN_S):
+                del queue[: len(queue)]
 
     def _drain(self) -> None:
-        queue = self._queue
-        # what is queued now, in one C loop (a Python loop cost the card 2 us a round trip);
-        # hooks may append meanwhile, behind it
-        batch = list(map(call, repeat(queue.popleft, len(queue))))
+        # What is queued now: whole events (each hook appends one in one operation);
+        # hooks append behind it meanwhile. Each piece is copied out and then deleted from
+        # the front (which only moves the bytearray's start), one operation each.
+        queue, pipe = self._queue, self._pipe
+        left = len(queue)
+        while left:
+            size = min(left, PIECE)
+            piece = queue[:size]
+            del queue[:size]
+            left -= size
+            pipe.write(_piece_head(s.SPOOL_EVENTS, size))
+            pipe.write(piece)
         frames = self._frames
         if frames:
-            batch += [(_CAN, encode_frame(msg, received))
-                      for msg, received in map(call, repeat(frames.popleft, len(frames)))]
-        if batch:
-            pieces: list[bytes] = []
-            for start in range(0, len(batch), CHUNK):
-                data = marshal.dumps(batch[start : start + CHUNK])
-                pieces += (s.BATCH_FRAME.pack(len(data)), data)
-            self._pipe.write(b"".join(pieces))
-            self._pipe.flush()
+            # taken in one C loop, encoded here: off the controller's threads
+            data = _join([_frame_length(len(datagram)) + datagram for datagram in (
+                encode_frame(msg, received)
+                for msg, received in map(call, repeat(frames.popleft, len(frames))))])
+            pipe.write(_piece_head(s.SPOOL_FRAMES, len(data)))
+            pipe.write(data)
+        pipe.flush()

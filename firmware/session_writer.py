@@ -1,8 +1,8 @@
 """The recorder's child process: turns the card's event batches into session.jsonl [ours].
 
-``firmware.recorder`` hands it batches through its stdin, each a 4-byte little-endian
-length and a marshalled list of event tuples; marshal, because both ends are the same
-interpreter and the pipe is theirs alone (nothing else can write to it).
+``firmware.recorder`` hands it the events through its stdin, packed (``dpm.session``'s
+spool layout: pieces of the events' byte stream and of the frames), and the pipe is
+theirs alone (nothing else can write to it).
 
 While the card records, the writer only moves what comes into the spool, a file without
 a name in the session's directory (``os.splice``: the kernel copies, the writer hardly
@@ -35,13 +35,12 @@ and passed to the card (firmware/record_socket.py).
 
 from __future__ import annotations
 
-import marshal
 import os
 import sys
 from typing import Any, BinaryIO, TextIO
 
 from dpm import session as s
-from dpm.layout import IO_AREA_SIZE, RCV_PD, SND_PD
+from dpm.layout import IO_AREA_SIZE, RCV_PD, SND_PD, TASK_STATE_SIZE
 from dpm.message import HEADER, Ext
 
 _IO_END = RCV_PD + IO_AREA_SIZE
@@ -130,14 +129,104 @@ class Frames:
         self.written += 1
 
 
+_PUT, _ANSWER, _HOST_FLAGS, _DEV_FLAGS, _EXCHANGE = (
+    s.SPOOL_CODES[kind] for kind in (s.PUT, s.ANSWER, s.HOST_FLAGS, s.DEV_FLAGS, s.EXCHANGE))
+_IO_SIZE = 2 * IO_AREA_SIZE
+
+
+def events(data: bytes) -> tuple[list[tuple[Any, ...]], int]:
+    """The whole events at the start of the spooled stream ``data`` as the tuples ``Events``
+    takes, and how many bytes they were (the rest begins an event the next piece ends)."""
+    items: list[tuple[Any, ...]] = []
+    at, end = 0, len(data)
+    while at < end:
+        code = data[at]
+        if code == _PUT:
+            head = s.SPOOL_PUT
+            if at + head.size > end:
+                break
+            _, t, before, after, length, lines = head.unpack_from(data, at)
+            body = at + head.size
+            stop = body + length + lines
+            if stop > end:
+                break
+            items.append((s.PUT, t, data[body : body + length], data[body + length : stop],
+                          before, after))
+        elif code == _ANSWER:
+            head = s.SPOOL_ANSWER
+            if at + head.size > end:
+                break
+            _, t, before, after, length = head.unpack_from(data, at)
+            body = at + head.size
+            stop = body + length + TASK_STATE_SIZE
+            if stop > end:
+                break
+            items.append((s.ANSWER, t, data[body : body + length],
+                          data[body + length : stop], before, after))
+        elif code == _HOST_FLAGS:
+            head = s.SPOOL_HOST_FLAGS
+            stop = at + head.size
+            if stop > end:
+                break
+            items.append((s.HOST_FLAGS, *head.unpack_from(data, at)[1:]))
+        elif code == _DEV_FLAGS:
+            head = s.SPOOL_DEV_FLAGS
+            if at + head.size > end:
+                break
+            _, t, before, after, started = head.unpack_from(data, at)
+            body = at + head.size
+            stop = body + (s.PARAMETER_SIZE if started else 0)
+            if stop > end:
+                break
+            items.append((s.DEV_FLAGS, t, before, after, data[body:stop]))
+        elif code == _EXCHANGE:
+            head = s.SPOOL_EXCHANGE
+            if at + head.size > end:
+                break
+            _, t, before, after, changed = head.unpack_from(data, at)
+            body = at + head.size
+            state = body + (_IO_SIZE if changed else 0)
+            stop = state + TASK_STATE_SIZE
+            if stop > end:
+                break
+            items.append((s.EXCHANGE, t, before, after,
+                          data[body:state] if changed else None, data[state:stop]))
+        else:
+            raise ValueError(f"spool: unknown event code {code} at byte {at} of a piece")
+        at = stop
+    return items, at
+
+
 def batches(stream: BinaryIO) -> Any:
-    """Each batch of the stream until its end."""
+    """The spool's events and frames, piece by piece until its end: lists of ``Events``'
+    tuples and of ``(CAN_FRAME, datagram)``. A firmware killed in the middle of a write
+    leaves a piece cut short: its whole events and frames count, the rest is the loss
+    docs/recording.md names (what the card had queued)."""
+    carried = b""
+    length_size = s.SPOOL_FRAME_LENGTH.size
     while True:
-        head = stream.read(s.BATCH_FRAME.size)
-        if len(head) < s.BATCH_FRAME.size:
+        head = stream.read(s.SPOOL_PIECE.size)
+        if len(head) < s.SPOOL_PIECE.size:
             return
-        (size,) = s.BATCH_FRAME.unpack(head)
-        yield marshal.loads(stream.read(size))
+        what, size = s.SPOOL_PIECE.unpack(head)
+        data = stream.read(size)
+        short = len(data) < size
+        if what == s.SPOOL_EVENTS:
+            data = carried + data
+            items, used = events(data)
+            carried = data[used:]
+            yield items
+        else:
+            frames, at = [], 0
+            while at + length_size <= len(data):
+                (length,) = s.SPOOL_FRAME_LENGTH.unpack_from(data, at)
+                at += length_size + length
+                if at > len(data):
+                    break
+                frames.append((s.CAN_FRAME, data[at - length : at]))
+            yield frames
+        if short:
+            return
 
 
 SPOOLER = f"""import os, sys
