@@ -105,8 +105,9 @@ class SessionExistsError(FileExistsError):
 class Recorder:
     """One session being written; the hooks are called by the device loop's threads.
 
-    Slots and a bound ``append``: each hook's attribute lookups are part of what every
-    message and handshake of the card costs while it records."""
+    Slots, module-level packers and a bound ``append`` for frames: each hook's attribute
+    lookups are part of what every message and handshake of the card costs while it
+    records."""
 
     __slots__ = (
         "_append_frame",
