@@ -351,10 +351,9 @@ class Recorder:
         left = len(queue)
         while left:
             size = min(left, PIECE)
-            piece = queue[:size]
+            piece = _piece_head(s.SPOOL_EVENTS, size) + queue[:size]  # one write, not two
             del queue[:size]
             left -= size
-            pipe.write(_piece_head(s.SPOOL_EVENTS, size))
             pipe.write(piece)
         frames = self._frames
         if frames:
@@ -362,6 +361,5 @@ class Recorder:
             data = _join([_frame_length(len(datagram)) + datagram for datagram in (
                 encode_frame(msg, received)
                 for msg, received in map(call, repeat(frames.popleft, len(frames))))])
-            pipe.write(_piece_head(s.SPOOL_FRAMES, len(data)))
-            pipe.write(data)
+            pipe.write(_piece_head(s.SPOOL_FRAMES, len(data)) + data)
         pipe.flush()
