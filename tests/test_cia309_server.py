@@ -323,6 +323,7 @@ def test_a_read_costs_the_loop_few_calls_of_the_gateways_own_python(
             assert client.ask(f"[{n}] 1 read 0x1000 0 u32\n") == f"[{n}] 983441\r\n"
     finally:
         profiling(False)
+    print(f"CALLS {calls / reads:.1f}")
     assert calls <= 52 * reads, f"{calls / reads:.1f} calls of host_api.cia309 per read"
 
 
