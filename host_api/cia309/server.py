@@ -659,6 +659,8 @@ class Server:
                                             thread_name_prefix="cia309-client")
         self._server: asyncio.Server | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
+        self._loop_thread = 0
+        """The thread the loop runs on (``start``'s)."""
         self._subscription = gateway.subscribe(self._on_event)
         self._read_back: Callable[[], None] = _nothing
         """Gives the mailboxes back to the gateway's reader threads (``Gateway.read_on``)."""
@@ -671,6 +673,7 @@ class Server:
 
     async def start(self) -> None:
         loop = self._loop = asyncio.get_running_loop()
+        self._loop_thread = threading.get_ident()
 
         def protocol() -> _Protocol:
             return _Protocol(asyncio.StreamReader(limit=READ_CHUNK, loop=loop),
@@ -937,7 +940,7 @@ class Server:
             try:
                 flight = client.gateway.try_sdo_upload(
                     prepared.index, prepared.subindex,
-                    self._on_loop(_resolve, answered), network=prepared.net,
+                    functools.partial(self._on_loop, _resolve, answered), network=prepared.net,
                     node_id=prepared.node)
             except Cia309Error as exc:
                 return dispatcher.failure(prepared, exc)
@@ -957,23 +960,17 @@ class Server:
                 return self._upload_answer(prepared, flight)
         return await loop.run_in_executor(self._executor, dispatcher.execute, client, prepared)
 
-    def _on_loop(self, action: Callable[..., None], *args: Any) -> Callable[[], None]:
-        """A flight's ``on_done`` that runs ``action(*args)`` on this server's event loop: at
-        once when the mailbox is read there (``Gateway.read_on``), else handed to the loop by
-        the thread that read it. The arguments, not a lambda around them: no call of its own
-        on every read's path."""
-        loop = self._loop
-        assert loop is not None
-        here = threading.get_ident()
-
-        def on_done() -> None:
-            if threading.get_ident() == here:
-                action(*args)
-                return
-            with contextlib.suppress(RuntimeError):  # the loop closed: nobody waits
-                loop.call_soon_threadsafe(action, *args)
-
-        return on_done
+    def _on_loop(self, action: Callable[..., None], *args: Any) -> None:
+        """A flight's ``on_done``, bound to ``action`` and its arguments by
+        ``functools.partial`` (made per read without a Python call): runs ``action(*args)``
+        on this server's event loop, at once when the mailbox is read there
+        (``Gateway.read_on``), else handed to the loop by the thread that read it."""
+        if threading.get_ident() == self._loop_thread:
+            action(*args)
+            return
+        assert self._loop is not None
+        with contextlib.suppress(RuntimeError):  # the loop closed: nobody waits
+            self._loop.call_soon_threadsafe(action, *args)
 
     def _upload_answer(self, request: SdoUpload, flight: SdoUploadInFlight) -> str:
         """The answer line to a finished upload: its value, or the error it ended in."""
@@ -1018,8 +1015,8 @@ class Server:
         try:
             flight = client.gateway.try_sdo_upload(
                 prepared.index, prepared.subindex,
-                self._on_loop(self._fast_done, connection, fast), network=prepared.net,
-                node_id=prepared.node)
+                functools.partial(self._on_loop, self._fast_done, connection, fast),
+                network=prepared.net, node_id=prepared.node)
         except Cia309Error as exc:
             self._fast_answer(connection, dispatcher.failure(prepared, exc))
             return True
