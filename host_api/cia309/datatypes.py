@@ -213,9 +213,10 @@ def format_value(dtype: DataType, data: bytes, dialect: Dialect = Dialect.CANOPE
     to ``hex`` (see ``format_upload`` in the formatters module), Lely's answers with the
     abort code.
     """
-    if dtype.size is not None and len(data) != dtype.size:
+    size = dtype.size
+    if size is not None and len(data) != size:
         raise DataTypeError(
-            f"{len(data)} bytes are no {dtype.value} value ({dtype.size} bytes)",
+            f"{len(data)} bytes are no {dtype.value} value ({size} bytes)",
             abort_code=ABORT_TYPE_LENGTH_MISMATCH,
         )
     kind = _KINDS[dtype]

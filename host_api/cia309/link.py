@@ -376,45 +376,29 @@ class InFlight:
         """The answer (several messages for a long upload), once ``on_done`` was called."""
         return self.pending.messages
 
-    def release(self) -> None:
-        """Let the request's number, the gate and the SDO channel go (once)."""
-        if self._close():
-            self.link.forget(self.nr)
-            self._let_go()
-
-    def _close(self) -> bool:
-        """Whether it was still open: the first of the reader and the owner to end it."""
+    def release(self, forget: bool = True) -> None:
+        """Let the gate and the SDO channel go, and the request's number unless ``forget``
+        is False (a given-up request's stays taken for its late answer); once, whichever of
+        the reader thread (the answer complete) and the owner calls first."""
         try:
-            return self._open.pop()
+            self._open.pop()
         except IndexError:
-            return False
-
-    def _let_go(self) -> None:
+            return
+        if forget:
+            self.link.forget(self.nr)
         if self._channel is not None:
             self._channel.release()
         self.link.gate.leave_shared()
 
     def delivered(self) -> None:
-        """From the reader thread: the answer is complete. ``release`` written out: this
-        runs for every 309-3 read, and each Python call on it is a fraction of a
-        microsecond more of the server's CPU per read (issue 22)."""
-        try:
-            self._open.pop()
-        except IndexError:
-            pass  # given up already: the owner let everything go
-        else:
-            link = self.link
-            link._pending.pop(self.nr, None)
-            if self._channel is not None:
-                self._channel.release()
-            link.gate.leave_shared()
+        """From the reader thread: the answer is complete."""
+        self.release()
         self._on_done()
 
     def abandon(self) -> Cia309Error:
         """Give up waiting (a late answer is discarded); the error ``Link.request`` raises."""
         self.link.abandoned(self.pending)
-        if self._close():  # the number stays taken for the late answer, as in ``request``
-            self._let_go()
+        self.release(forget=False)  # the number stays taken for the late answer
         return self.link.no_answer(self.pending.b, self.timeout)
 
 
@@ -483,6 +467,9 @@ class Link:
         self._loop_flags = -1
         self._fallback: asyncio.TimerHandle | None = None
         self._bell: HostBell | None = None
+        self._loop_board: MappedBoard | None = None
+        """The board as the driver mapped it when the loop began to read (``read_on``): the
+        one whose doorbell the loop watches (``_bell``), looked up once, not per ring."""
         self._start_reader()
 
     def close(self) -> None:
@@ -525,7 +512,7 @@ class Link:
                     self._reader_condition.wait()
                 self._reader_busy = True
             taken = self.taken
-            code = self._take_while_busy()
+            code = self._take_messages()
             if code != Drv.DRV_DEV_GET_NO_MESSAGE:
                 restarted = True
                 stop.wait(0.01)  # the card restarts (-11) or is gone
@@ -536,7 +523,9 @@ class Link:
             rung = self._wait_for_ring(backoff.interval)
 
     def _take_messages(self, board: MappedBoard | None = None) -> int:
-        """Route every message waiting in the mailbox; the driver's code that ended it
+        """Route every message waiting in the mailbox, by a reader its caller marked busy
+        (``_reader_busy``), which is not busy again when this returns (a pause for a card
+        reset waits until no reader takes messages); the driver's code that ended it
         (DRV_DEV_GET_NO_MESSAGE: the mailbox is empty).
 
         After a message, the next DevGetMessage is made only when the flags show another:
@@ -544,19 +533,23 @@ class Link:
         lock, a fifth of the mailbox's cost of a 309-3 read. The first call of a turn is
         always made, so a card that restarts still reports DRV_DEV_NOT_READY. ``board``: the
         caller's look-up for this turn (None: looked up after the first message)."""
-        while True:
-            code, msg = d.DevGetMessage(self.number, d.MSG_BUFFER_SIZE, 0)
-            if code != Drv.DRV_NO_ERROR or msg is None:
-                return int(code)
-            self.taken += 1
-            try:
-                self._route(msg)
-            except Exception:
-                log.exception("board %d: routing %r failed", self.number, msg)
-            if board is None:
-                board = self._mapped()
-            if board is not None and not fl.pending(board.host(), board.dev(), fl.HOST_MBX):
-                return Drv.DRV_DEV_GET_NO_MESSAGE
+        try:
+            while True:
+                code, msg = d.DevGetMessage(self.number, d.MSG_BUFFER_SIZE, 0)
+                if code != Drv.DRV_NO_ERROR or msg is None:
+                    return int(code)
+                self.taken += 1
+                try:
+                    self._route(msg)
+                except Exception:
+                    log.exception("board %d: routing %r failed", self.number, msg)
+                if board is None:
+                    board = self._mapped()
+                if board is not None and not fl.pending(board.host(), board.dev(),
+                                                        fl.HOST_MBX):
+                    return Drv.DRV_DEV_GET_NO_MESSAGE
+        finally:
+            self._not_busy()
 
     def _mapped(self) -> MappedBoard | None:
         """The board as the driver maps it now (None while it is not initialised)."""
@@ -639,6 +632,7 @@ class Link:
         self._stop_reader()
         self._loop = loop
         self._loop_thread = threading.get_ident()
+        self._loop_board = board
         self._bell = board.bell
         self._loop_flags = -1
         self._loop_backoff = _Backoff()
@@ -660,7 +654,7 @@ class Link:
         if loop is None or self._loop_reading or self._reader_paused:
             return
         assert self._bell is not None
-        loop.add_reader(self._bell.fileno(), self._on_ring)
+        loop.add_reader(self._bell.fileno(), self._loop_turn, True)
         self._loop_reading = True
         self._loop_turn()
         self._fallback = loop.call_later(self._loop_backoff.interval, self._on_fallback)
@@ -675,21 +669,6 @@ class Link:
             self._fallback.cancel()
             self._fallback = None
 
-    def _on_ring(self) -> None:
-        assert self._bell is not None
-        board = self._mapped()  # one look-up for the turn: the count, the mailbox, the flags
-        if self._bell.take_rings() and board is not None:
-            board.counters.irq += 1  # ``_count_ring``, one call less per read
-        self._loop_turn(board)
-
-    def _take_while_busy(self) -> int:
-        """``_take_messages`` by a reader its caller marked busy, then not busy again: a pause
-        for a card reset (``_reader_paused``) waits until no reader takes messages."""
-        try:
-            return self._take_messages()
-        finally:
-            self._not_busy()
-
     def _not_busy(self) -> None:
         """The reader is done with the mailbox; a pause waiting for that is told.
 
@@ -702,17 +681,20 @@ class Link:
             with self._reader_condition:
                 self._reader_condition.notify_all()
 
-    def _loop_turn(self, board: MappedBoard | None = None) -> None:
-        """One look at the mailbox and the flags on the loop; ``board`` as ``_mapped`` gave
-        it for this turn (None: looked up here)."""
+    def _loop_turn(self, rung: bool = False) -> None:
+        """One look at the mailbox and the flags on the loop: when the card rang (``rung``:
+        the doorbell is readable, and its ring is taken and counted first), at the
+        fallback's time, or when the loop begins to read."""
+        board = self._loop_board
+        if rung:
+            assert self._bell is not None
+            if self._bell.take_rings():
+                self._count_ring(board)
         self._reader_busy = True  # before paused is looked at: see ``_not_busy``
         if self._reader_paused or not self._loop_reading:
             self._not_busy()
             return
-        try:  # ``_take_while_busy`` written out, one call less per 309-3 read
-            code = self._take_messages(board)
-        finally:
-            self._not_busy()
+        code = self._take_messages(board)
         if code != Drv.DRV_DEV_GET_NO_MESSAGE:
             self._loop_active = True  # the card restarts: look again soon
         self._loop_flags = self._state_flags(self._loop_flags, board)

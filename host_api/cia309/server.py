@@ -586,6 +586,9 @@ class _Connection:
 
     client: Client
     writer: asyncio.StreamWriter
+    transport: asyncio.WriteTransport
+    """The writer's (looked up once: the writer's property is a Python call on every
+    read's path)."""
     protocol: _Protocol
     last_active: float
     """Event-loop time of its last byte received or its last answer written."""
@@ -656,6 +659,8 @@ class Server:
                                             thread_name_prefix="cia309-client")
         self._server: asyncio.Server | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
+        self._loop_thread = 0
+        """The thread the loop runs on (``start``'s)."""
         self._subscription = gateway.subscribe(self._on_event)
         self._read_back: Callable[[], None] = _nothing
         """Gives the mailboxes back to the gateway's reader threads (``Gateway.read_on``)."""
@@ -668,6 +673,7 @@ class Server:
 
     async def start(self) -> None:
         loop = self._loop = asyncio.get_running_loop()
+        self._loop_thread = threading.get_ident()
 
         def protocol() -> _Protocol:
             return _Protocol(asyncio.StreamReader(limit=READ_CHUNK, loop=loop),
@@ -696,7 +702,7 @@ class Server:
         if self._server is not None:
             self._server.close()
         for connection in list(self._connections):
-            connection.writer.transport.abort()
+            connection.transport.abort()
         for transport in list(self._ending):
             transport.abort()
         if self._server is not None:
@@ -720,14 +726,14 @@ class Server:
         """Queue ``data`` for the client; then, while the output waiting for all clients
         (ended ones whose last answers still leave included) is over ``max_output``, cut the
         connection with the most (``abort``: ``close`` would keep its queue until it reads)."""
-        transport = connection.writer.transport  # the stream writer's calls, one call less each
+        transport = connection.transport
         if transport.is_closing():
             return
         transport.write(data)
         if not transport.get_write_buffer_size():
             return  # all sent at once: the output waiting did not grow, nothing to count
         while (total := self._output()) > self.config.max_output:
-            largest = max((other.writer.transport for other in self._connections),
+            largest = max((other.transport for other in self._connections),
                           key=_waiting, default=None)
             ending = max(self._ending, key=_waiting, default=None)
             if largest is None or (ending is not None and _waiting(ending) > _waiting(largest)):
@@ -736,13 +742,13 @@ class Server:
                 ending.abort()
                 continue
             owner = next(other for other in self._connections
-                         if other.writer.transport is largest)
+                         if other.transport is largest)
             self._end(owner, f"{_waiting(largest)} bytes of output it does not read "
                              f"({total} for all clients)", flush=False)
 
     def _output(self) -> int:
         """Bytes of output waiting, for all clients together."""
-        return (sum(_waiting(other.writer.transport) for other in self._connections)
+        return (sum(_waiting(other.transport) for other in self._connections)
                 + sum(_waiting(transport) for transport in self._ending))
 
     def _end(self, connection: _Connection, why: str, *, flush: bool) -> None:
@@ -751,7 +757,7 @@ class Server:
         with contextlib.suppress(ValueError):
             self._connections.remove(connection)
         log.info("dropping %s: %s", _peer(connection.writer), why)
-        transport = connection.writer.transport
+        transport = connection.transport
         if not flush:
             transport.abort()
             return
@@ -825,7 +831,7 @@ class Server:
         client to read them down to WRITE_LOW, for at most the line time-out (else the idle
         time-out); False when it did not."""
         config = self.config
-        if _waiting(connection.writer.transport) <= WRITE_HIGH:
+        if _waiting(connection.transport) <= WRITE_HIGH:
             return True
         timeout = config.line_timeout or config.idle_timeout or None
         connection.draining = True
@@ -857,7 +863,7 @@ class Server:
             # under User-Mode Linux). READ_CHUNK is what the task reads at once anyway.
             writer.transport.max_size = READ_CHUNK
         client = Client(self.gateway.session(), LineFramer(self.config.max_line))
-        connection = _Connection(client, writer, protocol, loop.time())
+        connection = _Connection(client, writer, writer.transport, protocol, loop.time())
         self._connections.append(connection)
         protocol.fast = functools.partial(self._fast_line, connection)  # no frame of its own
         try:
@@ -934,7 +940,7 @@ class Server:
             try:
                 flight = client.gateway.try_sdo_upload(
                     prepared.index, prepared.subindex,
-                    self._on_loop(lambda: _resolve(answered)), network=prepared.net,
+                    functools.partial(self._on_loop, _resolve, answered), network=prepared.net,
                     node_id=prepared.node)
             except Cia309Error as exc:
                 return dispatcher.failure(prepared, exc)
@@ -954,22 +960,17 @@ class Server:
                 return self._upload_answer(prepared, flight)
         return await loop.run_in_executor(self._executor, dispatcher.execute, client, prepared)
 
-    def _on_loop(self, action: Callable[[], None]) -> Callable[[], None]:
-        """A flight's ``on_done`` that runs ``action`` on this server's event loop: at once
-        when the mailbox is read there (``Gateway.read_on``), else handed to the loop by the
-        thread that read it."""
-        loop = self._loop
-        assert loop is not None
-        here = threading.get_ident()
-
-        def on_done() -> None:
-            if threading.get_ident() == here:
-                action()
-                return
-            with contextlib.suppress(RuntimeError):  # the loop closed: nobody waits
-                loop.call_soon_threadsafe(action)
-
-        return on_done
+    def _on_loop(self, action: Callable[..., None], *args: Any) -> None:
+        """A flight's ``on_done``, bound to ``action`` and its arguments by
+        ``functools.partial`` (made per read without a Python call): runs ``action(*args)``
+        on this server's event loop, at once when the mailbox is read there
+        (``Gateway.read_on``), else handed to the loop by the thread that read it."""
+        if threading.get_ident() == self._loop_thread:
+            action(*args)
+            return
+        assert self._loop is not None
+        with contextlib.suppress(RuntimeError):  # the loop closed: nobody waits
+            self._loop.call_soon_threadsafe(action, *args)
 
     def _upload_answer(self, request: SdoUpload, flight: SdoUploadInFlight) -> str:
         """The answer line to a finished upload: its value, or the error it ended in."""
@@ -997,7 +998,7 @@ class Server:
         (docs/benchmarks.md, issue 22)."""
         if (not connection.reading or connection.fast is not None
                 or connection.protocol.received != connection.consumed
-                or connection.writer.transport.get_write_buffer_size()):
+                or connection.transport.get_write_buffer_size()):
             return False
         client = connection.client
         line = client.framer.whole_line(data)
@@ -1013,7 +1014,8 @@ class Server:
         fast = _FastRead(prepared)
         try:
             flight = client.gateway.try_sdo_upload(
-                prepared.index, prepared.subindex, self._fast_on_done(connection, fast),
+                prepared.index, prepared.subindex,
+                functools.partial(self._on_loop, self._fast_done, connection, fast),
                 network=prepared.net, node_id=prepared.node)
         except Cia309Error as exc:
             self._fast_answer(connection, dispatcher.failure(prepared, exc))
@@ -1033,23 +1035,6 @@ class Server:
                 timer.cancel()
             connection.fast_timer = loop.call_at(fast.deadline, self._fast_due, connection)
         return True
-
-    def _fast_on_done(self, connection: _Connection, fast: _FastRead) -> Callable[[], None]:
-        """``_on_loop`` for ``_fast_done``, without the lambda between them (one call less
-        per read on the loop's thread)."""
-        loop = self._loop
-        assert loop is not None
-        here = threading.get_ident()
-        fast_done = self._fast_done
-
-        def on_done() -> None:
-            if threading.get_ident() == here:
-                fast_done(connection, fast)
-                return
-            with contextlib.suppress(RuntimeError):  # the loop closed: nobody waits
-                loop.call_soon_threadsafe(fast_done, connection, fast)
-
-        return on_done
 
     def _fast_done(self, connection: _Connection, fast: _FastRead) -> None:
         if connection.fast is not fast:
