@@ -129,6 +129,38 @@ def runqueue_wait_ns(pids: list[int]) -> dict[int, int]:
     return waited
 
 
+@dataclass(frozen=True, slots=True)
+class ThreadSched:
+    """One thread's scheduling counters: ns on a CPU and waiting for one while it could run
+    (``schedstat``), sleeps that ended (voluntary context switches, its wake-ups) and
+    preemptions (involuntary ones)."""
+
+    cpu_ns: int
+    wait_ns: int
+    wakeups: int
+    preemptions: int
+
+    @classmethod
+    def take(cls, pid: int, tid: int) -> ThreadSched:
+        task = Path(f"/proc/{pid}/task/{tid}")
+        cpu, wait = (int(field) for field in (task / "schedstat").read_text().split()[:2])
+        switches = {}
+        for line in (task / "status").read_text().splitlines():
+            name, _, value = line.partition(":")
+            if name.endswith("ctxt_switches"):
+                switches[name] = int(value)
+        return cls(cpu, wait, switches["voluntary_ctxt_switches"],
+                   switches["nonvoluntary_ctxt_switches"])
+
+    def per_call(self, before: ThreadSched, calls: int) -> dict[str, float]:
+        """What each of ``calls`` calls since ``before`` cost this thread (µs and counts):
+        on a loaded machine ``wait_us`` is the time the load took from it."""
+        return {"cpu_us": round((self.cpu_ns - before.cpu_ns) / calls / 1000, 1),
+                "wait_us": round((self.wait_ns - before.wait_ns) / calls / 1000, 1),
+                "wakeups": round((self.wakeups - before.wakeups) / calls, 2),
+                "preemptions": round((self.preemptions - before.preemptions) / calls, 2)}
+
+
 def descendants(pid: int) -> list[int]:
     """The live child processes of ``pid`` and theirs (a card's SYNC timer process).
 

@@ -25,7 +25,11 @@ hop:
 - host notices: the driver call that reads the answer (DevGetMessage), once it is there.
 
 Each path also runs its plain round trip (the driver waiting on the doorbell, no
-spinning), whose p50 against the sum of the hops is the cost of the host's wake-up.
+spinning), whose p50 against the sum of the hops is the cost of the host's wake-up. The
+mailbox path also says what each plain round trip cost the host's thread and the card's
+device loop (``plain_round_trip_scheduling``: CPU, waits for a CPU, wake-ups and
+preemptions, from ``/proc``); ``--load`` runs the paths beside two busy processes, as
+``python -m bench --load`` does, where those waits show which side the load delays.
 With ``--profile`` py-spy samples the firmware's GIL holder during each path
 (``bench.can.profile.summarise_profile``): the share of the device loop, the CAN
 master's thread, the controller's receive thread.
@@ -42,6 +46,7 @@ import os
 import socket
 import subprocess
 import tempfile
+import threading
 import time
 import uuid
 from collections.abc import Callable, Iterator
@@ -74,7 +79,8 @@ from bench.common import (
     progress,
     source_fingerprint,
 )
-from bench.cpu import CpuSample, share
+from bench.cpu import CpuSample, ThreadSched, share
+from bench.load import busy_load, describe
 from bench.mailbox import READ_TELEGRAM
 from dbm_tools.network import parse_network
 from dpm import flags as fl
@@ -395,6 +401,19 @@ def _mailbox_step(number: int, image: mmap.mmap, request: Message, tap: BusTap |
     return [t0, tap.stamp(frames[0]), tap.stamp(frames[1]), t4]
 
 
+def scheduling(step: Callable[[], object], count: int, card_pid: int) -> dict[str, Any]:
+    """``count`` plain round trips, and what each cost the host's thread and the card's
+    device loop (its main thread) in CPU, waits for a CPU, wake-ups and preemptions: on a
+    loaded machine the waits say which side the load delays (issue 22)."""
+    pid, tid = os.getpid(), threading.get_native_id()
+    host, card = ThreadSched.take(pid, tid), ThreadSched.take(card_pid, card_pid)
+    for _ in range(count):
+        step()
+    return {"round_trips": count,
+            "host_thread": ThreadSched.take(pid, tid).per_call(host, count),
+            "card_device_loop": ThreadSched.take(card_pid, card_pid).per_call(card, count)}
+
+
 def _plain_mailbox(number: int, request: Message) -> Callable[[], None]:
     def plain() -> None:
         DevPutMessage(number, request, TIMEOUT_MS)
@@ -415,12 +434,14 @@ def mailbox(count: int, warmup: int, profile: bool) -> dict[str, Any]:
                                           count, warmup)
                 plain = _plain_mailbox(number, request)
                 plain_us = plain_p50(plain, count)
+                per_round_trip = scheduling(plain, count, card.pid)
                 with profiled(card.pid, profile) as prof:
                     _window(plain, PROFILE_S)
             finally:
                 image.close()
         result = breakdown(MAILBOX_HOPS, with_trace(rounds, read_trace(trace_path)))
-    result.update(lost=lost, plain_round_trip_p50_us=plain_us, profile=prof)
+    result.update(lost=lost, plain_round_trip_p50_us=plain_us,
+                  plain_round_trip_scheduling=per_round_trip, profile=prof)
     return result
 
 
@@ -533,8 +554,15 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--warmup", type=int, default=DEFAULT_WARMUP)
     parser.add_argument("--only", nargs="*", choices=list(PATHS), default=list(PATHS))
     parser.add_argument("--profile", action="store_true", help="py-spy the firmware per path")
+    parser.add_argument("--load", action="store_true",
+                        help="beside two busy processes, as python -m bench --load")
     args = parser.parse_args(argv)
-    emit(measure_hops(args.count, args.warmup, args.only, args.profile))
+    if not args.load:
+        emit(measure_hops(args.count, args.warmup, args.only, args.profile))
+        return 0
+    with busy_load() as pids:
+        result = measure_hops(args.count, args.warmup, args.only, args.profile)
+    emit({**result, "load": describe(pids)})
     return 0
 
 

@@ -7,7 +7,10 @@ above the end-to-end p99 only (issue 22: the PDO loop's p99).
 
 from __future__ import annotations
 
-from bench.hops import breakdown
+import os
+import select
+
+from bench.hops import breakdown, scheduling
 
 HOPS = ["host -> card", "node", "card -> image"]
 
@@ -22,3 +25,15 @@ def test_the_tail_names_the_hop_of_the_slow_round_trips_not_the_fast_ones() -> N
     assert [h["longest_in"] for h in tail["hops"]] == [1, 0, 0]
     assert tail["hops"][0]["mean_us"] == 9_000.0
     assert tail["from_us"] > 4_020.0
+
+
+def test_the_mailbox_path_counts_each_round_trips_wake_ups_per_thread() -> None:
+    """``plain_round_trip_scheduling`` (issue 22, the mailbox under load): what each round
+    trip cost the host's thread and the card's, from /proc. Here the "card" is this process
+    and each step sleeps once (a 0.5 ms select), so the host thread wakes once per step."""
+    result = scheduling(lambda: select.select([], [], [], 0.0005), 20, os.getpid())
+    assert result["round_trips"] == 20
+    host = result["host_thread"]
+    assert host["wakeups"] >= 1.0, host
+    assert host["cpu_us"] > 0 and host["wait_us"] >= 0 and host["preemptions"] >= 0, host
+    assert set(result["card_device_loop"]) == {"cpu_us", "wait_us", "wakeups", "preemptions"}
