@@ -349,11 +349,13 @@ class BootSequence:
         return NodeEvent.UNKNOWN_SDO_RESPONSE if unknown else NodeEvent.NO_RESPONSE
 
     def _steps(self, skip: int, reset_sent: bool) -> Steps:
+        # ``.value``: an IntFlag operand makes each test build a flag object (3 us each,
+        # some 10 a node; issue 22).
         params = self.params
         link = self.link
         if link.closing:
             raise BootFailure(NodeEvent.NO_RESPONSE)
-        if reset_sent or not skip & ConfigNdState.RESET:
+        if reset_sent or not skip & ConfigNdState.RESET.value:
             if not reset_sent:
                 self._bootup.clear()
                 self._reset_at = time.time()
@@ -361,7 +363,7 @@ class BootSequence:
             deadline = time.monotonic() + BOOTUP_TIMEOUT
             if not (yield BootUp(RESET_GRACE)):
                 yield from self._identify(deadline)
-        if not skip & ConfigNdState.DEVICE:
+        if not skip & ConfigNdState.DEVICE.value:
             raw = yield Sdo(0x1000, 0)
             assert isinstance(raw, bytes)
             if len(raw) < 4:
@@ -377,7 +379,7 @@ class BootSequence:
                 self.diag.status |= NodeStatus.PRM_FAULT
                 raise BootFailure(NodeEvent.DEVICE_TYPE_MISMATCH)
         control = self._control
-        if not skip & ConfigNdState.GUARD:
+        if not skip & ConfigNdState.GUARD.value:
             if control.heartbeat:
                 if control.guard_time:
                     # [ours] the node produces at half the master's consumer time.
@@ -394,11 +396,11 @@ class BootSequence:
                     0x100D, struct.pack("<B", control.life_time_factor))
                 yield from self._write_cob_id(0x100E, params.usCobIDGuard,
                                               ERROR_CONTROL_BASE + self.address)
-        if not skip & ConfigNdState.SYNC:
+        if not skip & ConfigNdState.SYNC.value:
             yield from self._write_cob_id(0x1005, link.sync_cob_id, COB_ID_SYNC)
-        if not skip & ConfigNdState.EMCY:
+        if not skip & ConfigNdState.EMCY.value:
             yield from self._write_cob_id(0x1014, params.usCobIDEmcy, EMCY_BASE + self.address)
-        if not skip & ConfigNdState.SDO:
+        if not skip & ConfigNdState.SDO.value:
             for entry in params.atSdoCfgData:
                 value = bytes(entry.abSdoValue[: entry.bLength])
                 if (entry.usIndex, entry.bSubindex) == (HEARTBEAT_PRODUCER, 0):
@@ -411,7 +413,8 @@ class BootSequence:
                     yield from self._write_producer_time(value)
                 else:
                     yield Sdo(entry.usIndex, entry.bSubindex, value)
-        if not skip & ConfigNdState.START and not link.global_start and not link.nodes_stopped:
+        if (not skip & ConfigNdState.START.value and not link.global_start
+                and not link.nodes_stopped):
             link.send_nmt(NMT_START, self.address)
 
     def _identify(self, deadline: float) -> Steps:
