@@ -75,7 +75,7 @@ class RcsTask(Task):
         if self.reset_delay and dev.sleep(self.reset_delay):
             return
         cold = kind is not Start.WARM
-        database = dev.database = StoredDatabase.load(dev.flash)
+        database = dev.database = StoredDatabase.load(dev.flash, dev.database)
         card_info.publish(dev)
         if cold:  # a warm start keeps the host's parameters: they rank above flash (seed 2)
             parameter = database.protocol_parameters() if database else ComPlcParameter()

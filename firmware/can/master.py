@@ -237,7 +237,7 @@ class Master:
 
     @property
     def global_start(self) -> bool:
-        return bool(self.ext.bExtendedState & ExtendedState.biNoGobalStartNode)
+        return bool(self.ext.bExtendedState & ExtendedState.biNoGobalStartNode.value)
 
     def configure_node(self, address: int, params: NodeParameterSet) -> None:
         old = self.nodes.pop(address, None)

@@ -281,7 +281,7 @@ class NodeHandler:
         # started it a moment early saw it operate in Nd_state and NEXC set for good.
         host_started = (self._host_started_at is not None
                         and self._host_started_at >= self.boot.reset_at)
-        self.awaiting_start = ((bool(skip & ConfigNdState.START) or self.network.global_start)
+        self.awaiting_start = ((bool(skip & ConfigNdState.START.value) or self.network.global_start)
                                and not host_started)
         # The first RX-PDOs go before Nd_state tells the host the node runs, and under the
         # outputs' lock: a host's change that follows waits for its inhibit time after them
@@ -292,7 +292,7 @@ class NodeHandler:
             self.pdos.forget_sent()
             self.state = State.OPERATING
             self.connected = True
-            if not skip & ConfigNdState.TXRXPDO and not self.awaiting_start:
+            if not skip & ConfigNdState.TXRXPDO.value and not self.awaiting_start:
                 self.send_outputs(force=True)
                 self.pdos.request_first(now)
         if self.control.supervised:
