@@ -555,7 +555,9 @@ class Device:
                 self._deliver()
         self.plc.service(mm[HOST_FLAGS], mm[DEV_FLAGS])
         self._state_field()
-        self._set_level(fl.SPCACK, bool(mm[DEV_FLAGS] & fl.SPCCOM))
+        spcack = bool(mm[DEV_FLAGS] & fl.SPCCOM)
+        if bool(mm[HOST_FLAGS] & fl.SPCACK) != spcack:  # seldom: a look, not a call, per turn
+            self._set_level(fl.SPCACK, spcack)
         self._ring_for_mailbox()
         self._flush()
 
@@ -579,8 +581,9 @@ class Device:
 
     def _levels(self) -> None:
         levels = self.level_flags()
-        self._set_level(fl.RUN, bool(levels & fl.RUN))
-        self._set_level(fl.COM, bool(levels & fl.COM))
+        if (self.mm[HOST_FLAGS] ^ levels) & (fl.RUN | fl.COM):  # seldom: a look per turn
+            self._set_level(fl.RUN, bool(levels & fl.RUN))
+            self._set_level(fl.COM, bool(levels & fl.COM))
 
     def _receive(self) -> None:
         # One copy of the whole message slot, decoded from the copy: a host that

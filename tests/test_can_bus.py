@@ -257,3 +257,17 @@ def test_a_host_sdo_request_that_meets_a_node_busy_waits_for_the_nodes_thread_in
         result, thread = results[node]
         assert int.from_bytes(result.data, "little") == GENERIC_DEVICE_TYPE
         assert thread != threading.get_ident()
+
+
+def test_the_simulated_nodes_listeners_are_fixed_while_they_run(
+        two_nodes: tuple[CanBus, SimulatedNetwork, can.BusABC]) -> None:
+    """The nodes' receive thread calls the ``on_message_received`` of the listeners it
+    started with (issue 22: no ``Listener.__call__`` per frame), so a listener added later
+    would never hear a frame: adding or removing one is refused, not ignored."""
+    _, sim, _ = two_nodes
+    notifier = sim.canopen.notifier
+    assert notifier is not None
+    with pytest.raises(NotImplementedError):
+        notifier.add_listener(can.BufferedReader())
+    with pytest.raises(NotImplementedError):
+        notifier.remove_listener(notifier.listeners[0])

@@ -52,7 +52,7 @@ from firmware.frames import (
     CAN_ERR_RESTARTED,
     SDO_FRAME_LENGTH,
 )
-from firmware.inline import InlineQueue
+from firmware.inline import CopiedFrame, InlineQueue
 
 log = logging.getLogger(__name__)
 
@@ -278,28 +278,6 @@ class ErrorEscalation:
             self._beyond = True
             return new
         return False
-
-
-class _SentFrame(can.Message):
-    """A frame the controller sends, whose deep copy is a plain ``can.Message`` made at once.
-
-    python-can's ``virtual`` interface deep-copies every frame for each other station on
-    the channel. ``can.Message``'s own deep copy copies its bytearray through ``copy``'s
-    reduce machinery: 10-20 µs a frame here, on the device loop's way from a host's SDO
-    request to the bus (issue 22). This copy is the same message, for a few µs; on
-    other interfaces, which copy nothing, the class changes nothing."""
-
-    __slots__ = ()
-
-    def __deepcopy__(self, memo: dict[int, Any] | None) -> can.Message:
-        del memo
-        return can.Message(
-            timestamp=self.timestamp, arbitration_id=self.arbitration_id,
-            is_extended_id=self.is_extended_id, is_remote_frame=self.is_remote_frame,
-            is_error_frame=self.is_error_frame, channel=self.channel, dlc=self.dlc,
-            data=bytearray(self.data), is_fd=self.is_fd, is_rx=self.is_rx,
-            bitrate_switch=self.bitrate_switch,
-            error_state_indicator=self.error_state_indicator, check=False)
 
 
 class _MasterNetwork(canopen.Network):
@@ -556,8 +534,9 @@ class CanBus(can.Listener):
         self._echoes: deque[tuple[int, bytes, bool]] | None = (
             deque(maxlen=256) if interface in ECHOING_INTERFACES else None)
         self._rx_overflows_seen = 0
-        self._held: frozenset[int] = frozenset()
-        """SDO response identifiers kept from canopen's network (see ``hold_from_canopen``)."""
+        self._lent: dict[int, FrameCallback] = {}
+        """SDO response identifiers lent to a client of the card's own, kept from canopen's
+        network (``lend_sdo_responses``)."""
         self.on_error_frame: Callable[[can.Message], None] = lambda msg: None
         self.on_send_timeout: Callable[[], None] = lambda: None
         self.on_link_back: Callable[[], None] = lambda: None
@@ -618,15 +597,26 @@ class CanBus(can.Listener):
         self._dispatch = {ident: catch_all + callbacks
                           for ident, callbacks in self._subscribers.items() if callbacks}
 
-    def hold_from_canopen(self, can_id: int, held: bool) -> None:
-        """Keep ``can_id``'s frames from canopen's network while another client owns it.
+    def lend_sdo_responses(self, can_id: int, client: FrameCallback) -> None:
+        """Give ``can_id``'s frames to ``client`` after its subscribers, and keep them from
+        canopen's network, until ``take_back_sdo_responses``.
 
-        A host SDO transfer answers from its own subscription; canopen's client
-        for that node is idle meanwhile (the channel lock) and would only queue
-        every response, without bound, until its next request.
+        A host SDO transfer or a boot step answers from its own client; canopen's client
+        for that node is idle meanwhile (the channel lock) and would only queue every
+        response, without bound, until its next request. One entry for both, not a
+        subscription and a hold: those cost each transfer six Python calls and four
+        tuples and sets made anew (issue 22). The channel lock lets one client at a time
+        borrow a node's responses.
         """
         with self._lock:
-            self._held = self._held | {can_id} if held else self._held - {can_id}
+            self._lent[can_id] = client
+
+    def take_back_sdo_responses(self, can_id: int, client: FrameCallback) -> None:
+        """``can_id``'s frames go to canopen's network again, unless another client has
+        borrowed them since."""
+        with self._lock:
+            if self._lent.get(can_id) == client:
+                del self._lent[can_id]
 
     def subscribe_all(self, callback: FrameCallback) -> None:
         """Every received frame (layer-2 access, transparent reception)."""
@@ -651,21 +641,29 @@ class CanBus(can.Listener):
         if self._echoes is not None and self._is_echo(msg):
             return
         ident = msg.arbitration_id
-        held = ident in self._held  # before the callbacks: the last answer ends the hold
-        callbacks = self._catch_all if msg.is_extended_id else self._dispatch.get(
-            ident, self._catch_all)
+        if msg.is_extended_id:
+            callbacks, client = self._catch_all, None
+        else:
+            callbacks = self._dispatch.get(ident, self._catch_all)
+            client = self._lent.get(ident)  # before the callbacks: its last answer ends the loan
         for callback in callbacks:
             try:
                 callback(msg)
             except Exception:
                 log.exception("frame handler failed on 0x%X", ident)
+        if client is not None:
+            try:
+                client(msg)
+            except Exception:
+                log.exception("frame handler failed on 0x%X", ident)
+            return
         # canopen's network serves only the SDO clients (answers on 0x581..0x5FF). A
         # response of another length never reaches them: canopen unpacks fixed offsets
         # (struct.error on a short abort) or takes a short one for data. The node
         # handler, subscribed above, reports it as Err_Event 38 when its boot-up times out.
         if (SDO_RESPONSE_BASE < ident < SDO_REQUEST_BASE and not msg.is_extended_id
                 and not msg.is_remote_frame
-                and len(msg.data) == SDO_FRAME_LENGTH and not held):
+                and len(msg.data) == SDO_FRAME_LENGTH):
             self.network.notify(ident, msg.data, msg.timestamp)
 
     def on_error(self, exc: Exception) -> None:
@@ -807,7 +805,7 @@ class CanBus(can.Listener):
                             self.interface, can_id)
             self.on_send_timeout()
             return False
-        msg = _SentFrame(
+        msg = CopiedFrame(
             timestamp=time.time(),
             is_rx=False,
             channel=self.channel,  # the trace labels sent frames as received ones

@@ -39,14 +39,15 @@ from dpm.cia301 import (
     SDO_REQUEST_BASE,
     SDO_RESPONSE_BASE,
 )
+from firmware import inline
 from firmware.can.bus import CanBus
-from firmware.inline import answered_here
 
 DEFAULT_SDO_TIMEOUT = 0.5
 """[ours] seconds an SDO request waits for its answer until COM_Set_SDO_Timeout; canopen's
 0.3 s lets a busy 2-core machine abort boot-ups that would have succeeded."""
 
 _INITIATE = struct.Struct("<BHB")
+_NO_CONTEXT = contextlib.nullcontext()
 
 
 @dataclass
@@ -90,11 +91,13 @@ class HostSdoTransfer:
         """Refreshed by every request; set here already because the master's thread may
         check the transfer between its registration and its first request."""
         self._finished = False
+        self._head = _INITIATE.pack(0, index, subindex)[1:]
+        """The object's index and subindex as a request and its initiate response carry them."""
+        self._context = inline.answered_here if answered_here else _NO_CONTEXT
 
     def start(self) -> None:
-        self.bus.subscribe(SDO_RESPONSE_BASE + self.node, self._on_frame)
-        self.bus.hold_from_canopen(SDO_RESPONSE_BASE + self.node, True)
-        head = _INITIATE.pack(0, self.index, self.subindex)[1:]
+        self.bus.lend_sdo_responses(SDO_RESPONSE_BASE + self.node, self._on_frame)
+        head = self._head
         if self.data is None:
             self._send(bytes([0x40]) + head + bytes(4))
         elif self._expedited:
@@ -124,20 +127,19 @@ class HostSdoTransfer:
 
     def _send(self, frame: bytes) -> None:
         self._deadline = time.monotonic() + self.timeout
-        with answered_here() if self.answered_here else contextlib.nullcontext():
+        with self._context:
             self.bus.send(SDO_REQUEST_BASE + self.node, frame)
 
     def _finish(self, result: SdoResult) -> None:
         if self._finished:
             return
         self._finished = True
-        self.bus.unsubscribe(SDO_RESPONSE_BASE + self.node, self._on_frame)
-        self.bus.hold_from_canopen(SDO_RESPONSE_BASE + self.node, False)
+        self.bus.take_back_sdo_responses(SDO_RESPONSE_BASE + self.node, self._on_frame)
         self._done(result)
 
     def _abort(self, code: int, result: SdoResult) -> None:
-        self.bus.send(SDO_REQUEST_BASE + self.node, bytes([0x80]) + _INITIATE.pack(0, self.index,
-                      self.subindex)[1:] + struct.pack("<I", code))
+        self.bus.send(SDO_REQUEST_BASE + self.node,
+                      bytes([0x80]) + self._head + struct.pack("<I", code))
         self._finish(result)
 
     def _on_frame(self, msg: can.Message) -> None:
@@ -156,9 +158,9 @@ class HostSdoTransfer:
     def _other_object(self, frame: bytes) -> bool:
         """An initiate response names the object it answers; one for another object is
         no answer to this request (canopen's client refuses it too): abort, unknown."""
-        index, subindex = struct.unpack_from("<HB", frame, 1)
-        if (index, subindex) == (self.index, self.subindex):
+        if frame[1:4] == self._head:
             return False
+        index, subindex = struct.unpack_from("<HB", frame, 1)
         self._abort(ABORT_GENERAL, SdoResult(abort=ABORT_GENERAL, failed=(
             f"answer for {index:04X}h sub {subindex} instead of "
             f"{self.index:04X}h sub {self.subindex}")))
@@ -166,7 +168,7 @@ class HostSdoTransfer:
 
     def _upload(self, command: int, frame: bytes) -> None:
         if self._sent == 0 and command & 0xE0 == 0x40:  # initiate upload response
-            if self._other_object(frame):
+            if frame[1:4] != self._head and self._other_object(frame):
                 return
             self._sent = 1
             if command & 0x02:  # expedited

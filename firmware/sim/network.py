@@ -39,7 +39,7 @@ from dbm_tools.network import (
     NodeDescription,
 )
 from dpm.cia305 import UNCONFIGURED, LssAddress
-from firmware.inline import InlineQueue
+from firmware.inline import CopiedFrame, InlineQueue
 from firmware.sim.generic import generic_object_dictionary
 from firmware.sim.lss import LssBus
 from firmware.sim.node import SimulatedNode
@@ -85,6 +85,26 @@ class _RemoteFrames(can.Listener):
                 node.on_remote(msg.arbitration_id)
 
 
+class _NodesNetwork(canopen.Network):
+    """canopen's network of the nodes, whose frames copy cheaply (``CopiedFrame``).
+
+    On ``virtual`` each frame a node sends is deep-copied for every other station, the
+    card's controller among them; a node's SDO answer to the card's host request is
+    copied in the card's device loop (``_NodeNotifier``), where ``can.Message``'s own
+    copy was the dearest step of the node's part (issue 22). canopen lets a subclass
+    replace ``send_message`` for a backend of its own."""
+
+    def send_message(self, can_id: int, data: bytes, remote: bool = False) -> None:
+        bus = self.bus
+        if bus is None:
+            raise RuntimeError("the simulated nodes' network has no bus")
+        frame = CopiedFrame(arbitration_id=can_id, is_extended_id=can_id > 0x7FF,
+                            is_remote_frame=remote, data=data)
+        with self.send_lock:
+            bus.send(frame)
+        self.check()
+
+
 class _NodeNotifier(can.Notifier):
     """The nodes' receive thread (python-can's ``Notifier``, as canopen's ``connect`` makes
     it), whose frames may also be handled by their sender's thread (``InlineQueue``).
@@ -112,12 +132,24 @@ class _NodeNotifier(can.Notifier):
                 and isinstance(station, queue.Queue) and not bus.receive_own_messages):
             self._inline = InlineQueue.install(station, self, asked_only=True)
         super().__init__(bus, listeners, timeout)
+        self._receivers = tuple(listener.on_message_received for listener in listeners)
+        """Each listener's ``on_message_received``, called as python-can's ``Notifier`` calls
+        the listener, without its ``__call__`` and its look for a coroutine: three Python
+        calls fewer per frame, a host SDO request among them (issue 22). The nodes'
+        listeners are fixed: ``add_listener`` and ``remove_listener`` refuse."""
         self._ready = True
+
+    def add_listener(self, listener: can.notifier.MessageRecipient) -> None:
+        raise NotImplementedError("the simulated nodes' listeners are fixed at the start")
+
+    def remove_listener(self, listener: can.notifier.MessageRecipient) -> None:
+        raise NotImplementedError("the simulated nodes' listeners are fixed at the start")
 
     def _on_message_received(self, msg: can.Message) -> None:
         """This thread's handling (after ``recv`` took ``msg`` from the queue)."""
         try:
-            super()._on_message_received(msg)
+            for receive in self._receivers:
+                receive(msg)
         finally:
             if self._inline is not None:
                 self._inline.dispatched()
@@ -131,7 +163,8 @@ class _NodeNotifier(can.Notifier):
             if not lock.acquire(blocking=False):
                 return False
             try:
-                super()._on_message_received(msg)
+                for receive in self._receivers:
+                    receive(msg)
             except Exception:  # the sender's send must not fail for a node's fault
                 log.exception("simulated node failed on frame 0x%X", msg.arbitration_id)
             finally:
@@ -162,7 +195,7 @@ class SimulatedNetwork:
             else:
                 self.nodes[node.id] = SimulatedNode(
                     node, object_dictionary(node, network.bus), self.scheduler, self.lock)
-        self.canopen = canopen.Network(bus)
+        self.canopen = _NodesNetwork(bus)
         self._live = [node for node in self.nodes.values() if not node.description.sim.silent]
         self.lss = LssBus(self, self._live, unconfigured)
         self.running = False

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING
 
-from canopen.objectdictionary import ODArray
+from canopen.objectdictionary import ODArray, ODVariable
 from canopen.sdo.constants import NO_MORE_DATA, SDO_STRUCT
 from canopen.sdo.exceptions import SdoAbortedError
 from canopen.sdo.server import SdoServer
@@ -54,7 +54,8 @@ class SimSdoServer(SdoServer):
             if not self._sim.serves_sdo or len(data) != SDO_FRAME_LENGTH:
                 return
             super().on_request(can_id, data, timestamp)  # type: ignore[no-untyped-call]
-            self._sim.after_writes()
+            if self._sim.written:  # an upload stored nothing: no call for it
+                self._sim.after_writes()
 
     def init_upload(self, request: bytearray) -> None:
         self._check(request)
@@ -109,6 +110,9 @@ class SimSdoServer(SdoServer):
         code = self._sim.description.sim.sdo_abort.get((index, subindex))
         if code is not None:
             raise SdoAbortedError(code)
-        obj = self._sim.object_dictionary.get(index)
-        if isinstance(obj, ODArray) and subindex not in obj.subindices:
+        # ``indices``, not ``get``: the dictionary is a Mapping, whose ``get`` and the ABC's
+        # ``isinstance`` cost Python calls; an ODVariable (not an ABC) is ruled out first.
+        obj = self._sim.object_dictionary.indices.get(index)
+        if (obj is not None and not isinstance(obj, ODVariable) and isinstance(obj, ODArray)
+                and subindex not in obj.subindices):
             raise SdoAbortedError(ABORT_NO_SUBINDEX)
