@@ -395,16 +395,17 @@ def _new_firmware(bench: Bench, directory: Path, init: bool = False) -> None:
 
     The image keeps what the killed firmware wrote last, READY and Nd_state included,
     until the new one's start clears it: only an answer tells the new one from the old.
-    No stale lock or station may keep it from starting.
+    No stale lock or station may keep it from starting: ``start_card`` fails a start that
+    stops advancing, so a firmware held up by one fails here however loaded the machine
+    is (a bound on the whole start's time failed at load 30, where a healthy start took
+    12-17 s).
     """
-    started = time.monotonic()
     bench.card = start_card(directory, 0, "--interface", "shm", "--channel", bench.channel)
     if init:  # a host whose DevInitBoard found the card dead initialises it again, until
         # the new firmware is READY (the killed one's stale READY may still show at first)
         wait_until(lambda: d.DevInitBoard(0) == Drv.DRV_NO_ERROR, 10,
                    "DevInitBoard on the new firmware")
     wait_until(lambda: _answers(bench.board), 10, "the new firmware's first answer")
-    assert time.monotonic() - started < 10
 
 
 # --- a host killed ----------------------------------------------------------------------------
