@@ -10,6 +10,7 @@ that has one (``scaling``).
 from __future__ import annotations
 
 import argparse
+import sys
 from collections.abc import Callable
 from contextlib import AbstractContextManager, nullcontext
 from typing import Any
@@ -28,7 +29,7 @@ from bench import (
     soak,
     tap,
 )
-from bench.common import add_size_arguments, emit, help_text, progress
+from bench.common import BenchError, add_size_arguments, emit, help_text, progress
 from bench.load import DEFAULT_BUSY, busy_load, describe
 
 Runner = Callable[[int | None, int | None], dict[str, Any]]
@@ -75,7 +76,11 @@ def main(argv: list[str] | None = None) -> int:
         for name in names:
             progress(f"running {name}")
             runner = QUICK.get(name, BENCHMARKS[name]) if args.quick else BENCHMARKS[name]
-            result = runner(args.count, args.warmup)
+            try:
+                result = runner(args.count, args.warmup)
+            except BenchError as exc:
+                print(f"python -m bench: {name}: {exc}", file=sys.stderr)
+                return 1
             result["load"] = describe(busy) if args.load else None
             results.append(result)
     emit(results)

@@ -40,6 +40,20 @@ STOP_TIMEOUT = 5.0
 """Seconds a firmware may take to end after SIGTERM before it is killed."""
 
 
+class BenchError(RuntimeError):
+    """A run that cannot give its figures for a reason the user can act on (a machine too
+    loaded for a time-out the benchmark measures with): ``python -m bench`` and a
+    benchmark's own command line print it as one line and end with status 1, no traceback."""
+
+
+def load_text() -> str:
+    """The load average, for a message that blames the machine."""
+    try:
+        return "load average " + " ".join(f"{n:.1f}" for n in os.getloadavg())
+    except OSError:
+        return "load average unknown"
+
+
 def progress(text: str) -> None:
     """A progress line for the person watching: stderr, never stdout."""
     print(f"[bench] {text}", file=sys.stderr, flush=True)

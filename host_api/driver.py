@@ -67,7 +67,7 @@ from dpm.layout import (
     offset_of,
 )
 from dpm.message import Message, MessageError
-from host_api.liveness import firmware_liveness
+from host_api.liveness import firmware_serving
 from host_api.locks import Answer, ChannelLock, Transaction
 from host_api.registry import Counters as _Counters
 from host_api.registry import MappedBoard as _Board
@@ -199,9 +199,12 @@ def DevInitBoard(number: int) -> int:
             mm = open_image(path)
         except OSError:
             return Drv.DRV_DEV_DPM_ACCESS_ERROR
+        # [ours] READY left behind by a killed firmware: who serves is asked first, READY
+        # after (host_api.liveness.firmware_serving).
+        serving = firmware_serving(_driver.directory, number)
         rc = _check_card(mm)
-        if rc == Drv.DRV_NO_ERROR and not firmware_liveness(_driver.directory, number).alive:
-            rc = Drv.DRV_DEV_NOT_READY  # [ours] READY left behind by a killed firmware
+        if rc == Drv.DRV_NO_ERROR and not serving:
+            rc = Drv.DRV_DEV_NOT_READY
         if rc != Drv.DRV_NO_ERROR:
             mm.close()
             return rc

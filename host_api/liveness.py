@@ -104,3 +104,16 @@ def firmware_liveness(directory: Path, board: int) -> FirmwareLiveness:
         return FirmwareLiveness(True, holders[0] or recorded)
     # The table can miss a held lock (module docstring): the pid that wrote the file decides.
     return FirmwareLiveness(recorded is not None and _wrote_the_file(recorded, path), recorded)
+
+
+def firmware_serving(directory: Path, board: int) -> bool:
+    """Whether board ``board``'s firmware runs and has written its pid into its lock, so that
+    the image's READY, read after this answered True, is that firmware's.
+
+    A starting firmware takes its lock, then clears the READY a killed predecessor left,
+    then writes its pid (``dpm.image.ExclusiveLock``): between the lock and the pid it is
+    alive, and the image still says READY. A host that took that READY for the new
+    firmware's (DevInitBoard did: READY, then "alive?") went on with a card that was not up.
+    So the lock's holder must be the pid its file names, and READY is read after this."""
+    liveness = firmware_liveness(directory, board)
+    return liveness.alive and liveness.pid == recorded_pid(lock_path(directory, board))

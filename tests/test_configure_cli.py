@@ -11,9 +11,11 @@ from pathlib import Path
 
 from dpm.commands import COM_DOWNLOAD, COM_SHARED_MEMORY
 from dpm.errors import CanF
+from dpm.image import lock_path
 from dpm.message import Message
 from dpm.task2 import GlobalBits
 from host_api.board import Board
+from host_api.liveness import recorded_pid
 from host_api.status import read_image, snapshot
 from tests.conftest import ROOT, start_card, wait_until
 
@@ -205,11 +207,16 @@ def test_a_description_the_card_would_refuse_never_reaches_it(tmp_path: Path) ->
 
 
 def test_configure_waits_for_a_card_that_is_still_starting(tmp_path: Path) -> None:
+    """configure waits for a firmware that holds its lock but is not READY yet (here 1.5 s
+    of reset delay). The firmware creates its image before it takes the lock, so the wait
+    is for the lock to name its pid: on the image alone, configure ran in between under
+    load and rightly found no firmware (status 1, "is `cifemu firmware` running?")."""
     card = subprocess.Popen([sys.executable, "-m", "cifemu", "firmware", "--dpm-dir", str(tmp_path),
                              "--simulate", str(DEMO), "--reset-delay", "1.5",
                              "--log-level", "WARNING"])
     try:
-        wait_until(lambda: (tmp_path / "board0.dpm").exists(), 20, "the image")
+        wait_until(lambda: recorded_pid(lock_path(tmp_path, 0)) == card.pid, 20,
+                   "the firmware's pid in its lock")
         out = cifemu("configure", str(DEMO), "--dpm-dir", str(tmp_path))
         assert out.returncode == 0, out.stderr
         assert nd_state(tmp_path) == [1, 2, 3, 4]

@@ -10,6 +10,7 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -23,6 +24,7 @@ from host_api.download import CONFIGURATION_DOWNLOAD, DevDownload
 from host_api.liveness import firmware_liveness
 from host_api.ready import StartError, wait_ready
 from tests.conftest import ROOT, Card, start_card, wait_until
+from tests.libcif_host import PYTHON_DRIVER, CDriver
 
 DEMO = ROOT / "cifemu" / "examples" / "demo.toml"
 
@@ -134,6 +136,36 @@ def test_a_start_is_not_ready_while_the_predecessors_ready_is_still_there(
         assert d.DevInitBoard(0) == 0
     finally:
         while d.DevCloseDriver() == 0:
+            pass
+        stand_in.kill()
+        stand_in.wait()
+
+
+@pytest.mark.parametrize("driver", ["python", "c"])
+def test_init_board_is_not_ready_while_a_new_firmware_has_not_cleared_the_old_ready(
+        tmp_path: Path, driver: str) -> None:
+    """[ours] A new firmware holds its lock before it clears the READY a SIGKILLed one left
+    (and writes its pid after): DevInitBoard read READY, then asked whether the lock is held,
+    and took the dead firmware's READY for the new one's (0, and -11 on the next call).
+    It now asks first whether the holder is the pid the lock file names, READY after:
+    -11 until the new firmware has written its pid, 0 once it is READY."""
+    card = start_card(tmp_path)
+    kill(card)
+    assert card.map()[0x1FFE] & 0x80  # the image still says READY
+    impl: Any = PYTHON_DRIVER if driver == "python" else CDriver()
+    stand_in = subprocess.Popen([sys.executable, "-c", HELD_IN_THE_LOCK, str(tmp_path)],
+                                stdin=subprocess.PIPE, stdout=subprocess.PIPE, cwd=ROOT)
+    try:
+        assert stand_in.stdin is not None and stand_in.stdout is not None
+        assert stand_in.stdout.readline() == b"locked\n"  # holds the lock, sleeps on stdin
+        assert impl.DevOpenDriver(tmp_path) == 0
+        assert impl.DevInitBoard(0) == Drv.DRV_DEV_NOT_READY
+        stand_in.stdin.write(b"\n")
+        stand_in.stdin.flush()
+        assert stand_in.stdout.readline() == b"ready\n"
+        assert impl.DevInitBoard(0) == 0
+    finally:
+        while impl.DevCloseDriver() == 0:
             pass
         stand_in.kill()
         stand_in.wait()

@@ -259,18 +259,21 @@ static void image_path(char *out, size_t size, unsigned short number) {
  * later than the file's last write (a pid used again belongs to a later process). */
 #define START_SLACK_S 0.02 /* as host_api/liveness.py */
 
-/* 1 held, 0 not held, -1 no /proc/locks. */
-static int lock_table_holds(const char *device) {
+/* 1 held (`*holder`: its pid, 0 for one in another pid namespace), 0 not held, -1 no
+ * /proc/locks. */
+static int lock_table_holds(const char *device, long *holder) {
   char line[256];
   FILE *locks = fopen("/proc/locks", "r");
   int held = 0;
   if (locks == NULL) return -1;
   while (!held && fgets(line, sizeof line, locks) != NULL) {
-    char kind[16], where[64];
+    char kind[16], pid[24], where[64];
     if (strstr(line, "->") != NULL) continue; /* a waiter, not a holder */
-    if (sscanf(line, "%*s %15s %*s %*s %*s %63s", kind, where) == 2 &&
-        strcmp(kind, "FLOCK") == 0 && strcmp(where, device) == 0)
+    if (sscanf(line, "%*s %15s %*s %*s %23s %63s", kind, pid, where) == 3 &&
+        strcmp(kind, "FLOCK") == 0 && strcmp(where, device) == 0) {
       held = 1;
+      *holder = strtol(pid, NULL, 10);
+    }
   }
   fclose(locks);
   return held;
@@ -284,11 +287,9 @@ static double seconds(clockid_t clock) {
 
 /* Whether the pid written in the lock file runs (not a zombie) and started no later than
  * the file's last write (`st`); without /proc, whether it exists. */
-static int recorded_pid_wrote(const char *path, const struct stat *st) {
-  char text[32], stat_path[64], proc[1024];
-  const char *fields;
-  unsigned long long start = 0;
-  char state = '?';
+/* The pid written in the lock file, 0 when there is none (a clean stop empties it). */
+static long recorded_pid(const char *path) {
+  char text[32];
   ssize_t n;
   long pid;
   int fd = open(path, O_RDONLY | O_CLOEXEC);
@@ -298,6 +299,17 @@ static int recorded_pid_wrote(const char *path, const struct stat *st) {
   if (n <= 0) return 0;
   text[n] = '\0';
   pid = strtol(text, NULL, 10);
+  return pid > 0 ? pid : 0;
+}
+
+static int recorded_pid_wrote(const char *path, const struct stat *st) {
+  char stat_path[64], proc[1024];
+  const char *fields;
+  unsigned long long start = 0;
+  char state = '?';
+  ssize_t n;
+  long pid = recorded_pid(path);
+  int fd;
   if (pid <= 0) return 0;
   snprintf(stat_path, sizeof stat_path, "/proc/%ld/stat", pid);
   fd = open(stat_path, O_RDONLY | O_CLOEXEC);
@@ -320,22 +332,29 @@ static int recorded_pid_wrote(const char *path, const struct stat *st) {
              ((double)st->st_mtim.tv_sec + (double)st->st_mtim.tv_nsec / 1e9);
 }
 
-static int firmware_alive(const char *path) {
+/* 1 alive, 0 not; `serving` asks more of a holder: that its pid is the one its file names.
+ * A starting firmware takes the lock, clears the READY a killed predecessor left, and only
+ * then writes its pid (dpm.image.ExclusiveLock): READY read after a "serving" is its own
+ * (host_api.liveness.firmware_serving). */
+static int firmware_holds(const char *path, int serving) {
   char device[64];
   struct stat st;
+  long holder = 0;
   int alive = 0, fd, held;
   if (stat(path, &st) != 0) return 0;
   snprintf(device, sizeof device, "%02x:%02x:%lu", major(st.st_dev), minor(st.st_dev),
            (unsigned long)st.st_ino);
-  held = lock_table_holds(device);
+  held = lock_table_holds(device, &holder);
   if (held == 0) return recorded_pid_wrote(path, &st);
-  if (held > 0) return 1;
+  if (held > 0) return !serving || holder == 0 || holder == recorded_pid(path);
   fd = open(path, O_RDONLY | O_CLOEXEC);
   if (fd < 0) return 0;
   if (flock(fd, LOCK_SH | LOCK_NB) != 0) alive = errno == EWOULDBLOCK;
   close(fd);
   return alive;
 }
+
+static int firmware_alive(const char *path) { return firmware_holds(path, 0); }
 
 /* A wait's time-out code, or DRV_DEV_NOT_READY when the firmware died meanwhile. */
 static short timed_out(const cifemu_board *b, short code) {
@@ -551,7 +570,7 @@ CIF_API short DevInitBoard(unsigned short usDevNumber) {
   cifemu_board *b;
   struct stat st;
   short rc;
-  int fd;
+  int fd, serving;
   if (usDevNumber >= MAX_DEV_BOARDS) return DRV_USR_DEV_NUMBER_INVALID;
   pthread_mutex_lock(&driver_lock);
   if (open_count == 0) {
@@ -577,10 +596,11 @@ CIF_API short DevInitBoard(unsigned short usDevNumber) {
     rc = DRV_DEV_DPM_ACCESS_ERROR;
     goto out;
   }
-  rc = check_card(mm);
+  /* [ours] READY left behind by a killed firmware: who serves is asked first, READY after */
   lock_path(firmware_lock, sizeof firmware_lock, usDevNumber, "firmware");
-  if (rc == DRV_NO_ERROR && !firmware_alive(firmware_lock))
-    rc = DRV_DEV_NOT_READY; /* [ours] READY left behind by a killed firmware */
+  serving = firmware_holds(firmware_lock, 1);
+  rc = check_card(mm);
+  if (rc == DRV_NO_ERROR && !serving) rc = DRV_DEV_NOT_READY;
   if (rc != DRV_NO_ERROR) {
     munmap(mm, DPM_SIZE);
     goto out;
