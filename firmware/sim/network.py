@@ -131,12 +131,14 @@ class _NodeNotifier(can.Notifier):
         if (isinstance(bus, VirtualBus)
                 and isinstance(station, queue.Queue) and not bus.receive_own_messages):
             self._inline = InlineQueue.install(station, self, asked_only=True)
-        super().__init__(bus, listeners, timeout)
         self._receivers = tuple(listener.on_message_received for listener in listeners)
         """Each listener's ``on_message_received``, called as python-can's ``Notifier`` calls
         the listener, without its ``__call__`` and its look for a coroutine: three Python
         calls fewer per frame, a host SDO request among them (issue 22). The nodes'
-        listeners are fixed: ``add_listener`` and ``remove_listener`` refuse."""
+        listeners are fixed: ``add_listener`` and ``remove_listener`` refuse. Set before
+        ``Notifier.__init__``, which starts the thread that reads it: a frame already queued
+        (the card's NMT at a node's start) is handled at once."""
+        super().__init__(bus, listeners, timeout)
         self._ready = True
 
     def add_listener(self, listener: can.notifier.MessageRecipient) -> None:
