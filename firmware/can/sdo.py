@@ -168,7 +168,7 @@ class HostSdoTransfer:
 
     def _upload(self, command: int, frame: bytes) -> None:
         if self._sent == 0 and command & 0xE0 == 0x40:  # initiate upload response
-            if frame[1:4] != self._head and self._other_object(frame):
+            if self._other_object(frame):
                 return
             self._sent = 1
             if command & 0x02:  # expedited
