@@ -13,8 +13,10 @@ import weakref
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import pytest
+import pytest_timeout
 
 from bench.cpu import descendants, runqueue_wait_ns
 from host_api import driver
@@ -144,6 +146,9 @@ class LoadClock:
         when the guest has none given)."""
         self._start = start
         self._waited = self._sample()
+        self._seen = dict(self._waited)
+        """Each thread's run-queue wait at its last look, also of threads that have ended
+        since: a command's compilers and children, which each waited their share."""
         if stalls is None and GUEST_STALLS is not None:
             stalls = GUEST_STALLS.watch()
         self._stalls = stalls
@@ -155,9 +160,11 @@ class LoadClock:
     def elapsed(self) -> float:
         """Wall seconds since ``start``, less the time load took from the test's processes
         (and stalls of the guest) since the clock was made, but never less than a
-        ``STRETCH_LIMIT``-th of them."""
+        ``STRETCH_LIMIT``-th of them. A thread that ended keeps what it had waited when
+        last seen here."""
         wall = time.monotonic() - self._start
-        stolen = sum(ns - self._waited.get(tid, 0) for tid, ns in self._sample().items()) / 1e9
+        self._seen.update(self._sample())
+        stolen = sum(ns - self._waited.get(tid, 0) for tid, ns in self._seen.items()) / 1e9
         if self._stalls is not None:
             stolen += self._stalls()
         return max(wall - stolen, wall / STRETCH_LIMIT)
@@ -189,6 +196,52 @@ def wait_until(condition: Callable[[], object], timeout: float = 5.0, what: str 
                                if now - start > timeout + 0.5 else ""))
             deadline = now + min(timeout - elapsed, 0.05)  # the next look at the clock
         time.sleep(0.001)
+
+
+
+TEST_STRETCH_LIMIT = 5.0
+"""How far load may stretch a test's own time-out (pytest-timeout's 120 s,
+``pytest_timeout_set_timer``): 5 times, 10 minutes of wall time. A test's waits stretch up
+to ``STRETCH_LIMIT`` times each, but a hung test on a loaded machine must still end within
+a run."""
+
+
+@pytest.hookimpl(tryfirst=True)
+def pytest_timeout_set_timer(item: pytest.Item, settings: Any) -> bool | None:
+    """pytest-timeout's time-out of a whole test (120 s, pyproject.toml) on the load clock.
+
+    It is there to end a test that hangs. Counted in wall time it ended tests that were
+    getting on under load: ``test_dbm_cli``'s card commands, a 10 s wait of
+    ``test_node_handlers[shm]`` that the load clock had rightly stretched, and the mailbox
+    fuzz's thousand exchanges (runs of 2026-12-03). Here the alarm comes after the time-out
+    in wall time, as before; then the test fails only once its processes could have run for
+    the time-out (``LoadClock``) or ``TEST_STRETCH_LIMIT`` times it has passed on the wall
+    clock, and otherwise the alarm is set again for what is left. A test whose processes
+    hang blocked gets no run-queue wait: it ends at the time-out, as before. Only the
+    ``signal`` method (a test in the main thread, the default here) is taken over."""
+    if (settings.method != "signal"
+            or threading.current_thread() is not threading.main_thread()):
+        return None  # pytest-timeout's own timer
+    start = time.monotonic()
+    clock = LoadClock(start)
+
+    def handler(signum: int, frame: object) -> None:
+        __tracebackhide__ = True
+        left = min(settings.timeout - clock.elapsed(),
+                   settings.timeout * TEST_STRETCH_LIMIT - (time.monotonic() - start))
+        if left > 0:
+            signal.setitimer(signal.ITIMER_REAL, max(left, 0.1))
+            return
+        pytest_timeout.timeout_sigalrm(item, settings)
+
+    def cancel() -> None:
+        signal.setitimer(signal.ITIMER_REAL, 0)
+        signal.signal(signal.SIGALRM, signal.SIG_DFL)
+
+    item.cancel_timeout = cancel  # type: ignore[attr-defined]  # read by pytest-timeout
+    signal.signal(signal.SIGALRM, handler)
+    signal.setitimer(signal.ITIMER_REAL, settings.timeout)
+    return True
 
 
 @dataclass

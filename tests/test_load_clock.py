@@ -1,0 +1,109 @@
+"""The suite's time-outs on the load clock: a command's (``tests/commands.py``) and a whole
+test's (pytest-timeout's, ``pytest_timeout_set_timer`` in ``tests/conftest.py``).
+
+Load is made here, not hoped for: the process under test shares one CPU with a busy
+process of its own (both pinned to it), so it gets about half of that CPU and needs about
+twice its CPU time in wall time, on a quiet machine as on a loaded one. A time-out on the
+wall clock fails there; one on the load clock passes. A process that hangs blocked waits in
+no run queue: its time-out still ends it, in about its time-out.
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+import pytest
+
+from tests.commands import CommandTimeout, run
+from tests.conftest import ROOT
+
+CPU = min(os.sched_getaffinity(0))
+
+STARVED = textwrap.dedent(f"""
+    import os, subprocess, sys, time
+    os.sched_setaffinity(0, {{{CPU}}})
+    rival = subprocess.Popen([sys.executable, "-c",
+                              "import os\\nos.sched_setaffinity(0, {{{CPU}}})\\nwhile True: pass"])
+    try:
+        begun = time.process_time()
+        while time.process_time() - begun < WORK_S:
+            pass
+    finally:
+        rival.kill()
+        rival.wait()
+""")
+"""A command that spends ``WORK_S`` of CPU on a CPU it shares with a busy process."""
+
+WORK_S = 1.5
+TIMEOUT_S = 2.5
+
+
+def starved_command() -> list[str]:
+    return [sys.executable, "-c", f"WORK_S = {WORK_S}\n{STARVED}"]
+
+
+def test_a_command_that_gets_half_a_cpu_runs_past_its_wall_clock_time_out() -> None:
+    begun = time.monotonic()
+    done = run(starved_command(), TIMEOUT_S, capture_output=True, text=True)
+    wall = time.monotonic() - begun
+    assert done.returncode == 0, done.stderr
+    assert wall > TIMEOUT_S, f"{wall:.1f} s: not starved, the test shows nothing"
+
+
+def test_a_wall_clock_time_out_fails_the_same_command() -> None:
+    """What the suite did before: ``subprocess.run``'s time-out fails the starved command
+    the load clock lets finish (the pair shows the load is real)."""
+    with pytest.raises(subprocess.TimeoutExpired):
+        subprocess.run(starved_command(), capture_output=True, timeout=TIMEOUT_S)
+
+
+def test_a_command_that_hangs_is_ended_at_its_time_out() -> None:
+    begun = time.monotonic()
+    with pytest.raises(CommandTimeout) as failed:
+        run([sys.executable, "-c", "import time; print('begun', flush=True); time.sleep(60)"],
+            1.0, capture_output=True, text=True)
+    assert time.monotonic() - begun < 10
+    assert failed.value.output == "begun\n"  # what it said before it was killed
+    assert "wall time" in str(failed.value)
+
+
+TIMED_TESTS = textwrap.dedent(f"""
+    import subprocess, sys, time
+    import pytest
+
+    STARVED = {STARVED!r}
+
+    @pytest.mark.timeout({TIMEOUT_S})
+    def test_starved():
+        exec("WORK_S = {WORK_S}\\n" + STARVED)
+
+    @pytest.mark.timeout(1)
+    def test_hangs():
+        time.sleep(60)
+""")
+
+
+def test_a_test_that_gets_half_a_cpu_passes_and_one_that_hangs_fails(tmp_path: Path) -> None:
+    """pytest-timeout's time-out of a test on the load clock: the starved test (it runs
+    ``STARVED`` in the test process itself) passes past its wall-clock time-out; the hung
+    one fails at its time-out. On the old conftest both failed: "Timeout (>2.5s)"."""
+    (tmp_path / "test_timed.py").write_text(TIMED_TESTS)
+    begun = time.monotonic()
+    done = run([sys.executable, "-m", "pytest", "-p", "tests.conftest", "-p", "no:randomly",
+                "-p", "no:cacheprovider", "-q", "-rA", "--rootdir", str(tmp_path),
+                "--durations=0", str(tmp_path / "test_timed.py")], 120, cwd=ROOT,
+               capture_output=True, text=True)
+    assert time.monotonic() - begun < 60
+    lines = done.stdout.splitlines()
+    assert any(line.startswith("PASSED ") and line.endswith("::test_starved")
+               for line in lines), done.stdout
+    assert any(line.startswith("FAILED ") and line.endswith("::test_hangs")
+               for line in lines), done.stdout
+    assert "Failed: Timeout (>1.0s) from pytest-timeout" in done.stdout
+    starved = [line for line in lines if " call " in line and "::test_starved" in line]
+    assert starved and float(starved[0].split("s")[0]) > TIMEOUT_S, done.stdout
