@@ -16,6 +16,7 @@ from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from tests import commands
 from tests.conftest import Card, LoadClock, wait_until
 from tests.gateway_cards import start
 
@@ -116,7 +117,8 @@ def serving(directory: Path, *options: str) -> Iterator[Server]:
                 lines.put(line)
 
         threading.Thread(target=pump, daemon=True).start()
-        match = re.search(r"listening on 127\.0\.0\.1:(\d+)", lines.get(timeout=20))
+        wait_until(lambda: not lines.empty(), 20, "cifemu 309 serve's first line")
+        match = re.search(r"listening on 127\.0\.0\.1:(\d+)", lines.get())
         assert match is not None
         running = Server(proc, int(match.group(1)))
         wait_until(lambda: ask_once(running.port, READ_1000) == f"[1] {ANSWER_1000}", 15,
@@ -125,7 +127,7 @@ def serving(directory: Path, *options: str) -> Iterator[Server]:
         assert proc.poll() is None, "the server died"
     finally:
         proc.send_signal(signal.SIGTERM)
-        assert proc.wait(20) == 0
+        assert commands.wait(proc, 20) == 0
         card.stop()
 
 

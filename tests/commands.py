@@ -14,15 +14,23 @@ its time-out as before.
 
 from __future__ import annotations
 
+import select
 import subprocess
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import Any, Protocol, TypeVar
 
 from tests.conftest import TIME_SCALE, LoadClock
 
 T = TypeVar("T")
+
+
+class HasFileno(Protocol):
+    """What ``select`` waits on: a pipe's file, a socket."""
+
+    def fileno(self) -> int: ...
+
 
 LOOK_S = 0.25
 """How often the load clock is read while a command runs past its wall-clock time-out."""
@@ -95,3 +103,19 @@ def run(args: Sequence[str | Path], timeout: float, *, input: Any = None,
     if check:
         done.check_returncode()
     return done
+
+
+def readable(stream: int | HasFileno, timeout: float) -> bool:
+    """Whether ``stream`` (a command's pipe, a pseudo-terminal, a socket) has something to
+    read, or its end, within ``timeout`` on the load clock: ``select``'s wait for a command's
+    output."""
+    def attempt(seconds: float) -> bool:
+        ready, _, _ = select.select([stream], [], [], seconds)
+        if not ready:
+            raise subprocess.TimeoutExpired("select", seconds)
+        return True
+
+    try:
+        return on_load_clock(attempt, timeout * TIME_SCALE, LoadClock(time.monotonic()))
+    except CommandTimeout:
+        return False

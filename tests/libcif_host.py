@@ -21,6 +21,7 @@ import pytest
 from cifemu import libcif
 from dpm.message import Message
 from host_api.driver import ComState
+from tests import commands
 from tests.conftest import Card, start_card
 
 MSG_SIZE = 288
@@ -246,10 +247,11 @@ def run(program: Path, directory: Path, *args: str, timeout: float = 120) -> str
     env = {**os.environ, "CIF_DPM_DIR": str(directory),
            "ASAN_OPTIONS": "detect_leaks=1:abort_on_error=0",
            "UBSAN_OPTIONS": "print_stacktrace=1:halt_on_error=1"}
-    done = subprocess.run([str(program), *args], env=env, capture_output=True, text=True,
-                          timeout=timeout, check=False)
+    done = commands.run([str(program), *args], env=env, capture_output=True, text=True,
+                        timeout=timeout, check=False)
     assert done.returncode == 0, f"{program.name} failed:\n{done.stdout}\n{done.stderr}"
-    return done.stdout
+    stdout: str = done.stdout
+    return stdout
 
 
 C_NETWORK = """

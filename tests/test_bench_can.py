@@ -11,12 +11,13 @@ import json
 import subprocess
 import sys
 
+from tests import commands
 from tests.conftest import ROOT
 
 
 def bench_can(*args: str, timeout: float = 240) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([sys.executable, "-m", "bench.can", *args], cwd=ROOT,
-                          capture_output=True, text=True, timeout=timeout)
+    return commands.run([sys.executable, "-m", "bench.can", *args], cwd=ROOT,
+                        capture_output=True, text=True, timeout=timeout)
 
 
 def test_a_node_count_out_of_range_is_refused_in_plain_words() -> None:

@@ -22,6 +22,7 @@ import pytest
 from dbm_tools.bus_options import BusOptionError, parse_option, select_bus
 from dbm_tools.network import parse_network
 from firmware.shm.bus import channel_path
+from tests import commands
 from tests.conftest import TIME_SCALE
 
 
@@ -68,8 +69,8 @@ def test_a_config_file_that_cannot_be_used_is_named(tmp_path: Path, spec: str,
 
 
 def _cli(*argv: str, cwd: Path) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([sys.executable, "-m", "cifemu", *argv], capture_output=True,
-                          text=True, timeout=60 * TIME_SCALE, cwd=cwd, check=False)
+    return commands.run([sys.executable, "-m", "cifemu", *argv], capture_output=True,
+                        text=True, timeout=60 * TIME_SCALE, cwd=cwd, check=False)
 
 
 @pytest.mark.parametrize("command", [["firmware"], ["sim", "net.toml"], ["monitor"]])

@@ -31,6 +31,7 @@ from dpm.message import Message, Task
 from host_api.board import Board, CifError
 from host_api.download import CONFIGURATION_DOWNLOAD, DevDownload
 from host_api.driver import DevCloseDriver, DevExitBoard, DevInitBoard, DevOpenDriver
+from tests import commands
 from tests.cia309_clients import serving
 from tests.conftest import ROOT, Card, start_card
 from tests.libcif_host import (
@@ -52,8 +53,8 @@ AT_ONCE_S = 1.0
 
 
 def cifemu(*args: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([sys.executable, "-m", "cifemu", *args], capture_output=True,
-                          text=True, timeout=60, cwd=ROOT)
+    return commands.run([sys.executable, "-m", "cifemu", *args], capture_output=True,
+                        text=True, timeout=60, cwd=ROOT)
 
 
 def test_a_gateway_holding_the_mailbox_is_named_within_a_second(tmp_path: Path) -> None:
@@ -211,7 +212,7 @@ def test_libcifs_lock_table_reader_stays_in_bounds_under_the_sanitizers(tmp_path
     subprocess.run([CC, *STRICT, *SANITIZE, str(C_TESTS / "holder_fuzz.c"),
                     f"-I{libcif.SOURCE / 'src'}", str(libcif.BUILD / "asan" / "libcif.a"),
                     "-pthread", "-o", str(program)], check=True)
-    done = subprocess.run([str(program), str(tmp_path), "2000", "7"], capture_output=True,
-                          text=True, timeout=300, check=False)
+    done = commands.run([str(program), str(tmp_path), "2000", "7"], capture_output=True,
+                        text=True, timeout=300, check=False)
     assert done.returncode == 0, done.stdout + done.stderr
     assert done.stdout.startswith("ok ")

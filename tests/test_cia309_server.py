@@ -16,7 +16,6 @@ import os
 import pty
 import queue
 import re
-import select
 import signal
 import socket
 import subprocess
@@ -34,6 +33,7 @@ from firmware.can.sdo import DEFAULT_SDO_TIMEOUT
 from host_api.cia309.datatypes import Dialect
 from host_api.cia309.gateway import Gateway
 from host_api.cia309.server import BackgroundServer, ServerConfig
+from tests import commands
 from tests.conftest import wait_until
 from tests.gateway_cards import EDS, start, wait_operating
 
@@ -430,8 +430,7 @@ def read_until(fd: int, marker: bytes, timeout: float = 10) -> bytes:
     """Bytes from a pseudo-terminal up to ``marker``."""
     data = b""
     while marker not in data:
-        ready, _, _ = select.select([fd], [], [], timeout)
-        if not ready:
+        if not commands.readable(fd, timeout):
             raise TimeoutError(f"no {marker!r} in {data!r}")
         data += os.read(fd, 4096)
     return data
@@ -453,15 +452,16 @@ def test_cli_serve_exec_and_shell(servers: dict[str, BackgroundServer], director
                 lines.put(line)
 
         threading.Thread(target=pump, daemon=True).start()
-        match = re.search(r"listening on 127\.0\.0\.1:(\d+)", lines.get(timeout=20))
+        wait_until(lambda: not lines.empty(), 20, "cifemu 309 serve's first line")
+        match = re.search(r"listening on 127\.0\.0\.1:(\d+)", lines.get())
         assert match is not None
         port = match.group(1)
         version = VERSION.replace(" 1 3 ", " 2 3 ")  # board 1: serial 2
-        done = subprocess.run(cifemu("exec", "--port", port, "info version"),
-                              capture_output=True, text=True, timeout=30)
+        done = commands.run(cifemu("exec", "--port", port, "info version"),
+                            capture_output=True, text=True, timeout=30)
         assert (done.returncode, done.stdout) == (0, f"[1] {version}\n")
-        done = subprocess.run(cifemu("exec", "--port", port, "[7] 1 read 0x1000 0 u32"),
-                              capture_output=True, text=True, timeout=30)
+        done = commands.run(cifemu("exec", "--port", port, "[7] 1 read 0x1000 0 u32"),
+                            capture_output=True, text=True, timeout=30)
         assert done.returncode == 1  # the network has no configuration
         assert done.stdout.startswith("[7] ERROR:102 ")
         history = tmp_path / "history"
@@ -475,17 +475,17 @@ def test_cli_serve_exec_and_shell(servers: dict[str, BackgroundServer], director
             os.write(master, b"info version\r")
             assert f"[1] {version}".encode() in read_until(master, b"309> ")
             os.write(master, b"quit\r")
-            assert shell.wait(20) == 0
+            assert commands.wait(shell, 20) == 0
         finally:
             os.close(master)
         assert "info version" in history.read_text()
     finally:
         serve.send_signal(signal.SIGTERM)
-        assert serve.wait(20) == 0
+        assert commands.wait(serve, 20) == 0
     try:
-        done = subprocess.run(cifemu("exec", "--direct", "--board", "1", "--dpm-dir",
-                                     str(directory), "info version"),
-                              capture_output=True, text=True, timeout=30)
+        done = commands.run(cifemu("exec", "--direct", "--board", "1", "--dpm-dir",
+                                   str(directory), "info version"),
+                            capture_output=True, text=True, timeout=30)
         assert (done.returncode, done.stdout) == (0, f"[1] {version}\n")
     finally:
         card.stop()
@@ -499,9 +499,9 @@ def test_cli_net_n_is_the_309_network_and_network_n_still_works_with_a_warning(
     version = VERSION.replace(" 1 3 ", " 2 3 ")  # board 1: serial 2
     try:
         for option, warned in (("--net", False), ("--network", True)):
-            done = subprocess.run(cifemu("exec", "--direct", option, "2", "--dpm-dir",
-                                         str(directory), "info version"),
-                                  capture_output=True, text=True, timeout=30)
+            done = commands.run(cifemu("exec", "--direct", option, "2", "--dpm-dir",
+                                       str(directory), "info version"),
+                                capture_output=True, text=True, timeout=30)
             assert (done.returncode, done.stdout) == (0, f"[1] {version}\n"), option
             assert ("--network N is deprecated, use --net N" in done.stderr) == warned
     finally:
@@ -514,7 +514,7 @@ def test_cli_exec_answers_errors_and_json(servers: dict[str, BackgroundServer]) 
     port = str(servers["canopennode"].port)
 
     def run(*args: str) -> subprocess.CompletedProcess[str]:
-        return subprocess.run(cifemu("exec", *args), capture_output=True, text=True, timeout=30)
+        return commands.run(cifemu("exec", *args), capture_output=True, text=True, timeout=30)
 
     done = run("--port", port, "help")
     assert done.returncode == 0 and "Command strings start with" in done.stdout

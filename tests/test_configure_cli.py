@@ -17,14 +17,15 @@ from dpm.task2 import GlobalBits
 from host_api.board import Board
 from host_api.liveness import recorded_pid
 from host_api.status import read_image, snapshot
+from tests import commands
 from tests.conftest import ROOT, start_card, wait_until
 
 DEMO = ROOT / "cifemu" / "examples" / "demo.toml"
 
 
 def cifemu(*args: str, env: dict[str, str] | None = None) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([sys.executable, "-m", "cifemu", *args], capture_output=True,
-                          text=True, timeout=60, cwd=ROOT, env=env)
+    return commands.run([sys.executable, "-m", "cifemu", *args], capture_output=True,
+                        text=True, timeout=60, cwd=ROOT, env=env)
 
 
 def nd_state(directory: Path, board: int = 0) -> list[int]:
@@ -162,7 +163,7 @@ def test_demo_uses_the_default_directory_refuses_a_busy_board_and_cleans_up(
         assert status.returncode == 0, status.stderr
     finally:
         demo.send_signal(signal.SIGINT)
-        assert demo.wait(timeout=20) == 0
+        assert commands.wait(demo, 20) == 0
     assert not images.exists()
     assert list(temp.iterdir()) == []
 
@@ -222,16 +223,16 @@ def test_configure_waits_for_a_card_that_is_still_starting(tmp_path: Path) -> No
         assert nd_state(tmp_path) == [1, 2, 3, 4]
     finally:
         card.terminate()
-        card.wait(timeout=10)
+        commands.wait(card, 10)
 
 
 def test_firmware_configure_that_fails_stops_the_card_with_status_1(tmp_path: Path) -> None:
     bad = tmp_path / "bad.toml"
     bad.write_text('[[node]]\nid = 1\n[[node.pdo]]\ndirection = "input"\ncob_id = 0x181\n'
                    'length = 8\ntransmission = 250\n')
-    out = subprocess.run([sys.executable, "-m", "cifemu", "firmware", "--dpm-dir", str(tmp_path),
-                          "--simulate", str(DEMO), "--configure", str(bad), "--log-level",
-                          "WARNING"], capture_output=True, text=True, timeout=60, cwd=ROOT)
+    out = commands.run([sys.executable, "-m", "cifemu", "firmware", "--dpm-dir", str(tmp_path),
+                        "--simulate", str(DEMO), "--configure", str(bad), "--log-level",
+                        "WARNING"], capture_output=True, text=True, timeout=60, cwd=ROOT)
     assert out.returncode == 1
     assert "63 (data check: unknown PDO" in out.stderr and "the card stops" in out.stderr
     assert "Traceback" not in out.stderr

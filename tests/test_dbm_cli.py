@@ -15,6 +15,7 @@ from dbm_tools.container import data_area, read_dbm, save_dbm
 from dbm_tools.network import parse_network
 from dbm_tools.parameters import BusParameterSet
 from dbm_tools.tables import BUS_CAN, GLOBAL, GlobalSet
+from tests import commands
 from tests.conftest import ROOT, Card
 from tests.fixtures import REAL_DBM as FIXTURE
 from tests.fixtures import needs_real_dbm
@@ -36,8 +37,8 @@ def cli(*args: str | Path) -> subprocess.CompletedProcess[str]:
     """``python -m cifemu dbm ARGS``."""
     command = [sys.executable, "-m", "cifemu", "dbm", *map(str, args)]
     env = {**os.environ, "COLUMNS": "200"}  # rich wraps at 80 columns without a terminal
-    return subprocess.run(command, cwd=ROOT, capture_output=True, text=True, timeout=60,
-                          env=env)
+    return commands.run(command, cwd=ROOT, capture_output=True, text=True, timeout=60,
+                        env=env)
 
 
 def write_network(directory: Path) -> Path:
@@ -201,7 +202,7 @@ def test_json_errors_are_objects_and_a_closed_pipe_ends_quietly(tmp_path: Path,
     assert reader.stdout is not None and reader.stderr is not None
     reader.stdout.close()
     errors = reader.stderr.read()
-    assert reader.wait(60) == 1
+    assert commands.wait(reader, 60) == 1
     assert errors == "", errors
 
 

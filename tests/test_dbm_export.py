@@ -8,6 +8,7 @@ from pathlib import Path
 
 from dbm_tools.builder import build_dbm
 from dbm_tools.network import load_network
+from tests import commands
 from tests.conftest import ROOT
 
 DEMO = ROOT / "cifemu" / "examples" / "demo.toml"
@@ -69,8 +70,8 @@ heartbeat_ms = 300
 
 
 def cifemu(*args: str | Path) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([sys.executable, "-m", "cifemu", "dbm", *map(str, args)],
-                          capture_output=True, text=True, timeout=60, cwd=ROOT)
+    return commands.run([sys.executable, "-m", "cifemu", "dbm", *map(str, args)],
+                        capture_output=True, text=True, timeout=60, cwd=ROOT)
 
 
 def round_trip(network: Path, tmp_path: Path) -> tuple[subprocess.CompletedProcess[str], Path]:

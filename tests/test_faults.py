@@ -41,6 +41,7 @@ from host_api.board import Board, CifError
 from host_api.download import CONFIGURATION_DOWNLOAD, DevDownload
 from host_api.faults import FaultError
 from host_api.liveness import firmware_liveness
+from tests import commands
 from tests.conftest import ROOT, TIME_SCALE, Card, start_card, wait_until
 
 QUIET_S = 0.3
@@ -53,8 +54,8 @@ that a bus-off of two seconds costs the node nothing."""
 
 
 def cifemu(*args: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([sys.executable, "-m", "cifemu", *args], capture_output=True,
-                          text=True, timeout=60, cwd=ROOT)
+    return commands.run([sys.executable, "-m", "cifemu", *args], capture_output=True,
+                        text=True, timeout=60, cwd=ROOT)
 
 
 def request() -> Message:
@@ -315,7 +316,7 @@ def test_a_hanging_card_comes_back_by_a_cold_start(card: Card, opened: Board) ->
             opened.transact(request(), timeout=200)
         assert refused.value.code == Drv.DRV_DEV_NOT_READY
         assert card.proc.poll() is None and firmware_liveness(card.directory, 0).alive
-        new_host = subprocess.run(
+        new_host = commands.run(
             [sys.executable, "-c", "from host_api import driver as d; "
              f"d.DevOpenDriver({str(card.directory)!r}); print(d.DevInitBoard(0))"],
             cwd=ROOT, timeout=60, check=True, capture_output=True, text=True)

@@ -17,6 +17,7 @@ import pytest
 from dpm.message import Message
 from dpm.task2 import ComPlcParameter
 from host_api.board import Board, CifError
+from tests import commands
 from tests.conftest import HOST_FLAGS, READY, ROOT, Card, start_card, wait_until
 
 
@@ -58,7 +59,7 @@ def test_identification_areas(untouched_card: Card) -> None:
 
 
 def test_a_second_firmware_for_the_same_board_refuses(untouched_card: Card) -> None:
-    second = subprocess.run(
+    second = commands.run(
         [sys.executable, "-m", "cifemu", "firmware", "--board", "0", "--dpm-dir",
          str(untouched_card.directory)],
         capture_output=True, text=True, timeout=30,
@@ -79,7 +80,7 @@ def test_another_board_in_the_same_directory_runs(card: Card) -> None:
 def test_sigterm_shuts_down_with_ready_cleared(card: Card) -> None:
     image = card.map()
     card.proc.send_signal(signal.SIGTERM)
-    assert card.proc.wait(timeout=10) == 0
+    assert commands.wait(card.proc, 10) == 0
     assert image[0x1FFE] & 0x80 == 0
 
 
@@ -129,14 +130,14 @@ def test_bus_parameter_download_starts_the_network(card: Card) -> None:
 
 
 def test_status_command_shows_a_running_card(untouched_card: Card) -> None:
-    out = subprocess.run(
+    out = commands.run(
         [sys.executable, "-m", "cifemu", "status", "--dpm-dir", str(untouched_card.directory)],
         capture_output=True, text=True, timeout=30, cwd=ROOT,
     )
     assert out.returncode == 0
     assert "READY" in out.stdout and "CANopen Master" in out.stdout
     assert "Task2State" in out.stdout and "OFFLINE" in out.stdout
-    data = json.loads(subprocess.run(
+    data = json.loads(commands.run(
         [sys.executable, "-m", "cifemu", "status", "--json", "--dpm-dir",
          str(untouched_card.directory)],
         capture_output=True, text=True, timeout=30, check=True,
@@ -149,7 +150,7 @@ def test_status_command_shows_a_running_card(untouched_card: Card) -> None:
 def test_status_decodes_errors_with_the_seed_text(card: Card) -> None:
     with Board(0, card.directory) as b:
         b.warm_start(ComPlcParameter(bMode=9))
-    data = json.loads(subprocess.run(
+    data = json.loads(commands.run(
         [sys.executable, "-m", "cifemu", "status", "--json", "--dpm-dir", str(card.directory)],
         capture_output=True, text=True, timeout=30, check=True,
     ).stdout)
@@ -159,7 +160,7 @@ def test_status_decodes_errors_with_the_seed_text(card: Card) -> None:
 
 
 def test_status_without_a_card_says_what_to_do(tmp_path: Path) -> None:
-    out = subprocess.run(
+    out = commands.run(
         [sys.executable, "-m", "cifemu", "status", "--dpm-dir", str(tmp_path)],
         capture_output=True, text=True, timeout=30,
     )
@@ -167,12 +168,12 @@ def test_status_without_a_card_says_what_to_do(tmp_path: Path) -> None:
 
 
 def test_help_explains_the_commands() -> None:
-    out = subprocess.run([sys.executable, "-m", "cifemu", "--help"], capture_output=True,
-                         text=True, timeout=30, check=True).stdout
+    out = commands.run([sys.executable, "-m", "cifemu", "--help"], capture_output=True,
+                       text=True, timeout=30, check=True).stdout
     for command in ("firmware", "status", "demo"):
         assert command in out
-    fw = subprocess.run([sys.executable, "-m", "cifemu", "firmware", "--help"],
-                        capture_output=True, text=True, timeout=30, check=True).stdout
+    fw = commands.run([sys.executable, "-m", "cifemu", "firmware", "--help"],
+                      capture_output=True, text=True, timeout=30, check=True).stdout
     assert "--dpm-dir" in fw and "CIF_DPM_DIR" in fw
 
 
@@ -184,15 +185,15 @@ def test_demo_runs_the_bundled_network_until_ctrl_c(tmp_path: Path, extra: list[
     )
 
     def operating() -> list[int]:
-        out = subprocess.run([sys.executable, "-m", "cifemu", "status", "--json", "--dpm-dir",
-                              str(tmp_path)], capture_output=True, text=True, timeout=30)
+        out = commands.run([sys.executable, "-m", "cifemu", "status", "--json", "--dpm-dir",
+                            str(tmp_path)], capture_output=True, text=True, timeout=30)
         return json.loads(out.stdout)["task2state"]["nd_state"] if out.returncode == 0 else []
 
     try:
         wait_until(lambda: operating() == [1, 2, 3, 4], 30, "the demo's four nodes")
     finally:
         demo.send_signal(signal.SIGINT)
-        assert demo.wait(timeout=20) == 0, demo.stderr.read().decode() if demo.stderr else ""
+        assert commands.wait(demo, 20) == 0, demo.stderr.read().decode() if demo.stderr else ""
 
 
 # --- start-up: what a card that no option asked for does not load (docs/testing.md) ---------
@@ -209,8 +210,8 @@ def test_firmware_command_loads_no_composition_until_an_option_asks() -> None:
              "try:\n    main(['firmware', '--help'])\nexcept SystemExit:\n    pass\n"
              f"prefixes = {COMPOSITION!r}\n"
              "print(sorted(m for m in sys.modules if m.startswith(prefixes) or m == 'numpy'))\n")
-    out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True,
-                         timeout=60, cwd=ROOT)
+    out = commands.run([sys.executable, "-c", probe], capture_output=True, text=True,
+                       timeout=60, cwd=ROOT)
     assert out.returncode == 0, out.stderr
     assert out.stdout.splitlines()[-1] == "[]"
 

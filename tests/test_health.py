@@ -23,6 +23,7 @@ from host_api import driver as d
 from host_api.download import CONFIGURATION_DOWNLOAD, DevDownload
 from host_api.liveness import firmware_liveness
 from host_api.ready import StartError, wait_ready
+from tests import commands
 from tests.conftest import ROOT, Card, start_card, wait_until
 from tests.libcif_host import PYTHON_DRIVER, CDriver
 
@@ -30,8 +31,8 @@ DEMO = ROOT / "cifemu" / "examples" / "demo.toml"
 
 
 def status(directory: Path, *extra: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([sys.executable, "-m", "cifemu", "status", "--dpm-dir", str(directory),
-                           *extra], capture_output=True, text=True, timeout=60, cwd=ROOT)
+    return commands.run([sys.executable, "-m", "cifemu", "status", "--dpm-dir", str(directory),
+                         *extra], capture_output=True, text=True, timeout=60, cwd=ROOT)
 
 
 def kill(card: Card) -> None:
@@ -238,9 +239,9 @@ def test_the_database_loaded_from_flash_is_logged_and_shown(tmp_path: Path) -> N
 def test_top_once_says_a_killed_firmware_is_dead(tmp_path: Path) -> None:
     card = start_card(tmp_path)
     kill(card)
-    out = subprocess.run([sys.executable, "-m", "cifemu", "top", "--once", "--sample", "0.2",
-                          "--dpm-dir", str(tmp_path)], capture_output=True, text=True,
-                         timeout=60, cwd=ROOT)
+    out = commands.run([sys.executable, "-m", "cifemu", "top", "--once", "--sample", "0.2",
+                        "--dpm-dir", str(tmp_path)], capture_output=True, text=True,
+                       timeout=60, cwd=ROOT)
     assert out.returncode == 3
     assert f"firmware DEAD (last pid {card.proc.pid})" in out.stdout
     assert "no frames: no card's frame tap" in out.stdout

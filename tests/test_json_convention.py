@@ -10,6 +10,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from tests import commands
 from tests.conftest import ROOT, start_card
 
 DEMO = ROOT / "cifemu" / "examples" / "demo.toml"
@@ -18,8 +19,8 @@ HEX = re.compile(r"^([0-9a-f]{2})*$")
 
 
 def cifemu(*args: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([sys.executable, "-m", "cifemu", *args], capture_output=True,
-                          text=True, timeout=60, cwd=ROOT)
+    return commands.run([sys.executable, "-m", "cifemu", *args], capture_output=True,
+                        text=True, timeout=60, cwd=ROOT)
 
 
 def keys(value: Any, skip: frozenset[str] = frozenset()) -> set[str]:

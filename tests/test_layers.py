@@ -13,11 +13,11 @@ exception list: a new arrow the wrong way is a design change, made here on purpo
 from __future__ import annotations
 
 import ast
-import subprocess
 import sys
 from collections.abc import Iterator
 from pathlib import Path
 
+from tests import commands
 from tests.conftest import ROOT
 
 ALLOWED = {
@@ -81,6 +81,6 @@ def test_cifemu_help_imports_no_command_module() -> None:
         "print(sorted(c.module for c in COMMANDS if c.module in sys.modules))\n"
         "print(sorted(m for m in ('canopen', 'textual', 'rich', 'can', 'firmware', 'host_api',"
         " 'dbm_tools') if m in sys.modules))\n")
-    out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True,
-                         check=True, timeout=60).stdout
+    out = commands.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True,
+                       check=True, timeout=60).stdout
     assert out.splitlines() == ["[]", "[]"]

@@ -24,6 +24,7 @@ from cifemu.commands import legacy
 from dbm_tools.builder import build_dbm
 from dbm_tools.container import save_dbm
 from dbm_tools.network import parse_network
+from tests import commands
 from tests.conftest import Card
 from tests.libcif_host import C_NETWORK, CC, STRICT, build_libcif, needs_toolchain
 
@@ -135,8 +136,8 @@ def programs(tmp_path_factory: pytest.TempPathFactory,
 def run_preloaded(program: Path, preload: Path, directory: Path,
                   *args: str) -> subprocess.CompletedProcess[str]:
     env = {**os.environ, "CIF_DPM_DIR": str(directory), "LD_PRELOAD": str(preload)}
-    return subprocess.run([str(program), *args], env=env, capture_output=True, text=True,
-                          timeout=180, check=False)
+    return commands.run([str(program), *args], env=env, capture_output=True, text=True,
+                        timeout=180, check=False)
 
 
 def parse(output: str) -> dict[str, object]:
@@ -348,8 +349,8 @@ def test_lifecycle_under_the_sanitizers(sanitized_preload: str, lifecycle: dict[
     env = {**os.environ, "CIF_DPM_DIR": str(simulated_card.directory),
            "LD_PRELOAD": sanitized_preload, "ASAN_OPTIONS": "detect_leaks=0"}
     extra = [] if args[0] == "exit_while_waiting" else [str(scratch)]
-    done = subprocess.run([str(lifecycle["x86-64"]), *args, *extra], env=env,
-                          capture_output=True, text=True, timeout=180, check=False)
+    done = commands.run([str(lifecycle["x86-64"]), *args, *extra], env=env,
+                        capture_output=True, text=True, timeout=180, check=False)
     assert done.returncode == 0, done.stdout + done.stderr
     expected = {"exit_while_waiting": EXIT_WHILE_WAITING, "close_all": CLOSE_ALL,
                 "close_ledger": CLOSE_LEDGER}[args[0]]
@@ -362,8 +363,8 @@ def test_lifecycle_under_the_sanitizers(sanitized_preload: str, lifecycle: dict[
 
 
 def cifemu_legacy(*args: str, stdin: str = "") -> subprocess.CompletedProcess[str]:
-    return subprocess.run([sys.executable, "-m", "cifemu", "legacy", *args], input=stdin,
-                          capture_output=True, text=True, timeout=180, check=False)
+    return commands.run([sys.executable, "-m", "cifemu", "legacy", *args], input=stdin,
+                        capture_output=True, text=True, timeout=180, check=False)
 
 
 @pytest.mark.parametrize("abi", ["x86-64", "i386"])

@@ -20,6 +20,7 @@ from cifemu import libcif
 from dbm_tools.builder import build_dbm
 from dbm_tools.container import read_dbm, write_dbm
 from dbm_tools.network import load_network, parse_network
+from tests import commands
 from tests.libcif_host import build_libcif, load_libcif
 
 DBM_OK, DBM_NO_DAT, DBM_NO_SET, DBM_DAT_DIR_FULL, DBM_NOT_ENOUGH_FREESPACE, DBM_SET_DEL = range(6)
@@ -177,8 +178,8 @@ def test_mutated_files_never_crash_under_the_sanitizers(tmp_path: Path) -> None:
     for index, (name, data) in enumerate(files().items()):
         seed = tmp_path / f"{index}.dbm"
         seed.write_bytes(data)
-        done = subprocess.run([str(program), str(seed), "3000", str(index + 1)],
-                              capture_output=True, text=True, timeout=300, check=False)
+        done = commands.run([str(program), str(seed), "3000", str(index + 1)],
+                            capture_output=True, text=True, timeout=300, check=False)
         assert done.returncode == 0, f"{name}:\n{done.stdout}\n{done.stderr}"
         readable = int(done.stdout.split(",")[1].split()[0])
         assert readable > 100, f"{name}: too few mutants got past dbm_init to test the tables"

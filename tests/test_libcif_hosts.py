@@ -29,6 +29,7 @@ from dpm.message import Ext, Message
 from host_api import driver as d
 from host_api.board import Board
 from host_api.locks import LEDGER_BYTES, Answer, Transaction
+from tests import commands
 from tests.conftest import Card
 from tests.libcif_host import C_TESTS, CC, STRICT, CDriver, build_libcif, compile_program, run
 
@@ -130,8 +131,8 @@ def test_threads_enter_a_channel_one_at_a_time_and_wait_no_longer_than_asked(
         assert CC is not None
         subprocess.run([CC, *STRICT, str(source), f"-I{libcif.SOURCE / 'src'}", "-pthread",
                         "-o", str(out)], check=True)
-    done = subprocess.run([str(out), str(tmp_path / "board0.get.lock")], capture_output=True,
-                          text=True, timeout=60, check=False)
+    done = commands.run([str(out), str(tmp_path / "board0.get.lock")], capture_output=True,
+                        text=True, timeout=60, check=False)
     assert done.returncode == 0, done.stderr
     assert "one thread inside at a time" in done.stdout
 
@@ -327,8 +328,8 @@ sys.exit(1 if wrong or os.waitstatus_to_exitcode(status) else 0)
 
 def test_a_python_host_forked_after_DevInitBoard_and_its_child_each_read_their_own_answers(
         card: Card) -> None:
-    done = subprocess.run([sys.executable, "-c", FORKED_PYTHON_HOST, str(card.directory)],
-                          capture_output=True, text=True, timeout=120, cwd=ROOT, check=False)
+    done = commands.run([sys.executable, "-c", FORKED_PYTHON_HOST, str(card.directory)],
+                        capture_output=True, text=True, timeout=120, cwd=ROOT, check=False)
     assert done.returncode == 0, done.stderr
 
 
@@ -344,9 +345,9 @@ def test_a_lock_file_that_cannot_be_opened_fails_DevInitBoard_and_closes_nothing
     stdin = tmp_path / "stdin"
     stdin.write_text("the program's own input\n")
     with stdin.open() as source:
-        done = subprocess.run([str(program), "badlock"], stdin=source, capture_output=True,
-                              text=True, timeout=30, check=False,
-                              env={**os.environ, "CIF_DPM_DIR": str(card.directory)})
+        done = commands.run([str(program), "badlock"], stdin=source, capture_output=True,
+                            text=True, timeout=30, check=False,
+                            env={**os.environ, "CIF_DPM_DIR": str(card.directory)})
     assert done.returncode == 0, done.stderr
     assert d.DevOpenDriver(card.directory) == 0
     try:

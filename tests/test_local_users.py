@@ -40,6 +40,7 @@ from host_api.board import Board
 from host_api.download import CONFIGURATION_DOWNLOAD
 from host_api.network_view import remember_network
 from host_api.ready import START_CPU_S, START_STALL_S, StartError, wait_ready
+from tests import commands
 from tests.conftest import IMAGE_SIZE, ROOT, TIME_SCALE, start_card, wait_until
 
 pytestmark = pytest.mark.skipif(os.geteuid() != 0, reason="becoming another user needs root")
@@ -291,9 +292,9 @@ def test_squatted_socket_names_do_not_stop_the_card(shm: Path) -> None:
             with Board(0, cards) as board:
                 wait_until(lambda: board.diagnostics().can_state_name == "OPERATE", 20,
                            "the network in OPERATE")
-            done = subprocess.run([sys.executable, "-m", "cifemu", "monitor", "--dpm-dir",
-                                   str(cards), "--json", "--count", "3", "--duration", "20"],
-                                  capture_output=True, text=True, timeout=60, cwd=ROOT)
+            done = commands.run([sys.executable, "-m", "cifemu", "monitor", "--dpm-dir",
+                                 str(cards), "--json", "--count", "3", "--duration", "20"],
+                                capture_output=True, text=True, timeout=60, cwd=ROOT)
         finally:
             card.stop()
     finally:
@@ -336,9 +337,9 @@ def test_another_user_cannot_take_the_taps_subscriptions(shm: Path) -> None:
     try:
         pid, ours = hold(subscribe_all)
         try:
-            done = subprocess.run([sys.executable, "-m", "cifemu", "monitor", "--dpm-dir",
-                                   str(cards), "--json", "--count", "5", "--duration", "15"],
-                                  capture_output=True, text=True, timeout=60, cwd=ROOT)
+            done = commands.run([sys.executable, "-m", "cifemu", "monitor", "--dpm-dir",
+                                 str(cards), "--json", "--count", "5", "--duration", "15"],
+                                capture_output=True, text=True, timeout=60, cwd=ROOT)
         finally:
             stolen = release(pid, ours)
     finally:
@@ -363,9 +364,9 @@ def test_a_socket_name_a_host_group_member_took_is_one_line(
     try:
         with Board(0, directory) as board:  # the card serves without its tap
             assert board.diagnostics().can_state_name == "OFFLINE"
-        done = subprocess.run([sys.executable, "-m", "cifemu", "monitor", "--dpm-dir",
-                               str(directory), "--duration", "5"],
-                              capture_output=True, text=True, timeout=60, cwd=ROOT)
+        done = commands.run([sys.executable, "-m", "cifemu", "monitor", "--dpm-dir",
+                             str(directory), "--duration", "5"],
+                            capture_output=True, text=True, timeout=60, cwd=ROOT)
     finally:
         card.stop()
     err = card.proc.stderr.read().decode() if card.proc.stderr else ""
@@ -394,8 +395,8 @@ def test_libcifs_doorbell_rings_the_socket_in_the_cards_directory(
     try:
         (cards / "board0.dpm").write_bytes(bytes(IMAGE_SIZE))
         files.bind(device, Path(device_address(cards / "board0.dpm")))
-        done = subprocess.run([str(program), str(cards / "board0.dpm")], capture_output=True,
-                              text=True, timeout=30)
+        done = commands.run([str(program), str(cards / "board0.dpm")], capture_output=True,
+                            text=True, timeout=30)
         assert done.returncode == 0, done.stderr
         assert done.stdout == f"{device_address(cards / 'board0.dpm')}\n"
         device.settimeout(10 * TIME_SCALE)
@@ -406,6 +407,6 @@ def test_libcifs_doorbell_rings_the_socket_in_the_cards_directory(
     deep = tmp_path / ("d" * 100)
     deep.mkdir()
     (deep / "board0.dpm").write_bytes(bytes(IMAGE_SIZE))
-    done = subprocess.run([str(program), str(deep / "board0.dpm")], capture_output=True,
-                          text=True, timeout=30)
+    done = commands.run([str(program), str(deep / "board0.dpm")], capture_output=True,
+                        text=True, timeout=30)
     assert (done.returncode, done.stderr) == (2, "bell_ring: File name too long\n")

@@ -15,7 +15,6 @@ from __future__ import annotations
 import fcntl
 import re
 import shutil
-import subprocess
 from collections.abc import Callable
 from pathlib import Path
 
@@ -23,6 +22,7 @@ import pytest
 
 from bench.libcif import build_program
 from bench.mailbox import _round_trip
+from tests import commands
 from tests.conftest import Card
 from tests.libcif_host import needs_toolchain
 
@@ -54,7 +54,7 @@ def test_a_python_round_trip_takes_one_flock_round(board: int,
 @pytest.mark.skipif(shutil.which("strace") is None, reason="strace counts the C host's calls")
 def test_a_c_round_trip_takes_one_flock_round(card: Card, tmp_path: Path) -> None:
     program = build_program(tmp_path)
-    done = subprocess.run(
+    done = commands.run(
         ["strace", "-f", "-c", "-e", "trace=flock", "-o", str(tmp_path / "calls"),
          str(program), "mailbox", str(ROUND_TRIPS), "0"],
         env={"CIF_DPM_DIR": str(card.directory), "PATH": "/usr/bin:/bin"},

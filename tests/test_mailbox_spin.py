@@ -15,13 +15,13 @@ Python host with other threads never watches).
 from __future__ import annotations
 
 import shutil
-import subprocess
 import sys
 from pathlib import Path
 
 import pytest
 
 from dpm.errors import Drv
+from tests import commands
 from tests.conftest import Card
 from tests.libcif_host import C_TESTS, CC, build_libcif, compile_program, run
 
@@ -62,8 +62,8 @@ def assert_backs_off(counts: list[int]) -> None:
 
 
 def test_a_python_host_whose_answers_outlast_its_watch_sleeps_at_once(card: Card) -> None:
-    done = subprocess.run([sys.executable, "-c", PYTHON_HOST, str(card.directory), str(CALLS)],
-                          cwd=ROOT, capture_output=True, text=True, timeout=60, check=False)
+    done = commands.run([sys.executable, "-c", PYTHON_HOST, str(card.directory), str(CALLS)],
+                        cwd=ROOT, capture_output=True, text=True, timeout=60, check=False)
     assert done.returncode == 0, done.stderr
     assert_backs_off([int(line) for line in done.stdout.split()])
 

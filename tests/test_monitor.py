@@ -11,6 +11,7 @@ import threading
 from pathlib import Path
 from typing import IO
 
+from tests import commands
 from tests.conftest import ROOT, start_card, wait_until
 
 DEMO = ROOT / "cifemu" / "examples" / "demo.toml"
@@ -47,9 +48,9 @@ def test_the_tap_shows_a_configuration_decoded_on_the_virtual_bus(tmp_path: Path
                                                                     "")), daemon=True)
         reader.start()
         wait_until(lambda: (tmp_path / "trace.log").exists(), 20, "the monitor's log file")
-        configured = subprocess.run([sys.executable, "-m", "cifemu", "configure", str(DEMO),
-                                     "--dpm-dir", str(tmp_path)], capture_output=True,
-                                    timeout=60, cwd=ROOT)
+        configured = commands.run([sys.executable, "-m", "cifemu", "configure", str(DEMO),
+                                   "--dpm-dir", str(tmp_path)], capture_output=True,
+                                  timeout=60, cwd=ROOT)
         assert configured.returncode == 0
         wanted = ('"NMT start: node 4"', '"guarding request node 3"', '"SYNC"',
                   "SDO upload response node 3 1000h/00h")
@@ -91,9 +92,9 @@ def test_filters_by_node_and_type_and_shows_the_emcy_meaning(tmp_path: Path) -> 
                                                                    "")), daemon=True)
         reader.start()
         wait_until(lambda: lines, 30, "node 4's first heartbeat in the monitor")
-        configured = subprocess.run([sys.executable, "-m", "cifemu", "configure", str(DEMO),
-                                     "--dpm-dir", str(tmp_path)], capture_output=True,
-                                    timeout=60, cwd=ROOT)
+        configured = commands.run([sys.executable, "-m", "cifemu", "configure", str(DEMO),
+                                   "--dpm-dir", str(tmp_path)], capture_output=True,
+                                  timeout=60, cwd=ROOT)
         assert configured.returncode == 0, configured.stderr
         wait_until(lambda: sum('"emcy"' in line for line in list(lines)) >= 2, 30,
                    "two of node 4's EMCYs in the monitor")
@@ -133,12 +134,12 @@ def test_monitor_errors_are_one_line(tmp_path: Path) -> None:
     for args in (["--dpm-dir", str(tmp_path)],
                  ["--interface", "socketcan", "--channel", "nope"],
                  ["--network", str(tmp_path / "missing.toml")]):
-        done = subprocess.run([sys.executable, "-m", "cifemu", "monitor", *args],
-                              capture_output=True, text=True, timeout=60, cwd=ROOT)
+        done = commands.run([sys.executable, "-m", "cifemu", "monitor", *args],
+                            capture_output=True, text=True, timeout=60, cwd=ROOT)
         assert done.returncode == 1, args
         assert done.stderr.startswith("cifemu monitor: ") and done.stderr.count("\n") == 1
-    as_json = subprocess.run([sys.executable, "-m", "cifemu", "monitor", "--json", "--dpm-dir",
-                              str(tmp_path)], capture_output=True, text=True, timeout=60, cwd=ROOT)
+    as_json = commands.run([sys.executable, "-m", "cifemu", "monitor", "--json", "--dpm-dir",
+                            str(tmp_path)], capture_output=True, text=True, timeout=60, cwd=ROOT)
     assert as_json.returncode == 1 and "no firmware" in json.loads(as_json.stdout)["error"][
         "message"]
 

@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import json
 import os
-import select
 import shlex
 import shutil
 import signal
@@ -21,6 +20,7 @@ from dbm_tools.network import load_network
 from dpm.layout import TASK2_STATE, TASK_STATE_SIZE
 from dpm.task2 import ComDiagnostics
 from host_api.network_view import remember_network
+from tests import commands
 from tests.conftest import ROOT, start_card, wait_until
 from tests.readme_blocks import NETWORK as README_NETWORK
 from tests.readme_blocks import readme_blocks
@@ -32,8 +32,8 @@ CC = shutil.which("cc") or shutil.which("gcc")
 
 def cifemu(*args: str, cwd: Path | None = None,
            env: dict[str, str] | None = None) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([sys.executable, "-m", "cifemu", *args], cwd=cwd, env=env,
-                          capture_output=True, text=True, timeout=180, check=False)
+    return commands.run([sys.executable, "-m", "cifemu", *args], cwd=cwd, env=env,
+                        capture_output=True, text=True, timeout=180, check=False)
 
 
 # --- cifemu legacy -- ./prog ----------------------------------------------------------------
@@ -82,9 +82,9 @@ def fake_tools(tmp_path: Path) -> tuple[Path, Path]:
 def make_build_legacy(tmp_path: Path, bin_dir: Path,
                       *extra: str) -> subprocess.CompletedProcess[str]:
     env = dict(os.environ, PATH=f"{bin_dir}{os.pathsep}{os.environ['PATH']}")
-    return subprocess.run(["make", "--no-print-directory", "-C", str(ROOT), "build-legacy",
-                           f"CC={bin_dir / 'cc'}", f"BUILD={tmp_path / 'build'}", *extra],
-                          env=env, capture_output=True, text=True, timeout=300, check=False)
+    return commands.run(["make", "--no-print-directory", "-C", str(ROOT), "build-legacy",
+                         f"CC={bin_dir / 'cc'}", f"BUILD={tmp_path / 'build'}", *extra],
+                        env=env, capture_output=True, text=True, timeout=300, check=False)
 
 
 @pytest.mark.skipif(CC is None or shutil.which("make") is None, reason="no C compiler or make")
@@ -144,13 +144,13 @@ def test_every_command_the_demo_prints_works_in_a_second_terminal(tmp_path: Path
         limits = {"top": " --once --sample 0.5", "status": "", "monitor": " --duration 0.5"}
         for hint in hints:
             sub = hint.split(" --")[0].rsplit(" ", 1)[1]
-            pasted = subprocess.run(["bash", "-c", hint + limits[sub]], cwd=second, env=env,
-                                    capture_output=True, text=True, timeout=120, check=False)
+            pasted = commands.run(["bash", "-c", hint + limits[sub]], cwd=second, env=env,
+                                  capture_output=True, text=True, timeout=120, check=False)
             assert pasted.returncode == 0, (hint, pasted.stderr)
             assert "command not found" not in pasted.stderr
     finally:
         demo.send_signal(signal.SIGINT)
-        assert demo.wait(timeout=20) == 0
+        assert commands.wait(demo, 20) == 0
 
 
 # --- Err_Event 30 in the words of the node's error control ----------------------------------
@@ -275,7 +275,7 @@ def test_sim_on_the_virtual_bus_says_nothing_outside_reaches_it(tmp_path: Path) 
         assert sim.stdout.readline().startswith("simulating")
     finally:
         sim.terminate()
-        _, err = sim.communicate(timeout=20)
+        _, err = commands.finish(sim, 20)
     assert "virtual bus lives in this process only" in err
     assert "--interface shm --channel lonely" in err
 
@@ -313,11 +313,11 @@ def test_the_readmes_card_line_and_app_c_exchange_process_data(tmp_path: Path) -
         wait_until(operating, 30, "the README card's nodes in data exchange")
         env = dict(os.environ, CIF_DPM_DIR=str(images),
                    PATH=f"{Path(sys.executable).parent}{os.pathsep}{os.environ['PATH']}")
-        done = subprocess.run(["bash", "-e", "-c", app.code], cwd=tmp_path, env=env,
-                              capture_output=True, text=True, timeout=120, check=False)
+        done = commands.run(["bash", "-e", "-c", app.code], cwd=tmp_path, env=env,
+                            capture_output=True, text=True, timeout=120, check=False)
     finally:
         card.terminate()
-        card.wait(timeout=20)
+        commands.wait(card, 20)
     assert done.returncode == 0, done.stdout + done.stderr
     assert done.stdout.startswith("DevExchangeIO: 0,"), done.stdout
 
@@ -336,11 +336,10 @@ def test_monitor_says_it_waits_for_a_sync_that_does_not_come(tmp_path: Path) -> 
                                    stderr=subprocess.PIPE, text=True)
         try:
             assert monitor.stderr is not None
-            said, _, _ = select.select([monitor.stderr], [], [], 30)
-            first = monitor.stderr.readline() if said else ""
+            first = monitor.stderr.readline() if commands.readable(monitor.stderr, 30) else ""
         finally:
             monitor.send_signal(signal.SIGINT)
-            out, rest = monitor.communicate(timeout=60)
+            out, rest = commands.finish(monitor, 60)
     finally:
         card.stop()
     err = first + rest

@@ -11,6 +11,7 @@ from pathlib import Path
 
 from dbm_tools.container import TOOL_DATE
 from host_api.status import read_image, snapshot
+from tests import commands
 from tests.conftest import ROOT, start_card, wait_until
 
 DEMO = ROOT / "cifemu" / "examples" / "demo.toml"
@@ -18,8 +19,8 @@ DEMO = ROOT / "cifemu" / "examples" / "demo.toml"
 
 def cifemu(*args: str) -> subprocess.CompletedProcess[str]:
     env = {k: v for k, v in os.environ.items() if k != "COLUMNS"}  # as a plain pipe has it
-    return subprocess.run([sys.executable, "-m", "cifemu", *args], capture_output=True,
-                          text=True, timeout=90, cwd=ROOT, env=env)
+    return commands.run([sys.executable, "-m", "cifemu", *args], capture_output=True,
+                        text=True, timeout=90, cwd=ROOT, env=env)
 
 
 def nd_state(directory: Path) -> list[int]:

@@ -13,7 +13,6 @@ from __future__ import annotations
 import os
 import re
 import shutil
-import subprocess
 import sys
 import tomllib
 from pathlib import Path
@@ -22,6 +21,7 @@ import pytest
 
 from cifemu.pytest_plugin import CardError, CifCard, network_toml
 from host_api.board import Board
+from tests import commands
 from tests.conftest import wait_until
 
 pytest_plugins = ["pytester"]
@@ -142,9 +142,9 @@ def test_a_card_can_be_left_for_the_program_to_configure(cif_card: CifCard) -> N
     diag = cif_card.diagnostics()
     assert diag.configured() == [] and diag.can_state_name == "OFFLINE"
     assert cif_card.network is not None and cif_card.network.path is not None
-    done = subprocess.run([sys.executable, "-m", "cifemu", "configure",
-                           str(cif_card.network.path), "--board", "0", "--wait", "0"],
-                          capture_output=True, text=True, timeout=120, check=False)
+    done = commands.run([sys.executable, "-m", "cifemu", "configure",
+                         str(cif_card.network.path), "--board", "0", "--wait", "0"],
+                        capture_output=True, text=True, timeout=120, check=False)
     assert done.returncode == 0, done.stderr
     assert cif_card.wait_until_operating().operating() == [4]
     assert "online_configure" not in cif_card.log.read_text()  # the card's own host never ran

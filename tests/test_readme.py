@@ -15,7 +15,6 @@ import argparse
 import json
 import os
 import re
-import subprocess
 import sys
 from collections.abc import Iterator
 from pathlib import Path
@@ -29,6 +28,7 @@ from dpm.layout import TASK2_STATE, TASK_STATE_SIZE
 from dpm.task2 import ComDiagnostics
 from host_api.board import Board
 from host_api.online import configure_online
+from tests import commands
 from tests.conftest import ROOT, Card, start_card, wait_until
 from tests.readme_blocks import BLOCK_TIMEOUT, BLOCKS, NETWORK, README, RUNNABLE, Block
 
@@ -83,8 +83,8 @@ def test_readme_block_runs_as_written(block: Block, configured_card: Card, tmp_p
                PATH=f"{Path(sys.executable).parent}{os.pathsep}{os.environ['PATH']}")
     command = ([sys.executable, "-c", block.code] if block.language == "python"
                else ["bash", "-e", "-u", "-o", "pipefail", "-c", block.code])
-    result = subprocess.run(command, cwd=work, env=env, capture_output=True, text=True,
-                            timeout=BLOCK_TIMEOUT)
+    result = commands.run(command, cwd=work, env=env, capture_output=True, text=True,
+                          timeout=BLOCK_TIMEOUT)
     assert result.returncode == 0, (
         f"{block.page} line {block.line} ({block.language}) failed with exit {result.returncode}\n"
         f"--- stdout\n{result.stdout}--- stderr\n{result.stderr}")
@@ -149,8 +149,8 @@ benchmarks' shared libraries instead of one per module."""
 
 @pytest.fixture(scope="module")
 def module_helps() -> dict[str, dict[str, Any]]:
-    result = subprocess.run([sys.executable, "-c", MODULE_HELPS, *HELP_MODULES], cwd=ROOT,
-                            capture_output=True, text=True, timeout=120)
+    result = commands.run([sys.executable, "-c", MODULE_HELPS, *HELP_MODULES], cwd=ROOT,
+                          capture_output=True, text=True, timeout=120)
     assert result.returncode == 0, result.stderr
     helps: dict[str, dict[str, Any]] = json.loads(result.stdout)
     return helps

@@ -25,6 +25,7 @@ from dpm.commands import COM_SHARED_MEMORY
 from dpm.message import Task
 from dpm.tap import TapSubscriber, decode_frame
 from dpm.transcript import transcript
+from tests import commands
 from tests.conftest import TIME_SCALE, Card, start_card
 
 HOST = """
@@ -145,9 +146,9 @@ def test_an_attached_recording_holds_the_hosts_session_and_replays(tmp_path: Pat
     assert list(can.LogReader(str(session / s.CAN_LOG))) == []  # no bus traffic: no frames
     fresh = start_card(tmp_path / "fresh")
     try:
-        done = subprocess.run([sys.executable, "-m", "cifemu", "replay", str(session),
-                               "--dpm-dir", str(fresh.directory)],
-                              capture_output=True, text=True, timeout=WAIT_S, check=False)
+        done = commands.run([sys.executable, "-m", "cifemu", "replay", str(session),
+                             "--dpm-dir", str(fresh.directory)],
+                            capture_output=True, text=True, timeout=WAIT_S, check=False)
     finally:
         fresh.stop()
     assert done.returncode == 0, done.stdout + done.stderr
@@ -318,10 +319,10 @@ def test_a_failing_tests_report_has_its_cards_transcript(tmp_path: Path) -> None
     project.mkdir()
     (project / "test_user.py").write_text(USER_TESTS)
     env = {**os.environ, "PYTEST_DISABLE_PLUGIN_AUTOLOAD": "1"}  # -p cifemu loads it
-    done = subprocess.run([sys.executable, "-m", "pytest", "-p", "cifemu", "-p",
-                           "no:cacheprovider", "--basetemp", str(tmp_path / "base"),
-                           "--strict-markers", "-q"], cwd=project, env=env,
-                          capture_output=True, text=True, timeout=600, check=False)
+    done = commands.run([sys.executable, "-m", "pytest", "-p", "cifemu", "-p",
+                         "no:cacheprovider", "--basetemp", str(tmp_path / "base"),
+                         "--strict-markers", "-q"], cwd=project, env=env,
+                        capture_output=True, text=True, timeout=600, check=False)
     out = done.stdout
     assert done.returncode == 1, out + done.stderr
     assert "1 failed, 2 passed" in out, out[out.find("_ test_passes_and_keeps"):][:3000]

@@ -23,6 +23,7 @@ from dbm_tools.network import parse_network
 from dpm import flags as fl
 from dpm import session as s
 from dpm.commands import Com
+from tests import commands
 from tests.conftest import start_card
 from tests.libcif_host import C_NETWORK, C_TESTS, build_libcif, compile_program
 
@@ -64,8 +65,8 @@ def recorded(tmp_path_factory: pytest.TempPathFactory) -> Recording:
 
 
 def replay(*args: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([sys.executable, "-m", "cifemu", "replay", *args],
-                          capture_output=True, text=True, timeout=180, check=False)
+    return commands.run([sys.executable, "-m", "cifemu", "replay", *args],
+                        capture_output=True, text=True, timeout=180, check=False)
 
 
 def records(session: Path) -> list[s.Record]:
@@ -170,9 +171,9 @@ def test_a_malformed_session_is_refused_with_its_line(recorded: Recording,
 
 
 def test_a_recording_never_overwrites_a_session(recorded: Recording, tmp_path: Path) -> None:
-    done = subprocess.run([sys.executable, "-m", "cifemu", "firmware", "--dpm-dir",
-                           str(tmp_path / "card"), "--record", str(recorded.session)],
-                          capture_output=True, text=True, timeout=60, check=False)
+    done = commands.run([sys.executable, "-m", "cifemu", "firmware", "--dpm-dir",
+                         str(tmp_path / "card"), "--record", str(recorded.session)],
+                        capture_output=True, text=True, timeout=60, check=False)
     assert done.returncode == 1
     assert "already holds a session" in done.stderr
     assert not (tmp_path / "card" / "board0.dpm").exists()

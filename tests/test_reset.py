@@ -10,12 +10,13 @@ from pathlib import Path
 
 from cifemu.cli import COMMANDS, build_parser
 from dpm import errors
+from tests import commands
 from tests.conftest import ROOT, start_card
 
 
 def cifemu(*args: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([sys.executable, "-m", "cifemu", *args], capture_output=True,
-                          text=True, timeout=60, cwd=ROOT)
+    return commands.run([sys.executable, "-m", "cifemu", *args], capture_output=True,
+                        text=True, timeout=60, cwd=ROOT)
 
 
 def test_reset_starts_the_stored_database_and_configure_says_how_to_replace_it(
@@ -101,6 +102,6 @@ def test_a_stop_from_a_signal_handler_never_deadlocks_a_sleeping_card(tmp_path: 
     sleep inside a ``threading.Event``'s own wait, holding its lock, deadlocked the card: the
     firmware ignored SIGTERM for good (seen once under load). Here a timer signal stops the
     card 2,000 times a second while it sleeps, in a process of its own, as the firmware's."""
-    out = subprocess.run([sys.executable, "-c", STOP_STORM, str(tmp_path)], cwd=ROOT,
-                         capture_output=True, text=True, timeout=120)
+    out = commands.run([sys.executable, "-c", STOP_STORM, str(tmp_path)], cwd=ROOT,
+                       capture_output=True, text=True, timeout=120)
     assert out.returncode == 0 and out.stdout == "done\n", out.stderr

@@ -8,14 +8,15 @@ import sys
 from pathlib import Path
 
 from host_api.status import read_image, snapshot
+from tests import commands
 from tests.conftest import ROOT, start_card, wait_until
 
 DEMO = ROOT / "cifemu" / "examples" / "demo.toml"
 
 
 def cifemu(*args: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([sys.executable, "-m", "cifemu", *args], capture_output=True,
-                          text=True, timeout=60, cwd=ROOT)
+    return commands.run([sys.executable, "-m", "cifemu", *args], capture_output=True,
+                        text=True, timeout=60, cwd=ROOT)
 
 
 def nd_state(directory: Path) -> list[int]:
@@ -71,7 +72,7 @@ def test_help_of_send_reset_and_status_loads_neither_numpy_nor_the_driver() -> N
              "    try:\n        main([command, '--help'])\n    except SystemExit:\n        pass\n"
              "heavy = {'numpy', 'host_api.driver', 'host_api.board', 'importlib.metadata', "
              "'rich'}\nprint(sorted(heavy & set(sys.modules)))\n")
-    out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True,
-                         timeout=60, cwd=ROOT)
+    out = commands.run([sys.executable, "-c", probe], capture_output=True, text=True,
+                       timeout=60, cwd=ROOT)
     assert out.returncode == 0, out.stderr
     assert out.stdout.splitlines()[-1] == "[]"

@@ -41,6 +41,7 @@ from dbm_tools.network import (
 from dpm.cia305 import LssAddress
 from firmware.sim import SimulatedNetwork
 from firmware.sim.generic import GENERIC_REVISION
+from tests import commands
 
 if TYPE_CHECKING:
     from tests.buses import CanChannel
@@ -897,7 +898,7 @@ def test_sim_command_runs_until_sigterm(tmp_path: Path) -> None:
 def test_sim_command_reports_a_bad_description(tmp_path: Path) -> None:
     description = tmp_path / "net.toml"
     description.write_text("[[node]]\nid = 300\n")
-    done = subprocess.run(
+    done = commands.run(
         [sys.executable, "-m", "cifemu", "sim", str(description), "--interface", "virtual",
          "--channel", "cli-test"], capture_output=True, text=True, cwd=ROOT, timeout=30)
     assert done.returncode == 1

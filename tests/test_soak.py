@@ -11,11 +11,11 @@ from __future__ import annotations
 
 import json
 import os
-import subprocess
 import sys
 
 import pytest
 
+from tests import commands
 from tests.conftest import ROOT
 
 MINUTES = int(os.environ.get("CIFEMU_SOAK_MINUTES", "0"))
@@ -24,8 +24,8 @@ MINUTES = int(os.environ.get("CIFEMU_SOAK_MINUTES", "0"))
 @pytest.mark.skipif(MINUTES < 1, reason="a soak of minutes: set CIFEMU_SOAK_MINUTES=1 (CI form)")
 @pytest.mark.timeout(MINUTES * 60 + 300)
 def test_soak_holds_the_invariants() -> None:
-    run = subprocess.run([sys.executable, "-m", "bench", "soak", "--minutes", str(MINUTES)],
-                         cwd=ROOT, capture_output=True, text=True, timeout=MINUTES * 60 + 240)
+    run = commands.run([sys.executable, "-m", "bench", "soak", "--minutes", str(MINUTES)],
+                       cwd=ROOT, capture_output=True, text=True, timeout=MINUTES * 60 + 240)
     assert run.returncode == 0, run.stderr[-2000:]
     result = json.loads(run.stdout)
     assert result["pdo"]["frames_exchanged"] > 0

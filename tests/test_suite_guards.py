@@ -5,13 +5,13 @@ that does not compile fails the tests that need it instead of skipping them.
 from __future__ import annotations
 
 import shutil
-import subprocess
 import sys
 from pathlib import Path
 
 import pytest
 
 from cifemu import libcif
+from tests import commands
 from tests.conftest import ROOT
 from tests.libcif_host import build_libcif, toolchain_missing
 from tests.selection import marks_of_module
@@ -29,8 +29,8 @@ print("a firmware started")
 
 def test_a_fast_test_that_starts_a_firmware_fails_and_says_what_to_do(tmp_path: Path) -> None:
     """In its own process: the guard's audit hook, once added, stays for the process."""
-    done = subprocess.run([sys.executable, "-c", START_A_CARD_UNDER_THE_GUARD, str(tmp_path)],
-                          capture_output=True, text=True, cwd=ROOT, timeout=60)
+    done = commands.run([sys.executable, "-c", START_A_CARD_UNDER_THE_GUARD, str(tmp_path)],
+                        capture_output=True, text=True, cwd=ROOT, timeout=60)
     assert done.returncode != 0 and "a firmware started" not in done.stdout
     assert "subprocess.Popen here, so add this module to PROCESS_MODULES" in done.stderr
     assert not (tmp_path / "board0.dpm").exists()

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import asyncio
 import os
-import subprocess
 import sys
 import time
 from collections.abc import Callable
@@ -20,6 +19,7 @@ from host_api.status import read_image, snapshot
 from host_api.top.app import TopApp
 from host_api.top.feed import CardFeed
 from host_api.top.render import pdo_cells
+from tests import commands
 from tests.conftest import ROOT, start_card, wait_until
 
 DEMO = ROOT / "cifemu" / "examples" / "demo.toml"
@@ -29,9 +29,9 @@ def test_once_prints_nodes_with_names_states_and_the_mapped_process_image(
         tmp_path: Path) -> None:
     card = start_card(tmp_path, 0, "--simulate", str(DEMO), "--configure")
     try:
-        out = subprocess.run([sys.executable, "-m", "cifemu", "top", "--once", "--dpm-dir",
-                              str(tmp_path), "--sample", "2.5"], capture_output=True, text=True,
-                             timeout=60, cwd=ROOT, env={**os.environ, "COLUMNS": "200"})
+        out = commands.run([sys.executable, "-m", "cifemu", "top", "--once", "--dpm-dir",
+                            str(tmp_path), "--sample", "2.5"], capture_output=True, text=True,
+                           timeout=60, cwd=ROOT, env={**os.environ, "COLUMNS": "200"})
     finally:
         card.stop()
     assert out.returncode == 0, out.stderr
@@ -44,8 +44,8 @@ def test_once_prints_nodes_with_names_states_and_the_mapped_process_image(
 
 
 def test_once_without_a_card_is_one_line(tmp_path: Path) -> None:
-    out = subprocess.run([sys.executable, "-m", "cifemu", "top", "--once", "--dpm-dir",
-                          str(tmp_path)], capture_output=True, text=True, timeout=60, cwd=ROOT)
+    out = commands.run([sys.executable, "-m", "cifemu", "top", "--once", "--dpm-dir",
+                        str(tmp_path)], capture_output=True, text=True, timeout=60, cwd=ROOT)
     assert out.returncode == 1 and out.stderr.startswith("cifemu top: no image")
     assert out.stderr.count("\n") == 1
 
@@ -162,12 +162,12 @@ def test_a_view_started_after_an_emcy_still_shows_it_and_a_trace_does_not(
         emcys = emcy_counter(tap, 4)
         wait_until(lambda: emcys() == 3, 20, "node 4's EMCY burst (3 EMCYs) on the tap")
         assert 4 in snapshot_of(tmp_path)["task2state"]["nd_diag"]
-        out = subprocess.run([sys.executable, "-m", "cifemu", "top", "--once", "--dpm-dir",
-                              str(tmp_path), "--sample", "0.5"], capture_output=True, text=True,
-                             timeout=60, cwd=ROOT, env={**os.environ, "COLUMNS": "220"})
-        trace = subprocess.run([sys.executable, "-m", "cifemu", "monitor", "--dpm-dir",
-                                str(tmp_path), "--type", "emcy", "--duration", "1.5"],
-                               capture_output=True, text=True, timeout=60, cwd=ROOT)
+        out = commands.run([sys.executable, "-m", "cifemu", "top", "--once", "--dpm-dir",
+                            str(tmp_path), "--sample", "0.5"], capture_output=True, text=True,
+                           timeout=60, cwd=ROOT, env={**os.environ, "COLUMNS": "220"})
+        trace = commands.run([sys.executable, "-m", "cifemu", "monitor", "--dpm-dir",
+                              str(tmp_path), "--type", "emcy", "--duration", "1.5"],
+                             capture_output=True, text=True, timeout=60, cwd=ROOT)
     finally:
         tap.close()
         card.stop()

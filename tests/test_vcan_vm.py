@@ -19,6 +19,7 @@ from pathlib import Path
 
 import pytest
 
+from tests import commands
 from tests.buses import socketcan_missing
 
 # The first test's set-up may install qemu and download the kernel: more than the
@@ -56,8 +57,8 @@ sys.exit(3)
 
 def vcan_vm(*args: str, cwd: Path = ROOT, env: dict[str, str] | None = None,
             timeout: float = 240) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([str(VCAN_VM), *args], cwd=cwd, env=env, capture_output=True,
-                          text=True, timeout=timeout)
+    return commands.run([str(VCAN_VM), *args], cwd=cwd, env=env, capture_output=True,
+                        text=True, timeout=timeout)
 
 
 @pytest.fixture(scope="module")
@@ -144,7 +145,7 @@ def test_auto_falls_back_to_qemu_when_user_mode_linux_cannot_start(
 
 
 def test_help_names_every_backend_in_plain_text() -> None:
-    result = subprocess.run([str(VCAN_VM), "--help"], capture_output=True, text=True, timeout=60)
+    result = commands.run([str(VCAN_VM), "--help"], capture_output=True, text=True, timeout=60)
     assert result.returncode == 0, result.stderr
     assert "`" not in result.stdout, result.stdout  # read in a terminal: no markup
     for backend in ("native", "uml", "qemu"):
