@@ -19,7 +19,6 @@ from __future__ import annotations
 import contextlib
 import itertools
 import os
-import select
 import signal
 import stat
 import struct
@@ -47,6 +46,7 @@ from firmware.shm.bus import (
     frames_written,
 )
 from firmware.shm.tasks import ShmCyclicSendTask
+from tests import commands
 from tests.conftest import wait_until
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -123,23 +123,21 @@ def spawn(script: str, *args: str) -> subprocess.Popen[str]:
 
 
 def wait_for_line(proc: subprocess.Popen[str], expected: str, timeout: float = 10.0) -> None:
-    """Wait, with a deadline, until the child prints ``expected`` (it has opened its station)."""
+    """Wait until the child prints ``expected`` (it has opened its station), ``timeout`` for
+    each line on the load clock (``commands.readable``): 10 s of wall time failed at load 20,
+    the child's start waiting in the run queue."""
     assert proc.stdout is not None
-    deadline = time.monotonic() + timeout
     while True:
-        remaining = deadline - time.monotonic()
-        if remaining <= 0:
+        if not commands.readable(proc.stdout, timeout):
             proc.kill()
             pytest.fail(f"child did not print {expected!r} within {timeout} s")
-        ready = select.select((proc.stdout,), (), (), remaining)[0]
-        if ready:
-            line = proc.stdout.readline()
-            if not line:
-                proc.wait(timeout=5)
-                stderr = proc.stderr.read() if proc.stderr else ""
-                pytest.fail(f"child exited before printing {expected!r}: {stderr}")
-            if line.strip() == expected:
-                return
+        line = proc.stdout.readline()
+        if not line:
+            proc.wait(timeout=5)
+            stderr = proc.stderr.read() if proc.stderr else ""
+            pytest.fail(f"child exited before printing {expected!r}: {stderr}")
+        if line.strip() == expected:
+            return
 
 
 def stop(proc: subprocess.Popen[str]) -> None:
