@@ -36,7 +36,7 @@ STARVED = textwrap.dedent(f"""
     os.sched_setaffinity(0, {{{CPU}}})
     rivals = [subprocess.Popen([sys.executable, "-c", "import os\\n"
                                 "os.sched_setaffinity(0, {{{CPU}}})\\nwhile True: pass"])
-              for _ in range({RIVALS})]
+              for _ in range(RIVALS)]
     try:
         begun = time.process_time()
         while time.process_time() - begun < WORK_S:
@@ -46,14 +46,15 @@ STARVED = textwrap.dedent(f"""
             rival.kill()
             rival.wait()
 """)
-"""A command that spends ``WORK_S`` of CPU on a CPU it shares with ``RIVALS`` busy ones."""
+"""A program that spends ``WORK_S`` of CPU on a CPU it shares with ``RIVALS`` busy ones
+(both set before it)."""
 
 WORK_S = 1.0
 TIMEOUT_S = 2.0
 
 
 def starved_command() -> list[str]:
-    return [sys.executable, "-c", f"WORK_S = {WORK_S}\n{STARVED}"]
+    return [sys.executable, "-c", f"WORK_S = {WORK_S}\nRIVALS = {RIVALS}\n{STARVED}"]
 
 
 def test_a_starved_command_runs_past_its_wall_clock_time_out() -> None:
@@ -81,10 +82,13 @@ def test_a_command_that_hangs_is_ended_at_its_time_out() -> None:
     assert "wall time" in str(failed.value)
 
 
-TEST_WORK_S = 0.4
+TEST_WORK_S = 0.2
 TEST_TIMEOUT_S = 1.0
-"""A test's time-out and the CPU it spends starved: short, as a test's time-out may stretch
-only ``TEST_STRETCH_LIMIT`` times in wall time."""
+TEST_RIVALS = 7
+"""A test's time-out, the CPU it spends starved and its rivals: with seven, the starved
+test needs only a fifth of its time-out in CPU to run past it on a quiet machine, as a
+test's time-out stretches only ``TEST_STRETCH_LIMIT`` times in wall time (with three and
+0.4 s of CPU it ran into that bound at load 22: 10 s)."""
 
 TIMED_TESTS = textwrap.dedent(f"""
     import subprocess, sys, time
@@ -94,7 +98,7 @@ TIMED_TESTS = textwrap.dedent(f"""
 
     @pytest.mark.timeout({TEST_TIMEOUT_S})
     def test_starved():
-        exec("WORK_S = {TEST_WORK_S}\\n" + STARVED)
+        exec("WORK_S = {TEST_WORK_S}\\nRIVALS = {TEST_RIVALS}\\n" + STARVED)
 
     @pytest.mark.timeout(1)
     def test_hangs():
