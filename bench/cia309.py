@@ -44,10 +44,10 @@ from bench.common import (
 )
 from bench.cpu import thread_cpu_ns, thread_wakeups
 from dbm_tools.network import parse_network
+from dpm.start_progress import stat_cpu_ns
 from host_api.cia309.gateway import Gateway
 from host_api.cia309.model import Cia309Error
 from host_api.cia309.server import BackgroundServer, ServerConfig
-from host_api.ready import stat_cpu_ns
 
 NAME = "cia309"
 DEFAULT_COUNT = 2_000

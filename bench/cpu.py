@@ -19,7 +19,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from host_api.ready import stat_cpu_ns
+from dpm.start_progress import stat_cpu_ns
 
 
 def _schedstat_ns(path: Path) -> int | None:

@@ -16,11 +16,12 @@ from __future__ import annotations
 
 import json
 import struct
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
 from dpm.errors import DpmError
-from dpm.layout import MSG_HEADER_SIZE
+from dpm.layout import IO_AREA_SIZE, MSG_HEADER_SIZE, TASK_STATE_SIZE
 from dpm.ledger import decode_line, ledger_text
 from dpm.message import HEADER, Message, MessageError
 
@@ -70,6 +71,31 @@ SPOOL_EXCHANGE = struct.Struct("<BdBBB")
 """... 1 when SndPd and RcvPd (2 x ``IO_AREA_SIZE``) follow, else 0 (both unchanged since
 the last exchange); then Task2State."""
 SPOOL_CODES = {PUT: 0, ANSWER: 1, HOST_FLAGS: 2, DEV_FLAGS: 3, EXCHANGE: 4}
+
+
+@dataclass(frozen=True, slots=True)
+class SpoolLayout:
+    """How one event kind lies in the spool: its head, and the lengths of the byte strings
+    that follow it, from the head's fields after the flags. One table for the decoder
+    (firmware/session_writer.py), so that every kind is read by the same code."""
+
+    kind: str
+    head: struct.Struct
+    tails: Callable[..., tuple[int, ...]]
+
+
+SPOOL_LAYOUTS = {SPOOL_CODES[layout.kind]: layout for layout in (
+    SpoolLayout(PUT, SPOOL_PUT, lambda length, lines: (length, lines)),
+    SpoolLayout(ANSWER, SPOOL_ANSWER, lambda length: (length, TASK_STATE_SIZE)),
+    SpoolLayout(HOST_FLAGS, SPOOL_HOST_FLAGS, lambda: ()),
+    SpoolLayout(DEV_FLAGS, SPOOL_DEV_FLAGS,
+                lambda started: (PARAMETER_SIZE if started else 0,)),
+    SpoolLayout(EXCHANGE, SPOOL_EXCHANGE,
+                lambda changed: (2 * IO_AREA_SIZE if changed else 0, TASK_STATE_SIZE)),
+)}
+"""Event code -> its ``SpoolLayout``: a PUT is followed by the message and the ledger's lines,
+an ANSWER by the message and Task2State, a DEV_FLAGS by Task2Parameter when a start follows,
+an EXCHANGE by SndPd and RcvPd when they changed, then Task2State."""
 
 
 class SessionError(DpmError, ValueError):

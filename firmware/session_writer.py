@@ -40,7 +40,7 @@ import sys
 from typing import Any, BinaryIO, TextIO
 
 from dpm import session as s
-from dpm.layout import IO_AREA_SIZE, RCV_PD, SND_PD, TASK_STATE_SIZE
+from dpm.layout import IO_AREA_SIZE, RCV_PD, SND_PD
 from dpm.message import HEADER, Ext
 
 _IO_END = RCV_PD + IO_AREA_SIZE
@@ -66,40 +66,38 @@ class Events:
     def lines(self, item: tuple[Any, ...]) -> list[str]:
         """The ``session.jsonl`` lines (without their newlines) of one event tuple: none
         for a message of the firmware's own host, two for an exchange."""
-        kind, t = item[0], item[1]
+        kind, t, before, after, *tails = item
         wall = t + self._wall
         if kind == s.PUT:
-            raw: bytes = item[2]
+            raw, ledger = tails
             rx, tx, _, nr, _, _, b, _ = HEADER.unpack_from(raw)
-            pid = s.request_pid(item[3], nr, b, rx, tx) if item[3] else None
+            pid = s.request_pid(ledger, nr, b, rx, tx) if ledger else None
             if pid is not None:
                 self._pending[(nr, b, rx, tx)] = pid
-            taken = s.encode_flags(s.HOST_FLAGS, t, wall, item[4], item[5])  # DEVACK
+            taken = s.encode_flags(s.HOST_FLAGS, t, wall, before, after)  # DEVACK
             if pid == self._firmware:
                 return [taken]
             return [taken, s.encode_message(kind, t, wall, pid, raw)]
         if kind == s.ANSWER:
-            raw = item[2]
+            raw, state = tails
             rx, tx, _, nr, a, f, _, e = HEADER.unpack_from(raw)
             key = (nr, a, tx, rx)
             pid = self._pending.get(key)
             more = f == 0 and e & Ext.SEQ_MASK in _MORE
             if pid is not None and not more:  # a long upload's parts share their request
                 del self._pending[key]
-            handed = s.encode_flags(s.HOST_FLAGS, t, wall, item[4], item[5])  # HOSTCOM
+            handed = s.encode_flags(s.HOST_FLAGS, t, wall, before, after)  # HOSTCOM
             if pid == self._firmware:
                 return [handed]
-            return [s.encode_message(kind, t, wall, pid, raw, item[3]), handed]
-        if kind == s.HOST_FLAGS:
-            return [s.encode_flags(kind, t, wall, item[2], item[3])]
-        if kind == s.DEV_FLAGS:
-            return [s.encode_flags(kind, t, wall, item[2], item[3], item[4])]
+            return [s.encode_message(kind, t, wall, pid, raw, state), handed]
+        if kind in (s.HOST_FLAGS, s.DEV_FLAGS):  # DEV_FLAGS: Task2Parameter, or b""
+            return [s.encode_flags(kind, t, wall, before, after, *tails)]
         # the HostFlags change that made the exchange, then the exchange
-        return [s.encode_flags(s.HOST_FLAGS, t, wall, item[2], item[3]),
-                s.encode_record(self._exchange(t, wall, item[4], item[5]))]
+        return [s.encode_flags(s.HOST_FLAGS, t, wall, before, after),
+                s.encode_record(self._exchange(t, wall, *tails))]
 
-    def _exchange(self, t: float, wall: float, io: bytes | None, state: bytes) -> s.Record:
-        if io is None:  # the card saw the areas unchanged
+    def _exchange(self, t: float, wall: float, io: bytes, state: bytes) -> s.Record:
+        if not io:  # the card saw the areas unchanged
             return s.Record(s.EXCHANGE, t, wall, state=state)
         old = self._io
         self._io = io
@@ -129,70 +127,27 @@ class Frames:
         self.written += 1
 
 
-_PUT, _ANSWER, _HOST_FLAGS, _DEV_FLAGS, _EXCHANGE = (
-    s.SPOOL_CODES[kind] for kind in (s.PUT, s.ANSWER, s.HOST_FLAGS, s.DEV_FLAGS, s.EXCHANGE))
-_IO_SIZE = 2 * IO_AREA_SIZE
-
-
 def events(data: bytes) -> tuple[list[tuple[Any, ...]], int]:
     """The whole events at the start of the spooled stream ``data`` as the tuples ``Events``
-    takes, and how many bytes they were (the rest begins an event the next piece ends)."""
+    takes, ``(kind, t, before, after, *tails)`` (``dpm.session.SPOOL_LAYOUTS``), and how many
+    bytes they were (the rest begins an event the next piece ends)."""
     items: list[tuple[Any, ...]] = []
     at, end = 0, len(data)
     while at < end:
-        code = data[at]
-        if code == _PUT:
-            head = s.SPOOL_PUT
-            if at + head.size > end:
-                break
-            _, t, before, after, length, lines = head.unpack_from(data, at)
-            body = at + head.size
-            stop = body + length + lines
-            if stop > end:
-                break
-            items.append((s.PUT, t, data[body : body + length], data[body + length : stop],
-                          before, after))
-        elif code == _ANSWER:
-            head = s.SPOOL_ANSWER
-            if at + head.size > end:
-                break
-            _, t, before, after, length = head.unpack_from(data, at)
-            body = at + head.size
-            stop = body + length + TASK_STATE_SIZE
-            if stop > end:
-                break
-            items.append((s.ANSWER, t, data[body : body + length],
-                          data[body + length : stop], before, after))
-        elif code == _HOST_FLAGS:
-            head = s.SPOOL_HOST_FLAGS
-            stop = at + head.size
-            if stop > end:
-                break
-            items.append((s.HOST_FLAGS, *head.unpack_from(data, at)[1:]))
-        elif code == _DEV_FLAGS:
-            head = s.SPOOL_DEV_FLAGS
-            if at + head.size > end:
-                break
-            _, t, before, after, started = head.unpack_from(data, at)
-            body = at + head.size
-            stop = body + (s.PARAMETER_SIZE if started else 0)
-            if stop > end:
-                break
-            items.append((s.DEV_FLAGS, t, before, after, data[body:stop]))
-        elif code == _EXCHANGE:
-            head = s.SPOOL_EXCHANGE
-            if at + head.size > end:
-                break
-            _, t, before, after, changed = head.unpack_from(data, at)
-            body = at + head.size
-            state = body + (_IO_SIZE if changed else 0)
-            stop = state + TASK_STATE_SIZE
-            if stop > end:
-                break
-            items.append((s.EXCHANGE, t, before, after,
-                          data[body:state] if changed else None, data[state:stop]))
-        else:
-            raise ValueError(f"spool: unknown event code {code} at byte {at} of a piece")
+        layout = s.SPOOL_LAYOUTS.get(data[at])
+        if layout is None:
+            raise ValueError(f"spool: unknown event code {data[at]} at byte {at} of a piece")
+        stop = at + layout.head.size
+        if stop > end:
+            break
+        _, t, before, after, *fields = layout.head.unpack_from(data, at)
+        tails = []
+        for length in layout.tails(*fields):
+            tails.append(data[stop : stop + length])
+            stop += length
+        if stop > end:
+            break
+        items.append((layout.kind, t, before, after, *tails))
         at = stop
     return items, at
 

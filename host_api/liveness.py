@@ -27,6 +27,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from dpm.image import lock_path, process_exists
+from dpm.start_progress import stat_fields
 from host_api.lock_table import flock_holders
 
 START_SLACK_S = 0.02
@@ -65,14 +66,6 @@ def _probe(path: Path) -> bool:
     finally:
         os.close(fd)
     return False
-
-
-def stat_fields(pid: int) -> list[str]:
-    """/proc/PID/stat's fields from the third (the state) on, so that proc(5)'s field N is
-    index N - 3: they follow the command name, which may hold spaces and parentheses.
-    OSError when the process or /proc is not there."""
-    raw = Path(f"/proc/{pid}/stat").read_text()
-    return raw[raw.rindex(")") + 2 :].split()
 
 
 def _wrote_the_file(pid: int, path: Path) -> bool:

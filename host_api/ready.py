@@ -14,8 +14,9 @@ more than a look at HostFlags:
 - A fixed deadline on the wall clock is wrong on a shared machine: at a load of 30 on two
   cores a firmware's start takes 10-20 s of wall time for the same half second of CPU, and
   a fixed 15 s failed 13 tests of a run. The wait follows the process's CPU time instead
-  (``StartProgress``): the start fails when it has spent ``START_CPU_S`` of CPU without
-  READY (busy, never ready) or got no CPU for ``START_STALL_S`` (stuck, stopped).
+  (``dpm.start_progress.StartProgress``): the start fails when it has spent ``START_CPU_S``
+  of CPU without READY (busy, never ready) or got no CPU for ``START_STALL_S`` (stuck,
+  stopped).
 """
 
 from __future__ import annotations
@@ -28,10 +29,10 @@ from pathlib import Path
 from dpm.flags import HostFlag
 from dpm.image import image_path, lock_path
 from dpm.layout import HOST_FLAGS
+from dpm.start_progress import StartProgress
 from host_api.errors import HostApiError
-from host_api.liveness import recorded_pid, stat_fields
+from host_api.liveness import recorded_pid
 
-TICK_NS = 1_000_000_000 // os.sysconf("SC_CLK_TCK")
 START_CPU_S = 10.0
 """CPU seconds a process may spend on its start before the start counts as failed: about
 20 times what a firmware's start costs (0.4-0.6 s: the interpreter, the imports, the
@@ -50,42 +51,6 @@ class StartError(HostApiError, RuntimeError):
     def __init__(self, text: str, status: int | None) -> None:
         super().__init__(text)
         self.status = status
-
-
-def stat_cpu_ns(pid: int) -> int:
-    """utime + stime of the whole process (every thread, also ended ones), in ns."""
-    fields = stat_fields(pid)
-    return (int(fields[11]) + int(fields[12])) * TICK_NS  # utime, stime: fields 14 and 15
-
-
-class StartProgress:
-    """Whether a process's start is getting on, by its CPU time rather than the wall clock:
-    the start fails when it has spent ``cpu_limit_s`` of CPU (busy, never ready) or got none
-    for ``stall_s`` (stuck)."""
-
-    def __init__(self, pid: int, stall_s: float = START_STALL_S,
-                 cpu_limit_s: float = START_CPU_S) -> None:
-        self._pid = pid
-        self._stall_s = stall_s
-        self._cpu_limit_ns = int(cpu_limit_s * 1e9)
-        self._cpu_ns = -1
-        self._advanced = time.monotonic()
-
-    def problem(self) -> str | None:
-        """None while the start advances; else what went wrong, as the end of "its start
-        ..." (a process that has ended gives None: its exit status says more)."""
-        try:
-            cpu_ns = stat_cpu_ns(self._pid)
-        except (OSError, ValueError, IndexError):
-            return None
-        now = time.monotonic()
-        if cpu_ns != self._cpu_ns:
-            self._cpu_ns, self._advanced = cpu_ns, now
-        if cpu_ns > self._cpu_limit_ns:
-            return f"spent {cpu_ns / 1e9:.1f} s of CPU"
-        if now - self._advanced > self._stall_s:
-            return f"got no CPU for {self._stall_s:g} s"
-        return None
 
 
 def _host_flags(image: Path) -> int | None:

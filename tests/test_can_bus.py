@@ -259,6 +259,43 @@ def test_a_host_sdo_request_that_meets_a_node_busy_waits_for_the_nodes_thread_in
         assert thread != threading.get_ident()
 
 
+def test_a_node_that_sends_never_runs_node_code_for_a_request_its_frame_caused(
+        two_nodes: tuple[CanBus, SimulatedNetwork, can.BusABC]) -> None:
+    """A node's thread (a timer, holding the network's lock) sends a frame; the controller
+    handles it in that thread, and its handler sends a host SDO request ``answered_here``:
+    the request goes to the nodes' own thread, not to node code inside the sending node's
+    (``_NodeNotifier.try_dispatch``'s guard)."""
+    bus, sim, _ = two_nodes
+    handler_threads: list[int] = []
+    results: list[tuple[SdoResult, int]] = []
+    answered = threading.Event()
+
+    def on_result(result: SdoResult) -> None:
+        results.append((result, threading.get_ident()))
+        answered.set()
+
+    def on_frame(msg: can.Message) -> None:
+        handler_threads.append(threading.get_ident())
+        HostSdoTransfer(bus, 1, 0x1000, 0, None, 1.0, on_result, answered_here=True).start()
+
+    bus.subscribe(0x1FF, on_frame)
+    sender: list[int] = []
+
+    def timer() -> None:
+        with sim.lock:
+            sender.append(threading.get_ident())
+            sim.canopen.send_message(0x1FF, b"\x01")
+
+    holder = threading.Thread(target=timer, daemon=True)
+    holder.start()
+    holder.join(5)
+    assert handler_threads == sender, "the controller did not handle the frame inline"
+    assert answered.wait(5), "no answer"
+    [(result, thread)] = results
+    assert int.from_bytes(result.data, "little") == GENERIC_DEVICE_TYPE
+    assert thread != sender[0], "node code ran inside the sending node's"
+
+
 def test_the_simulated_nodes_listeners_are_fixed_while_they_run(
         two_nodes: tuple[CanBus, SimulatedNetwork, can.BusABC]) -> None:
     """The nodes' receive thread calls the ``on_message_received`` of the listeners it

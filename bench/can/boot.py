@@ -50,13 +50,13 @@ from dbm_tools.parameters import NodeParameterSet
 from dbm_tools.tables import NODES
 from dpm.cia301 import COB_ID_NMT, COB_ID_SYNC, EMCY_BASE, ERROR_CONTROL_BASE
 from dpm.commands import NMT_RESET_NODE, NMT_START
+from dpm.start_progress import stat_cpu_ns
 from firmware.can.sdo import DEFAULT_SDO_TIMEOUT
 from host_api.download import CONFIGURATION_DOWNLOAD, DevDownload
 from host_api.driver import (
     COLDSTART,
     DevReset,
 )
-from host_api.ready import stat_cpu_ns
 
 BOOT_NODES = 127
 BOOT_REPEATS = 3

@@ -43,7 +43,7 @@ from bench.common import (
 )
 from dbm_tools.network import parse_network
 from dpm.cia301 import RPDO_BASES, TPDO_BASES
-from host_api.ready import stat_cpu_ns
+from dpm.start_progress import stat_cpu_ns
 
 THROUGHPUT_NODES = 126
 THROUGHPUT_ACTIVE = (16, 126)

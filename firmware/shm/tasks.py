@@ -14,7 +14,6 @@ import json
 import subprocess
 import sys
 import threading
-import time
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -24,6 +23,8 @@ from can.broadcastmanager import (
     ModifiableCyclicTaskABC,
     RestartableCyclicTaskABC,
 )
+
+from dpm.start_progress import StartProgress
 
 START_STALL_S = 10.0
 """How long ``start`` waits for the timer process to open its station while the process gets
@@ -174,18 +175,9 @@ class ShmCyclicSendTask(LimitedDurationCyclicSendTaskABC, ModifiableCyclicTaskAB
             _reap(process)
 
 
-def _cpu_s(pid: int) -> float | None:
-    """CPU seconds process ``pid`` has run (/proc/PID/schedstat's first field); None once
-    it is gone."""
-    try:
-        return int(Path(f"/proc/{pid}/schedstat").read_text().split()[0]) / 1e9
-    except (OSError, ValueError, IndexError):
-        return None
-
-
 def _read_line(process: subprocess.Popen[str]) -> str:
     """The child's first line, or "" when it ends first or its start stops advancing: no CPU
-    time for ``START_STALL_S``, or ``START_CPU_S`` of it spent."""
+    time for ``START_STALL_S``, or ``START_CPU_S`` of it spent (``StartProgress``)."""
     stdout = process.stdout
     assert stdout is not None
     lines: list[str] = []
@@ -195,17 +187,9 @@ def _read_line(process: subprocess.Popen[str]) -> str:
 
     reader = threading.Thread(target=read, daemon=True)
     reader.start()
-    cpu = _cpu_s(process.pid) or 0.0
-    advanced = time.monotonic()
+    start = StartProgress(process.pid, START_STALL_S, START_CPU_S)
     while True:
         reader.join(0.1)
-        if not reader.is_alive():
-            break
-        now_cpu = _cpu_s(process.pid)
-        if now_cpu is None or now_cpu > START_CPU_S:
-            break
-        if now_cpu > cpu:
-            cpu, advanced = now_cpu, time.monotonic()
-        elif time.monotonic() - advanced > START_STALL_S:
+        if not reader.is_alive() or start.problem() is not None:
             break
     return lines[0].strip() if lines else ""

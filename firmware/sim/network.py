@@ -85,6 +85,22 @@ class _RemoteFrames(can.Listener):
                 node.on_remote(msg.arbitration_id)
 
 
+class _Sending(threading.local):
+    """Per thread: whether it is inside a node's send (``_NodesNetwork.send_message``).
+
+    The only way into ``_NodeNotifier.try_dispatch`` for a thread that runs node code (and
+    holds the network's lock) is a frame its node sends, which a station handles in the
+    sending thread (the card's controller, then a host SDO request ``answered_here``).
+    This record says so with an attribute read: RLock's owner test is private
+    (``_is_owned``), and a lock that kept a record of its owner would cost every node entry
+    point's ``with`` two Python calls."""
+
+    active = False
+
+
+_sending = _Sending()
+
+
 class _NodesNetwork(canopen.Network):
     """canopen's network of the nodes, whose frames copy cheaply (``CopiedFrame``).
 
@@ -101,7 +117,11 @@ class _NodesNetwork(canopen.Network):
         frame = CopiedFrame(arbitration_id=can_id, is_extended_id=can_id > 0x7FF,
                             is_remote_frame=remote, data=data)
         with self.send_lock:
-            bus.send(frame)
+            _sending.active = True
+            try:
+                bus.send(frame)
+            finally:
+                _sending.active = False
         self.check()
 
 
@@ -115,9 +135,10 @@ class _NodeNotifier(can.Notifier):
     device loop alone, request, node and answer (issue 22). Every other frame waits for
     this thread as before. The sender runs the handlers only when it can take, without
     waiting, the notifier's lock (held while this thread handles a frame) and the network's
-    lock (held by the timers and the nodes' entry points), and does not hold the network's
-    lock already: a node's own thread that sends (its timers) never runs node code inside
-    node code, and a card thread never waits for a node's.
+    lock (held by the timers and the nodes' entry points), and is not inside a node's send
+    (``_Sending``, where it holds the network's lock already): a node's own thread that
+    sends (its timers) never runs node code inside node code, and a card thread never waits
+    for a node's.
     """
 
     def __init__(self, bus: can.BusABC, listeners: list[can.Listener], timeout: float,
@@ -157,10 +178,10 @@ class _NodeNotifier(can.Notifier):
                 self._inline.dispatched()
 
     def try_dispatch(self, msg: can.Message) -> bool:
-        lock = self._network_lock
-        owned: bool = lock._is_owned()  # type: ignore[attr-defined]  # RLock's, as Condition's
-        if not self._ready or self._stopped or owned or not self._lock.acquire(blocking=False):
+        if (not self._ready or self._stopped or _sending.active
+                or not self._lock.acquire(blocking=False)):
             return False
+        lock = self._network_lock
         try:
             if not lock.acquire(blocking=False):
                 return False
