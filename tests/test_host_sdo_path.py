@@ -116,9 +116,9 @@ def test_an_expedited_upload_costs_the_device_loop_few_python_calls(
     calls in the device loop's thread (93 on 2026-12-03, branch sdo08; 112-114 before: the
     frames deep-copied by ``copy`` for each station, canopen's listener, ``notify`` and a
     listener of remote frames per frame to the nodes, canopen's ``init_upload`` with its
-    log call, a closure and a header object for the answer; 143 before branch sdocut): with ``--simulate`` the request, the node's SDO
-    server, its answer and the host's answer all run there, and that thread's CPU is most
-    of the card's per transfer (issue 22)."""
+    log call, a closure and a header object for the answer; 143 before branch sdocut):
+    with ``--simulate`` the request, the node's SDO server, its answer and the host's answer
+    all run there, and that thread's CPU is most of the card's per transfer (issue 22)."""
     card = simulated_card
     for _ in range(50):  # warm: the channel, canopen's caches
         assert upload_1000h(card.board) == GENERIC_DEVICE_TYPE

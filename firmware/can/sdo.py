@@ -36,6 +36,7 @@ from dpm.cia301 import (
     ABORT_TIMEOUT,
     ABORT_TOGGLE,
     ABORT_UNKNOWN_COMMAND,
+    SDO_INITIATE,
     SDO_REQUEST_BASE,
     SDO_RESPONSE_BASE,
 )
@@ -46,7 +47,6 @@ DEFAULT_SDO_TIMEOUT = 0.5
 """[ours] seconds an SDO request waits for its answer until COM_Set_SDO_Timeout; canopen's
 0.3 s lets a busy 2-core machine abort boot-ups that would have succeeded."""
 
-_INITIATE = struct.Struct("<BHB")
 _NO_CONTEXT = contextlib.nullcontext()
 
 
@@ -93,7 +93,7 @@ class HostSdoTransfer:
         self.finished = False
         """Whether ``done`` has had its result: an attribute, not a property, read after
         every request (``SdoChannels.start_host``) and by each look of the master's thread."""
-        self._head = _INITIATE.pack(0, index, subindex)[1:]
+        self._head = SDO_INITIATE.pack(0, index, subindex)[1:]
         """The object's index and subindex as a request and its initiate response carry them."""
         self._context = inline.answered_here if answered_here else _NO_CONTEXT
 

@@ -14,7 +14,6 @@ work (PDO reconfiguration, the I/O echo) once a download is stored.
 
 from __future__ import annotations
 
-import struct
 from typing import TYPE_CHECKING
 
 from canopen.objectdictionary import ODArray, ODVariable
@@ -33,6 +32,7 @@ from dpm.cia301 import (
     ABORT_NO_DATA,
     ABORT_NO_SUBINDEX,
     ABORT_UNKNOWN_COMMAND,
+    SDO_INITIATE,
     SDO_REQUEST_BASE,
     SDO_RESPONSE_BASE,
 )
@@ -40,11 +40,6 @@ from firmware.frames import SDO_FRAME_LENGTH
 
 if TYPE_CHECKING:
     from firmware.sim.node import SimulatedNode
-
-_INITIATE = struct.Struct("<BHB")
-"""An initiate response's command, index and subindex; four data bytes follow."""
-_INITIATE_SIZE = struct.Struct("<BHBL")
-"""... and with the size of a segmented upload in place of the data."""
 
 UNKNOWN_COMMAND = 0xE0
 """Command byte of server command specifier 7, which CiA 301 leaves undefined."""
@@ -86,10 +81,11 @@ class SimSdoServer(SdoServer):
             raise SdoAbortedError(ABORT_NO_DATA)  # nothing to upload, as canopen answers
         if size <= 4:
             command = RESPONSE_UPLOAD | EXPEDITED | SIZE_SPECIFIED | (4 - size) << 2
-            response = _INITIATE.pack(command, index, subindex) + bytes(value).ljust(4, b"\0")
+            response = SDO_INITIATE.pack(command, index, subindex) + bytes(value).ljust(4, b"\0")
             self._segmented = None
         else:
-            response = _INITIATE_SIZE.pack(RESPONSE_UPLOAD | SIZE_SPECIFIED, index, subindex, size)
+            response = (SDO_INITIATE.pack(RESPONSE_UPLOAD | SIZE_SPECIFIED, index, subindex)
+                        + size.to_bytes(4, "little"))
             self._buffer = bytearray(value)
             self._toggle = 0
             self._segmented = "upload"
