@@ -12,7 +12,9 @@ Two kinds of station use it. The card's controller (``firmware.can.bus``) takes 
 frame that finds it idle. A simulated network (``firmware.sim.network``) takes only the
 frames its sender asked to have answered at once (``answered_here``): the card's host SDO
 requests; every other frame, from any thread, waits for the nodes' own thread as before,
-so that no other path of the card runs node code in its threads.
+so that no other path of the card runs node code in its threads. Both send through a
+``CopyingVirtualBus``, which gives the other stations the copies python-can's ``virtual``
+gives them, made for less.
 """
 
 from __future__ import annotations
@@ -104,7 +106,7 @@ def _received_copy(msg: can.Message, timestamp: float, channel: Channel | None,
 
 class CopyingVirtualBus(VirtualBus):
     """A ``virtual`` station whose ``send`` gives each other station its copy without
-    ``copy.deepcopy`` [ours].
+    ``copy.deepcopy``: the same copies, made for less.
 
     python-can's ``send`` deep-copies the frame for every other station on the channel,
     through ``copy``'s machinery and ``can.Message``'s constructor: 4-6 µs and four Python
