@@ -8,6 +8,8 @@ specifiers (COM_NMT_Module_Protocol carries them) are ``dpm.commands.Nmt``.
 
 from __future__ import annotations
 
+import struct
+
 # Predefined connection set: identifiers and bases (the node-ID is added to a base)
 COB_ID_NMT = 0x000
 COB_ID_SYNC = 0x080
@@ -20,6 +22,10 @@ RPDO_BASES = (0x200, 0x300, 0x400, 0x500)
 """RPDO1..4 of a node: what the node receives, the card's outputs."""
 SDO_RESPONSE_BASE = 0x580
 SDO_REQUEST_BASE = 0x600
+SDO_INITIATE = struct.Struct("<BHB")
+"""An SDO initiate request's or response's command byte, index and subindex; four bytes of
+data (an expedited value, a size) follow. The master's client and the simulated nodes'
+server both make them."""
 ERROR_CONTROL_BASE = 0x700
 """Heartbeat, node guarding and boot-up messages."""
 

@@ -108,14 +108,21 @@ class Board:
         lock = transaction_lock(self.number)
         if lock is None:
             raise CifError(Drv.DRV_USR_NOT_INITIALIZED, "transact")
-        wait = self._timeout(timeout)
+        wait = self.timeout if timeout is None else timeout
         if not lock.acquire(wait / 1000.0):
             raise CifError(Drv.DRV_CMD_ACTIVE, "transact",
                            lock.holder.advice() if lock.holder is not None else "")
+        # The driver's calls themselves, not ``put_message`` and ``get_message``: four Python
+        # calls fewer per round trip, on the way of every host SDO (issue 22).
         try:
-            self.put_message(msg, wait)
+            code = d.DevPutMessage(self.number, msg, wait)
+            if code:
+                raise CifError(code, "DevPutMessage")
             while True:
-                answer = self.get_message(wait)
+                code, answer = d.DevGetMessage(self.number, d.MSG_BUFFER_SIZE, wait)
+                if code:
+                    raise CifError(code, "DevGetMessage")
+                assert answer is not None
                 if answer.nr == msg.nr and answer.a == msg.b:
                     return answer
         finally:

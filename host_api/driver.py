@@ -286,13 +286,13 @@ def DevPutMessage(number: int, msg: Message | bytes, timeout: int) -> int:
     if not transaction.enter(timeout / 1000.0):
         return Drv.DRV_CMD_ACTIVE
     try:
-        if not _take(board.put_lock, deadline):
+        if not (board.put_lock.acquire(False) or _take(board.put_lock, deadline)):
             return Drv.DRV_CMD_ACTIVE
         try:
             mm = board.mm
             # The card rings for a message it took only when asked (dpm/doorbell.py).
-            if fl.pending(mm[HOST_FLAGS], mm[DEV_FLAGS], fl.DEV_MBX) and not board.wait_for(
-                    lambda: not fl.pending(board.host(), board.dev(), fl.DEV_MBX),
+            if (mm[HOST_FLAGS] ^ mm[DEV_FLAGS]) & fl.DEV_MBX and not board.wait_for(
+                    lambda: not (mm[HOST_FLAGS] ^ mm[DEV_FLAGS]) & fl.DEV_MBX,
                     _left_ms(deadline), lambda: board.bell.ring_device(want_mailbox=True)):
                 return (Drv.DRV_DEV_MAILBOX_FULL if timeout <= 0
                         else board.timed_out(Drv.DRV_DEV_PUT_TIMEOUT))
@@ -312,9 +312,9 @@ def DevPutMessage(number: int, msg: Message | bytes, timeout: int) -> int:
 
 def _take(channel: threading.Lock, deadline: float) -> bool:
     """The put or get channel of this process, waited for until the call's deadline; the
-    transaction lock the call holds already keeps every other host out (``MappedBoard``)."""
-    if channel.acquire(False):  # the usual case: free, and no clock read
-        return True
+    transaction lock the call holds already keeps every other host out (``MappedBoard``).
+    The callers try the lock without waiting first (the usual case: free, and neither a
+    clock read nor this call, on every mailbox round trip)."""
     left = deadline - time.monotonic()
     return left > 0 and channel.acquire(timeout=left)
 
@@ -342,7 +342,7 @@ def DevGetMessage(number: int, size: int, timeout: int) -> tuple[int, Message | 
     if not transaction.enter(timeout / 1000.0):
         return Drv.DRV_CMD_ACTIVE, None
     try:
-        if not _take(board.get_lock, deadline):
+        if not (board.get_lock.acquire(False) or _take(board.get_lock, deadline)):
             return Drv.DRV_CMD_ACTIVE, None
         try:
             return _take_message(board, transaction, size, timeout, deadline)
@@ -354,11 +354,13 @@ def DevGetMessage(number: int, size: int, timeout: int) -> tuple[int, Message | 
 
 def _take_message(board: _Board, transaction: Transaction, size: int, timeout: int,
                   deadline: float) -> tuple[int, Message | None]:
-    """DevGetMessage with its locks held."""
+    """DevGetMessage with its locks held. The flags are read from the map in the waiting
+    condition itself: ``fl.pending`` and the board's ``host``/``dev`` were three Python
+    calls more per look, and a wait looks a few times (issue 22)."""
     mm = board.mm
     while True:
-        if not fl.pending(mm[HOST_FLAGS], mm[DEV_FLAGS], fl.HOST_MBX) and not board.wait_for(
-                lambda: fl.pending(board.host(), board.dev(), fl.HOST_MBX),
+        if not (mm[HOST_FLAGS] ^ mm[DEV_FLAGS]) & fl.HOST_MBX and not board.wait_for(
+                lambda: bool((mm[HOST_FLAGS] ^ mm[DEV_FLAGS]) & fl.HOST_MBX),
                 _left_ms(deadline)):
             if timeout <= 0:
                 return Drv.DRV_DEV_GET_NO_MESSAGE, None

@@ -356,7 +356,8 @@ class Transaction:
     def give_up(self) -> None:
         """A get timed out: the answers awaited keep the lock no more."""
         with self._state:
-            self._own = [r._replace(given_up=True) for r in self._own]
+            if self._own:  # none after a session's last answer: no list made anew
+                self._own = [r._replace(given_up=True) for r in self._own]
 
     # --- sessions ---------------------------------------------------------------------------
 

@@ -20,6 +20,7 @@ from canopen.sdo.client import SdoClient
 from dbm_tools.network import GENERIC_DEVICE_TYPE, parse_network
 from firmware.can.bus import CanBus
 from firmware.can.sdo import HostSdoTransfer, SdoResult
+from firmware.inline import CopyingVirtualBus
 from firmware.sim import SimulatedNetwork
 
 
@@ -308,3 +309,70 @@ def test_the_simulated_nodes_listeners_are_fixed_while_they_run(
         notifier.add_listener(can.BufferedReader())
     with pytest.raises(NotImplementedError):
         notifier.remove_listener(notifier.listeners[0])
+
+
+def _fields(msg: can.Message) -> tuple[object, ...]:
+    return tuple(getattr(msg, name) for name in (
+        "timestamp", "arbitration_id", "is_extended_id", "is_remote_frame", "is_error_frame",
+        "channel", "dlc", "data", "is_fd", "is_rx", "bitrate_switch", "error_state_indicator"))
+
+
+@pytest.mark.parametrize("receive_own", [False, True])
+def test_a_copying_virtual_station_gives_each_station_the_frame_python_can_gives(
+        receive_own: bool) -> None:
+    """``CopyingVirtualBus`` (the card's controller and the simulated nodes on ``virtual``)
+    copies a sent frame without ``copy.deepcopy``: every station, the sender's own when it
+    receives its own messages, gets what python-can's ``VirtualBus`` gives it, field for
+    field, in a copy of its own (issue 22)."""
+    channel = f"test-copying-{uuid.uuid4().hex}"
+    plain, copying, watcher = (
+        can.Bus(interface="virtual", channel=channel, preserve_timestamps=True,
+                receive_own_messages=receive_own) for _ in range(3))
+    CopyingVirtualBus.install(copying)
+    assert type(copying) is CopyingVirtualBus and type(plain) is can.interfaces.virtual.VirtualBus
+    try:
+        frames = [can.Message(timestamp=12.5, arbitration_id=0x1ABCDEF, is_extended_id=True,
+                              data=b"\x01\x02\x03", channel="from the sender", is_rx=False),
+                  can.Message(timestamp=13.0, arbitration_id=0x601, is_extended_id=False,
+                              is_remote_frame=True, dlc=8)]
+        for frame in frames:
+            plain.send(frame)
+            by_python_can = [bus.recv(1) for bus in (copying, watcher)]
+            own = plain.recv(0.01)
+            copying.send(frame)
+            by_copying = [bus.recv(1) for bus in (plain, watcher)]
+            own_copy = copying.recv(0.01)
+            assert [_fields(m) for m in by_copying if m] == [
+                _fields(m) for m in by_python_can if m]
+            assert (own is None) == (own_copy is None) == (not receive_own)
+            if own is not None and own_copy is not None:
+                assert _fields(own_copy) == _fields(own)
+                assert own_copy.is_rx is False
+            for received in by_copying:
+                assert received is not None, "a station got no copy"
+                assert received is not frame and received.data is not frame.data
+    finally:
+        for bus in (plain, copying, watcher):
+            bus.shutdown()
+
+
+def test_a_copying_virtual_station_fails_as_python_cans_does() -> None:
+    """A full station still gets the others' copies and the send raises python-can's
+    ``CanOperationError``; a closed station's send raises it too."""
+    channel = f"test-copying-{uuid.uuid4().hex}"
+    sender = can.Bus(interface="virtual", channel=channel)
+    CopyingVirtualBus.install(sender)
+    full = can.Bus(interface="virtual", channel=channel, rx_queue_size=1)
+    other = can.Bus(interface="virtual", channel=channel)
+    try:
+        frame = can.Message(arbitration_id=0x181, is_extended_id=False, data=b"\x05")
+        sender.send(frame)
+        with pytest.raises(can.CanOperationError):
+            sender.send(frame, timeout=0.01)
+        assert [other.recv(1) is not None for _ in range(2)] == [True, True]
+        sender.shutdown()
+        with pytest.raises(can.CanOperationError):
+            sender.send(frame)
+    finally:
+        for bus in (sender, full, other):
+            bus.shutdown()

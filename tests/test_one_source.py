@@ -55,7 +55,6 @@ NOT_CARD_LAYOUTS: dict[tuple[str, str], str] = {
     ("firmware/shm/bus.py", "_RECORD"): "a frame record of the shm bus's rings [ours]",
     ("firmware/shm/bus.py", "_COUNTERS"): "the shm bus's station counters [ours]",
     ("firmware/shm/bus.py", "_COUNTER"): "one station counter of the shm bus [ours]",
-    ("firmware/can/sdo.py", "_INITIATE"): "a CiA 301 SDO frame on the bus, not a message",
     ("host_api/driver.py", "DRIVERINFO"): "the C driver's DRIVERINFO structure",
     ("host_api/driver.py", "IOINFO"): "the C driver's IOINFO structure",
     ("host_api/driver.py", "BOARD_INFO_ENTRY"): "an entry of the C driver's BOARD_INFO",

@@ -27,6 +27,8 @@ from typing import TYPE_CHECKING
 import can
 import canopen
 import pytest
+from canopen import objectdictionary as od
+from canopen.objectdictionary import ODVariable
 from canopen.sdo.exceptions import SdoAbortedError, SdoCommunicationError
 
 from cifemu.cli import build_parser
@@ -337,6 +339,38 @@ def test_sdo_upload_of_missing_object_aborts(bench: Callable[[str], Bench], inde
     with pytest.raises(SdoAbortedError) as caught:
         b.node(5).sdo.upload(index, subindex)
     assert caught.value.code == code
+
+
+def test_sdo_initiate_upload_responses_byte_for_byte(bench: Callable[[str], Bench]) -> None:
+    """The node's initiate upload responses as CiA 301 lays them out (the server makes them
+    itself since branch sdo08, issue 22, where canopen's ``init_upload`` made them): the
+    value with n and e set for one to four bytes, the size for more, and the aborts for an
+    empty value (08000024h) and a write-only object (06010001h)."""
+    b = bench(GENERIC)
+    b.boot_up(5)
+    dictionary = b.sim.nodes[5].object_dictionary
+    for index, access, value in ((0x2100, "rw", b""), (0x2101, "wo", b"\x01")):
+        variable = ODVariable("test", index, 0)
+        variable.data_type = od.DOMAIN
+        variable.access_type = access
+        variable.value = value  # type: ignore[assignment]  # a DOMAIN holds bytes
+        dictionary.add_object(variable)
+    product = b"cifemu generic I/O"
+    for request, response in (
+            ((0x1000, 0), bytes([0x43, 0x00, 0x10, 0x00])
+             + GENERIC_DEVICE_TYPE.to_bytes(4, "little")),
+            ((0x1017, 0), bytes([0x4B, 0x17, 0x10, 0x00, 50, 0, 0, 0])),
+            ((0x1018, 0), bytes([0x4F, 0x18, 0x10, 0x00, 4, 0, 0, 0])),
+            ((0x1008, 0), bytes([0x41, 0x08, 0x10, 0x00, len(product), 0, 0, 0])),
+            ((0x2100, 0), bytes([0x80, 0x00, 0x21, 0x00, 0x24, 0x00, 0x00, 0x08])),
+            ((0x2101, 0), bytes([0x80, 0x01, 0x21, 0x00, 0x01, 0x00, 0x01, 0x06]))):
+        index, subindex = request
+        mark = b.frames.mark()
+        b.master.send_message(0x605, bytes([0x40, index & 0xFF, index >> 8, subindex, 0, 0, 0, 0]))
+        answer = b.frames.wait(frame(0x585), f"the answer for {index:04X}h", mark)[0]
+        assert bytes(answer.data) == response, f"{index:04X}h: {bytes(answer.data).hex()}"
+        if index == 0x1008:  # the segments follow as before
+            b.master.send_message(0x605, bytes([0x80, 0x08, 0x10, 0x00, 0, 0, 0, 0x08]))
 
 
 def test_sdo_download_checks_access_and_error_history(bench: Callable[[str], Bench]) -> None:

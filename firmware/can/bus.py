@@ -52,7 +52,7 @@ from firmware.frames import (
     CAN_ERR_RESTARTED,
     SDO_FRAME_LENGTH,
 )
-from firmware.inline import CopiedFrame, InlineQueue
+from firmware.inline import CopyingVirtualBus, InlineQueue
 
 log = logging.getLogger(__name__)
 
@@ -723,6 +723,8 @@ class CanBus(can.Listener):
         """Open the interface; for a bridge on TCP, find its connection to probe
         (``keep_alive``) and, for one that hides a closed connection, to watch."""
         bus = can.Bus(interface=self.interface, channel=self.channel, **kwargs)
+        if self.interface == "virtual":
+            CopyingVirtualBus.install(bus)  # each frame sent copied without ``copy.deepcopy``
         if self.interface in TCP_BRIDGE_INTERFACES:
             stream = stream_of(bus)
             if stream is None:
@@ -805,7 +807,7 @@ class CanBus(can.Listener):
                             self.interface, can_id)
             self.on_send_timeout()
             return False
-        msg = CopiedFrame(
+        msg = can.Message(
             timestamp=time.time(),
             is_rx=False,
             channel=self.channel,  # the trace labels sent frames as received ones

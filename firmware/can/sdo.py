@@ -36,6 +36,7 @@ from dpm.cia301 import (
     ABORT_TIMEOUT,
     ABORT_TOGGLE,
     ABORT_UNKNOWN_COMMAND,
+    SDO_INITIATE,
     SDO_REQUEST_BASE,
     SDO_RESPONSE_BASE,
 )
@@ -46,7 +47,6 @@ DEFAULT_SDO_TIMEOUT = 0.5
 """[ours] seconds an SDO request waits for its answer until COM_Set_SDO_Timeout; canopen's
 0.3 s lets a busy 2-core machine abort boot-ups that would have succeeded."""
 
-_INITIATE = struct.Struct("<BHB")
 _NO_CONTEXT = contextlib.nullcontext()
 
 
@@ -90,8 +90,10 @@ class HostSdoTransfer:
         self._deadline = time.monotonic() + timeout
         """Refreshed by every request; set here already because the master's thread may
         check the transfer between its registration and its first request."""
-        self._finished = False
-        self._head = _INITIATE.pack(0, index, subindex)[1:]
+        self.finished = False
+        """Whether ``done`` has had its result: an attribute, not a property, read after
+        every request (``SdoChannels.start_host``) and by each look of the master's thread."""
+        self._head = SDO_INITIATE.pack(0, index, subindex)[1:]
         """The object's index and subindex as a request and its initiate response carry them."""
         self._context = inline.answered_here if answered_here else _NO_CONTEXT
 
@@ -109,7 +111,7 @@ class HostSdoTransfer:
     def check(self, now: float) -> float:
         """Called from the master's thread: give up after the SDO time-out. Returns when to
         look again (inf: the transfer is over)."""
-        if self._finished:
+        if self.finished:
             return math.inf
         if now >= self._deadline:
             self._abort(ABORT_TIMEOUT, SdoResult(timed_out=True))
@@ -121,19 +123,15 @@ class HostSdoTransfer:
         """When the transfer gives up unless an answer comes first (monotonic seconds)."""
         return self._deadline
 
-    @property
-    def finished(self) -> bool:
-        return self._finished
-
     def _send(self, frame: bytes) -> None:
         self._deadline = time.monotonic() + self.timeout
         with self._context:
             self.bus.send(SDO_REQUEST_BASE + self.node, frame)
 
     def _finish(self, result: SdoResult) -> None:
-        if self._finished:
+        if self.finished:
             return
-        self._finished = True
+        self.finished = True
         self.bus.take_back_sdo_responses(SDO_RESPONSE_BASE + self.node, self._on_frame)
         self._done(result)
 
@@ -143,7 +141,7 @@ class HostSdoTransfer:
         self._finish(result)
 
     def _on_frame(self, msg: can.Message) -> None:
-        if self._finished or msg.is_remote_frame or len(msg.data) < 8:
+        if self.finished or msg.is_remote_frame or len(msg.data) < 8:
             return
         frame = bytes(msg.data)
         command = frame[0]
@@ -155,20 +153,20 @@ class HostSdoTransfer:
         else:
             self._download(command, frame)
 
-    def _other_object(self, frame: bytes) -> bool:
-        """An initiate response names the object it answers; one for another object is
-        no answer to this request (canopen's client refuses it too): abort, unknown."""
-        if frame[1:4] == self._head:
-            return False
+    def _other_object(self, frame: bytes) -> None:
+        """An initiate response that names another object than this request's (``_head``)
+        is no answer to it (canopen's client refuses it too): abort, unknown. Called only
+        for such a response: the comparison is made by the caller, without a call on the
+        way of every good answer (issue 22)."""
         index, subindex = struct.unpack_from("<HB", frame, 1)
         self._abort(ABORT_GENERAL, SdoResult(abort=ABORT_GENERAL, failed=(
             f"answer for {index:04X}h sub {subindex} instead of "
             f"{self.index:04X}h sub {self.subindex}")))
-        return True
 
     def _upload(self, command: int, frame: bytes) -> None:
         if self._sent == 0 and command & 0xE0 == 0x40:  # initiate upload response
-            if self._other_object(frame):
+            if frame[1:4] != self._head:
+                self._other_object(frame)
                 return
             self._sent = 1
             if command & 0x02:  # expedited
@@ -195,7 +193,8 @@ class HostSdoTransfer:
     def _download(self, command: int, frame: bytes) -> None:
         assert self.data is not None
         initiated = command == 0x60 and not self._initiated
-        if initiated and self._other_object(frame):
+        if initiated and frame[1:4] != self._head:
+            self._other_object(frame)
             return
         segment_done = command & 0xEF == 0x20 and self._initiated
         if not (initiated or segment_done):

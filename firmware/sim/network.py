@@ -39,7 +39,7 @@ from dbm_tools.network import (
     NodeDescription,
 )
 from dpm.cia305 import UNCONFIGURED, LssAddress
-from firmware.inline import CopiedFrame, InlineQueue
+from firmware.inline import CopyingVirtualBus, InlineQueue
 from firmware.sim.generic import generic_object_dictionary
 from firmware.sim.lss import LssBus
 from firmware.sim.node import SimulatedNode
@@ -73,16 +73,40 @@ class UnconfiguredSlave:
         return self.description.lss
 
 
-class _RemoteFrames(can.Listener):
-    """canopen drops remote frames before its subscribers; guarding and RTR PDOs need them."""
+class _NodeFrames(can.Listener):
+    """The nodes' one listener: canopen's network for data frames, and the remote frames
+    that canopen drops before its subscribers (guarding and RTR PDOs need them).
 
-    def __init__(self, nodes: list[SimulatedNode]) -> None:
+    In place of canopen's ``MessageListener`` and a listener of remote frames beside it:
+    one call per frame to the nodes, where those two and canopen's ``notify`` were three,
+    for every frame the nodes take (a host SDO request in the card's device loop among
+    them, issue 22). What reaches the subscribers is canopen's: every subscriber of the
+    identifier with the frame's data and time stamp, then the network's node scanner; an
+    exception of a subscriber is logged, as canopen's listener logs it, not raised into
+    the sender."""
+
+    def __init__(self, network: canopen.Network, nodes: list[SimulatedNode]) -> None:
+        self._subscribers = network.subscribers
+        self._scanner = network.scanner
         self._nodes = nodes
 
     def on_message_received(self, msg: can.Message) -> None:
         if msg.is_remote_frame:
             for node in self._nodes:
                 node.on_remote(msg.arbitration_id)
+            return
+        if msg.is_error_frame:
+            return
+        can_id = msg.arbitration_id
+        try:
+            callbacks = self._subscribers.get(can_id)
+            if callbacks:
+                data, timestamp = msg.data, msg.timestamp
+                for callback in callbacks:
+                    callback(can_id, data, timestamp)
+            self._scanner.on_message_received(can_id)
+        except Exception as exc:
+            log.error("simulated node failed on frame 0x%X: %s", can_id, exc)
 
 
 class _Sending(threading.local):
@@ -102,19 +126,19 @@ _sending = _Sending()
 
 
 class _NodesNetwork(canopen.Network):
-    """canopen's network of the nodes, whose frames copy cheaply (``CopiedFrame``).
+    """canopen's network of the nodes, with ``send_message`` as canopen's less its calls.
 
-    On ``virtual`` each frame a node sends is deep-copied for every other station, the
-    card's controller among them; a node's SDO answer to the card's host request is
-    copied in the card's device loop (``_NodeNotifier``), where ``can.Message``'s own
-    copy was the dearest step of the node's part (issue 22). canopen lets a subclass
-    replace ``send_message`` for a backend of its own."""
+    canopen lets a subclass replace ``send_message`` for a backend of its own. This one
+    makes the frame and sends it under the network's send lock as canopen's does, and
+    looks at the notifier's failure itself instead of calling ``check``: a node's answer
+    to the card's host SDO request is sent from the card's device loop (``_NodeNotifier``),
+    where every call counts (issue 22)."""
 
     def send_message(self, can_id: int, data: bytes, remote: bool = False) -> None:
         bus = self.bus
         if bus is None:
             raise RuntimeError("the simulated nodes' network has no bus")
-        frame = CopiedFrame(arbitration_id=can_id, is_extended_id=can_id > 0x7FF,
+        frame = can.Message(arbitration_id=can_id, is_extended_id=can_id > 0x7FF,
                             is_remote_frame=remote, data=data)
         with self.send_lock:
             _sending.active = True
@@ -122,7 +146,9 @@ class _NodesNetwork(canopen.Network):
                 bus.send(frame)
             finally:
                 _sending.active = False
-        self.check()
+        notifier = self.notifier
+        if notifier is not None and notifier.exception is not None:
+            self.check()  # canopen's report of a receive thread that failed: it raises
 
 
 class _NodeNotifier(can.Notifier):
@@ -152,6 +178,7 @@ class _NodeNotifier(can.Notifier):
         if (isinstance(bus, VirtualBus)
                 and isinstance(station, queue.Queue) and not bus.receive_own_messages):
             self._inline = InlineQueue.install(station, self, asked_only=True)
+        CopyingVirtualBus.install(bus)  # the nodes' frames copied without ``copy.deepcopy``
         self._receivers = tuple(listener.on_message_received for listener in listeners)
         """Each listener's ``on_message_received``, called as python-can's ``Notifier`` calls
         the listener, without its ``__call__`` and its look for a coroutine: three Python
@@ -252,7 +279,7 @@ class SimulatedNetwork:
             self.canopen.add_node(node)
         try:  # canopen's ``connect`` with a notifier of its own (``_NodeNotifier``)
             self.canopen.notifier = _NodeNotifier(
-                self.bus, [*self.canopen.listeners, _RemoteFrames(self._live)],
+                self.bus, [_NodeFrames(self.canopen, self._live)],
                 NOTIFIER_CYCLE_S, self.lock)
         except ValueError as exc:
             raise ValueError(f"{exc}: give the simulation its own bus object on the channel, "

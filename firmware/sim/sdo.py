@@ -17,14 +17,22 @@ from __future__ import annotations
 from typing import TYPE_CHECKING
 
 from canopen.objectdictionary import ODArray, ODVariable
-from canopen.sdo.constants import NO_MORE_DATA, SDO_STRUCT
+from canopen.sdo.constants import (
+    EXPEDITED,
+    NO_MORE_DATA,
+    RESPONSE_UPLOAD,
+    SDO_STRUCT,
+    SIZE_SPECIFIED,
+)
 from canopen.sdo.exceptions import SdoAbortedError
 from canopen.sdo.server import SdoServer
 
 from dpm.cia301 import (
     ABORT_GENERAL,
+    ABORT_NO_DATA,
     ABORT_NO_SUBINDEX,
     ABORT_UNKNOWN_COMMAND,
+    SDO_INITIATE,
     SDO_REQUEST_BASE,
     SDO_RESPONSE_BASE,
 )
@@ -58,10 +66,30 @@ class SimSdoServer(SdoServer):
                 self._sim.after_writes()
 
     def init_upload(self, request: bytearray) -> None:
-        self._check(request)
+        """The initiate upload response: the value in it (expedited, up to four bytes) or
+        its size (segmented), from the node's ``get_data`` as canopen's server answers it.
+
+        Made here rather than by canopen's ``init_upload``, which logs each upload at INFO
+        (two Python calls, as each of its responses through ``send_response``'s ``super``):
+        the card's host SDO runs the node's server in the card's device loop (issue 22).
+        canopen's ``on_request`` still calls it and turns what it raises into the abort."""
+        index, subindex = self._check(request)
         self._buffer = None
-        super().init_upload(request)  # type: ignore[no-untyped-call]
-        self._segmented = "upload" if self._buffer is not None else None
+        value = self._node.get_data(index, subindex, check_readable=True)
+        size = len(value)
+        if size == 0:
+            raise SdoAbortedError(ABORT_NO_DATA)  # nothing to upload, as canopen answers
+        if size <= 4:
+            command = RESPONSE_UPLOAD | EXPEDITED | SIZE_SPECIFIED | (4 - size) << 2
+            response = SDO_INITIATE.pack(command, index, subindex) + bytes(value).ljust(4, b"\0")
+            self._segmented = None
+        else:
+            response = (SDO_INITIATE.pack(RESPONSE_UPLOAD | SIZE_SPECIFIED, index, subindex)
+                        + size.to_bytes(4, "little"))
+            self._buffer = bytearray(value)
+            self._toggle = 0
+            self._segmented = "upload"
+        self.send_response(response)
 
     def init_download(self, request: bytearray) -> None:
         self._check(request)
@@ -102,9 +130,13 @@ class SimSdoServer(SdoServer):
             response = bytes([UNKNOWN_COMMAND]) + bytes(response[1:SDO_FRAME_LENGTH])
         elif fault == "short":
             response = bytes(response[:SHORT_LENGTH])
-        super().send_response(response)  # type: ignore[no-untyped-call]
+        # canopen's ``send_response`` is this one line: called here, not through ``super``
+        # (its responses are bytearrays, which its ``send_message`` takes as it takes bytes)
+        self.network.send_message(self.tx_cobid, response)  # type: ignore[arg-type]
 
-    def _check(self, request: bytearray) -> None:
+    def _check(self, request: bytearray) -> tuple[int, int]:
+        """The request's index and subindex (kept for an abort), after the node's own
+        refusals: an injected abort, a subindex an array does not define."""
         _, index, subindex = SDO_STRUCT.unpack_from(request)
         self._index, self._subindex = index, subindex
         code = self._sim.description.sim.sdo_abort.get((index, subindex))
@@ -116,3 +148,4 @@ class SimSdoServer(SdoServer):
         if (obj is not None and not isinstance(obj, ODVariable) and isinstance(obj, ODArray)
                 and subindex not in obj.subindices):
             raise SdoAbortedError(ABORT_NO_SUBINDEX)
+        return index, subindex
