@@ -11,6 +11,10 @@ from __future__ import annotations
 
 import os
 import random
+import shutil
+import subprocess
+import sys
+import sysconfig
 import threading
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -23,6 +27,7 @@ from hypothesis import strategies as st
 from dpm.commands import COM_SHARED_MEMORY
 from dpm.layout import HOST_FLAGS, IO_AREA_SIZE, SND_PD
 from dpm.message import Message, Task, TelegramHeader, Tfc
+from firmware import native_mailbox
 from firmware.device import Device
 from host_api.driver import (
     MSG_BUFFER_SIZE,
@@ -35,6 +40,7 @@ from host_api.driver import (
 )
 from tests.conftest import wait_until
 
+SOURCE = Path(__file__).parent.parent / "firmware" / "_mailbox.c"
 READS = 500
 """COM_Shared_Memory reads a host makes in the turn count's test."""
 PYTHON_TURNS_MAX = 60
@@ -155,3 +161,78 @@ def test_the_turn_in_c_answers_as_the_python_turn(cards: Cards, data: bytes, nr:
     assert cards.native.mm[HOST_FLAGS] == cards.python.mm[HOST_FLAGS]
     assert (cards.native.mm[SND_PD : SND_PD + IO_AREA_SIZE]
             == cards.python.mm[SND_PD : SND_PD + IO_AREA_SIZE])
+
+
+FUZZ_REQUESTS = 3000
+
+
+def fuzz(directory: str, module: str) -> None:
+    """The sanitizers' run (in its own process, the sanitized build of the turn in C loaded
+    as ``firmware._mailbox``): random and edge-case COM_Shared_Memory requests, each answer
+    compared with what the PLC task's Python handler gives for the same request."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("firmware._mailbox", module)
+    assert spec is not None and spec.loader is not None
+    sanitized = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(sanitized)
+    native_mailbox.serve = native_mailbox.configure(sanitized)
+    device = Device(0, directory, flash_dir=Path(directory) / "flash")
+    rng = random.Random(309)
+    device.plc.image.write_inputs(0, rng.randbytes(IO_AREA_SIZE))
+    thread = threading.Thread(target=device.run, daemon=True)
+    thread.start()
+    assert DevOpenDriver(directory) == 0
+    wait_until(lambda: DevInitBoard(0) == 0, what="READY")
+    edges = [0, 1, 7, 8, 15, 16, 119, 120, 239, 240, 255, 1791, 1792, 3583, 3584, 0xFFFF]
+    for nr in range(FUZZ_REQUESTS):
+        if nr % 3:
+            header = TelegramHeader(
+                rng.randrange(256), rng.choice([0, 1, 2, 3]), rng.choice(edges),
+                rng.choice([0, 7, 15, 16, 255]), rng.choice(edges) & 0xFF,
+                rng.choice([5, 6, 10, 14, 0x85, 0]), rng.choice([1, 1, 0, 2, 3]))
+            data = header.encode()
+        else:
+            data = rng.randbytes(rng.randrange(0, 24))
+        request = Message(rx=Task.PLC, tx=Task.USER, b=COM_SHARED_MEMORY, nr=nr & 0xFF,
+                          data=data)
+        answer = _ask(0, request)
+        expected = device.plc.com_shared_memory(request)
+        assert answer == expected, (request, answer, expected)
+    device.bell.ring_self()
+    wait_until(lambda: device.native_turns > FUZZ_REQUESTS // 2, what="the turns in C")
+    DevExitBoard(0)
+    DevCloseDriver()
+    device.stop()
+    thread.join(10)
+
+
+def test_the_turn_in_c_under_the_sanitizers(tmp_path: Path) -> None:
+    """Built with AddressSanitizer and UBSan, the turn in C answers random and edge-case
+    requests (lengths 0-23, every area, counts and addresses at and past each limit) as
+    the Python handler does, without a read or write out of bounds or undefined
+    behaviour."""
+    cc = shutil.which("cc") or shutil.which("gcc")
+    if cc is None:
+        pytest.skip("no C compiler")
+    runtimes = [subprocess.run([cc, f"-print-file-name={name}"], capture_output=True,
+                               text=True, check=True).stdout.strip()
+                for name in ("libasan.so", "libubsan.so")]
+    if not all(Path(runtime).is_absolute() for runtime in runtimes):
+        pytest.skip("no ASan/UBSan run-time libraries for this compiler")
+    module = tmp_path / f"_mailbox{sysconfig.get_config_var('EXT_SUFFIX')}"
+    subprocess.run([cc, "-shared", "-fPIC", "-std=gnu11", "-Wall", "-Wextra", "-Werror", "-g",
+                    "-fsanitize=address,undefined", "-fno-sanitize-recover=all",
+                    f"-I{sysconfig.get_paths()['include']}", str(SOURCE), "-o", str(module)],
+                   check=True)
+    env = {**os.environ, "LD_PRELOAD": " ".join(runtimes),
+           "ASAN_OPTIONS": "detect_leaks=0"}
+    directory = tmp_path / "dpm"
+    directory.mkdir()
+    done = subprocess.run(
+        [sys.executable, "-c", "import sys, tests.test_native_mailbox as t; "
+         "t.fuzz(sys.argv[1], sys.argv[2])", str(directory), str(module)],
+        env=env, capture_output=True, text=True, timeout=300, check=False,
+        cwd=Path(__file__).parent.parent)
+    assert done.returncode == 0, done.stdout + done.stderr
+    assert "runtime error" not in done.stderr and "AddressSanitizer" not in done.stderr
