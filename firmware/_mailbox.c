@@ -408,7 +408,9 @@ static PyObject *serve(PyObject *self, PyObject *args) {
       }
     }
     if (taken && unlock(turn) < 0) failed = 1;
-    if (failed) goto done;
+    /* A signal delivered to another thread leaves its handler pending for this one, which
+     * the interpreter would run between two Python turns; a stop it asks for rings. */
+    if (failed || PyErr_CheckSignals() < 0) goto done;
     if (len == 0 || PyList_GET_SIZE(dead) > 0) {
       if (len == 0) { /* the ring goes to the Python turn, which serves the message */
         PyObject *ring = Py_BuildValue("(y#O)", (const char *)payload, (Py_ssize_t)got, expected);
