@@ -55,7 +55,8 @@ within that."""
 MAX_HOSTS = 64
 """Hosts the device keeps ringing; the longest silent one is dropped first."""
 
-_RING = b"\x01"
+RING = b"\x01"
+"""A plain ring (public for the device loop's turn in C, ``firmware.native_mailbox``)."""
 _RING_WANT_ACK = b"\x02"
 """A device ring that also says: more answers wait, ring me when you acknowledge."""
 _RING_WANT_MAILBOX = b"\x03"
@@ -81,7 +82,7 @@ class _Endpoint:
     def close(self) -> None:
         self.sock.close()
 
-    def _send(self, address: str | bytes, payload: bytes = _RING) -> bool:
+    def _send(self, address: str | bytes, payload: bytes = RING) -> bool:
         """Ring ``address``; False when nobody listens there any more."""
         try:
             self.sock.sendto(payload, address)
@@ -193,6 +194,15 @@ class AdaptivePoll:
         return self.interval
 
 
+    def settled(self, now: float) -> bool:
+        """Whether a turn woken by a host's ring that changes no more than the mailbox
+        leaves the interval as it is: no raw host about, no fast window, no answers
+        waiting, nothing to undo, the interval at its longest. Only then may the device
+        loop serve such turns without asking ``next_interval`` (``firmware.native_mailbox``)."""
+        return (self._undo is None and not self._waiting and now >= self._raw_until
+                and now >= self._fast_until and self.interval == DEVICE_POLL_QUIET)
+
+
 class DeviceBell(_Endpoint):
     """The firmware's side: rung by hosts, rings every host it has heard from.
 
@@ -232,13 +242,30 @@ class DeviceBell(_Endpoint):
             while len(self._hosts) > MAX_HOSTS:
                 self._hosts.popitem(last=False)
 
+    def native_hosts(self) -> list[bytes] | None:
+        """The known hosts, the one heard from last at the end, for the device loop's turn in
+        C (``firmware.native_mailbox``), or None when there is none or one is not a host's
+        automatic abstract name (bytes)."""
+        hosts = list(self._hosts)
+        if not hosts or not all(isinstance(host, bytes) for host in hosts):
+            return None
+        return hosts  # type: ignore[return-value]  # all bytes: checked above
+
+    def take_native(self, rings: list[tuple[bytes, str | bytes]],
+                    dead: list[bytes]) -> None:
+        """What the turn in C left for Python: the rings it took and did not serve, and the
+        hosts its rings found gone (``ring_hosts`` drops them the same way)."""
+        for address in dead:
+            self._hosts.pop(address, None)
+        self._on_rings(rings)
+
     def ring_self(self) -> None:
         """Wake the device loop from another thread of the firmware."""
         self._send(self.address)
 
     def ring_hosts(self, want_ack: bool = False) -> None:
         """Ring every known host; ``want_ack`` asks them to ring back on HOSTACK."""
-        payload = _RING_WANT_ACK if want_ack else _RING
+        payload = _RING_WANT_ACK if want_ack else RING
         for address in list(self._hosts):
             if not self._send(address, payload):
                 del self._hosts[address]
@@ -275,4 +302,4 @@ class HostBell(_Endpoint):
         """Ring the device; ``want_mailbox``: and ask for a ring once the device mailbox is
         free (DevPutMessage before it sleeps on a full mailbox)."""
         # no device listens: it polls when it comes
-        self._send(self.device, _RING_WANT_MAILBOX if want_mailbox else _RING)
+        self._send(self.device, _RING_WANT_MAILBOX if want_mailbox else RING)

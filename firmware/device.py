@@ -51,19 +51,22 @@ from dpm.layout import (
     DEV_WATCHDOG,
     DRIVER_TYPE,
     HOST_FLAGS,
+    IO_AREA_SIZE,
     PC_MBX,
+    SND_PD,
     TASK2_STATE,
     TASK_STATE_SIZE,
     pack_field,
 )
 from dpm.message import MSG_MAX_SIZE, Ext, Message
 from dpm.task2 import CanState
-from firmware import info
+from firmware import info, native_mailbox
 from firmware.can.bus import BusConfig
 from firmware.can_task import CanTask
 from firmware.faults import CardFaults
 from firmware.flash import FlashStore, StoredDatabase, default_flash_dir
 from firmware.plc import PlcTask
+from firmware.process_image import UNCONTROLLED
 from firmware.rcs import RcsTask, Start
 from firmware.record_socket import RecordSocket
 from firmware.task import Task
@@ -201,6 +204,11 @@ class Device:
         self._record_socket: RecordSocket | None = None
         trace = os.environ.get(HOP_TRACE_ENV)
         self._hop_trace = _HopTrace(trace) if trace else None
+        self.native = True
+        """[ours] Plain COM_Shared_Memory reads served by the loop's turn in C
+        (``firmware.native_mailbox``); False: every turn in Python (the tests compare)."""
+        self.native_turns = 0
+        """Turns the C turn served (the tests count them)."""
         if self._hop_trace is not None:
             self._hop_trace.install(self)
 
@@ -228,8 +236,13 @@ class Device:
             host_seen = self._host_bytes()
             card_seen = self.mm[HOST_FLAGS]
             timeout = POLL_INTERVAL
+            now = time.monotonic()
             while not self._stopping:
-                self.bell.wait(timeout)
+                served = self._native_turns(poll, now) if self.native else None
+                if served is None:
+                    self.bell.wait(timeout)
+                elif served:
+                    host_seen, card_seen = served
                 with self._turn:
                     self._wake_pending = False  # before service reads what woke it
                     host_rang, self.bell.host_rang = self.bell.host_rang, False
@@ -249,6 +262,41 @@ class Device:
                 timeout = self._until_due(now, interval)
         finally:
             self._power_off()
+
+    def _native_turns(
+            self, poll: AdaptivePoll, now: float,
+    ) -> tuple[tuple[int, int], int] | tuple[()] | None:
+        """Serve the turns of plain COM_Shared_Memory reads in C until one needs this loop
+        (``firmware.native_mailbox``) [ours]: only while such a turn would change nothing
+        here but the mailbox (no recording, fault, queued call, answer or indication, no
+        PD exchange due, the poll settled, no hop trace). None: not now, wait in Python;
+        () when C served no turn; else what the last turn C served left for the fallback
+        poll's comparison (``_host_bytes`` and HostFlags). The rings C took and left are
+        this loop's, as if ``bell.wait`` had taken them; it returns without waiting."""
+        mm = self.mm
+        hosts = self.bell.native_hosts()
+        if (hosts is None or self.recorder is not None or self._calls or self.outbox
+                or self._ring or self._hop_trace is not None or not self.faults.idle
+                or self.bell.mailbox_wanted or self.bell.host_rang
+                or self.can.indication_waiting() or not poll.settled(now)
+                or self.plc.handshake_due(mm[HOST_FLAGS], mm[DEV_FLAGS])):
+            return None
+        due = self.rcs.watchdog_due()
+        master = self.can.master
+        seen = master.host_seen()
+        if seen is None:
+            return None
+        image = self.plc.image
+        outputs, conn = seen
+        if image.mode != UNCONTROLLED:  # the master follows the outputs of the last exchange
+            outputs = mm[SND_PD : SND_PD + IO_AREA_SIZE]
+        rings, dead, turns, dev, watchdog, host = native_mailbox.serve(
+            mm, self.bell.fileno(), hosts, poll.interval, -1.0 if due is None else due, self,
+            self._calls, self.outbox, master.layer2.indications, self._turn, image.lock,
+            image.inputs, outputs, conn)
+        self.native_turns += turns
+        self.bell.take_native(rings, dead)
+        return ((dev & ~fl.HOSTACK, watchdog), host) if turns else ()
 
     def _host_bytes(self) -> tuple[int, int]:
         """What a host that never rings changes: its flags and its watchdog trigger. Not

@@ -129,6 +129,14 @@ class CardFaults:
         """The mailbox stalls: the card takes no message from DevMbx."""
         return self._stalled
 
+    @property
+    def idle(self) -> bool:
+        """No fault is in force, none is pending and no answer is held: the device loop may
+        serve a plain mailbox turn in C (``firmware.native_mailbox``); a fault that begins
+        holds the loop between turns and rings it (``Device.between_turns``)."""
+        return not (self._active or self._held or self._delay or self._stalled or self._hung
+                    or self._reboot)
+
     def hold(self, msg: Message) -> bool:
         """Keep ``msg`` back for the slow card's delay; False: hand it over now."""
         if not self._delay:

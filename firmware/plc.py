@@ -35,6 +35,12 @@ more than the comparison it serves, on every COM_Shared_Memory."""
 _AREAS = (AREA_BY_FUNCTION, AREA_RECEIVE, AREA_SEND)
 
 
+def data_type_limits() -> tuple[tuple[int, int, int], ...]:
+    """Per data type its code, highest address and highest count, for the device loop's
+    turn in C (``firmware.native_mailbox``), which checks a request as ``_check`` does."""
+    return tuple((code, _MAX_ADDRESS[code], count) for code, count in _MAX_COUNT.items())
+
+
 def _check(area: int, adr: int, idx: int, cnt: int, data_type: int, function: int) -> int:
     """msg.f for a COM_Shared_Memory header that asks for too much, 0 when it is good."""
     if function != _READ and function != _WRITE:
@@ -90,16 +96,20 @@ class PlcTask(Task):
 
     # --- the PD channel, served from the device loop ----------------------------
 
-    def service(self, host_flags: int, dev_flags: int) -> None:
-        """Answer the host's process-data handshake in the buffered modes."""
+    def handshake_due(self, host_flags: int, dev_flags: int) -> bool:
+        """Whether ``service`` exchanges the process data at these flags."""
         mode = self.image.mode
         if mode not in DEVICE_CONTROLLED and mode not in HOST_CONTROLLED:
-            return
+            return False
         pending = bool((host_flags ^ dev_flags) & fl.PD)
         # Device-controlled: equal bits are the device's turn (it produces a
         # cycle, then hands it over). Host-controlled: the host's toggle asks
         # for one.
-        if pending == (mode in HOST_CONTROLLED):
+        return pending == (mode in HOST_CONTROLLED)
+
+    def service(self, host_flags: int, dev_flags: int) -> None:
+        """Answer the host's process-data handshake in the buffered modes."""
+        if self.handshake_due(host_flags, dev_flags):
             self.image.cycle()
             self.device.toggle_host_flags(fl.PDACK)
 

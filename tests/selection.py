@@ -18,7 +18,7 @@ TESTS = Path(__file__).resolve().parent
 
 PROCESS_MODULES = frozenset({
     "test_bench_can", "test_bench_frame_cost", "test_bench_lss", "test_bench_scaling",
-    "test_can_bus",
+    "test_can_bus", "test_native_mailbox",
     "test_can_late_frames", "test_can_task",
     "test_can_unsupervised", "test_chaos", "test_cia309_gateway", "test_cia309_limits",
     "test_cia309_server", "test_configure_cli", "test_dbm_by_hand", "test_dbm_cli",

@@ -379,6 +379,14 @@ class Master:
                 self._changed.add(handler)
         self._wakeup.set()
 
+    def host_seen(self) -> tuple[bytes, bytes] | None:
+        """The outputs and connection bits ``notice_host`` saw last (None before its first
+        look): a turn that finds the image's the same has nothing to tell this thread (the
+        device loop's turn in C, ``firmware.native_mailbox``, compares them)."""
+        if self._host_state is None:
+            return None
+        return self._host_outputs, self._host_state[0]
+
     def notice_host(self) -> bool:
         """From the device loop after each turn: follow what the host changed since the last
         turn. True when it changed something, so that the loop's fallback poll counts it

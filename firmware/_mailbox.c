@@ -1,0 +1,448 @@
+/*
+ * firmware._mailbox - the device loop's mailbox turn for a plain COM_Shared_Memory read,
+ * without the interpreter (issue 22) [ours].
+ *
+ * A host that polls the process image through the mailbox makes the card wake, take the
+ * message, answer it and ring, once per round trip: in Python that turn cost about 70 calls
+ * and most of the card's CPU per round trip. ``serve`` waits on the device's bell with the
+ * interpreter lock released and answers, in a loop, every COM_Shared_Memory read (and every
+ * malformed COM_Shared_Memory request) that a known host rings for, as long as nothing else
+ * asks for the Python turn: it returns to the caller on a timeout, on a ring from anyone but
+ * the expected host (the card's own threads ring for stops, calls, indications and state
+ * changes), on any other message, on a change of the flags other than the mailbox toggles,
+ * of the watchdog trigger, the output area or the connection bits, and whenever the turn
+ * lock or the process image's lock is taken. The caller (firmware/device.py) checks the rest
+ * (recorder, faults, queues, poll state) before it calls. Every layout offset, flag bit,
+ * command number and msg.f comes from dpm/ through ``configure``; nothing here is a number
+ * of the protocol.
+ */
+#define PY_SSIZE_T_CLEAN
+#include <Python.h>
+
+#include <errno.h>
+#include <poll.h>
+#include <stddef.h>
+#include <string.h>
+#include <sys/socket.h>
+#include <sys/un.h>
+#include <time.h>
+
+#define MAX_TYPES 8
+
+/* What configure() took from dpm/ and firmware/plc.py. */
+static struct {
+  int ready;
+  Py_ssize_t dev_mbx, pc_mbx, host_flags, dev_flags, dev_watchdog, snd_pd, conn_status;
+  Py_ssize_t conn_size, io_size, msg_max, header;
+  unsigned char hostcom, devack, hostack, devcom, host_mbx, dev_mbx_bit, nak, ring;
+  int plc_task, command, read, write, area_by_function, area_receive, area_send;
+  int bit_type, uint16_type;
+  int f_unknown_function, f_unknown_data_type, f_illegal_area, f_illegal_count, f_overflow;
+  int ntypes, type_code[MAX_TYPES], max_address[MAX_TYPES], max_count[MAX_TYPES];
+} cfg;
+
+PyDoc_STRVAR(configure_doc,
+             "configure(layout: dict[str, int], types: tuple[tuple[int, int, int], ...])\n\n"
+             "The offsets, bits, numbers and msg.f of dpm/ (by name), and per data type its\n"
+             "code, highest address and highest count (firmware/plc.py).");
+
+static int take(PyObject *layout, const char *name, long *value) {
+  PyObject *item = PyDict_GetItemString(layout, name); /* borrowed */
+  if (item == NULL) {
+    PyErr_Format(PyExc_KeyError, "configure: %s missing", name);
+    return -1;
+  }
+  *value = PyLong_AsLong(item);
+  return (*value == -1 && PyErr_Occurred()) ? -1 : 0;
+}
+
+#define TAKE(field, name)                    \
+  do {                                       \
+    long v_;                                 \
+    if (take(layout, name, &v_) < 0) return NULL; \
+    cfg.field = v_;                          \
+  } while (0)
+
+static PyObject *configure(PyObject *self, PyObject *args) {
+  PyObject *layout, *types;
+  Py_ssize_t i, n;
+  (void)self;
+  if (!PyArg_ParseTuple(args, "O!O!", &PyDict_Type, &layout, &PyTuple_Type, &types)) return NULL;
+  TAKE(dev_mbx, "DEV_MBX");
+  TAKE(pc_mbx, "PC_MBX");
+  TAKE(host_flags, "HOST_FLAGS");
+  TAKE(dev_flags, "DEV_FLAGS");
+  TAKE(dev_watchdog, "DEV_WATCHDOG");
+  TAKE(snd_pd, "SND_PD");
+  TAKE(conn_status, "CONN_STATUS");
+  TAKE(conn_size, "CONN_SIZE");
+  TAKE(io_size, "IO_AREA_SIZE");
+  TAKE(msg_max, "MSG_MAX_SIZE");
+  TAKE(header, "TELEGRAM_HEADER_SIZE");
+  TAKE(hostcom, "HOSTCOM");
+  TAKE(devack, "DEVACK");
+  TAKE(hostack, "HOSTACK");
+  TAKE(devcom, "DEVCOM");
+  TAKE(host_mbx, "HOST_MBX");
+  TAKE(dev_mbx_bit, "DEV_MBX_BIT");
+  TAKE(nak, "NAK");
+  TAKE(ring, "RING");
+  TAKE(plc_task, "PLC_TASK");
+  TAKE(command, "COM_SHARED_MEMORY");
+  TAKE(read, "READ");
+  TAKE(write, "WRITE");
+  TAKE(area_by_function, "AREA_BY_FUNCTION");
+  TAKE(area_receive, "AREA_RECEIVE");
+  TAKE(area_send, "AREA_SEND");
+  TAKE(bit_type, "BIT");
+  TAKE(uint16_type, "UINT16");
+  TAKE(f_unknown_function, "UNKNOWN_FUNCTION");
+  TAKE(f_unknown_data_type, "UNKNOWN_DATA_TYPE");
+  TAKE(f_illegal_area, "ILLEGAL_AREA");
+  TAKE(f_illegal_count, "ILLEGAL_COUNT");
+  TAKE(f_overflow, "BUFFER_OVERFLOW");
+  n = PyTuple_GET_SIZE(types);
+  if (n > MAX_TYPES) {
+    PyErr_SetString(PyExc_ValueError, "configure: too many data types");
+    return NULL;
+  }
+  for (i = 0; i < n; i++) {
+    if (!PyArg_ParseTuple(PyTuple_GET_ITEM(types, i), "iii", &cfg.type_code[i],
+                          &cfg.max_address[i], &cfg.max_count[i]))
+      return NULL;
+  }
+  cfg.ntypes = (int)n;
+  if (cfg.msg_max < 8 + cfg.header || cfg.msg_max > 8 + 255 || cfg.io_size <= 0) {
+    PyErr_SetString(PyExc_ValueError, "configure: inconsistent sizes");
+    return NULL;
+  }
+  cfg.ready = 1;
+  Py_RETURN_NONE;
+}
+
+/* msg.f for a COM_Shared_Memory header that asks for too much, 0 when it is good: the
+ * checks of firmware/plc.py's _check, in its order. */
+static int check(int area, int adr, int idx, int cnt, int type, int function) {
+  int t, width;
+  long io = (long)cfg.io_size;
+  if (function != cfg.read && function != cfg.write) return cfg.f_unknown_function;
+  for (t = 0; t < cfg.ntypes && cfg.type_code[t] != type; t++) {
+  }
+  if (t == cfg.ntypes) return cfg.f_unknown_data_type;
+  if (area != cfg.area_by_function && area != cfg.area_receive && area != cfg.area_send)
+    return cfg.f_illegal_area;
+  if (cnt < 1 || cnt > cfg.max_count[t]) return cfg.f_illegal_count;
+  if (type == cfg.bit_type) {
+    if (idx > 15) return cfg.f_overflow;
+    if (adr > cfg.max_address[t] || (long)adr * 16 + idx + cnt > io * 8) return cfg.f_overflow;
+    return 0;
+  }
+  width = type == cfg.uint16_type ? 2 : 1;
+  if (adr > cfg.max_address[t] || ((long)adr + cnt) * width > io) return cfg.f_overflow;
+  return 0;
+}
+
+/* The answer to the request in raw (a copy of the slot) into out: its length, or 0 when
+ * the request is not one this file answers (the Python turn does). inputs: the receive
+ * area's bytes (the process image's inputs, under its lock). */
+static Py_ssize_t answer(const unsigned char *raw, const unsigned char *image,
+                         const unsigned char *inputs, unsigned char *out) {
+  int ln = raw[2], f = 0, area, adr, idx, cnt, type, function, i;
+  const unsigned char *data = raw + 8, *source;
+  Py_ssize_t n = 0;
+  if (raw[0] != cfg.plc_task || raw[6] != cfg.command || (raw[7] & cfg.nak)) return 0;
+  if (ln < cfg.header) {
+    f = cfg.f_illegal_count;
+  } else {
+    area = data[1];
+    adr = data[2] | (data[3] << 8);
+    idx = data[4];
+    cnt = data[5];
+    type = data[6];
+    function = data[7];
+    f = check(area, adr, idx, cnt, type, function);
+    if (!f) {
+      if (function != cfg.read) return 0; /* a write: the Python turn */
+      if (area == cfg.area_by_function) area = cfg.area_receive;
+      source = area == cfg.area_receive ? inputs : image + cfg.snd_pd;
+      n = type == cfg.bit_type ? (cnt + 7) / 8 : (Py_ssize_t)cnt * (type == cfg.uint16_type ? 2 : 1);
+      if (n + cfg.header > 255) return 0; /* no answer of the seed's sizes: the Python turn */
+      memcpy(out + 8, data, (size_t)cfg.header);
+      if (type != cfg.bit_type) {
+        int width = type == cfg.uint16_type ? 2 : 1;
+        memcpy(out + 8 + cfg.header, source + (Py_ssize_t)adr * width, (size_t)n);
+      } else {
+        long first = (long)adr * 16 + idx;
+        memset(out + 8 + cfg.header, 0, (size_t)n);
+        for (i = 0; i < cnt; i++) {
+          long bit = first + i;
+          if ((source[bit >> 3] >> (bit & 7)) & 1)
+            out[8 + cfg.header + (i >> 3)] |= (unsigned char)(1u << (i & 7));
+        }
+      }
+      n += cfg.header;
+    }
+  }
+  out[0] = raw[1]; /* rx, tx swapped */
+  out[1] = raw[0];
+  out[2] = (unsigned char)n;
+  out[3] = raw[3]; /* nr */
+  out[4] = raw[6]; /* a = b */
+  out[5] = (unsigned char)f;
+  out[6] = 0;
+  out[7] = 0;
+  return 8 + n;
+}
+
+static double monotonic(void) {
+  struct timespec ts;
+  clock_gettime(CLOCK_MONOTONIC, &ts);
+  return (double)ts.tv_sec + (double)ts.tv_nsec * 1e-9;
+}
+
+/* A ring's sender as Python's socket module gives it: bytes for an abstract name, str for
+ * a path, '' for an unnamed socket. */
+static PyObject *sender(const struct sockaddr_un *addr, socklen_t len) {
+  Py_ssize_t n = (Py_ssize_t)len - (Py_ssize_t)offsetof(struct sockaddr_un, sun_path);
+  if (n <= 0) return PyUnicode_FromString("");
+  if (addr->sun_path[0] == '\0') return PyBytes_FromStringAndSize(addr->sun_path, n);
+  return PyUnicode_DecodeFSDefaultAndSize(addr->sun_path, (Py_ssize_t)strnlen(addr->sun_path, (size_t)n));
+}
+
+/* Ring every host (abstract names, bytes); the ones nobody listens at any more go to dead. */
+static int ring_hosts(int fd, PyObject *hosts, PyObject *dead) {
+  Py_ssize_t i, n = PyList_GET_SIZE(hosts);
+  unsigned char payload = cfg.ring;
+  for (i = 0; i < n; i++) {
+    PyObject *host = PyList_GET_ITEM(hosts, i);
+    struct sockaddr_un addr;
+    Py_ssize_t len = PyBytes_GET_SIZE(host);
+    memset(&addr, 0, sizeof addr);
+    addr.sun_family = AF_UNIX;
+    memcpy(addr.sun_path, PyBytes_AS_STRING(host), (size_t)len);
+    if (sendto(fd, &payload, 1, MSG_DONTWAIT, (struct sockaddr *)&addr,
+               (socklen_t)(offsetof(struct sockaddr_un, sun_path) + (size_t)len)) < 0 &&
+        (errno == ECONNREFUSED || errno == ENOENT || errno == EPERM || errno == EACCES)) {
+      if (PyList_Append(dead, host) < 0) return -1;
+    }
+  }
+  return 0;
+}
+
+/* Take a lock (threading.Lock, RLock) without blocking: 1 taken, 0 busy, -1 error. */
+static int try_lock(PyObject *lock) {
+  PyObject *got = PyObject_CallMethod(lock, "acquire", "O", Py_False);
+  int taken;
+  if (got == NULL) return -1;
+  taken = PyObject_IsTrue(got);
+  Py_DECREF(got);
+  return taken;
+}
+
+static int unlock(PyObject *lock) {
+  PyObject *done = PyObject_CallMethod(lock, "release", NULL);
+  if (done == NULL) return -1;
+  Py_DECREF(done);
+  return 0;
+}
+
+/* Whether the loop's queues and recording are as the caller left them (empty, none). */
+static int device_quiet(PyObject *device, PyObject *calls, PyObject *outbox,
+                        PyObject *indications) {
+  PyObject *recorder = PyObject_GetAttrString(device, "recorder");
+  int quiet;
+  if (recorder == NULL) return -1;
+  quiet = recorder == Py_None && PyObject_Length(calls) == 0 &&
+          PyObject_Length(outbox) == 0 && PyObject_Length(indications) == 0;
+  Py_DECREF(recorder);
+  return PyErr_Occurred() ? -1 : quiet;
+}
+
+PyDoc_STRVAR(serve_doc,
+             "serve(image, fd, hosts, interval, due, device, calls, outbox, indications,\n"
+             "      turn, image_lock, inputs, outputs) -> (rings, dead, turns, dev_seen,\n"
+             "      watchdog_seen, host_seen)\n\n"
+             "Answer the last of hosts' COM_Shared_Memory reads until a turn needs Python.\n"
+             "image: the board's mmap; fd: the device bell; hosts: the known hosts' abstract\n"
+             "names, the expected one last; interval: the poll interval, due: the watchdog's\n"
+             "deadline plus the loop's lateness (monotonic seconds, or a negative number);\n"
+             "device, calls, outbox, indications: looked at each turn (recorder, queues);\n"
+             "turn, image_lock: the device's turn lock and the process image's lock, each\n"
+             "taken without blocking; inputs: the image's receive area (bytearray); outputs:\n"
+             "the output area the CAN master saw last. Returns the rings taken that need the\n"
+             "Python turn, the hosts that are gone, the turns served, and DevFlags, the\n"
+             "watchdog trigger and HostFlags as the last served turn left them.");
+
+static PyObject *serve(PyObject *self, PyObject *args) {
+  Py_buffer image, outputs, conn;
+  int fd, turns = 0, failed = 0;
+  double interval, due;
+  PyObject *hosts, *device, *calls, *outbox, *indications, *turn, *image_lock, *inputs;
+  PyObject *rings = NULL, *dead = NULL, *expected, *result = NULL;
+  unsigned char *mm, dev_base, watchdog, dev_seen = 0, watchdog_seen = 0, host_seen = 0;
+  (void)self;
+  if (!cfg.ready) {
+    PyErr_SetString(PyExc_RuntimeError, "configure() first");
+    return NULL;
+  }
+  if (!PyArg_ParseTuple(args, "w*iO!ddOOOOOOO!y*y*", &image, &fd, &PyList_Type, &hosts,
+                        &interval, &due, &device, &calls, &outbox, &indications, &turn,
+                        &image_lock, &PyByteArray_Type, &inputs, &outputs, &conn))
+    return NULL;
+  mm = (unsigned char *)image.buf;
+  if (image.len < cfg.snd_pd + cfg.io_size || image.len < cfg.dev_mbx + cfg.msg_max ||
+      image.len < cfg.pc_mbx + cfg.msg_max || image.len < cfg.conn_status + cfg.conn_size ||
+      image.len <= cfg.host_flags || image.len <= cfg.dev_flags ||
+      image.len <= cfg.dev_watchdog || outputs.len != cfg.io_size || conn.len != cfg.conn_size ||
+      PyByteArray_GET_SIZE(inputs) != cfg.io_size || PyList_GET_SIZE(hosts) == 0) {
+    PyErr_SetString(PyExc_ValueError, "serve: sizes do not fit the layout");
+    goto done;
+  }
+  for (Py_ssize_t i = 0; i < PyList_GET_SIZE(hosts); i++) {
+    PyObject *host = PyList_GET_ITEM(hosts, i);
+    if (!PyBytes_Check(host) || PyBytes_GET_SIZE(host) < 1 || PyBytes_AS_STRING(host)[0] != 0 ||
+        (size_t)PyBytes_GET_SIZE(host) > sizeof(((struct sockaddr_un *)0)->sun_path)) {
+      PyErr_SetString(PyExc_ValueError, "serve: hosts are abstract names (bytes)");
+      goto done;
+    }
+  }
+  expected = PyList_GET_ITEM(hosts, PyList_GET_SIZE(hosts) - 1);
+  rings = PyList_New(0);
+  dead = PyList_New(0);
+  if (rings == NULL || dead == NULL) goto done;
+  dev_base = __atomic_load_n(mm + cfg.dev_flags, __ATOMIC_ACQUIRE);
+  watchdog = mm[cfg.dev_watchdog];
+  for (;;) {
+    unsigned char payload[16], raw[8 + 255], out[8 + 255], dev, host;
+    struct sockaddr_un addr;
+    socklen_t addrlen = sizeof addr;
+    ssize_t got;
+    Py_ssize_t len;
+    double now = monotonic(), wait = interval;
+    int ready, taken, quiet;
+    if (due >= 0 && due - now < wait) wait = due - now;
+    if (wait <= 0) break; /* the watchdog is due: the Python turn */
+    Py_BEGIN_ALLOW_THREADS;
+    {
+      struct pollfd p = {fd, POLLIN, 0};
+      struct timespec ts;
+      ts.tv_sec = (time_t)wait;
+      ts.tv_nsec = (long)((wait - (double)ts.tv_sec) * 1e9);
+      ready = ppoll(&p, 1, &ts, NULL);
+      got = ready > 0 ? recvfrom(fd, payload, sizeof payload, MSG_DONTWAIT,
+                                 (struct sockaddr *)&addr, &addrlen)
+                      : -1;
+    }
+    Py_END_ALLOW_THREADS;
+    if (ready < 0 && errno != EINTR) {
+      PyErr_SetFromErrno(PyExc_OSError);
+      goto done;
+    }
+    if (ready < 0) {
+      if (PyErr_CheckSignals() < 0) goto done;
+      break; /* a signal: its handler may have asked the loop to stop */
+    }
+    if (ready == 0) break; /* the poll's interval: the Python turn */
+    if (got < 0) continue; /* another thread took the ring */
+    {
+      PyObject *who = sender(&addr, addrlen);
+      int same;
+      if (who == NULL) goto done;
+      same = got == 1 && payload[0] == cfg.ring && PyBytes_Check(who) &&
+             PyBytes_GET_SIZE(who) == PyBytes_GET_SIZE(expected) &&
+             memcmp(PyBytes_AS_STRING(who), PyBytes_AS_STRING(expected),
+                    (size_t)PyBytes_GET_SIZE(who)) == 0;
+      if (!same) {
+        PyObject *ring = Py_BuildValue("(y#N)", (const char *)payload, (Py_ssize_t)got, who);
+        if (ring == NULL || PyList_Append(rings, ring) < 0) {
+          Py_XDECREF(ring);
+          goto done;
+        }
+        Py_DECREF(ring);
+        break;
+      }
+      Py_DECREF(who);
+    }
+    /* The expected host's plain ring: serve the turn here if it is a plain one. */
+    taken = try_lock(turn);
+    if (taken < 0) goto done;
+    quiet = 0;
+    len = 0;
+    if (taken) {
+      quiet = device_quiet(device, calls, outbox, indications);
+      if (quiet < 0) {
+        unlock(turn);
+        goto done;
+      }
+    }
+    if (quiet) {
+      dev = __atomic_load_n(mm + cfg.dev_flags, __ATOMIC_ACQUIRE);
+      host = mm[cfg.host_flags];
+      quiet = ((dev ^ dev_base) & ~(cfg.devcom | cfg.hostack)) == 0 &&
+              mm[cfg.dev_watchdog] == watchdog && ((host ^ dev) & cfg.host_mbx) == 0 &&
+              ((host ^ dev) & cfg.dev_mbx_bit) != 0 &&
+              memcmp(mm + cfg.snd_pd, outputs.buf, (size_t)cfg.io_size) == 0 &&
+              memcmp(mm + cfg.conn_status, conn.buf, (size_t)cfg.conn_size) == 0 &&
+              (due < 0 || monotonic() <= due);
+      if (quiet) {
+        int locked;
+        memcpy(raw, mm + cfg.dev_mbx, (size_t)cfg.msg_max); /* one copy, as _receive */
+        locked = try_lock(image_lock);
+        if (locked < 0) failed = 1;
+        if (locked > 0) {
+          len = answer(raw, mm, (const unsigned char *)PyByteArray_AS_STRING(inputs), out);
+          if (unlock(image_lock) < 0) failed = 1;
+        }
+        if (len > 0) {
+          __atomic_store_n(mm + cfg.host_flags, (unsigned char)(host ^ cfg.devack),
+                           __ATOMIC_SEQ_CST);
+          memcpy(mm + cfg.pc_mbx, out, (size_t)len);
+          __atomic_store_n(mm + cfg.host_flags, (unsigned char)(host ^ cfg.devack ^ cfg.hostcom),
+                           __ATOMIC_SEQ_CST);
+          if (ring_hosts(fd, hosts, dead) < 0) failed = 1;
+          turns++;
+          dev_seen = __atomic_load_n(mm + cfg.dev_flags, __ATOMIC_ACQUIRE);
+          watchdog_seen = mm[cfg.dev_watchdog];
+          host_seen = mm[cfg.host_flags];
+        }
+      }
+    }
+    if (taken && unlock(turn) < 0) failed = 1;
+    /* A signal delivered to another thread leaves its handler pending for this one, which
+     * the interpreter would run between two Python turns; a stop it asks for rings. */
+    if (failed || PyErr_CheckSignals() < 0) goto done;
+    if (len == 0 || PyList_GET_SIZE(dead) > 0) {
+      if (len == 0) { /* the ring goes to the Python turn, which serves the message */
+        PyObject *ring = Py_BuildValue("(y#O)", (const char *)payload, (Py_ssize_t)got, expected);
+        if (ring == NULL || PyList_Append(rings, ring) < 0) {
+          Py_XDECREF(ring);
+          goto done;
+        }
+        Py_DECREF(ring);
+      }
+      break;
+    }
+  }
+  result = Py_BuildValue("(OOiiii)", rings, dead, turns, dev_seen, watchdog_seen, host_seen);
+done:
+  Py_XDECREF(rings);
+  Py_XDECREF(dead);
+  PyBuffer_Release(&image);
+  PyBuffer_Release(&outputs);
+  PyBuffer_Release(&conn);
+  return result;
+}
+
+static PyMethodDef methods[] = {
+    {"configure", configure, METH_VARARGS, configure_doc},
+    {"serve", serve, METH_VARARGS, serve_doc},
+    {NULL, NULL, 0, NULL},
+};
+
+static struct PyModuleDef module = {
+    PyModuleDef_HEAD_INIT, "firmware._mailbox",
+    "The device loop's mailbox turn for a plain COM_Shared_Memory read, in C [ours].", -1,
+    methods, NULL, NULL, NULL, NULL,
+};
+
+PyMODINIT_FUNC PyInit__mailbox(void) { return PyModule_Create(&module); }

@@ -1,0 +1,60 @@
+"""The device loop's mailbox turn in C for a plain COM_Shared_Memory read [ours] (issue 22).
+
+``firmware/_mailbox.c`` answers, with the interpreter lock released while it waits, the
+COM_Shared_Memory reads (and malformed COM_Shared_Memory requests) a host rings for while
+nothing else needs the device loop's Python turn; it returns to that turn for everything
+else. This module hands it the numbers it works with, from ``dpm/`` and the PLC task's
+limits, so the C file holds no number of the protocol.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from types import ModuleType
+from typing import Any
+
+import firmware._mailbox as _mailbox
+from dpm import flags as fl
+from dpm.commands import AREA_BY_FUNCTION, AREA_RECEIVE, AREA_SEND, COM_SHARED_MEMORY
+from dpm.doorbell import RING
+from dpm.errors import PlcF
+from dpm.layout import (
+    CONN_STATUS,
+    DEV_FLAGS,
+    DEV_MBX,
+    DEV_WATCHDOG,
+    HOST_FLAGS,
+    IO_AREA_SIZE,
+    PC_MBX,
+    SND_PD,
+    size_of,
+)
+from dpm.message import MSG_MAX_SIZE, TELEGRAM_HEADER, Ext, Task, Tdt, Tfc
+from firmware.plc import data_type_limits
+
+LAYOUT = {
+    "DEV_MBX": DEV_MBX, "PC_MBX": PC_MBX, "HOST_FLAGS": HOST_FLAGS, "DEV_FLAGS": DEV_FLAGS,
+    "DEV_WATCHDOG": DEV_WATCHDOG, "SND_PD": SND_PD, "CONN_STATUS": CONN_STATUS,
+    "CONN_SIZE": size_of("Task2Parameter.abConnStatus"), "IO_AREA_SIZE": IO_AREA_SIZE,
+    "MSG_MAX_SIZE": MSG_MAX_SIZE, "TELEGRAM_HEADER_SIZE": TELEGRAM_HEADER.size,
+    "HOSTCOM": fl.HOSTCOM, "DEVACK": fl.DEVACK, "HOSTACK": fl.HOSTACK, "DEVCOM": fl.DEVCOM,
+    "HOST_MBX": fl.HOST_MBX, "DEV_MBX_BIT": fl.DEV_MBX, "NAK": int(Ext.NAK),
+    "RING": RING[0], "PLC_TASK": int(Task.PLC), "COM_SHARED_MEMORY": COM_SHARED_MEMORY,
+    "READ": int(Tfc.READ), "WRITE": int(Tfc.WRITE), "AREA_BY_FUNCTION": AREA_BY_FUNCTION,
+    "AREA_RECEIVE": AREA_RECEIVE, "AREA_SEND": AREA_SEND, "BIT": int(Tdt.BIT),
+    "UINT16": int(Tdt.UINT16), "UNKNOWN_FUNCTION": int(PlcF.UNKNOWN_FUNCTION),
+    "UNKNOWN_DATA_TYPE": int(PlcF.UNKNOWN_DATA_TYPE), "ILLEGAL_AREA": int(PlcF.ILLEGAL_AREA),
+    "ILLEGAL_COUNT": int(PlcF.ILLEGAL_COUNT), "BUFFER_OVERFLOW": int(PlcF.BUFFER_OVERFLOW),
+}
+"""What ``configure`` hands the C file, by name."""
+
+
+def configure(module: ModuleType) -> Callable[..., Any]:
+    """Hand ``module`` (``firmware._mailbox``, or a build of it with the sanitizers) its
+    numbers; its ``serve``."""
+    module.configure(LAYOUT, data_type_limits())
+    serve: Callable[..., Any] = module.serve
+    return serve
+
+
+serve = configure(_mailbox)
