@@ -112,8 +112,10 @@ def upload_1000h(board: Board) -> int:
 
 def test_an_expedited_upload_costs_the_device_loop_few_python_calls(
         simulated_card: SimulatedCard) -> None:
-    """An expedited COM_SDO_Up_Download answered by a simulated node runs at most 98 Python
-    calls in the device loop's thread (93 on 2026-12-03, branch sdo08; 112-114 before: the
+    """An expedited COM_SDO_Up_Download answered by a simulated node runs at most 108 Python
+    calls in the device loop's thread (104 on 2026-12-03 after the merge of branch cardmb,
+    whose pre-checks before the C mailbox turn add about 11 to every Python turn; 93 on
+    branch sdo08 alone; 112-114 before it: the
     frames deep-copied by ``copy`` for each station, canopen's listener, ``notify`` and a
     listener of remote frames per frame to the nodes, canopen's ``init_upload`` with its
     log call, a closure and a header object for the answer; 143 before branch sdocut):
@@ -130,7 +132,7 @@ def test_an_expedited_upload_costs_the_device_loop_few_python_calls(
     finally:
         card.loop_calls.on = False
     per_transfer = card.loop_calls.calls / transfers
-    assert per_transfer <= 98, f"{per_transfer:.1f} Python calls per transfer in the loop"
+    assert per_transfer <= 108, f"{per_transfer:.1f} Python calls per transfer in the loop"
 
 
 def test_an_expedited_upload_costs_the_host_few_python_calls(
