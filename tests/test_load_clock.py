@@ -35,7 +35,9 @@ STARVED = textwrap.dedent(f"""
     import os, subprocess, sys, time
     os.sched_setaffinity(0, {{{CPU}}})
     rivals = [subprocess.Popen([sys.executable, "-c", "import os\\n"
-                                "os.sched_setaffinity(0, {{{CPU}}})\\nwhile True: pass"])
+                                "os.sched_setaffinity(0, {{{CPU}}})\\n"
+                                "parent = os.getppid()\\n"
+                                "while os.getppid() == parent: pass"])
               for _ in range(RIVALS)]
     try:
         begun = time.process_time()
@@ -47,7 +49,9 @@ STARVED = textwrap.dedent(f"""
             rival.wait()
 """)
 """A program that spends ``WORK_S`` of CPU on a CPU it shares with ``RIVALS`` busy ones
-(both set before it)."""
+(both set before it). A rival spins only while its parent lives: a time-out kills the
+starved program with SIGKILL, which skips its ``finally``, and rivals that looped forever
+were left behind, busy on that CPU for the rest of the suite."""
 
 WORK_S = 1.0
 TIMEOUT_S = 2.0
