@@ -120,10 +120,12 @@ def test_a_starved_test_passes_and_one_that_hangs_fails(tmp_path: Path) -> None:
                 "--durations=0", str(tmp_path / "test_timed.py")], 120, cwd=ROOT,
                capture_output=True, text=True)
     lines = done.stdout.splitlines()
-    assert any(line.startswith("PASSED ") and line.endswith("::test_starved")
-               for line in lines), done.stdout
-    assert any(line.startswith("FAILED ") and line.endswith("::test_hangs")
-               for line in lines), done.stdout
+    # -rA's lines are "OUTCOME path::test" and, where the terminal is wide enough for it,
+    # " - reason": the test's name is what comes before that.
+    outcomes = {line.split(" - ")[0].rsplit("::", 1)[-1]: line.split(" ", 1)[0]
+                for line in lines if line.startswith(("PASSED ", "FAILED "))}
+    assert outcomes.get("test_starved") == "PASSED", done.stdout
+    assert outcomes.get("test_hangs") == "FAILED", done.stdout
     assert "Failed: Timeout (>1.0s) from pytest-timeout" in done.stdout
     def duration(test: str) -> float:
         return next(float(line.split("s")[0]) for line in lines
