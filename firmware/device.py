@@ -274,12 +274,14 @@ class Device:
         poll's comparison (``_host_bytes`` and HostFlags). The rings C took and left are
         this loop's, as if ``bell.wait`` had taken them; it returns without waiting."""
         mm = self.mm
-        hosts = self.bell.native_hosts()
-        if (hosts is None or self.recorder is not None or self._calls or self.outbox
+        if (self.recorder is not None or self._calls or self.outbox
                 or self._ring or self._hop_trace is not None or not self.faults.idle
                 or self.bell.mailbox_wanted or self.bell.host_rang
                 or self.can.indication_waiting() or not poll.settled(now)
                 or self.plc.handshake_due(mm[HOST_FLAGS], mm[DEV_FLAGS])):
+            return None
+        hosts = self.bell.native_hosts()  # a list: made only for a turn C may serve
+        if hosts is None:
             return None
         due = self.rcs.watchdog_due()
         master = self.can.master
