@@ -85,7 +85,12 @@ def main(argv: list[str] | None = None) -> int:
     words = sys.argv[1:] if argv is None else argv
     # the command is the first word: ``cifemu`` itself takes no option but --help
     chosen = words[0] if words and words[0] in {c.name for c in COMMANDS} else ""
-    args = build_parser(chosen).parse_args(words)
+    parser = build_parser(chosen)
+    if any("\0" in word for word in words):
+        # no shell can pass a NUL byte, but a Python caller can: every file name and value
+        # would fail later, deep in a command, with a bare ValueError
+        parser.error("an argument holds a NUL byte, which no file name or value may contain")
+    args = parser.parse_args(words)
     from cifemu.cli_output import run_guarded  # after parsing: --help imports nothing
 
     result: int = run_guarded(args.func, args)

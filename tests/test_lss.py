@@ -253,6 +253,69 @@ def test_fastscan_reads_no_late_answer_as_a_1_bit(make_rig: Callable[..., Rig]) 
     lss.switch_state_global(WAITING)
 
 
+class LateDuplicates:
+    """The card's layer-2 indications, one frame each, with every marker answer (50h) but
+    the first of each step held back ``HELD_S``: the duplicates of several slaves' answers
+    coming later than the master's settle window, as a loaded machine delivered them.
+
+    A stand-in for the card's indications (LssMaster's ``indications``) because the real
+    card and its simulated slaves answer within 2 ms on a quiet machine, and a loaded one
+    holds answers back only now and then; the frames themselves are the card's.
+    """
+
+    HELD_S = 0.01
+
+    def __init__(self, board: Board, slaves: int) -> None:
+        self.board = board
+        self.slaves = slaves
+        self.markers = 0
+        self.frames: list[tuple[float, Message]] = []
+        """(when it may be read, a one-frame indication), in the order they go out."""
+
+    def __call__(self, timeout: float) -> Message | None:
+        deadline = time.monotonic() + timeout
+        while True:
+            now = time.monotonic()
+            if self.frames and self.frames[0][0] <= now:
+                return self.frames.pop(0)[1]
+            until = min(deadline, self.frames[0][0]) if self.frames else deadline
+            try:
+                msg = self.board.get_message(max(0, int((until - now) * 1000)))
+            except CifError:
+                if time.monotonic() >= deadline:
+                    return None
+                continue
+            self._split(msg)
+
+    def _split(self, msg: Message) -> None:
+        now, d, at = time.monotonic(), msg.data, 0
+        if msg.b != COM_RX_CAN_LAYER2:
+            self.frames.append((now, msg))
+            return
+        while at + 2 <= len(d):
+            size = 0 if d[at + 1] & 0x10 else min(d[at + 1] & 0x0F, 8)
+            frame = Message(rx=msg.rx, tx=msg.tx, b=msg.b, data=bytes(d[at : at + 2 + size]))
+            held = size == 8 and d[at + 2] == 0x50 and self.markers % self.slaves != 0
+            self.markers += size == 8 and d[at + 2] == 0x50
+            self.frames.append((now + self.HELD_S * held, frame))
+            self.frames.sort(key=lambda pair: pair[0])  # stable: equal times keep order
+            at += 2 + size
+
+
+def test_fastscan_counts_the_slaves_when_their_duplicates_come_late(
+        make_rig: Callable[..., Rig]) -> None:
+    """Each duplicate marker answer comes 10 ms after the first, later than the 2 ms the
+    master first waits for duplicates: the first scan reads wrong bits, the next counts the
+    slaves from every marker answer and waits for all of them at each step. The master of
+    eee042b waited 2 ms at every step in all three scans and raised LssError 103."""
+    rig = make_rig()
+    lss = LssMaster(rig.board, indications=LateDuplicates(rig.board, len(SLAVES)),
+                    timeout=TIMEOUT_S)
+    assert lss.fastscan() == min(SLAVES)
+    assert lss.inquire_address() == min(SLAVES)
+    lss.switch_state_global(WAITING)
+
+
 def test_fastscan_without_unconfigured_slaves(make_rig: Callable[..., Rig]) -> None:
     lss = make_rig("[[node]]\nid = 5\n").lss
     with expect_silence(lss):  # not even fastscan's reset step is answered

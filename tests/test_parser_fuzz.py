@@ -175,6 +175,19 @@ def test_command_lines_end_with_a_status_never_a_traceback(
     assert "Traceback" not in err.getvalue() + out.getvalue()
 
 
+def test_a_nul_byte_in_an_argument_is_a_usage_error_not_a_traceback(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The case hypothesis found: ``dbm diff`` opened a path holding a NUL byte and ended
+    in pathlib's ValueError."""
+    monkeypatch.chdir(tmp_path)
+    err = io.StringIO()
+    with (contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()),
+          pytest.raises(SystemExit) as exit_info):
+        cifemu_main(["dbm", "diff", "\x00", "-1"])
+    assert exit_info.value.code == 2
+    assert "NUL byte" in err.getvalue() and "Traceback" not in err.getvalue()
+
+
 def test_a_bad_description_is_named_with_its_reason(tmp_path: Path) -> None:
     """The command line says which file and what is wrong with it."""
     bad = tmp_path / "plant.toml"

@@ -32,20 +32,25 @@ Decisions [ours]:
   its silence is its answer. Through the emulated card an answer takes 0.3 ms (p50) to 2 ms
   (p99), but a loaded machine can hold a frame back for tens of milliseconds; on a real bus
   choose both to suit the slowest device.
-* A scan's bit step is followed, in the same message, by "identify non-configured remote
-  slave", which every slave taking part in fastscan answers (with 50h, where the bit step's
-  answer is 4Fh). A slave answers its requests in order, so once the marker's answer is in,
-  the bit step's answer, if any, is in too: a bit step no longer ends on a time-out, and an
-  answer a loaded machine delayed is not read as a 1-bit (and then taken for the next
-  step's answer). A step costs a round trip instead of 50 ms per 1-bit; one whose marker is
-  not answered within the scan's wait starts the scan over.
-* Several slaves may answer one identify or fastscan request, each with its own frame, and
-  the later frames may reach the host after the first (up to 2 ms later, measured through
-  the emulated card): after a positive answer the master takes the indications of the next
-  ``SETTLE_S`` and discards them, so a late duplicate is not read as the answer to the next
-  request. A fastscan whose confirmation or marker is not answered (an answer lost or later
-  than the wait), or after which no slave answers an inquiry (a late answer faked the last
-  confirmation), starts over with twice the wait, up to ``FASTSCAN_ATTEMPTS`` scans.
+* Each step of a scan (the reset, every bit, every confirmation) is followed, in the same
+  message, by "identify non-configured remote slave", which every unconfigured slave, that
+  is every slave taking part, answers (with 50h, where the step's answer is 4Fh). A slave
+  answers its requests in order, so once every slave taking part has answered the marker,
+  each answer of the step is in and none is left over to be read as the next step's: a
+  step ends on that count, never on a time-out, and an answer a loaded machine delayed is
+  neither read as a 1-bit nor taken for the next step's. A step costs a round trip instead
+  of 50 ms per 1-bit.
+* How many take part: the reset step's first marker answer and its duplicates within
+  ``SETTLE_S`` (the answers of several slaves reach the host up to 2 ms apart through the
+  emulated card). A loaded machine can hold a duplicate back longer; the scan then reads
+  wrong bits and its confirmation fails. A scan that fails (a confirmation or a marker not
+  answered, or no slave selected at the end) starts over, up to ``FASTSCAN_ATTEMPTS``
+  scans. The failed scan's late answers are first taken and dropped for the scan's wait,
+  the next scan waits twice as long, and it expects the number of slaves counted from
+  every marker answer the failed scan read, late ones included.
+* Several slaves may answer one identify request (outside a scan), each with its own frame:
+  after a positive answer the master takes the indications of the next ``SETTLE_S`` and
+  discards them, so a late duplicate is not read as the answer to the next request.
 * Multi-frame requests (switch selective, identify remote slave) go in one COM_Tx_CAN_Layer2
   message, which the card sends back to back.
 * The services of one master are serialised: LSS addresses the whole bus, so two interleaved
@@ -211,6 +216,12 @@ class LssMaster:
         self._answers: deque[bytes] = deque()
         self._filter_set = False
         self._lock = threading.RLock()
+        self._participants: int | None = None
+        """How many slaves answer each fastscan step's marker; None until a scan knows."""
+        self._scan_markers = 0
+        """Marker answers (50h) read since the scan began, late ones included."""
+        self._scan_steps = 0
+        """Marked steps the scan sent."""
 
     # --- the card: filter, requests, indications ---------------------------------------
 
@@ -256,7 +267,9 @@ class LssMaster:
                     return None
                 raise LssError(LssErrorCode.MEDIA_ERROR, f"DevGetMessage: {exc}") from exc
         if msg is not None and msg.b == COM_RX_CAN_LAYER2:
-            self._answers.extend(lss_answers(msg))
+            answers = lss_answers(msg)
+            self._scan_markers += sum(a[0] == IDENTIFY_NON_CONFIGURED_SLAVE for a in answers)
+            self._answers.extend(answers)
         return msg
 
     def _answer(self, cs: int, timeout: float) -> bytes | None:
@@ -271,15 +284,18 @@ class LssMaster:
             if remaining <= 0 or self._read(remaining) is None:
                 return None
 
-    def _settle(self) -> None:
-        """Take and drop, for ``SETTLE_S``, the duplicates of an answer several slaves sent.
+    def _settle(self, window: float = SETTLE_S) -> int:
+        """Take and drop, for ``window``, the duplicates of an answer several slaves sent;
+        how many of them were marker answers (50h).
 
         A fixed window: other layer-2 traffic in the indications must not prolong it.
         """
-        deadline = time.monotonic() + SETTLE_S
+        deadline = time.monotonic() + window
         while (remaining := deadline - time.monotonic()) > 0:
             self._read(remaining)
+        markers = sum(a[0] == IDENTIFY_NON_CONFIGURED_SLAVE for a in self._answers)
         self._answers.clear()
+        return markers
 
     def _confirmed(self, what: str, frames: list[bytes], cs: int) -> bytes:
         self._send(frames)
@@ -410,64 +426,86 @@ class LssMaster:
 
         None when no unconfigured slave answers. A known LSS number is confirmed in one
         step instead of being scanned in 32 (CANopenNode's "match"); a known number no
-        unconfigured slave has also gives None. Each bit step waits for its marker's
-        answer (see the module's decisions) up to ``timeout`` (default: ``self.timeout``),
-        doubled for each scan that has to start over; the reset and confirmation steps,
-        which are answered unless something is wrong, wait ``self.timeout``.
+        unconfigured slave has also gives None. Each step waits for its markers' answers
+        (see the module's decisions) up to ``timeout`` (default: ``self.timeout``), doubled
+        for each scan that has to start over.
         """
         known = (vendor, product, revision, serial)
         wait = self.timeout if timeout is None else timeout
+        self._participants = None
         for _ in range(FASTSCAN_ATTEMPTS):
-            if not self.fastscan_step(0, FASTSCAN_RESET, 0, 0, self.timeout):
-                return None
+            self._scan_markers = self._scan_steps = 0
+            reset = self._marked_step(0, FASTSCAN_RESET, 0, 0, self.timeout)
+            if not reset and self._participants is None:
+                return None  # no unconfigured slave took part
             numbers: list[int] = []
-            for lss_sub in range(4):
+            for lss_sub in range(4) if reset else ():
                 value = known[lss_sub]
                 if value is None:
                     value = self._scan_number(lss_sub, wait)
                     if value is None:
-                        break  # a marker went unanswered: scan again
+                        break  # a step's markers did not all come: scan again
                 next_sub = (lss_sub + 1) % 4
-                if not self.fastscan_step(value, 0, lss_sub, next_sub, self.timeout):
-                    if known[lss_sub] is not None:
-                        return None
+                confirmed = self._marked_step(value, 0, lss_sub, next_sub, wait)
+                if confirmed is False and known[lss_sub] is not None:
+                    return None
+                if not confirmed:
                     break  # an answer was lost or came late: scan again
                 numbers.append(value)
             else:
-                if self._selected():
+                if reset and self._selected():
                     return LssAddress(*numbers)
-            wait *= 2  # answers come late here: give the next scan more time
+            # answers come late here: take the failed scan's late answers for the scan's
+            # wait, so that none is read in the next scan, count every marker answer it
+            # read, and give the next scan more time
+            self._settle(wait)
+            self._participants = max(1, round(self._scan_markers / max(1, self._scan_steps)))
+            wait *= 2
         raise LssError(LssErrorCode.TIME_OUT,
                        f"fastscan: no slave confirmed its address in {FASTSCAN_ATTEMPTS} scans")
 
     def _scan_number(self, lss_sub: int, wait: float) -> int | None:
         """LSS number ``lss_sub`` of the lowest slave still in the scan, bit by bit from bit
         31: a bit is 0 where a slave answered the step checking it, else 1. None when a
-        step's marker was not answered within ``wait``."""
+        step's markers did not all come within ``wait``."""
         value = 0
         for bit in range(31, -1, -1):
-            payload = _u32(value) + bytes([bit, lss_sub, lss_sub])
-            self._send([_frame(FASTSCAN, payload), _frame(IDENTIFY_NON_CONFIGURED_REMOTE)])
-            answered = self._answered_before_marker(wait)
+            answered = self._marked_step(value, bit, lss_sub, lss_sub, wait)
             if answered is None:
                 return None
             if not answered:
                 value |= 1 << bit
         return value
 
-    def _answered_before_marker(self, wait: float) -> bool | None:
-        """Whether a fastscan answer (4Fh) came before the first answer to the marker (50h);
-        None when no marker answer came within ``wait``. The marker's duplicates from other
-        slaves are dropped with ``_settle``."""
+    def _marked_step(self, id_number: int, bit_checked: int, lss_sub: int, lss_next: int,
+                     wait: float) -> bool | None:
+        """One fastscan request with its marker behind it, in one message: whether a slave
+        answered the request (4Fh); None when the markers' answers (50h) did not come within
+        ``wait``.
+
+        Each slave answers in order, so once every taking part has answered the marker,
+        every answer of the step is in and none is left to be read as the next step's.
+        Until the scan knows how many take part (``_participants``), the answers before
+        the first marker's count, and the marker's duplicates that come within
+        ``SETTLE_S`` give the number.
+        """
+        payload = _u32(id_number) + bytes([bit_checked, lss_sub, lss_next])
+        self._send([_frame(FASTSCAN, payload), _frame(IDENTIFY_NON_CONFIGURED_REMOTE)])
+        self._scan_steps += 1
         deadline = time.monotonic() + wait
-        answered = False
+        answered, markers = False, 0
         while True:
             while self._answers:
                 cs = self._answers.popleft()[0]
                 if cs == IDENTIFY_NON_CONFIGURED_SLAVE:
-                    self._settle()
+                    markers += 1
+                elif cs == IDENTIFY_SLAVE and (markers == 0 or self._participants):
+                    answered = True
+                if self._participants is None and markers:
+                    self._participants = markers + self._settle()
                     return answered
-                answered = answered or cs == IDENTIFY_SLAVE
+                if self._participants and markers >= self._participants:
+                    return answered
             remaining = deadline - time.monotonic()
             if remaining <= 0 or self._read(remaining) is None:
                 return None
