@@ -12,7 +12,8 @@
  * changes), on any other message, on a change of the flags other than the mailbox toggles,
  * of the watchdog trigger, the output area or the connection bits, and whenever the turn
  * lock or the process image's lock is taken. The caller (firmware/device.py) checks the rest
- * (recorder, faults, queues, poll state) before it calls. Every layout offset, flag bit,
+ * (faults, queues, poll state) before it calls. A recording card's turns are served here too:
+ * each appends the events its recorder's hooks would have (below). Every layout offset, flag bit,
  * command number and msg.f comes from dpm/ through ``configure``; nothing here is a number
  * of the protocol.
  */
@@ -246,22 +247,309 @@ static int unlock(PyObject *lock) {
   return 0;
 }
 
-/* Whether the loop's queues and recording are as the caller left them (empty, none). */
-static int device_quiet(PyObject *device, PyObject *calls, PyObject *outbox,
-                        PyObject *indications) {
+/* Whether the loop's queues and recording are as the caller left them (empty; the
+ * recording it handed over, or none). */
+static int device_quiet(PyObject *device, PyObject *recording_, PyObject *calls,
+                        PyObject *outbox, PyObject *indications) {
   PyObject *recorder = PyObject_GetAttrString(device, "recorder");
   int quiet;
   if (recorder == NULL) return -1;
-  quiet = recorder == Py_None && PyObject_Length(calls) == 0 &&
+  quiet = recorder == recording_ && PyObject_Length(calls) == 0 &&
           PyObject_Length(outbox) == 0 && PyObject_Length(indications) == 0;
   Py_DECREF(recorder);
   return PyErr_Occurred() ? -1 : quiet;
 }
 
+/* --- Recording from the turn in C [ours] (issue 25) ----------------------------------------
+ *
+ * A recording card took the Python turn for every message until its recorder's hooks
+ * (firmware/recorder.py: ``dev_flags``, ``put``, ``answer``) had seen it, which cost a
+ * COM_Shared_Memory round trip 64-104 % more than a plain card's turn here. A turn served
+ * here now records what those hooks record for it, in their order and with their clock:
+ * the DevFlags it read at its start (when they changed since the recorder saw them last,
+ * time stamped with the turn's start), the message it took with its DEVACK toggle and the
+ * lines of the transaction ledger (read after the toggle, before the answer, as ``put``
+ * reads them: the host's line is gone once it took the answer), and the answer with its
+ * HOSTCOM toggle and Task2State (copied before the answer is written). The events are
+ * packed by dpm/session.py's spool heads (their struct formats, handed over by
+ * ``configure_record``: the layout lives there) and appended to the recorder's own queue,
+ * the bytearray its hooks append to. Why that queue, and not a spool or ring of this
+ * file's own: it is already where the card's events are put in order (the hooks of the
+ * card's other threads append to it under the turn lock, as this does under the same
+ * lock), its drain thread already hands it to the writer every 50 ms, and an append is a
+ * resize and a copy under the interpreter lock this code holds anyway; a second stream
+ * would need a merge by time stamp that neither the drain nor the writer does, and a
+ * batch handed back to Python at the end of ``serve`` would hold events back from the
+ * drain and from the hooks' order. The append is made after the ring: nothing can look
+ * at the queue before this code lets go of the interpreter lock, and the host's answer
+ * does not wait for it. A turn whose DevFlags ask for a start is left to the Python turn
+ * (its event carries Task2Parameter, and the start is Python's).
+ */
+
+#define SPOOL_FORMAT_MAX 16
+#define ANSWER_MAX (8 + 255) /* answer()'s out: the longest answer this file gives */
+
+/* One event kind's head in the spool: dpm.session's struct format ('<' and the letters
+ * B, H and d only), its size, and the kind's code. */
+typedef struct {
+  int code;
+  Py_ssize_t size;
+  char format[SPOOL_FORMAT_MAX];
+} spool_head;
+
+/* What configure_record() took from dpm/ and firmware/recorder.py. */
+static struct {
+  int ready;
+  spool_head put, answer, dev_flags;
+  Py_ssize_t state, state_size, ln_offset, msg_header, msg_max, ledger_first, ledger_bytes;
+  unsigned char end, starts, devack, hostcom;
+  unsigned char *scratch; /* one turn's events, packed before they are appended */
+  Py_ssize_t scratch_size;
+} rec;
+
+/* One served turn's recording, as serve() gathers it. */
+typedef struct {
+  PyObject *recorder; /* the recording the turn records for; Py_None: none */
+  PyObject *queue;    /* its queue (bytearray) */
+  int ledger;         /* its descriptor of the transaction ledger */
+  int dev;            /* DevFlags as the recorder saw them last */
+  double t_turn;      /* the turn's start, the clock read its DevFlags event takes */
+  unsigned char dev_now;
+  Py_ssize_t used;    /* bytes of rec.scratch this turn packed */
+} recording;
+
+PyDoc_STRVAR(configure_record_doc,
+             "configure_record(spool: dict[str, object])\n\n"
+             "What the turn in C records with, by name: per event kind (PUT, ANSWER, DEV_FLAGS)\n"
+             "its code and dpm.session's struct format and size; Task2State's offset and size;\n"
+             "the message's header size, msg.ln's offset and the slot's size; the recorder's\n"
+             "two ledger reads and the ledger's END byte; DevFlags' start bits; DEVACK and HOSTCOM.");
+
+/* Size of a head of format, or -1 when it is not '<' followed by fields letters of B, H and
+ * d, the code first (B) and t second (d). */
+static Py_ssize_t head_size(const char *format, int fields) {
+  Py_ssize_t size = 0;
+  int n = 0;
+  const char *c;
+  if (format[0] != '<') return -1;
+  for (c = format + 1; *c; c++, n++) {
+    if (*c == 'B') size += 1;
+    else if (*c == 'H') size += 2;
+    else if (*c == 'd') size += 8;
+    else return -1;
+    if ((n == 0 && *c != 'B') || (n == 1 && *c != 'd')) return -1;
+  }
+  return n == fields ? size : -1;
+}
+
+static int take_head(PyObject *spool, const char *name, int fields, spool_head *head) {
+  PyObject *item = PyDict_GetItemString(spool, name); /* borrowed */
+  const char *format;
+  Py_ssize_t length;
+  if (item == NULL) {
+    PyErr_Format(PyExc_KeyError, "configure_record: %s missing", name);
+    return -1;
+  }
+  if (!PyArg_ParseTuple(item, "is#n", &head->code, &format, &length, &head->size)) return -1;
+  if (length >= SPOOL_FORMAT_MAX || head->code < 0 || head->code > 255 ||
+      head_size(format, fields) != head->size) {
+    PyErr_Format(PyExc_ValueError, "configure_record: %s's head is not one this file packs", name);
+    return -1;
+  }
+  memcpy(head->format, format, (size_t)length + 1);
+  return 0;
+}
+
+#define TAKE_RECORD(field, name)                  \
+  do {                                            \
+    long v_;                                      \
+    if (take(spool, name, &v_) < 0) return NULL;  \
+    rec.field = v_;                               \
+  } while (0)
+
+static PyObject *configure_record(PyObject *self, PyObject *args) {
+  PyObject *spool;
+  (void)self;
+  if (!PyArg_ParseTuple(args, "O!", &PyDict_Type, &spool)) return NULL;
+  rec.ready = 0;
+  if (take_head(spool, "PUT", 6, &rec.put) < 0 || take_head(spool, "ANSWER", 5, &rec.answer) < 0 ||
+      take_head(spool, "DEV_FLAGS", 5, &rec.dev_flags) < 0)
+    return NULL;
+  TAKE_RECORD(state, "TASK2_STATE");
+  TAKE_RECORD(state_size, "TASK_STATE_SIZE");
+  TAKE_RECORD(ln_offset, "LN_OFFSET");
+  TAKE_RECORD(msg_header, "MSG_HEADER_SIZE");
+  TAKE_RECORD(msg_max, "MSG_MAX_SIZE");
+  TAKE_RECORD(ledger_first, "LEDGER_FIRST_READ");
+  TAKE_RECORD(ledger_bytes, "LEDGER_BYTES");
+  TAKE_RECORD(end, "END");
+  TAKE_RECORD(starts, "STARTS");
+  TAKE_RECORD(devack, "DEVACK");
+  TAKE_RECORD(hostcom, "HOSTCOM");
+  if (rec.state < 0 || rec.state_size <= 0 || rec.ln_offset < 0 ||
+      rec.ln_offset >= rec.msg_header || rec.msg_max < rec.msg_header || rec.msg_max > 8 + 255 ||
+      rec.ledger_first <= 0 || rec.ledger_bytes < rec.ledger_first || rec.ledger_bytes > 0xFFFF) {
+    PyErr_SetString(PyExc_ValueError, "configure_record: inconsistent sizes");
+    return NULL;
+  }
+  PyMem_Free(rec.scratch);
+  rec.scratch_size = rec.dev_flags.size + rec.put.size + rec.msg_max + rec.ledger_bytes +
+                     rec.answer.size + ANSWER_MAX + rec.state_size;
+  rec.scratch = PyMem_Malloc((size_t)rec.scratch_size);
+  if (rec.scratch == NULL) return PyErr_NoMemory();
+  rec.ready = 1;
+  Py_RETURN_NONE;
+}
+
+/* A clock read as time.monotonic() makes it (CLOCK_MONOTONIC in nanoseconds, then seconds
+ * rounded as CPython rounds them): the hooks' time stamps and these are one clock. */
+static double record_clock(void) {
+  struct timespec ts;
+  long long ns;
+  volatile double d;
+  clock_gettime(CLOCK_MONOTONIC, &ts);
+  ns = (long long)ts.tv_sec * 1000000000LL + ts.tv_nsec;
+  if (ns % 1000000000LL == 0) {
+    d = (double)(ns / 1000000000LL);
+  } else {
+    d = (double)ns;
+    d /= 1e9;
+  }
+  return d;
+}
+
+/* Pack a head of head's format from values (the code, t, then its fields) at out. */
+static void pack_head(const spool_head *head, const double *values, unsigned char *out) {
+  const char *c;
+  Py_ssize_t n = 0;
+  int i = 0;
+  for (c = head->format + 1; *c; c++, i++) {
+    if (*c == 'd') {
+      PyFloat_Pack8(values[i], (char *)out + n, 1);
+      n += 8;
+    } else {
+      unsigned long v = (unsigned long)values[i];
+      out[n++] = (unsigned char)(v & 0xFF);
+      if (*c == 'H') out[n++] = (unsigned char)((v >> 8) & 0xFF);
+    }
+  }
+}
+
+/* serve()'s last argument: None, or (recorder, queue, ledger, dev) from
+ * Recorder.native_record(). 0 done, -1 error. */
+static int record_open(PyObject *arg, recording *r) {
+  r->recorder = Py_None;
+  r->queue = NULL;
+  r->ledger = -1;
+  r->dev = 0;
+  r->used = 0;
+  if (arg == Py_None) return 0;
+  if (!rec.ready) {
+    PyErr_SetString(PyExc_RuntimeError, "configure_record() first");
+    return -1;
+  }
+  if (!PyArg_ParseTuple(arg, "OO!ii", &r->recorder, &PyByteArray_Type, &r->queue, &r->ledger,
+                        &r->dev))
+    return -1;
+  return 0;
+}
+
+/* Whether the turn may be recorded here: not one whose DevFlags ask for a start. */
+static int record_allows(const recording *r, unsigned char dev) {
+  return r->recorder == Py_None || (dev & rec.starts) == 0;
+}
+
+/* The turn's start, once it is known to be served here: its clock read and DevFlags, and
+ * the DevFlags event when they changed (``Recorder.dev_flags``). */
+static void record_turn(recording *r, unsigned char dev) {
+  double values[5];
+  r->used = 0;
+  r->dev_now = dev;
+  if (r->recorder == Py_None || dev == r->dev) return;
+  values[0] = rec.dev_flags.code;
+  values[1] = r->t_turn;
+  values[2] = r->dev;
+  values[3] = dev;
+  values[4] = 0; /* no Task2Parameter: a start is the Python turn's (record_allows) */
+  pack_head(&rec.dev_flags, values, rec.scratch);
+  r->used = rec.dev_flags.size;
+}
+
+/* The message taken, after its DEVACK toggle from before (``Recorder.put``): the clock, the
+ * ledger's lines up to END (the first read; all of it when that was not all), the message
+ * as far as its msg.ln reaches. -1: the ledger could not be read (OSError set). */
+static int record_put(recording *r, const unsigned char *raw, unsigned char before) {
+  double values[6];
+  unsigned char *head, *lines;
+  Py_ssize_t msg, got, n;
+  const void *end;
+  if (r->recorder == Py_None) return 0;
+  values[1] = record_clock();
+  msg = rec.msg_header + raw[rec.ln_offset];
+  if (msg > rec.msg_max) msg = rec.msg_max;
+  head = rec.scratch + r->used;
+  lines = head + rec.put.size + msg;
+  got = pread(r->ledger, lines, (size_t)rec.ledger_first, 0);
+  if (got < 0) {
+    PyErr_SetFromErrno(PyExc_OSError);
+    return -1;
+  }
+  end = memchr(lines, rec.end, (size_t)got);
+  if (end == NULL && got == rec.ledger_first) {
+    got = pread(r->ledger, lines, (size_t)rec.ledger_bytes, 0);
+    if (got < 0) {
+      PyErr_SetFromErrno(PyExc_OSError);
+      return -1;
+    }
+    end = memchr(lines, rec.end, (size_t)got);
+  }
+  n = end != NULL ? (const unsigned char *)end - lines : got;
+  values[0] = rec.put.code;
+  values[2] = before;
+  values[3] = before ^ rec.devack;
+  values[4] = (double)msg;
+  values[5] = (double)n;
+  pack_head(&rec.put, values, head);
+  memcpy(head + rec.put.size, raw, (size_t)msg);
+  r->used += rec.put.size + msg + n;
+  return 0;
+}
+
+/* The answer, before it is written, with the HOSTCOM toggle from before that hands it over
+ * (``Recorder.answer``): the clock, the answer's bytes, Task2State as the image holds it. */
+static void record_answer(recording *r, const unsigned char *out, Py_ssize_t len,
+                          unsigned char before, const unsigned char *image) {
+  double values[5];
+  unsigned char *head;
+  if (r->recorder == Py_None) return;
+  values[0] = rec.answer.code;
+  values[1] = record_clock();
+  values[2] = before;
+  values[3] = before ^ rec.hostcom;
+  values[4] = (double)len;
+  head = rec.scratch + r->used;
+  pack_head(&rec.answer, values, head);
+  memcpy(head + rec.answer.size, out, (size_t)len);
+  memcpy(head + rec.answer.size + len, image + rec.state, (size_t)rec.state_size);
+  r->used += rec.answer.size + len + rec.state_size;
+}
+
+/* The turn's events onto the recorder's queue, in one append, as a hook's ``+=``. */
+static int record_commit(recording *r) {
+  Py_ssize_t had;
+  if (r->recorder == Py_None) return 0;
+  had = PyByteArray_GET_SIZE(r->queue);
+  if (PyByteArray_Resize(r->queue, had + r->used) < 0) return -1;
+  memcpy(PyByteArray_AS_STRING(r->queue) + had, rec.scratch, (size_t)r->used);
+  r->dev = r->dev_now;
+  r->used = 0;
+  return 0;
+}
+
 PyDoc_STRVAR(serve_doc,
              "serve(image, fd, hosts, interval, due, device, calls, outbox, indications,\n"
-             "      turn, image_lock, inputs, outputs) -> (rings, dead, turns, dev_seen,\n"
-             "      watchdog_seen, host_seen)\n\n"
+             "      turn, image_lock, inputs, outputs, conn, record) -> (rings, dead, turns,\n"
+             "      dev_seen, watchdog_seen, host_seen, recorded_dev)\n\n"
              "Answer the last of hosts' COM_Shared_Memory reads until a turn needs Python.\n"
              "image: the board's mmap; fd: the device bell; hosts: the known hosts' abstract\n"
              "names, the expected one last; interval: the poll interval, due: the watchdog's\n"
@@ -269,27 +557,36 @@ PyDoc_STRVAR(serve_doc,
              "device, calls, outbox, indications: looked at each turn (recorder, queues);\n"
              "turn, image_lock: the device's turn lock and the process image's lock, each\n"
              "taken without blocking; inputs: the image's receive area (bytearray); outputs:\n"
-             "the output area the CAN master saw last. Returns the rings taken that need the\n"
-             "Python turn, the hosts that are gone, the turns served, and DevFlags, the\n"
-             "watchdog trigger and HostFlags as the last served turn left them.");
+             "the output area the CAN master saw last; conn: the connection bits it saw;\n"
+             "record: None, or the recording's (recorder, queue, ledger, dev), whose events\n"
+             "each served turn appends to queue. Returns the rings taken that need the\n"
+             "Python turn, the hosts that are gone, the turns served, DevFlags, the\n"
+             "watchdog trigger and HostFlags as the last served turn left them, and the\n"
+             "DevFlags the recording saw last (-1: none).");
 
 static PyObject *serve(PyObject *self, PyObject *args) {
   Py_buffer image, outputs, conn;
   int fd, turns = 0, failed = 0;
   double interval, due;
   PyObject *hosts, *device, *calls, *outbox, *indications, *turn, *image_lock, *inputs;
-  PyObject *rings = NULL, *dead = NULL, *expected, *result = NULL;
+  PyObject *rings = NULL, *dead = NULL, *expected, *result = NULL, *record;
+  recording r;
   unsigned char *mm, dev_base, watchdog, dev_seen = 0, watchdog_seen = 0, host_seen = 0;
   (void)self;
   if (!cfg.ready) {
     PyErr_SetString(PyExc_RuntimeError, "configure() first");
     return NULL;
   }
-  if (!PyArg_ParseTuple(args, "w*iO!ddOOOOOOO!y*y*", &image, &fd, &PyList_Type, &hosts,
+  if (!PyArg_ParseTuple(args, "w*iO!ddOOOOOOO!y*y*O", &image, &fd, &PyList_Type, &hosts,
                         &interval, &due, &device, &calls, &outbox, &indications, &turn,
-                        &image_lock, &PyByteArray_Type, &inputs, &outputs, &conn))
+                        &image_lock, &PyByteArray_Type, &inputs, &outputs, &conn, &record))
     return NULL;
   mm = (unsigned char *)image.buf;
+  if (record_open(record, &r) < 0) goto done;
+  if (r.recorder != Py_None && image.len < rec.state + rec.state_size) {
+    PyErr_SetString(PyExc_ValueError, "serve: sizes do not fit the layout");
+    goto done;
+  }
   if (image.len < cfg.snd_pd + cfg.io_size || image.len < cfg.dev_mbx + cfg.msg_max ||
       image.len < cfg.pc_mbx + cfg.msg_max || image.len < cfg.conn_status + cfg.conn_size ||
       image.len <= cfg.host_flags || image.len <= cfg.dev_flags ||
@@ -369,7 +666,8 @@ static PyObject *serve(PyObject *self, PyObject *args) {
     quiet = 0;
     len = 0;
     if (taken) {
-      quiet = device_quiet(device, calls, outbox, indications);
+      if (r.recorder != Py_None) r.t_turn = record_clock(); /* the Python turn's ``now`` */
+      quiet = device_quiet(device, r.recorder, calls, outbox, indications);
       if (quiet < 0) {
         unlock(turn);
         goto done;
@@ -383,7 +681,7 @@ static PyObject *serve(PyObject *self, PyObject *args) {
               ((host ^ dev) & cfg.dev_mbx_bit) != 0 &&
               memcmp(mm + cfg.snd_pd, outputs.buf, (size_t)cfg.io_size) == 0 &&
               memcmp(mm + cfg.conn_status, conn.buf, (size_t)cfg.conn_size) == 0 &&
-              (due < 0 || monotonic() <= due);
+              record_allows(&r, dev) && (due < 0 || monotonic() <= due);
       if (quiet) {
         int locked;
         memcpy(raw, mm + cfg.dev_mbx, (size_t)cfg.msg_max); /* one copy, as _receive */
@@ -394,12 +692,21 @@ static PyObject *serve(PyObject *self, PyObject *args) {
           if (unlock(image_lock) < 0) failed = 1;
         }
         if (len > 0) {
+          record_turn(&r, dev);
           __atomic_store_n(mm + cfg.host_flags, (unsigned char)(host ^ cfg.devack),
                            __ATOMIC_SEQ_CST);
+          if (record_put(&r, raw, host) < 0) { /* as an OSError of the hook's pread */
+            failed = 1;
+            len = 0;
+          }
+        }
+        if (len > 0) {
+          record_answer(&r, out, len, (unsigned char)(host ^ cfg.devack), mm);
           memcpy(mm + cfg.pc_mbx, out, (size_t)len);
           __atomic_store_n(mm + cfg.host_flags, (unsigned char)(host ^ cfg.devack ^ cfg.hostcom),
                            __ATOMIC_SEQ_CST);
           if (ring_hosts(fd, hosts, dead) < 0) failed = 1;
+          if (record_commit(&r) < 0) failed = 1; /* after the ring: the host waits not */
           turns++;
           dev_seen = __atomic_load_n(mm + cfg.dev_flags, __ATOMIC_ACQUIRE);
           watchdog_seen = mm[cfg.dev_watchdog];
@@ -423,7 +730,8 @@ static PyObject *serve(PyObject *self, PyObject *args) {
       break;
     }
   }
-  result = Py_BuildValue("(OOiiii)", rings, dead, turns, dev_seen, watchdog_seen, host_seen);
+  result = Py_BuildValue("(OOiiiii)", rings, dead, turns, dev_seen, watchdog_seen, host_seen,
+                         r.recorder == Py_None ? -1 : r.dev);
 done:
   Py_XDECREF(rings);
   Py_XDECREF(dead);
@@ -435,6 +743,7 @@ done:
 
 static PyMethodDef methods[] = {
     {"configure", configure, METH_VARARGS, configure_doc},
+    {"configure_record", configure_record, METH_VARARGS, configure_record_doc},
     {"serve", serve, METH_VARARGS, serve_doc},
     {NULL, NULL, 0, NULL},
 };

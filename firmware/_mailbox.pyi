@@ -6,9 +6,13 @@ from typing import Any
 def configure(layout: dict[str, int], types: tuple[tuple[int, int, int], ...], /) -> None:
     """The offsets, bits, numbers and msg.f of dpm/ by name; per data type its limits."""
 
+def configure_record(spool: dict[str, int | tuple[int, str, int]], /) -> None:
+    """The spool's heads by event kind (code, struct format, size), and the recorder's reads."""
+
 def serve(
     image: mmap.mmap, fd: int, hosts: list[bytes], interval: float, due: float, device: object,
     calls: deque[Any], outbox: deque[Any], indications: deque[Any], turn: threading.Lock,
-    image_lock: threading.RLock, inputs: bytearray, outputs: bytes, conn: bytes, /,
-) -> tuple[list[tuple[bytes, str | bytes]], list[bytes], int, int, int, int]:
+    image_lock: threading.RLock, inputs: bytearray, outputs: bytes, conn: bytes,
+    record: tuple[object, bytearray, int, int] | None, /,
+) -> tuple[list[tuple[bytes, str | bytes]], list[bytes], int, int, int, int, int]:
     """Answer the last host's COM_Shared_Memory reads until a turn needs Python."""

@@ -268,20 +268,26 @@ class Device:
     ) -> tuple[tuple[int, int], int] | tuple[()] | None:
         """Serve the turns of plain COM_Shared_Memory reads in C until one needs this loop
         (``firmware.native_mailbox``) [ours]: only while such a turn would change nothing
-        here but the mailbox (no recording, fault, queued call, answer or indication, no
-        PD exchange due, the poll settled, no hop trace). None: not now, wait in Python;
+        here but the mailbox (no fault, queued call, answer or indication, no PD exchange
+        due, the poll settled, no hop trace). A recording card's turns too: C appends the
+        events the recorder's hooks would have to its queue (``Recorder.native_record``;
+        until 2026-12-03 a recording card took this Python turn for every message, and
+        recording cost a mailbox round trip +64..104 %). None: not now, wait in Python;
         () when C served no turn; else what the last turn C served left for the fallback
         poll's comparison (``_host_bytes`` and HostFlags). The rings C took and left are
         this loop's, as if ``bell.wait`` had taken them; it returns without waiting."""
         mm = self.mm
-        if (self.recorder is not None or self._calls or self.outbox
-                or self._ring or self._hop_trace is not None or not self.faults.idle
-                or self.bell.mailbox_wanted or self.bell.host_rang
+        if (self._calls or self.outbox or self._ring or self._hop_trace is not None
+                or not self.faults.idle or self.bell.mailbox_wanted or self.bell.host_rang
                 or self.can.indication_waiting() or not poll.settled(now)
                 or self.plc.handshake_due(mm[HOST_FLAGS], mm[DEV_FLAGS])):
             return None
         hosts = self.bell.native_hosts()  # a list: made only for a turn C may serve
         if hosts is None:
+            return None
+        recorder = self.recorder
+        record = recorder.native_record() if recorder is not None else None
+        if recorder is not None and record is None:
             return None
         due = self.rcs.watchdog_due()
         master = self.can.master
@@ -292,10 +298,12 @@ class Device:
         outputs, conn = seen
         if image.mode != UNCONTROLLED:  # the master follows the outputs of the last exchange
             outputs = mm[SND_PD : SND_PD + IO_AREA_SIZE]
-        rings, dead, turns, dev, watchdog, host = native_mailbox.serve(
+        rings, dead, turns, dev, watchdog, host, recorded = native_mailbox.serve(
             mm, self.bell.fileno(), hosts, poll.interval, -1.0 if due is None else due, self,
             self._calls, self.outbox, master.layer2.indications, self._turn, image.lock,
-            image.inputs, outputs, conn)
+            image.inputs, outputs, conn, record)
+        if recorder is not None:
+            recorder.native_recorded(recorded)
         self.native_turns += turns
         self.bell.take_native(rings, dead)
         return ((dev & ~fl.HOSTACK, watchdog), host) if turns else ()

@@ -4,7 +4,9 @@
 COM_Shared_Memory reads (and malformed COM_Shared_Memory requests) a host rings for while
 nothing else needs the device loop's Python turn; it returns to that turn for everything
 else. This module hands it the numbers it works with, from ``dpm/`` and the PLC task's
-limits, so the C file holds no number of the protocol.
+limits, so the C file holds no number of the protocol; and, for a recording card, the spool's
+heads (``dpm.session``) and the recorder's ledger reads, so that a turn served in C appends
+to the recorder's queue the events its hooks would have (``firmware.recorder``) [ours].
 """
 
 from __future__ import annotations
@@ -15,6 +17,7 @@ from typing import Any
 
 import firmware._mailbox as _mailbox
 from dpm import flags as fl
+from dpm import session as s
 from dpm.commands import AREA_BY_FUNCTION, AREA_RECEIVE, AREA_SEND, COM_SHARED_MEMORY
 from dpm.doorbell import RING
 from dpm.errors import PlcF
@@ -25,12 +28,17 @@ from dpm.layout import (
     DEV_WATCHDOG,
     HOST_FLAGS,
     IO_AREA_SIZE,
+    MSG_HEADER_SIZE,
     PC_MBX,
     SND_PD,
+    TASK2_STATE,
+    TASK_STATE_SIZE,
     size_of,
 )
-from dpm.message import MSG_MAX_SIZE, TELEGRAM_HEADER, Ext, Task, Tdt, Tfc
+from dpm.ledger import END
+from dpm.message import LN_OFFSET, MSG_MAX_SIZE, TELEGRAM_HEADER, Ext, Task, Tdt, Tfc
 from firmware.plc import data_type_limits
+from firmware.recorder import LEDGER_BYTES, LEDGER_FIRST_READ
 
 LAYOUT = {
     "DEV_MBX": DEV_MBX, "PC_MBX": PC_MBX, "HOST_FLAGS": HOST_FLAGS, "DEV_FLAGS": DEV_FLAGS,
@@ -48,11 +56,26 @@ LAYOUT = {
 }
 """What ``configure`` hands the C file, by name."""
 
+SPOOL = {
+    **{name: (s.SPOOL_CODES[kind], head.format, head.size) for name, kind, head in (
+        ("PUT", s.PUT, s.SPOOL_PUT), ("ANSWER", s.ANSWER, s.SPOOL_ANSWER),
+        ("DEV_FLAGS", s.DEV_FLAGS, s.SPOOL_DEV_FLAGS))},
+    "TASK2_STATE": TASK2_STATE, "TASK_STATE_SIZE": TASK_STATE_SIZE, "LN_OFFSET": LN_OFFSET,
+    "MSG_HEADER_SIZE": MSG_HEADER_SIZE, "MSG_MAX_SIZE": MSG_MAX_SIZE,
+    "LEDGER_FIRST_READ": LEDGER_FIRST_READ, "LEDGER_BYTES": LEDGER_BYTES, "END": END[0],
+    "STARTS": fl.RESET | fl.INIT, "DEVACK": fl.DEVACK, "HOSTCOM": fl.HOSTCOM,
+}
+"""What ``configure_record`` hands the C file, by name: per event kind the turn in C records
+(the DevFlags it read, the message it took, the answer it gave) its spool code and head
+(``dpm.session``'s struct format, which the C file packs field by field, and its size, which
+it checks), and what ``Recorder.put`` and ``Recorder.answer`` read beside it."""
+
 
 def configure(module: ModuleType) -> Callable[..., Any]:
     """Hand ``module`` (``firmware._mailbox``, or a build of it with the sanitizers) its
     numbers; its ``serve``."""
     module.configure(LAYOUT, data_type_limits())
+    module.configure_record(SPOOL)
     serve: Callable[..., Any] = module.serve
     return serve
 

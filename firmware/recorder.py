@@ -228,7 +228,9 @@ class Recorder:
         if self._exchange is not None:  # (the loop takes messages before it exchanges)
             self.settle()
         ledger = self._ledger
-        lines = _pread(ledger, LEDGER_FIRST_READ, 0) if ledger >= 0 else self._open_ledger()
+        if ledger < 0 and self._open_ledger():
+            ledger = self._ledger
+        lines = _pread(ledger, LEDGER_FIRST_READ, 0) if ledger >= 0 else b""
         end = lines.find(END)
         if end >= 0:
             lines = lines[:end]
@@ -297,14 +299,35 @@ class Recorder:
         frame and nobody changes one afterwards."""
         self._append_frame((msg, received))
 
-    def _open_ledger(self) -> bytes:
-        """The ledger's first bytes, once it could be opened (then ``put`` reads it)."""
+    def _open_ledger(self) -> bool:
+        """Whether the ledger is open now: it cannot be until a host has locked the board
+        (nobody to name until then; ``put`` tries again at each message)."""
         assert self._image_files is not None  # hooks run only after start
         try:
             self._ledger = self._image_files.open(self._ledger_name, os.O_RDONLY, own=False)
         except OSError:
-            return b""  # no host has locked the board yet: nobody to name
-        return _pread(self._ledger, LEDGER_FIRST_READ, 0)
+            return False
+        return True
+
+    # --- the device loop's turn in C (firmware._mailbox) -------------------------------
+
+    def native_record(self) -> tuple[Recorder, bytearray, int, int] | None:
+        """What the device loop's turn in C needs to record the turns it serves as ``put``,
+        ``answer`` and ``dev_flags`` do [ours]: this recorder (the C turn records only while
+        it is the device's), the queue it appends the same packed events to, the ledger's
+        descriptor and DevFlags as last seen. The C turn appends to this queue, in order
+        with the hooks of the card's other threads, rather than keeping a stream of its own
+        that the writer would have to merge (firmware/_mailbox.c says why). None: the
+        Python turn records, while the ledger cannot be opened (``put`` reads no lines then
+        and tries again at each message) or an exchange waits for ``settle``."""
+        if self._exchange is not None or (self._ledger < 0 and not self._open_ledger()):
+            return None
+        return self, self._queue, self._ledger, self._dev
+
+    def native_recorded(self, dev: int) -> None:
+        """DevFlags as the turns in C recorded them last (``native_record``'s, when they
+        recorded none): the next ``dev_flags`` compares with them."""
+        self._dev = dev
 
     # --- the writer --------------------------------------------------------------------
 

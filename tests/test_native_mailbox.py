@@ -9,6 +9,7 @@ through the same image, flags and doorbell a host process uses.
 
 from __future__ import annotations
 
+import mmap
 import os
 import random
 import shutil
@@ -24,11 +25,16 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from dpm import flags as fl
+from dpm import session as s
 from dpm.commands import COM_SHARED_MEMORY
-from dpm.layout import HOST_FLAGS, IO_AREA_SIZE, SND_PD
-from dpm.message import Message, Task, TelegramHeader, Tfc
+from dpm.doorbell import HostBell
+from dpm.image import lock_path
+from dpm.layout import DEV_FLAGS, DEV_MBX, HOST_FLAGS, IO_AREA_SIZE, PC_MBX, SND_PD
+from dpm.message import MSG_MAX_SIZE, Message, Task, TelegramHeader, Tfc
 from firmware import native_mailbox
 from firmware.device import Device
+from firmware.recorder import Recorder
 from host_api.driver import (
     MSG_BUFFER_SIZE,
     DevCloseDriver,
@@ -169,7 +175,10 @@ FUZZ_REQUESTS = 3000
 def fuzz(directory: str, module: str) -> None:
     """The sanitizers' run (in its own process, the sanitized build of the turn in C loaded
     as ``firmware._mailbox``): random and edge-case COM_Shared_Memory requests, each answer
-    compared with what the PLC task's Python handler gives for the same request."""
+    compared with what the PLC task's Python handler gives for the same request, on a card
+    that records them; a quarter put by a host that writes the slot (msg.ln any) and the
+    ledger (empty, its line, garbage, longer than the card's first read and than all it
+    reads) itself, all of which the session holds."""
     import importlib.util
 
     spec = importlib.util.spec_from_file_location("firmware._mailbox", module)
@@ -184,6 +193,10 @@ def fuzz(directory: str, module: str) -> None:
     thread.start()
     assert DevOpenDriver(directory) == 0
     wait_until(lambda: DevInitBoard(0) == 0, what="READY")
+    session = Path(directory) / "session"
+    recorder = _attach(device, session)
+    host = BellHost(device)
+    raw_puts = 0
     edges = [0, 1, 7, 8, 15, 16, 119, 120, 239, 240, 255, 1791, 1792, 3583, 3584, 0xFFFF]
     for nr in range(FUZZ_REQUESTS):
         if nr % 3:
@@ -196,11 +209,29 @@ def fuzz(directory: str, module: str) -> None:
             data = rng.randbytes(rng.randrange(0, 24))
         request = Message(rx=Task.PLC, tx=Task.USER, b=COM_SHARED_MEMORY, nr=nr & 0xFF,
                           data=data)
-        answer = _ask(0, request)
+        if nr % 4 == 3:
+            ledger = rng.choice([b"", _line(HOST_PID, nr & 0xFF, request.b, request.rx,
+                                            request.tx) + b"\0",
+                                 b"9" * rng.randrange(513, 13_000),
+                                 rng.randbytes(rng.randrange(0, 700))])
+            raw = host.transact(_slot(request.rx, request.tx, request.nr, request.b, 0,
+                                      rng.choice([len(data), rng.randrange(256)]), data),
+                                ledger)
+            raw_puts += 1
+            assert raw is not None
+            answer = Message.decode(raw)
+            request = Message.decode(host.mm[DEV_MBX : DEV_MBX + MSG_MAX_SIZE])  # as taken
+        else:
+            answer = _ask(0, request)
         expected = device.plc.com_shared_memory(request)
         assert answer == expected, (request, answer, expected)
+    host.close()
     device.bell.ring_self()
-    wait_until(lambda: device.native_turns > FUZZ_REQUESTS // 2, what="the turns in C")
+    # (a ring from the other host than the last returns to the Python turn, which serves it)
+    wait_until(lambda: device.native_turns > FUZZ_REQUESTS // 4, what="the turns in C")
+    records = _detach(device, recorder, session)  # the driver's: the firmware's pid, left out
+    assert [r.kind for r in records].count(s.PUT) == raw_puts
+    assert [r.kind for r in records].count(s.ANSWER) == raw_puts
     DevExitBoard(0)
     DevCloseDriver()
     device.stop()
@@ -236,3 +267,213 @@ def test_the_turn_in_c_under_the_sanitizers(tmp_path: Path) -> None:
         cwd=Path(__file__).parent.parent)
     assert done.returncode == 0, done.stdout + done.stderr
     assert "runtime error" not in done.stderr and "AddressSanitizer" not in done.stderr
+
+
+# --- a recording card (issue 25) -----------------------------------------------------------
+
+
+def _attach(device: Device, session: Path) -> Recorder:
+    """A recording of ``device`` into ``session``, attached between two turns, as ``cifemu
+    record`` attaches one to a running card."""
+    recorder = Recorder.create(session, device.board, "test")
+    recorder.start(device.files, device.mm, device.plc.image.outputs)
+    assert device.record(recorder) is None
+    return recorder
+
+
+def _detach(device: Device, recorder: Recorder, session: Path) -> list[s.Record]:
+    """The recording ended and its session written: its events."""
+    assert device.record(None) is recorder
+    recorder.close()
+    assert recorder.complete
+    return s.decode_events((session / s.EVENTS).read_text())
+
+
+def test_a_recording_card_serves_the_reads_in_c_and_records_every_one(
+        cards: Cards, tmp_path: Path) -> None:
+    """A card that records a session answers COM_Shared_Memory reads in the turn in C as a
+    plain card does (Python turns far below one per read), and its session holds every
+    read and answer with the host's pid (from the ledger), in order, as the Python turn
+    recorded them. On the old code a recording card took the Python turn for every read
+    (500 of 500)."""
+    device = cards.native
+    recorder = _attach(device, tmp_path / "session")
+    host = BellHost(device)
+    before, served = cards.turns[0], device.native_turns
+    try:
+        for nr in range(READS):
+            request = _read(nr, 1, nr % 64, 8, 5)
+            raw = host.transact(request.encode(), _line(HOST_PID, nr & 0xFF, request.b,
+                                                       request.rx, request.tx) + b"\0")
+            assert raw is not None and Message.decode(raw).f == 0
+    finally:
+        host.close()
+    python_turns = cards.turns[0] - before
+    device.bell.ring_self()  # the turn in C returns and counts what it served
+    wait_until(lambda: device.native_turns >= served + READS - python_turns,
+               what="the turns in C")
+    assert python_turns <= PYTHON_TURNS_MAX, f"{python_turns} Python turns for {READS} reads"
+    records = _detach(device, recorder, tmp_path / "session")
+    messages = [r for r in records if r.kind in (s.PUT, s.ANSWER)]
+    assert [r.kind for r in messages] == [s.PUT, s.ANSWER] * READS
+    for nr, (put, answered) in enumerate(zip(messages[::2], messages[1::2], strict=True)):
+        assert put.msg is not None and answered.msg is not None
+        assert put.msg == _read(nr, 1, nr % 64, 8, 5)
+        offset = nr % 64
+        assert answered.msg.nr == nr & 0xFF and answered.msg.data[8:] == bytes(
+            device.plc.image.inputs[offset : offset + 8])
+        assert put.pid == answered.pid == HOST_PID
+        assert put.t <= answered.t
+    times = [r.t for r in records]
+    assert times == sorted(times)
+
+
+class BellHost:
+    """A host that writes the mailbox, the flags and the transaction ledger itself and rings
+    through its own doorbell (``dpm.doorbell.HostBell``): any bytes a local user may write
+    there reach the card (docs/security.md), the ledger's too, which the driver would have
+    written in its own form."""
+
+    def __init__(self, device: Device) -> None:
+        self.device = device
+        with open(device.path, "r+b") as image:
+            self.mm = mmap.mmap(image.fileno(), 0)
+        self.bell = HostBell(device.path)
+        self.ledger = os.open(lock_path(device.directory, device.board, "transaction"),
+                              os.O_WRONLY)
+
+    def close(self) -> None:
+        os.close(self.ledger)
+        self.bell.close()
+        self.mm.close()
+
+    def transact(self, raw: bytes, ledger: bytes) -> bytes | None:
+        """Put the message slot's bytes ``raw`` with ``ledger`` at the ledger's start, ring,
+        and take the answer, if the card gives one."""
+        mm = self.mm
+        wait_until(lambda: not (mm[HOST_FLAGS] ^ mm[DEV_FLAGS]) & fl.DEV_MBX,
+                   what="the device mailbox free")
+        os.pwrite(self.ledger, ledger, 0)
+        mm[DEV_MBX : DEV_MBX + len(raw)] = raw
+        mm[DEV_FLAGS] ^= fl.DEVCOM
+        self.bell.ring_device()
+        wait_until(lambda: not (mm[HOST_FLAGS] ^ mm[DEV_FLAGS]) & fl.DEV_MBX,
+                   what="the message taken")
+        # The card's turn lock is held for the whole turn that took the message, in C or in
+        # Python: once it is free, the answer is in PcMbx, or there is none (msg.e NAK).
+        with self.device._turn:
+            pass
+        if not (mm[HOST_FLAGS] ^ mm[DEV_FLAGS]) & fl.HOST_MBX:
+            return None
+        answer = mm[PC_MBX : PC_MBX + 8 + mm[PC_MBX + 2]]
+        mm[DEV_FLAGS] ^= fl.HOSTACK
+        return answer
+
+
+def _slot(rx: int, tx: int, nr: int, b: int, e: int, ln: int, data: bytes) -> bytes:
+    """A message slot as a host may write it: msg.ln need not be the data's length."""
+    return bytes((rx, tx, ln, nr, 0, 0, b, e)) + data[: MSG_MAX_SIZE - 8]
+
+
+HOST_PID = os.getppid()
+"""The pid the bell host's ledger lines name: not this process's, which is the firmware's,
+whose messages a session leaves out (``cifemu firmware --configure``'s)."""
+
+
+def _line(pid: int, nr: int, b: int, rx: int, tx: int) -> bytes:
+    return b"%d 1 %d %d %d %d 0 0\n" % (pid, nr, b, rx, tx)
+
+
+LEDGERS = st.one_of(
+    st.just(b"\0"), st.binary(max_size=40),
+    st.binary(min_size=600, max_size=700).map(lambda b: b.replace(b"\0", b"x")),
+    st.integers(513, 13_000).map(lambda n: b"9" * n),
+)
+"""What a ledger may hold besides its host's line: nothing, any bytes, more than the card's
+first read without ``END`` (it reads all of it then), more than all it reads."""
+
+SETTLE_READS = 40
+"""Plain reads at most after a hypothesis example's steps, until one is served in C (the
+fallback poll backs off within ten turns)."""
+
+STEPS = st.lists(st.tuples(
+    st.sampled_from([int(Task.PLC)] * 4 + [200]), st.integers(0, 255), st.integers(0, 255),
+    st.sampled_from([COM_SHARED_MEMORY] * 4 + [0x55]), st.sampled_from([0, 0, 2, 4]),
+    st.one_of(st.none(), st.integers(0, 255)), REQUEST_DATA, st.booleans(), LEDGERS,
+), min_size=1, max_size=5)
+
+
+def _python_turn(cards: Cards, devices: tuple[Device, ...]) -> None:
+    """A Python turn of each card, over when this returns: where a recording begins and
+    ends, whether a fallback poll's turn saw the DevFlags between two steps is the machine's
+    timing; this makes it a turn of each (the turn in C returns for the ring and counts what
+    it served)."""
+    turns = dict(cards.turns)
+    for device in devices:
+        device.bell.ring_self()
+    wait_until(lambda: all(cards.turns[d.board] > turns[d.board] for d in devices),
+               what="a Python turn of each card")
+    for device in devices:
+        with device._turn:
+            pass
+
+
+def _folded(records: list[s.Record]) -> list[tuple[object, ...]]:
+    """The records without their time stamps, each run of DevFlags changes folded into one
+    (from the first's ``before`` to the last's ``after``): whether a turn of the card saw the
+    host's HOSTACK apart from its next DEVCOM is the machine's timing (a fallback poll between
+    the two), in C as in Python."""
+    folded: list[tuple[object, ...]] = []
+    for r in records:
+        entry: tuple[object, ...] = (r.kind, r.pid, r.msg, r.before, r.after, r.changes,
+                                     r.state, r.parameter)
+        if r.kind == s.DEV_FLAGS and folded and folded[-1][0] == s.DEV_FLAGS:
+            entry = (*folded.pop()[:4], r.after, *entry[5:])
+        folded.append(entry)
+    return folded
+
+
+@settings(max_examples=40, deadline=None,
+          suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(steps=STEPS)
+def test_the_turn_in_c_records_as_the_python_turn(
+        cards: Cards, tmp_path_factory: pytest.TempPathFactory,
+        steps: list[tuple[int, int, int, int, int, int | None, bytes, bool, bytes]]) -> None:
+    """The same messages (valid and malformed COM_Shared_Memory requests, msg.ln other than
+    the data's, other commands and tasks, NAK) with the same ledger bytes (the host's line,
+    none, garbage, longer than the card's first read, longer than all it reads), put to a
+    recording card with the turn in C and to one without, make the same session, field by
+    field but the time stamps; and the card with the turn in C served the read that ends
+    them there (on the old code a recording card served none in C)."""
+    sessions = [tmp_path_factory.mktemp("session") / "s" for _ in (0, 1)]
+    devices = (cards.native, cards.python)
+    recorders = [_attach(device, session)
+                 for device, session in zip(devices, sessions, strict=True)]
+    hosts = [BellHost(device) for device in devices]
+    try:
+        _python_turn(cards, devices)  # each card's recording begins with DevFlags as they are
+        served = cards.native.native_turns
+        for rx, tx, nr, b, e, ln, data, own, ledger in steps:
+            raw = _slot(rx, tx, nr, b, e, len(data) if ln is None else ln, data)
+            lines = (_line(HOST_PID, nr, b, rx, tx) if own else b"") + ledger
+            answers = [host.transact(raw, lines) for host in hosts]
+            assert answers[0] == answers[1]
+        # Then plain reads until one was served in C: a turn that records begins in Python
+        # (the turn in C that waited took the card for one that does not), and so do the
+        # turns after a start until the fallback poll has backed off.
+        for nr in range(SETTLE_READS):
+            request = _read(nr, 1, nr, 4, 5)
+            lines = _line(HOST_PID, nr, request.b, request.rx, request.tx)
+            python_turns = cards.turns[0]
+            answers = [host.transact(request.encode(), lines) for host in hosts]
+            assert answers[0] == answers[1]
+            if cards.turns[0] == python_turns:  # answered without a Python turn
+                break
+        _python_turn(cards, devices)  # after the last HOSTACK, before the recording ends
+        assert cards.native.native_turns > served, "no turn in C"
+    finally:
+        for host in hosts:
+            host.close()
+        native, python = (_detach(device, recorder, session) for device, recorder, session
+                          in zip(devices, recorders, sessions, strict=True))
+    assert _folded(native) == _folded(python)
