@@ -12,7 +12,10 @@
  * changes), on any other message, on a change of the flags other than the mailbox toggles,
  * of the watchdog trigger, the output area or the connection bits, and whenever the turn
  * lock or the process image's lock is taken. The caller (firmware/device.py) checks the rest
- * (recorder, faults, queues, poll state) before it calls. Every layout offset, flag bit,
+ * (recorder, faults, queues, poll state) before it calls. A host SDO request
+ * (COM_SDO_Up_Download, msg.e 0) from the expected host is taken here too and handed to the
+ * CAN task's one Python callable (sdo_turn): an expedited transfer to a simulated node of
+ * this process then costs no Python turn of the device loop. Every layout offset, flag bit,
  * command number and msg.f comes from dpm/ through ``configure``; nothing here is a number
  * of the protocol.
  */
@@ -38,6 +41,8 @@ static struct {
   int plc_task, command, read, write, area_by_function, area_receive, area_send;
   int bit_type, uint16_type;
   int f_unknown_function, f_unknown_data_type, f_illegal_area, f_illegal_count, f_overflow;
+  int can_task, com_sdo;
+  Py_ssize_t task2_state, task2_size;
   int ntypes, type_code[MAX_TYPES], max_address[MAX_TYPES], max_count[MAX_TYPES];
 } cfg;
 
@@ -101,6 +106,10 @@ static PyObject *configure(PyObject *self, PyObject *args) {
   TAKE(f_illegal_area, "ILLEGAL_AREA");
   TAKE(f_illegal_count, "ILLEGAL_COUNT");
   TAKE(f_overflow, "BUFFER_OVERFLOW");
+  TAKE(can_task, "CAN_TASK");
+  TAKE(com_sdo, "COM_SDO_UP_DOWNLOAD");
+  TAKE(task2_state, "TASK2_STATE");
+  TAKE(task2_size, "TASK2_STATE_SIZE");
   n = PyTuple_GET_SIZE(types);
   if (n > MAX_TYPES) {
     PyErr_SetString(PyExc_ValueError, "configure: too many data types");
@@ -112,7 +121,8 @@ static PyObject *configure(PyObject *self, PyObject *args) {
       return NULL;
   }
   cfg.ntypes = (int)n;
-  if (cfg.msg_max < 8 + cfg.header || cfg.msg_max > 8 + 255 || cfg.io_size <= 0) {
+  if (cfg.msg_max < 8 + cfg.header || cfg.msg_max > 8 + 255 || cfg.io_size <= 0 ||
+      cfg.task2_size <= 0 || cfg.task2_size > 256) {
     PyErr_SetString(PyExc_ValueError, "configure: inconsistent sizes");
     return NULL;
   }
@@ -194,6 +204,41 @@ static Py_ssize_t answer(const unsigned char *raw, const unsigned char *image,
   return 8 + n;
 }
 
+/* A host SDO request (COM_SDO_Up_Download to the CAN task, msg.e 0) [ours]: the message is
+ * taken as the Python turn's _receive takes it (DEVACK toggled first) and handed to the CAN
+ * task's ``sdo`` callable (HostSdo.native_request) as bytes; its answer, when the transfer
+ * ended inside the call, goes into the host mailbox here. 1: answered, out/len set; 0: the
+ * message is not one for this path (the Python turn takes it, nothing changed); 2: taken,
+ * its answer comes later (posted by the CAN task, as on the Python turn); -1: error.
+ * Task2State is compared around the call: a change the call made in this thread rang no
+ * one (Device._wake), so *changed asks for the Python turn, which shows it. */
+static int sdo_turn(PyObject *sdo, const unsigned char *raw, unsigned char *mm,
+                    unsigned char host, unsigned char *out, Py_ssize_t *len, int *changed) {
+  unsigned char state[256];
+  PyObject *got;
+  Py_ssize_t n;
+  if (sdo == Py_None || raw[0] != cfg.can_task || raw[6] != cfg.com_sdo || raw[7] != 0) return 0;
+  memcpy(state, mm + cfg.task2_state, (size_t)cfg.task2_size);
+  __atomic_store_n(mm + cfg.host_flags, (unsigned char)(host ^ cfg.devack), __ATOMIC_SEQ_CST);
+  got = PyObject_CallFunction(sdo, "y#", (const char *)raw, (Py_ssize_t)(8 + raw[2]));
+  if (got == NULL) return -1;
+  *changed = memcmp(state, mm + cfg.task2_state, (size_t)cfg.task2_size) != 0;
+  if (got == Py_None) {
+    Py_DECREF(got);
+    return 2;
+  }
+  if (!PyBytes_Check(got) || (n = PyBytes_GET_SIZE(got)) < 8 || n > cfg.msg_max ||
+      n != 8 + (Py_ssize_t)(unsigned char)PyBytes_AS_STRING(got)[2]) {
+    Py_DECREF(got);
+    PyErr_SetString(PyExc_ValueError, "serve: the SDO answer is no message");
+    return -1;
+  }
+  memcpy(out, PyBytes_AS_STRING(got), (size_t)n);
+  *len = n;
+  Py_DECREF(got);
+  return 1;
+}
+
 static double monotonic(void) {
   struct timespec ts;
   clock_gettime(CLOCK_MONOTONIC, &ts);
@@ -260,16 +305,19 @@ static int device_quiet(PyObject *device, PyObject *calls, PyObject *outbox,
 
 PyDoc_STRVAR(serve_doc,
              "serve(image, fd, hosts, interval, due, device, calls, outbox, indications,\n"
-             "      turn, image_lock, inputs, outputs) -> (rings, dead, turns, dev_seen,\n"
-             "      watchdog_seen, host_seen)\n\n"
-             "Answer the last of hosts' COM_Shared_Memory reads until a turn needs Python.\n"
+             "      turn, image_lock, inputs, outputs, conn, sdo) -> (rings, dead, turns,\n"
+             "      dev_seen, watchdog_seen, host_seen)\n\n"
+             "Answer the last of hosts' COM_Shared_Memory reads, and hand its\n"
+             "COM_SDO_Up_Download requests (msg.e 0) to sdo (None: not now), until a turn\n"
+             "needs Python.\n"
              "image: the board's mmap; fd: the device bell; hosts: the known hosts' abstract\n"
              "names, the expected one last; interval: the poll interval, due: the watchdog's\n"
              "deadline plus the loop's lateness (monotonic seconds, or a negative number);\n"
              "device, calls, outbox, indications: looked at each turn (recorder, queues);\n"
              "turn, image_lock: the device's turn lock and the process image's lock, each\n"
              "taken without blocking; inputs: the image's receive area (bytearray); outputs:\n"
-             "the output area the CAN master saw last. Returns the rings taken that need the\n"
+             "the output area and conn the connection bits the CAN master saw last; sdo:\n"
+             "HostSdo.native_request or None. Returns the rings taken that need the\n"
              "Python turn, the hosts that are gone, the turns served, and DevFlags, the\n"
              "watchdog trigger and HostFlags as the last served turn left them.");
 
@@ -277,7 +325,7 @@ static PyObject *serve(PyObject *self, PyObject *args) {
   Py_buffer image, outputs, conn;
   int fd, turns = 0, failed = 0;
   double interval, due;
-  PyObject *hosts, *device, *calls, *outbox, *indications, *turn, *image_lock, *inputs;
+  PyObject *hosts, *device, *calls, *outbox, *indications, *turn, *image_lock, *inputs, *sdo;
   PyObject *rings = NULL, *dead = NULL, *expected, *result = NULL;
   unsigned char *mm, dev_base, watchdog, dev_seen = 0, watchdog_seen = 0, host_seen = 0;
   (void)self;
@@ -285,13 +333,14 @@ static PyObject *serve(PyObject *self, PyObject *args) {
     PyErr_SetString(PyExc_RuntimeError, "configure() first");
     return NULL;
   }
-  if (!PyArg_ParseTuple(args, "w*iO!ddOOOOOOO!y*y*", &image, &fd, &PyList_Type, &hosts,
+  if (!PyArg_ParseTuple(args, "w*iO!ddOOOOOOO!y*y*O", &image, &fd, &PyList_Type, &hosts,
                         &interval, &due, &device, &calls, &outbox, &indications, &turn,
-                        &image_lock, &PyByteArray_Type, &inputs, &outputs, &conn))
+                        &image_lock, &PyByteArray_Type, &inputs, &outputs, &conn, &sdo))
     return NULL;
   mm = (unsigned char *)image.buf;
   if (image.len < cfg.snd_pd + cfg.io_size || image.len < cfg.dev_mbx + cfg.msg_max ||
       image.len < cfg.pc_mbx + cfg.msg_max || image.len < cfg.conn_status + cfg.conn_size ||
+      image.len < cfg.task2_state + cfg.task2_size || (sdo != Py_None && !PyCallable_Check(sdo)) ||
       image.len <= cfg.host_flags || image.len <= cfg.dev_flags ||
       image.len <= cfg.dev_watchdog || outputs.len != cfg.io_size || conn.len != cfg.conn_size ||
       PyByteArray_GET_SIZE(inputs) != cfg.io_size || PyList_GET_SIZE(hosts) == 0) {
@@ -319,7 +368,7 @@ static PyObject *serve(PyObject *self, PyObject *args) {
     ssize_t got;
     Py_ssize_t len;
     double now = monotonic(), wait = interval;
-    int ready, taken, quiet;
+    int ready, taken, quiet, sdo_kind = 0, changed = 0;
     if (due >= 0 && due - now < wait) wait = due - now;
     if (wait <= 0) break; /* the watchdog is due: the Python turn */
     Py_BEGIN_ALLOW_THREADS;
@@ -393,13 +442,20 @@ static PyObject *serve(PyObject *self, PyObject *args) {
           len = answer(raw, mm, (const unsigned char *)PyByteArray_AS_STRING(inputs), out);
           if (unlock(image_lock) < 0) failed = 1;
         }
-        if (len > 0) {
-          __atomic_store_n(mm + cfg.host_flags, (unsigned char)(host ^ cfg.devack),
-                           __ATOMIC_SEQ_CST);
-          memcpy(mm + cfg.pc_mbx, out, (size_t)len);
-          __atomic_store_n(mm + cfg.host_flags, (unsigned char)(host ^ cfg.devack ^ cfg.hostcom),
-                           __ATOMIC_SEQ_CST);
-          if (ring_hosts(fd, hosts, dead) < 0) failed = 1;
+        if (len == 0 && !failed) {
+          sdo_kind = sdo_turn(sdo, raw, mm, host, out, &len, &changed);
+          if (sdo_kind < 0) failed = 1;
+        }
+        if (len > 0 || sdo_kind == 2) {
+          if (!sdo_kind) /* sdo_turn took the message (DEVACK) before its call */
+            __atomic_store_n(mm + cfg.host_flags, (unsigned char)(host ^ cfg.devack),
+                             __ATOMIC_SEQ_CST);
+          if (len > 0) {
+            memcpy(mm + cfg.pc_mbx, out, (size_t)len);
+            __atomic_store_n(mm + cfg.host_flags,
+                             (unsigned char)(host ^ cfg.devack ^ cfg.hostcom), __ATOMIC_SEQ_CST);
+            if (ring_hosts(fd, hosts, dead) < 0) failed = 1;
+          }
           turns++;
           dev_seen = __atomic_load_n(mm + cfg.dev_flags, __ATOMIC_ACQUIRE);
           watchdog_seen = mm[cfg.dev_watchdog];
@@ -407,12 +463,21 @@ static PyObject *serve(PyObject *self, PyObject *args) {
         }
       }
     }
-    if (taken && unlock(turn) < 0) failed = 1;
+    if (taken) { /* an error of the turn stays the one raised: release() runs without it */
+      PyObject *kind, *value, *trace;
+      PyErr_Fetch(&kind, &value, &trace);
+      if (unlock(turn) < 0) failed = 1;
+      if (kind != NULL) PyErr_Restore(kind, value, trace);
+    }
     /* A signal delivered to another thread leaves its handler pending for this one, which
      * the interpreter would run between two Python turns; a stop it asks for rings. */
     if (failed || PyErr_CheckSignals() < 0) goto done;
-    if (len == 0 || PyList_GET_SIZE(dead) > 0) {
-      if (len == 0) { /* the ring goes to the Python turn, which serves the message */
+    /* A request sdo_turn took whose answer comes later is served: the answer is posted
+     * (Device.hand_over) by the thread that ends the transfer, as after a Python turn. */
+    if ((len == 0 && sdo_kind != 2) || changed || PyList_GET_SIZE(dead) > 0) {
+      /* the ring goes to the Python turn, which serves the message (not one sdo_turn took;
+       * after one that changed Task2State the Python turn shows the change) */
+      if (len == 0 && !sdo_kind) {
         PyObject *ring = Py_BuildValue("(y#O)", (const char *)payload, (Py_ssize_t)got, expected);
         if (ring == NULL || PyList_Append(rings, ring) < 0) {
           Py_XDECREF(ring);

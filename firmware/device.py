@@ -295,7 +295,8 @@ class Device:
         rings, dead, turns, dev, watchdog, host = native_mailbox.serve(
             mm, self.bell.fileno(), hosts, poll.interval, -1.0 if due is None else due, self,
             self._calls, self.outbox, master.layer2.indications, self._turn, image.lock,
-            image.inputs, outputs, conn)
+            image.inputs, outputs, conn,
+            self.can.host_sdo.native_request if self.can.fatal is None else None)
         self.native_turns += turns
         self.bell.take_native(rings, dead)
         return ((dev & ~fl.HOSTACK, watchdog), host) if turns else ()

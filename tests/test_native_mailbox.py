@@ -24,7 +24,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from dpm.commands import COM_SHARED_MEMORY
+from dpm.commands import COM_SDO_UP_DOWNLOAD, COM_SHARED_MEMORY
 from dpm.layout import HOST_FLAGS, IO_AREA_SIZE, SND_PD
 from dpm.message import Message, Task, TelegramHeader, Tfc
 from firmware import native_mailbox
@@ -169,7 +169,8 @@ FUZZ_REQUESTS = 3000
 def fuzz(directory: str, module: str) -> None:
     """The sanitizers' run (in its own process, the sanitized build of the turn in C loaded
     as ``firmware._mailbox``): random and edge-case COM_Shared_Memory requests, each answer
-    compared with what the PLC task's Python handler gives for the same request."""
+    compared with what the PLC task's Python handler gives for the same request, and host
+    SDO requests of such bytes, compared with the CAN task's."""
     import importlib.util
 
     spec = importlib.util.spec_from_file_location("firmware._mailbox", module)
@@ -194,6 +195,13 @@ def fuzz(directory: str, module: str) -> None:
             data = header.encode()
         else:
             data = rng.randbytes(rng.randrange(0, 24))
+        if nr % 4 == 3:  # a host SDO request: the CAN task's, by sdo_turn in C (msg.e 0)
+            request = Message(rx=Task.CAN, tx=Task.USER, b=COM_SDO_UP_DOWNLOAD, nr=nr & 0xFF,
+                              e=rng.choice([0, 0, 4]), data=data)
+            answer = _ask(0, request)
+            expected = device.can.handle(request)
+            assert answer == expected, (request, answer, expected)
+            continue
         request = Message(rx=Task.PLC, tx=Task.USER, b=COM_SHARED_MEMORY, nr=nr & 0xFF,
                           data=data)
         answer = _ask(0, request)
@@ -211,7 +219,8 @@ def test_the_turn_in_c_under_the_sanitizers(tmp_path: Path) -> None:
     """Built with AddressSanitizer and UBSan, the turn in C answers random and edge-case
     requests (lengths 0-23, every area, counts and addresses at and past each limit) as
     the Python handler does, without a read or write out of bounds or undefined
-    behaviour."""
+    behaviour; host SDO requests of the same bytes (the card unconfigured: every answer
+    comes from the call ``sdo_turn`` makes) too."""
     cc = shutil.which("cc") or shutil.which("gcc")
     if cc is None:
         pytest.skip("no C compiler")
