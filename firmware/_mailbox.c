@@ -217,7 +217,9 @@ static int sdo_turn(PyObject *sdo, const unsigned char *raw, unsigned char *mm,
   unsigned char state[256];
   PyObject *got;
   Py_ssize_t n;
-  if (sdo == Py_None || raw[0] != cfg.can_task || raw[6] != cfg.com_sdo || raw[7] != 0) return 0;
+  if (sdo == Py_None || raw[0] != cfg.can_task || raw[6] != cfg.com_sdo || raw[7] != 0 ||
+      8 + (Py_ssize_t)raw[2] > cfg.msg_max)
+    return 0;
   memcpy(state, mm + cfg.task2_state, (size_t)cfg.task2_size);
   __atomic_store_n(mm + cfg.host_flags, (unsigned char)(host ^ cfg.devack), __ATOMIC_SEQ_CST);
   got = PyObject_CallFunction(sdo, "y#", (const char *)raw, (Py_ssize_t)(8 + raw[2]));
