@@ -13,7 +13,11 @@
  * of the watchdog trigger, the output area or the connection bits, and whenever the turn
  * lock or the process image's lock is taken. The caller (firmware/device.py) checks the rest
  * (faults, queues, poll state) before it calls. A recording card's turns are served here too:
- * each appends the events its recorder's hooks would have (below). Every layout offset, flag bit,
+ * each appends the events its recorder's hooks would have (below). A host SDO request
+ * (COM_SDO_Up_Download, msg.e 0) from the expected host is taken here too and handed to the
+ * CAN task's one Python callable (sdo_turn): an expedited transfer to a simulated node of
+ * this process then costs no Python turn of the device loop (not while recording: the
+ * recorder's hooks see those in the Python turn). Every layout offset, flag bit,
  * command number and msg.f comes from dpm/ through ``configure``; nothing here is a number
  * of the protocol.
  */
@@ -39,6 +43,8 @@ static struct {
   int plc_task, command, read, write, area_by_function, area_receive, area_send;
   int bit_type, uint16_type;
   int f_unknown_function, f_unknown_data_type, f_illegal_area, f_illegal_count, f_overflow;
+  int can_task, com_sdo;
+  Py_ssize_t task2_state, task2_size;
   int ntypes, type_code[MAX_TYPES], max_address[MAX_TYPES], max_count[MAX_TYPES];
 } cfg;
 
@@ -102,6 +108,10 @@ static PyObject *configure(PyObject *self, PyObject *args) {
   TAKE(f_illegal_area, "ILLEGAL_AREA");
   TAKE(f_illegal_count, "ILLEGAL_COUNT");
   TAKE(f_overflow, "BUFFER_OVERFLOW");
+  TAKE(can_task, "CAN_TASK");
+  TAKE(com_sdo, "COM_SDO_UP_DOWNLOAD");
+  TAKE(task2_state, "TASK2_STATE");
+  TAKE(task2_size, "TASK2_STATE_SIZE");
   n = PyTuple_GET_SIZE(types);
   if (n > MAX_TYPES) {
     PyErr_SetString(PyExc_ValueError, "configure: too many data types");
@@ -113,7 +123,8 @@ static PyObject *configure(PyObject *self, PyObject *args) {
       return NULL;
   }
   cfg.ntypes = (int)n;
-  if (cfg.msg_max < 8 + cfg.header || cfg.msg_max > 8 + 255 || cfg.io_size <= 0) {
+  if (cfg.msg_max < 8 + cfg.header || cfg.msg_max > 8 + 255 || cfg.io_size <= 0 ||
+      cfg.task2_size <= 0 || cfg.task2_size > 256) {
     PyErr_SetString(PyExc_ValueError, "configure: inconsistent sizes");
     return NULL;
   }
@@ -193,6 +204,43 @@ static Py_ssize_t answer(const unsigned char *raw, const unsigned char *image,
   out[6] = 0;
   out[7] = 0;
   return 8 + n;
+}
+
+/* A host SDO request (COM_SDO_Up_Download to the CAN task, msg.e 0) [ours]: the message is
+ * taken as the Python turn's _receive takes it (DEVACK toggled first) and handed to the CAN
+ * task's ``sdo`` callable (HostSdo.native_request) as bytes; its answer, when the transfer
+ * ended inside the call, goes into the host mailbox here. 1: answered, out/len set; 0: the
+ * message is not one for this path (the Python turn takes it, nothing changed); 2: taken,
+ * its answer comes later (posted by the CAN task, as on the Python turn); -1: error.
+ * Task2State is compared around the call: a change the call made in this thread rang no
+ * one (Device._wake), so *changed asks for the Python turn, which shows it. */
+static int sdo_turn(PyObject *sdo, const unsigned char *raw, unsigned char *mm,
+                    unsigned char host, unsigned char *out, Py_ssize_t *len, int *changed) {
+  unsigned char state[256];
+  PyObject *got;
+  Py_ssize_t n;
+  if (sdo == Py_None || raw[0] != cfg.can_task || raw[6] != cfg.com_sdo || raw[7] != 0 ||
+      8 + (Py_ssize_t)raw[2] > cfg.msg_max)
+    return 0;
+  memcpy(state, mm + cfg.task2_state, (size_t)cfg.task2_size);
+  __atomic_store_n(mm + cfg.host_flags, (unsigned char)(host ^ cfg.devack), __ATOMIC_SEQ_CST);
+  got = PyObject_CallFunction(sdo, "y#", (const char *)raw, (Py_ssize_t)(8 + raw[2]));
+  if (got == NULL) return -1;
+  *changed = memcmp(state, mm + cfg.task2_state, (size_t)cfg.task2_size) != 0;
+  if (got == Py_None) {
+    Py_DECREF(got);
+    return 2;
+  }
+  if (!PyBytes_Check(got) || (n = PyBytes_GET_SIZE(got)) < 8 || n > cfg.msg_max ||
+      n != 8 + (Py_ssize_t)(unsigned char)PyBytes_AS_STRING(got)[2]) {
+    Py_DECREF(got);
+    PyErr_SetString(PyExc_ValueError, "serve: the SDO answer is no message");
+    return -1;
+  }
+  memcpy(out, PyBytes_AS_STRING(got), (size_t)n);
+  *len = n;
+  Py_DECREF(got);
+  return 1;
 }
 
 static double monotonic(void) {
@@ -548,9 +596,11 @@ static int record_commit(recording *r) {
 
 PyDoc_STRVAR(serve_doc,
              "serve(image, fd, hosts, interval, due, device, calls, outbox, indications,\n"
-             "      turn, image_lock, inputs, outputs, conn, record) -> (rings, dead, turns,\n"
-             "      dev_seen, watchdog_seen, host_seen, recorded_dev)\n\n"
-             "Answer the last of hosts' COM_Shared_Memory reads until a turn needs Python.\n"
+             "      turn, image_lock, inputs, outputs, conn, record, sdo) -> (rings, dead,\n"
+             "      turns, dev_seen, watchdog_seen, host_seen, recorded_dev)\n\n"
+             "Answer the last of hosts' COM_Shared_Memory reads, and hand its\n"
+             "COM_SDO_Up_Download requests (msg.e 0) to sdo (None: not now), until a turn\n"
+             "needs Python.\n"
              "image: the board's mmap; fd: the device bell; hosts: the known hosts' abstract\n"
              "names, the expected one last; interval: the poll interval, due: the watchdog's\n"
              "deadline plus the loop's lateness (monotonic seconds, or a negative number);\n"
@@ -559,16 +609,17 @@ PyDoc_STRVAR(serve_doc,
              "taken without blocking; inputs: the image's receive area (bytearray); outputs:\n"
              "the output area the CAN master saw last; conn: the connection bits it saw;\n"
              "record: None, or the recording's (recorder, queue, ledger, dev), whose events\n"
-             "each served turn appends to queue. Returns the rings taken that need the\n"
-             "Python turn, the hosts that are gone, the turns served, DevFlags, the\n"
-             "watchdog trigger and HostFlags as the last served turn left them, and the\n"
-             "DevFlags the recording saw last (-1: none).");
+             "each served turn appends to queue; sdo: HostSdo.native_request or None (not\n"
+             "taken while recording). Returns the rings taken that need the Python turn,\n"
+             "the hosts that are gone, the turns served, DevFlags, the watchdog trigger and\n"
+             "HostFlags as the last served turn left them, and the DevFlags the recording\n"
+             "saw last (-1: none).");
 
 static PyObject *serve(PyObject *self, PyObject *args) {
   Py_buffer image, outputs, conn;
   int fd, turns = 0, failed = 0;
   double interval, due;
-  PyObject *hosts, *device, *calls, *outbox, *indications, *turn, *image_lock, *inputs;
+  PyObject *hosts, *device, *calls, *outbox, *indications, *turn, *image_lock, *inputs, *sdo;
   PyObject *rings = NULL, *dead = NULL, *expected, *result = NULL, *record;
   recording r;
   unsigned char *mm, dev_base, watchdog, dev_seen = 0, watchdog_seen = 0, host_seen = 0;
@@ -577,9 +628,10 @@ static PyObject *serve(PyObject *self, PyObject *args) {
     PyErr_SetString(PyExc_RuntimeError, "configure() first");
     return NULL;
   }
-  if (!PyArg_ParseTuple(args, "w*iO!ddOOOOOOO!y*y*O", &image, &fd, &PyList_Type, &hosts,
+  if (!PyArg_ParseTuple(args, "w*iO!ddOOOOOOO!y*y*OO", &image, &fd, &PyList_Type, &hosts,
                         &interval, &due, &device, &calls, &outbox, &indications, &turn,
-                        &image_lock, &PyByteArray_Type, &inputs, &outputs, &conn, &record))
+                        &image_lock, &PyByteArray_Type, &inputs, &outputs, &conn, &record,
+                        &sdo))
     return NULL;
   mm = (unsigned char *)image.buf;
   if (record_open(record, &r) < 0) goto done;
@@ -589,6 +641,7 @@ static PyObject *serve(PyObject *self, PyObject *args) {
   }
   if (image.len < cfg.snd_pd + cfg.io_size || image.len < cfg.dev_mbx + cfg.msg_max ||
       image.len < cfg.pc_mbx + cfg.msg_max || image.len < cfg.conn_status + cfg.conn_size ||
+      image.len < cfg.task2_state + cfg.task2_size || (sdo != Py_None && !PyCallable_Check(sdo)) ||
       image.len <= cfg.host_flags || image.len <= cfg.dev_flags ||
       image.len <= cfg.dev_watchdog || outputs.len != cfg.io_size || conn.len != cfg.conn_size ||
       PyByteArray_GET_SIZE(inputs) != cfg.io_size || PyList_GET_SIZE(hosts) == 0) {
@@ -616,7 +669,7 @@ static PyObject *serve(PyObject *self, PyObject *args) {
     ssize_t got;
     Py_ssize_t len;
     double now = monotonic(), wait = interval;
-    int ready, taken, quiet;
+    int ready, taken, quiet, sdo_kind = 0, changed = 0;
     if (due >= 0 && due - now < wait) wait = due - now;
     if (wait <= 0) break; /* the watchdog is due: the Python turn */
     Py_BEGIN_ALLOW_THREADS;
@@ -691,7 +744,11 @@ static PyObject *serve(PyObject *self, PyObject *args) {
           len = answer(raw, mm, (const unsigned char *)PyByteArray_AS_STRING(inputs), out);
           if (unlock(image_lock) < 0) failed = 1;
         }
-        if (len > 0) {
+        if (len == 0 && !failed && r.recorder == Py_None) {
+          sdo_kind = sdo_turn(sdo, raw, mm, host, out, &len, &changed);
+          if (sdo_kind < 0) failed = 1;
+        }
+        if (len > 0 && !sdo_kind) { /* sdo_turn took the message (DEVACK) before its call */
           record_turn(&r, dev);
           __atomic_store_n(mm + cfg.host_flags, (unsigned char)(host ^ cfg.devack),
                            __ATOMIC_SEQ_CST);
@@ -700,13 +757,15 @@ static PyObject *serve(PyObject *self, PyObject *args) {
             len = 0;
           }
         }
-        if (len > 0) {
-          record_answer(&r, out, len, (unsigned char)(host ^ cfg.devack), mm);
-          memcpy(mm + cfg.pc_mbx, out, (size_t)len);
-          __atomic_store_n(mm + cfg.host_flags, (unsigned char)(host ^ cfg.devack ^ cfg.hostcom),
-                           __ATOMIC_SEQ_CST);
-          if (ring_hosts(fd, hosts, dead) < 0) failed = 1;
-          if (record_commit(&r) < 0) failed = 1; /* after the ring: the host waits not */
+        if (len > 0 || sdo_kind == 2) {
+          if (len > 0) {
+            record_answer(&r, out, len, (unsigned char)(host ^ cfg.devack), mm);
+            memcpy(mm + cfg.pc_mbx, out, (size_t)len);
+            __atomic_store_n(mm + cfg.host_flags,
+                             (unsigned char)(host ^ cfg.devack ^ cfg.hostcom), __ATOMIC_SEQ_CST);
+            if (ring_hosts(fd, hosts, dead) < 0) failed = 1;
+            if (record_commit(&r) < 0) failed = 1; /* after the ring: the host waits not */
+          }
           turns++;
           dev_seen = __atomic_load_n(mm + cfg.dev_flags, __ATOMIC_ACQUIRE);
           watchdog_seen = mm[cfg.dev_watchdog];
@@ -714,12 +773,21 @@ static PyObject *serve(PyObject *self, PyObject *args) {
         }
       }
     }
-    if (taken && unlock(turn) < 0) failed = 1;
+    if (taken) { /* an error of the turn stays the one raised: release() runs without it */
+      PyObject *kind, *value, *trace;
+      PyErr_Fetch(&kind, &value, &trace);
+      if (unlock(turn) < 0) failed = 1;
+      if (kind != NULL) PyErr_Restore(kind, value, trace);
+    }
     /* A signal delivered to another thread leaves its handler pending for this one, which
      * the interpreter would run between two Python turns; a stop it asks for rings. */
     if (failed || PyErr_CheckSignals() < 0) goto done;
-    if (len == 0 || PyList_GET_SIZE(dead) > 0) {
-      if (len == 0) { /* the ring goes to the Python turn, which serves the message */
+    /* A request sdo_turn took whose answer comes later is served: the answer is posted
+     * (Device.hand_over) by the thread that ends the transfer, as after a Python turn. */
+    if ((len == 0 && sdo_kind != 2) || changed || PyList_GET_SIZE(dead) > 0) {
+      /* the ring goes to the Python turn, which serves the message (not one sdo_turn took;
+       * after one that changed Task2State the Python turn shows the change) */
+      if (len == 0 && !sdo_kind) {
         PyObject *ring = Py_BuildValue("(y#O)", (const char *)payload, (Py_ssize_t)got, expected);
         if (ring == NULL || PyList_Append(rings, ring) < 0) {
           Py_XDECREF(ring);

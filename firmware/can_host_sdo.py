@@ -8,6 +8,8 @@ download while they come in; the transfer on the bus is ``firmware.can.sdo``'s.
 
 from __future__ import annotations
 
+import logging
+from collections.abc import Callable
 from functools import partial
 from threading import Lock
 from typing import TYPE_CHECKING
@@ -15,7 +17,7 @@ from typing import TYPE_CHECKING
 from dpm.cia301 import NODE_ID_MAX
 from dpm.com import encode_sdo_abort
 from dpm.commands import COM_SDO_UP_DOWNLOAD, LONG_SDO_LIMIT, SDO_MAX_DATA
-from dpm.errors import CanF
+from dpm.errors import F_INTERNAL_ERROR, CanF
 from dpm.message import TELEGRAM_HEADER, Ext, Message, MessageError, TelegramHeader, Tfc
 from firmware.can.node import State
 from firmware.can.sdo import HostSdoTransfer, SdoResult
@@ -25,6 +27,44 @@ from firmware.task import Handler
 if TYPE_CHECKING:
     from firmware.can.master import Master
     from firmware.can.node import NodeHandler
+
+log = logging.getLogger(__name__)
+
+Post = Callable[[Message], None]
+"""Where a transfer's answer goes: ``Card.post``, or a ``_Kept`` of the turn in C."""
+
+
+class _Kept:
+    """The answer of a request the device loop's turn in C handed over (``native_request``)
+    [ours]: kept for that turn when the transfer ends inside the call (a simulated node of
+    this process answers in the loop's thread, ``firmware.inline``), posted as usual when it
+    ends later, from another thread. Whichever side pops the answer owns it (``list.pop`` is
+    atomic), so an answer that comes while the call returns is neither lost nor given twice."""
+
+    __slots__ = ("_answers", "_closed", "_post")
+
+    def __init__(self, post: Post) -> None:
+        self._post = post
+        self._answers: list[Message] = []
+        self._closed = False
+
+    def __call__(self, answer: Message) -> None:
+        answers = self._answers
+        answers.append(answer)
+        if self._closed:
+            try:
+                answer = answers.pop()
+            except IndexError:  # the call took it meanwhile
+                return
+            self._post(answer)
+
+    def take(self) -> Message | None:
+        """The answer, if the transfer ended inside the call; from now on answers are posted."""
+        self._closed = True
+        try:
+            return self._answers.pop()
+        except IndexError:
+            return None
 
 
 class HostSdo:
@@ -43,6 +83,28 @@ class HostSdo:
         self._long_download.clear()
 
     def com_sdo_up_download(self, msg: Message) -> Message | None:
+        return self._request(msg, self.card.post)
+
+    def native_request(self, raw: bytes) -> bytes | None:
+        """A COM_SDO_Up_Download the device loop's turn in C took (``firmware/_mailbox.c``:
+        a CAN-task message of this command with msg.e 0 from the host it serves) [ours]: the
+        same handling as the Python turn's (``com_sdo_up_download``, with ``Task.handle``'s
+        f on a failure), without that turn. Returns the answer's bytes for the host mailbox,
+        or None when the answer comes later (posted, as the Python turn's would be)."""
+        msg = Message.decode(raw)
+        kept = _Kept(self.card.post)
+        try:
+            answer = self._request(msg, kept)
+        except Exception:
+            log.exception("task CAN failed on command %d", msg.b)
+            answer = msg.answer(f=F_INTERNAL_ERROR)
+        if answer is None:
+            answer = kept.take()
+            if answer is None:
+                return None
+        return answer.encode()
+
+    def _request(self, msg: Message, post: Post) -> Message | None:
         try:
             head = TelegramHeader.decode(msg.data)
         except MessageError:
@@ -79,7 +141,7 @@ class HostSdo:
             self.master.bus, address, head.data_adr, head.data_idx,
             None if head.function == Tfc.READ else head.payload,
             client.sdo.RESPONSE_TIMEOUT,
-            partial(self._answer_sdo, msg, head, long_upload, client.lock, handler),
+            partial(self._answer_sdo, post, msg, head, long_upload, client.lock, handler),
             answered_here=True))
         return None
 
@@ -108,7 +170,7 @@ class HostSdo:
         return TelegramHeader(head.device_adr, 0, head.data_adr, head.data_idx, 0, 0,
                               Tfc.WRITE, bytes(data))
 
-    def _answer_sdo(self, msg: Message, head: TelegramHeader, long_upload: bool,
+    def _answer_sdo(self, post: Post, msg: Message, head: TelegramHeader, long_upload: bool,
                     channel: Lock, handler: NodeHandler | None, result: SdoResult) -> None:
         """The answer to a finished host transfer (several messages for a long upload); the
         node's channel (``channel``, its lock) and RX-PDOs (``handler``) are free again
@@ -122,7 +184,7 @@ class HostSdo:
                 and len(data) <= SDO_MAX_DATA):
             # the usual answer, an upload's data in one message, packed at once: a header
             # object and its ``encode`` cost two Python calls more
-            self.card.post(msg.answer(data=TELEGRAM_HEADER.pack(
+            post(msg.answer(data=TELEGRAM_HEADER.pack(
                 head.device_adr, 0, head.data_adr, head.data_idx, len(data), 0, function)
                 + data))
             return
@@ -138,17 +200,18 @@ class HostSdo:
             if not long_upload:  # seed 5.2.8: one answer of at most 247 bytes, else f 51
                 answer = msg.answer(f=CanF.SDO_BUFFER, data=answer_head.encode())
             else:
-                self._post_long_upload(msg, answer_head, data)
+                self._post_long_upload(post, msg, answer_head, data)
                 return
         else:  # a download's confirmation
             answer = msg.answer(data=answer_head.encode())
-        self.card.post(answer)
+        post(answer)
 
-    def _post_long_upload(self, msg: Message, head: TelegramHeader, data: bytes) -> None:
+    def _post_long_upload(self, post: Post, msg: Message, head: TelegramHeader,
+                          data: bytes) -> None:
         """More than one message of upload data: first, continue ..., last (msg.e)."""
         parts = [data[i : i + SDO_MAX_DATA] for i in range(0, len(data), SDO_MAX_DATA)]
         for n, part in enumerate(parts):
             e = Ext.FIRST if n == 0 else Ext.LAST if n == len(parts) - 1 else Ext.CONT
             head.data_cnt = len(part)
             head.payload = part
-            self.card.post(msg.answer(data=head.encode(), e=e))
+            post(msg.answer(data=head.encode(), e=e))

@@ -301,7 +301,8 @@ class Device:
         rings, dead, turns, dev, watchdog, host, recorded = native_mailbox.serve(
             mm, self.bell.fileno(), hosts, poll.interval, -1.0 if due is None else due, self,
             self._calls, self.outbox, master.layer2.indications, self._turn, image.lock,
-            image.inputs, outputs, conn, record)
+            image.inputs, outputs, conn, record,
+            self.can.host_sdo.native_request if self.can.fatal is None else None)
         if recorder is not None:
             recorder.native_recorded(recorded)
         self.native_turns += turns

@@ -1,12 +1,15 @@
-"""The device loop's mailbox turn in C for a plain COM_Shared_Memory read [ours] (issue 22).
+"""The device loop's mailbox turn in C for a plain COM_Shared_Memory read and a host SDO
+request [ours] (issue 22).
 
 ``firmware/_mailbox.c`` answers, with the interpreter lock released while it waits, the
 COM_Shared_Memory reads (and malformed COM_Shared_Memory requests) a host rings for while
-nothing else needs the device loop's Python turn; it returns to that turn for everything
-else. This module hands it the numbers it works with, from ``dpm/`` and the PLC task's
-limits, so the C file holds no number of the protocol; and, for a recording card, the spool's
-heads (``dpm.session``) and the recorder's ledger reads, so that a turn served in C appends
-to the recorder's queue the events its hooks would have (``firmware.recorder``) [ours].
+nothing else needs the device loop's Python turn, and hands a host's COM_SDO_Up_Download
+(msg.e 0) to the CAN task's one callable for it (``HostSdo.native_request``) when the card
+does not record; it returns to that turn for everything else. This module hands it the
+numbers it works with, from ``dpm/`` and the PLC task's limits, so the C file holds no
+number of the protocol; and, for a recording card, the spool's heads (``dpm.session``) and
+the recorder's ledger reads, so that a turn served in C appends to the recorder's queue the
+events its hooks would have (``firmware.recorder``) [ours].
 """
 
 from __future__ import annotations
@@ -18,7 +21,13 @@ from typing import Any
 import firmware._mailbox as _mailbox
 from dpm import flags as fl
 from dpm import session as s
-from dpm.commands import AREA_BY_FUNCTION, AREA_RECEIVE, AREA_SEND, COM_SHARED_MEMORY
+from dpm.commands import (
+    AREA_BY_FUNCTION,
+    AREA_RECEIVE,
+    AREA_SEND,
+    COM_SDO_UP_DOWNLOAD,
+    COM_SHARED_MEMORY,
+)
 from dpm.doorbell import RING
 from dpm.errors import PlcF
 from dpm.layout import (
@@ -53,6 +62,8 @@ LAYOUT = {
     "UINT16": int(Tdt.UINT16), "UNKNOWN_FUNCTION": int(PlcF.UNKNOWN_FUNCTION),
     "UNKNOWN_DATA_TYPE": int(PlcF.UNKNOWN_DATA_TYPE), "ILLEGAL_AREA": int(PlcF.ILLEGAL_AREA),
     "ILLEGAL_COUNT": int(PlcF.ILLEGAL_COUNT), "BUFFER_OVERFLOW": int(PlcF.BUFFER_OVERFLOW),
+    "CAN_TASK": int(Task.CAN), "COM_SDO_UP_DOWNLOAD": int(COM_SDO_UP_DOWNLOAD),
+    "TASK2_STATE": TASK2_STATE, "TASK2_STATE_SIZE": TASK_STATE_SIZE,
 }
 """What ``configure`` hands the C file, by name."""
 

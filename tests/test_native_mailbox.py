@@ -27,7 +27,7 @@ from hypothesis import strategies as st
 
 from dpm import flags as fl
 from dpm import session as s
-from dpm.commands import COM_SHARED_MEMORY
+from dpm.commands import COM_SDO_UP_DOWNLOAD, COM_SHARED_MEMORY
 from dpm.doorbell import HostBell
 from dpm.image import lock_path
 from dpm.layout import DEV_FLAGS, DEV_MBX, HOST_FLAGS, IO_AREA_SIZE, PC_MBX, SND_PD
@@ -176,9 +176,11 @@ def fuzz(directory: str, module: str) -> None:
     """The sanitizers' run (in its own process, the sanitized build of the turn in C loaded
     as ``firmware._mailbox``): random and edge-case COM_Shared_Memory requests, each answer
     compared with what the PLC task's Python handler gives for the same request, on a card
-    that records them; a quarter put by a host that writes the slot (msg.ln any) and the
-    ledger (empty, its line, garbage, longer than the card's first read and than all it
-    reads) itself, all of which the session holds."""
+    that records them for the first half; a quarter put by a host that writes the slot
+    (msg.ln any) and the ledger (empty, its line, garbage, longer than the card's first
+    read and than all it reads) itself, all of which the session holds; and host SDO
+    requests of such bytes, compared with the CAN task's (taken in C once the recording
+    ended: a recording card hands them to the Python turn)."""
     import importlib.util
 
     spec = importlib.util.spec_from_file_location("firmware._mailbox", module)
@@ -207,6 +209,17 @@ def fuzz(directory: str, module: str) -> None:
             data = header.encode()
         else:
             data = rng.randbytes(rng.randrange(0, 24))
+        if nr == FUZZ_REQUESTS // 2:
+            records = _detach(device, recorder, session)  # the driver's: the firmware's pid,
+            assert [r.kind for r in records].count(s.PUT) == raw_puts  # left out
+            assert [r.kind for r in records].count(s.ANSWER) == raw_puts
+        if nr % 4 == 2:  # a host SDO request: the CAN task's, by sdo_turn in C (msg.e 0)
+            request = Message(rx=Task.CAN, tx=Task.USER, b=COM_SDO_UP_DOWNLOAD, nr=nr & 0xFF,
+                              e=rng.choice([0, 0, 4]), data=data)
+            answer = _ask(0, request)
+            expected = device.can.handle(request)
+            assert answer == expected, (request, answer, expected)
+            continue
         request = Message(rx=Task.PLC, tx=Task.USER, b=COM_SHARED_MEMORY, nr=nr & 0xFF,
                           data=data)
         if nr % 4 == 3:
@@ -229,9 +242,6 @@ def fuzz(directory: str, module: str) -> None:
     device.bell.ring_self()
     # (a ring from the other host than the last returns to the Python turn, which serves it)
     wait_until(lambda: device.native_turns > FUZZ_REQUESTS // 4, what="the turns in C")
-    records = _detach(device, recorder, session)  # the driver's: the firmware's pid, left out
-    assert [r.kind for r in records].count(s.PUT) == raw_puts
-    assert [r.kind for r in records].count(s.ANSWER) == raw_puts
     DevExitBoard(0)
     DevCloseDriver()
     device.stop()
@@ -242,7 +252,8 @@ def test_the_turn_in_c_under_the_sanitizers(tmp_path: Path) -> None:
     """Built with AddressSanitizer and UBSan, the turn in C answers random and edge-case
     requests (lengths 0-23, every area, counts and addresses at and past each limit) as
     the Python handler does, without a read or write out of bounds or undefined
-    behaviour."""
+    behaviour; host SDO requests of the same bytes (the card unconfigured: every answer
+    comes from the call ``sdo_turn`` makes) too."""
     cc = shutil.which("cc") or shutil.which("gcc")
     if cc is None:
         pytest.skip("no C compiler")
