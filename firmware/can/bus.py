@@ -410,7 +410,10 @@ class _Receiver:
                     self._after_taking = None
                     self._take_received()
                     callback()
-                if due <= (now := time.monotonic()) and listener.deadlines.take(now):
+                # no clock read per frame while there are no deadlines (a system call each
+                # under User-Mode Linux, issue 22)
+                if (due < math.inf and due <= (now := time.monotonic())
+                        and listener.deadlines.take(now)):
                     listener.on_deadline()
         except Exception as exc:  # the transport failed, or a frame handler did
             if not self._stopping:
