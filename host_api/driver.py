@@ -28,7 +28,6 @@ from __future__ import annotations
 import math
 import mmap
 import struct
-import threading
 import time
 from contextlib import ExitStack
 from dataclasses import dataclass
@@ -67,6 +66,7 @@ from dpm.layout import (
     offset_of,
 )
 from dpm.message import Message, MessageError
+from host_api._quicklock import Lock as QuickLock
 from host_api.liveness import firmware_serving
 from host_api.locks import Answer, ChannelLock, Transaction
 from host_api.registry import Counters as _Counters
@@ -235,7 +235,7 @@ def _open_board(number: int, path: Path, mm: mmap.mmap) -> _Board | None:
             opened.pop_all()
     except OSError:
         return None
-    return _Board(number, path, mm, bell, threading.Lock(), threading.Lock(), io, transaction,
+    return _Board(number, path, mm, bell, QuickLock(), QuickLock(), io, transaction,
                   _driver.counters.setdefault(number, _Counters()))
 
 
@@ -281,7 +281,7 @@ def DevPutMessage(number: int, msg: Message | bytes, timeout: int) -> int:
         raw = message.encode()
     except MessageError:
         return Drv.DRV_USR_SIZE_INVALID
-    deadline = time.monotonic() + timeout / 1000.0
+    deadline = _deadline(timeout)
     transaction = board.transaction
     if not transaction.enter(timeout / 1000.0):
         return Drv.DRV_CMD_ACTIVE
@@ -310,17 +310,28 @@ def DevPutMessage(number: int, msg: Message | bytes, timeout: int) -> int:
         transaction.leave()
 
 
-def _take(channel: threading.Lock, deadline: float) -> bool:
+def _deadline(timeout: int) -> float:
+    """A mailbox call's deadline on the monotonic clock; 0.0 for a call that does not wait
+    (``timeout`` <= 0, the 309-3 server's), which then reads no clock: under User-Mode Linux
+    each reading is a system call of about 30 us (issue 22)."""
+    return time.monotonic() + timeout / 1000.0 if timeout > 0 else 0.0
+
+
+def _take(channel: QuickLock, deadline: float) -> bool:
     """The put or get channel of this process, waited for until the call's deadline; the
     transaction lock the call holds already keeps every other host out (``MappedBoard``).
     The callers try the lock without waiting first (the usual case: free, and neither a
     clock read nor this call, on every mailbox round trip)."""
+    if not deadline:
+        return False
     left = deadline - time.monotonic()
     return left > 0 and channel.acquire(timeout=left)
 
 
 def _left_ms(deadline: float) -> int:
     """Whole milliseconds left, rounded up: a wait never ends before its time."""
+    if not deadline:
+        return 0
     return max(0, math.ceil((deadline - time.monotonic()) * 1000))
 
 
@@ -336,7 +347,7 @@ def DevGetMessage(number: int, size: int, timeout: int) -> tuple[int, Message | 
     board = _ready_board(number)
     if not isinstance(board, _Board):
         return board, None
-    deadline = time.monotonic() + timeout / 1000.0
+    deadline = _deadline(timeout)
     transaction = board.transaction
     # a host expecting nothing still waits for other hosts' transactions to finish
     if not transaction.enter(timeout / 1000.0):

@@ -39,6 +39,7 @@ from typing import NamedTuple
 
 from dpm.ledger import END, LINE, decode_line
 from dpm.message import Ext, Message
+from host_api._quicklock import Lock as QuickLock
 from host_api.holders import Holder, lock_holder
 
 _FLOCK_RETRY = 0.0002
@@ -225,7 +226,7 @@ class Transaction:
         except BaseException:
             os.close(self._fd)
             raise
-        self._state = threading.Lock()
+        self._state = QuickLock()
         """Guards the fields below; held for one attempt at the flock at a time."""
         self._session = threading.Lock()
         self._owner = secrets.randbits(63)
@@ -433,7 +434,7 @@ class Transaction:
     def reopen_after_fork(self) -> None:
         """In a forked child: its own flock and owner number, an empty ledger in memory
         (the requests in the file are the parent's)."""
-        self._state = threading.Lock()
+        self._state = QuickLock()
         self._session = threading.Lock()
         self._owner = secrets.randbits(63)
         self._pid = os.getpid()

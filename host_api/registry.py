@@ -34,6 +34,7 @@ from dpm.errors import Drv
 from dpm.image import MAX_DEV_BOARDS
 from dpm.layout import DEV_FLAGS, HOST_FLAGS
 from host_api._devflags import change as _change_flags
+from host_api._quicklock import Lock as QuickLock
 from host_api.liveness import firmware_liveness
 from host_api.locks import ChannelLock, Transaction
 
@@ -72,8 +73,8 @@ class MappedBoard:
     path: Path
     mm: mmap.mmap
     bell: HostBell
-    put_lock: threading.Lock
-    get_lock: threading.Lock
+    put_lock: QuickLock
+    get_lock: QuickLock
     """The put and get channels exclude this process's threads only: every put and get, of
     a Python host and of libcif's, is made inside the board's transaction lock, which one
     process at a time holds (``host_api.locks.Transaction``). An flock of their own would
@@ -209,7 +210,7 @@ class MappedBoard:
         """In a forked child: its own lock files, thread locks and doorbell."""
         self.io_lock.reopen_after_fork()
         # a parent's thread that held one is not here
-        self.put_lock, self.get_lock = threading.Lock(), threading.Lock()
+        self.put_lock, self.get_lock = QuickLock(), QuickLock()
         self.transaction.reopen_after_fork()
         self.bell.close()
         self.bell = HostBell(self.path)

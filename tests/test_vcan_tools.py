@@ -16,10 +16,12 @@ import signal
 import statistics
 import struct
 import subprocess
+import threading
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -347,3 +349,63 @@ def test_heartbeat_from_cansend_going_silent(bench: Callable[..., Bench]) -> Non
         beating.wait()
     wait_until(lambda: b.board.diagnostics().bErr_event == 30, 5, "Err_Event 30")
     assert b.board.diagnostics().bErr_rem_adr == 5 and 5 not in b.operating()
+
+
+def test_the_cards_frames_on_socketcan_take_no_select_of_python_can(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """Issue 22: a frame the card sends or receives on SocketCAN is one write or one read of
+    the socket after the receive thread's own ``select``; python-can's ``send`` and
+    ``recv(0)`` added a ``select`` each (a system call) and two to four clock readings,
+    and the receive thread read the clock once per frame for deadlines it did not have:
+    each a ptrace round trip of the host inside User-Mode Linux. Counted: the ``select``
+    calls and the receive thread's clock readings while the card sends 50 frames and
+    receives 50 (all of them arrive, in order, with their data)."""
+    reason = socketcan_missing()
+    if reason is not None:
+        pytest.skip(reason)
+    import select
+
+    import can
+
+    from firmware.can.bus import CanBus
+
+    selects = 0
+    real_select = select.select
+
+    def counting(*args: Any) -> Any:
+        nonlocal selects
+        selects += 1
+        return real_select(*args)
+
+    readings = 0
+    real_monotonic = time.monotonic
+
+    def clock() -> float:
+        nonlocal readings
+        readings += threading.current_thread().name == "can-receive"
+        return real_monotonic()
+
+    card = CanBus("socketcan", SOCKETCAN_CHANNEL)
+    peer = can.Bus(interface="socketcan", channel=SOCKETCAN_CHANNEL)
+    got: list[bytes] = []
+    try:
+        card.subscribe(0x181, lambda msg: got.append(bytes(msg.data)))
+        monkeypatch.setattr(select, "select", counting)  # python-can's and the receiver's
+        monkeypatch.setattr(time, "monotonic", clock)
+        for n in range(50):
+            assert card.send(0x201, bytes([n, 1]))
+            peer.send(can.Message(arbitration_id=0x181, is_extended_id=False, data=[n]))
+            sent = peer.recv(2.0)
+            assert sent is not None and bytes(sent.data) == bytes([n, 1])
+        wait_until(lambda: len(got) == 50, 5.0)
+        monkeypatch.undo()
+    finally:
+        monkeypatch.undo()
+        peer.shutdown()
+        card.shutdown()
+    assert got == [bytes([n]) for n in range(50)]
+    # the peer's own recv and send: 2 per round; the card's receive thread's own wait: at
+    # most 1 per frame received; python-can's for the card's frames: none (2 a round before)
+    assert selects <= 3 * 50 + 5, f"{selects} selects while the card sent 50 frames and took 50"
+    # the receive thread reads no clock per frame while it keeps no deadlines (one before)
+    assert readings <= 5, f"{readings} clock readings of the receive thread for 50 frames"

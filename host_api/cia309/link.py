@@ -66,6 +66,7 @@ from dpm.doorbell import HostBell
 from dpm.errors import F_UNKNOWN_COMMAND, F_UNKNOWN_TASK, Drv
 from dpm.message import Ext, Message, MessageError, Task
 from host_api import driver as d
+from host_api._quicklock import Lock as QuickLock
 from host_api.board import Board, CifError
 from host_api.cia309.model import (
     BootUpEvent,
@@ -357,7 +358,7 @@ class InFlight:
     go itself, so an owner that never comes back (an event loop that stopped) holds nothing
     once the card has answered."""
 
-    def __init__(self, link: Link, nr: int, pending: _Pending, channel: threading.Lock | None,
+    def __init__(self, link: Link, nr: int, pending: _Pending, channel: QuickLock | None,
                  timeout: float, on_done: Callable[[], None]) -> None:
         self.link = link
         self.nr = nr
@@ -439,7 +440,7 @@ class Link:
         self.on_state_flags: Callable[[], None] | None = None
         """Called from the reader thread when the card's STATECOM, COM, RUN or READY
         changed (the Task2State monitor looks at once)."""
-        self._sdo_channels: dict[int, threading.Lock] = {}
+        self._sdo_channels: dict[int, QuickLock] = {}
         self._sdo_channels_lock = threading.Lock()
         self._listeners: list[FrameListener] = []
         self._indication_queues: list[IndicationQueue] = []
@@ -875,12 +876,12 @@ class Link:
             raise driver_error(code, "DevPutMessage")
         return flight
 
-    def _sdo_channel_lock(self, node: int) -> threading.Lock:
+    def _sdo_channel_lock(self, node: int) -> QuickLock:
         channel = self._sdo_channels.get(node)  # a dict read is atomic: no lock to find it
         if channel is not None:
             return channel
         with self._sdo_channels_lock:
-            return self._sdo_channels.setdefault(node, threading.Lock())
+            return self._sdo_channels.setdefault(node, QuickLock())
 
     @contextmanager
     def sdo_channel(self, node: int, timeout: float) -> Iterator[None]:
