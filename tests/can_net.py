@@ -36,6 +36,7 @@ from host_api import driver as d
 from host_api.board import Board
 from host_api.monitor.tap_bus import TapBus
 from host_api.online import configure_online
+from tests import commands
 from tests.buses import SOCKETCAN_CHANNEL, socketcan_missing
 from tests.conftest import GUEST_STALLS, Card, start_card, wait_until
 
@@ -220,7 +221,7 @@ def make_net(tmp_path: Path, interface: str) -> Iterator[Callable[..., Net]]:
         net.card.stop()
     for sim in sims:
         sim.terminate()
-        sim.wait(timeout=10)
+        commands.wait(sim, 10)
 
 
 def start_sim(network: Path, interface: str, channel: str) -> subprocess.Popen[bytes]:

@@ -21,7 +21,7 @@ import pytest_timeout
 from bench.cpu import descendants, runqueue_wait_ns
 from host_api import driver
 from host_api.ready import START_CPU_S, START_STALL_S, StartError, wait_ready
-from tests.selection import HELPER_MODULES, forbid_processes, marks_of_module
+from tests.selection import HELPER_MODULES, forbid_processes, marks_of_test
 
 REQUIRE_SOCKETCAN = "CIFEMU_REQUIRE_SOCKETCAN"
 """Set by ``make test-vcan``: there a SocketCAN test that skips is a failure."""
@@ -273,10 +273,14 @@ class Card:
         self.proc.send_signal(signal.SIGCONT)
 
     def stop(self) -> int:
+        """SIGTERM, and its end within 10 s on the load clock (``tests.commands.wait``): a
+        card that ends its threads and unmaps its image on a loaded machine is not hung."""
+        from tests import commands  # imports this module: not at the top
+
         if self.proc.poll() is None:
             self.thaw()
             self.proc.terminate()
-        return self.proc.wait(timeout=10)
+        return commands.wait(self.proc, 10)
 
 
 def start_card(directory: Path, board: int = 0, *extra: str) -> Card:
@@ -318,11 +322,11 @@ def pytest_configure(config: pytest.Config) -> None:
 
 
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
-    """The markers by module (tests/selection.py), and ``vcan`` on the ``socketcan`` variants
-    of the back-to-back fixtures, so that ``-m vcan`` selects them (``test_vcan_tools.py``,
-    SocketCAN only, marks itself)."""
+    """The markers by module and test (tests/selection.py), and ``vcan`` on the
+    ``socketcan`` variants of the back-to-back fixtures, so that ``-m vcan`` selects them
+    (``test_vcan_tools.py``, SocketCAN only, marks itself)."""
     for item in items:
-        for mark in marks_of_module(item.path.stem):
+        for mark in marks_of_test(item.path.stem, getattr(item, "originalname", item.name)):
             item.add_marker(mark)
         callspec = getattr(item, "callspec", None)
         if callspec is not None and "socketcan" in callspec.params.values():

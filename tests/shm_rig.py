@@ -18,6 +18,7 @@ import pytest
 from dpm.task2 import ComDiagnostics
 from firmware.shm.bus import ShmBus
 from host_api.board import Board
+from tests import commands
 from tests.can_net import start_sim
 from tests.conftest import start_card
 
@@ -55,4 +56,4 @@ def rig(tmp_path: Path) -> Iterator[Rig]:
         station.shutdown()
         card.stop()
         sim.terminate()
-        sim.wait(timeout=10)
+        commands.wait(sim, 10)

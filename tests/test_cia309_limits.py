@@ -25,6 +25,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from host_api.cia309.server import IDLE_GRACE_S
 from tests.cia309_clients import (
     ANSWER_1000,
     READ_1000,
@@ -39,8 +40,9 @@ from tests.conftest import LoadClock, wait_until
 EXAMPLES = int(os.environ.get("CIFEMU_FUZZ_EXAMPLES", "60"))
 ROUNDS = max(3, EXAMPLES // 20)
 MAX_CLIENTS = 4
-LIMITS = ["--max-clients", str(MAX_CLIENTS), "--idle-timeout", "1", "--line-timeout", "1",
-          "--max-output", str(256 * 1024)]
+IDLE_TIMEOUT_S = 1.0
+LIMITS = ["--max-clients", str(MAX_CLIENTS), "--idle-timeout", str(IDLE_TIMEOUT_S),
+          "--line-timeout", "1", "--max-output", str(256 * 1024)]
 MEMORY_GROWTH = 8 << 20
 """Bytes the server's resident memory may grow over a test after its first round."""
 FIRST_RSS: dict[str, int] = {}
@@ -72,7 +74,7 @@ def _closed_by_server(sock: socket.socket, timeout: float) -> bool:
 
 @pytest.fixture
 def steady(server: Server) -> Iterator[Steady]:
-    client = Steady(server.port)
+    client = Steady(server.port, idle_limit=min(IDLE_TIMEOUT_S, IDLE_GRACE_S))
     client.start()
     clock = LoadClock(time.monotonic())
     yield client

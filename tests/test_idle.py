@@ -56,6 +56,7 @@ from host_api.board import Board
 from host_api.cia309.events import MONITOR_PERIOD_QUIET
 from host_api.cia309.link import READER_POLL_QUIET
 from host_api.online import configure_online
+from tests import commands
 from tests.can_net import candump, start_sim
 from tests.conftest import Card, start_card, wait_until
 
@@ -395,7 +396,7 @@ def test_an_idle_309_gateway_sleeps(card: Card) -> None:
         wall = time.monotonic() - start
     finally:
         serve.terminate()
-        serve.wait(timeout=10)
+        commands.wait(serve, 10)
     wakeups = sum(after[t][1] - before.get(t, (0, 0))[1] for t in after) / wall
     cpu_pct = 100.0 * sum(after[t][0] - before.get(t, (0, 0))[0] for t in after) / 1e9 / wall
     assert wakeups < MAX_GATEWAY_WAKEUPS_PER_S, f"the gateway woke {wakeups:.0f} times a second"
@@ -442,7 +443,7 @@ class ShmNetwork:
             self.card.stop()
         if self.sim is not None:
             self.sim.terminate()
-            self.sim.wait(timeout=10)
+            commands.wait(self.sim, 10)
             self.sim = None
 
 

@@ -11,7 +11,6 @@ DevExchangeIO, and a lost heartbeat as Err_Event 30 in Task2State.
 from __future__ import annotations
 
 import importlib.util
-import queue
 import re
 import signal
 import socket
@@ -19,12 +18,12 @@ import struct
 import subprocess
 import sys
 import threading
-import time
 import uuid
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
+import can
 import pytest
 
 from dbm_tools.network import GENERIC_DEVICE_TYPE, load_network
@@ -42,7 +41,8 @@ from firmware.can.bus import (
 from firmware.shm.bus import channel_path
 from host_api.board import Board
 from host_api.online import configure_online
-from tests.conftest import TIME_SCALE, Card, start_card, wait_until
+from tests import commands
+from tests.conftest import Card, start_card, wait_until
 
 pytestmark = pytest.mark.skipif(
     importlib.util.find_spec("can_remote") is None,
@@ -59,6 +59,8 @@ RESENT_S = 5.0
 the link every second (``REOPEN_S``), then sends at its next tick; the rest is margin for a
 loaded machine."""
 SERVER_START_S = 20.0
+"""How long the server may take to listen, and then to answer its first bus request, in the
+time the test's processes could run (``wait_until``)."""
 LISTENING = re.compile(rb"Connect using channel '(ws://[^']+)'")
 
 
@@ -73,45 +75,66 @@ class Remote:
     def port(self) -> int:
         return int(self.url.rstrip("/").rsplit(":", 1)[1])
 
+    def answers_bus_requests(self) -> bool:
+        """Whether the server opens its side of the bus for a client: a client of the
+        test's own asks, as the card will.
+
+        The server loads its interface (the project's shm bus, numpy with it: 0.31-0.41 s
+        of CPU here) only when its first client asks for a bus, and python-can-remote's
+        client waits 5 s of wall time for that answer (``RemoteClientProtocol``), then
+        raises "No response from server". The card was that first client: at load 9 its
+        open took 3.0-3.8 s of wall time (0.33-0.49 s idle), at load 18 it ran out and the
+        card came up with FAT, answering the configuration with msg.f 200. A server that
+        has answered once answers the card in milliseconds."""
+        try:
+            bus = can.Bus(interface="remote", channel=self.url)
+        except (can.CanError, OSError):  # no answer in the client's 5 s: ask again
+            return False
+        bus.shutdown()
+        return True
+
     def stop(self) -> None:
         """SIGINT: the server's only clean end (KeyboardInterrupt); SIGTERM would leave its
         side of the shm channel behind in /dev/shm."""
         if self.proc.poll() is None:
             self.proc.send_signal(signal.SIGINT)
-        self.proc.wait(timeout=10)
+        commands.wait(self.proc, 10)
 
 
 def start_remote_server(channel: str, port: int = 0) -> Remote:
     """``python -m can_remote`` on 127.0.0.1 and ``port``, by default one the kernel picks
-    (``-p 0``): the URL is read from its log, so no port is guessed and none is raced for."""
+    (``-p 0``): the URL is read from its log, so no port is guessed and none is raced for.
+    Returned once it answers a bus request (``Remote.answers_bus_requests``), not when it
+    listens: a card that connects then gets its answer in time."""
     proc = subprocess.Popen(
         [sys.executable, "-m", "can_remote", "-i", "shm", "-c", channel, "-H", "127.0.0.1",
          "-p", str(port)], stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
         stderr=subprocess.PIPE)
     stderr = proc.stderr
     assert stderr is not None
-    lines: queue.Queue[bytes] = queue.Queue()
+    urls: list[str] = []
 
     def pump() -> None:  # also keeps the pipe from filling
         for line in stderr:
-            lines.put(line)
+            found = LISTENING.search(line)
+            if found and not urls:
+                urls.append(found.group(1).decode().replace("localhost", "127.0.0.1"))
 
     threading.Thread(target=pump, daemon=True).start()
-    deadline = time.monotonic() + SERVER_START_S * TIME_SCALE
-    while time.monotonic() < deadline:
-        try:
-            line = lines.get(timeout=0.1)
-        except queue.Empty:
-            if proc.poll() is not None:
-                break
-            continue
-        found = LISTENING.search(line)
-        if found:
-            url = found.group(1).decode().replace("localhost", "127.0.0.1")
-            return Remote(proc, url)
-    proc.kill()
-    proc.wait(timeout=10)
-    pytest.fail("python -m can_remote did not say where it listens")
+    try:
+        wait_until(lambda: urls or proc.poll() is not None, SERVER_START_S,
+                   "python -m can_remote to say where it listens")
+        if not urls:
+            pytest.fail(f"python -m can_remote ended with {proc.returncode} before it "
+                        "said where it listens")
+        remote = Remote(proc, urls[0])
+        wait_until(remote.answers_bus_requests, SERVER_START_S,
+                   f"python -m can_remote at {remote.url} to answer a bus request")
+    except BaseException:
+        proc.kill()
+        commands.wait(proc, 10)
+        raise
+    return remote
 
 
 def start_sim(network: Path, channel: str) -> subprocess.Popen[bytes]:
@@ -123,7 +146,7 @@ def start_sim(network: Path, channel: str) -> subprocess.Popen[bytes]:
     first = sim.stdout.readline()
     if not first.startswith(b"simulating"):
         sim.kill()
-        sim.wait(timeout=10)
+        commands.wait(sim, 10)
         pytest.fail(f"cifemu sim did not start: {first!r}")
     threading.Thread(target=sim.stdout.read, daemon=True).start()  # the pipe must not fill
     return sim
@@ -148,14 +171,15 @@ class Bench:
     def kill_sim(self) -> None:
         assert self.sim is not None
         self.sim.send_signal(signal.SIGKILL)
-        self.sim.wait(timeout=10)
+        commands.wait(self.sim, 10)
         self.sim = None
 
 
 @pytest.fixture
 def bench(tmp_path: Path, request: pytest.FixtureRequest) -> Iterator[Bench]:
     """The three processes on ``NETWORK``, or on the description a test gives as the
-    fixture's parameter (``indirect``)."""
+    fixture's parameter (``indirect``). A card that came up with FAT (it could not open its
+    link) fails here, saying so with the card's log, not later as a msg.f 200."""
     network = tmp_path / "network.toml"
     network.write_text(getattr(request, "param", NETWORK))
     channel = f"remote-{uuid.uuid4().hex}"
@@ -170,10 +194,17 @@ def bench(tmp_path: Path, request: pytest.FixtureRequest) -> Iterator[Bench]:
             raise
         try:
             board = Board(0, tmp_path, timeout=5000).open()
+            fatal = board.diagnostics().bGlobalBits & GlobalBits.FAT
+            if fatal:
+                board.close()
         except BaseException:
             card.stop()
             _stop(sim)
             raise
+        if fatal:
+            card.stop()
+            _stop(sim)
+            pytest.fail(_fat(card, server.url))
         made = Bench(card, server, sim, board, network, channel)
         yield made
     finally:
@@ -187,10 +218,19 @@ def bench(tmp_path: Path, request: pytest.FixtureRequest) -> Iterator[Bench]:
         channel_path(channel).unlink(missing_ok=True)
 
 
+def _fat(card: Card, url: str) -> str:
+    """Why a stopped card came up with FAT, from its log: it could not open its link, and
+    every CAN-task command would be answered msg.f 200 (``CanTask.fatal``)."""
+    log = card.proc.stderr.read().decode(errors="replace") if card.proc.stderr else ""
+    return (f"the card came up with FAT: it could not open its python-can-remote link to "
+            f"{url}, so the CAN task would answer every command with msg.f 200; its log: "
+            f"{log.strip()}")
+
+
 def _stop(proc: subprocess.Popen[bytes]) -> None:
     if proc.poll() is None:
         proc.terminate()
-    proc.wait(timeout=10)
+    commands.wait(proc, 10)
 
 
 def test_card_boots_the_nodes_across_the_bridge_and_serves_sdo_and_pdo(bench: Bench) -> None:
@@ -240,7 +280,7 @@ def test_a_lost_link_is_a_bus_off_and_the_card_reconnects(bench: Bench) -> None:
     bus_off = bench.board.diagnostics().usBus_Off_Cnt
     port = bench.server.port
     bench.server.proc.send_signal(signal.SIGKILL)
-    bench.server.proc.wait(timeout=10)
+    commands.wait(bench.server.proc, 10)
     wait_until(lambda: bench.board.diagnostics().operating() == [], 5,
                "every node's heartbeat lost with the link")
     diag = bench.board.diagnostics()
@@ -269,7 +309,7 @@ def test_outputs_written_while_the_link_is_down_go_out_when_it_is_back(bench: Be
     before = bench.board.diagnostics()
     port = bench.server.port
     bench.server.proc.send_signal(signal.SIGKILL)
-    bench.server.proc.wait(timeout=10)
+    commands.wait(bench.server.proc, 10)
     wait_until(lambda: bench.board.diagnostics().usBus_Off_Cnt == before.usBus_Off_Cnt + 1, 5,
                "the lost link counted as a bus-off")
     assert bench.board.exchange_io(b"\x77", receive_size=1) == b"\x11"

@@ -923,7 +923,7 @@ def test_sim_command_runs_until_sigterm(tmp_path: Path) -> None:
         header = proc.stdout.readline()
         line = proc.stdout.readline()
         proc.send_signal(signal.SIGTERM)
-        assert proc.wait(timeout=10) == 0
+        assert commands.wait(proc, 10) == 0
     assert header.startswith(f"simulating {description} on virtual cli-test at 500000 bit/s")
     assert line.strip() == ("node 5 'valve block': generic I/O module, heartbeat 50 ms; "
                             "faults: silent")

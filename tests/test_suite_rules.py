@@ -14,6 +14,8 @@ from tests.selection import (
     HELPER_MODULES,
     PROCESS_MODULES,
     SERIAL_MODULES,
+    SERIAL_PASS_MODULES,
+    SERIAL_TESTS,
     TESTS,
     VCAN_VM_MODULES,
     module_paths,
@@ -66,9 +68,20 @@ def test_the_selection_names_test_modules_that_exist() -> None:
         name.startswith("tests.test_") for name in HELPER_MODULES)
 
 
+def test_the_serial_tests_name_test_functions_that_exist() -> None:
+    """A renamed test would silently run in the parallel pass again."""
+    for module, name in SERIAL_TESTS:
+        tree = ast.parse((TESTS / f"{module}.py").read_text(encoding="utf-8"))
+        functions = {node.name for node in tree.body if isinstance(node, ast.FunctionDef)}
+        assert name in functions, f"tests/selection.py: no {name} in tests/{module}.py"
+        assert module in PROCESS_MODULES
+
+
 def test_the_serial_pass_collects_the_files_of_the_serial_modules_only() -> None:
     """make test's second pass takes these paths (``python -m tests.selection serial``): each
-    is a serial module's file, from the clone's root, and none is left out."""
-    paths = module_paths(SERIAL_MODULES)
-    assert paths == sorted(f"tests/{module}.py" for module in SERIAL_MODULES)
+    is the file of a serial module or of a module with serial tests, from the clone's root,
+    and none is left out."""
+    paths = module_paths(SERIAL_PASS_MODULES)
+    assert paths == sorted({f"tests/{module}.py" for module in SERIAL_MODULES}
+                           | {f"tests/{module}.py" for module, _ in SERIAL_TESTS})
     assert all((TESTS.parent / path).is_file() for path in paths)
