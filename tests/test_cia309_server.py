@@ -11,6 +11,7 @@ without configuration for the ``cifemu 309 serve`` subprocess.
 from __future__ import annotations
 
 import _thread
+import asyncio
 import base64
 import json
 import os
@@ -287,6 +288,30 @@ def test_a_read_reads_the_event_loops_clock_once_per_turn(
     assert readings <= 2.25 * reads, f"{readings / reads:.2f} clock readings per read"
 
 
+
+def read_profiled(loop: asyncio.AbstractEventLoop, client: Client,
+                  profile: Callable[[FrameType, str, object], None], reads: int) -> None:
+    """``reads`` reads of 1000h through ``client`` with ``profile`` set on the server's loop
+    thread (a profile function is per thread, so it is set and cleared from that thread)."""
+
+    def profiling(on: bool) -> None:
+        done = threading.Event()
+
+        def switch() -> None:
+            sys.setprofile(profile if on else None)
+            done.set()
+
+        loop.call_soon_threadsafe(switch)
+        assert done.wait(10)
+
+    profiling(True)
+    try:
+        for n in range(2, reads + 2):
+            assert client.ask(f"[{n}] 1 read 0x1000 0 u32\n") == f"[{n}] 983441\r\n"
+    finally:
+        profiling(False)
+
+
 def test_a_read_costs_the_loop_few_calls_of_the_gateways_own_python(
         servers: dict[str, BackgroundServer], connect: Connect) -> None:
     """A read runs at most 48 calls of ``host_api.cia309``'s Python functions on the
@@ -308,23 +333,8 @@ def test_a_read_costs_the_loop_few_calls_of_the_gateways_own_python(
         if event == "call" and "cia309" in frame.f_code.co_filename:
             calls += 1
 
-    def profiling(on: bool) -> None:
-        done = threading.Event()
-
-        def switch() -> None:  # on the loop's thread: a profile function is per thread
-            sys.setprofile(counting if on else None)
-            done.set()
-
-        loop.call_soon_threadsafe(switch)
-        assert done.wait(10)
-
     reads = 200
-    profiling(True)
-    try:
-        for n in range(2, reads + 2):
-            assert client.ask(f"[{n}] 1 read 0x1000 0 u32\n") == f"[{n}] 983441\r\n"
-    finally:
-        profiling(False)
+    read_profiled(loop, client, counting, reads)
     assert calls <= 48 * reads, f"{calls / reads:.1f} calls of host_api.cia309 per read"
 
 
@@ -358,23 +368,8 @@ def test_a_read_takes_no_thread_lock_of_cpython_and_three_clock_readings_on_the_
         elif arg in clocks:
             readings += 1
 
-    def profiling(on: bool) -> None:
-        done = threading.Event()
-
-        def switch() -> None:  # on the loop's thread: a profile function is per thread
-            sys.setprofile(counting if on else None)
-            done.set()
-
-        loop.call_soon_threadsafe(switch)
-        assert done.wait(10)
-
     reads = 200
-    profiling(True)
-    try:
-        for n in range(2, reads + 2):
-            assert client.ask(f"[{n}] 1 read 0x1000 0 u32\n") == f"[{n}] 983441\r\n"
-    finally:
-        profiling(False)
+    read_profiled(loop, client, counting, reads)
     assert locks <= 0.1 * reads, f"{locks / reads:.2f} acquires of CPython thread locks per read"
     assert readings <= 3.1 * reads, f"{readings / reads:.2f} clock readings per read"
 
