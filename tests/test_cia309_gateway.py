@@ -26,6 +26,7 @@ from dpm.commands import AREA_BUS, COM_UPLOAD, MAX_LEN_DATA_UNIT
 from dpm.message import Message, Task
 from dpm.task2 import CanState
 from firmware.can.sdo import DEFAULT_SDO_TIMEOUT
+from host_api.cia309.events import EventStream
 from host_api.cia309.gateway import VENDOR_ID, Gateway, SdoUploadInFlight
 from host_api.cia309.model import (
     ALL_NODES,
@@ -81,6 +82,23 @@ def gw(main: Gateway) -> Gateway:
     session = main.session()
     session.set_default_network(1)
     return session
+
+
+def expect(stream: EventStream, predicate: Callable[[Event], bool], timeout: float) -> Event:
+    """The first event ``predicate`` accepts, waited for ``timeout`` seconds on the load clock
+    (``wait_until``): the stream's own ``wait_for`` counts wall time, and an event of a busy
+    machine's card came later than 5 s of it (CI of 2026-12-04 00:33)."""
+    found: list[Event] = []
+
+    def arrived() -> bool:
+        try:
+            found.append(stream.wait_for(predicate, 0.1))
+        except TimeoutError:
+            return False
+        return True
+
+    wait_until(arrived, timeout, what="a matching event")
+    return found[0]
 
 
 def is_error(node: int, error: ErrorCode) -> Callable[[Event], bool]:
@@ -148,16 +166,16 @@ def test_domain_of_64_kib_round_trip_with_progress(gw: Gateway, main: Gateway) -
     with gw.events() as stream:
         writer = threading.Thread(target=download)
         writer.start()
-        first = stream.wait_for(lambda e: isinstance(e, SdoProgressEvent), 10)
+        first = expect(stream, lambda e: isinstance(e, SdoProgressEvent), 10)
         assert first == SdoProgressEvent(1, 2, False, 247)
         # Another session's transfer to the node waits its turn instead of failing (f 54).
         assert other.sdo_upload(0x1018, 1, node_id=2) == struct.pack("<I", 0x1234)
         writer.join(30)
         assert not failures
         assert gw.sdo_upload(0x2000, 0) == data
-        stream.wait_for(lambda e: e == SdoProgressEvent(1, 2, False, 65536), 5)
-        stream.wait_for(lambda e: e == SdoProgressEvent(1, 2, True, 247), 5)
-        stream.wait_for(lambda e: e == SdoProgressEvent(1, 2, True, 65536), 5)
+        expect(stream, lambda e: e == SdoProgressEvent(1, 2, False, 65536), 5)
+        expect(stream, lambda e: e == SdoProgressEvent(1, 2, True, 247), 5)
+        expect(stream, lambda e: e == SdoProgressEvent(1, 2, True, 65536), 5)
     too_long = reason(lambda: gw.sdo_download(0x2000, 0, bytes(65537)))
     assert too_long.error == ErrorCode.OUT_OF_MEMORY
 
@@ -285,7 +303,7 @@ def test_gateway_pdos_through_a_node(gw: Gateway) -> None:
         gw.start_node(9)
         values = tuple(range(1, 9))
         gw.write_pdo_data(1, values)  # node 9 first reports its zeros as it starts
-        stream.wait_for(lambda e: e == RpdoEvent(1, 1, values), 5)
+        expect(stream, lambda e: e == RpdoEvent(1, 1, values), 5)
     assert gw.read_pdo_data(1) == values
     gw.write_pdo_data(1, [2] * 8)
     started = time.monotonic()
@@ -330,22 +348,22 @@ def test_nmt_services_and_their_events(gw: Gateway) -> None:
     heartbeat = ErrorCode.HEARTBEAT_STARTED
     with gw.events() as stream:
         gw.stop_node(1)
-        stream.wait_for(lambda e: e == ErrorControlEvent(1, 1, NmtState.STOPPED), 5)
+        expect(stream, lambda e: e == ErrorControlEvent(1, 1, NmtState.STOPPED), 5)
         gw.start_node()  # node 1 is the default now
-        stream.wait_for(lambda e: e == ErrorControlEvent(1, 1, NmtState.OPERATIONAL, heartbeat),
+        expect(stream, lambda e: e == ErrorControlEvent(1, 1, NmtState.OPERATIONAL, heartbeat),
                         5)
         gw.set_node_to_preoperational()
-        stream.wait_for(lambda e: e == ErrorControlEvent(1, 1, NmtState.PRE_OPERATIONAL), 5)
+        expect(stream, lambda e: e == ErrorControlEvent(1, 1, NmtState.PRE_OPERATIONAL), 5)
         gw.start_node()
-        stream.wait_for(lambda e: e == ErrorControlEvent(1, 1, NmtState.OPERATIONAL, heartbeat),
+        expect(stream, lambda e: e == ErrorControlEvent(1, 1, NmtState.OPERATIONAL, heartbeat),
                         5)
         for reset in (gw.reset_node, gw.reset_communication):
             reset()  # the card boots node 1 again, maybe within one look at Task2State
-            stream.wait_for(lambda e: e == ErrorControlEvent(1, 1, NmtState.OPERATIONAL,
+            expect(stream, lambda e: e == ErrorControlEvent(1, 1, NmtState.OPERATIONAL,
                                                              heartbeat), 10)
         gw.stop_node(ALL_NODES)
         for node in (1, 2, 3):
-            stream.wait_for(partial(operator.eq, ErrorControlEvent(1, node, NmtState.STOPPED)), 5)
+            expect(stream, partial(operator.eq, ErrorControlEvent(1, node, NmtState.STOPPED)), 5)
         gw.start_node(ALL_NODES)
     wait_operating(0, [1, 2, 3])
     assert gw.default_node_id == 1  # "all" does not become the default
@@ -366,9 +384,9 @@ def test_guarding_and_heartbeat_consumer(gw: Gateway) -> None:
         else:
             pytest.fail(f"{event} after guarding was enabled")
         gw.sdo_download(0x1017, 0, 100, data_type=DataType.UNSIGNED16)  # heartbeat again:
-        stream.wait_for(is_error(3, ErrorCode.LOST_GUARDING_MESSAGE), 5)  # no guarding
+        expect(stream, is_error(3, ErrorCode.LOST_GUARDING_MESSAGE), 5)  # no guarding
         gw.start_heartbeat_consumer(1000)  # the card boots it with its heartbeat again
-        stream.wait_for(lambda e: e == ErrorControlEvent(
+        expect(stream, lambda e: e == ErrorControlEvent(
             1, 3, NmtState.OPERATIONAL, ErrorCode.HEARTBEAT_STARTED), 10)
         gw.disable_node_guarding()  # supervised by heartbeat: nothing to disable
     wait_operating(0, [1, 2, 3])
@@ -386,7 +404,7 @@ def test_emergency_consumer_and_read_device_error(gw: Gateway) -> None:
     short = [CanFrame(0x203, b"\x01")]  # 1 byte into node 3's 8-byte RPDO: EMCY 8210h
     with gw.events() as stream:
         gw.send_frames(short)
-        emcy = stream.wait_for(lambda e: isinstance(e, EmergencyEvent), 5)
+        emcy = expect(stream, lambda e: isinstance(e, EmergencyEvent), 5)
     assert isinstance(emcy, EmergencyEvent) and (emcy.net, emcy.node, emcy.code) == (1, 3, 0x8210)
     error = gw.read_device_error(node_id=3)
     assert 0x8210 in [e.code for e in error.emergencies]  # after the life guarding's 8130h
@@ -402,7 +420,7 @@ def test_emergency_consumer_and_read_device_error(gw: Gateway) -> None:
     with gw.events() as stream:
         gw.start_emergency_consumer(0)  # 0: 80h + node-ID
         gw.send_frames(short)
-        stream.wait_for(lambda e: isinstance(e, EmergencyEvent) and e.node == 3, 5)
+        expect(stream, lambda e: isinstance(e, EmergencyEvent) and e.node == 3, 5)
     assert reason(lambda: gw.start_emergency_consumer(0x83, node_id=9)).error == 107
     assert reason(lambda: gw.start_emergency_consumer(0x800, node_id=3)).error == 101
 
@@ -509,12 +527,12 @@ def test_error_control_events_of_failing_nodes(main: Gateway, directory: Path) -
                     seen.setdefault((event.node, event.error), event)
                 return wanted <= set(seen)
 
-            stream.wait_for(collect, 15)
+            expect(stream, collect, 15)
             assert seen[(12, ErrorCode.WRONG_NMT_STATE)].state == NmtState.PRE_OPERATIONAL
             assert all(event.net == 3 for event in seen.values())
             image = card.map()
             struct.pack_into("<H", image, 0x1F4A, 1)  # as if the layer-2 queue had overflowed
-            stream.wait_for(is_error(0, ErrorCode.CAN_BUFFER_OVERFLOW), 5)
+            expect(stream, is_error(0, ErrorCode.CAN_BUFFER_OVERFLOW), 5)
             assert gateway.read_device_error(node_id=13).error == 34  # no answer at boot-up
     finally:
         card.stop()
@@ -541,8 +559,8 @@ def test_configuration_store_restore_and_initialise(main: Gateway, directory: Pa
             assert reason(lambda: gateway.store_configuration(1)).error == 100
             assert reason(lambda: gateway.initialize_gateway(9)).error == 503
             gateway.initialize_gateway(4)  # 125 kbit/s: the card starts anew with it
-            stream.wait_for(is_error(0, ErrorCode.CAN_INIT), 5)
-            stream.wait_for(is_error(0, ErrorCode.CAN_ACTIVE), 10)
+            expect(stream, is_error(0, ErrorCode.CAN_INIT), 5)
+            expect(stream, is_error(0, ErrorCode.CAN_ACTIVE), 10)
             wait_operating(3, [1])
             assert bit_rate(gateway) == 4
             gateway.reset_controller()  # a warm start: the stored configuration comes back
