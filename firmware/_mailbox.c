@@ -63,12 +63,14 @@ static int take(PyObject *layout, const char *name, long *value) {
   return (*value == -1 && PyErr_Occurred()) ? -1 : 0;
 }
 
-#define TAKE(field, name)                    \
-  do {                                       \
-    long v_;                                 \
-    if (take(layout, name, &v_) < 0) return NULL; \
-    cfg.field = v_;                          \
+/* One number of a table (layout or spool) by name into its field; NULL from the caller. */
+#define TAKE_INTO(table, target, name)              \
+  do {                                              \
+    long v_;                                        \
+    if (take(table, name, &v_) < 0) return NULL;    \
+    target = v_;                                    \
   } while (0)
+#define TAKE(field, name) TAKE_INTO(layout, cfg.field, name)
 
 static PyObject *configure(PyObject *self, PyObject *args) {
   PyObject *layout, *types;
@@ -349,8 +351,8 @@ typedef struct {
 static struct {
   int ready;
   spool_head put, answer, dev_flags;
-  Py_ssize_t state, state_size, ln_offset, msg_header, msg_max, ledger_first, ledger_bytes;
-  unsigned char end, starts, devack, hostcom;
+  Py_ssize_t ln_offset, msg_header, ledger_first, ledger_bytes;
+  unsigned char end, starts;
   unsigned char *scratch; /* one turn's events, packed before they are appended */
   Py_ssize_t scratch_size;
 } rec;
@@ -408,41 +410,34 @@ static int take_head(PyObject *spool, const char *name, int fields, spool_head *
   return 0;
 }
 
-#define TAKE_RECORD(field, name)                  \
-  do {                                            \
-    long v_;                                      \
-    if (take(spool, name, &v_) < 0) return NULL;  \
-    rec.field = v_;                               \
-  } while (0)
+#define TAKE_RECORD(field, name) TAKE_INTO(spool, rec.field, name)
 
 static PyObject *configure_record(PyObject *self, PyObject *args) {
   PyObject *spool;
   (void)self;
   if (!PyArg_ParseTuple(args, "O!", &PyDict_Type, &spool)) return NULL;
+  if (!cfg.ready) { /* the layout's sizes, bits and Task2State come from configure() */
+    PyErr_SetString(PyExc_RuntimeError, "configure() first");
+    return NULL;
+  }
   rec.ready = 0;
   if (take_head(spool, "PUT", 6, &rec.put) < 0 || take_head(spool, "ANSWER", 5, &rec.answer) < 0 ||
       take_head(spool, "DEV_FLAGS", 5, &rec.dev_flags) < 0)
     return NULL;
-  TAKE_RECORD(state, "TASK2_STATE");
-  TAKE_RECORD(state_size, "TASK_STATE_SIZE");
   TAKE_RECORD(ln_offset, "LN_OFFSET");
   TAKE_RECORD(msg_header, "MSG_HEADER_SIZE");
-  TAKE_RECORD(msg_max, "MSG_MAX_SIZE");
   TAKE_RECORD(ledger_first, "LEDGER_FIRST_READ");
   TAKE_RECORD(ledger_bytes, "LEDGER_BYTES");
   TAKE_RECORD(end, "END");
   TAKE_RECORD(starts, "STARTS");
-  TAKE_RECORD(devack, "DEVACK");
-  TAKE_RECORD(hostcom, "HOSTCOM");
-  if (rec.state < 0 || rec.state_size <= 0 || rec.ln_offset < 0 ||
-      rec.ln_offset >= rec.msg_header || rec.msg_max < rec.msg_header || rec.msg_max > 8 + 255 ||
+  if (rec.ln_offset < 0 || rec.ln_offset >= rec.msg_header || cfg.msg_max < rec.msg_header ||
       rec.ledger_first <= 0 || rec.ledger_bytes < rec.ledger_first || rec.ledger_bytes > 0xFFFF) {
     PyErr_SetString(PyExc_ValueError, "configure_record: inconsistent sizes");
     return NULL;
   }
   PyMem_Free(rec.scratch);
-  rec.scratch_size = rec.dev_flags.size + rec.put.size + rec.msg_max + rec.ledger_bytes +
-                     rec.answer.size + ANSWER_MAX + rec.state_size;
+  rec.scratch_size = rec.dev_flags.size + rec.put.size + cfg.msg_max + rec.ledger_bytes +
+                     rec.answer.size + ANSWER_MAX + cfg.task2_size;
   rec.scratch = PyMem_Malloc((size_t)rec.scratch_size);
   if (rec.scratch == NULL) return PyErr_NoMemory();
   rec.ready = 1;
@@ -534,7 +529,7 @@ static int record_put(recording *r, const unsigned char *raw, unsigned char befo
   if (r->recorder == Py_None) return 0;
   values[1] = record_clock();
   msg = rec.msg_header + raw[rec.ln_offset];
-  if (msg > rec.msg_max) msg = rec.msg_max;
+  if (msg > cfg.msg_max) msg = cfg.msg_max;
   head = rec.scratch + r->used;
   lines = head + rec.put.size + msg;
   got = pread(r->ledger, lines, (size_t)rec.ledger_first, 0);
@@ -554,7 +549,7 @@ static int record_put(recording *r, const unsigned char *raw, unsigned char befo
   n = end != NULL ? (const unsigned char *)end - lines : got;
   values[0] = rec.put.code;
   values[2] = before;
-  values[3] = before ^ rec.devack;
+  values[3] = before ^ cfg.devack;
   values[4] = (double)msg;
   values[5] = (double)n;
   pack_head(&rec.put, values, head);
@@ -573,13 +568,13 @@ static void record_answer(recording *r, const unsigned char *out, Py_ssize_t len
   values[0] = rec.answer.code;
   values[1] = record_clock();
   values[2] = before;
-  values[3] = before ^ rec.hostcom;
+  values[3] = before ^ cfg.hostcom;
   values[4] = (double)len;
   head = rec.scratch + r->used;
   pack_head(&rec.answer, values, head);
   memcpy(head + rec.answer.size, out, (size_t)len);
-  memcpy(head + rec.answer.size + len, image + rec.state, (size_t)rec.state_size);
-  r->used += rec.answer.size + len + rec.state_size;
+  memcpy(head + rec.answer.size + len, image + cfg.task2_state, (size_t)cfg.task2_size);
+  r->used += rec.answer.size + len + cfg.task2_size;
 }
 
 /* The turn's events onto the recorder's queue, in one append, as a hook's ``+=``. */
@@ -635,10 +630,6 @@ static PyObject *serve(PyObject *self, PyObject *args) {
     return NULL;
   mm = (unsigned char *)image.buf;
   if (record_open(record, &r) < 0) goto done;
-  if (r.recorder != Py_None && image.len < rec.state + rec.state_size) {
-    PyErr_SetString(PyExc_ValueError, "serve: sizes do not fit the layout");
-    goto done;
-  }
   if (image.len < cfg.snd_pd + cfg.io_size || image.len < cfg.dev_mbx + cfg.msg_max ||
       image.len < cfg.pc_mbx + cfg.msg_max || image.len < cfg.conn_status + cfg.conn_size ||
       image.len < cfg.task2_state + cfg.task2_size || (sdo != Py_None && !PyCallable_Check(sdo)) ||

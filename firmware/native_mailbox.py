@@ -71,15 +71,15 @@ SPOOL = {
     **{name: (s.SPOOL_CODES[kind], head.format, head.size) for name, kind, head in (
         ("PUT", s.PUT, s.SPOOL_PUT), ("ANSWER", s.ANSWER, s.SPOOL_ANSWER),
         ("DEV_FLAGS", s.DEV_FLAGS, s.SPOOL_DEV_FLAGS))},
-    "TASK2_STATE": TASK2_STATE, "TASK_STATE_SIZE": TASK_STATE_SIZE, "LN_OFFSET": LN_OFFSET,
-    "MSG_HEADER_SIZE": MSG_HEADER_SIZE, "MSG_MAX_SIZE": MSG_MAX_SIZE,
+    "LN_OFFSET": LN_OFFSET, "MSG_HEADER_SIZE": MSG_HEADER_SIZE,
     "LEDGER_FIRST_READ": LEDGER_FIRST_READ, "LEDGER_BYTES": LEDGER_BYTES, "END": END[0],
-    "STARTS": fl.RESET | fl.INIT, "DEVACK": fl.DEVACK, "HOSTCOM": fl.HOSTCOM,
+    "STARTS": fl.RESET | fl.INIT,
 }
 """What ``configure_record`` hands the C file, by name: per event kind the turn in C records
 (the DevFlags it read, the message it took, the answer it gave) its spool code and head
 (``dpm.session``'s struct format, which the C file packs field by field, and its size, which
-it checks), and what ``Recorder.put`` and ``Recorder.answer`` read beside it."""
+it checks), and what ``Recorder.put`` reads beside it; Task2State, the mailbox's size and the
+DEVACK and HOSTCOM bits it takes from ``LAYOUT``."""
 
 
 def configure(module: ModuleType) -> Callable[..., Any]:
