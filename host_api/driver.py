@@ -35,6 +35,7 @@ from importlib.metadata import version
 from pathlib import Path
 
 from dpm import flags as fl
+from dpm._quicklock import Lock as QuickLock
 from dpm.doorbell import HostBell
 from dpm.errors import Drv
 from dpm.image import MAX_DEV_BOARDS, dpm_dir, image_path, lock_path, open_image
@@ -66,7 +67,6 @@ from dpm.layout import (
     offset_of,
 )
 from dpm.message import Message, MessageError
-from host_api._quicklock import Lock as QuickLock
 from host_api.liveness import firmware_serving
 from host_api.locks import Answer, ChannelLock, Transaction
 from host_api.registry import Counters as _Counters

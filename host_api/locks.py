@@ -37,9 +37,9 @@ from pathlib import Path
 from types import TracebackType
 from typing import NamedTuple
 
+from dpm._quicklock import Lock as QuickLock
 from dpm.ledger import END, LINE, decode_line
 from dpm.message import Ext, Message
-from host_api._quicklock import Lock as QuickLock
 from host_api.holders import Holder, lock_holder
 
 _FLOCK_RETRY = 0.0002

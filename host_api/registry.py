@@ -29,12 +29,12 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from dpm import flags as fl
+from dpm._quicklock import Lock as QuickLock
 from dpm.doorbell import POLL_INTERVAL, HostBell
 from dpm.errors import Drv
 from dpm.image import MAX_DEV_BOARDS
 from dpm.layout import DEV_FLAGS, HOST_FLAGS
 from host_api._devflags import change as _change_flags
-from host_api._quicklock import Lock as QuickLock
 from host_api.liveness import firmware_liveness
 from host_api.locks import ChannelLock, Transaction
 

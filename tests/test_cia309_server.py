@@ -341,7 +341,7 @@ def test_a_read_costs_the_loop_few_calls_of_the_gateways_own_python(
 def test_a_read_takes_no_thread_lock_of_cpython_and_three_clock_readings_on_the_loop(
         servers: dict[str, BackgroundServer], connect: Connect) -> None:
     """A read's DevPutMessage and DevGetMessage on the server's loop thread take their locks
-    (the put and get channels, the ledger's state, the SDO channel) as ``host_api._quicklock``
+    (the put and get channels, the ledger's state, the SDO channel) as ``dpm._quicklock``
     locks and read no clock for a call that does not wait: CPython 3.11's thread lock reads
     the monotonic clock in every acquire, and inside User-Mode Linux (no vDSO) each clock
     reading is a system call of about 30 us. Before: 9 acquires of thread locks and 5 clock

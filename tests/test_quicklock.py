@@ -1,4 +1,4 @@
-"""``host_api._quicklock.Lock``: threading.Lock's semantics without a clock reading on a free
+"""``dpm._quicklock.Lock``: threading.Lock's semantics without a clock reading on a free
 acquire (issue 22; the readings are counted in tests/test_cia309_server.py)."""
 
 from __future__ import annotations
@@ -8,7 +8,7 @@ import time
 
 import pytest
 
-from host_api._quicklock import Lock
+from dpm._quicklock import Lock
 
 
 def test_acquire_release_and_the_errors_of_threading_lock() -> None:

@@ -34,6 +34,7 @@ from types import TracebackType
 from dbm_tools.errors import DbmError
 from dbm_tools.parameters import NdFlag, NodeParameterSet
 from dpm import flags as fl
+from dpm._quicklock import Lock as QuickLock
 from dpm.com import CanFrame, UploadRequest, decode_layer2_frames, encode_layer2_frame
 from dpm.commands import (
     AREA_BUS,
@@ -66,7 +67,6 @@ from dpm.doorbell import HostBell
 from dpm.errors import F_UNKNOWN_COMMAND, F_UNKNOWN_TASK, Drv
 from dpm.message import Ext, Message, MessageError, Task
 from host_api import driver as d
-from host_api._quicklock import Lock as QuickLock
 from host_api.board import Board, CifError
 from host_api.cia309.model import (
     BootUpEvent,

@@ -1,11 +1,12 @@
 /*
- * host_api._quicklock - a thread lock whose free acquire reads no clock.
+ * dpm._quicklock - a thread lock whose free acquire reads no clock.
  *
  * [ours] CPython 3.11's threading.Lock computes a deadline from the monotonic clock on
  * every acquire, also a free one and one that does not wait (PyThread_acquire_lock_timed
  * with sem_clockwait). Inside User-Mode Linux, which has no vDSO, each clock reading is a
  * system call, a round trip through the host's ptrace of about 30 us, and a 309-3 read
  * takes the driver's and the ledger's locks seven times on the server's thread (issue 22).
+ * It lives in dpm, the one layer that both the firmware and the hosts import.
  * This lock is the same binary semaphore: a free acquire is one sem_trywait, which never
  * enters the kernel; only an acquire that must wait with a time-out reads the clock.
  * Semantics as threading.Lock's: any thread may release it; release of a free lock raises
@@ -132,7 +133,7 @@ static PyMethodDef quicklock_methods[] = {
 
 static PyTypeObject QuickLockType = {
     PyVarObject_HEAD_INIT(NULL, 0)
-    .tp_name = "host_api._quicklock.Lock",
+    .tp_name = "dpm._quicklock.Lock",
     .tp_basicsize = sizeof(QuickLock),
     .tp_flags = Py_TPFLAGS_DEFAULT,
     .tp_doc = PyDoc_STR("A thread lock whose free acquire reads no clock (threading.Lock's "
@@ -144,7 +145,7 @@ static PyTypeObject QuickLockType = {
 };
 
 static struct PyModuleDef module = {
-    PyModuleDef_HEAD_INIT, "host_api._quicklock",
+    PyModuleDef_HEAD_INIT, "dpm._quicklock",
     PyDoc_STR("A thread lock whose free acquire reads no clock (issue 22)."), -1, NULL,
     NULL, NULL, NULL, NULL,
 };
