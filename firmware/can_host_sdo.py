@@ -11,9 +11,9 @@ from __future__ import annotations
 import logging
 from collections.abc import Callable
 from functools import partial
-from threading import Lock
 from typing import TYPE_CHECKING
 
+from dpm._quicklock import Lock
 from dpm.cia301 import NODE_ID_MAX
 from dpm.com import encode_sdo_abort
 from dpm.commands import COM_SDO_UP_DOWNLOAD, LONG_SDO_LIMIT, SDO_MAX_DATA

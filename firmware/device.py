@@ -35,6 +35,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from dpm import flags as fl
+from dpm._quicklock import Lock as QuickLock
 from dpm.doorbell import POLL_INTERVAL, AdaptivePoll, DeviceBell
 from dpm.errors import F_UNKNOWN_TASK
 from dpm.image import (
@@ -169,8 +170,10 @@ class Device:
         """[ours] Card-side faults on demand (firmware/faults.py, docs/faults.md)."""
         self.outbox: deque[Message] = deque()
         self._calls: deque[Callable[[], None]] = deque()
-        self._turn = threading.Lock()
-        """Held by the device loop for each turn; ``post`` takes it to answer at once."""
+        self._turn = QuickLock()
+        """Held by the device loop for each turn; ``post`` takes it to answer at once. Tried
+        by the turn in C on every ring and by the receive thread for each SDO answer it hands
+        over: a lock that reads no clock when free (``dpm._quicklock``, issue 22)."""
         self._receiving = False
         """The loop's thread hands the host's message to its task (``_receive``), after
         which the turn delivers the outbox (set by that thread, for ``hand_over``)."""

@@ -9,8 +9,10 @@ driver API by a host in the test's thread.
 
 from __future__ import annotations
 
+import _thread
 import sys
 import threading
+import time
 import uuid
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -37,26 +39,70 @@ from firmware.sim import SimulatedNetwork
 from host_api.board import Board
 from host_api.driver import MSG_BUFFER_SIZE, DevGetMessage, DevGetTaskState, DevPutMessage
 from host_api.online import configure_online
-from tests.conftest import wait_until
+from tests.conftest import ROOT, wait_until
 
 NETWORK = '[bus]\nhost_watchdog_ms = 0\nhandshake = "uncontrolled"\n\n[[node]]\nid = 1\n'
 UPLOAD_1000H = Message(rx=Task.CAN, tx=Task.USER, b=COM_SDO_UP_DOWNLOAD, data=TelegramHeader(
     device_adr=1, data_adr=0x1000, data_idx=0, function=Tfc.READ).encode())
 
 
+CARD_SDO_PATH = tuple(str(ROOT / "firmware" / name) for name in (
+    "can/", "can_host_sdo.py", "device.py"))
+"""The card's own modules on a host SDO's path (not the simulated node's, nor the shared
+``virtual`` station's in ``firmware/inline.py``)."""
+THREAD_LOCKS = (_thread.LockType, _thread.RLock)
+CLOCKS = frozenset({time.monotonic, time.monotonic_ns, time.time, time.time_ns,
+                    time.perf_counter, time.perf_counter_ns})
+
+
 class LoopCalls:
-    """Counts the Python calls of the thread it is installed in while ``on``."""
+    """Counts the Python calls of the thread it is installed in while ``on``, and the
+    acquires of CPython's thread locks and the clock readings that the card's own modules
+    on the SDO path make there (``CARD_SDO_PATH``)."""
 
     def __init__(self) -> None:
         self.on = False
         self.calls = 0
+        self.locks = 0
+        self.clocks = 0
 
     def install(self) -> None:
         sys.setprofile(self._count)
 
     def _count(self, frame: FrameType, event: str, arg: object) -> None:
-        if self.on and event == "call":
+        if not self.on:
+            return
+        if event == "call":
             self.calls += 1
+        elif event == "c_call" and frame.f_code.co_filename.startswith(CARD_SDO_PATH):
+            if isinstance(getattr(arg, "__self__", None), THREAD_LOCKS):
+                # ``with`` shows only its __exit__
+                self.locks += getattr(arg, "__name__", "") in ("acquire", "__exit__")
+            elif arg in CLOCKS:
+                self.clocks += 1
+
+
+class CountingLock:
+    """The process image's lock, counting its acquires while ``on``: the turn in C takes
+    it through ``acquire``, which no profile function sees."""
+
+    def __init__(self) -> None:
+        self._lock = threading.RLock()
+        self.on = False
+        self.acquires = 0
+
+    def acquire(self, blocking: bool = True, timeout: float = -1) -> bool:
+        self.acquires += self.on
+        return self._lock.acquire(blocking, timeout)
+
+    def release(self) -> None:
+        self._lock.release()
+
+    def __enter__(self) -> bool:
+        return self.acquire()
+
+    def __exit__(self, *exc: object) -> None:
+        self._lock.release()
 
 
 @dataclass
@@ -150,6 +196,38 @@ def test_an_expedited_upload_costs_the_device_loop_few_python_calls(
         card.loop_calls.on = False
     per_transfer = card.loop_calls.calls / transfers
     assert per_transfer <= 70, f"{per_transfer:.1f} Python calls per transfer in the loop"
+
+
+def test_an_expedited_upload_takes_no_cpython_lock_and_two_clock_readings_in_the_card(
+        simulated_card: SimulatedCard) -> None:
+    """The card's own code on an expedited upload's path takes no CPython thread lock and
+    reads the clock twice (the request's time stamp, the transfer's deadline); the turn in C
+    leaves the process image's lock alone for a message that is not COM_Shared_Memory.
+    CPython 3.11's thread lock reads the monotonic clock on every acquire, and inside
+    User-Mode Linux (no vDSO) each reading is a system call of about 30 us (issue 22's
+    vcan 309-3 target). Before (355b700): 4.0 acquires (the SDO channel, the lent response
+    identifier twice, the controller's dispatch of the answer) and 4 readings (the deadline
+    twice, the frame tap per frame), and the turn in C took the image's lock (an RLock) and
+    its turn's lock (a CPython lock) on every request.
+    Counted with a profile function on the device loop's thread, where with ``--simulate``
+    the whole transfer runs, the node's answer too."""
+    card = simulated_card
+    image_lock = CountingLock()
+    card.device.plc.image.lock = image_lock  # type: ignore[assignment]
+    for _ in range(50):
+        assert upload_1000h(card.board) == GENERIC_DEVICE_TYPE
+    transfers = 300
+    card.loop_calls.on = image_lock.on = True
+    try:
+        for _ in range(transfers):
+            assert upload_1000h(card.board) == GENERIC_DEVICE_TYPE
+    finally:
+        card.loop_calls.on = image_lock.on = False
+    calls = card.loop_calls
+    assert calls.locks <= 0.05 * transfers, f"{calls.locks / transfers:.2f} lock acquires"
+    assert calls.clocks <= 2.05 * transfers, f"{calls.clocks / transfers:.2f} clock readings"
+    assert image_lock.acquires <= 0.05 * transfers, (
+        f"{image_lock.acquires / transfers:.2f} acquires of the process image's lock")
 
 
 def test_an_expedited_upload_costs_the_host_few_python_calls(

@@ -42,6 +42,7 @@ import can
 import canopen
 from can.interfaces.socketcan.socketcan import build_can_frame, capture_message
 
+from dpm._quicklock import Lock as QuickLock
 from dpm.cia301 import SDO_REQUEST_BASE, SDO_RESPONSE_BASE
 from firmware.can.tap import TapPublisher
 from firmware.errors import BusSetupError
@@ -369,9 +370,10 @@ class _Receiver:
         self._wake_w = -1
         """The pipe's end that ``stop`` writes (``SELECTABLE_INTERFACES``)."""
         self._hand_over: Callable[[can.Message], None] | None = None
-        self._dispatching = threading.Lock()
+        self._dispatching = QuickLock()
         """Held while a frame is dispatched, by this thread or by a sender (``InlineQueue``):
-        the frame handlers never run twice at once."""
+        the frame handlers never run twice at once. Taken per frame received: a lock that
+        reads no clock when free (``dpm._quicklock``, issue 22)."""
         self._inline: InlineQueue | None = None
         self._after_taking: Callable[[], None] | None = None
         """Set by ``take_then``: called by this thread once the frames received are taken."""
@@ -591,7 +593,9 @@ class CanBus(can.Listener):
         """Per 11-bit identifier with subscribers: the catch-all callbacks, then its own, as
         one tuple made when a subscription changes, not per received frame (``_redispatch``,
         ``_dispatch_one``)."""
-        self._lock = threading.Lock()
+        self._lock = QuickLock()
+        """Taken twice per host SDO transfer (``lend_sdo_responses``): no clock reading
+        when free (``dpm._quicklock``, issue 22)."""
         self._trace_lock = threading.Lock()
         """The trace is written by the receive thread and by every sending thread."""
         self._echoes: deque[tuple[int, bytes, bool]] | None = (

@@ -21,7 +21,6 @@ from __future__ import annotations
 import contextlib
 import math
 import struct
-import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -31,6 +30,7 @@ import can
 from canopen.objectdictionary import ObjectDictionary
 from canopen.sdo.client import SdoClient
 
+from dpm._quicklock import Lock as QuickLock
 from dpm.cia301 import (
     ABORT_GENERAL,
     ABORT_TIMEOUT,
@@ -88,8 +88,9 @@ class HostSdoTransfer:
         expedited sizes are 1-4), so it goes as a segmented download of size 0 [ours]."""
         self._initiated = False
         self._deadline = time.monotonic() + timeout
-        """Refreshed by every request; set here already because the master's thread may
-        check the transfer between its registration and its first request."""
+        """Set here for the first request, which ``start`` sends without reading the clock
+        again (each reading a system call inside User-Mode Linux, issue 22); refreshed by
+        every later request."""
         self.finished = False
         """Whether ``done`` has had its result: an attribute, not a property, read after
         every request (``SdoChannels.start_host``) and by each look of the master's thread."""
@@ -101,12 +102,12 @@ class HostSdoTransfer:
         self.bus.lend_sdo_responses(SDO_RESPONSE_BASE + self.node, self._on_frame)
         head = self._head
         if self.data is None:
-            self._send(bytes([0x40]) + head + bytes(4))
+            self._request(bytes([0x40]) + head + bytes(4))
         elif self._expedited:
             command = 0x23 | ((4 - len(self.data)) << 2)
-            self._send(bytes([command]) + head + self.data.ljust(4, b"\0"))
+            self._request(bytes([command]) + head + self.data.ljust(4, b"\0"))
         else:
-            self._send(bytes([0x21]) + head + struct.pack("<I", len(self.data)))
+            self._request(bytes([0x21]) + head + struct.pack("<I", len(self.data)))
 
     def check(self, now: float) -> float:
         """Called from the master's thread: give up after the SDO time-out. Returns when to
@@ -124,7 +125,11 @@ class HostSdoTransfer:
         return self._deadline
 
     def _send(self, frame: bytes) -> None:
+        """A request after an answer: its own time-out from now."""
         self._deadline = time.monotonic() + self.timeout
+        self._request(frame)
+
+    def _request(self, frame: bytes) -> None:
         with self._context:
             self.bus.send(SDO_REQUEST_BASE + self.node, frame)
 
@@ -240,7 +245,10 @@ class SdoChannel:
     """A node's SDO channel: one client, taken in turn by boot-up and host transfers."""
 
     sdo: SdoClient
-    lock: threading.Lock
+    lock: QuickLock
+    """threading.Lock's semantics without its clock reading on a free acquire: a host
+    transfer takes it on the device loop's thread and releases it on the receive thread,
+    each clock reading a system call inside User-Mode Linux (issue 22)."""
 
 
 class SdoChannels:
@@ -256,7 +264,7 @@ class SdoChannels:
         self._channels: dict[int, SdoChannel] = {}
         self._watched: set[Deadline] = set()
         """The transfers and waits under way whose time-outs the master's thread checks."""
-        self._watched_lock = threading.Lock()
+        self._watched_lock = QuickLock()
         self._next_check = math.inf
         """No watched deadline comes before this: a look before it checks none of them (a
         boot of 127 nodes has as many under way, and the master looks at every change)."""
@@ -277,7 +285,7 @@ class SdoChannels:
             client.network = self._bus.network
             client.RESPONSE_TIMEOUT = self.timeout
             self._bus.network.subscribe(SDO_RESPONSE_BASE + address, client.on_response)
-            channel = self._channels[address] = SdoChannel(client, threading.Lock())
+            channel = self._channels[address] = SdoChannel(client, QuickLock())
         return channel
 
     def set_timeout(self, node: int, seconds: float) -> None:

@@ -88,6 +88,7 @@ class TapPublisher:
         """Per EMCY identifier, the last one as a replay frame."""
         self._lock = threading.Lock()
         self._drain_due = 0.0
+        """The next look for subscribers, on the frames' own time stamps (``publish``)."""
         self._flusher: threading.Thread | None = None
         self._wake_r, self._wake_w = socket.socketpair(socket.AF_UNIX, socket.SOCK_DGRAM)
         self._wake_r.setblocking(False)
@@ -139,22 +140,31 @@ class TapPublisher:
                 self._remove(subscriber)
 
     def publish(self, msg: can.Message, received: bool) -> None:
-        """Offer one frame (any thread); costs a clock read while nobody listens. The
-        subscribers are only changed under the lock; a look at them without it can at worst
-        miss one that ``_drain`` is adding in this moment, which then gets the next frame."""
+        """Offer one frame (any thread). The subscribers are only changed under the lock; a
+        look at them without it can at worst miss one that ``_drain`` is adding in this
+        moment, which then gets the next frame.
+
+        [ours] When to look for new subscribers is judged on the frame's time stamp, not on
+        a clock reading of its own: the controller stamped every frame already (``send``,
+        the interface on reception), and each clock reading is a system call inside
+        User-Mode Linux, two per host SDO transfer here (issue 22). A frame without a stamp
+        (0) is judged on the wall clock's reading; a stamp before the last look (a wall clock
+        set back) makes a look too."""
         if self._directory is None:
             return
-        now = time.monotonic()
+        stamp = msg.timestamp or time.time()
+        due = self._drain_due
+        look = not due - DRAIN_INTERVAL_S <= stamp < due
         emcy = msg.arbitration_id in EMCY_IDS and not msg.is_extended_id and not (
             msg.is_remote_frame or msg.is_error_frame)
-        if not (emcy or self._subscribers or now >= self._drain_due):
+        if not (emcy or self._subscribers or look):
             return  # nothing to keep, nobody to send it to, no look due: not even the lock
         with self._lock:
             if emcy:
                 self._last_emcy[msg.arbitration_id] = encode_frame(msg, received, replay=True)
-            if now >= self._drain_due:
-                self._drain_due = now + DRAIN_INTERVAL_S
-                self._drain(now)
+            if look:
+                self._drain_due = stamp + DRAIN_INTERVAL_S
+                self._drain(time.monotonic())
             if not self._subscribers:
                 return
             frame = [encode_frame(msg, received)]
