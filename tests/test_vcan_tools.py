@@ -409,3 +409,62 @@ def test_the_cards_frames_on_socketcan_take_no_select_of_python_can(
     assert selects <= 3 * 50 + 5, f"{selects} selects while the card sent 50 frames and took 50"
     # the receive thread reads no clock per frame while it keeps no deadlines (one before)
     assert readings <= 5, f"{readings} clock readings of the receive thread for 50 frames"
+
+
+def test_the_cards_received_frames_on_socketcan_name_no_interface(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """Issue 22: the receive thread reads a SocketCAN frame with one ``recvmsg`` that asks
+    for no sender's address. Python's ``socket.recvmsg`` (python-can's ``recv``, and the
+    card's own read until 2026-12-04) names the sender's interface for every frame, an
+    ``ioctl(SIOCGIFNAME)`` each, a ptrace round trip of the host inside User-Mode Linux
+    (one per 309-3 read in ``strace`` of the card). Counted: the receive thread's calls of
+    Python's ``recvmsg`` while the card takes 51 frames, which arrive as python-can's own
+    ``recv`` gives them to a third station (identifier, data, length, flags, direction,
+    channel, the kernel's time stamp)."""
+    reason = socketcan_missing()
+    if reason is not None:
+        pytest.skip(reason)
+    import socket
+
+    import can
+
+    from firmware.can.bus import CanBus
+
+    calls = 0
+    real_recvmsg = socket.socket.recvmsg
+
+    def counting(self: socket.socket, *args: Any) -> Any:
+        nonlocal calls
+        calls += threading.current_thread().name == "can-receive"
+        return real_recvmsg(self, *args)
+
+    card = CanBus("socketcan", SOCKETCAN_CHANNEL)
+    peer = can.Bus(interface="socketcan", channel=SOCKETCAN_CHANNEL)
+    watcher = can.Bus(interface="socketcan", channel=SOCKETCAN_CHANNEL)
+    got: list[can.Message] = []
+    try:
+        card.subscribe_all(got.append)
+        monkeypatch.setattr(socket.socket, "recvmsg", counting)
+        for n in range(50):
+            peer.send(can.Message(arbitration_id=0x181 + n % 2, is_extended_id=False,
+                                  data=bytes([n] * (n % 9))))
+        peer.send(can.Message(arbitration_id=0x1234567, is_extended_id=True, data=b"\x07"))
+        wait_until(lambda: len(got) == 51, 5.0)
+        monkeypatch.undo()
+        seen = [watcher.recv(2.0) for _ in range(51)]
+    finally:
+        monkeypatch.undo()
+        watcher.shutdown()
+        peer.shutdown()
+        card.shutdown()
+
+    def fields(m: can.Message | None) -> tuple[Any, ...]:
+        assert m is not None
+        return (m.arbitration_id, m.is_extended_id, bytes(m.data), m.dlc, m.is_rx,
+                m.is_remote_frame, m.is_error_frame, m.is_fd, m.channel, m.timestamp)
+
+    assert [fields(m)[:4] for m in got] == [
+        (0x181 + n % 2, False, bytes([n] * (n % 9)), n % 9) for n in range(50)] + [
+        (0x1234567, True, b"\x07", 1)]
+    assert [fields(m) for m in got] == [fields(m) for m in seen]
+    assert calls == 0, f"{calls} calls of Python's recvmsg for 51 frames"

@@ -19,6 +19,7 @@ ends at the earliest, and ``on_deadline`` tells the master when one came.
 from __future__ import annotations
 
 import contextlib
+import ctypes
 import errno
 import functools
 import json
@@ -28,6 +29,7 @@ import os
 import queue
 import select
 import socket
+import struct
 import subprocess
 import threading
 import time
@@ -40,7 +42,8 @@ from typing import Any, Protocol
 
 import can
 import canopen
-from can.interfaces.socketcan.socketcan import build_can_frame, capture_message
+from can.interfaces.socketcan import constants as socketcan_constants
+from can.interfaces.socketcan.socketcan import build_can_frame, dissect_can_frame
 
 from dpm._quicklock import Lock as QuickLock
 from dpm.cia301 import SDO_REQUEST_BASE, SDO_RESPONSE_BASE
@@ -505,27 +508,87 @@ class _Receiver:
             self._thread.join(RECEIVER_JOIN_S)
 
 
+class _IoVec(ctypes.Structure):
+    _fields_ = (("iov_base", ctypes.c_void_p), ("iov_len", ctypes.c_size_t))
+
+
+class _MsgHdr(ctypes.Structure):
+    """struct msghdr (recvmsg(2)): no name asked for."""
+
+    _fields_ = (("msg_name", ctypes.c_void_p), ("msg_namelen", ctypes.c_uint32),
+                ("msg_iov", ctypes.POINTER(_IoVec)), ("msg_iovlen", ctypes.c_size_t),
+                ("msg_control", ctypes.c_void_p), ("msg_controllen", ctypes.c_size_t),
+                ("msg_flags", ctypes.c_int))
+
+
+_TIMESTAMP_CMSG = struct.Struct("@NiiqQ")
+"""The one control message asked for: cmsg_len, cmsg_level, cmsg_type, then SO_TIMESTAMPNS's
+struct timespec (tv_sec, tv_nsec), as the kernel lays it out on a 64-bit Linux."""
+_libc_recvmsg = None
+
+
+def _recvmsg() -> Any:
+    """libc's recvmsg through ctypes (which releases the interpreter lock while it waits)."""
+    global _libc_recvmsg
+    if _libc_recvmsg is None:
+        call = ctypes.CDLL(None, use_errno=True).recvmsg
+        call.argtypes = (ctypes.c_int, ctypes.POINTER(_MsgHdr), ctypes.c_int)
+        call.restype = ctypes.c_ssize_t
+        _libc_recvmsg = call
+    return _libc_recvmsg
+
+
 def socketcan_take(bus: can.BusABC) -> Callable[[], can.Message | None] | None:
     """For a SocketCAN bus without software filters: a call that reads the frame waiting on
-    its socket (after ``select`` said one is there), as python-can's ``recv(0)`` does but
-    without its ``time.time()`` and second ``select`` with a zero time-out: each a clock
-    reading, and the ``select`` a system call too, about 30 us apiece inside User-Mode Linux,
-    which has no vDSO (issue 22). None for any other bus: ``recv(0)`` it is."""
+    its socket (after ``select`` said one is there) with one ``recvmsg`` that asks for no
+    sender's address, as python-can's ``recv(0)`` reads it but without its ``time.time()``
+    and second ``select`` with a zero time-out, and without the interface's name that
+    Python's ``socket.recvmsg`` looks up for every frame (an ``ioctl(SIOCGIFNAME)``): each a
+    system call of about 30 us inside User-Mode Linux, which has no vDSO (issue 22). The
+    frame's time stamp is the kernel's (SO_TIMESTAMPNS, which python-can's bus asked for).
+    None for any other bus (a bus on every interface, channel "", whose frames name theirs;
+    a socket python-can set up otherwise; a 32-bit build): ``recv(0)`` it is."""
     sock = getattr(bus, "socket", None)
     if (not isinstance(bus, can.interfaces.socketcan.SocketcanBus) or bus.filters
-            or not isinstance(sock, socket.socket)):
+            or not isinstance(sock, socket.socket) or not bus.channel
+            or _TIMESTAMP_CMSG.size != 32
+            or not sock.getsockopt(socket.SOL_SOCKET, socketcan_constants.SO_TIMESTAMPNS)):
         return None
     channel = bus.channel
-    get_channel = channel == ""
+    recvmsg = _recvmsg()
+    fd = sock.fileno()
+    frame = ctypes.create_string_buffer(socketcan_constants.CANFD_MTU)
+    control = ctypes.create_string_buffer(_TIMESTAMP_CMSG.size)
+    vector = _IoVec(ctypes.cast(frame, ctypes.c_void_p), len(frame))
+    header = _MsgHdr(None, 0, ctypes.pointer(vector), 1, ctypes.cast(control, ctypes.c_void_p),
+                     0, 0)
+    header_ref = ctypes.byref(header)
+    stamped = (socket.SOL_SOCKET, socketcan_constants.SO_TIMESTAMPNS)
+    c = socketcan_constants
 
     def take() -> can.Message | None:
-        try:
-            msg = capture_message(sock, get_channel)
-        except OSError as exc:  # python-can's recv raises the same
-            raise can.CanOperationError(f"Error receiving: {exc.strerror}", exc.errno) from exc
-        if msg is not None and not msg.channel and channel:
-            msg.channel = channel
-        return msg
+        header.msg_controllen = len(control)
+        got = recvmsg(fd, header_ref, 0)
+        while got < 0:
+            error = ctypes.get_errno()
+            if error != errno.EINTR:  # python-can's recv raises the same
+                raise can.CanOperationError(f"Error receiving: {os.strerror(error)}", error)
+            header.msg_controllen = len(control)
+            got = recvmsg(fd, header_ref, 0)
+        raw = frame.raw[:got]
+        can_id, dlc, flags, data = dissect_can_frame(raw)
+        _, level, kind, seconds, nanoseconds = _TIMESTAMP_CMSG.unpack_from(control)
+        stamp = (seconds + nanoseconds * 1e-9 if header.msg_controllen >= len(control)
+                 and (level, kind) == stamped else time.time())
+        extended = bool(can_id & c.CAN_EFF_FLAG)
+        return can.Message(
+            timestamp=stamp, channel=channel,
+            arbitration_id=can_id & (0x1FFFFFFF if extended else 0x7FF),
+            is_extended_id=extended, is_remote_frame=bool(can_id & c.CAN_RTR_FLAG),
+            is_error_frame=bool(can_id & c.CAN_ERR_FLAG), is_fd=got == c.CANFD_MTU,
+            is_rx=not header.msg_flags & socket.MSG_DONTROUTE,
+            bitrate_switch=bool(flags & c.CANFD_BRS),
+            error_state_indicator=bool(flags & c.CANFD_ESI), dlc=dlc, data=data)
 
     return take
 
