@@ -29,7 +29,6 @@ import os
 import queue
 import select
 import socket
-import struct
 import subprocess
 import threading
 import time
@@ -521,9 +520,15 @@ class _MsgHdr(ctypes.Structure):
                 ("msg_flags", ctypes.c_int))
 
 
-_TIMESTAMP_CMSG = struct.Struct("@NiiqQ")
-"""The one control message asked for: cmsg_len, cmsg_level, cmsg_type, then SO_TIMESTAMPNS's
-struct timespec (tv_sec, tv_nsec), as the kernel lays it out on a 64-bit Linux."""
+class _TimestampCmsg(ctypes.Structure):
+    """The one control message asked for: struct cmsghdr, then SO_TIMESTAMPNS's struct
+    timespec, as the kernel lays them out on a 64-bit Linux (32 bytes)."""
+
+    _fields_ = (("cmsg_len", ctypes.c_size_t), ("cmsg_level", ctypes.c_int),
+                ("cmsg_type", ctypes.c_int), ("tv_sec", ctypes.c_int64),
+                ("tv_nsec", ctypes.c_int64))
+
+
 _libc_recvmsg = None
 
 
@@ -551,35 +556,36 @@ def socketcan_take(bus: can.BusABC) -> Callable[[], can.Message | None] | None:
     sock = getattr(bus, "socket", None)
     if (not isinstance(bus, can.interfaces.socketcan.SocketcanBus) or bus.filters
             or not isinstance(sock, socket.socket) or not bus.channel
-            or _TIMESTAMP_CMSG.size != 32
+            or ctypes.sizeof(_TimestampCmsg) != 32
             or not sock.getsockopt(socket.SOL_SOCKET, socketcan_constants.SO_TIMESTAMPNS)):
         return None
     channel = bus.channel
     recvmsg = _recvmsg()
     fd = sock.fileno()
     frame = ctypes.create_string_buffer(socketcan_constants.CANFD_MTU)
-    control = ctypes.create_string_buffer(_TIMESTAMP_CMSG.size)
+    control = _TimestampCmsg()
+    control_size = ctypes.sizeof(control)
     vector = _IoVec(ctypes.cast(frame, ctypes.c_void_p), len(frame))
-    header = _MsgHdr(None, 0, ctypes.pointer(vector), 1, ctypes.cast(control, ctypes.c_void_p),
-                     0, 0)
+    header = _MsgHdr(None, 0, ctypes.pointer(vector), 1,
+                     ctypes.cast(ctypes.byref(control), ctypes.c_void_p), 0, 0)
     header_ref = ctypes.byref(header)
     stamped = (socket.SOL_SOCKET, socketcan_constants.SO_TIMESTAMPNS)
     c = socketcan_constants
 
     def take() -> can.Message | None:
-        header.msg_controllen = len(control)
+        header.msg_controllen = control_size
         got = recvmsg(fd, header_ref, 0)
         while got < 0:
             error = ctypes.get_errno()
             if error != errno.EINTR:  # python-can's recv raises the same
                 raise can.CanOperationError(f"Error receiving: {os.strerror(error)}", error)
-            header.msg_controllen = len(control)
+            header.msg_controllen = control_size
             got = recvmsg(fd, header_ref, 0)
         raw = frame.raw[:got]
         can_id, dlc, flags, data = dissect_can_frame(raw)
-        _, level, kind, seconds, nanoseconds = _TIMESTAMP_CMSG.unpack_from(control)
-        stamp = (seconds + nanoseconds * 1e-9 if header.msg_controllen >= len(control)
-                 and (level, kind) == stamped else time.time())
+        stamp = (control.tv_sec + control.tv_nsec * 1e-9
+                 if header.msg_controllen >= control_size
+                 and (control.cmsg_level, control.cmsg_type) == stamped else time.time())
         extended = bool(can_id & c.CAN_EFF_FLAG)
         return can.Message(
             timestamp=stamp, channel=channel,
