@@ -130,6 +130,16 @@ PROTOCOL_VERSION = (2, 0)
 RTR_ANSWER_TIMEOUT = 1.0
 """[ours] seconds ``read_pdo_data`` waits for the answer to its remote frame."""
 
+ONE_MESSAGE_TYPES = frozenset(t for t in DataType if t.size is not None)
+"""Uploads read as these types are asked for in the seed's short form (msg.e 0, one answer
+of at most 247 bytes) [ours]: a type of a fixed size, whose value always fits. The card's
+device loop serves that form in its turn in C (``firmware/_mailbox.c``), the long form (e 4)
+in its Python turn: a 309-3 read of a u32 cost the card 225-245 µs of CPU in the long form,
+125 µs in the short one (docs/cia309.md). An object longer than its type (an error of the
+client's: the answer shows its bytes as ``hex``) is read twice, the second time in the long
+form (``Link._again``), so the answer stays the same. Strings, domains and reads without a
+type keep the long form."""
+
 PROGRAM_CONTROL = 0x1F51
 """CiA 302-3 program control of a remote controller: sub 1 takes these commands."""
 PROGRAM_STOP, PROGRAM_START, PROGRAM_RESET = 0, 1, 2
@@ -334,7 +344,7 @@ class Gateway:
         link = self._link(network)
         node = self._node(node_id)
         _check_partial(data_type, offset, length)
-        data = self._upload(link, node, index, subindex, _fits_one_message(data_type))
+        data = self._upload(link, node, index, subindex, data_type in ONE_MESSAGE_TYPES)
         if offset or length is not None:
             end = None if length is None else offset + length
             return data[offset:end]
@@ -415,7 +425,7 @@ class Gateway:
         node = self._node(node_id)
         head = self._sdo_header(node, index, subindex, 0, Tfc.READ)
         progress = functools.partial(self._upload_progress, link, node, [0])
-        short = _fits_one_message(data_type)
+        short = data_type in ONE_MESSAGE_TYPES  # a set, not a function: a call less per read
         flight = link.try_request(COM_SDO_UP_DOWNLOAD, head, self._timeout(), on_done,
                                   multipart=True, e=0 if short else Ext.FIRST,
                                   on_part=progress, sdo_node=node, long_if_needed=short)
@@ -434,7 +444,7 @@ class Gateway:
                 short: bool = False) -> bytes:
         """The object's data, asked for in the long form (e 4: several answers when one
         cannot hold it), or with ``short`` in the seed's form (e 0, one answer) and again in
-        the long form should the card answer f 51 (``_fits_one_message``)."""
+        the long form should the card answer f 51 (``ONE_MESSAGE_TYPES``)."""
         head = self._sdo_header(node, index, subindex, 0, Tfc.READ)
         progress = functools.partial(self._upload_progress, link, node, [0])
         with link.sdo_channel(node, self._timeout()):
@@ -1021,18 +1031,6 @@ def _check_sdo(answer: Message, what: str) -> None:
         raise Cia309Error.abort(code, what)
     if answer.f:
         raise card_error(answer.f, what)
-
-
-def _fits_one_message(data_type: DataType | None) -> bool:
-    """Whether an upload read as ``data_type`` is asked for in the seed's short form (msg.e
-    0, one answer of at most 247 bytes) [ours]: a type of a fixed size, whose value always
-    fits. The card's device loop serves that form in its turn in C (``firmware/_mailbox.c``),
-    the long form (e 4) in its Python turn: a 309-3 read of a u32 cost the card 225-245 µs of
-    CPU in the long form, 125 µs in the short one (docs/cia309.md). An object longer than
-    its type (an error of the client's: the answer shows its bytes as ``hex``) is read
-    twice, the second time in the long form (``Link._again``), so the answer stays the same.
-    Strings, domains and reads without a type keep the long form."""
-    return data_type is not None and data_type.size is not None
 
 
 def _upload_what(node: int, index: int, subindex: int) -> str:
