@@ -4,7 +4,7 @@ One round trip is an expedited SDO upload of 1000h from a generic simulated node
 
 1. ``tcp``: a client sends ``[n] 1 read 0x1000 0 u32`` to the 309-3 server (CANopenNode
    dialect, in this process on its own event-loop thread) and reads the answer line;
-2. ``gateway``: ``Gateway.sdo_upload`` (what the server does for each line);
+2. ``gateway``: ``Gateway.sdo_upload`` as u32 (what the server does for each line);
 3. baseline: python ``canopen``'s SDO client straight to the same simulated node on a
    virtual bus in this process, with no card between them.
 
@@ -46,7 +46,7 @@ from bench.cpu import thread_cpu_ns, thread_wakeups
 from dbm_tools.network import parse_network
 from dpm.start_progress import stat_cpu_ns
 from host_api.cia309.gateway import Gateway
-from host_api.cia309.model import Cia309Error
+from host_api.cia309.model import Cia309Error, DataType
 from host_api.cia309.server import BackgroundServer, ServerConfig
 
 NAME = "cia309"
@@ -120,7 +120,8 @@ def measure_card(count: int, warmup: int
 
             def upload() -> int:
                 try:
-                    return 0 if gateway.sdo_upload(0x1000, 0) == DEVICE_TYPE else FAILED
+                    data = gateway.sdo_upload(0x1000, 0, data_type=DataType.UNSIGNED32)
+                    return 0 if data == DEVICE_TYPE else FAILED
                 except Cia309Error:
                     return FAILED
 

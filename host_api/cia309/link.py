@@ -103,6 +103,9 @@ ABANDONED_NR_S = 60.0
 """A message number whose caller gave up stays reserved this long for its late answer."""
 TRANSACTION_LOCK_WAIT_S = 5.0
 RESET_TIMEOUT_MS = 10000
+AGAIN_PUT_TIMEOUT_S = 0.1
+"""How long the mailbox's reader tries to send a short upload again in the long form
+(``Link._again``) while the card's mailbox is full: it empties within a device loop turn."""
 
 _F_ERRORS: dict[int, ErrorCode] = {
     F_NO_RESPONSE: ErrorCode.TIME_OUT,
@@ -236,6 +239,10 @@ class _Pending:
     abandoned_at: float | None = None
     on_done: Callable[[], None] | None = None
     """Called in the reader thread once the answer is complete (``Link.try_request``)."""
+    again: bytes | None = None
+    """An upload sent in the seed's short form (msg.e 0, ``long_if_needed``): its data, to
+    send once more in the long form when the card answers that one message cannot hold
+    the object (f 51)."""
 
     def deliver(self, msg: Message) -> None:
         self.messages.append(msg)
@@ -783,7 +790,23 @@ class Link:
                 if self._pending.get(msg.nr) is pending:
                     del self._pending[msg.nr]
             return
+        if pending.again is not None and msg.f == F_RECEIVE_BUFFER_OVERSTEPPED:
+            self._again(msg, pending)
+            return
         pending.deliver(msg)
+
+    def _again(self, msg: Message, pending: _Pending) -> None:
+        """A short upload the card answered with f 51 (one message cannot hold the object):
+        sent again in the long form (msg.e FIRST) under the same number [ours], whose
+        answer is the request's; ``msg`` is, when the card's mailbox stays full."""
+        data, pending.again = pending.again, None
+        assert data is not None
+        code = _put(self.number, Message(rx=Task.CAN, tx=Task.USER, b=pending.b, data=data,
+                                         nr=msg.nr, e=Ext.FIRST), AGAIN_PUT_TIMEOUT_S)
+        if code != Drv.DRV_NO_ERROR:
+            log.warning("board %d: the long form of upload %d not sent (%d)", self.number,
+                        msg.nr, code)
+            pending.deliver(msg)
 
     def request(
         self,
@@ -794,10 +817,17 @@ class Link:
         e: int = 0,
         multipart: bool = False,
         on_part: Callable[[Message], None] | None = None,
+        long_if_needed: bool = False,
     ) -> list[Message]:
-        """Send one CAN-task command and wait for its answer (several for a long upload)."""
+        """Send one CAN-task command and wait for its answer (several for a long upload).
+
+        ``long_if_needed``: an SDO upload sent with ``e`` 0 whose answer the caller expects
+        to fit one message; should the card answer f 51, it is sent again in the long form
+        (``_again``)."""
         with self.gate.shared():
             nr, pending = self._register(b, multipart, on_part)
+            if long_if_needed:
+                pending.again = data
             try:
                 msg = Message(rx=Task.CAN, tx=Task.USER, b=b, data=data, nr=nr, e=e)
                 code = _put(self.number, msg, timeout)
@@ -839,6 +869,7 @@ class Link:
         multipart: bool = False,
         on_part: Callable[[Message], None] | None = None,
         sdo_node: int | None = None,
+        long_if_needed: bool = False,
     ) -> InFlight | None:
         """``request`` for a caller that cannot block (the 309-3 server's event loop): the
         command is sent and ``on_done`` called from the reader thread once its answer is
@@ -867,6 +898,8 @@ class Link:
             raise
         flight = InFlight(self, nr, pending, channel, timeout, on_done)
         pending.on_done = flight.delivered
+        if long_if_needed:
+            pending.again = data
         code = d.DevPutMessage(self.number, Message(rx=Task.CAN, tx=Task.USER, b=b, data=data,
                                                     nr=nr, e=e), 0)
         if code != Drv.DRV_NO_ERROR:

@@ -383,7 +383,7 @@ def _ok(call: Callable[[Gateway, Any], object]) -> _Service:
 
 def _sdo_upload(dispatcher: Dispatcher, client: Client, request: SdoUpload) -> str:
     data = client.gateway.sdo_upload(request.index, request.subindex, network=request.net,
-                                     node_id=request.node)
+                                     node_id=request.node, data_type=request.dtype)
     return format_upload(request.sequence, request.dtype, data, dispatcher.dialect)
 
 
@@ -941,7 +941,7 @@ class Server:
                 flight = client.gateway.try_sdo_upload(
                     prepared.index, prepared.subindex,
                     functools.partial(self._on_loop, _resolve, answered), network=prepared.net,
-                    node_id=prepared.node)
+                    node_id=prepared.node, data_type=prepared.dtype)
             except Cia309Error as exc:
                 return dispatcher.failure(prepared, exc)
             if flight is not None:
@@ -1016,7 +1016,7 @@ class Server:
             flight = client.gateway.try_sdo_upload(
                 prepared.index, prepared.subindex,
                 functools.partial(self._on_loop, self._fast_done, connection, fast),
-                network=prepared.net, node_id=prepared.node)
+                network=prepared.net, node_id=prepared.node, data_type=prepared.dtype)
         except Cia309Error as exc:
             self._fast_answer(connection, dispatcher.failure(prepared, exc))
             return True
