@@ -30,6 +30,7 @@ from dpm import flags as fl
 from dpm.layout import DEV_FLAGS, HOST_FLAGS, TASK2_STATE
 from dpm.task2 import ComDiagnostics, GlobalBits
 from firmware.can.bus import BusConfig
+from firmware.can.master import Master
 from firmware.can.node import NodeHandler
 from firmware.device import Device
 from firmware.sim import SimulatedNetwork
@@ -177,3 +178,23 @@ def test_a_cold_start_makes_no_thread_event_per_node(tmp_path: Path,
         cold_start(device, starts)
         all_operating(device, nodes)
         assert len(events) < len(nodes) / 4, f"{len(events)} Events for {len(nodes)} nodes"
+
+
+def test_a_node_that_boots_does_not_wake_the_master(tmp_path: Path,
+                                                    monkeypatch: pytest.MonkeyPatch) -> None:
+    """A node whose boot-up ended in data exchange had the master's thread look at once: a
+    boot of 127 nodes woke it once per node (SDO time-outs, the node's tick, NEXC again, the
+    outputs: about 100 us each, and the receive thread handing it the interpreter in the
+    middle of the boot's frames; issue 22). The master now takes the node at its next look,
+    due no later than the node's first deadline. Counted over a cold start and the boot of
+    60 nodes: the master's looks."""
+    looks = counted(monkeypatch, Master, "_look")
+    starts = counted(monkeypatch, firmware.flash.StoredDatabase, "load")
+    nodes = list(range(1, 61))
+    with card_with_nodes(tmp_path, nodes) as device:
+        all_operating(device, nodes)
+        before = len(looks)
+        cold_start(device, starts)
+        all_operating(device, nodes)
+        during = len(looks) - before
+        assert during < len(nodes) / 2, f"{during} looks of the master for {len(nodes)} nodes"

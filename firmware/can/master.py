@@ -379,6 +379,24 @@ class Master:
                 self._changed.add(handler)
         self._wakeup.set()
 
+    def operating(self, handler: NodeHandler) -> None:
+        """``handler``'s boot-up ended in data exchange (the receive thread): the master takes
+        its deadlines at its next look, which comes no later than the node's first one, and
+        at once only when a global start waits for that look.
+
+        A boot of 127 nodes woke the master once per node for this: a look (SDO time-outs,
+        the node's tick, NEXC again, the outputs) of about 100 us, and the receive thread's
+        ``Event.set`` and NEXC lock handed the interpreter to it in the middle of the boot's
+        frames (issue 22). The node's outputs, its first remote requests, NEXC and Nd_state
+        went out in ``_operate`` already; what the look adds is its supervision, whose first
+        deadline (``next_due(timed=True)``) is what ``wake_at`` is asked to meet."""
+        with self._due_lock:
+            self._changed.add(handler)
+        if self.nmt.start_waits:
+            self._wakeup.set()
+        else:
+            self.wake_at(handler.next_due(timed=True))
+
     def host_seen(self) -> tuple[bytes, bytes] | None:
         """The outputs and connection bits ``notice_host`` saw last (None before its first
         look): a turn that finds the image's the same has nothing to tell this thread (the

@@ -213,6 +213,11 @@ class NmtMaster:
 
     # --- from the master's thread -------------------------------------------------------------
 
+    @property
+    def start_waits(self) -> bool:
+        """A global Start_Node waits for the master's next look (``follow``)."""
+        return self._global_start_due
+
     def follow(self, now: float) -> bool:
         """The global start and the connection bits; False while the network does not
         exchange data (halted or cleared), for the master to stop there."""

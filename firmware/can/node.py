@@ -99,6 +99,10 @@ class Network(BootLink, PdoLink, Protocol):
         """``handler``'s state changed (None: the network's): the master supervises it
         again at once."""
 
+    def operating(self, handler: NodeHandler) -> None:
+        """``handler``'s boot-up ended in data exchange: the master supervises it from its
+        next look on, which comes before the node's first deadline."""
+
 
 class NodeEvents(Protocol):
     """Whom a node handler tells of its state: the network management (``firmware.can.nmt``)."""
@@ -302,7 +306,7 @@ class NodeHandler:
         else:  # [ours] a first boot is the normal state (seed 4.3: Nd_state 1, Nd_diag 0)
             self._diag_seen = (self.diag.status, self.diag.actual_error)
         self.events.node_booted(self)
-        self.network.reschedule(self)  # supervision and remote requests from now on
+        self.network.operating(self)  # supervision and remote requests from now on
 
     def start_sent(self, now: float, by_host: bool) -> bool:
         """A Start_Node went to the node (the global one, or the host's): from now on it must
