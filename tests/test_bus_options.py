@@ -108,7 +108,7 @@ def _dial_a_hang_up(
         finally:
             if proc.poll() is None:
                 proc.kill()
-                proc.wait(timeout=10)
+                commands.wait(proc, 10)
     return proc, stderr, port
 
 

@@ -37,7 +37,7 @@ def status(directory: Path, *extra: str) -> subprocess.CompletedProcess[str]:
 
 def kill(card: Card) -> None:
     card.proc.send_signal(signal.SIGKILL)
-    card.proc.wait(timeout=10)
+    commands.wait(card.proc, 10)
 
 
 def test_status_reports_a_killed_firmware_as_dead_with_its_last_pid(tmp_path: Path) -> None:
