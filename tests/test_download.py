@@ -396,7 +396,7 @@ def test_two_hosts_never_interleave_their_downloads(card: Card, tmp_path: Path) 
     hosts = [subprocess.Popen([*command, str(p)], cwd=ROOT, stdout=subprocess.PIPE,
                               stderr=subprocess.PIPE, text=True) for p in paths * 2]
     for host in hosts:
-        _, err = host.communicate(timeout=60)
+        _, err = commands.finish(host, 60)
         assert host.returncode == 0, err
     stored = (card.directory / "flash" / "board0" / DATABASE_FILE).read_bytes()
     assert stored in [p.read_bytes()[44:] for p in paths]

@@ -230,7 +230,7 @@ def test_the_database_loaded_from_flash_is_logged_and_shown(tmp_path: Path) -> N
         assert "plant A" in status(tmp_path).stdout
     finally:
         card.proc.terminate()
-        _, stderr = card.proc.communicate(timeout=10)
+        _, stderr = commands.finish(card.proc, 10)
     log = stderr.decode()
     assert "database from flash: 'plant A' of" in log and "4 node(s)" in log
     assert os.path.exists(tmp_path / "board0.card.json")
