@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from tests import commands
-from tests.conftest import Card, LoadClock, wait_until
+from tests.conftest import Card, LoadClock, ended, wait_until
 from tests.gateway_cards import start
 
 READ_1000 = "1 1 read 0x1000 0 u32"
@@ -123,7 +123,7 @@ class Steady:
         processes could run (a loaded machine slows the rate in wall time)."""
         self._stop.set()
         assert self._thread is not None
-        self._thread.join(10)
+        assert ended(self._thread, 10), "the steady client did not stop"
         assert not self.failures
         assert self.worst < STEADY_WORST
         assert self.answered >= clock.elapsed() / (STEADY_PERIOD + STEADY_WORST / 10)

@@ -21,7 +21,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any, Protocol, TypeVar
 
-from tests.conftest import TIME_SCALE, LoadClock
+from tests.conftest import on_load_clock
 
 T = TypeVar("T")
 
@@ -30,10 +30,6 @@ class HasFileno(Protocol):
     """What ``select`` waits on: a pipe's file, a socket."""
 
     def fileno(self) -> int: ...
-
-
-LOOK_S = 0.25
-"""How often the load clock is read while a command runs past its wall-clock time-out."""
 
 
 class CommandTimeout(subprocess.TimeoutExpired):
@@ -48,27 +44,19 @@ class CommandTimeout(subprocess.TimeoutExpired):
                 f"({self.wall:.1f} s of wall time)")
 
 
-def on_load_clock(attempt: Callable[[float], T], timeout: float, clock: LoadClock) -> T:
-    """``attempt(seconds)`` until it returns rather than raise ``TimeoutExpired``; the
-    ``timeout`` counts on ``clock``. The last ``TimeoutExpired`` is raised (as
-    ``CommandTimeout``) when the clock has passed ``timeout``."""
+def command_wait(attempt: Callable[[float], T], timeout: float) -> T:
+    """``attempt(seconds)`` until it returns rather than raise ``TimeoutExpired``, the
+    ``timeout`` on the load clock (``on_load_clock``); past it ``CommandTimeout``."""
     start = time.monotonic()
-    deadline = start + timeout
-    while True:
-        try:
-            return attempt(max(deadline - time.monotonic(), 0.0))
-        except subprocess.TimeoutExpired as expired:
-            elapsed = clock.elapsed()
-            if elapsed > timeout:
-                raise CommandTimeout(expired, time.monotonic() - start) from None
-        deadline = time.monotonic() + min(timeout - elapsed, LOOK_S)
+    try:
+        return on_load_clock(attempt, timeout, subprocess.TimeoutExpired)
+    except subprocess.TimeoutExpired as expired:
+        raise CommandTimeout(expired, time.monotonic() - start) from None
 
 
 def finish(proc: subprocess.Popen[Any], timeout: float, input: Any = None) -> tuple[Any, Any]:
     """``proc.communicate(input)`` with ``timeout`` on the load clock; a process past it is
     killed (as ``subprocess.run`` does) and ``CommandTimeout`` raised with its output."""
-    timeout *= TIME_SCALE
-    clock = LoadClock(time.monotonic())
     pending = [input]
 
     def attempt(seconds: float) -> tuple[Any, Any]:
@@ -76,7 +64,7 @@ def finish(proc: subprocess.Popen[Any], timeout: float, input: Any = None) -> tu
         return proc.communicate(given, timeout=seconds)
 
     try:
-        return on_load_clock(attempt, timeout, clock)
+        return command_wait(attempt, timeout)
     except CommandTimeout as expired:
         proc.kill()
         expired.output, expired.stderr = proc.communicate()
@@ -86,7 +74,7 @@ def finish(proc: subprocess.Popen[Any], timeout: float, input: Any = None) -> tu
 def wait(proc: subprocess.Popen[Any], timeout: float) -> int:
     """``proc.wait(timeout)`` with the time-out on the load clock (the process is left
     running when it passes, as ``Popen.wait`` leaves it); its pipes are not read."""
-    return on_load_clock(proc.wait, timeout * TIME_SCALE, LoadClock(time.monotonic()))
+    return command_wait(proc.wait, timeout)
 
 
 def run(args: Sequence[str | Path], timeout: float, *, input: Any = None,
@@ -116,6 +104,6 @@ def readable(stream: int | HasFileno, timeout: float) -> bool:
         return True
 
     try:
-        return on_load_clock(attempt, timeout * TIME_SCALE, LoadClock(time.monotonic()))
+        return command_wait(attempt, timeout)
     except CommandTimeout:
         return False

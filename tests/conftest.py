@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import mmap
 import os
+import queue
 import signal
 import subprocess
 import sys
@@ -13,7 +14,7 @@ import weakref
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any, TypeVar
 
 import pytest
 import pytest_timeout
@@ -22,6 +23,12 @@ from bench.cpu import descendants, runqueue_wait_ns
 from host_api import driver
 from host_api.ready import START_CPU_S, START_STALL_S, StartError, wait_ready
 from tests.selection import HELPER_MODULES, forbid_processes, marks_of_test
+
+if TYPE_CHECKING:
+    from host_api.cia309.events import EventStream
+    from host_api.cia309.model import Event
+
+T = TypeVar("T")
 
 REQUIRE_SOCKETCAN = "CIFEMU_REQUIRE_SOCKETCAN"
 """Set by ``make test-vcan``: there a SocketCAN test that skips is a failure."""
@@ -197,6 +204,116 @@ def wait_until(condition: Callable[[], object], timeout: float = 5.0, what: str 
             deadline = now + min(timeout - elapsed, 0.05)  # the next look at the clock
         time.sleep(0.001)
 
+
+
+LOOK_S = 0.25
+"""How often a blocking wait past its wall-clock time-out reads the load clock again."""
+
+
+class LoadDeadline:
+    """A time-out on the load clock (``LoadClock``) for a wait that blocks, not polls: an
+    event, a condition variable, a queue, a process, a socket. ``left()`` says how long to
+    block before looking again: the wall time to the time-out first; past it, no more than
+    ``LOOK_S`` at a time while the load clock has not passed the time-out; then 0. Scaled
+    by ``TIME_SCALE``, as ``wait_until``'s."""
+
+    def __init__(self, timeout: float) -> None:
+        self.timeout = timeout * TIME_SCALE
+        self._start = time.monotonic()
+        self._wall = self._start + self.timeout
+        self._clock: LoadClock | None = None
+
+    def left(self) -> float:
+        """Seconds to block before looking again; 0 once the time-out has passed."""
+        now = time.monotonic()
+        if self._clock is None:  # a wait not over at once: /proc is read for its baseline
+            self._clock = LoadClock(self._start)
+        if now < self._wall:
+            return self._wall - now
+        elapsed = self._clock.elapsed()
+        if elapsed >= self.timeout:
+            return 0.0
+        self._wall = now + min(self.timeout - elapsed, LOOK_S)
+        return self._wall - now
+
+    def wall(self) -> float:
+        """Wall seconds since the wait began (for a message)."""
+        return time.monotonic() - self._start
+
+
+def on_load_clock(attempt: Callable[[float], T], timeout: float,
+                  expired: type[Exception] | tuple[type[Exception], ...] = TimeoutError) -> T:
+    """``attempt(seconds)``, a wait that blocks up to ``seconds`` and raises ``expired`` when
+    its condition did not come, again until it returns; ``timeout`` counts on the load clock
+    (``LoadDeadline``). The last ``expired`` is raised once the time-out has passed."""
+    deadline = LoadDeadline(timeout)
+    seconds = deadline.left()
+    while True:
+        try:
+            return attempt(seconds)
+        except expired:
+            seconds = deadline.left()
+            if seconds <= 0:
+                raise
+
+
+def within(wait: Callable[[float], bool], timeout: float) -> bool:
+    """Whether ``wait(seconds)`` (``threading.Event.wait``, a doorbell's ``wait``: True once
+    its condition came) comes true within ``timeout`` on the load clock. A test that expects
+    nothing within a window asserts ``not within(...)``: the window, too, is the time the
+    test's processes could run, so load cannot pass the check for a card that had no CPU to
+    do the wrong thing in."""
+    def attempt(seconds: float) -> bool:
+        if not wait(seconds):
+            raise TimeoutError
+        return True
+
+    try:
+        return on_load_clock(attempt, timeout)
+    except TimeoutError:
+        return False
+
+
+def taken(source: queue.Queue[T] | queue.SimpleQueue[T], timeout: float) -> T:
+    """``source.get`` with ``timeout`` on the load clock; ``queue.Empty`` past it."""
+    return on_load_clock(lambda seconds: source.get(timeout=seconds), timeout, queue.Empty)
+
+
+def ended(thread: threading.Thread, timeout: float) -> bool:
+    """Whether ``thread`` ends within ``timeout`` on the load clock (``Thread.join``'s)."""
+    def wait(seconds: float) -> bool:
+        thread.join(seconds)
+        return not thread.is_alive()
+
+    return within(wait, timeout)
+
+
+def expect(stream: EventStream, predicate: Callable[[Event], bool], timeout: float,
+           what: str = "a matching event") -> Event:
+    """The first event of a CiA 309 gateway's stream that ``predicate`` accepts, waited for
+    ``timeout`` seconds on the load clock: ``EventStream.wait_for`` counts wall time, and an
+    event of a busy machine's card came later than 5 s of it (CI of 2026-12-04 00:33)."""
+    deadline = LoadDeadline(timeout)
+    while (seconds := deadline.left()) > 0:
+        try:
+            return stream.wait_for(predicate, seconds)
+        except TimeoutError:
+            pass
+    pytest.fail(f"timed out after {deadline.timeout} s waiting for {what} "
+                f"({deadline.wall():.1f} s of wall time)")
+
+
+def silent(stream: EventStream, predicate: Callable[[Event], bool], window: float,
+           what: str = "an event") -> None:
+    """Fail when ``stream`` shows an event ``predicate`` accepts within ``window`` seconds on
+    the load clock (``within``'s windows)."""
+    deadline = LoadDeadline(window)
+    while (seconds := deadline.left()) > 0:
+        try:
+            event = stream.wait_for(predicate, seconds)
+        except TimeoutError:
+            continue
+        pytest.fail(f"{what}: {event}")
 
 
 TEST_STRETCH_LIMIT = 10.0

@@ -35,6 +35,7 @@ from bench.remote import BRIDGES_DIR, bridge_program, children_of, free_port
 from dbm_tools.network import load_network
 from host_api.board import Board
 from host_api.online import configure_online
+from tests import commands
 from tests.buses import HOW_TO_RUN, SOCKETCAN_CHANNEL, socketcan_missing
 from tests.conftest import start_card, wait_until
 
@@ -77,7 +78,7 @@ def _sim(network: Path, channel: str) -> subprocess.Popen[bytes]:
     assert sim.stdout is not None
     if not sim.stdout.readline().startswith(b"simulating"):
         sim.kill()
-        sim.wait(timeout=10)
+        commands.wait(sim, 10)
         pytest.fail("cifemu sim did not start")
     threading.Thread(target=sim.stdout.read, daemon=True).start()
     return sim
@@ -94,10 +95,10 @@ def processes() -> Iterator[list[subprocess.Popen[bytes]]]:
         if proc.poll() is None:
             proc.terminate()
         try:
-            proc.wait(timeout=10)
+            commands.wait(proc, 10)
         except subprocess.TimeoutExpired:
             proc.kill()
-            proc.wait(timeout=10)
+            commands.wait(proc, 10)
 
 
 def _boot_sdo_pdo(tmp_path: Path, network: Path, *card_args: str) -> None:

@@ -70,7 +70,7 @@ def test_a_config_file_that_cannot_be_used_is_named(tmp_path: Path, spec: str,
 
 def _cli(*argv: str, cwd: Path) -> subprocess.CompletedProcess[str]:
     return commands.run([sys.executable, "-m", "cifemu", *argv], capture_output=True,
-                        text=True, timeout=60 * TIME_SCALE, cwd=cwd, check=False)
+                        text=True, timeout=60, cwd=cwd, check=False)
 
 
 @pytest.mark.parametrize("command", [["firmware"], ["sim", "net.toml"], ["monitor"]])
@@ -104,11 +104,11 @@ def _dial_a_hang_up(
         try:
             connection, _ = listener.accept()
             connection.close()
-            _, stderr = proc.communicate(timeout=30 * TIME_SCALE)
+            _, stderr = commands.finish(proc, 30)
         finally:
             if proc.poll() is None:
                 proc.kill()
-                proc.wait(timeout=10)
+                commands.wait(proc, 10)
     return proc, stderr, port
 
 
@@ -176,7 +176,7 @@ def _sim_json(tmp_path: Path, *flags: str) -> dict[str, object]:
         first = sim.stdout.readline()
     finally:
         sim.terminate()
-        _, stderr = sim.communicate(timeout=30 * TIME_SCALE)
+        _, stderr = commands.finish(sim, 30)
     assert first, stderr
     return dict(json.loads(first))
 

@@ -33,7 +33,7 @@ from host_api.download import CONFIGURATION_DOWNLOAD, DevDownload
 from host_api.driver import DevCloseDriver, DevExitBoard, DevInitBoard, DevOpenDriver
 from tests import commands
 from tests.cia309_clients import serving
-from tests.conftest import ROOT, Card, start_card
+from tests.conftest import ROOT, Card, start_card, taken
 from tests.libcif_host import (
     C_TESTS,
     CC,
@@ -77,7 +77,7 @@ def test_a_gateway_holding_the_mailbox_is_named_within_a_second(tmp_path: Path) 
                 lines.put(line)
 
         threading.Thread(target=pump, daemon=True).start()
-        match = re.search(r"listening on 127\.0\.0\.1:(\d+)", lines.get(timeout=30))
+        match = re.search(r"listening on 127\.0\.0\.1:(\d+)", taken(lines, 30))
         assert match is not None
         port = match.group(1)
         # the gateway listens once it holds the board's mailbox (host_api.cia309.link)
@@ -99,7 +99,7 @@ def test_a_gateway_holding_the_mailbox_is_named_within_a_second(tmp_path: Path) 
         direct = cifemu("309", "exec", "--direct", "1 read 0x1000 0 u32", *where)
     finally:
         serve.terminate()
-        serve.wait(timeout=20)
+        commands.wait(serve, 20)
         card.stop()
     assert rc == Drv.DRV_CMD_ACTIVE and download_s < 1.0
     assert refused.value.code == Drv.DRV_CMD_ACTIVE and transact_s < 1.0

@@ -22,6 +22,7 @@ from firmware.can.bus import CanBus
 from firmware.can.sdo import HostSdoTransfer, SdoResult
 from firmware.inline import CopyingVirtualBus
 from firmware.sim import SimulatedNetwork
+from tests.conftest import ended, within
 
 
 @pytest.fixture
@@ -36,7 +37,7 @@ def controller() -> Iterator[tuple[CanBus, SdoClient]]:
     sim.start()
     # The node answers SDO only once it has booted, and this controller has no master
     # whose tick would time a lost request out: wait for its boot-up first.
-    assert booted.wait(10), "the simulated node sent no boot-up"
+    assert within(booted.wait, 10), "the simulated node sent no boot-up"
     client = SdoClient(0x601, 0x581, ObjectDictionary())  # type: ignore[no-untyped-call]
     client.network = bus.network
     bus.network.subscribe(0x581, client.on_response)
@@ -57,7 +58,7 @@ def host_upload(bus: CanBus, index: int) -> SdoResult:
         finished.set()
 
     HostSdoTransfer(bus, 1, index, 0, None, 1.0, done).start()
-    assert finished.wait(5), "the host transfer did not finish"
+    assert within(finished.wait, 5), "the host transfer did not finish"
     return results[0]
 
 
@@ -103,7 +104,7 @@ def test_an_answer_for_another_object_is_refused() -> None:
         result = host_upload(bus, 0x1000)
         assert result.abort == 0x08000000 and result.data == b""
         assert "1018h" in result.failed
-        assert answered.wait(5), "the client sent no abort to the node"
+        assert within(answered.wait, 5), "the client sent no abort to the node"
         assert aborts == [bytes([0x80, 0x00, 0x10, 0, 0, 0, 0, 8])]
     finally:
         answered.set()
@@ -129,7 +130,7 @@ def test_a_frame_that_finds_the_receive_thread_idle_is_handled_by_its_sender_in_
         handled.append((msg.data[0], threading.get_ident()))
         if msg.data[0] == 0:
             first_in.set()
-            assert release.wait(5), "the test never let the first frame go"
+            assert within(release.wait, 5), "the test never let the first frame go"
         if msg.data[0] == 11:
             last.set()
 
@@ -140,13 +141,13 @@ def test_a_frame_that_finds_the_receive_thread_idle_is_handled_by_its_sender_in_
     first = threading.Thread(target=send, args=(0,), daemon=True)
     try:
         first.start()
-        assert first_in.wait(5), "the first frame was not handled"
+        assert within(first_in.wait, 5), "the first frame was not handled"
         for number in range(1, 11):  # these meet the first one still being handled
             send(number)
         release.set()
-        first.join(5)
+        assert ended(first, 5), "the first frame's sender did not end"
         send(11)
-        assert last.wait(5), "not every frame was handled"
+        assert within(last.wait, 5), "not every frame was handled"
         assert [number for number, _ in handled] == list(range(12))
         assert handled[0][1] == first.ident
     finally:
@@ -181,7 +182,7 @@ def two_nodes() -> Iterator[tuple[CanBus, SimulatedNetwork, can.BusABC]]:
     bus.subscribe(0x702, lambda msg: booted[2].set())
     sim.start()
     try:
-        assert all(event.wait(10) for event in booted.values()), "a node sent no boot-up"
+        assert all(within(event.wait, 10) for event in booted.values()), "a node sent no boot-up"
         with sim.lock:  # the boot-up is sent from inside the boot's timer: let it end
             pass
         yield bus, sim, monitor
@@ -238,12 +239,12 @@ def test_a_host_sdo_request_that_meets_a_node_busy_waits_for_the_nodes_thread_in
     def timer() -> None:  # a node timer that runs long
         with sim.lock:
             held.set()
-            release.wait(5)
+            within(release.wait, 5)
 
     holder = threading.Thread(target=timer, daemon=True)
     holder.start()
     try:
-        assert held.wait(5)
+        assert within(held.wait, 5)
         first = HostSdoTransfer(bus, 1, 0x1000, 0, None, 1.0, done(1), answered_here=True)
         first.start()
         second = HostSdoTransfer(bus, 2, 0x1000, 0, None, 1.0, done(2), answered_here=True)
@@ -251,8 +252,8 @@ def test_a_host_sdo_request_that_meets_a_node_busy_waits_for_the_nodes_thread_in
         assert not first.finished and not second.finished  # the sender did not wait
     finally:
         release.set()
-        holder.join(5)
-    assert both.wait(5), f"answered: {sorted(results)}"
+        ended(holder, 5)
+    assert within(both.wait, 5), f"answered: {sorted(results)}"
     assert _sdo_answers(monitor, 4) == [0x601, 0x602, 0x581, 0x582]
     for node in (1, 2):
         result, thread = results[node]
@@ -289,9 +290,9 @@ def test_a_node_that_sends_never_runs_node_code_for_a_request_its_frame_caused(
 
     holder = threading.Thread(target=timer, daemon=True)
     holder.start()
-    holder.join(5)
+    assert ended(holder, 5), "the node's timer did not end"
     assert handler_threads == sender, "the controller did not handle the frame inline"
-    assert answered.wait(5), "no answer"
+    assert within(answered.wait, 5), "no answer"
     [(result, thread)] = results
     assert int.from_bytes(result.data, "little") == GENERIC_DEVICE_TYPE
     assert thread != sender[0], "node code ran inside the sending node's"

@@ -40,6 +40,7 @@ from host_api.cia309.lss import LssError, LssMaster
 from host_api.cia309.model import Cia309Error
 from host_api.download import CONFIGURATION_DOWNLOAD, DevDownload, upload_database
 from host_api.online import ConfigurationError, configure_online
+from tests import commands
 from tests.can_net import start_sim
 from tests.conftest import ROOT, Card, start_card, wait_until
 
@@ -80,7 +81,7 @@ class Bench:
     def kill_sim(self) -> None:
         assert self.sim is not None
         self.sim.send_signal(signal.SIGKILL)
-        self.sim.wait(timeout=10)
+        commands.wait(self.sim, 10)
         self.sim = None
 
 
@@ -129,7 +130,7 @@ def make_bench(tmp_path: Path) -> Iterator[Callable[[str], Bench]]:
         bench.card.stop()
         if bench.sim is not None:
             bench.sim.terminate()
-            bench.sim.wait(timeout=10)
+            commands.wait(bench.sim, 10)
         wait_until(_gone(Path(f"/dev/shm/cifemu-can-{bench.channel}")), 5,
                    "the shm channel to go with its last station")
 
@@ -367,7 +368,7 @@ def test_firmware_killed_hosts_get_codes_and_a_new_firmware_brings_the_database_
         time.sleep(random.uniform(0.1, 0.8))
         bench.card.proc.send_signal(signal.SIGKILL)
         killed = time.monotonic()
-        assert bench.card.proc.wait(timeout=5) == -signal.SIGKILL
+        assert commands.wait(bench.card.proc, 5) == -signal.SIGKILL
         wait_until(lambda: time.monotonic() > killed + activity.limit + 0.5, 30,
                    "calls after the kill")
         activity.stop()
@@ -459,7 +460,7 @@ def test_host_killed_holding_a_channel_never_blocks_the_next_host(
         assert host.stdout.readline() == b"half\n"
     time.sleep(random.uniform(0.05, 0.5))
     host.send_signal(signal.SIGKILL)
-    host.wait(timeout=5)
+    commands.wait(host, 5)
     started = time.monotonic()
     answer = bench.board.transact(Message(rx=Task.PLC, tx=Task.USER, b=17,
                                           data=bytes([0, 1, 0, 0, 0, 8, 5, 1])))

@@ -35,7 +35,7 @@ from tests.cia309_clients import (
     read_line,
     serving,
 )
-from tests.conftest import LoadClock, wait_until
+from tests.conftest import LoadClock, taken, wait_until
 
 EXAMPLES = int(os.environ.get("CIFEMU_FUZZ_EXAMPLES", "60"))
 ROUNDS = max(3, EXAMPLES // 20)
@@ -249,7 +249,7 @@ def test_generated_lines(server: Server, steady: Steady,
         reader = threading.Thread(target=read, daemon=True)
         reader.start()
         sock.sendall(payload + f"\n[424242] {READ_1000}\n".encode())
-        tail = received.get(timeout=60)
+        tail = taken(received, 60)
         assert sentinel in tail, f"no answer to the request after the junk: {tail[-200:]!r}"
     baseline = FIRST_RSS.setdefault("generated", server.rss())
     assert server.rss() - baseline < MEMORY_GROWTH

@@ -42,7 +42,7 @@ from host_api.cia309.gateway import Gateway
 from host_api.cia309.model import DataType
 from host_api.cia309.server import BackgroundServer, ServerConfig
 from tests import commands
-from tests.conftest import wait_until
+from tests.conftest import ended, wait_until, within
 from tests.gateway_cards import EDS, start, wait_operating
 
 NETWORK = f"""[[node]]
@@ -227,7 +227,7 @@ def test_several_clients_at_once(connect: Connect) -> None:
     for thread in threads:
         thread.start()
     for thread in threads:
-        thread.join(30)
+        assert ended(thread, 30), "a client's reads did not end"
     assert not failures
 
 
@@ -308,7 +308,7 @@ def read_profiled(loop: asyncio.AbstractEventLoop, client: Client,
             done.set()
 
         loop.call_soon_threadsafe(switch)
-        assert done.wait(10)
+        assert within(done.wait, 10)
 
     profiling(True)
     try:

@@ -7,6 +7,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+from tests import commands
 from tests.conftest import ROOT, wait_until
 
 
@@ -24,7 +25,7 @@ def test_the_demo_piped_to_a_file_prints_the_node_table_and_the_emcy(tmp_path: P
             assert demo.poll() is None, demo.stderr.read() if demo.stderr else ""
         finally:
             demo.send_signal(signal.SIGINT)
-            code = demo.wait(timeout=30)
+            code = commands.wait(demo, 30)
     text = out.read_text()
     assert code == 0, demo.stderr.read() if demo.stderr else ""
     assert "Ctrl-C ends the demo. In another terminal:" in text

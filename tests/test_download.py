@@ -35,6 +35,7 @@ from host_api.download import (
     upload_database,
 )
 from host_api.registry import registry
+from tests import commands
 from tests.conftest import ROOT, Card, start_card, wait_until
 from tests.fixtures import REAL_DBM as FIXTURE
 from tests.fixtures import needs_real_dbm
@@ -282,7 +283,7 @@ def test_sigkill_in_the_middle_of_a_download_keeps_the_previous_database(tmp_pat
         assert load(0, first_message(new), 4, 1).f == 0
         assert load(0, new[:240], 8, 2).f == 0
         card.proc.send_signal(signal.SIGKILL)
-        card.proc.wait(timeout=10)
+        commands.wait(card.proc, 10)
         d.DevCloseDriver()
         assert (flash / DATABASE_FILE).read_bytes() == old
         card = start_card(tmp_path, 0, "--flash", str(flash))
@@ -395,7 +396,7 @@ def test_two_hosts_never_interleave_their_downloads(card: Card, tmp_path: Path) 
     hosts = [subprocess.Popen([*command, str(p)], cwd=ROOT, stdout=subprocess.PIPE,
                               stderr=subprocess.PIPE, text=True) for p in paths * 2]
     for host in hosts:
-        _, err = host.communicate(timeout=60)
+        _, err = commands.finish(host, 60)
         assert host.returncode == 0, err
     stored = (card.directory / "flash" / "board0" / DATABASE_FILE).read_bytes()
     assert stored in [p.read_bytes()[44:] for p in paths]

@@ -37,7 +37,7 @@ def status(directory: Path, *extra: str) -> subprocess.CompletedProcess[str]:
 
 def kill(card: Card) -> None:
     card.proc.send_signal(signal.SIGKILL)
-    card.proc.wait(timeout=10)
+    commands.wait(card.proc, 10)
 
 
 def test_status_reports_a_killed_firmware_as_dead_with_its_last_pid(tmp_path: Path) -> None:
@@ -230,7 +230,7 @@ def test_the_database_loaded_from_flash_is_logged_and_shown(tmp_path: Path) -> N
         assert "plant A" in status(tmp_path).stdout
     finally:
         card.proc.terminate()
-        _, stderr = card.proc.communicate(timeout=10)
+        _, stderr = commands.finish(card.proc, 10)
     log = stderr.decode()
     assert "database from flash: 'plant A' of" in log and "4 node(s)" in log
     assert os.path.exists(tmp_path / "board0.card.json")

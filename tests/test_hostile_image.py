@@ -39,8 +39,9 @@ from host_api import driver
 from host_api.board import Board
 from host_api.driver import COLDSTART
 from host_api.online import configure_online
+from tests import commands
 from tests.can_net import start_sim
-from tests.conftest import Card, start_card, wait_until
+from tests.conftest import Card, LoadDeadline, start_card, wait_until
 
 SOAK_SECONDS = max(1.0, float(os.environ.get("CIFEMU_SOAK_SECONDS", "5")))
 COM_SHARED_MEMORY = 17
@@ -59,9 +60,9 @@ def hostile_card(tmp_path: Path) -> Iterator[Card]:
 
 def _settle(mm: mmap.mmap) -> None:
     """Leave the handshake as a host that owns nothing: NOTREADY off, no message pending."""
-    deadline = time.monotonic() + 5
+    deadline = LoadDeadline(5)
     mm[DEV_FLAGS] = mm[DEV_FLAGS] & ~fl.NOTREADY
-    while time.monotonic() < deadline:
+    while deadline.left() > 0:
         diff = mm[HOST_FLAGS] ^ mm[DEV_FLAGS]
         if diff & fl.HOST_MBX:  # an answer is waiting: take it
             mm[DEV_FLAGS] = mm[DEV_FLAGS] ^ fl.HOSTACK
@@ -203,7 +204,7 @@ def test_random_writes_while_the_bus_runs_then_a_host_restarts_it(tmp_path: Path
         assert card.proc.poll() is None, "the firmware died of a host's writes"
         assert counts["writes"] > 100 and counts["storms"] > 100
         sim.terminate()
-        sim.wait(timeout=10)
+        commands.wait(sim, 10)
         sim = start_sim(network, "shm", channel)
         with Board(0, tmp_path, timeout=5000) as board:
             board.reset(COLDSTART)
@@ -215,4 +216,4 @@ def test_random_writes_while_the_bus_runs_then_a_host_restarts_it(tmp_path: Path
     finally:
         card.stop()
         sim.terminate()
-        sim.wait(timeout=10)
+        commands.wait(sim, 10)

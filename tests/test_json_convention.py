@@ -91,7 +91,7 @@ def test_a_closed_pipe_ends_quietly(tmp_path: Path) -> None:
     assert proc.stdout.readline().strip() == b"{"
     proc.stdout.close()  # `| head -1`
     stderr = proc.stderr.read().decode()
-    proc.wait(timeout=60)
+    commands.wait(proc, 60)
     assert "Traceback" not in stderr and "BrokenPipeError" not in stderr, stderr
     assert proc.returncode == 1
 
@@ -106,7 +106,7 @@ def test_sim_announces_its_nodes_as_one_json_line(tmp_path: Path) -> None:
         first = json.loads(sim.stdout.readline())
     finally:
         sim.terminate()
-        sim.wait(timeout=20)
+        commands.wait(sim, 20)
     assert all(SNAKE.match(key) for key in keys(first))
     assert [node["id"] for node in first["nodes"]] == [1, 2, 3, 4]
     assert first["bitrate"] == 500000

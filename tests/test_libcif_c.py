@@ -16,7 +16,6 @@ import os
 import shutil
 import subprocess
 import threading
-import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -30,7 +29,7 @@ from dbm_tools.network import parse_network
 from dpm.errors import Drv
 from dpm.message import Message
 from host_api import driver as d
-from tests.conftest import Card
+from tests.conftest import Card, wait_until
 from tests.libcif_host import (
     C_NETWORK,
     C_TESTS,
@@ -248,9 +247,8 @@ def test_c_and_python_hosts_take_the_same_channel_locks(card: Card) -> None:
             assert c.DevPutMessage(0, request, 0) == 0
             waiter = threading.Thread(target=lambda: c.DevPutMessage(0, request, 500))
             waiter.start()
-            deadline = time.monotonic() + 5
-            while d.DevPutMessage(0, request, 0) != Drv.DRV_CMD_ACTIVE:
-                assert time.monotonic() < deadline, "the C host's wait never held the channel"
+            wait_until(lambda: d.DevPutMessage(0, request, 0) == Drv.DRV_CMD_ACTIVE, 5,
+                       "the C host's wait to hold the channel")
             waiter.join()
         finally:
             card.thaw()

@@ -205,7 +205,7 @@ def killed_after_put(program: Path, card: Card, tag: int) -> None:
         assert host.stdout.readline() == b"sent\n"
     finally:
         host.send_signal(signal.SIGKILL)
-        host.wait(timeout=10)
+        commands.wait(host, 10)
 
 
 @pytest.mark.parametrize("answered", ["at once", "after the next host began"])
@@ -269,7 +269,7 @@ def test_a_killed_python_hosts_answer_never_reaches_the_next_c_host(
         assert host.stdout.readline() == b"sent\n"
     finally:
         host.send_signal(signal.SIGKILL)
-        host.wait(timeout=10)
+        commands.wait(host, 10)
     assert run(program, card.directory, "pairs", "1", "20", "100") == \
         "pairs: 20 answers, each this host's own, read once\n"
 

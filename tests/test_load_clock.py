@@ -1,5 +1,6 @@
-"""The suite's time-outs on the load clock: a command's (``tests/commands.py``) and a whole
-test's (pytest-timeout's, ``pytest_timeout_set_timer`` in ``tests/conftest.py``).
+"""The suite's time-outs on the load clock: a command's (``tests/commands.py``), a blocking
+wait's (``within`` and the helpers on ``LoadDeadline``) and a whole test's (pytest-timeout's,
+``pytest_timeout_set_timer`` in ``tests/conftest.py``).
 
 Load is made here, not hoped for: the process under test shares one CPU with ``RIVALS``
 busy processes of its own (all pinned to it), so it gets at most a quarter of that CPU and
@@ -14,13 +15,14 @@ import os
 import subprocess
 import sys
 import textwrap
+import threading
 import time
 from pathlib import Path
 
 import pytest
 
 from tests.commands import CommandTimeout, run
-from tests.conftest import ROOT, TEST_STRETCH_LIMIT, LoadClock
+from tests.conftest import ROOT, TEST_STRETCH_LIMIT, LoadClock, within
 
 CPU = min(os.sched_getaffinity(0))
 
@@ -84,6 +86,36 @@ def test_a_command_that_hangs_is_ended_at_its_time_out() -> None:
     assert clock.elapsed() < 5  # not its 60 s of sleep
     assert failed.value.output == "begun\n"  # what it said before it was killed
     assert "wall time" in str(failed.value)
+
+
+def test_a_starved_program_s_event_comes_within_its_time_out_on_the_load_clock() -> None:
+    """``within`` (``Event.wait`` on the load clock; ``ended``, ``taken`` and ``expect`` wait
+    the same way): the event set when the starved program ends comes past the wall-clock
+    time-out and within the load clock's. ``Event.wait`` with the same time-out, the
+    suite's wait before, gives up first: the load is real."""
+    proc = subprocess.Popen(starved_command())
+    done = threading.Event()
+
+    def reap() -> None:
+        proc.wait()
+        done.set()
+
+    threading.Thread(target=reap, daemon=True).start()
+    try:
+        assert not done.wait(TIMEOUT_S), "not starved: the test shows nothing"
+        assert within(done.wait, TIMEOUT_S), "no end within the load clock's time-out"
+        assert proc.returncode == 0
+    finally:
+        proc.kill()
+
+
+def test_a_window_in_which_nothing_may_happen_lasts_at_least_its_time() -> None:
+    """A check that nothing happens (``not within(...)``, ``silent``) looks for its whole
+    window: never less than the time-out in wall time, and more when load took time from
+    the test's processes, so a starved card cannot pass it for want of CPU."""
+    begun = time.monotonic()
+    assert not within(threading.Event().wait, 0.5)
+    assert time.monotonic() - begun >= 0.5
 
 
 TEST_WORK_S = 0.2

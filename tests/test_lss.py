@@ -28,7 +28,7 @@ from firmware.sim.generic import GENERIC_REVISION
 from host_api.board import Board, CifError
 from host_api.cia309.lss import LssError, LssErrorCode, LssMaster
 from host_api.online import configure_online
-from tests.conftest import Card, start_card, wait_until
+from tests.conftest import Card, LoadDeadline, start_card, taken, wait_until
 
 SLAVES = [LssAddress(0x1234, 2, 3, 1), LssAddress(0x1234, 2, 3, 2), LssAddress(0x1234, 2, 5, 4)]
 NETWORK = "[[node]]\nid = 5\n" + "".join(
@@ -66,8 +66,8 @@ class Rig:
 
     def frames_on(self, cob_id: int, timeout: float = 5.0) -> bytes:
         """The data of the next layer-2 frame received on ``cob_id``."""
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
+        deadline = LoadDeadline(timeout)
+        while deadline.left() > 0:
             try:
                 msg = self.board.get_message(100)
             except CifError:
@@ -370,7 +370,7 @@ def test_shared_mailbox_reader_feeds_the_master(make_rig: Callable[..., Rig]) ->
 
     def transact(msg: Message) -> Message:
         rig.board.put_message(msg)
-        return answers.get(timeout=5)
+        return taken(answers, 5)
 
     thread = threading.Thread(target=reader, daemon=True)
     thread.start()

@@ -12,7 +12,7 @@ from pathlib import Path
 from typing import IO
 
 from tests import commands
-from tests.conftest import ROOT, start_card, wait_until
+from tests.conftest import ROOT, ended, start_card, wait_until
 
 DEMO = ROOT / "cifemu" / "examples" / "demo.toml"
 
@@ -57,8 +57,8 @@ def test_the_tap_shows_a_configuration_decoded_on_the_virtual_bus(tmp_path: Path
         wait_until(lambda: all(any(w in line for line in list(lines)) for w in wanted), 30,
                    "the start, guarding and SYNC in the monitor's output")
         watching.send_signal(signal.SIGINT)
-        watching.wait(timeout=30)
-        reader.join(timeout=30)
+        commands.wait(watching, 30)
+        assert ended(reader, 30), "the monitor's output was not read to its end"
         assert watching.returncode == 0, err.read()
         seen = [json.loads(line) for line in lines]
     finally:
@@ -99,8 +99,8 @@ def test_filters_by_node_and_type_and_shows_the_emcy_meaning(tmp_path: Path) -> 
         wait_until(lambda: sum('"emcy"' in line for line in list(lines)) >= 2, 30,
                    "two of node 4's EMCYs in the monitor")
         watching.send_signal(signal.SIGINT)
-        watching.wait(timeout=30)
-        reader.join(timeout=30)
+        commands.wait(watching, 30)
+        assert ended(reader, 30), "the monitor's output was not read to its end"
         assert watching.returncode == 0, err.read()
         guarding = records(monitor("--dpm-dir", str(tmp_path), "--json", "--node", "3",
                                    "--count", "4", "--duration", "10"))

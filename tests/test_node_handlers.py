@@ -23,7 +23,7 @@ from dpm.task2 import ComDiagnostics, GlobalBits
 from host_api import driver as d
 from host_api.online import configure_online
 from tests.can_net import Net, actual_error, bus_parameters, candump, node_set, window
-from tests.conftest import wait_until
+from tests.conftest import LoadDeadline, wait_until
 from tests.shm_rig import NODE, Rig
 
 pytest_plugins = ["tests.can_net", "tests.shm_rig"]
@@ -229,9 +229,9 @@ def test_a_start_the_host_sends_while_the_node_boots_is_not_forgotten(rig: Rig) 
         'boot = ["reset", "device"]\n'))
 
     def frame(ident: int, data: bytes | None = None) -> can.Message:
-        deadline = time.monotonic() + 10
-        while time.monotonic() < deadline:
-            msg = rig.station.recv(0.5)
+        deadline = LoadDeadline(10)
+        while (left := deadline.left()) > 0:
+            msg = rig.station.recv(min(left, 0.5))
             if (msg is not None and msg.arbitration_id == ident
                     and (data is None or bytes(msg.data) == data)):
                 return msg

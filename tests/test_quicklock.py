@@ -9,6 +9,7 @@ import time
 import pytest
 
 from dpm._quicklock import Lock
+from tests.conftest import ended
 
 
 def test_acquire_release_and_the_errors_of_threading_lock() -> None:
@@ -62,5 +63,5 @@ def test_threads_that_contend_never_hold_it_together() -> None:
     for thread in threads:
         thread.start()
     for thread in threads:
-        thread.join(30)
+        assert ended(thread, 30), "a worker did not end"
     assert overlaps == 0 and inside == 0

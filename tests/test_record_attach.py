@@ -14,7 +14,6 @@ import os
 import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import can
@@ -26,7 +25,7 @@ from dpm.message import Task
 from dpm.tap import TapSubscriber, decode_frame
 from dpm.transcript import transcript
 from tests import commands
-from tests.conftest import TIME_SCALE, Card, start_card
+from tests.conftest import Card, LoadDeadline, start_card, wait_until
 
 HOST = """
 import sys
@@ -48,7 +47,7 @@ print("host done")
 """
 """Three COM_Shared_Memory reads of the receive area, then one exchange of 3 output bytes."""
 
-WAIT_S = 60 * TIME_SCALE
+WAIT_S = 60.0
 
 
 def record(directory: Path, session: Path, *extra: str) -> subprocess.Popen[str]:
@@ -68,7 +67,7 @@ def attached(recorder: subprocess.Popen[str]) -> None:
 def finish(recorder: subprocess.Popen[str]) -> tuple[int, str, str]:
     """SIGINT, as Ctrl-C; the exit status, the rest of stdout and stderr."""
     recorder.send_signal(signal.SIGINT)
-    out, err = recorder.communicate(timeout=WAIT_S)
+    out, err = commands.finish(recorder, WAIT_S)
     return recorder.returncode, out, err
 
 
@@ -76,7 +75,7 @@ def run_host(card: Card) -> int:
     """The host program's pid, once it ran to its end."""
     host = subprocess.Popen([sys.executable, "-c", HOST, str(card.directory)],
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-    out, _ = host.communicate(timeout=WAIT_S)
+    out, _ = commands.finish(host, WAIT_S)
     assert host.returncode == 0 and "host done" in out, out
     return host.pid
 
@@ -95,20 +94,13 @@ def writers_of(pid: int) -> list[int]:
     return found
 
 
-def wait_until(condition: object, what: str) -> None:
-    deadline = time.monotonic() + WAIT_S
-    while not condition():  # type: ignore[operator]
-        assert time.monotonic() < deadline, what
-        time.sleep(0.02)
-
-
 def test_an_attached_recording_holds_the_hosts_session_and_replays(tmp_path: Path) -> None:
     card = start_card(tmp_path / "card")
     session = tmp_path / "session"
     try:
         recorder = record(card.directory, session)
         attached(recorder)
-        wait_until(lambda: writers_of(card.proc.pid), "no session writer after the attach")
+        wait_until(lambda: writers_of(card.proc.pid), WAIT_S, "a session writer after the attach")
         host_pid = run_host(card)
         code, out, err = finish(recorder)
         assert code == 0, err
@@ -161,7 +153,7 @@ def test_a_second_recording_is_refused_and_the_first_goes_on(tmp_path: Path) -> 
         first = record(card.directory, tmp_path / "first")
         attached(first)
         second = record(card.directory, tmp_path / "second")
-        out, err = second.communicate(timeout=WAIT_S)
+        out, err = commands.finish(second, WAIT_S)
         assert second.returncode == 1 and out == ""
         assert err == (f"cifemu record: board 0 refused the recording: it is being recorded "
                        f"already (attached by pid {first.pid}); end that recording first\n")
@@ -171,7 +163,7 @@ def test_a_second_recording_is_refused_and_the_first_goes_on(tmp_path: Path) -> 
         assert code == 0, err
         # the socket serves the next recording once the first has ended
         third = record(card.directory, tmp_path / "third", "--seconds", "0.5")
-        out, err = third.communicate(timeout=WAIT_S)
+        out, err = commands.finish(third, WAIT_S)
         assert third.returncode == 0, err
     finally:
         assert card.stop() == 0
@@ -181,7 +173,7 @@ def test_a_second_recording_is_refused_and_the_first_goes_on(tmp_path: Path) -> 
 
 def test_no_card_and_a_session_that_exists_are_one_line(tmp_path: Path) -> None:
     nobody = record(tmp_path / "images", tmp_path / "s")
-    out, err = nobody.communicate(timeout=WAIT_S)
+    out, err = commands.finish(nobody, WAIT_S)
     assert nobody.returncode == 1
     assert err == (f"cifemu record: no card is running as board 0 in {tmp_path / 'images'} "
                    "(no record socket board0.record there)\n")
@@ -192,7 +184,7 @@ def test_no_card_and_a_session_that_exists_are_one_line(tmp_path: Path) -> None:
         taken.mkdir()
         (taken / s.EVENTS).write_text("mine\n")
         refused = record(card.directory, taken)
-        out, err = refused.communicate(timeout=WAIT_S)
+        out, err = commands.finish(refused, WAIT_S)
         assert refused.returncode == 1 and out == ""
         assert err == (f"cifemu record: {taken} already holds a session; a recording never "
                        "overwrites one\n")
@@ -201,7 +193,7 @@ def test_no_card_and_a_session_that_exists_are_one_line(tmp_path: Path) -> None:
         a_file = tmp_path / "a-file"
         a_file.write_text("")
         bad = record(card.directory, a_file)
-        out, err = bad.communicate(timeout=WAIT_S)
+        out, err = commands.finish(bad, WAIT_S)
         assert bad.returncode == 1 and out == ""
         assert err.startswith(f"cifemu record: cannot record into {a_file}: ")
         assert err.count("\n") == 1 and "Traceback" not in err
@@ -218,7 +210,7 @@ def test_a_card_that_stops_ends_the_recording_complete(tmp_path: Path) -> None:
         run_host(card)
     finally:
         assert card.stop() == 0
-    out, err = recorder.communicate(timeout=WAIT_S)
+    out, err = commands.finish(recorder, WAIT_S)
     assert recorder.returncode == 0, err
     assert "recorded into" in out and out.rstrip().endswith("; the card stopped")
     events = s.decode_events((session / s.EVENTS).read_text())
@@ -231,9 +223,9 @@ def heard_heartbeat(card: Card) -> None:
     """Return once the card's frame tap (dpm.tap) showed a heartbeat of node 1."""
     tap = TapSubscriber(card.path)
     try:
-        deadline = time.monotonic() + WAIT_S
-        while time.monotonic() < deadline:
-            batch = tap.recv(timeout=1.0)
+        deadline = LoadDeadline(WAIT_S)
+        while (left := deadline.left()) > 0:
+            batch = tap.recv(timeout=min(left, 1.0))
             if batch is not None and any(decode_frame(frame)[0].arbitration_id == 0x701
                                          for frame in batch.frames):
                 return
@@ -253,7 +245,7 @@ def test_frames_of_an_attached_recording_are_a_candump_log(tmp_path: Path) -> No
         sender = subprocess.Popen([sys.executable, "-m", "cifemu", "send", "--dpm-dir",
                                    str(card.directory), "123#DEADBEEF"],
                                   stderr=subprocess.PIPE, text=True)
-        _, sent_err = sender.communicate(timeout=WAIT_S)
+        _, sent_err = commands.finish(sender, WAIT_S)
         assert sender.returncode == 0, sent_err
         heard_heartbeat(card)  # after the attach: one is in the recording
         code, out, err = finish(recorder)

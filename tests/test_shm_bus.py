@@ -47,7 +47,7 @@ from firmware.shm.bus import (
 )
 from firmware.shm.tasks import ShmCyclicSendTask
 from tests import commands
-from tests.conftest import wait_until
+from tests.conftest import ended, wait_until, within
 
 ROOT = Path(__file__).resolve().parents[1]
 POLL_PERIOD_S = 0.05
@@ -133,7 +133,7 @@ def wait_for_line(proc: subprocess.Popen[str], expected: str, timeout: float = 1
             pytest.fail(f"child did not print {expected!r} within {timeout} s")
         line = proc.stdout.readline()
         if not line:
-            proc.wait(timeout=5)
+            commands.wait(proc, 5)
             stderr = proc.stderr.read() if proc.stderr else ""
             pytest.fail(f"child exited before printing {expected!r}: {stderr}")
         if line.strip() == expected:
@@ -144,7 +144,7 @@ def stop(proc: subprocess.Popen[str]) -> None:
     """Kill the child if it still runs and reap it (a zombie would still look alive)."""
     if proc.poll() is None:
         proc.kill()
-    proc.wait(timeout=10)
+    commands.wait(proc, 10)
     for stream in (proc.stdin, proc.stdout, proc.stderr):
         if stream is not None:
             stream.close()
@@ -296,7 +296,7 @@ def test_frames_from_another_process_all_arrive_in_order(channel: str,
             if len(got) % ack_every == 0:
                 receiver.send(can.Message(arbitration_id=0x701, is_extended_id=False,
                                           data=struct.pack("<I", len(got))))
-        status = child.wait(timeout=10)
+        status = commands.wait(child, 10)
         assert status == 0, child.stderr.read() if child.stderr else ""
     finally:
         stop(child)
@@ -348,11 +348,10 @@ def test_blocked_recv_wakes_when_a_frame_comes(channel: str, open_bus: Opener) -
 
     thread = threading.Thread(target=receive, daemon=True)
     thread.start()
-    assert started.wait(timeout=5)
+    assert within(started.wait, 5)
     sent_at = time.monotonic()
     sender.send(can.Message(arbitration_id=0x321, is_extended_id=False, data=b"wake"))
-    thread.join(timeout=6)
-    assert not thread.is_alive()
+    assert ended(thread, 6), "the reader did not return"
     msg, returned_at = result[0]
     assert msg is not None
     assert (msg.arbitration_id, bytes(msg.data)) == (0x321, b"wake")
@@ -422,7 +421,7 @@ def test_an_idle_reader_sleeps_until_rung(channel: str, open_bus: Opener) -> Non
     wakeups = _voluntary_switches(native_id[0]) - before
     assert wakeups <= IDLE_WINDOW_S * MAX_IDLE_WAKEUPS_PER_S, f"the reader woke {wakeups} times"
     writer.send(counter_frame(7))
-    thread.join(timeout=10)
+    assert ended(thread, 10), "the reader did not return"
     assert counters([frame for frame in got if frame is not None]) == [7]
 
     marker = can.Message(arbitration_id=0x123, is_extended_id=False, data=b"wake")
@@ -430,8 +429,7 @@ def test_an_idle_reader_sleeps_until_rung(channel: str, open_bus: Opener) -> Non
     thread.start()
     wait_until(lambda: len(native_id) == 2)
     reader.loop_back(marker)
-    thread.join(timeout=10)
-    assert not thread.is_alive()
+    assert ended(thread, 10), "loop_back did not end the reader's wait"
     assert got[-1] is marker
 
 
@@ -470,7 +468,7 @@ def test_a_sender_does_not_wake_its_own_stations_reader(channel: str, open_bus: 
     assert counters(recv_n(other, frames)) == list(range(frames))
     assert woken <= 1, f"the station's own reader woke for {woken} of its {frames} frames"
     other.send(counter_frame(99))
-    thread.join(timeout=10)
+    assert ended(thread, 10), "the reader did not return"
     assert counters([frame for frame in got if frame is not None]) == [99]
 
 
@@ -589,7 +587,7 @@ def test_station_of_a_killed_process_is_reclaimed(channel: str, open_bus: Opener
     try:
         wait_for_line(holder, "open")
         holder.send_signal(signal.SIGKILL)
-        holder.wait(timeout=10)  # reaped: a zombie would still answer kill(pid, 0)
+        commands.wait(holder, 10)  # reaped: a zombie would still answer kill(pid, 0)
     finally:
         stop(holder)
     buses = [open_bus(channel) for _ in range(MAX_STATIONS)]
@@ -616,7 +614,7 @@ def test_file_goes_after_a_crash_once_the_survivors_are_done(channel: str,
         survivor.shutdown()  # entry 0 is free again; the holder keeps the file
         assert channel_path(channel).exists()
         holder.send_signal(signal.SIGKILL)
-        holder.wait(timeout=10)
+        commands.wait(holder, 10)
     finally:
         stop(holder)
     next_opener = open_bus(channel)  # opens after the holder's process is gone
@@ -776,7 +774,7 @@ def test_timer_process_ends_when_its_parent_is_killed(channel: str, open_bus: Op
         timer = int(line[1])
         assert recv_n(receiver, 5, timeout=5.0)
         parent.send_signal(signal.SIGKILL)
-        parent.wait(timeout=10)
+        commands.wait(parent, 10)
     finally:
         stop(parent)
     deadline = time.monotonic() + 5

@@ -44,6 +44,7 @@ from dpm.cia305 import LssAddress
 from firmware.sim import SimulatedNetwork
 from firmware.sim.generic import GENERIC_REVISION
 from tests import commands
+from tests.conftest import LoadDeadline
 
 if TYPE_CHECKING:
     from tests.buses import CanChannel
@@ -80,22 +81,25 @@ class Recorder(can.Listener):
 
     def wait(self, match: Callable[[can.Message], bool], what: str, since: int = 0,
              count: int = 1, timeout: float = DEADLINE) -> list[can.Message]:
-        """The first ``count`` matching frames after ``since``; fails at the deadline."""
-        deadline = time.monotonic() + timeout
+        """The first ``count`` matching frames after ``since``; fails at the deadline (on the
+        load clock, ``LoadDeadline``)."""
+        deadline = LoadDeadline(timeout)
         with self._changed:
             while True:
                 found = [m for m in self.frames[since:] if match(m)]
                 if len(found) >= count:
                     return found[:count]
-                left = deadline - time.monotonic()
+                left = deadline.left()
                 if left <= 0:
                     pytest.fail(f"timed out after {timeout} s waiting for {what}")
                 self._changed.wait(left)
 
     def wait_quiet(self, match: Callable[[can.Message], bool], quiet: float, what: str,
                    timeout: float = DEADLINE) -> list[can.Message]:
-        """Waits until no matching frame arrived for ``quiet`` seconds; all matching frames."""
-        deadline = time.monotonic() + timeout
+        """Waits until no matching frame arrived for ``quiet`` seconds; all matching frames.
+        The ``timeout`` is on the load clock (``LoadDeadline``), the quiet time is the
+        frames' own (their wall-clock time stamps)."""
+        deadline = LoadDeadline(timeout)
         with self._changed:
             while True:
                 found = [m for m in self.frames if match(m)]
@@ -103,7 +107,7 @@ class Recorder(can.Listener):
                 silent_for = time.time() - last
                 if found and silent_for >= quiet:
                     return found
-                left = deadline - time.monotonic()
+                left = deadline.left()
                 if left <= 0:
                     pytest.fail(f"timed out after {timeout} s waiting for {what}")
                 self._changed.wait(min(left, max(quiet - silent_for, 0.001)))
@@ -192,10 +196,13 @@ class SenderStalls:
 
     def _on_time(self, sent: float) -> bool:
         """No stall just before ``sent`` (python-can's time stamp: the send's time.time())."""
+        deadline = LoadDeadline(DEADLINE)
         with self._changed:
             while self._looked <= sent + STALL_TICK:
-                if not self._changed.wait(DEADLINE):
+                left = deadline.left()
+                if left <= 0:
                     pytest.fail("the stall watch stopped looking")
+                self._changed.wait(left)
             return not any(start < sent and end > sent - 2 * STALL_LATE
                            for start, end in self._stalls)
 

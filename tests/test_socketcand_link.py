@@ -37,7 +37,7 @@ from firmware.can.bus import (
 )
 from host_api.board import Board
 from host_api.online import configure_online
-from tests.conftest import TIME_SCALE, start_card, wait_until
+from tests.conftest import TIME_SCALE, start_card, taken, wait_until
 
 CHANNEL = "can0"
 NOTICED_S = 2.0
@@ -83,7 +83,7 @@ class SocketcandStandIn:
 
     def next_connection(self) -> socket.socket:
         try:
-            return self.opened.get(timeout=20 * TIME_SCALE)
+            return taken(self.opened, 20)
         except queue.Empty:
             pytest.fail("the card's controller did not connect to the stand-in")
 

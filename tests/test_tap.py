@@ -28,7 +28,8 @@ from firmware.can.tap import TapPublisher
 from host_api.monitor.tap_bus import QUEUE_FRAMES, TapBus
 from host_api.top.model import CardModel
 from host_api.top.render import bus_text
-from tests.conftest import ROOT, start_card, wait_until
+from tests import commands
+from tests.conftest import ROOT, ended, start_card, wait_until
 
 BURST_ID = 0x181
 HELLO_ID = 0x701
@@ -237,8 +238,8 @@ def test_the_monitor_stopped_during_a_burst_shows_the_frames_it_lost(tmp_path: P
         wait_until(lambda: any(f'"data": "{(sent - 1).to_bytes(8, "little").hex()}"' in line
                                for line in list(lines)), 60, "the burst's last frame shown")
         watching.send_signal(signal.SIGINT)
-        watching.wait(timeout=30)
-        reader.join(timeout=30)
+        commands.wait(watching, 30)
+        assert ended(reader, 30), "the monitor's output was not read to its end"
         err = watching.stderr.read()
     finally:
         if watching.poll() is None:

@@ -20,7 +20,7 @@ from host_api.top.app import TopApp
 from host_api.top.feed import CardFeed
 from host_api.top.render import pdo_cells
 from tests import commands
-from tests.conftest import ROOT, start_card, wait_until
+from tests.conftest import ROOT, LoadDeadline, start_card, wait_until
 
 DEMO = ROOT / "cifemu" / "examples" / "demo.toml"
 
@@ -81,9 +81,9 @@ def _log_lines(app: TopApp) -> list[str]:
 
 
 async def _until(pilot: object, condition: Callable[[], bool], timeout: float, what: str) -> None:
-    deadline = time.monotonic() + timeout
+    deadline = LoadDeadline(timeout)
     while not condition():
-        assert time.monotonic() < deadline, f"timed out waiting for {what}"
+        assert deadline.left() > 0, f"timed out waiting for {what}"
         await asyncio.sleep(0.05)
 
 

@@ -32,6 +32,7 @@ from dpm.message import Message
 from host_api import driver as d
 from host_api.board import Board
 from host_api.online import configure_online
+from tests import commands
 from tests.buses import HOW_TO_RUN, SOCKETCAN_CHANNEL, socketcan_missing
 from tests.can_net import start_sim
 from tests.conftest import Card, start_card, wait_until
@@ -103,7 +104,7 @@ class Candump:
 
     def stop(self) -> None:
         self.proc.send_signal(signal.SIGINT)
-        self.proc.wait(timeout=10)
+        commands.wait(self.proc, 10)
 
 
 def cansend(frame: str) -> None:
@@ -170,7 +171,7 @@ def bench(tmp_path: Path) -> Iterator[Callable[..., Bench]]:
         bench.candump.stop()
     for sim in sims:
         sim.terminate()
-        sim.wait(timeout=10)
+        commands.wait(sim, 10)
 
 
 # --- candump records what the card was told to do ---------------------------------------------

@@ -117,7 +117,7 @@ def test_qemu_streams_output_and_kills_everything_at_the_time_out(qemu: None) ->
         assert proc.stdout.readline() == "started\n"  # while the command still runs
         streamed = time.monotonic() - start
         assert proc.poll() is None
-        assert proc.wait(timeout=limit + 30) == 124
+        assert commands.wait(proc, limit + 30) == 124
     finally:
         proc.kill()
         proc.wait()

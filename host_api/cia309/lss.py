@@ -164,6 +164,16 @@ def _u32(value: int) -> bytes:
     return value.to_bytes(4, "little")
 
 
+def _fastscan_frame(id_number: int, bit_checked: int, lss_sub: int, lss_next: int) -> bytes:
+    """The one fastscan request (CiA 305 LSS Fastscan), checked: the single step a 309
+    client asks for and the composite scan's marked steps are the same request."""
+    if not (0 <= bit_checked <= 31 or bit_checked == FASTSCAN_RESET):
+        raise ValueError(f"BitChecked is 0..31 or 0x80, not {bit_checked}")
+    if not (0 <= lss_sub <= 3 and 0 <= lss_next <= 3):
+        raise ValueError("LSSSub and LSSNext are 0..3")
+    return _frame(FASTSCAN, _u32(id_number) + bytes([bit_checked, lss_sub, lss_next]))
+
+
 def _u8(value: int, what: str) -> bytes:
     if not 0 <= value <= 0xFF:
         raise ValueError(f"{what} is one byte, not {value}")
@@ -401,12 +411,7 @@ class LssMaster:
         number equal ``id_number``'s, then takes ``lss_next`` as its LSSPos; ``bit_checked``
         0 with ``lss_next`` below ``lss_sub`` selects it. BitChecked 80h restarts every scan.
         """
-        if not (0 <= bit_checked <= 31 or bit_checked == FASTSCAN_RESET):
-            raise ValueError(f"BitChecked is 0..31 or 0x80, not {bit_checked}")
-        if not (0 <= lss_sub <= 3 and 0 <= lss_next <= 3):
-            raise ValueError("LSSSub and LSSNext are 0..3")
-        payload = _u32(id_number) + bytes([bit_checked, lss_sub, lss_next])
-        self._send([_frame(FASTSCAN, payload)])
+        self._send([_fastscan_frame(id_number, bit_checked, lss_sub, lss_next)])
         return self._identified(IDENTIFY_SLAVE,
                                 self.scan_timeout if timeout is None else timeout)
 
@@ -489,8 +494,8 @@ class LssMaster:
         the first marker's count, and the marker's duplicates that come within
         ``SETTLE_S`` give the number.
         """
-        payload = _u32(id_number) + bytes([bit_checked, lss_sub, lss_next])
-        self._send([_frame(FASTSCAN, payload), _frame(IDENTIFY_NON_CONFIGURED_REMOTE)])
+        self._send([_fastscan_frame(id_number, bit_checked, lss_sub, lss_next),
+                    _frame(IDENTIFY_NON_CONFIGURED_REMOTE)])
         self._scan_steps += 1
         deadline = time.monotonic() + wait
         answered, markers = False, 0
