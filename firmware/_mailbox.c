@@ -156,6 +156,12 @@ static int check(int area, int adr, int idx, int cnt, int type, int function) {
   return 0;
 }
 
+/* Whether the request in raw is COM_Shared_Memory to the PLC task, the one message that
+ * answer() may serve (and the one for which the turn takes the process image's lock). */
+static int shared_memory_request(const unsigned char *raw) {
+  return raw[0] == cfg.plc_task && raw[6] == cfg.command;
+}
+
 /* The answer to the request in raw (a copy of the slot) into out: its length, or 0 when
  * the request is not one this file answers (the Python turn does). inputs: the receive
  * area's bytes (the process image's inputs, under its lock). */
@@ -164,7 +170,7 @@ static Py_ssize_t answer(const unsigned char *raw, const unsigned char *image,
   int ln = raw[2], f = 0, area, adr, idx, cnt, type, function, i;
   const unsigned char *data = raw + 8, *source;
   Py_ssize_t n = 0;
-  if (raw[0] != cfg.plc_task || raw[6] != cfg.command || (raw[7] & cfg.nak)) return 0;
+  if (!shared_memory_request(raw) || (raw[7] & cfg.nak)) return 0;
   if (ln < cfg.header) {
     f = cfg.f_illegal_count;
   } else {
@@ -736,7 +742,7 @@ static PyObject *serve(PyObject *self, PyObject *args) {
         memcpy(raw, mm + cfg.dev_mbx, (size_t)cfg.msg_max); /* one copy, as _receive */
         /* the process image's lock only for what answer() may serve: CPython's RLock reads
          * the clock on every acquire, a system call inside User-Mode Linux (issue 22) */
-        locked = raw[0] == cfg.plc_task && raw[6] == cfg.command ? try_lock(image_lock) : 0;
+        locked = shared_memory_request(raw) ? try_lock(image_lock) : 0;
         if (locked < 0) failed = 1;
         if (locked > 0) {
           len = answer(raw, mm, (const unsigned char *)PyByteArray_AS_STRING(inputs), out);

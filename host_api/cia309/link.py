@@ -825,9 +825,8 @@ class Link:
         to fit one message; should the card answer f 51, it is sent again in the long form
         (``_again``)."""
         with self.gate.shared():
-            nr, pending = self._register(b, multipart, on_part)
-            if long_if_needed:
-                pending.again = data
+            nr, pending = self._register(b, multipart, on_part,
+                                         again=data if long_if_needed else None)
             try:
                 msg = Message(rx=Task.CAN, tx=Task.USER, b=b, data=data, nr=nr, e=e)
                 code = _put(self.number, msg, timeout)
@@ -890,7 +889,8 @@ class Link:
                 self.gate.leave_shared()
                 return None
         try:
-            nr, pending = self._register(b, multipart, on_part, wait=False)
+            nr, pending = self._register(b, multipart, on_part, wait=False,
+                                         again=data if long_if_needed else None)
         except BaseException:
             if channel is not None:
                 channel.release()
@@ -898,8 +898,6 @@ class Link:
             raise
         flight = InFlight(self, nr, pending, channel, timeout, on_done)
         pending.on_done = flight.delivered
-        if long_if_needed:
-            pending.again = data
         code = d.DevPutMessage(self.number, Message(rx=Task.CAN, tx=Task.USER, b=b, data=data,
                                                     nr=nr, e=e), 0)
         if code != Drv.DRV_NO_ERROR:
@@ -949,12 +947,13 @@ class Link:
 
     def _register(
         self, b: int, multipart: bool, on_part: Callable[[Message], None] | None,
-        *, wait: bool = True,
+        *, wait: bool = True, again: bytes | None = None,
     ) -> tuple[int, _Pending]:
-        """A number for a request and its entry. Without a lock or a clock read on the usual
-        path (under User-Mode Linux each is a system call): a number is claimed with one
-        ``setdefault`` (one step under the interpreter lock); only numbers given up on are
-        looked at under the lock, for the time they stay reserved."""
+        """A number for a request and its entry (``again``: ``_Pending.again``). Without a
+        lock or a clock read on the usual path (under User-Mode Linux each is a system
+        call): a number is claimed with one ``setdefault`` (one step under the interpreter
+        lock); only numbers given up on are looked at under the lock, for the time they stay
+        reserved."""
         if self._abandoned:
             now = time.monotonic()
             with self._pending_lock:
@@ -967,7 +966,8 @@ class Link:
                     else:
                         left += 1
                 self._abandoned = left
-        pending = _Pending(b, multipart, on_part, done=threading.Event() if wait else None)
+        pending = _Pending(b, multipart, on_part, done=threading.Event() if wait else None,
+                           again=again)
         for _ in range(255):
             nr = next(self._numbers)
             if self._pending.setdefault(nr, pending) is pending:
