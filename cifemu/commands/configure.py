@@ -192,8 +192,9 @@ def run(args: argparse.Namespace) -> int:
     else:
         where = ("device" if outcome["err_node_adr"] == ERR_NODE_DEVICE
                  else f"node {outcome['err_node_adr']}")
-        error = (f"Err_Event {outcome['err_event']} at {where}: {outcome['err_text']}"
-                 if outcome["err_event"] else "no Err_Event")
+        # The wait ends at the first Err_Event: "after N s" only when it ran out.
+        when = (f"Err_Event {outcome['err_event']} at {where}: {outcome['err_text']}"
+                if outcome["err_event"] else f"after {args.wait:g} s, no Err_Event")
         print(f"board {args.board}: configured, but node(s) {outcome['missing']} not in "
-              f"data exchange after {args.wait:g} s ({error})")
+              f"data exchange ({when})")
     return 0 if ok else 1
