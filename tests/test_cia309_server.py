@@ -650,6 +650,36 @@ def test_cli_exec_answers_errors_and_json(servers: dict[str, BackgroundServer]) 
     assert "cifemu 309 serve" in json.loads(done.stdout)["error"]["text"]
 
 
+def test_a_request_that_arrives_with_the_idle_time_out_is_answered(
+        servers: dict[str, BackgroundServer]) -> None:
+    """A request whose bytes reach the server in the same turn of its event loop as the
+    connection's idle time-out (the loop came late, busy with another client) is answered,
+    not dropped as idle: the read's time-out reached the client's task, which had not read
+    the bytes yet. The loop is held busy by a callback until the request has arrived and the
+    idle time is over; two lines in one write, so the client's task reads them (not the
+    fast path, which notes its bytes itself)."""
+    gateway = servers["canopennode"].server.gateway
+    short = BackgroundServer(gateway, ServerConfig(port=0, idle_timeout=0.3))
+    client = Client(short.port)
+    try:
+        assert client.ask("[1] 1 read 0x1000 0 u32\n") == "[1] 983441\r\n"
+        busy, sent = threading.Event(), threading.Event()
+
+        def hold() -> None:  # the loop's thread: a client's long turn
+            busy.set()
+            sent.wait(10)
+            time.sleep(0.5)  # the idle time-out (0.3 s after the answer) falls due meanwhile
+
+        short._loop.call_soon_threadsafe(hold)
+        assert within(busy.wait, 10)
+        client.send("[2] 1 read 0x1000 0 u32\n[3] 1 read 0x1000 0 u32\n")
+        sent.set()
+        assert client.until(b"[3] 983441\r\n") == b"[2] 983441\r\n[3] 983441\r\n"
+    finally:
+        client.close()
+        short.close()
+
+
 def test_shell_connects_again_after_the_idle_time_out(
         servers: dict[str, BackgroundServer], capsys: pytest.CaptureFixture[str]) -> None:
     """A shell left alone longer than the server's idle time-out asks its next request on a

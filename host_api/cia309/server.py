@@ -819,8 +819,18 @@ class Server:
         return max(0.0, connection.last_active + config.idle_timeout - now)
 
     def _active(self, connection: _Connection, now: float) -> bool:
-        """Its read timed out, but the fast path served it meanwhile (or serves it now): the
-        idle time runs from its last byte or answer, which its task did not see."""
+        """Its read timed out, but bytes of it arrived that its task has not read yet, or
+        the fast path served it meanwhile (or serves it now): the idle time runs from its
+        last byte or answer, which its task did not see.
+
+        Bytes waiting first: a loop turn that finds the client's bytes and the read's due
+        time-out together (a turn that comes late, behind a busy client) delivers the bytes
+        to the stream and the time-out to the task, which then never reads them; that
+        ended a client whose request had arrived as idle (the early drops of
+        tests/test_cia309_limits.py). Its task reads them now, and looks at the line
+        time-out again after them."""
+        if connection.protocol.received > connection.consumed:
+            return True
         if connection.client.framer.partial:
             return False
         return (connection.fast is not None
