@@ -1094,19 +1094,22 @@ class Server:
 
 
 class _WakeSelector(selectors.DefaultSelector):
-    """The platform's selector, noting each return from its wait for ``WakeClockLoop``."""
+    """The platform's selector, reading the clock once on each return from its wait
+    (``wake_time``, ``WakeClockLoop``'s time)."""
 
-    woke = True
+    def __init__(self) -> None:
+        super().__init__()
+        self.wake_time = time.monotonic()
 
     def select(self, timeout: float | None = None) -> list[tuple[selectors.SelectorKey, int]]:
         ready = super().select(timeout)
-        self.woke = True
+        self.wake_time = time.monotonic()
         return ready
 
 
 class WakeClockLoop(asyncio.SelectorEventLoop):
     """An event loop that reads the clock once per wake-up: ``time`` is the clock's reading
-    after the last return from the selector's wait, read when first asked after it.
+    on the last return from the selector's wait.
 
     Why: asyncio reads the clock before each wait (the time-out to the next timer) and
     after it (which timers are due), and the server once per request and once per
@@ -1118,25 +1121,25 @@ class WakeClockLoop(asyncio.SelectorEventLoop):
     loop's callbacks do not block (the gateway's blocking calls run in worker threads), and
     a callback that loops over many lines (a client's task with pipelined requests) reads
     the clock anew for each (``fresh_time``), so no timer is set from a reading older than
-    one line."""
+    one line. asyncio asks for the time after every wait, so reading it there, not when
+    first asked, reads it no more often.
+
+    ``time`` is the selector's attribute read by C (``functools.partial`` of ``getattr``),
+    not a method: asyncio asks it twice per turn and the server twice per read, six Python
+    frames per 309-3 read on the loop's thread, where each Python call costs 1-2 us of
+    the thread's CPU (issue 22, docs/benchmarks.md)."""
 
     def __init__(self) -> None:
-        self._wake_selector = _WakeSelector()
-        super().__init__(self._wake_selector)
-        self._wake_time = time.monotonic()
-
-    def time(self) -> float:
-        selector = self._wake_selector
-        if selector.woke:
-            selector.woke = False
-            self._wake_time = time.monotonic()
-        return self._wake_time
+        selector = _WakeSelector()
+        super().__init__(selector)
+        self._wake_selector = selector
+        self.time = functools.partial(getattr, selector, "wake_time")  # type: ignore[method-assign]
 
     def fresh_time(self) -> float:
         """The clock read now; ``time`` returns this reading until the next wake-up."""
-        self._wake_selector.woke = False
-        self._wake_time = time.monotonic()
-        return self._wake_time
+        selector = self._wake_selector
+        selector.wake_time = now = time.monotonic()
+        return now
 
 
 def _fresh_time(loop: asyncio.AbstractEventLoop) -> float:
