@@ -40,7 +40,7 @@ from firmware.can.sdo import DEFAULT_SDO_TIMEOUT
 from host_api.cia309.datatypes import Dialect
 from host_api.cia309.gateway import Gateway
 from host_api.cia309.model import DataType
-from host_api.cia309.server import BackgroundServer, ServerConfig
+from host_api.cia309.server import BackgroundServer, ServerConfig, new_event_loop
 from tests import commands
 from tests.conftest import ended, wait_until, within
 from tests.gateway_cards import EDS, start, wait_operating
@@ -260,6 +260,31 @@ def test_a_client_waiting_for_each_answer_costs_two_loop_turns_per_read(
     finally:
         del selector.select
     assert turns <= 2.25 * reads, f"{turns / reads:.2f} turns of the event loop per read"
+
+
+def test_the_event_loop_writes_a_turns_fast_answers_when_the_turn_ends() -> None:
+    """The server's loop runs what ``before_wait`` was given once, after every callback
+    of the turn that gave it and before the loop waits again: the fast path's answers are
+    written there, so a client in the same process does not wait for the interpreter lock
+    while the loop finishes its turn (``Server._write_deferred``, issue 22)."""
+    loop = new_event_loop()
+    order: list[str] = []
+
+    def first() -> None:
+        loop.before_wait(lambda: order.append("before the wait"))  # type: ignore[attr-defined]
+        order.append("first")
+
+    async def turns() -> None:
+        loop.call_soon(first)
+        loop.call_soon(order.append, "second")
+        await asyncio.sleep(0.01)  # a wait: the loop's selector waits
+        order.append("after the wait")
+
+    try:
+        loop.run_until_complete(turns())
+    finally:
+        loop.close()
+    assert order == ["first", "second", "before the wait", "after the wait"]
 
 
 def test_a_read_reads_the_event_loops_clock_once_per_turn(
