@@ -50,7 +50,12 @@ class Dialect(StrEnum):
     @property
     def line_end(self) -> str:
         """CANopenNode closes every answer with CR LF; Lely's gateway writes a bare LF."""
-        return "\r\n" if self is Dialect.CANOPENNODE else "\n"
+        return LINE_ENDS[self]
+
+
+LINE_ENDS = {Dialect.CANOPENNODE: "\r\n", Dialect.LELY: "\n"}
+"""``Dialect.line_end`` of each dialect, for the answer of every 309-3 request (a look-up,
+not the property's Python call, on every read: issue 22)."""
 
 
 class DataTypeError(Cia309Error, ValueError):

@@ -51,7 +51,7 @@ from dpm.cia301 import (
     ABORT_WRITE_ONLY,
 )
 from dpm.cia305 import LssAddress
-from host_api.cia309.datatypes import DataTypeError, Dialect, format_value
+from host_api.cia309.datatypes import LINE_ENDS, DataTypeError, Dialect, format_value
 from host_api.cia309.model import (
     BootUpEvent,
     DataType,
@@ -134,7 +134,7 @@ def abort_text(abort_code: int) -> str:
 
 
 def _answer(sequence: int, body: str, dialect: Dialect) -> str:
-    return f"[{sequence}] {body}{dialect.line_end}"
+    return f"[{sequence}] {body}{LINE_ENDS[dialect]}"
 
 
 def format_ok(sequence: int, dialect: Dialect = Dialect.CANOPENNODE) -> str:

@@ -65,6 +65,7 @@ from dpm.commands import (
 )
 from dpm.doorbell import HostBell
 from dpm.errors import F_UNKNOWN_COMMAND, F_UNKNOWN_TASK, Drv
+from dpm.layout import DEV_FLAGS, HOST_FLAGS
 from dpm.message import Ext, Message, MessageError, Task
 from host_api import driver as d
 from host_api.board import Board, CifError
@@ -553,8 +554,10 @@ class Link:
                     log.exception("board %d: routing %r failed", self.number, msg)
                 if board is None:
                     board = self._mapped()
-                if board is not None and not fl.pending(board.host(), board.dev(),
-                                                        fl.HOST_MBX):
+                # the flags read from the map here: ``fl.pending`` with the board's ``host``
+                # and ``dev`` were three Python calls per 309-3 read (issue 22)
+                if board is not None and not (
+                        (board.mm[HOST_FLAGS] ^ board.mm[DEV_FLAGS]) & fl.HOST_MBX):
                     return Drv.DRV_DEV_GET_NO_MESSAGE
         finally:
             self._not_busy()
@@ -598,7 +601,7 @@ class Link:
             board = self._mapped()
         if board is None:
             return seen
-        flags = board.host() & STATE_FLAGS
+        flags = board.mm[HOST_FLAGS] & STATE_FLAGS
         if flags != seen and seen >= 0 and self.on_state_flags is not None:
             self.on_state_flags()
         return flags

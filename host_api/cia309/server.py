@@ -662,6 +662,10 @@ class Server:
         self._loop_thread = 0
         """The thread the loop runs on (``start``'s)."""
         self._subscription = gateway.subscribe(self._on_event)
+        self._deferred: list[tuple[_Connection, bytes]] = []
+        """Fast answers written just before the loop's next wait (``_write_deferred``)."""
+        self._before_wait: Callable[[Callable[[], None]], None] | None = None
+        """``WakeClockLoop.before_wait`` of the loop the server runs on; None on another."""
         self._read_back: Callable[[], None] = _nothing
         """Gives the mailboxes back to the gateway's reader threads (``Gateway.read_on``)."""
 
@@ -674,6 +678,8 @@ class Server:
     async def start(self) -> None:
         loop = self._loop = asyncio.get_running_loop()
         self._loop_thread = threading.get_ident()
+        if isinstance(loop, WakeClockLoop):
+            self._before_wait = loop.before_wait
 
         def protocol() -> _Protocol:
             return _Protocol(asyncio.StreamReader(limit=READ_CHUNK, loop=loop),
@@ -725,7 +731,11 @@ class Server:
     def _write(self, connection: _Connection, data: bytes) -> None:
         """Queue ``data`` for the client; then, while the output waiting for all clients
         (ended ones whose last answers still leave included) is over ``max_output``, cut the
-        connection with the most (``abort``: ``close`` would keep its queue until it reads)."""
+        connection with the most (``abort``: ``close`` would keep its queue until it reads).
+        Fast answers held for the loop's wait go first, so a client's lines keep their
+        order."""
+        if self._deferred:
+            self._write_deferred()
         transport = connection.transport
         if transport.is_closing():
             return
@@ -754,6 +764,8 @@ class Server:
     def _end(self, connection: _Connection, why: str, *, flush: bool) -> None:
         """Free the client's slot now and end its connection: after its waiting output
         (``flush``, for at most REFUSAL_FLUSH_S) or at once."""
+        if self._deferred:
+            self._write_deferred()  # its last answers before the end
         with contextlib.suppress(ValueError):
             self._connections.remove(connection)
         log.info("dropping %s: %s", _peer(connection.writer), why)
@@ -819,8 +831,18 @@ class Server:
         return max(0.0, connection.last_active + config.idle_timeout - now)
 
     def _active(self, connection: _Connection, now: float) -> bool:
-        """Its read timed out, but the fast path served it meanwhile (or serves it now): the
-        idle time runs from its last byte or answer, which its task did not see."""
+        """Its read timed out, but bytes of it arrived that its task has not read yet, or
+        the fast path served it meanwhile (or serves it now): the idle time runs from its
+        last byte or answer, which its task did not see.
+
+        Bytes waiting first: a loop turn that finds the client's bytes and the read's due
+        time-out together (a turn that comes late, behind a busy client) delivers the bytes
+        to the stream and the time-out to the task, which then never reads them; that
+        ended a client whose request had arrived as idle (the early drops of
+        tests/test_cia309_limits.py). Its task reads them now, and looks at the line
+        time-out again after them."""
+        if connection.protocol.received > connection.consumed:
+            return True
         if connection.client.framer.partial:
             return False
         return (connection.fast is not None
@@ -1068,10 +1090,33 @@ class Server:
         connection.last_active = self._loop.time()
         connection.answered = True
         if text:
-            self._write(connection, text.encode("latin-1"))
+            before_wait = self._before_wait
+            if before_wait is None:
+                self._write(connection, text.encode("latin-1"))
+            else:  # written just before the loop's wait (``_write_deferred``)
+                if not self._deferred:
+                    before_wait(self._write_deferred)
+                self._deferred.append((connection, text.encode("latin-1")))
         settled, connection.settled = connection.settled, None
         if settled is not None and not settled.done():
             settled.set_result(None)
+
+    def _write_deferred(self) -> None:
+        """The fast answers of the loop's turn, written when it ends, just before the loop's
+        wait (``_fast_answer``; at once on a loop that is not a ``WakeClockLoop``); another
+        write in the turn writes them first (``_write``).
+
+        Why: an answer wakes its client, which then waits for what the loop still does in
+        that turn: a client in the same process (the benchmark's, an embedding
+        application's) for the interpreter lock, which the loop gives up only in its wait
+        (the benchmark's client slept 1.03-1.77 times per read, 1.00-1.06 with the answer
+        written last; issue 22); under User-Mode Linux (one CPU) for the CPU, where the
+        woken client may preempt the loop. The rest of the turn (the mailbox's and the
+        state flags' looks, asyncio's return to its wait) is a few Python calls; the
+        answers of one turn leave in the order they were made."""
+        deferred, self._deferred = self._deferred, []
+        for connection, data in deferred:
+            self._write(connection, data)
 
     async def _settled(self, connection: _Connection) -> None:
         """Until the fast path's request of this client is answered (its task read more)."""
@@ -1084,19 +1129,32 @@ class Server:
 
 
 class _WakeSelector(selectors.DefaultSelector):
-    """The platform's selector, noting each return from its wait for ``WakeClockLoop``."""
+    """The platform's selector, reading the clock once on each return from its wait
+    (``wake_time``, ``WakeClockLoop``'s time), and calling ``before_wait`` before it."""
 
-    woke = True
+    def __init__(self) -> None:
+        super().__init__()
+        self.wake_time = time.monotonic()
+        self.before_wait: list[Callable[[], None]] = []
 
     def select(self, timeout: float | None = None) -> list[tuple[selectors.SelectorKey, int]]:
+        callbacks = self.before_wait
+        if callbacks:
+            called = callbacks[:]
+            callbacks.clear()
+            for callback in called:
+                try:
+                    callback()
+                except Exception:  # the loop's wait must go on, as asyncio's callbacks do
+                    log.exception("a callback before the event loop's wait failed")
         ready = super().select(timeout)
-        self.woke = True
+        self.wake_time = time.monotonic()
         return ready
 
 
 class WakeClockLoop(asyncio.SelectorEventLoop):
     """An event loop that reads the clock once per wake-up: ``time`` is the clock's reading
-    after the last return from the selector's wait, read when first asked after it.
+    on the last return from the selector's wait.
 
     Why: asyncio reads the clock before each wait (the time-out to the next timer) and
     after it (which timers are due), and the server once per request and once per
@@ -1108,25 +1166,28 @@ class WakeClockLoop(asyncio.SelectorEventLoop):
     loop's callbacks do not block (the gateway's blocking calls run in worker threads), and
     a callback that loops over many lines (a client's task with pipelined requests) reads
     the clock anew for each (``fresh_time``), so no timer is set from a reading older than
-    one line."""
+    one line. asyncio asks for the time after every wait, so reading it there, not when
+    first asked, reads it no more often.
+
+    ``time`` is the selector's attribute read by C (``functools.partial`` of ``getattr``),
+    not a method: asyncio asks it twice per turn and the server twice per read, six Python
+    frames per 309-3 read on the loop's thread, where each Python call costs 1-2 us of
+    the thread's CPU (issue 22, docs/benchmarks.md)."""
 
     def __init__(self) -> None:
-        self._wake_selector = _WakeSelector()
-        super().__init__(self._wake_selector)
-        self._wake_time = time.monotonic()
-
-    def time(self) -> float:
-        selector = self._wake_selector
-        if selector.woke:
-            selector.woke = False
-            self._wake_time = time.monotonic()
-        return self._wake_time
+        selector = _WakeSelector()
+        super().__init__(selector)
+        self._wake_selector = selector
+        self.before_wait: Callable[[Callable[[], None]], None] = selector.before_wait.append
+        """Call a callback once, at the end of this turn: just before the loop's next wait,
+        after every callback ready now (``Server._write_deferred``); a C call."""
+        self.time = functools.partial(getattr, selector, "wake_time")  # type: ignore[method-assign]
 
     def fresh_time(self) -> float:
         """The clock read now; ``time`` returns this reading until the next wake-up."""
-        self._wake_selector.woke = False
-        self._wake_time = time.monotonic()
-        return self._wake_time
+        selector = self._wake_selector
+        selector.wake_time = now = time.monotonic()
+        return now
 
 
 def _fresh_time(loop: asyncio.AbstractEventLoop) -> float:
