@@ -139,7 +139,8 @@ that found no frame waits before it looks once more, unseen by the senders, befo
 until one rings it: the answers of many nodes' boot steps that come meanwhile are taken in
 one wake-up (each about 150 us of CPU) and their next requests sent together, at most this
 much later (issue 22). Only while frames come close together (``DENSE_S``): a frame
-alone would cost the look's wake-up on top of its own."""
+alone would cost the look's wake-up on top of its own. Not on a ``virtual`` bus whose senders
+dispatch a frame that finds the thread idle themselves (``InlineQueue``)."""
 DENSE_S = 0.002
 """[ours] Frames stamped less than this apart come close together (``LINGER_S``)."""
 TAKE_RECEIVED_MAX = 4096
