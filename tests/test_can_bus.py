@@ -17,6 +17,7 @@ import pytest
 from canopen.objectdictionary import ObjectDictionary
 from canopen.sdo.client import SdoClient
 
+import firmware.can.bus
 from dbm_tools.network import GENERIC_DEVICE_TYPE, parse_network
 from firmware.can.bus import CanBus
 from firmware.can.sdo import HostSdoTransfer, SdoResult
@@ -377,3 +378,62 @@ def test_a_copying_virtual_station_fails_as_python_cans_does() -> None:
     finally:
         for bus in (sender, full, other):
             bus.shutdown()
+
+
+LINGER_FRAMES = 40
+
+
+def _sleeps_for_frames(lingering: bool) -> tuple[int, list[int]]:
+    """A controller on ``shm`` beside a node's station that sends ``LINGER_FRAMES`` frames, each
+    once the one before was handled: how often the receive thread marked itself asleep (each
+    such sleep a ring and a wake-up per frame), and the frames handled, in order."""
+    channel = f"test-linger-{uuid.uuid4().hex}"
+    bus = CanBus("shm", channel)
+    node = can.Bus(interface="shm", channel=channel)
+    station = bus.bus
+    marks: list[bool] = []
+    real_mark = station._mark_waiting  # type: ignore[attr-defined]
+
+    def mark(waiting: bool) -> None:
+        marks.append(waiting)
+        real_mark(waiting)
+
+    station._mark_waiting = mark  # type: ignore[attr-defined]  # counts, and calls through
+    handled: list[int] = []
+    arrived = threading.Event()
+
+    def on_frame(msg: can.Message) -> None:
+        handled.append(msg.data[0])
+        arrived.set()
+
+    bus.subscribe(0x181, on_frame)
+    bus.lingering = lambda: lingering
+    try:
+        marks.clear()  # the thread's sleep before the first frame
+        for number in range(LINGER_FRAMES):
+            arrived.clear()
+            node.send(can.Message(arbitration_id=0x181, is_extended_id=False,
+                                  data=bytes([number])))
+            assert within(arrived.wait, 5), f"frame {number} was not handled"
+        return marks.count(True), handled
+    finally:
+        bus.shutdown()
+        node.shutdown()
+
+
+def test_while_boot_ups_are_under_way_the_receive_thread_takes_frames_without_sleeping_for_each(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """[ours] ``CanBus.lingering`` (boot-ups under way, ``BootSlots.busy``): a receive thread
+    that finds no frame looks again ``LINGER_S`` later before it sleeps until rung, so answers
+    that come one after another cost no ring and no wake-up each (issue 22). Without it, a
+    frame that comes after the last one was handled finds the thread asleep. The window and
+    what counts as close together are widened from 1 and 2 ms to 50 ms: this test's sender
+    waits for each frame's handling, which a loaded machine (load 16) stretched past 1 ms."""
+    monkeypatch.setattr(firmware.can.bus, "LINGER_S", 0.05)
+    monkeypatch.setattr(firmware.can.bus, "DENSE_S", 0.05)
+    asleep, handled = _sleeps_for_frames(lingering=False)
+    assert handled == list(range(LINGER_FRAMES))
+    assert asleep >= LINGER_FRAMES - 5, f"only {asleep} sleeps without lingering"
+    asleep, handled = _sleeps_for_frames(lingering=True)
+    assert handled == list(range(LINGER_FRAMES))
+    assert asleep <= LINGER_FRAMES // 2, f"{asleep} sleeps for {LINGER_FRAMES} frames"

@@ -184,6 +184,29 @@ def test_every_kind_of_frame_arrives_unchanged(channel: str, open_bus: Opener) -
     assert receiver.recv(timeout=0.05) is None
 
 
+def test_a_look_without_a_wait_never_marks_the_station_asleep(channel: str,
+                                                               open_bus: Opener) -> None:
+    """``recv(0)`` looks and returns: a station that never sleeps must not ask the senders to
+    ring it (the card's receive thread looks so between boot answers, ``LINGER_S``), yet it
+    takes what was sent."""
+    sender, receiver = open_bus(channel), open_bus(channel)
+    marks: list[bool] = []
+    real_mark = receiver._mark_waiting
+
+    def mark(waiting: bool) -> None:
+        marks.append(waiting)
+        real_mark(waiting)
+
+    receiver._mark_waiting = mark  # type: ignore[method-assign]  # counts, and calls through
+    assert receiver.recv(0) is None
+    sender.send(can.Message(arbitration_id=0x181, is_extended_id=False, data=b"\x01"))
+    frame = receiver.recv(0)
+    assert frame is not None and bytes(frame.data) == b"\x01"
+    assert marks == []
+    assert receiver.recv(timeout=0.01) is None
+    assert marks[0] is True and marks[-1] is False  # a wait marks it, and unmarks it after
+
+
 def test_sender_does_not_hear_itself_unless_asked(channel: str, open_bus: Opener) -> None:
     """python-can buses by default never return their own frames; with
     ``receive_own_messages=True`` they do, and a station must follow both."""

@@ -79,6 +79,10 @@ class BootSlots:
         if not start():
             self.free()
 
+    def busy(self) -> bool:
+        """Whether a boot-up is under way (``CanBus.lingering``)."""
+        return self._running > 0
+
     def free(self) -> None:
         """A boot-up ended: the next waiting one starts in its slot."""
         while True:

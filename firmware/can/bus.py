@@ -133,6 +133,16 @@ RECV_POLL_S = 0.1
 """How long the receive thread waits in ``recv`` on an interface it has no other way to wake
 (a bridge's client, a vendor's driver): python-can's ``Notifier`` waited as long, and the
 card's power-off waits at most this for the thread."""
+LINGER_S = 0.001
+"""[ours] While boot-ups are under way (``CanBus.lingering``), how long the receive thread
+that found no frame waits before it looks once more, unseen by the senders, before it sleeps
+until one rings it: the answers of many nodes' boot steps that come meanwhile are taken in
+one wake-up (each about 150 us of CPU) and their next requests sent together, at most this
+much later (issue 22). Only while frames come close together (``DENSE_S``): a frame
+alone would cost the look's wake-up on top of its own. Not on a ``virtual`` bus whose senders
+dispatch a frame that finds the thread idle themselves (``InlineQueue``)."""
+DENSE_S = 0.002
+"""[ours] Frames stamped less than this apart come close together (``LINGER_S``)."""
 TAKE_RECEIVED_MAX = 4096
 """[ours] The most frames the receive thread takes at once before the master judges a late
 node (``_Receiver.take_then``): a second and more of a busy 1 Mbit/s bus."""
@@ -353,6 +363,9 @@ class _Receiver:
       thread idle is dispatched by its sender's thread instead (``InlineQueue``);
     - any other: ``recv(RECV_POLL_S)``, as python-can's ``Notifier``.
 
+    While boot-ups are under way and frames come close together (``LINGER_S``), a thread
+    that finds no frame looks once more a moment later before it waits to be rung.
+
     Every wait ends by the earliest of the controller's ``deadlines`` too; once one came
     (frames may keep the thread awake past it), the controller's ``on_deadline`` is called.
 
@@ -377,6 +390,9 @@ class _Receiver:
         the frame handlers never run twice at once. Taken per frame received: a lock that
         reads no clock when free (``dpm._quicklock``, issue 22)."""
         self._inline: InlineQueue | None = None
+        self._last_stamp = 0.0
+        self._dense = False
+        """The last frame came less than ``DENSE_S`` after the one before (``_linger``)."""
         self._after_taking: Callable[[], None] | None = None
         """Set by ``take_then``: called by this thread once the frames received are taken."""
         self._take: Callable[[], can.Message | None] = functools.partial(bus.recv, 0)
@@ -408,6 +424,9 @@ class _Receiver:
                 due = listener.deadlines.due()
                 msg = self._next(due)
                 if msg is not None:
+                    stamp = msg.timestamp
+                    self._dense = stamp - self._last_stamp < DENSE_S
+                    self._last_stamp = stamp
                     self._dispatch(msg)
                 callback = self._after_taking
                 if callback is not None:
@@ -481,6 +500,10 @@ class _Receiver:
     def _next(self, due: float) -> can.Message | None:
         """The next frame, or None when the wait ended without one (``stop``, a time-out,
         ``due``)."""
+        if self._dense and self._inline is None and self._listener.lingering():
+            msg = self._linger(due)
+            if msg is not None:
+                return msg
         if self._fd >= 0:
             wait = None if math.isinf(due) else max(0.0, due - time.monotonic())
             ready = select.select((self._fd, self._wake_r), (), (), wait)[0]
@@ -491,6 +514,24 @@ class _Receiver:
         if math.isinf(due):
             return self._bus.recv(self._timeout)
         return self._bus.recv(max(0.0, min(self._timeout, due - time.monotonic())))
+
+    def _linger(self, due: float) -> can.Message | None:
+        """A frame received by now; else, ``LINGER_S`` (or until ``due``) later, one received
+        by then (None: none came, the thread waits to be rung). The thread sleeps unmarked,
+        so no sender rings it: the frames that come meanwhile cost one wake-up."""
+        msg = self._take_now()
+        if msg is not None or self._stopping:
+            return msg
+        rest = LINGER_S if math.isinf(due) else min(LINGER_S, due - time.monotonic())
+        if rest > 0:
+            time.sleep(rest)
+        return self._take_now()
+
+    def _take_now(self) -> can.Message | None:
+        """A frame received by now, without waiting."""
+        if self._fd >= 0:
+            return self._take() if select.select((self._fd,), (), (), 0)[0] else None
+        return self._bus.recv(0)
 
     def stop(self) -> None:
         """End the thread: wake it, and wait for it (unless called from it, by a frame
@@ -679,6 +720,9 @@ class CanBus(can.Listener):
         """Called once a lost link is open again (``on_error``), from the reopening thread."""
         self.deadlines: Deadlines = _NoDeadlines()
         """What the receive thread keeps besides frames (see ``_Receiver``)."""
+        self.lingering: Callable[[], bool] = lambda: False
+        """Whether answers are due from many nodes at once (boot-ups under way): the
+        receive thread then takes them in batches (``LINGER_S``)."""
         self.on_deadline: Callable[[], None] = lambda: None
         """Called from the receive thread when one of ``deadlines`` came, and from whichever
         thread finds the transport failed: no receive thread keeps them until it is back

@@ -150,6 +150,7 @@ class Master:
         self.bus.on_link_back = lambda: self._send_all_outputs(force=True)
         self.bus.deadlines = self.heartbeats
         self.bus.on_deadline = self.deadline_came
+        self.bus.lingering = self.boot_slots.busy
         self.bus.subscribe_all(self.layer2.on_frame)
         self.sdo.open(self.bus)
         self._thread = threading.Thread(target=self._loop, name="can-master", daemon=True)

@@ -318,6 +318,8 @@ class ShmBus(can.BusABC):
     def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
         if self._pending:
             return self._pending.popleft(), False
+        if timeout == 0:  # a look, no wait: unmarked, so that no sender rings it for nothing
+            return (self._pending.popleft() if self._read() else None), False
         deadline = None if timeout is None else time.monotonic() + timeout
         while not self._closed:
             if self._read():
