@@ -11,18 +11,20 @@
  *
  * [ours] ``change_ring`` and ``wait_ring`` are the doorbell's host side (dpm/doorbell.py,
  * docs/dpm.md section 2) on the path of every mailbox round trip: the toggle and its ring
- * in one call instead of four Python calls, and a wait that takes every queued ring in one
- * recvmmsg instead of select, recvfrom and a second select (issue 22).
+ * in one call instead of four Python calls, and a wait (ppoll) that takes every queued ring in
+ * one recvmmsg instead of select, recvfrom and a second select (issue 22).
  */
 #define PY_SSIZE_T_CLEAN
 #include <Python.h> /* pyconfig.h defines _GNU_SOURCE: recvmmsg */
 
 #include <errno.h>
+#include <math.h>
 #include <poll.h>
 #include <stddef.h>
 #include <string.h>
 #include <sys/socket.h>
 #include <sys/un.h>
+#include <time.h>
 
 #define RINGS_AT_ONCE 16
 /* Rings one wait takes at most; the device sends one per change, and a host's queue holds
@@ -109,25 +111,29 @@ PyDoc_STRVAR(wait_ring_doc,
              "another thread took it first, else the last one's first byte.");
 
 static PyObject *wait_ring(PyObject *self, PyObject *args) {
-  int fd, ms, ready, taken, error, i;
-  double timeout;
+  int fd, ready, taken, error, i;
+  double timeout, whole;
+  struct timespec span;
   struct pollfd watched;
   unsigned char bytes[RINGS_AT_ONCE];
   struct iovec parts[RINGS_AT_ONCE];
   struct mmsghdr rings[RINGS_AT_ONCE];
   (void)self;
   if (!PyArg_ParseTuple(args, "id", &fd, &timeout)) return NULL;
-  /* whole milliseconds, rounded up: a wait never ends before its time */
-  ms = timeout <= 0 ? 0 : timeout >= 86400.0 ? 86400000 : (int)(timeout * 1000.0 + 0.999);
+  /* ppoll, not poll: the time-out to the nanosecond, as select's was */
+  if (!(timeout > 0)) timeout = 0;
+  if (timeout > 86400.0) timeout = 86400.0;
+  span.tv_nsec = (long)(modf(timeout, &whole) * 1e9);
+  span.tv_sec = (time_t)whole;
   watched.fd = fd;
   watched.events = POLLIN;
   watched.revents = 0;
-  if (ms == 0) {
-    ready = poll(&watched, 1, 0);
+  if (timeout == 0) {
+    ready = ppoll(&watched, 1, &span, NULL);
     error = errno;
   } else {
     Py_BEGIN_ALLOW_THREADS
-    ready = poll(&watched, 1, ms);
+    ready = ppoll(&watched, 1, &span, NULL);
     error = errno;
     Py_END_ALLOW_THREADS
   }

@@ -46,6 +46,7 @@ SPIN_BACKOFF_MAX = 6
 """[ours] After a watch that the answer outlasted, so many waits (1, 3, 7 ... up to
 2**6 - 1 = 63) sleep at once (``MappedBoard.wait_for``)."""
 _PLAIN_RING = RING[0]
+"""The byte of the ring ``change_dev_flags`` sends (``HostBell.ring_device``'s plain one)."""
 
 POLLS_BEFORE_YIELD = 8
 """[ours] Uncontrolled exchanges in a row that read the same inputs, after which a host
@@ -188,7 +189,7 @@ class MappedBoard:
             remaining = deadline - time.monotonic()
             if remaining <= 0:
                 return condition()
-            # HostBell.wait in one call: poll, then every queued ring in one recvmmsg
+            # HostBell.wait in one call: ppoll, then every queued ring in one recvmmsg
             # (select, recvfrom and select before; issue 22)
             ring = _wait_ring(bell.sock.fileno(), min(remaining, POLL_INTERVAL))
             if ring >= 0:
