@@ -56,9 +56,12 @@ MAX_HOSTS = 64
 """Hosts the device keeps ringing; the longest silent one is dropped first."""
 
 RING = b"\x01"
-"""A plain ring (public for the device loop's turn in C, ``firmware.native_mailbox``)."""
+"""A plain ring (public for the device loop's turn in C, ``firmware.native_mailbox``, and the
+host's, ``host_api._devflags``)."""
 _RING_WANT_ACK = b"\x02"
 """A device ring that also says: more answers wait, ring me when you acknowledge."""
+WANT_ACK = _RING_WANT_ACK[0]
+"""``_RING_WANT_ACK``'s byte, for the host's wait in C (``host_api._devflags.wait_ring``)."""
 _RING_WANT_MAILBOX = b"\x03"
 """A host ring that also says: I wait for the device mailbox, ring me when it is free. The
 card rings for a message it took (DEVACK) only when a host asked so: a host that waits for
@@ -290,6 +293,8 @@ class HostBell(_Endpoint):
         super().__init__()
         self.sock.bind(b"")  # Linux autobind: a unique abstract name
         self.device = device_address(image_path)
+        self.device_path = os.fsencode(self.device)
+        """``device`` as bytes, for the ring in C (``host_api._devflags.change_ring``)."""
         self.device_wants_ack = True
         """Whether the device's last ring asked for a ring on HOSTACK (it has
         more answers queued); starts True so nothing waits on a missed hint."""

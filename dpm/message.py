@@ -7,6 +7,7 @@ stale bytes of an earlier, longer message never leak into a new one.
 
 from __future__ import annotations
 
+import mmap
 import struct
 from dataclasses import dataclass, field
 from enum import IntEnum
@@ -106,6 +107,20 @@ class Message:
         if len(raw) < MSG_HEADER_SIZE + ln:
             raise MessageError(f"msg.ln = {ln} but only {len(raw) - 8} data bytes")
         return cls(rx, tx, b, bytes(raw[MSG_HEADER_SIZE : MSG_HEADER_SIZE + ln]), nr, a, f, e)
+
+    @classmethod
+    def decode_at(cls, buffer: bytes | bytearray | memoryview | mmap.mmap,
+                  offset: int) -> Message:
+        """Read a message at ``offset`` of ``buffer`` (a mailbox in the mapped image) with
+        one copy of its data: ``decode`` of a slice copied it twice (the driver's get, on
+        every mailbox round trip; issue 22)."""
+        if len(buffer) < offset + MSG_HEADER_SIZE:
+            raise MessageError(f"{len(buffer) - offset} bytes is shorter than a message header")
+        rx, tx, ln, nr, a, f, b, e = HEADER.unpack_from(buffer, offset)
+        start = offset + MSG_HEADER_SIZE
+        if len(buffer) < start + ln:
+            raise MessageError(f"msg.ln = {ln} but only {len(buffer) - start} data bytes")
+        return cls(rx, tx, b, bytes(buffer[start : start + ln]), nr, a, f, e)
 
     def answer(self, f: int = 0, data: bytes = b"", e: int = 0) -> Message:
         """The answer a task gives to this command: rx/tx swapped, a = b, b = 0."""

@@ -271,46 +271,68 @@ def DevExitBoard(number: int) -> int:
 # --- mailboxes ---------------------------------------------------------------------------
 
 
+_NO_ERROR = Drv.DRV_NO_ERROR
+_STALE = Answer.STALE
+"""Read from the module, not from their enum classes, on every mailbox call: an enum
+member's look-up through its class is ten times a global's (issue 22)."""
+_boards = _driver.boards
+"""The registry's table, which is never replaced (only changed in place): a mailbox call
+looks its board up and tests READY inline, and asks ``ready_board`` only for the code of a
+board that is not open or not READY (two Python calls fewer per round trip)."""
+
+
 def DevPutMessage(number: int, msg: Message | bytes, timeout: int) -> int:
     """Write one message into the device mailbox (-16 full, -17 timeout)."""
-    board = _ready_board(number)
-    if not isinstance(board, _Board):
-        return board
+    board = _boards.get(number)
+    if board is None or not board.mm[HOST_FLAGS] & fl.READY:
+        found = _ready_board(number)  # the code that says why, or READY by now
+        if not isinstance(found, _Board):
+            return found
+        board = found
     try:
         message = msg if isinstance(msg, Message) else Message.decode(msg)
         raw = message.encode()
     except MessageError:
         return Drv.DRV_USR_SIZE_INVALID
-    deadline = _deadline(timeout)
+    deadline = call_deadline(timeout)
     transaction = board.transaction
     if not transaction.enter(timeout / 1000.0):
         return Drv.DRV_CMD_ACTIVE
     try:
-        if not (board.put_lock.acquire(False) or _take(board.put_lock, deadline)):
-            return Drv.DRV_CMD_ACTIVE
-        try:
-            mm = board.mm
-            # The card rings for a message it took only when asked (dpm/doorbell.py).
-            if (mm[HOST_FLAGS] ^ mm[DEV_FLAGS]) & fl.DEV_MBX and not board.wait_for(
-                    lambda: not (mm[HOST_FLAGS] ^ mm[DEV_FLAGS]) & fl.DEV_MBX,
-                    _left_ms(deadline), lambda: board.bell.ring_device(want_mailbox=True)):
-                return (Drv.DRV_DEV_MAILBOX_FULL if timeout <= 0
-                        else board.timed_out(Drv.DRV_DEV_PUT_TIMEOUT))
-            mm[DEV_MBX : DEV_MBX + len(raw)] = raw
-            # recorded before the card can see it: a host killed now leaves it in the ledger
-            transaction.sent(message)
-            board.change_dev_flags(toggle=fl.DEVCOM)
-            counters = board.counters
-            counters.write += 1
-            counters.last_function = FKT_WRITE
-            return Drv.DRV_NO_ERROR
-        finally:
-            board.put_lock.release()
+        return put_inside(board, message, raw, timeout, deadline)
     finally:
         transaction.leave()
 
 
-def _deadline(timeout: int) -> float:
+def put_inside(board: _Board, message: Message, raw: bytes, timeout: int,
+               deadline: float) -> int:
+    """DevPutMessage of ``message`` (encoded: ``raw``) inside the board's transaction lock,
+    which the caller holds: by ``Transaction.enter`` (DevPutMessage) or a session
+    (``Board.transact``, which so saves an ``enter`` and a ``leave`` per call; issue 22)."""
+    put_lock = board.put_lock
+    if not (put_lock.acquire(False) or _take(put_lock, deadline)):
+        return Drv.DRV_CMD_ACTIVE
+    try:
+        mm = board.mm
+        # The card rings for a message it took only when asked (dpm/doorbell.py).
+        if (mm[HOST_FLAGS] ^ mm[DEV_FLAGS]) & fl.DEV_MBX and not board.wait_for(
+                lambda: not (mm[HOST_FLAGS] ^ mm[DEV_FLAGS]) & fl.DEV_MBX,
+                _left_ms(deadline), lambda: board.bell.ring_device(want_mailbox=True)):
+            return (Drv.DRV_DEV_MAILBOX_FULL if timeout <= 0
+                    else board.timed_out(Drv.DRV_DEV_PUT_TIMEOUT))
+        mm[DEV_MBX : DEV_MBX + len(raw)] = raw
+        # recorded before the card can see it: a host killed now leaves it in the ledger
+        board.transaction.sent(message)
+        board.change_dev_flags(toggle=fl.DEVCOM)
+        counters = board.counters
+        counters.write += 1
+        counters.last_function = FKT_WRITE
+        return _NO_ERROR
+    finally:
+        put_lock.release()
+
+
+def call_deadline(timeout: int) -> float:
     """A mailbox call's deadline on the monotonic clock; 0.0 for a call that does not wait
     (``timeout`` <= 0, the 309-3 server's), which then reads no clock: under User-Mode Linux
     each reading is a system call of about 30 us (issue 22)."""
@@ -344,56 +366,62 @@ def DevGetMessage(number: int, size: int, timeout: int) -> tuple[int, Message | 
     """
     if not 0 < size <= MSG_BUFFER_SIZE:
         return Drv.DRV_USR_SIZE_INVALID, None
-    board = _ready_board(number)
-    if not isinstance(board, _Board):
-        return board, None
-    deadline = _deadline(timeout)
+    board = _boards.get(number)
+    if board is None or not board.mm[HOST_FLAGS] & fl.READY:
+        found = _ready_board(number)
+        if not isinstance(found, _Board):
+            return found, None
+        board = found
+    deadline = call_deadline(timeout)
     transaction = board.transaction
     # a host expecting nothing still waits for other hosts' transactions to finish
     if not transaction.enter(timeout / 1000.0):
         return Drv.DRV_CMD_ACTIVE, None
     try:
-        if not (board.get_lock.acquire(False) or _take(board.get_lock, deadline)):
-            return Drv.DRV_CMD_ACTIVE, None
-        try:
-            return _take_message(board, transaction, size, timeout, deadline)
-        finally:
-            board.get_lock.release()
+        return get_inside(board, size, timeout, deadline)
     finally:
         transaction.leave()
 
 
-def _take_message(board: _Board, transaction: Transaction, size: int, timeout: int,
-                  deadline: float) -> tuple[int, Message | None]:
-    """DevGetMessage with its locks held. The flags are read from the map in the waiting
-    condition itself: ``fl.pending`` and the board's ``host``/``dev`` were three Python
-    calls more per look, and a wait looks a few times (issue 22)."""
-    mm = board.mm
-    while True:
-        if not (mm[HOST_FLAGS] ^ mm[DEV_FLAGS]) & fl.HOST_MBX and not board.wait_for(
-                lambda: bool((mm[HOST_FLAGS] ^ mm[DEV_FLAGS]) & fl.HOST_MBX),
-                _left_ms(deadline)):
-            if timeout <= 0:
-                return Drv.DRV_DEV_GET_NO_MESSAGE, None
-            # [ours] an answer that did not come in time frees the board for other hosts,
-            # and is discarded by whichever host reads it later
-            transaction.give_up()
-            return board.timed_out(Drv.DRV_DEV_GET_TIMEOUT), None
-        length = 8 + mm[PC_MBX + 2]
-        msg = Message.decode(mm[PC_MBX : PC_MBX + length])
-        stale = transaction.is_stale(msg)
-        if not stale and length > size:
-            return Drv.DRV_USR_MSG_BUF_TOO_SHORT, None
-        # The device polls anyway; a ring only speeds up answers it has queued.
-        board.change_dev_flags(toggle=fl.HOSTACK, ring=stale or board.bell.device_wants_ack)
-        # after the handshake: a host killed in between leaves a discarded answer's
-        # request in the ledger, never an answer nobody discards
-        if transaction.answered(msg) is Answer.STALE:
-            continue
-        counters = board.counters
-        counters.read += 1
-        counters.last_function = FKT_READ
-        return Drv.DRV_NO_ERROR, msg
+def get_inside(board: _Board, size: int, timeout: int,
+               deadline: float) -> tuple[int, Message | None]:
+    """DevGetMessage inside the board's transaction lock, which the caller holds (as
+    ``put_inside``'s). The flags are read from the map in the waiting condition itself:
+    ``fl.pending`` and the board's ``host``/``dev`` were three Python calls more per look,
+    and a wait looks a few times (issue 22)."""
+    get_lock = board.get_lock
+    if not (get_lock.acquire(False) or _take(get_lock, deadline)):
+        return Drv.DRV_CMD_ACTIVE, None
+    try:
+        mm = board.mm
+        transaction = board.transaction
+        while True:
+            if not (mm[HOST_FLAGS] ^ mm[DEV_FLAGS]) & fl.HOST_MBX and not board.wait_for(
+                    lambda: bool((mm[HOST_FLAGS] ^ mm[DEV_FLAGS]) & fl.HOST_MBX),
+                    _left_ms(deadline)):
+                if timeout <= 0:
+                    return Drv.DRV_DEV_GET_NO_MESSAGE, None
+                # [ours] an answer that did not come in time frees the board for other
+                # hosts, and is discarded by whichever host reads it later
+                transaction.give_up()
+                return board.timed_out(Drv.DRV_DEV_GET_TIMEOUT), None
+            msg = Message.decode_at(mm, PC_MBX)
+            stale = transaction.is_stale(msg)
+            if not stale and 8 + len(msg.data) > size:
+                return Drv.DRV_USR_MSG_BUF_TOO_SHORT, None
+            # The device polls anyway; a ring only speeds up answers it has queued.
+            board.change_dev_flags(toggle=fl.HOSTACK,
+                                   ring=stale or board.bell.device_wants_ack)
+            # after the handshake: a host killed in between leaves a discarded answer's
+            # request in the ledger, never an answer nobody discards
+            if transaction.answered(msg) is _STALE:
+                continue
+            counters = board.counters
+            counters.read += 1
+            counters.last_function = FKT_READ
+            return _NO_ERROR, msg
+    finally:
+        get_lock.release()
 
 
 def DevGetMBXState(number: int) -> tuple[int, int, int]:

@@ -228,7 +228,7 @@ class Transaction:
             raise
         self._state = QuickLock()
         """Guards the fields below; held for one attempt at the flock at a time."""
-        self._session = threading.Lock()
+        self._session = QuickLock()
         self._owner = secrets.randbits(63)
         """This process's number in the ledger (a new one after a fork)."""
         self._pid = os.getpid()
@@ -287,12 +287,14 @@ class Transaction:
         with self._state:
             if self._users:
                 self._users -= 1
-            own = self._own
-            if (self._held and not self._users
-                    and (not own or all(r.given_up for r in own))):
-                fcntl.flock(self._fd, fcntl.LOCK_UN)
-                self._held = False
-                self._own, self._stale = [], []  # the file keeps them for the next holder
+            if not self._held or self._users:
+                return
+            for request in self._own:  # a loop, not all() over a generator made per call
+                if not request.given_up:
+                    return
+            fcntl.flock(self._fd, fcntl.LOCK_UN)
+            self._held = False
+            self._own, self._stale = [], []  # the file keeps them for the next holder
 
     def sent(self, msg: Message) -> None:
         """Before the request reaches the card: recorded in the ledger (one with the NAK
@@ -345,7 +347,7 @@ class Transaction:
         next part, in memory and in the file."""
         for i, request in enumerate(requests):
             if request.answered_by(msg):
-                rest = request.after(msg)
+                rest = request.after(msg) if request.multi else None
                 if rest is None:
                     del requests[i]
                 else:
@@ -368,11 +370,15 @@ class Transaction:
         Another process's lock is waited for up to ``timeout``, except a CiA 309
         gateway's, which it keeps while it runs: then False at once. ``holder`` names
         the process that held it."""
-        deadline = time.monotonic() + timeout
-        if not (self._session.acquire(timeout=timeout) if timeout > 0
-                else self._session.acquire(False)):
-            return False
-        if self.enter(max(0.0, deadline - time.monotonic())):
+        session = self._session
+        if session.acquire(False):  # the usual case: free, and no clock read (issue 22)
+            left = timeout
+        else:
+            deadline = time.monotonic() + timeout
+            if not (timeout > 0 and session.acquire(timeout=timeout)):
+                return False
+            left = max(0.0, deadline - time.monotonic())
+        if self.enter(left):
             self.holder = None
             return True
         self.holder = lock_holder(self.path)
@@ -435,7 +441,7 @@ class Transaction:
         """In a forked child: its own flock and owner number, an empty ledger in memory
         (the requests in the file are the parent's)."""
         self._state = QuickLock()
-        self._session = threading.Lock()
+        self._session = QuickLock()
         self._owner = secrets.randbits(63)
         self._pid = os.getpid()
         self._prefix = b"%d %d " % (self._pid, self._owner)

@@ -30,11 +30,13 @@ from pathlib import Path
 
 from dpm import flags as fl
 from dpm._quicklock import Lock as QuickLock
-from dpm.doorbell import POLL_INTERVAL, HostBell
+from dpm.doorbell import POLL_INTERVAL, RING, WANT_ACK, HostBell
 from dpm.errors import Drv
 from dpm.image import MAX_DEV_BOARDS
 from dpm.layout import DEV_FLAGS, HOST_FLAGS
 from host_api._devflags import change as _change_flags
+from host_api._devflags import change_ring as _change_ring
+from host_api._devflags import wait_ring as _wait_ring
 from host_api.liveness import firmware_liveness
 from host_api.locks import ChannelLock, Transaction
 
@@ -43,6 +45,9 @@ SPIN_SECONDS = 100e-6
 SPIN_BACKOFF_MAX = 6
 """[ours] After a watch that the answer outlasted, so many waits (1, 3, 7 ... up to
 2**6 - 1 = 63) sleep at once (``MappedBoard.wait_for``)."""
+_PLAIN_RING = RING[0]
+"""The byte of the ring ``change_dev_flags`` sends (``HostBell.ring_device``'s plain one)."""
+
 POLLS_BEFORE_YIELD = 8
 """[ours] Uncontrolled exchanges in a row that read the same inputs, after which a host
 polling the card gives up its CPU once (``MappedBoard.poll_inputs``): every 10-30 µs of a
@@ -145,10 +150,15 @@ class MappedBoard:
         [ours] Every host process writes DevFlags, C hosts too: the byte is changed by a
         compare-and-swap (``host_api._devflags``, as libcif's change_dev_flags), so no
         host's toggle is lost, without the flock round (four system calls per mailbox round
-        trip) that guarded it before (issue 22; docs/dpm.md section 2)."""
-        _change_flags(self.mm, DEV_FLAGS, set_bits, clear_bits, toggle)
+        trip) that guarded it before (issue 22; docs/dpm.md section 2). The change and the
+        ring are one call (``_devflags.change_ring``, ``HostBell.ring_device``'s plain ring):
+        four Python calls fewer on each put of a message."""
         if ring:
-            self.bell.ring_device()
+            bell = self.bell
+            _change_ring(self.mm, DEV_FLAGS, set_bits, clear_bits, toggle, bell.sock.fileno(),
+                         bell.device_path, _PLAIN_RING)
+        else:
+            _change_flags(self.mm, DEV_FLAGS, set_bits, clear_bits, toggle)
 
     def wait_for(self, condition: Callable[[], bool], timeout_ms: int,
                  before_sleep: Callable[[], None] | None = None) -> bool:
@@ -174,12 +184,18 @@ class MappedBoard:
                 return True
         if before_sleep is not None:
             before_sleep()
+        bell = self.bell
         while True:
             remaining = deadline - time.monotonic()
             if remaining <= 0:
                 return condition()
-            if self.bell.wait(min(remaining, POLL_INTERVAL)):
+            # HostBell.wait in one call: ppoll, then every queued ring in one recvmmsg
+            # (select, recvfrom and select before; issue 22)
+            ring = _wait_ring(bell.sock.fileno(), min(remaining, POLL_INTERVAL))
+            if ring >= 0:
                 self.counters.irq += 1
+                if ring:
+                    bell.device_wants_ack = ring == WANT_ACK
             if condition():
                 if skipped and time.monotonic() - start < SPIN_SECONDS:
                     self.spin_misses = self.spin_skip = 0  # a watch would have seen it

@@ -106,6 +106,18 @@ def test_message_decode_rejects_short_input() -> None:
         Message(rx=300, tx=16).encode()
 
 
+def test_message_decode_at_reads_in_place_as_decode_reads_a_copy() -> None:
+    """The driver's get reads the host mailbox in the map with ``decode_at`` (issue 22)."""
+    message = Message(rx=2, tx=16, b=17, data=bytes(range(9)), nr=5, a=3, f=1, e=4)
+    image = bytearray(layout.PC_MBX) + message.encode() + b"\xee" * 40
+    assert Message.decode_at(image, layout.PC_MBX) == message
+    assert Message.decode_at(image, layout.PC_MBX) == Message.decode(image[layout.PC_MBX :])
+    with pytest.raises(MessageError):
+        Message.decode_at(image, len(image) - 4)  # shorter than a header
+    with pytest.raises(MessageError):
+        Message.decode_at(message.encode()[:12], 0)  # msg.ln says 9 data bytes, 4 follow
+
+
 def test_answer_swaps_rx_tx_and_moves_b_to_a() -> None:
     answer = Message(rx=2, tx=16, b=17, nr=9).answer(f=163)
     assert (answer.rx, answer.tx, answer.a, answer.b, answer.nr, answer.f) == (16, 2, 17, 0, 9, 163)
