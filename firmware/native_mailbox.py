@@ -6,10 +6,11 @@ COM_Shared_Memory reads (and malformed COM_Shared_Memory requests) a host rings 
 nothing else needs the device loop's Python turn, and hands a host's COM_SDO_Up_Download
 (msg.e 0, or 4: a long upload's request) to the CAN task's one callable for it
 (``HostSdo.native_request``) when the card does not record; it returns to that turn for
-everything else. This module hands it the numbers it works with, from ``dpm/`` and the PLC task's limits, so the C file holds no
-number of the protocol; and, for a recording card, the spool's heads (``dpm.session``) and
-the recorder's ledger reads, so that a turn served in C appends to the recorder's queue the
-events its hooks would have (``firmware.recorder``) [ours].
+everything else. This module hands it the numbers it works with, from ``dpm/`` and the PLC
+task's limits, so the C file holds no number of the protocol; and, for a recording card, the
+spool's heads (``dpm.session``) and the recorder's ledger reads, so that a turn served in C
+appends to the recorder's queue the events its hooks would have (``firmware.recorder``)
+[ours].
 """
 
 from __future__ import annotations
