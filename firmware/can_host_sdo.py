@@ -98,7 +98,7 @@ class HostSdo:
             if answer is None and len(kept) == 1:
                 return kept.pop()
             for late in kept:
-                self._post(late)
+                self.card.post(late)
             kept.clear()
         return answer
 
@@ -109,10 +109,7 @@ class HostSdo:
             if number == self._open:
                 self._kept.append(answer)
             else:
-                self._post(answer)
-
-    def _post(self, answer: bytes) -> None:
-        self.card.post(Message.decode(answer))
+                self.card.post(answer)
 
     def _request(self, raw: bytes, number: int) -> bytes | None:
         """The request ``raw`` (header and msg.ln data bytes) numbered ``number``: its
@@ -207,7 +204,7 @@ class HostSdo:
                 if number == self._open:
                     self._kept.append(answer)
                     return
-            self._post(answer)
+            self.card.post(answer)
             return
         head = TelegramHeader(address, 0, index, subindex, 0, 0, function)
         if result.timed_out:
