@@ -38,6 +38,7 @@ if TYPE_CHECKING:
 
 log = logging.getLogger(__name__)
 
+
 class HostSdo:
     """COM_SDO_Up_Download over the master's SDO channels; answers go out by ``Card.post``.
 
@@ -45,7 +46,7 @@ class HostSdo:
     hands them over so (``native_request``), and a ``Message`` with its decode, its
     telegram header object, its answer and their encodes cost that path seven Python calls
     per transfer (issue 22); the Python turn's request (``com_sdo_up_download``) is encoded
-    once to join it.
+    once to join it, and the answers go to ``Card.post`` as bytes (``firmware.card.Answer``).
 
     A request of the turn in C gets a number; while that turn's call is under way
     (``_open``), the answers of its transfer are kept for it (``_kept``: a simulated node of
