@@ -127,6 +127,14 @@ class Message:
         return Message(self.tx, self.rx, 0, data, self.nr, self.b, f, e)
 
 
+def encode_answer(request: bytes, f: int = 0, data: bytes = b"", e: int = 0) -> bytes:
+    """``Message.answer``'s answer, encoded, to the encoded command ``request`` (its header
+    and as much after it as the caller has), without the two ``Message`` objects: the host's
+    SDO requests that the device loop's turn in C hands over come and go as the mailbox's
+    bytes (``firmware.can_host_sdo``, issue 22) [ours]."""
+    return HEADER.pack(request[1], request[0], len(data), request[3], request[6], f, 0, e) + data
+
+
 TELEGRAM_HEADER = struct.Struct("<BBHBBBB")
 
 

@@ -14,8 +14,8 @@
  * lock or the process image's lock is taken. The caller (firmware/device.py) checks the rest
  * (faults, queues, poll state) before it calls. A recording card's turns are served here too:
  * each appends the events its recorder's hooks would have (below). A host SDO request
- * (COM_SDO_Up_Download, msg.e 0) from the expected host is taken here too and handed to the
- * CAN task's one Python callable (sdo_turn): an expedited transfer to a simulated node of
+ * (COM_SDO_Up_Download, msg.e 0 or 4) from the expected host is taken here too and handed to
+ * the CAN task's one Python callable (sdo_turn): an expedited transfer to a simulated node of
  * this process then costs no Python turn of the device loop (not while recording: the
  * recorder's hooks see those in the Python turn). Every layout offset, flag bit,
  * command number and msg.f comes from dpm/ through ``configure``; nothing here is a number
@@ -43,7 +43,7 @@ static struct {
   int plc_task, command, read, write, area_by_function, area_receive, area_send;
   int bit_type, uint16_type;
   int f_unknown_function, f_unknown_data_type, f_illegal_area, f_illegal_count, f_overflow;
-  int can_task, com_sdo;
+  int can_task, com_sdo, sdo_long_first;
   Py_ssize_t task2_state, task2_size;
   int ntypes, type_code[MAX_TYPES], max_address[MAX_TYPES], max_count[MAX_TYPES];
 } cfg;
@@ -112,6 +112,7 @@ static PyObject *configure(PyObject *self, PyObject *args) {
   TAKE(f_overflow, "BUFFER_OVERFLOW");
   TAKE(can_task, "CAN_TASK");
   TAKE(com_sdo, "COM_SDO_UP_DOWNLOAD");
+  TAKE(sdo_long_first, "SDO_LONG_FIRST");
   TAKE(task2_state, "TASK2_STATE");
   TAKE(task2_size, "TASK2_STATE_SIZE");
   n = PyTuple_GET_SIZE(types);
@@ -214,10 +215,12 @@ static Py_ssize_t answer(const unsigned char *raw, const unsigned char *image,
   return 8 + n;
 }
 
-/* A host SDO request (COM_SDO_Up_Download to the CAN task, msg.e 0) [ours]: the message is
- * taken as the Python turn's _receive takes it (DEVACK toggled first) and handed to the CAN
- * task's ``sdo`` callable (HostSdo.native_request) as bytes; its answer, when the transfer
- * ended inside the call, goes into the host mailbox here. 1: answered, out/len set; 0: the
+/* A host SDO request (COM_SDO_Up_Download to the CAN task, msg.e 0, or 4: a long upload's
+ * request, or a long download's first part) [ours]: the message is taken as the Python
+ * turn's _receive takes it (DEVACK toggled first) and handed to the CAN task's ``sdo``
+ * callable (HostSdo.native_request) as bytes; its answer, when the transfer ended inside the
+ * call with one answer (a long upload's value that fits one message), goes into the host
+ * mailbox here; the several answers of a longer one are posted, as on the Python turn. 1: answered, out/len set; 0: the
  * message is not one for this path (the Python turn takes it, nothing changed); 2: taken,
  * its answer comes later (posted by the CAN task, as on the Python turn); -1: error.
  * Task2State is compared around the call: a change the call made in this thread rang no
@@ -227,8 +230,8 @@ static int sdo_turn(PyObject *sdo, const unsigned char *raw, unsigned char *mm,
   unsigned char state[256];
   PyObject *got;
   Py_ssize_t n;
-  if (sdo == Py_None || raw[0] != cfg.can_task || raw[6] != cfg.com_sdo || raw[7] != 0 ||
-      8 + (Py_ssize_t)raw[2] > cfg.msg_max)
+  if (sdo == Py_None || raw[0] != cfg.can_task || raw[6] != cfg.com_sdo ||
+      (raw[7] != 0 && raw[7] != cfg.sdo_long_first) || 8 + (Py_ssize_t)raw[2] > cfg.msg_max)
     return 0;
   memcpy(state, mm + cfg.task2_state, (size_t)cfg.task2_size);
   __atomic_store_n(mm + cfg.host_flags, (unsigned char)(host ^ cfg.devack), __ATOMIC_SEQ_CST);
@@ -600,7 +603,7 @@ PyDoc_STRVAR(serve_doc,
              "      turn, image_lock, inputs, outputs, conn, record, sdo) -> (rings, dead,\n"
              "      turns, dev_seen, watchdog_seen, host_seen, recorded_dev)\n\n"
              "Answer the last of hosts' COM_Shared_Memory reads, and hand its\n"
-             "COM_SDO_Up_Download requests (msg.e 0) to sdo (None: not now), until a turn\n"
+             "COM_SDO_Up_Download requests (msg.e 0, 4) to sdo (None: not now), until a turn\n"
              "needs Python.\n"
              "image: the board's mmap; fd: the device bell; hosts: the known hosts' abstract\n"
              "names, the expected one last; interval: the poll interval, due: the watchdog's\n"

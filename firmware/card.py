@@ -24,6 +24,13 @@ from dpm.doorbell import DeviceBell
 from dpm.message import Message
 from firmware.process_image import ProcessImage
 
+Answer = Message | bytes
+"""An answer or indication for the host mailbox: a ``Message``, or the bytes it encodes to
+[ours]. The CAN task's host SDO answers are made as bytes (``firmware.can_host_sdo``): a
+``Message`` decoded from them only to be encoded again at the delivery cost the thread that
+ends the transfer (the receive thread on a real bus) three Python calls per transfer
+(issue 22)."""
+
 
 class HasImage(Protocol):
     """The PLC task as the CAN master sees it: the process data the PDOs carry."""
@@ -76,7 +83,7 @@ class Card(Protocol):
     @property
     def can(self) -> Configurable: ...
 
-    def post(self, msg: Message) -> None:
+    def post(self, msg: Answer) -> None:
         """Answer later, from any thread (``Device.post``)."""
 
     def sleep(self, seconds: float) -> bool:

@@ -64,6 +64,7 @@ from dpm.task2 import CanState
 from firmware import info, native_mailbox
 from firmware.can.bus import BusConfig
 from firmware.can_task import CanTask
+from firmware.card import Answer
 from firmware.faults import CardFaults
 from firmware.flash import FlashStore, StoredDatabase, default_flash_dir
 from firmware.plc import PlcTask
@@ -168,7 +169,7 @@ class Device:
         self.bell = DeviceBell(self.files, self.path)
         self.faults = CardFaults(self)
         """[ours] Card-side faults on demand (firmware/faults.py, docs/faults.md)."""
-        self.outbox: deque[Message] = deque()
+        self.outbox: deque[Answer] = deque()
         self._calls: deque[Callable[[], None]] = deque()
         self._turn = QuickLock()
         """Held by the device loop for each turn; ``post`` takes it to answer at once. Tried
@@ -410,13 +411,13 @@ class Device:
 
     # --- cross-thread entry points ---------------------------------------------------
 
-    def post(self, msg: Message) -> None:
+    def post(self, msg: Answer) -> None:
         """Give the host an answer or indication (any thread); a slow card (a fault) holds
         it back first."""
         if not self.faults.hold(msg):
             self.hand_over(msg)
 
-    def hand_over(self, msg: Message) -> None:
+    def hand_over(self, msg: Answer) -> None:
         """Put ``msg`` into the host's mailbox now or at the loop's next turn (any thread).
 
         When the loop is between turns, nothing is queued before it and the
@@ -671,7 +672,8 @@ class Device:
             self.outbox.append(answer)
 
     def _deliver(self) -> None:
-        raw = self.outbox.popleft().encode()
+        item = self.outbox.popleft()
+        raw = item if isinstance(item, bytes) else item.encode()
         mm = self.mm
         host = mm[HOST_FLAGS]
         recorder = self.recorder

@@ -48,10 +48,10 @@ from dpm.faults import (
     fault_address,
 )
 from dpm.layout import RCS_ERROR as RCS_ERROR_BYTE
-from dpm.message import Message
 from firmware.rcs import Start
 
 if TYPE_CHECKING:
+    from firmware.card import Answer
     from firmware.device import Device
 
 log = logging.getLogger(__name__)
@@ -76,7 +76,7 @@ class CardFaults:
         self._active: dict[str, _Fault] = {}
         self._lock = threading.Lock()
         """``_active`` and ``_held``, between the fault thread and the device's hooks."""
-        self._held: deque[tuple[float, Message]] = deque()
+        self._held: deque[tuple[float, Answer]] = deque()
         """The slow card's answers, each with the time it is due."""
         self._delay = 0.0
         self._stalled = False
@@ -137,7 +137,7 @@ class CardFaults:
         return not (self._active or self._held or self._delay or self._stalled or self._hung
                     or self._reboot)
 
-    def hold(self, msg: Message) -> bool:
+    def hold(self, msg: Answer) -> bool:
         """Keep ``msg`` back for the slow card's delay; False: hand it over now."""
         if not self._delay:
             return False

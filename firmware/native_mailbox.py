@@ -4,12 +4,13 @@ request [ours] (issue 22).
 ``firmware/_mailbox.c`` answers, with the interpreter lock released while it waits, the
 COM_Shared_Memory reads (and malformed COM_Shared_Memory requests) a host rings for while
 nothing else needs the device loop's Python turn, and hands a host's COM_SDO_Up_Download
-(msg.e 0) to the CAN task's one callable for it (``HostSdo.native_request``) when the card
-does not record; it returns to that turn for everything else. This module hands it the
-numbers it works with, from ``dpm/`` and the PLC task's limits, so the C file holds no
-number of the protocol; and, for a recording card, the spool's heads (``dpm.session``) and
-the recorder's ledger reads, so that a turn served in C appends to the recorder's queue the
-events its hooks would have (``firmware.recorder``) [ours].
+(msg.e 0, or 4: a long upload's request) to the CAN task's one callable for it
+(``HostSdo.native_request``) when the card does not record; it returns to that turn for
+everything else. This module hands it the numbers it works with, from ``dpm/`` and the PLC
+task's limits, so the C file holds no number of the protocol; and, for a recording card, the
+spool's heads (``dpm.session``) and the recorder's ledger reads, so that a turn served in C
+appends to the recorder's queue the events its hooks would have (``firmware.recorder``)
+[ours].
 """
 
 from __future__ import annotations
@@ -63,7 +64,8 @@ LAYOUT = {
     "UNKNOWN_DATA_TYPE": int(PlcF.UNKNOWN_DATA_TYPE), "ILLEGAL_AREA": int(PlcF.ILLEGAL_AREA),
     "ILLEGAL_COUNT": int(PlcF.ILLEGAL_COUNT), "BUFFER_OVERFLOW": int(PlcF.BUFFER_OVERFLOW),
     "CAN_TASK": int(Task.CAN), "COM_SDO_UP_DOWNLOAD": int(COM_SDO_UP_DOWNLOAD),
-    "TASK2_STATE": TASK2_STATE, "TASK2_STATE_SIZE": TASK_STATE_SIZE,
+    "SDO_LONG_FIRST": int(Ext.FIRST), "TASK2_STATE": TASK2_STATE,
+    "TASK2_STATE_SIZE": TASK_STATE_SIZE,
 }
 """What ``configure`` hands the C file, by name."""
 

@@ -16,12 +16,11 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Protocol
 
-from firmware.card import Card, Configurable, HasImage
+from firmware.card import Answer, Card, Configurable, HasImage
 
 if TYPE_CHECKING:
     from dbm_tools.parameters import BusParameterSet
     from dpm.image import CardDirectory
-    from dpm.message import Message
     from dpm.task2 import ComPlcParameter
     from firmware.can.bus import BusConfig, CanBus
     from firmware.flash import FlashStore, StoredDatabase
@@ -86,7 +85,7 @@ class WholeCard(Card, Protocol):
     def flash(self) -> FlashStore: ...
 
     @property
-    def outbox(self) -> deque[Message]: ...
+    def outbox(self) -> deque[Answer]: ...
 
     @property
     def tasks(self) -> Mapping[int, Resettable]: ...

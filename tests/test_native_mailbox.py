@@ -213,7 +213,7 @@ def fuzz(directory: str, module: str) -> None:
             records = _detach(device, recorder, session)  # the driver's: the firmware's pid,
             assert [r.kind for r in records].count(s.PUT) == raw_puts  # left out
             assert [r.kind for r in records].count(s.ANSWER) == raw_puts
-        if nr % 4 == 2:  # a host SDO request: the CAN task's, by sdo_turn in C (msg.e 0)
+        if nr % 4 == 2:  # a host SDO request: the CAN task's, by sdo_turn in C (msg.e 0, 4)
             request = Message(rx=Task.CAN, tx=Task.USER, b=COM_SDO_UP_DOWNLOAD, nr=nr & 0xFF,
                               e=rng.choice([0, 0, 4]), data=data)
             answer = _ask(0, request)

@@ -99,15 +99,20 @@ class HostSdoTransfer:
         self._context = inline.answered_here if answered_here else _NO_CONTEXT
 
     def start(self) -> None:
+        """Send the initiate request; its answer may be handled before this returns
+        (``answered_here``). Sent here, not by ``_request``: a Python call less per
+        transfer (issue 22)."""
         self.bus.lend_sdo_responses(SDO_RESPONSE_BASE + self.node, self._on_frame)
         head = self._head
         if self.data is None:
-            self._request(bytes([0x40]) + head + bytes(4))
+            frame = b"\x40" + head + bytes(4)
         elif self._expedited:
             command = 0x23 | ((4 - len(self.data)) << 2)
-            self._request(bytes([command]) + head + self.data.ljust(4, b"\0"))
+            frame = bytes([command]) + head + self.data.ljust(4, b"\0")
         else:
-            self._request(bytes([0x21]) + head + struct.pack("<I", len(self.data)))
+            frame = b"\x21" + head + struct.pack("<I", len(self.data))
+        with self._context:
+            self.bus.send(SDO_REQUEST_BASE + self.node, frame)
 
     def check(self, now: float) -> float:
         """Called from the master's thread: give up after the SDO time-out. Returns when to
