@@ -319,6 +319,18 @@ def test_boot_up_after_start_then_pre_operational(bench: Callable[[str], Bench])
     assert b.sim.nodes[5].state == "PRE-OPERATIONAL"
 
 
+def test_start_returns_once_the_nodes_have_booted(bench: Callable[[str], Bench]) -> None:
+    """``start`` (so `cifemu sim`'s "simulating" line) comes after the power-on: every node
+    without a boot delay is PRE-OPERATIONAL with its heartbeat producer running. Before, the
+    boot-ups were only queued, and 127 nodes' power-on ran into the master's first boot."""
+    nodes = range(10, 40)
+    b = bench("".join(f"[[node]]\nid = {n}\nheartbeat_ms = 1000\n" for n in nodes)
+              + "[[node]]\nid = 5\nsim = { boot_delay_s = 30 }\n")
+    assert [n for n in nodes if b.sim.nodes[n].state != "PRE-OPERATIONAL"] == []
+    assert [n for n in nodes if b.sim.nodes[n].nmt._send_task is None] == []
+    assert b.sim.nodes[5].state == "INITIALISING"  # a boot delay is not waited for
+
+
 def test_sdo_reads_device_type_and_identity(bench: Callable[[str], Bench]) -> None:
     b = bench(GENERIC + """
 [[node]]

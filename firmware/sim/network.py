@@ -49,6 +49,9 @@ log = logging.getLogger(__name__)
 
 NOTIFIER_CYCLE_S = 0.1
 """How long a stopping network waits at most for its receive thread."""
+POWER_ON_WAIT_S = 10.0
+"""[ours] How long ``start`` waits at most for the nodes' power-on: their boot-up messages
+and heartbeat producers (a boot delay of the node's ``[node.sim]`` is not waited for)."""
 
 
 def object_dictionary(node: NodeDescription, bus: BusDescription) -> ObjectDictionary:
@@ -230,6 +233,12 @@ class SimulatedNetwork:
     ``start`` powers all nodes on (each sends its boot-up after its boot
     delay), ``stop`` powers them off; also a context manager. Silent nodes
     exist in ``nodes`` but never touch the bus.
+
+    ``start`` returns once every node without a boot delay has booted (boot-up sent,
+    heartbeat producer running) **[ours]**: before, it returned when the boot-ups were
+    only queued, and the power-on of 127 nodes (about 0.15 s and 110 ms of the simulator's
+    CPU: 127 boot-ups and 127 heartbeat threads started) ran on into the first thing a
+    master asked of them, the first boot of ``bench.can``'s boot phase among them.
     """
 
     def __init__(self, network: Network, bus: can.BusABC) -> None:
@@ -289,6 +298,8 @@ class SimulatedNetwork:
             for node in self._live:
                 node.power_on()
         self.running = True
+        if not self.scheduler.settle(POWER_ON_WAIT_S):
+            log.warning("the nodes' power-on took more than %g s", POWER_ON_WAIT_S)
         log.info("simulating %d node(s) on %s", len(self._live), self.bus.channel_info)
 
     def stop(self) -> None:

@@ -62,6 +62,14 @@ class Scheduler:
             self._wake.notify()
         return timer
 
+    def settle(self, timeout: float) -> bool:
+        """Wait until every timer due by now has run (or ``timeout`` passed): a timer called
+        now comes after them in the queue, since the queue runs in due time, then call order.
+        False when the timers did not run in time (or the scheduler stopped)."""
+        done = threading.Event()
+        self.call_later(0.0, done.set)
+        return done.wait(timeout)
+
     def _run(self) -> None:
         while True:
             with self._wake:
