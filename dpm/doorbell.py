@@ -129,18 +129,6 @@ class _Endpoint:
             return True
         return False
 
-    def take_rings(self) -> bool:
-        """Take one ring, for a caller whose own selector (an event loop's) said the socket
-        is readable; True when there was one. One: a level-triggered selector says so again
-        while more are queued, and asking it (select) after every ring was one more system
-        call per answer for the 309-3 gateway, where the card rings once per answer."""
-        try:
-            ring = self.sock.recvfrom(16)
-        except BlockingIOError:  # another thread of this process took it
-            return False
-        self._on_rings([ring])
-        return True
-
     def _on_rings(self, rings: list[tuple[bytes, str | bytes]]) -> None:
         del rings
 
