@@ -111,19 +111,15 @@ class _Endpoint:
                 break
         return rings
 
-    def wait(self, timeout: float, also: tuple[int, ...] = ()) -> bool:
-        """Block until a ring, ``timeout`` seconds, or one of the descriptors ``also`` is
-        readable (a thread's own wake-up pipe, which the caller drains); True when rung.
+    def wait(self, timeout: float) -> bool:
+        """Block until a ring or ``timeout`` seconds; True when rung.
 
         select, unlike a shared poll object, may be waited on by several threads
-        of one host process at once (one in DevGetMessage, one in DevPutMessage).
+        of one host process at once. (A Python host's driver and the CiA 309 gateway's
+        reader wait by ``host_api._devflags.wait_ring`` instead, the gateway's beside its
+        wake-up pipe.)
         """
-        if not also:
-            ready = select.select((self.sock,), (), (), max(0.0, timeout))[0]
-            rung = bool(ready)
-        else:
-            fd = self.sock.fileno()
-            rung = fd in select.select((fd, *also), (), (), max(0.0, timeout))[0]
+        rung = bool(select.select((self.sock,), (), (), max(0.0, timeout))[0])
         if rung:
             self._on_rings(self._drain())
             return True
