@@ -111,35 +111,19 @@ class _Endpoint:
                 break
         return rings
 
-    def wait(self, timeout: float, also: tuple[int, ...] = ()) -> bool:
-        """Block until a ring, ``timeout`` seconds, or one of the descriptors ``also`` is
-        readable (a thread's own wake-up pipe, which the caller drains); True when rung.
+    def wait(self, timeout: float) -> bool:
+        """Block until a ring or ``timeout`` seconds; True when rung.
 
         select, unlike a shared poll object, may be waited on by several threads
-        of one host process at once (one in DevGetMessage, one in DevPutMessage).
+        of one host process at once. (A Python host's driver and the CiA 309 gateway's
+        reader wait by ``host_api._devflags.wait_ring`` instead, the gateway's beside its
+        wake-up pipe.)
         """
-        if not also:
-            ready = select.select((self.sock,), (), (), max(0.0, timeout))[0]
-            rung = bool(ready)
-        else:
-            fd = self.sock.fileno()
-            rung = fd in select.select((fd, *also), (), (), max(0.0, timeout))[0]
+        rung = bool(select.select((self.sock,), (), (), max(0.0, timeout))[0])
         if rung:
             self._on_rings(self._drain())
             return True
         return False
-
-    def take_rings(self) -> bool:
-        """Take one ring, for a caller whose own selector (an event loop's) said the socket
-        is readable; True when there was one. One: a level-triggered selector says so again
-        while more are queued, and asking it (select) after every ring was one more system
-        call per answer for the 309-3 gateway, where the card rings once per answer."""
-        try:
-            ring = self.sock.recvfrom(16)
-        except BlockingIOError:  # another thread of this process took it
-            return False
-        self._on_rings([ring])
-        return True
 
     def _on_rings(self, rings: list[tuple[bytes, str | bytes]]) -> None:
         del rings

@@ -25,6 +25,7 @@
 #include <sys/socket.h>
 #include <sys/un.h>
 #include <time.h>
+#include <unistd.h>
 
 #define RINGS_AT_ONCE 16
 /* Rings one wait takes at most; the device sends one per change, and a host's queue holds
@@ -105,35 +106,53 @@ fail:
 }
 
 PyDoc_STRVAR(wait_ring_doc,
-             "wait_ring(fd, timeout) -> int\n\n"
+             "wait_ring(fd, timeout, wake=-1) -> int\n\n"
              "Wait up to timeout seconds for the socket fd to be readable, then take every\n"
              "datagram queued on it without waiting: -1 when none came in time, 0 when\n"
-             "another thread took it first, else the last one's first byte.");
+             "another thread took it first, else the last one's first byte. wake: a pipe's\n"
+             "non-blocking read end also watched (a thread's own wake-up); when it is\n"
+             "readable it is emptied, and -2 returned unless a ring came too. timeout 0\n"
+             "without wake: the rings queued now, without waiting (-1: none).");
 
 static PyObject *wait_ring(PyObject *self, PyObject *args) {
-  int fd, ready, taken, error, i;
+  int fd, wake = -1, ready, taken, error, i, woken = 0;
   double timeout, whole;
   struct timespec span;
-  struct pollfd watched;
-  unsigned char bytes[RINGS_AT_ONCE];
+  struct pollfd watched[2];
+  nfds_t count = 1;
+  unsigned char bytes[RINGS_AT_ONCE], drained[64];
   struct iovec parts[RINGS_AT_ONCE];
   struct mmsghdr rings[RINGS_AT_ONCE];
   (void)self;
-  if (!PyArg_ParseTuple(args, "id", &fd, &timeout)) return NULL;
+  if (!PyArg_ParseTuple(args, "id|i", &fd, &timeout, &wake)) return NULL;
   /* ppoll, not poll: the time-out to the nanosecond, as select's was */
   if (!(timeout > 0)) timeout = 0;
   if (timeout > 86400.0) timeout = 86400.0;
   span.tv_nsec = (long)(modf(timeout, &whole) * 1e9);
   span.tv_sec = (time_t)whole;
-  watched.fd = fd;
-  watched.events = POLLIN;
-  watched.revents = 0;
-  if (timeout == 0) {
-    ready = ppoll(&watched, 1, &span, NULL);
+  watched[0].fd = fd;
+  watched[0].events = POLLIN;
+  watched[0].revents = 0;
+  if (wake >= 0) {
+    /* [ours] the CiA 309 gateway's reader thread: the ring and its own wake-up pipe in one
+     * call, not HostBell.wait's select, recvfrom, select and os.read (issue 22) */
+    watched[1].fd = wake;
+    watched[1].events = POLLIN;
+    watched[1].revents = 0;
+    count = 2;
+  }
+  if (timeout == 0 && count == 1) {
+    /* no wait: the rings taken at once, without asking ppoll first (an event loop's
+     * selector said the socket is readable: the 309-3 server's, once per answer) */
+    ready = 1;
+    watched[0].revents = POLLIN;
+    error = 0;
+  } else if (timeout == 0) {
+    ready = ppoll(watched, count, &span, NULL);
     error = errno;
   } else {
     Py_BEGIN_ALLOW_THREADS
-    ready = ppoll(&watched, 1, &span, NULL);
+    ready = ppoll(watched, count, &span, NULL);
     error = errno;
     Py_END_ALLOW_THREADS
   }
@@ -146,6 +165,14 @@ static PyObject *wait_ring(PyObject *self, PyObject *args) {
     return PyLong_FromLong(-1); /* a signal: the caller looks at the flags and waits again */
   }
   if (ready == 0) return PyLong_FromLong(-1);
+  if (count == 2 && watched[1].revents) {
+    /* every byte written so far: the writer does not block on a full pipe (it is woken
+     * already), so emptying it loses no wake-up */
+    while (read(wake, drained, sizeof(drained)) == (ssize_t)sizeof(drained)) {
+    }
+    woken = 1;
+  }
+  if (!watched[0].revents) return PyLong_FromLong(woken ? -2 : -1);
   memset(rings, 0, sizeof(rings));
   for (i = 0; i < RINGS_AT_ONCE; i++) {
     parts[i].iov_base = &bytes[i];
@@ -154,7 +181,8 @@ static PyObject *wait_ring(PyObject *self, PyObject *args) {
     rings[i].msg_hdr.msg_iovlen = 1;
   }
   taken = recvmmsg(fd, rings, RINGS_AT_ONCE, MSG_DONTWAIT, NULL);
-  if (taken <= 0) return PyLong_FromLong(0); /* another thread of this process took it */
+  /* another thread of this process took it; none at all, when nothing was asked first */
+  if (taken <= 0) return PyLong_FromLong(timeout == 0 && count == 1 ? -1 : 0);
   return PyLong_FromLong(rings[taken - 1].msg_len > 0 ? bytes[taken - 1] : 0);
 }
 

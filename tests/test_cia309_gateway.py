@@ -24,6 +24,7 @@ import pytest
 
 from dpm.com import CanFrame
 from dpm.commands import AREA_BUS, COM_UPLOAD, MAX_LEN_DATA_UNIT
+from dpm.ledger import ledger_text
 from dpm.message import Message, Task
 from dpm.task2 import CanState
 from firmware.can.sdo import DEFAULT_SDO_TIMEOUT
@@ -44,7 +45,7 @@ from host_api.cia309.model import (
     SdoProgressEvent,
     decode_value,
 )
-from host_api.registry import MappedBoard
+from host_api.registry import MappedBoard, registry
 from tests.conftest import ended, expect, silent, wait_until, within
 from tests.gateway_cards import EDS, diagnostics, start, wait_operating
 
@@ -374,6 +375,17 @@ def test_guarding_and_heartbeat_consumer(gw: Gateway) -> None:
         assert reason(call).error == ErrorCode.UNSUPPORTED_NODE  # not the card's (f 20)
     assert reason(lambda: gw.start_heartbeat_consumer(100, network=2, node_id=1)).f == 200
     assert reason(lambda: gw.enable_node_guarding(70000, 1, node_id=1)).error == 101
+
+
+def test_layer2_sends_leave_no_awaited_request_in_the_ledger(gw: Gateway) -> None:
+    """[ours] COM_Tx_CAN_Layer2 goes with msg.e NAK (the card answers it only when it fails):
+    after sends and a read the board's transaction ledger is empty. Each send awaited an
+    answer for ever before, and every later answer rewrote all of them into the file."""
+    board = registry.boards[0]
+    for _ in range(3):
+        gw.send_frames([CanFrame(0x7E5, b"\x04\x00")])  # an LSS switch state global
+    assert gw.sdo_upload(0x1000, 0, node_id=1)
+    assert ledger_text(board.transaction.path.read_bytes()) == b""
 
 
 # --- 4.4 and 4.5.7/4.5.8 emergencies ----------------------------------------------------------

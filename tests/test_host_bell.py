@@ -126,3 +126,61 @@ def test_a_host_bell_rings_and_hears_the_device_through_the_c_calls(
     finally:
         bell.close()
 
+
+
+@pytest.fixture
+def wake() -> Iterator[tuple[int, int]]:
+    """A thread's wake-up pipe, both ends not blocking (the CiA 309 reader's)."""
+    r, w = os.pipe2(os.O_NONBLOCK | os.O_CLOEXEC)
+    try:
+        yield r, w
+    finally:
+        os.close(r)
+        os.close(w)
+
+
+def test_wait_ring_ends_on_the_wake_up_pipe_and_empties_it(
+        host: socket.socket, wake: tuple[int, int]) -> None:
+    """-2: woken, not rung; every byte written so far is read, so the next wait waits."""
+    r, w = wake
+    os.write(w, b"w" * 100)  # more than one read of 64 takes
+    assert wait_ring(host.fileno(), 5.0, r) == -2
+    with pytest.raises(BlockingIOError):
+        os.read(r, 1)
+    began = time.monotonic()
+    assert wait_ring(host.fileno(), 0.05, r) == -1
+    assert time.monotonic() - began >= 0.05
+
+
+def test_wait_ring_woken_and_rung_at_once_reports_the_ring(
+        device: socket.socket, host: socket.socket, wake: tuple[int, int]) -> None:
+    r, w = wake
+    os.write(w, b"w")
+    device.sendto(bytes([WANT_ACK]), host.getsockname())
+    assert wait_ring(host.fileno(), 5.0, r) == WANT_ACK
+    with pytest.raises(BlockingIOError):
+        os.read(r, 1)
+    assert wait_ring(host.fileno(), 0) == -1, "the ring was left in the queue"
+
+
+def test_wait_ring_on_the_wake_up_pipe_wakes_from_another_thread(
+        host: socket.socket, wake: tuple[int, int]) -> None:
+    r, w = wake
+    waker = threading.Timer(0.05, os.write, (w, b"w"))
+    began = time.monotonic()
+    waker.start()
+    try:
+        assert wait_ring(host.fileno(), 10.0, r) == -2
+    finally:
+        waker.join()
+    assert time.monotonic() - began < 5.0
+
+
+def test_wait_ring_without_time_takes_what_is_queued_without_waiting(
+        device: socket.socket, host: socket.socket) -> None:
+    """Time-out 0 (an event loop's selector said readable): no ppoll first; -1 when none."""
+    assert wait_ring(host.fileno(), 0) == -1
+    for payload in (bytes([WANT_ACK]), RING):
+        device.sendto(payload, host.getsockname())
+    assert wait_ring(host.fileno(), 0) == RING[0]
+    assert wait_ring(host.fileno(), 0) == -1

@@ -94,7 +94,7 @@ from dpm.cia305 import (
 )
 from dpm.commands import COM_CFGRX_LAYER2, COM_RX_CAN_LAYER2, COM_TX_CAN_LAYER2
 from dpm.errors import Drv
-from dpm.message import Message, Task
+from dpm.message import Ext, Message, Task
 from host_api.board import Board, CifError
 from host_api.cia309.model import Cia309Error, ErrorCode
 
@@ -260,8 +260,10 @@ class LssMaster:
         while self._read(0.0) is not None:
             pass
         try:
+            # [ours] e NAK: the card answers COM_Tx_CAN_Layer2 only when it fails, and the
+            # driver's ledger then awaits no answer (``Link.send``)
             self.board.put_message(Message(rx=Task.CAN, tx=Task.USER, b=COM_TX_CAN_LAYER2,
-                                           data=b"".join(frames)))
+                                           data=b"".join(frames), e=Ext.NAK))
         except CifError as exc:
             raise LssError(LssErrorCode.MEDIA_ERROR, f"COM_Tx_CAN_Layer2: {exc}") from exc
 
