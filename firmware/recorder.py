@@ -16,11 +16,11 @@ each event left a tuple, a float and its bytes to marshal and free in the drain 
 about 1 us a mailbox round trip of the interpreter lock the loop needs, and a ledger read
 of 512 bytes, mostly zeros, in the spool; packed, the drain copies bytes and nothing
 else. So recording costs the loop a few attribute lookups and one packing per event, at
-most one clock read and, at a process-data handshake, one comparison of the two I/O areas
-(a copy when they changed), made after the card rang its hosts (``settle``); never a
-write or a lock. A message and the HostFlags toggle that takes or hands it over are one
-event, as are an exchange and its PDACK toggle: each call counts on a loop that turns
-every 25 us.
+most one clock read and, at a process-data handshake, a copy of the two I/O areas when
+the exchange changed them (the process image tells: ``ProcessImage.exchanged_changes``),
+made after the card rang its hosts (``settle``); never a write or a lock. A message and
+the HostFlags toggle that takes or hands it over are one event, as are an exchange and
+its PDACK toggle: each call counts on a loop that turns every 25 us.
 
 The writer gets open files, never a path: ``create`` makes them for ``cifemu firmware
 --record``, whose user chose the path; a ``cifemu record`` that attaches to a running
@@ -62,6 +62,7 @@ from dpm.ledger import END, ledger_text
 from dpm.message import LN_OFFSET
 from dpm.tap import encode_frame
 from firmware import session_writer
+from firmware.process_image import ProcessImage
 
 log = logging.getLogger(__name__)
 
@@ -118,12 +119,10 @@ class Recorder:
         "_image_files",
         "_ledger",
         "_ledger_name",
+        "_image",
         "_mm",
-        "_outputs",
         "_pipe",
         "_queue",
-        "_received",
-        "_sent",
         "_stop",
         "_thread",
         "board",
@@ -166,9 +165,7 @@ class Recorder:
         self._append_frame = self._frames.append
         self._dev = 0
         """DevFlags as last seen; a session takes them as 0 before its first dev_flags."""
-        self._sent = self._received = bytes(IO_AREA_SIZE)
-        """SndPd and RcvPd as the last exchange left them."""
-        self._outputs = bytearray()
+        self._image: ProcessImage | None = None
         self._exchange: tuple[int, int] | None = None
         """The HostFlags change (PDACK) of this turn's exchange, until ``settle``."""
         self.events = 0
@@ -208,11 +205,13 @@ class Recorder:
             files.close()
         return recorder
 
-    def start(self, image_files: CardDirectory, mm: Any, outputs: bytearray) -> None:
+    def start(self, image_files: CardDirectory, mm: Any, image: ProcessImage) -> None:
         """Record the card of ``mm``, whose directory ``image_files`` holds the ledger;
-        ``outputs``: its process image's copy of SndPd (``ProcessImage.outputs``)."""
+        ``image``: its process image (the next exchange is recorded with both areas: this
+        session's writer has seen neither)."""
         self._image_files = image_files
-        self._outputs = outputs
+        self._image = image
+        image.exchanged_changes = True  # before the device loop calls a hook
         self._ledger_name = lock_path(image_files.path, self.board, "transaction").name
         self._mm = mm
         self._thread.start()
@@ -270,27 +269,26 @@ class Recorder:
 
     def settle(self) -> None:
         """The turn's exchange and its PDACK toggle, one event, queued at the end of the
-        turn, after the card rang its hosts (the device loop calls this after each turn):
-        the comparison of the areas is off the way of the host's next call. The areas are
-        as the exchange left them: SndPd as the card took it (``ProcessImage.outputs``:
-        the host may write the image's SndPd again as soon as it sees PDACK), RcvPd as
-        the card wrote it (only the next exchange writes it)."""
+        turn, after the card rang its hosts (the device loop calls this after each turn).
+        The areas are as the exchange left them: SndPd as the card took it
+        (``ProcessImage.outputs``: the host may write the image's SndPd again as soon as
+        it sees PDACK), RcvPd as the card wrote it (only the next exchange writes it);
+        copied only when the process image says they may have changed
+        (``ProcessImage.exchanged_changes``), else the writer gets no 7 KiB to compare."""
         pending = self._exchange
         if pending is None:
             return
         self._exchange = None
         before, after = pending
-        mm, outputs = self._mm, self._outputs
-        # unchanged: no copy, and the writer gets no 7 KiB to compare. ``find`` of the last
-        # snapshot over exactly its length compares in place, where a slice would allocate
-        # and fill 3.5 KiB first
-        if outputs == self._sent and mm.find(self._received, RCV_PD, _IO_END) == RCV_PD:
+        mm, image = self._mm, self._image
+        assert image is not None  # hooks run only after start
+        if image.exchanged_changes:
+            image.exchanged_changes = False
+            self._queue += _join((_exchange_head(_EXCHANGE, _monotonic(), before, after, 1),
+                                  image.outputs, mm[RCV_PD:_IO_END], mm[TASK2_STATE:_STATE_END]))
+        else:
             self._queue += (_exchange_head(_EXCHANGE, _monotonic(), before, after, 0)
                             + mm[TASK2_STATE:_STATE_END])
-        else:
-            self._sent, self._received = bytes(outputs), mm[RCV_PD:_IO_END]
-            self._queue += _join((_exchange_head(_EXCHANGE, _monotonic(), before, after, 1),
-                                  self._sent, self._received, mm[TASK2_STATE:_STATE_END]))
 
     def frame(self, msg: can.Message, received: bool) -> None:
         """A frame the controller sent or received (any of its threads): queued as it is,
