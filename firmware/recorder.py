@@ -36,6 +36,7 @@ import contextlib
 import fcntl
 import logging
 import os
+import struct
 import subprocess
 import threading
 import time
@@ -87,12 +88,14 @@ _HEAD_SIZE, _LN = MSG_HEADER_SIZE, LN_OFFSET
 _STATE_END = TASK2_STATE + TASK_STATE_SIZE
 _PARAMETER_END = TASK2_PARAMETER + s.PARAMETER_SIZE
 _STARTS = fl.RESET | fl.INIT
-_PDACK, _READY = fl.PDACK, fl.READY
+_PDACK, _READY, _PDCOM = fl.PDACK, fl.READY, fl.PDCOM
 _PUT, _ANSWER, _HOST_FLAGS, _DEV_FLAGS, _EXCHANGE = (
     s.SPOOL_CODES[kind] for kind in (s.PUT, s.ANSWER, s.HOST_FLAGS, s.DEV_FLAGS, s.EXCHANGE))
 _put_head, _answer_head, _host_flags_head, _dev_flags_head, _exchange_head = (
     s.SPOOL_PUT.pack, s.SPOOL_ANSWER.pack, s.SPOOL_HOST_FLAGS.pack, s.SPOOL_DEV_FLAGS.pack,
     s.SPOOL_EXCHANGE.pack)
+_dev_exchange_head = struct.Struct(s.SPOOL_DEV_FLAGS.format + s.SPOOL_EXCHANGE.format[1:]).pack
+"""A DevFlags event and an exchange, back to back in the spool, packed at once [ours]."""
 _piece_head, _frame_length = s.SPOOL_PIECE.pack, s.SPOOL_FRAME_LENGTH.pack
 _monotonic = time.monotonic
 _pread = os.pread
@@ -114,12 +117,15 @@ class Recorder:
         "_append_frame",
         "_child",
         "_dev",
+        "_dev_before",
+        "_dev_t",
         "_exchange",
         "_frames",
+        "_held",
+        "_image",
         "_image_files",
         "_ledger",
         "_ledger_name",
-        "_image",
         "_mm",
         "_pipe",
         "_queue",
@@ -168,6 +174,12 @@ class Recorder:
         self._image: ProcessImage | None = None
         self._exchange: tuple[int, int] | None = None
         """The HostFlags change (PDACK) of this turn's exchange, until ``settle``."""
+        self._dev_before = -1
+        self._dev_t = 0.0
+        """The host's PD toggle held for ``settle`` (``dev_flags``): DevFlags before it
+        (-1: none held; after it: ``_dev``) and the turn's clock."""
+        self._held = False
+        """An exchange or a PD toggle is held: the one look of every other hook."""
         self.events = 0
         self.frames = 0
         """What the writer wrote: lines of session.jsonl, frames of can.log (``close``)."""
@@ -224,7 +236,7 @@ class Recorder:
         msg.ln reaches, a tenth of the slot for most messages, for the queue and the
         spool. ``before``, ``after``: the HostFlags change (DEVACK) that took it, in the
         same event."""
-        if self._exchange is not None:  # (the loop takes messages before it exchanges)
+        if self._held:  # (the loop takes messages before it exchanges)
             self.settle()
         ledger = self._ledger
         if ledger < 0 and self._open_ledger():
@@ -242,7 +254,7 @@ class Recorder:
     def answer(self, raw: bytes, before: int, after: int) -> None:
         """``raw``: the encoded answer, as the card writes it into PcMbx; ``before``,
         ``after``: the HostFlags change (HOSTCOM) that hands it over, in the same event."""
-        if self._exchange is not None:
+        if self._held:
             self.settle()
         self._queue += (_answer_head(_ANSWER, _monotonic(), before, after, len(raw)) + raw
                         + self._mm[TASK2_STATE:_STATE_END])
@@ -250,18 +262,26 @@ class Recorder:
     def host_flags(self, before: int, after: int) -> None:
         if (before ^ after) & _PDACK and before & after & _READY:  # not a (re)start's
             self._exchange = (before, after)  # ``settle`` queues it, after the ring
+            self._held = True
         elif before != after:
-            if self._exchange is not None:  # in the order the card wrote them
+            if self._held:  # in the order the card wrote them
                 self.settle()
             self._queue += _host_flags_head(_HOST_FLAGS, _monotonic(), before, after)
 
     def dev_flags(self, value: int, now: float) -> None:
         """``value`` as the card read it at the start of its turn at ``now`` (the loop's
-        clock read: the event needs none of its own)."""
+        clock read: the event needs none of its own). The host's PD toggle alone is held
+        until ``settle``, which queues it with the exchange it asked for in one packing and
+        one append, both events' heads as the writer reads them [ours]; any other event
+        of the turn queues it first."""
         before = self._dev
         if value != before:
+            if self._held:
+                self.settle()
             self._dev = value
-            if value & ~before & _STARTS:
+            if value ^ before == _PDCOM:
+                self._dev_t, self._dev_before, self._held = now, before, True
+            elif value & ~before & _STARTS:
                 self._queue += (_dev_flags_head(_DEV_FLAGS, now, before, value, 1)
                                 + self._mm[TASK2_PARAMETER:_PARAMETER_END])
             else:
@@ -275,20 +295,29 @@ class Recorder:
         it sees PDACK), RcvPd as the card wrote it (only the next exchange writes it);
         copied only when the process image says they may have changed
         (``ProcessImage.exchanged_changes``), else the writer gets no 7 KiB to compare."""
-        pending = self._exchange
-        if pending is None:
+        if not self._held:
             return
-        self._exchange = None
+        self._held = False
+        dev_before, self._dev_before = self._dev_before, -1
+        pending, self._exchange = self._exchange, None
+        if pending is None:  # the PD toggle of a turn that did not exchange
+            self._queue += _dev_flags_head(_DEV_FLAGS, self._dev_t, dev_before, self._dev, 0)
+            return
         before, after = pending
         mm, image = self._mm, self._image
         assert image is not None  # hooks run only after start
-        if image.exchanged_changes:
-            image.exchanged_changes = False
-            self._queue += _join((_exchange_head(_EXCHANGE, _monotonic(), before, after, 1),
-                                  image.outputs, mm[RCV_PD:_IO_END], mm[TASK2_STATE:_STATE_END]))
+        changed = image.exchanged_changes
+        if dev_before < 0:
+            head = _exchange_head(_EXCHANGE, _monotonic(), before, after, changed)
         else:
-            self._queue += (_exchange_head(_EXCHANGE, _monotonic(), before, after, 0)
-                            + mm[TASK2_STATE:_STATE_END])
+            head = _dev_exchange_head(_DEV_FLAGS, self._dev_t, dev_before, self._dev, 0,
+                                      _EXCHANGE, _monotonic(), before, after, changed)
+        if changed:
+            image.exchanged_changes = False
+            self._queue += _join((head, image.outputs, mm[RCV_PD:_IO_END],
+                                  mm[TASK2_STATE:_STATE_END]))
+        else:
+            self._queue += head + mm[TASK2_STATE:_STATE_END]
 
     def frame(self, msg: can.Message, received: bool) -> None:
         """A frame the controller sent or received (any of its threads): queued as it is,
@@ -318,7 +347,7 @@ class Recorder:
         that the writer would have to merge (firmware/_mailbox.c says why). None: the
         Python turn records, while the ledger cannot be opened (``put`` reads no lines then
         and tries again at each message) or an exchange waits for ``settle``."""
-        if self._exchange is not None or (self._ledger < 0 and not self._open_ledger()):
+        if self._held or (self._ledger < 0 and not self._open_ledger()):
             return None
         return self, self._queue, self._ledger, self._dev
 

@@ -235,3 +235,37 @@ def test_an_exchange_records_every_change_of_the_areas_and_copies_no_unchanged_o
     unchanged = s.SPOOL_EXCHANGE.size + TASK_STATE_SIZE
     assert [size == unchanged for size in sizes] == [False, True, False, True, False, False,
                                                     False, True]
+
+
+
+def test_the_hosts_pd_toggle_is_queued_with_its_exchange_and_in_the_turns_order(
+        recording: Recording) -> None:
+    """The host's PD toggle that asks for an exchange is held until the end of the turn and
+    queued with the exchange in one append (one event's bytes fewer to pack); the session
+    still has its DevFlags line, at the turn's time, before the PDACK toggle and the
+    exchange. A toggle whose turn did not exchange is written at the turn's end; one
+    followed by another event of its turn (an answer) comes before it."""
+    rec, image = recording.recorder, recording.image
+    raw, answer = _messages()
+    ready, acked = fl.READY, fl.READY | fl.PDACK
+    rec.dev_flags(fl.PDCOM, 1.0)  # the turn that exchanges
+    size = len(rec._queue)  # noqa: SLF001 (nothing queued until the turn's end)
+    image.cycle()
+    rec.host_flags(ready, acked)
+    assert len(rec._queue) == size  # noqa: SLF001
+    rec.settle()
+    rec.dev_flags(0, 2.0)  # a toggle, no exchange in its turn
+    rec.settle()
+    rec.dev_flags(fl.PDCOM, 3.0)  # a toggle, then an answer in the same turn
+    rec.answer(answer, acked, acked ^ fl.HOSTCOM)
+    rec.settle()
+    rec.close()
+    assert rec.complete
+    records = s.decode_events((recording.session / s.EVENTS).read_text())
+    assert [r.kind for r in records] == [s.DEV_FLAGS, s.HOST_FLAGS, s.EXCHANGE, s.DEV_FLAGS,
+                                         s.DEV_FLAGS, s.ANSWER, s.HOST_FLAGS]
+    assert [(r.before, r.after) for r in records if r.kind == s.DEV_FLAGS] == [
+        (0, fl.PDCOM), (fl.PDCOM, 0), (0, fl.PDCOM)]
+    assert [r.t for r in records if r.kind == s.DEV_FLAGS] == [1.0, 2.0, 3.0]
+    assert (records[1].before, records[1].after) == (ready, acked)
+    assert records[2].state == recording.mm[TASK2_STATE : TASK2_STATE + TASK_STATE_SIZE]
