@@ -15,7 +15,7 @@ from __future__ import annotations
 import mmap
 import os
 import sys
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -209,7 +209,7 @@ def test_an_exchange_records_every_change_of_the_areas_and_copies_no_unchanged_o
     and each unchanged exchange costs 27 bytes of spool instead of 7 KiB."""
     rec, mm, image = recording.recorder, recording.mm, recording.image
     ready, acked = fl.READY, fl.READY | fl.PDACK
-    steps = [
+    steps: list[Callable[[], object]] = [
         lambda: mm.__setitem__(SND_PD + 1, 0x11),
         lambda: None,
         lambda: image.write_inputs(2, b"\x22"),
@@ -222,9 +222,9 @@ def test_an_exchange_records_every_change_of_the_areas_and_copies_no_unchanged_o
     sizes = []
     for n, step in enumerate(steps):
         step()
-        size = len(rec._queue)  # noqa: SLF001 (what one exchange queued)
+        size = len(rec._queue)  # what one exchange queued
         _exchange(recording, *((ready, acked) if n % 2 == 0 else (acked, ready)))
-        sizes.append(len(rec._queue) - size)  # noqa: SLF001
+        sizes.append(len(rec._queue) - size)
     rec.close()
     assert rec.complete
     exchanges = [r.changes for r in s.decode_events((recording.session / s.EVENTS).read_text())
@@ -246,13 +246,13 @@ def test_the_hosts_pd_toggle_is_queued_with_its_exchange_and_in_the_turns_order(
     exchange. A toggle whose turn did not exchange is written at the turn's end; one
     followed by another event of its turn (an answer) comes before it."""
     rec, image = recording.recorder, recording.image
-    raw, answer = _messages()
+    _, answer = _messages()
     ready, acked = fl.READY, fl.READY | fl.PDACK
     rec.dev_flags(fl.PDCOM, 1.0)  # the turn that exchanges
-    size = len(rec._queue)  # noqa: SLF001 (nothing queued until the turn's end)
+    size = len(rec._queue)  # nothing queued until the turn's end
     image.cycle()
     rec.host_flags(ready, acked)
-    assert len(rec._queue) == size  # noqa: SLF001
+    assert len(rec._queue) == size
     rec.settle()
     rec.dev_flags(0, 2.0)  # a toggle, no exchange in its turn
     rec.settle()
