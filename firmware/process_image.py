@@ -14,6 +14,7 @@ import threading
 from dpm.layout import IO_AREA_SIZE, RCV_PD, SND_PD
 
 UNCONTROLLED = 3
+_SND_END, _RCV_END = SND_PD + IO_AREA_SIZE, RCV_PD + IO_AREA_SIZE
 
 
 class ProcessImage:
@@ -28,11 +29,20 @@ class ProcessImage:
         self._flips: dict[int, int] = {}
         """[ours] Input bits the fault "flip" inverts in RcvPd: byte offset -> mask."""
         self._flip_once = False
+        self.exchanged_changes = True
+        """[ours] Whether an exchange may have left SndPd as the card took it (``outputs``)
+        or RcvPd as it wrote it different from what the exchange before left, since a
+        recording last took both (``Recorder.settle`` clears it, and sets it when it
+        starts): set by the exchange that found a difference and by each write of
+        ``outputs`` beside the image's SndPd. The recorder compared 7 KiB of snapshots of its
+        own instead, read once per exchange and out of the cache by then: about a third of
+        what recording cost the exchange loop's card (docs/benchmarks.md, note 8)."""
 
     def clear(self) -> None:
         with self.lock:
             self.outputs[:] = bytes(IO_AREA_SIZE)
             self.inputs[:] = bytes(IO_AREA_SIZE)
+            self.exchanged_changes = True
 
     def read_outputs(self, offset: int, size: int) -> bytes:
         """What the bus should carry for the host outputs at ``offset``."""
@@ -72,12 +82,21 @@ class ProcessImage:
         with self.lock:
             self._mm[SND_PD + offset : SND_PD + offset + len(data)] = data
             self.outputs[offset : offset + len(data)] = data
+            self.exchanged_changes = True
 
     def cycle(self) -> None:
-        """One buffered exchange: take the host's outputs, hand it the inputs."""
+        """One buffered exchange: take the host's outputs, hand it the inputs. Each area is
+        compared before it is copied (the copy reads and writes the same bytes): one that did
+        not change is not written, and ``exchanged_changes`` tells a recording."""
         with self.lock:
-            self.outputs[:] = self._mm[SND_PD : SND_PD + IO_AREA_SIZE]
-            self._mm[RCV_PD : RCV_PD + IO_AREA_SIZE] = self.inputs
+            mm = self._mm
+            taken = mm[SND_PD:_SND_END]
+            if taken != self.outputs:
+                self.outputs[:] = taken
+                self.exchanged_changes = True
+            if self._flips or mm.find(self.inputs, RCV_PD, _RCV_END) != RCV_PD:
+                mm[RCV_PD:_RCV_END] = self.inputs
+                self.exchanged_changes = True
             if self._flips:
                 for offset, mask in self._flips.items():
                     self._mm[RCV_PD + offset] = self.inputs[offset] ^ mask

@@ -156,7 +156,7 @@ class RecordSocket:
         device = self._device
         recorder = Recorder(device.board, fds[0], fds[1], fds[2],
                             device.can.master.config.channel)
-        recorder.start(device.files, device.mm, device.plc.image.outputs)
+        recorder.start(device.files, device.mm, device.plc.image)
         device.record(recorder)
         return recorder
 

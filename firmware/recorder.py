@@ -16,11 +16,11 @@ each event left a tuple, a float and its bytes to marshal and free in the drain 
 about 1 us a mailbox round trip of the interpreter lock the loop needs, and a ledger read
 of 512 bytes, mostly zeros, in the spool; packed, the drain copies bytes and nothing
 else. So recording costs the loop a few attribute lookups and one packing per event, at
-most one clock read and, at a process-data handshake, one comparison of the two I/O areas
-(a copy when they changed), made after the card rang its hosts (``settle``); never a
-write or a lock. A message and the HostFlags toggle that takes or hands it over are one
-event, as are an exchange and its PDACK toggle: each call counts on a loop that turns
-every 25 us.
+most one clock read and, at a process-data handshake, a copy of the two I/O areas when
+the exchange changed them (the process image tells: ``ProcessImage.exchanged_changes``),
+made after the card rang its hosts (``settle``); never a write or a lock. A message and
+the HostFlags toggle that takes or hands it over are one event, as are an exchange and
+its PDACK toggle: each call counts on a loop that turns every 25 us.
 
 The writer gets open files, never a path: ``create`` makes them for ``cifemu firmware
 --record``, whose user chose the path; a ``cifemu record`` that attaches to a running
@@ -36,6 +36,7 @@ import contextlib
 import fcntl
 import logging
 import os
+import struct
 import subprocess
 import threading
 import time
@@ -62,6 +63,7 @@ from dpm.ledger import END, ledger_text
 from dpm.message import LN_OFFSET
 from dpm.tap import encode_frame
 from firmware import session_writer
+from firmware.process_image import ProcessImage
 
 log = logging.getLogger(__name__)
 
@@ -86,12 +88,14 @@ _HEAD_SIZE, _LN = MSG_HEADER_SIZE, LN_OFFSET
 _STATE_END = TASK2_STATE + TASK_STATE_SIZE
 _PARAMETER_END = TASK2_PARAMETER + s.PARAMETER_SIZE
 _STARTS = fl.RESET | fl.INIT
-_PDACK, _READY = fl.PDACK, fl.READY
+_PDACK, _READY, _PDCOM = fl.PDACK, fl.READY, fl.PDCOM
 _PUT, _ANSWER, _HOST_FLAGS, _DEV_FLAGS, _EXCHANGE = (
     s.SPOOL_CODES[kind] for kind in (s.PUT, s.ANSWER, s.HOST_FLAGS, s.DEV_FLAGS, s.EXCHANGE))
 _put_head, _answer_head, _host_flags_head, _dev_flags_head, _exchange_head = (
     s.SPOOL_PUT.pack, s.SPOOL_ANSWER.pack, s.SPOOL_HOST_FLAGS.pack, s.SPOOL_DEV_FLAGS.pack,
     s.SPOOL_EXCHANGE.pack)
+_dev_exchange_head = struct.Struct(s.SPOOL_DEV_FLAGS.format + s.SPOOL_EXCHANGE.format[1:]).pack
+"""A DevFlags event and an exchange, back to back in the spool, packed at once [ours]."""
 _piece_head, _frame_length = s.SPOOL_PIECE.pack, s.SPOOL_FRAME_LENGTH.pack
 _monotonic = time.monotonic
 _pread = os.pread
@@ -113,17 +117,18 @@ class Recorder:
         "_append_frame",
         "_child",
         "_dev",
+        "_dev_before",
+        "_dev_t",
         "_exchange",
         "_frames",
+        "_held",
+        "_image",
         "_image_files",
         "_ledger",
         "_ledger_name",
         "_mm",
-        "_outputs",
         "_pipe",
         "_queue",
-        "_received",
-        "_sent",
         "_stop",
         "_thread",
         "board",
@@ -166,11 +171,15 @@ class Recorder:
         self._append_frame = self._frames.append
         self._dev = 0
         """DevFlags as last seen; a session takes them as 0 before its first dev_flags."""
-        self._sent = self._received = bytes(IO_AREA_SIZE)
-        """SndPd and RcvPd as the last exchange left them."""
-        self._outputs = bytearray()
+        self._image: ProcessImage | None = None
         self._exchange: tuple[int, int] | None = None
         """The HostFlags change (PDACK) of this turn's exchange, until ``settle``."""
+        self._dev_before = -1
+        self._dev_t = 0.0
+        """The host's PD toggle held for ``settle`` (``dev_flags``): DevFlags before it
+        (-1: none held; after it: ``_dev``) and the turn's clock."""
+        self._held = False
+        """An exchange or a PD toggle is held: the one look of every other hook."""
         self.events = 0
         self.frames = 0
         """What the writer wrote: lines of session.jsonl, frames of can.log (``close``)."""
@@ -208,11 +217,13 @@ class Recorder:
             files.close()
         return recorder
 
-    def start(self, image_files: CardDirectory, mm: Any, outputs: bytearray) -> None:
+    def start(self, image_files: CardDirectory, mm: Any, image: ProcessImage) -> None:
         """Record the card of ``mm``, whose directory ``image_files`` holds the ledger;
-        ``outputs``: its process image's copy of SndPd (``ProcessImage.outputs``)."""
+        ``image``: its process image (the next exchange is recorded with both areas: this
+        session's writer has seen neither)."""
         self._image_files = image_files
-        self._outputs = outputs
+        self._image = image
+        image.exchanged_changes = True  # before the device loop calls a hook
         self._ledger_name = lock_path(image_files.path, self.board, "transaction").name
         self._mm = mm
         self._thread.start()
@@ -225,7 +236,7 @@ class Recorder:
         msg.ln reaches, a tenth of the slot for most messages, for the queue and the
         spool. ``before``, ``after``: the HostFlags change (DEVACK) that took it, in the
         same event."""
-        if self._exchange is not None:  # (the loop takes messages before it exchanges)
+        if self._held:  # (the loop takes messages before it exchanges)
             self.settle()
         ledger = self._ledger
         if ledger < 0 and self._open_ledger():
@@ -243,7 +254,7 @@ class Recorder:
     def answer(self, raw: bytes, before: int, after: int) -> None:
         """``raw``: the encoded answer, as the card writes it into PcMbx; ``before``,
         ``after``: the HostFlags change (HOSTCOM) that hands it over, in the same event."""
-        if self._exchange is not None:
+        if self._held:
             self.settle()
         self._queue += (_answer_head(_ANSWER, _monotonic(), before, after, len(raw)) + raw
                         + self._mm[TASK2_STATE:_STATE_END])
@@ -251,18 +262,26 @@ class Recorder:
     def host_flags(self, before: int, after: int) -> None:
         if (before ^ after) & _PDACK and before & after & _READY:  # not a (re)start's
             self._exchange = (before, after)  # ``settle`` queues it, after the ring
+            self._held = True
         elif before != after:
-            if self._exchange is not None:  # in the order the card wrote them
+            if self._held:  # in the order the card wrote them
                 self.settle()
             self._queue += _host_flags_head(_HOST_FLAGS, _monotonic(), before, after)
 
     def dev_flags(self, value: int, now: float) -> None:
         """``value`` as the card read it at the start of its turn at ``now`` (the loop's
-        clock read: the event needs none of its own)."""
+        clock read: the event needs none of its own). The host's PD toggle alone is held
+        until ``settle``, which queues it with the exchange it asked for in one packing and
+        one append, both events' heads as the writer reads them [ours]; any other event
+        of the turn queues it first."""
         before = self._dev
         if value != before:
+            if self._held:
+                self.settle()
             self._dev = value
-            if value & ~before & _STARTS:
+            if value ^ before == _PDCOM:
+                self._dev_t, self._dev_before, self._held = now, before, True
+            elif value & ~before & _STARTS:
                 self._queue += (_dev_flags_head(_DEV_FLAGS, now, before, value, 1)
                                 + self._mm[TASK2_PARAMETER:_PARAMETER_END])
             else:
@@ -270,27 +289,35 @@ class Recorder:
 
     def settle(self) -> None:
         """The turn's exchange and its PDACK toggle, one event, queued at the end of the
-        turn, after the card rang its hosts (the device loop calls this after each turn):
-        the comparison of the areas is off the way of the host's next call. The areas are
-        as the exchange left them: SndPd as the card took it (``ProcessImage.outputs``:
-        the host may write the image's SndPd again as soon as it sees PDACK), RcvPd as
-        the card wrote it (only the next exchange writes it)."""
-        pending = self._exchange
-        if pending is None:
+        turn, after the card rang its hosts (the device loop calls this after each turn).
+        The areas are as the exchange left them: SndPd as the card took it
+        (``ProcessImage.outputs``: the host may write the image's SndPd again as soon as
+        it sees PDACK), RcvPd as the card wrote it (only the next exchange writes it);
+        copied only when the process image says they may have changed
+        (``ProcessImage.exchanged_changes``), else the writer gets no 7 KiB to compare."""
+        if not self._held:
             return
-        self._exchange = None
+        self._held = False
+        dev_before, self._dev_before = self._dev_before, -1
+        pending, self._exchange = self._exchange, None
+        if pending is None:  # the PD toggle of a turn that did not exchange
+            self._queue += _dev_flags_head(_DEV_FLAGS, self._dev_t, dev_before, self._dev, 0)
+            return
         before, after = pending
-        mm, outputs = self._mm, self._outputs
-        # unchanged: no copy, and the writer gets no 7 KiB to compare. ``find`` of the last
-        # snapshot over exactly its length compares in place, where a slice would allocate
-        # and fill 3.5 KiB first
-        if outputs == self._sent and mm.find(self._received, RCV_PD, _IO_END) == RCV_PD:
-            self._queue += (_exchange_head(_EXCHANGE, _monotonic(), before, after, 0)
-                            + mm[TASK2_STATE:_STATE_END])
+        mm, image = self._mm, self._image
+        assert image is not None  # hooks run only after start
+        changed = image.exchanged_changes
+        if dev_before < 0:
+            head = _exchange_head(_EXCHANGE, _monotonic(), before, after, changed)
         else:
-            self._sent, self._received = bytes(outputs), mm[RCV_PD:_IO_END]
-            self._queue += _join((_exchange_head(_EXCHANGE, _monotonic(), before, after, 1),
-                                  self._sent, self._received, mm[TASK2_STATE:_STATE_END]))
+            head = _dev_exchange_head(_DEV_FLAGS, self._dev_t, dev_before, self._dev, 0,
+                                      _EXCHANGE, _monotonic(), before, after, changed)
+        if changed:
+            image.exchanged_changes = False
+            self._queue += _join((head, image.outputs, mm[RCV_PD:_IO_END],
+                                  mm[TASK2_STATE:_STATE_END]))
+        else:
+            self._queue += head + mm[TASK2_STATE:_STATE_END]
 
     def frame(self, msg: can.Message, received: bool) -> None:
         """A frame the controller sent or received (any of its threads): queued as it is,
@@ -320,7 +347,7 @@ class Recorder:
         that the writer would have to merge (firmware/_mailbox.c says why). None: the
         Python turn records, while the ledger cannot be opened (``put`` reads no lines then
         and tries again at each message) or an exchange waits for ``settle``."""
-        if self._exchange is not None or (self._ledger < 0 and not self._open_ledger()):
+        if self._held or (self._ledger < 0 and not self._open_ledger()):
             return None
         return self, self._queue, self._ledger, self._dev
 

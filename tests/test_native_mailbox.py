@@ -287,7 +287,7 @@ def _attach(device: Device, session: Path) -> Recorder:
     """A recording of ``device`` into ``session``, attached between two turns, as ``cifemu
     record`` attaches one to a running card."""
     recorder = Recorder.create(session, device.board, "test")
-    recorder.start(device.files, device.mm, device.plc.image.outputs)
+    recorder.start(device.files, device.mm, device.plc.image)
     assert device.record(recorder) is None
     return recorder
 

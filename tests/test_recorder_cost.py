@@ -15,7 +15,7 @@ from __future__ import annotations
 import mmap
 import os
 import sys
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -26,10 +26,11 @@ from dpm import flags as fl
 from dpm import session as s
 from dpm.commands import COM_SHARED_MEMORY
 from dpm.image import CardDirectory, lock_path
-from dpm.layout import DPM_SIZE, IO_AREA_SIZE, RCV_PD, TASK2_PARAMETER, TASK2_STATE
+from dpm.layout import DPM_SIZE, SND_PD, TASK2_PARAMETER, TASK2_STATE, TASK_STATE_SIZE
 from dpm.ledger import END, LedgerLine
 from dpm.message import Message, Task
 from firmware import recorder as recorder_module
+from firmware.process_image import ProcessImage
 from firmware.recorder import Recorder
 from host_api.locks import LEDGER_BYTES
 
@@ -46,7 +47,7 @@ LINES_PER_ROUND_TRIP = 6
 class Recording:
     recorder: Recorder
     mm: mmap.mmap
-    outputs: bytearray
+    image: ProcessImage
     session: Path
     spool: int
     """The test's own descriptor of the spool: its size once the writer read it back."""
@@ -70,13 +71,13 @@ def recording(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Iterator[Recor
     spool = os.open(session, os.O_TMPFILE | os.O_RDWR, 0o600)
     files = CardDirectory(image_dir)
     mm = mmap.mmap(-1, DPM_SIZE)
-    outputs = bytearray(IO_AREA_SIZE)
+    image = ProcessImage(mm)
     try:
         recorder = Recorder(0, fds[0], fds[1], spool, "virtual")
         for fd in fds:
             os.close(fd)
-        recorder.start(files, mm, outputs)
-        yield Recording(recorder, mm, outputs, session, spool)
+        recorder.start(files, mm, image)
+        yield Recording(recorder, mm, image, session, spool)
     finally:
         os.close(spool)
         files.close()
@@ -159,6 +160,14 @@ def test_a_round_trip_puts_few_bytes_through_the_spool_and_all_of_it_is_written(
     assert records[-1].t == ROUND_TRIPS - 1
 
 
+def _exchange(recording: Recording, before: int, after: int) -> None:
+    """A process-data handshake as the device loop makes it: the process image's exchange,
+    the PDACK toggle, the end of the turn."""
+    recording.image.cycle()
+    recording.recorder.host_flags(before, after)
+    recording.recorder.settle()
+
+
 def test_exchanges_starts_and_frames_come_out_as_the_card_saw_them(
         recording: Recording) -> None:
     """The other events' packing: an exchange that changed the areas and one that did not
@@ -169,12 +178,10 @@ def test_exchanges_starts_and_frames_come_out_as_the_card_saw_them(
     mm[TASK2_STATE] = 0x42
     rec.dev_flags(fl.INIT, 1.0)  # a start: its parameter recorded
     rec.host_flags(0, fl.READY)
-    recording.outputs[3] = 0xA5
-    mm[RCV_PD + 7] = 0x5A
-    rec.host_flags(fl.READY, fl.READY | fl.PDACK)
-    rec.settle()
-    rec.host_flags(fl.READY | fl.PDACK, fl.READY)
-    rec.settle()  # unchanged
+    mm[SND_PD + 3] = 0xA5  # the host's outputs
+    recording.image.write_inputs(7, b"\x5a")  # the bus's inputs
+    _exchange(recording, fl.READY, fl.READY | fl.PDACK)
+    _exchange(recording, fl.READY | fl.PDACK, fl.READY)  # unchanged
     for n in range(3):
         rec.frame(can.Message(arbitration_id=0x180 + n, is_extended_id=False, data=[n],
                               timestamp=10.0 + n), n == 1)
@@ -191,3 +198,74 @@ def test_exchanges_starts_and_frames_come_out_as_the_card_saw_them(
     log = (recording.session / s.CAN_LOG).read_text().splitlines()
     assert [line.split()[2] for line in log] == ["180#00", "181#01", "182#02"]
     assert log[1].endswith(" R") and log[0].endswith(" T")
+
+
+def test_an_exchange_records_every_change_of_the_areas_and_copies_no_unchanged_one(
+        recording: Recording) -> None:
+    """The recorder copies the areas only at an exchange the process image marked
+    (``ProcessImage.exchanged_changes``): every way the areas change between two exchanges
+    still comes out (the host's SndPd, the bus's inputs, a COM_Shared_Memory write into the
+    send area, which changes the card's copy and the image at once, a flipped input bit),
+    and each unchanged exchange costs 27 bytes of spool instead of 7 KiB."""
+    rec, mm, image = recording.recorder, recording.mm, recording.image
+    ready, acked = fl.READY, fl.READY | fl.PDACK
+    steps: list[Callable[[], object]] = [
+        lambda: mm.__setitem__(SND_PD + 1, 0x11),
+        lambda: None,
+        lambda: image.write_inputs(2, b"\x22"),
+        lambda: None,
+        lambda: image.write_send_area(5, b"\x55"),
+        lambda: image.flip_inputs(2, 0x01, once=True),
+        lambda: None,  # the flip is over: the true bit again
+        lambda: None,
+    ]
+    sizes = []
+    for n, step in enumerate(steps):
+        step()
+        size = len(rec._queue)  # what one exchange queued
+        _exchange(recording, *((ready, acked) if n % 2 == 0 else (acked, ready)))
+        sizes.append(len(rec._queue) - size)
+    rec.close()
+    assert rec.complete
+    exchanges = [r.changes for r in s.decode_events((recording.session / s.EVENTS).read_text())
+                 if r.kind == s.EXCHANGE]
+    assert exchanges == [{"SndPd": [(1, b"\x11")]}, {}, {"RcvPd": [(2, b"\x22")]}, {},
+                         {"SndPd": [(5, b"\x55")]}, {"RcvPd": [(2, b"\x23")]},
+                         {"RcvPd": [(2, b"\x22")]}, {}]
+    unchanged = s.SPOOL_EXCHANGE.size + TASK_STATE_SIZE
+    assert [size == unchanged for size in sizes] == [False, True, False, True, False, False,
+                                                    False, True]
+
+
+
+def test_the_hosts_pd_toggle_is_queued_with_its_exchange_and_in_the_turns_order(
+        recording: Recording) -> None:
+    """The host's PD toggle that asks for an exchange is held until the end of the turn and
+    queued with the exchange in one append (one event's bytes fewer to pack); the session
+    still has its DevFlags line, at the turn's time, before the PDACK toggle and the
+    exchange. A toggle whose turn did not exchange is written at the turn's end; one
+    followed by another event of its turn (an answer) comes before it."""
+    rec, image = recording.recorder, recording.image
+    _, answer = _messages()
+    ready, acked = fl.READY, fl.READY | fl.PDACK
+    rec.dev_flags(fl.PDCOM, 1.0)  # the turn that exchanges
+    size = len(rec._queue)  # nothing queued until the turn's end
+    image.cycle()
+    rec.host_flags(ready, acked)
+    assert len(rec._queue) == size
+    rec.settle()
+    rec.dev_flags(0, 2.0)  # a toggle, no exchange in its turn
+    rec.settle()
+    rec.dev_flags(fl.PDCOM, 3.0)  # a toggle, then an answer in the same turn
+    rec.answer(answer, acked, acked ^ fl.HOSTCOM)
+    rec.settle()
+    rec.close()
+    assert rec.complete
+    records = s.decode_events((recording.session / s.EVENTS).read_text())
+    assert [r.kind for r in records] == [s.DEV_FLAGS, s.HOST_FLAGS, s.EXCHANGE, s.DEV_FLAGS,
+                                         s.DEV_FLAGS, s.ANSWER, s.HOST_FLAGS]
+    assert [(r.before, r.after) for r in records if r.kind == s.DEV_FLAGS] == [
+        (0, fl.PDCOM), (fl.PDCOM, 0), (0, fl.PDCOM)]
+    assert [r.t for r in records if r.kind == s.DEV_FLAGS] == [1.0, 2.0, 3.0]
+    assert (records[1].before, records[1].after) == (ready, acked)
+    assert records[2].state == recording.mm[TASK2_STATE : TASK2_STATE + TASK_STATE_SIZE]

@@ -155,7 +155,7 @@ def _serve(args: argparse.Namespace, network: Network | None, configure_path: Pa
         print(f"cifemu firmware: board {args.board} refused: {exc}", file=sys.stderr)
         return 1
     if recorder is not None:
-        recorder.start(device.files, device.mm, device.plc.image.outputs)
+        recorder.start(device.files, device.mm, device.plc.image)
         device.record(recorder)
 
     def on_signal(signum: int, frame: FrameType | None) -> None:
