@@ -429,15 +429,16 @@ def test_a_read_the_card_answers_too_late_is_a_time_out_and_the_next_is_served(
         assert c.ask(f"[8] set sdo_timeout {timeout}\n") == "[8] OK\r\n"
 
 
-def test_a_read_of_a_fixed_size_type_asks_the_card_in_the_seeds_short_form(
+def test_every_read_asks_the_card_in_the_long_form(
         servers: dict[str, BackgroundServer], directory: Path, connect: Connect) -> None:
-    """A read whose type has a fixed size (u32) reaches the card as the seed writes
-    COM_SDO_Up_Download (msg.e 0, one answer), which the card serves in its device loop's
-    turn in C; a read without a type keeps the long form (msg.e 4), which may be answered
-    in parts. The card's CPU per 309-3 read of a u32 was 225-245 µs in the long form, 125 µs
-    in the short one (issue 22). Read from the device mailbox in the image, where the
-    request stays after the card took it (a message the gateway sent meanwhile, such as an
-    event's COM_Node_Diag, is passed over)."""
+    """Every upload reaches the card in the long form (COM_SDO_Up_Download with msg.e 4,
+    answered in parts when one message cannot hold the value), typed or not, on the fast
+    path and through the blocking gateway call: the card's turn in C serves it, a value
+    that fits one message with the seed's one answer at the seed's form's cost (docs/dpm.md
+    section 3). From branch sdohost until branch gwlong a read of a fixed-size type was
+    asked in the seed's form (msg.e 0) and again in the long form after an f 51. Read from
+    the device mailbox in the image, where the request stays after the card took it (a
+    message the gateway sent meanwhile, such as an event's COM_Node_Diag, is passed over)."""
     c = connect("canopennode")
     gateway = servers["canopennode"].server.gateway
     with open(image_path(directory, 0), "r+b") as file, mmap.mmap(file.fileno(), 0) as image:
@@ -460,29 +461,36 @@ def test_a_read_of_a_fixed_size_type_asks_the_card_in_the_seeds_short_form(
                                       ) == (983441).to_bytes(4, "little")
 
         def untyped(n: int) -> None:
-            assert c.ask(f"[{n}] 1 read 0x1000 0\n").startswith(f"[{n}] ")
+            assert c.ask(f"[{n}] 1 read 0x1000 0\n") == f"[{n}] 91 01 0F 00\r\n"
 
-        assert forms(typed) == {0}
-        assert forms(blocking) == {0}
+        assert forms(typed) == {Ext.FIRST}
+        assert forms(blocking) == {Ext.FIRST}
         assert forms(untyped) == {Ext.FIRST}
 
 
-def test_a_typed_read_of_an_object_longer_than_one_message_shows_all_its_bytes(
+def test_a_typed_read_of_an_object_longer_than_its_type_shows_its_bytes_or_the_abort(
         servers: dict[str, BackgroundServer], connect: Connect) -> None:
-    """A u32 read of a 600-byte DOMAIN, asked in the short form (one answer), which the card
-    refuses (f 51), is asked again in the long form: the answer shows the object's bytes
-    as ``hex``, as a read that asked in the long form at once does (CANopenNode falls back
-    to hex for bytes that do not fit the type), on the fast path, through the blocking
-    gateway call, and for the next read."""
+    """A read as a fixed-size type of an object longer than that type on the node, one
+    message long (a u16 read of 1000h's four bytes) or longer (a u32 read of a 600-byte
+    DOMAIN): CANopenNode's dialect shows all the object's bytes as ``hex``, as a read
+    without a type does; Lely's answers the length mismatch with abort 06070010
+    (docs/cia309.md); the blocking gateway call returns all the bytes; the next read is
+    served as usual."""
     gateway = servers["canopennode"].server.gateway
     data = bytes(range(256)) * 2 + bytes(88)
     gateway.sdo_download(0x2000, 0, data, node_id=2, data_type=DataType.DOMAIN)
     c = connect("canopennode")
+    lely = connect("lely")
     whole = c.ask("[1] 2 read 0x2000 0 hex\n")
     assert whole.startswith("[1] ") and len(whole) > 3 * len(data)
     assert c.ask("[2] 2 read 0x2000 0 u32\n") == whole.replace("[1]", "[2]", 1)
     assert gateway.sdo_upload(0x2000, 0, node_id=2, data_type=DataType.UNSIGNED32) == data
-    assert c.ask("[3] 1 read 0x1000 0 u32\n") == "[3] 983441\r\n"
+    assert c.ask("[3] 1 read 0x1000 0 u16\n") == "[3] 91 01 0F 00\r\n"
+    mismatch = ("ERROR: 06070010 (Data type does not match, length of service parameter does "
+                "not match)\n")
+    assert lely.answer("[4] 2 read 0x2000 0 u32\n") == f"[4] {mismatch}"
+    assert lely.answer("[5] 1 read 0x1000 0 u16\n") == f"[5] {mismatch}"
+    assert c.ask("[6] 1 read 0x1000 0 u32\n") == "[6] 983441\r\n"
 
 
 def test_a_new_client_ends_the_one_idle_longest(connect: Connect) -> None:

@@ -130,16 +130,6 @@ PROTOCOL_VERSION = (2, 0)
 RTR_ANSWER_TIMEOUT = 1.0
 """[ours] seconds ``read_pdo_data`` waits for the answer to its remote frame."""
 
-ONE_MESSAGE_TYPES = frozenset(t for t in DataType if t.size is not None)
-"""Uploads read as these types are asked for in the seed's short form (msg.e 0, one answer
-of at most 247 bytes) [ours]: a type of a fixed size, whose value always fits. The card's
-device loop serves that form in its turn in C (``firmware/_mailbox.c``), the long form (e 4)
-in its Python turn: a 309-3 read of a u32 cost the card 225-245 µs of CPU in the long form,
-125 µs in the short one (docs/cia309.md). An object longer than its type (an error of the
-client's: the answer shows its bytes as ``hex``) is read twice, the second time in the long
-form (``Link._again``), so the answer stays the same. Strings, domains and reads without a
-type keep the long form."""
-
 PROGRAM_CONTROL = 0x1F51
 """CiA 302-3 program control of a remote controller: sub 1 takes these commands."""
 PROGRAM_STOP, PROGRAM_START, PROGRAM_RESET = 0, 1, 2
@@ -344,7 +334,7 @@ class Gateway:
         link = self._link(network)
         node = self._node(node_id)
         _check_partial(data_type, offset, length)
-        data = self._upload(link, node, index, subindex, data_type in ONE_MESSAGE_TYPES)
+        data = self._upload(link, node, index, subindex)
         if offset or length is not None:
             end = None if length is None else offset + length
             return data[offset:end]
@@ -415,8 +405,8 @@ class Gateway:
         return TELEGRAM_HEADER.pack(node, 0, index, subindex, count, 0, function)
 
     def try_sdo_upload(self, index: int, subindex: int, on_done: Callable[[], None], *,
-                       network: int | None = None, node_id: int | None = None,
-                       data_type: DataType | None = None) -> SdoUploadInFlight | None:
+                       network: int | None = None, node_id: int | None = None
+                       ) -> SdoUploadInFlight | None:
         """``sdo_upload`` of a whole object for a caller that cannot block (the 309-3
         server's event loop): sent now, ``on_done`` called from the mailbox reader's thread
         once the answer is there, then ``SdoUploadInFlight.result``. None, with nothing
@@ -425,10 +415,8 @@ class Gateway:
         node = self._node(node_id)
         head = self._sdo_header(node, index, subindex, 0, Tfc.READ)
         progress = functools.partial(self._upload_progress, link, node, [0])
-        short = data_type in ONE_MESSAGE_TYPES  # a set, not a function: a call less per read
         flight = link.try_request(COM_SDO_UP_DOWNLOAD, head, self._timeout(), on_done,
-                                  multipart=True, e=0 if short else Ext.FIRST,
-                                  on_part=progress, sdo_node=node, long_if_needed=short)
+                                  multipart=True, e=Ext.FIRST, on_part=progress, sdo_node=node)
         return None if flight is None else SdoUploadInFlight(flight, node, index, subindex)
 
     def _upload_progress(self, link: Link, node: int, transferred: list[int], msg: Message
@@ -440,17 +428,16 @@ class Gateway:
         transferred[0] += max(0, len(msg.data) - TelegramHeader.SIZE)
         self._core.events.emit(SdoProgressEvent(link.network, node, True, transferred[0]))
 
-    def _upload(self, link: Link, node: int, index: int, subindex: int,
-                short: bool = False) -> bytes:
-        """The object's data, asked for in the long form (e 4: several answers when one
-        cannot hold it), or with ``short`` in the seed's form (e 0, one answer) and again in
-        the long form should the card answer f 51 (``ONE_MESSAGE_TYPES``)."""
+    def _upload(self, link: Link, node: int, index: int, subindex: int) -> bytes:
+        """The object's data, asked for in the long form (msg.e 4: one answer when one
+        message holds it, else several), whatever its type: the card's device loop serves
+        it in its turn in C, a value that fits one message at the cost of the seed's form
+        (msg.e 0; docs/dpm.md section 3)."""
         head = self._sdo_header(node, index, subindex, 0, Tfc.READ)
         progress = functools.partial(self._upload_progress, link, node, [0])
         with link.sdo_channel(node, self._timeout()):
             answers = link.request(COM_SDO_UP_DOWNLOAD, head, self._timeout(), multipart=True,
-                                   e=0 if short else Ext.FIRST, on_part=progress,
-                                   long_if_needed=short)
+                                   e=Ext.FIRST, on_part=progress)
         return _upload_data(answers, _upload_what(node, index, subindex))
 
     def _download(self, link: Link, node: int, index: int, subindex: int, data: bytes) -> None:

@@ -105,9 +105,6 @@ ABANDONED_NR_S = 60.0
 """A message number whose caller gave up stays reserved this long for its late answer."""
 TRANSACTION_LOCK_WAIT_S = 5.0
 RESET_TIMEOUT_MS = 10000
-AGAIN_PUT_TIMEOUT_S = 0.1
-"""How long the mailbox's reader tries to send a short upload again in the long form
-(``Link._again``) while the card's mailbox is full: it empties within a device loop turn."""
 
 _F_ERRORS: dict[int, ErrorCode] = {
     F_NO_RESPONSE: ErrorCode.TIME_OUT,
@@ -241,10 +238,6 @@ class _Pending:
     abandoned_at: float | None = None
     on_done: Callable[[], None] | None = None
     """Called in the reader thread once the answer is complete (``Link.try_request``)."""
-    again: bytes | None = None
-    """An upload sent in the seed's short form (msg.e 0, ``long_if_needed``): its data, to
-    send once more in the long form when the card answers that one message cannot hold
-    the object (f 51)."""
 
     def deliver(self, msg: Message) -> None:
         self.messages.append(msg)
@@ -834,23 +827,7 @@ class Link:
                 if self._pending.get(msg.nr) is pending:
                     del self._pending[msg.nr]
             return
-        if pending.again is not None and msg.f == F_RECEIVE_BUFFER_OVERSTEPPED:
-            self._again(msg, pending)
-            return
         pending.deliver(msg)
-
-    def _again(self, msg: Message, pending: _Pending) -> None:
-        """A short upload the card answered with f 51 (one message cannot hold the object):
-        sent again in the long form (msg.e FIRST) under the same number [ours], whose
-        answer is the request's; ``msg`` is, when the card's mailbox stays full."""
-        data, pending.again = pending.again, None
-        assert data is not None
-        code = _put(self._put_now, Message(rx=Task.CAN, tx=Task.USER, b=pending.b, data=data,
-                                         nr=msg.nr, e=Ext.FIRST), AGAIN_PUT_TIMEOUT_S)
-        if code != Drv.DRV_NO_ERROR:
-            log.warning("board %d: the long form of upload %d not sent (%d)", self.number,
-                        msg.nr, code)
-            pending.deliver(msg)
 
     def request(
         self,
@@ -861,16 +838,10 @@ class Link:
         e: int = 0,
         multipart: bool = False,
         on_part: Callable[[Message], None] | None = None,
-        long_if_needed: bool = False,
     ) -> list[Message]:
-        """Send one CAN-task command and wait for its answer (several for a long upload).
-
-        ``long_if_needed``: an SDO upload sent with ``e`` 0 whose answer the caller expects
-        to fit one message; should the card answer f 51, it is sent again in the long form
-        (``_again``)."""
+        """Send one CAN-task command and wait for its answer (several for a long upload)."""
         with self.gate.shared():
-            nr, pending = self._register(b, multipart, on_part,
-                                         again=data if long_if_needed else None)
+            nr, pending = self._register(b, multipart, on_part)
             try:
                 msg = Message(rx=Task.CAN, tx=Task.USER, b=b, data=data, nr=nr, e=e)
                 code = _put(self._put_now, msg, timeout)
@@ -912,7 +883,6 @@ class Link:
         multipart: bool = False,
         on_part: Callable[[Message], None] | None = None,
         sdo_node: int | None = None,
-        long_if_needed: bool = False,
     ) -> InFlight | None:
         """``request`` for a caller that cannot block (the 309-3 server's event loop): the
         command is sent and ``on_done`` called from the reader thread once its answer is
@@ -933,8 +903,7 @@ class Link:
                 self.gate.leave_shared()
                 return None
         try:
-            nr, pending = self._register(b, multipart, on_part, wait=False,
-                                         again=data if long_if_needed else None)
+            nr, pending = self._register(b, multipart, on_part, wait=False)
         except BaseException:
             if channel is not None:
                 channel.release()
@@ -1007,9 +976,9 @@ class Link:
 
     def _register(
         self, b: int, multipart: bool, on_part: Callable[[Message], None] | None,
-        *, wait: bool = True, again: bytes | None = None,
+        *, wait: bool = True,
     ) -> tuple[int, _Pending]:
-        """A number for a request and its entry (``again``: ``_Pending.again``). Without a
+        """A number for a request and its entry. Without a
         lock or a clock read on the usual path (under User-Mode Linux each is a system
         call): a number is claimed with one ``setdefault`` (one step under the interpreter
         lock); only numbers given up on are looked at under the lock, for the time they stay
@@ -1026,8 +995,7 @@ class Link:
                     else:
                         left += 1
                 self._abandoned = left
-        pending = _Pending(b, multipart, on_part, done=threading.Event() if wait else None,
-                           again=again)
+        pending = _Pending(b, multipart, on_part, done=threading.Event() if wait else None)
         for _ in range(255):
             nr = next(self._numbers)
             if self._pending.setdefault(nr, pending) is pending:

@@ -963,7 +963,7 @@ class Server:
                 flight = client.gateway.try_sdo_upload(
                     prepared.index, prepared.subindex,
                     functools.partial(self._on_loop, _resolve, answered), network=prepared.net,
-                    node_id=prepared.node, data_type=prepared.dtype)
+                    node_id=prepared.node)
             except Cia309Error as exc:
                 return dispatcher.failure(prepared, exc)
             if flight is not None:
@@ -1038,7 +1038,7 @@ class Server:
             flight = client.gateway.try_sdo_upload(
                 prepared.index, prepared.subindex,
                 functools.partial(self._on_loop, self._fast_done, connection, fast),
-                network=prepared.net, node_id=prepared.node, data_type=prepared.dtype)
+                network=prepared.net, node_id=prepared.node)
         except Cia309Error as exc:
             self._fast_answer(connection, dispatcher.failure(prepared, exc))
             return True
