@@ -101,12 +101,7 @@ class Message:
     @classmethod
     def decode(cls, raw: bytes | bytearray | memoryview) -> Message:
         """Read a message from the start of ``raw`` (a mailbox slot or a copy)."""
-        if len(raw) < MSG_HEADER_SIZE:
-            raise MessageError(f"{len(raw)} bytes is shorter than a message header")
-        rx, tx, ln, nr, a, f, b, e = HEADER.unpack_from(raw)
-        if len(raw) < MSG_HEADER_SIZE + ln:
-            raise MessageError(f"msg.ln = {ln} but only {len(raw) - 8} data bytes")
-        return cls(rx, tx, b, bytes(raw[MSG_HEADER_SIZE : MSG_HEADER_SIZE + ln]), nr, a, f, e)
+        return cls.decode_at(raw, 0)
 
     @classmethod
     def decode_at(cls, buffer: bytes | bytearray | memoryview | mmap.mmap,

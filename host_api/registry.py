@@ -160,6 +160,21 @@ class MappedBoard:
         else:
             _change_flags(self.mm, DEV_FLAGS, set_bits, clear_bits, toggle)
 
+    def take_rings(self, timeout: float, wake: int = -1) -> int:
+        """The host's wait on its doorbell (``HostBell.wait`` in one call: ppoll, then every
+        queued ring in one recvmmsg, where select, recvfrom and select were; issue 22):
+        ``_devflags.wait_ring``'s answer, ``wake`` a thread's own wake-up pipe watched
+        beside the bell (the CiA 309 gateway's reader). A ring taken counts as the driver's
+        interrupt (DevGetInfo), and the last one's byte says whether the device wants a ring
+        on HOSTACK (``HostBell.device_wants_ack``)."""
+        bell = self.bell
+        ring = _wait_ring(bell.sock.fileno(), timeout, wake)
+        if ring >= 0:
+            self.counters.irq += 1
+            if ring:
+                bell.device_wants_ack = ring == WANT_ACK
+        return ring
+
     def wait_for(self, condition: Callable[[], bool], timeout_ms: int,
                  before_sleep: Callable[[], None] | None = None) -> bool:
         """Wait on the bell (polling as a fallback) until ``condition`` or the timeout;
@@ -184,18 +199,11 @@ class MappedBoard:
                 return True
         if before_sleep is not None:
             before_sleep()
-        bell = self.bell
         while True:
             remaining = deadline - time.monotonic()
             if remaining <= 0:
                 return condition()
-            # HostBell.wait in one call: ppoll, then every queued ring in one recvmmsg
-            # (select, recvfrom and select before; issue 22)
-            ring = _wait_ring(bell.sock.fileno(), min(remaining, POLL_INTERVAL))
-            if ring >= 0:
-                self.counters.irq += 1
-                if ring:
-                    bell.device_wants_ack = ring == WANT_ACK
+            self.take_rings(min(remaining, POLL_INTERVAL))
             if condition():
                 if skipped and time.monotonic() - start < SPIN_SECONDS:
                     self.spin_misses = self.spin_skip = 0  # a watch would have seen it
