@@ -197,15 +197,11 @@ class HostSdo:
         data = result.data
         if (function == Tfc.READ and not result.timed_out and result.abort is None
                 and len(data) <= SDO_MAX_DATA):
-            # the usual answer, an upload's data in one message, packed and kept here: the
-            # calls of ``encode_answer`` and ``_give`` more per transfer otherwise
+            # the usual answer, an upload's data in one message, packed here: a call of
+            # ``encode_answer`` more per transfer otherwise
             body = TELEGRAM_HEADER.pack(address, 0, index, subindex, len(data), 0, function) + data
-            answer = HEADER.pack(raw[1], raw[0], len(body), raw[3], raw[6], 0, 0, 0) + body
-            with self._kept_lock:
-                if number == self._open:
-                    self._kept.append(answer)
-                    return
-            self.card.post(answer)
+            self._give(number, HEADER.pack(raw[1], raw[0], len(body), raw[3], raw[6], 0, 0, 0)
+                       + body)
             return
         head = TelegramHeader(address, 0, index, subindex, 0, 0, function)
         if result.timed_out:
