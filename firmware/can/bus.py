@@ -614,14 +614,14 @@ def socketcan_take(bus: can.BusABC) -> Callable[[], can.Message | None] | None:
     c = socketcan_constants
 
     def take() -> can.Message | None:
-        header.msg_controllen = control_size
-        got = recvmsg(fd, header_ref, 0)
-        while got < 0:
+        while True:  # again after a signal (EINTR), as python-can's recv does
+            header.msg_controllen = control_size
+            got = recvmsg(fd, header_ref, 0)
+            if got >= 0:
+                break
             error = ctypes.get_errno()
             if error != errno.EINTR:  # python-can's recv raises the same
                 raise can.CanOperationError(f"Error receiving: {os.strerror(error)}", error)
-            header.msg_controllen = control_size
-            got = recvmsg(fd, header_ref, 0)
         raw = frame.raw[:got]
         can_id, dlc, flags, data = dissect_can_frame(raw)
         stamp = (control.tv_sec + control.tv_nsec * 1e-9
