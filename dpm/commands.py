@@ -13,6 +13,7 @@ import struct
 from enum import IntEnum
 
 from dpm.errors import CanF, NodeEvent
+from dpm.message import Task
 
 
 class Rcs(IntEnum):
@@ -83,6 +84,17 @@ class Com(IntEnum):
     SET_NODE_ID = 115
     BOOTUP_FORWARDING = 116
     BOOTUP_INDICATION = 117
+
+
+UNANSWERED = frozenset({(int(Task.CAN), int(Com.TX_CAN_LAYER2))})
+"""(msg.rx, msg.b) of the requests the card does not answer, whatever msg.e says:
+COM_Tx_CAN_Layer2 ("The message itself does not have any answer message", seed 5.3.1;
+its table still reads msg.e 0). [ours] One the card cannot execute (no well-formed frame)
+is answered with its msg.f, as an error always is (docs/dpm.md section 3), as is one sent
+with msg.e NAK (RCS_NAK_MSK, ``Ext.NAK``), which asks for no answer when all goes well
+(seed 5.2.10.2). So the drivers' ledgers await no answer for either (``host_api.locks``,
+libcif/src/chanlock.c, whose ``UNANSWERED_RX`` and ``UNANSWERED_B`` in libcif/src/dpm.h
+are this set's one member, checked by tests/test_libcif_headers.py)."""
 
 
 class Nmt(IntEnum):
