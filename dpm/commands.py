@@ -13,6 +13,7 @@ import struct
 from enum import IntEnum
 
 from dpm.errors import CanF, NodeEvent
+from dpm.message import Task
 
 
 class Rcs(IntEnum):
@@ -83,6 +84,17 @@ class Com(IntEnum):
     SET_NODE_ID = 115
     BOOTUP_FORWARDING = 116
     BOOTUP_INDICATION = 117
+
+
+UNANSWERED = frozenset({(int(Task.CAN), int(Com.TX_CAN_LAYER2))})
+"""(msg.rx, msg.b) of the requests the card does not answer, whatever msg.e:
+COM_Tx_CAN_Layer2 (seed 5.3.1, "The message itself does not have any answer message";
+its table gives msg.e 0, "extension, not used"). [ours] The emulated card answers one it
+cannot execute (no well-formed frame) with its msg.f, as it answers every error, even to a
+request sent with msg.e NAK (RCS_NAK_MSK: no answer when all goes well, seed 5.2.10). The
+drivers' ledgers await no answer to a request of this set nor to one with the NAK bit
+(``host_api.locks``; libcif/src/chanlock.c, with this set's one member as ``UNANSWERED_RX``
+and ``UNANSWERED_B`` in libcif/src/dpm.h, checked by tests/test_libcif_headers.py)."""
 
 
 class Nmt(IntEnum):

@@ -19,8 +19,10 @@ board's transaction lock for this process until its answer is read
 (``host_api.locks.Transaction``, the lock libcif takes), so processes that pair
 raw DevPutMessage/DevGetMessage calls, Python or C, never read each other's
 answers, and the answers of a host that died or gave up waiting are discarded,
-never returned. Threads of one process that pair raw calls can still read each
-other's answers; ``Board.transact`` pairs them atomically.
+never returned. A request the card does not answer (COM_Tx_CAN_Layer2:
+``dpm.commands.UNANSWERED``; or one with msg.e NAK) takes the lock for its call
+only. Threads of one process that pair raw calls can still read each other's
+answers; ``Board.transact`` pairs them atomically.
 """
 
 from __future__ import annotations

@@ -12,12 +12,17 @@ inside the transaction lock, so no other process can be inside them.
 together: a host process holds its flock from a DevPutMessage until that
 request is answered. Its file is the ledger of the requests whose answers are
 awaited, one line each (``dpm.ledger``), the same as libcif's (libcif/src/chanlock.c).
+A request the card does not answer when all goes well (COM_Tx_CAN_Layer2,
+``dpm.commands.UNANSWERED``, or one sent with msg.e NAK) awaits nothing and goes
+unrecorded, so the lock goes back with its call, as the real driver keeps none.
 The kernel frees the flock of a host that dies; the next holder finds the dead
 host's requests in the ledger and discards their answers when they come. A host
 whose DevGetMessage timed out lets the lock go when no other call of it is
 inside: its late answers are its own while it holds the lock again, and
 another host's to discard once that host has taken it. So a host never reads an
-answer to a request it did not send.
+answer to a request it did not send, except the error answer to an unrecorded one (the
+card could not execute it): no request's, it comes to whichever host reads it, as an
+indication does.
 
 After ``os.fork`` the child has lock files of its own (``reopen_after_fork``):
 an inherited descriptor would share its flocks with the parent.
@@ -38,6 +43,7 @@ from types import TracebackType
 from typing import NamedTuple
 
 from dpm._quicklock import Lock as QuickLock
+from dpm.commands import UNANSWERED
 from dpm.ledger import END, LINE, decode_line
 from dpm.message import Ext, Message
 from host_api.holders import Holder, lock_holder
@@ -297,10 +303,12 @@ class Transaction:
             self._own, self._stale = [], []  # the file keeps them for the next holder
 
     def sent(self, msg: Message) -> None:
-        """Before the request reaches the card: recorded in the ledger (one with the NAK
-        bit is answered only when it fails: none is awaited)."""
+        """Before the request reaches the card: recorded in the ledger, unless the card
+        answers it only when it fails (``dpm.commands.UNANSWERED``, or the NAK bit): an
+        answer awaited that never comes would keep the board from every other host until
+        a get of this one timed out."""
         e = msg.e
-        if e & _NAK:
+        if e & _NAK or (msg.rx, msg.b) in UNANSWERED:
             return
         sequence = e & _SEQ_MASK
         request = _new_request(Request, (self._pid, self._owner, msg.nr, msg.b, msg.rx,

@@ -160,6 +160,14 @@ def test_the_flag_bits_the_driver_uses_are_dpm_flags() -> None:
         assert int(match.group(1), 16) == getattr(fl, name), name
 
 
+def test_the_request_libcif_awaits_no_answer_to_is_dpms() -> None:
+    """libcif's ledger skips the request dpm says the card does not answer: the one pair in
+    its source is ``dpm.commands.UNANSWERED``, which a second member would make fail."""
+    source = (ROOT / "libcif" / "src" / "dpm.h").read_text()
+    rx, b = (re.search(rf"#define\s+UNANSWERED_{name}\s+(\d+)", source) for name in ("RX", "B"))
+    assert rx and b
+    assert {(int(rx.group(1)), int(b.group(1)))} == cmd.UNANSWERED
+
 def _compile_and_run(tmp_path: Path, program: str) -> str:
     cc = shutil.which("cc") or shutil.which("gcc")
     if cc is None:

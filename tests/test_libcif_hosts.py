@@ -296,6 +296,60 @@ def test_a_timed_out_gets_late_answer_reaches_no_other_host(
     assert wrong == []
 
 
+# --- requests the card does not answer ------------------------------------------------------
+
+
+SILENT_HOST = """
+import sys
+from dpm.commands import COM_TX_CAN_LAYER2
+from dpm.message import Message, Task
+from host_api import driver as d
+from tests.libcif_host import CDriver
+
+driver = d if sys.argv[2] == "python" else CDriver()
+assert driver.DevOpenDriver(sys.argv[1]) == 0 and driver.DevInitBoard(0) == 0
+frame = bytes([0x300 >> 3, 0x01, 0x77])  # identifier 300h, DLC 1, one data byte
+send = Message(rx=Task.CAN, tx=Task.USER, b=COM_TX_CAN_LAYER2, nr=7, data=frame)
+print(driver.DevPutMessage(0, send, 5000), flush=True)
+sys.stdin.readline()  # reads nothing meanwhile: the card sends no answer (seed 5.3.1)
+"""
+
+ROUND_TRIP_MS = 3000
+"""The second host's time-outs: a round trip takes milliseconds; waiting for a board that
+another host keeps takes all of it and ends in -4."""
+
+
+@pytest.mark.parametrize(("first", "second"),
+                         [("python", "python"), ("c", "c"), ("python", "c"), ("c", "python")])
+def test_a_layer2_send_that_nobody_answers_keeps_no_other_host_waiting(
+        built: None, card: Card, first: str, second: str) -> None:
+    """A host sends COM_Tx_CAN_Layer2 with msg.e 0 (as the seed's table has it), which the
+    card never answers (seed 5.3.1), and reads nothing. Another host's round trip goes
+    through at once. Before, the first host's driver recorded the send in the ledger as a
+    request awaited and kept the board's transaction lock for it until a DevGetMessage of
+    that host timed out: the second host's DevPutMessage got -4 (DRV_CMD_ACTIVE) after its
+    whole time-out, as long as the first host lived without reading."""
+    host = subprocess.Popen([sys.executable, "-c", SILENT_HOST, str(card.directory), first],
+                            stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, cwd=ROOT)
+    assert host.stdin is not None and host.stdout is not None
+    try:
+        assert host.stdout.readline() == f"{Drv.DRV_NO_ERROR}\n"
+        driver: Any = d if second == "python" else CDriver()
+        assert driver.DevOpenDriver(card.directory) == 0 and driver.DevInitBoard(0) == 0
+        try:
+            put = driver.DevPutMessage(0, tagged(5), ROUND_TRIP_MS)
+            rc, got = driver.DevGetMessage(0, 288, ROUND_TRIP_MS)
+        finally:
+            while driver.DevCloseDriver() == 0:
+                pass
+    finally:
+        host.stdin.close()  # the first host ends
+        commands.wait(host, 30)
+    assert put == Drv.DRV_NO_ERROR
+    assert rc == Drv.DRV_NO_ERROR and tag_of(got) == 5
+    assert host.returncode == 0
+
+
 # --- forks ----------------------------------------------------------------------------------
 
 

@@ -952,7 +952,8 @@ class Link:
         lock for its lifetime, so nothing gives it up), and every later mailbox answer was
         compared with each such entry and rewrote all of them into the ledger file: 41 more
         Python calls and a pwrite per 309-3 read after 13 LSS or layer-2 sends, up to 128
-        entries (issue 22)."""
+        entries (issue 22). Since branch ledger the drivers await no answer to b 84 whatever
+        msg.e (``dpm.commands.UNANSWERED``); the NAK stays, as what the card does."""
         with self.gate.shared():
             msg = Message(rx=Task.CAN, tx=Task.USER, b=b, data=data, e=Ext.NAK)
             code = _put(self._put_now, msg, 1.0)

@@ -3,6 +3,7 @@
 #define _GNU_SOURCE
 #endif
 #include "chanlock.h"
+#include "dpm.h"
 #include "holder.h"
 
 #include <errno.h>
@@ -319,7 +320,10 @@ static void drop_sequence_start(cifemu_txn *txn, const cifemu_request *next) {
 
 void cifemu_txn_sent(cifemu_txn *txn, const unsigned char *header) {
   cifemu_request r;
-  if (header[7] & NAK_MASK) return; /* answered only when it fails: none is awaited */
+  /* answered only when it fails: none is awaited, and an answer awaited that never came
+     would keep every other host off the board until a get of this one timed out */
+  if ((header[7] & NAK_MASK) || (header[0] == UNANSWERED_RX && header[6] == UNANSWERED_B))
+    return;
   r.pid = txn->pid;
   r.owner = txn->owner;
   r.rx = header[0];

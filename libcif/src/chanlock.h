@@ -94,7 +94,8 @@ int cifemu_txn_enter(cifemu_txn *txn, unsigned long timeout_ms);
 /* The call ends: the lock is given back when no call is inside and no answer is awaited
    (answers a timed-out get gave up on do not keep it). */
 void cifemu_txn_leave(cifemu_txn *txn);
-/* Before the request (MSG_STRUC's first 8 bytes) goes to the card: recorded in the ledger. */
+/* Before the request (MSG_STRUC's first 8 bytes) goes to the card: recorded in the ledger,
+   unless the card answers it only when it fails (msg.e NAK, or UNANSWERED_RX/_B in dpm.h). */
 void cifemu_txn_sent(cifemu_txn *txn, const unsigned char *header);
 /* Whether the answer in the mailbox (its first 8 bytes) is one to discard. */
 int cifemu_txn_is_stale(cifemu_txn *txn, const unsigned char *header);

@@ -1,8 +1,9 @@
 /*
- * dpm.h - the 8 KiB image's offsets and flag bits, as libcif uses them.
+ * dpm.h - the 8 KiB image's offsets and flag bits, and the request the card does not
+ * answer, as libcif uses them.
  *
- * The numbers are those of the project's card header (dpm/layout.py, dpm/flags.py);
- * tests/test_libcif_headers.py checks each one against it.
+ * The numbers are those of the project's card header (dpm/layout.py, dpm/flags.py,
+ * dpm/commands.py); tests/test_libcif_headers.py checks each one against it.
  */
 #ifndef CIFEMU_DPM_H
 #define CIFEMU_DPM_H
@@ -60,5 +61,11 @@
 #define CH_DEV_MBX   0x02
 #define CH_PD        0x04
 #define CH_STATE     0x08
+
+/* The request the card does not answer, whatever msg.e (dpm/commands.py UNANSWERED, seed
+   5.3.1): COM_Tx_CAN_Layer2 to the CAN task. Like one sent with msg.e NAK it is answered
+   only when it fails, so the ledger awaits no answer to it (chanlock.c). */
+#define UNANSWERED_RX 3
+#define UNANSWERED_B  84
 
 #endif
