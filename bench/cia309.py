@@ -8,6 +8,10 @@ One round trip is an expedited SDO upload of 1000h from a generic simulated node
 3. baseline: python ``canopen``'s SDO client straight to the same simulated node on a
    virtual bus in this process, with no card between them.
 
+``tcp_309_3_write`` is the write: ``[n] 1 write 0x6200 1 u8 0`` (an expedited SDO download of
+an output byte of the generic I/O module, which the server sends from its event loop as it
+does a read) against canopen's SdoClient download of the same object.
+
 Two references bound what the TCP path can reach: ``tcp_empty_line``, the same client's
 round trip of an empty line, which the server answers without the gateway (the TCP and
 asyncio floor), and ``ceiling_tcp_to_baseline``, the ratio the TCP path would have if it
@@ -65,6 +69,10 @@ NODE = 1
 DEVICE_TYPE = (0x000F0191).to_bytes(4, "little")
 ANSWER = b"983441\r\n"
 """1000h of the generic module as the CANopenNode dialect prints it (after the sequence)."""
+OUTPUT = (0x6200, 1)
+"""What the writes write 0 to: the generic module's first output byte, which nothing else
+on the bench network depends on (a write of 1017h, the heartbeat producer time, costs the
+node several times more, and 0 there ends its heartbeat: guarding fails after 2 s)."""
 FAILED = 1
 BATCH = 250
 """Reads per batch when a path and the baseline take turns."""
@@ -79,10 +87,18 @@ class _LineClient:
         self._sequence = 0
 
     def read(self) -> int:
+        return self._ask(f"{NODE} read 0x1000 0 u32", ANSWER)
+
+    def write(self) -> int:
+        index, subindex = OUTPUT
+        return self._ask(f"{NODE} write 0x{index:04X} {subindex} u8 0", b"OK\r\n")
+
+    def _ask(self, request: str, expected: bytes) -> int:
+        """``request`` with the next sequence number; 0 when answered ``expected``."""
         self._sequence = self._sequence % 1_000_000 + 1
-        self._socket.sendall(f"[{self._sequence}] {NODE} read 0x1000 0 u32\n".encode())
+        self._socket.sendall(f"[{self._sequence}] {request}\n".encode())
         answer = self._answer()
-        return 0 if answer == f"[{self._sequence}] ".encode() + ANSWER else FAILED
+        return 0 if answer == f"[{self._sequence}] ".encode() + expected else FAILED
 
     def empty(self) -> int:
         """An empty line; the server answers it with one (CANopenNode: cocomm -f waits)."""
@@ -112,16 +128,25 @@ def baseline_step(sdo: SdoClient) -> Step:
     return upload
 
 
-def measure_card(count: int, warmup: int, baseline: Step
-                 ) -> tuple[Measured, Measured, Measured, Measured, Measured,
-                            dict[str, float]]:
-    """(gateway, its baseline, tcp, its baseline, tcp empty line, CPU per TCP read) against
-    one card, each path in turns with ``baseline``: the server's event-loop thread (which
-    serves a read whole, issue 22) and the card's process, and the loop thread's and the
-    card's threads' wake-ups (voluntary context switches) per read: on this VM each costs
-    50-150 us of wall time and 100-200 us of CPU, so they bound the read as much as the
-    interpreter's work does. Both sleep while the baseline's batches run, so their CPU
-    counts the TCP reads."""
+def baseline_write_step(sdo: SdoClient) -> Step:
+    """One expedited download of ``OUTPUT`` by canopen's SDO client straight to the node."""
+
+    def download() -> int:
+        sdo.download(*OUTPUT, b"\0")
+        return 0
+
+    return download
+
+
+def measure_card(count: int, warmup: int, baseline: Step, baseline_write: Step
+                 ) -> tuple[dict[str, Measured], dict[str, float]]:
+    """The paths against one card, each in turns with its canopen baseline (``baseline``,
+    ``baseline_write``), by name, and the CPU of TCP reads and writes: the server's
+    event-loop thread (which serves a read or an expedited write whole, issue 22) and the
+    card's process, and the loop thread's and the card's threads' wake-ups (voluntary
+    context switches) per request: on this VM each costs 50-150 us of wall time and
+    100-200 us of CPU, so they bound a request as much as the interpreter's work does.
+    Both sleep while the baseline's batches run, so their CPU counts the TCP requests."""
     description = network_toml([NODE])
     accepted = frozenset({0})
     with simulated_card(description) as card:
@@ -138,33 +163,32 @@ def measure_card(count: int, warmup: int, baseline: Step
                     return FAILED
 
             progress("timing the gateway, in turns with canopen")
-            direct, direct_base = measure_alternating([upload, baseline], count, warmup,
-                                                      accepted, BATCH)
+            measured: dict[str, Measured] = {}
+            measured["gateway"], measured["gateway_baseline"] = measure_alternating(
+                [upload, baseline], count, warmup, accepted, BATCH)
             server = BackgroundServer(gateway, ServerConfig(port=0))
             client = _LineClient(server.port)
             try:
                 progress("timing the 309-3 TCP server, in turns with canopen")
-                loop_thread = _server_thread()
-                before = _cpu_ns(loop_thread, card.proc.pid)
-                woken = thread_wakeups(os.getpid()).get(loop_thread, 0)
-                card_woken = sum(thread_wakeups(card.proc.pid).values())
-                tcp, tcp_base = measure_alternating([client.read, baseline], count, warmup,
-                                                    accepted, BATCH)
-                after = _cpu_ns(loop_thread, card.proc.pid)
-                woken = thread_wakeups(os.getpid()).get(loop_thread, 0) - woken
-                card_woken = sum(thread_wakeups(card.proc.pid).values()) - card_woken
-                calls = warmup + count
-                cpu_us = {
-                    "server_loop_cpu_us_per_read": round((after[0] - before[0]) / calls / 1e3, 1),
-                    "server_loop_wakeups_per_read": round(woken / calls, 2),
-                    "card_cpu_us_per_read": round((after[1] - before[1]) / calls / 1e3, 1),
-                    "card_wakeups_per_read": round(card_woken / calls, 2)}
+                cpu_us: dict[str, float] = {}
+                for name, step, base in (("read", client.read, baseline),
+                                         ("write", client.write, baseline_write)):
+                    before = _server_counts(card.proc.pid)
+                    measured[f"tcp_{name}"], measured[f"tcp_{name}_baseline"] = (
+                        measure_alternating([step, base], count, warmup, accepted, BATCH))
+                    after = _server_counts(card.proc.pid)
+                    for key, total in after.items():
+                        per_request = (total - before[key]) / (warmup + count)
+                        if key.endswith("_ns"):
+                            cpu_us[f"{key[:-3]}_us_per_{name}"] = round(per_request / 1e3, 1)
+                        else:
+                            cpu_us[f"{key}_per_{name}"] = round(per_request, 2)
                 progress("timing the 309-3 TCP server's empty line (no gateway)")
-                empty = measure(client.empty, count, warmup, accepted)
+                measured["empty"] = measure(client.empty, count, warmup, accepted)
             finally:
                 client.close()
                 server.close()
-    return direct, direct_base, tcp, tcp_base, empty, cpu_us
+    return measured, cpu_us
 
 
 def _server_thread() -> int:
@@ -175,9 +199,14 @@ def _server_thread() -> int:
     raise RuntimeError("no cia309-server thread")
 
 
-def _cpu_ns(thread: int, card_pid: int) -> tuple[int, int]:
-    """CPU nanoseconds so far of the server's loop thread and of the card's process."""
-    return thread_cpu_ns(os.getpid()).get(thread, 0), stat_cpu_ns(card_pid)
+def _server_counts(card_pid: int) -> dict[str, int]:
+    """So far: CPU nanoseconds and wake-ups of the server's loop thread and of the card's
+    process (all its threads)."""
+    loop_thread = _server_thread()
+    return {"server_loop_cpu_ns": thread_cpu_ns(os.getpid()).get(loop_thread, 0),
+            "server_loop_wakeups": thread_wakeups(os.getpid()).get(loop_thread, 0),
+            "card_cpu_ns": stat_cpu_ns(card_pid),
+            "card_wakeups": sum(thread_wakeups(card_pid).values())}
 
 
 def run(count: int | None = None, warmup: int | None = None) -> dict[str, Any]:
@@ -186,29 +215,38 @@ def run(count: int | None = None, warmup: int | None = None) -> dict[str, Any]:
     network = parse_network(network_toml([NODE]))
     with in_process(network) as (sim, canopen_network):
         start_all(sim, canopen_network)
-        baseline = baseline_step(sdo_client(canopen_network, NODE))
-        direct, direct_base, tcp, tcp_base, empty, cpu_us = measure_card(count, warmup,
-                                                                         baseline)
-    rates = {name: m.per_second for name, m in
-             (("tcp", tcp), ("gateway", direct), ("baseline", tcp_base),
-              ("gateway_baseline", direct_base), ("empty", empty))}
+        sdo = sdo_client(canopen_network, NODE)
+        measured, cpu_us = measure_card(count, warmup, baseline_step(sdo),
+                                        baseline_write_step(sdo))
+    rates = {name: m.per_second for name, m in measured.items()}
     floor_us = 1e6 / rates["empty"] + 1e6 / rates["gateway"]
+
+    def cpu(name: str) -> dict[str, float]:
+        return {key: value for key, value in cpu_us.items() if key.endswith(f"_per_{name}")}
+
     return {
         "benchmark": NAME,
-        "what": "expedited SDO upload of 1000h from a simulated generic node, round trips",
+        "what": "expedited SDO upload of 1000h from a simulated generic node, round trips; "
+                "tcp_309_3_write: expedited SDO download of 6200h sub 1",
         "count": count,
         "warmup": warmup,
         "batch": BATCH,
-        "tcp_309_3": {**tcp.summary("round_trips_per_s"), **cpu_us},
-        "gateway": direct.summary("round_trips_per_s"),
-        "baseline_canopen": tcp_base.summary("round_trips_per_s"),
-        "baseline_canopen_beside_gateway": direct_base.summary("round_trips_per_s"),
-        "tcp_empty_line": empty.summary("round_trips_per_s"),
+        "tcp_309_3": {**measured["tcp_read"].summary("round_trips_per_s"), **cpu("read")},
+        "tcp_309_3_write": {**measured["tcp_write"].summary("round_trips_per_s"),
+                            **cpu("write")},
+        "gateway": measured["gateway"].summary("round_trips_per_s"),
+        "baseline_canopen": measured["tcp_read_baseline"].summary("round_trips_per_s"),
+        "baseline_canopen_write": measured["tcp_write_baseline"].summary("round_trips_per_s"),
+        "baseline_canopen_beside_gateway":
+            measured["gateway_baseline"].summary("round_trips_per_s"),
+        "tcp_empty_line": measured["empty"].summary("round_trips_per_s"),
         "ratios": {
-            "tcp_to_baseline": ratio(rates["tcp"], rates["baseline"]),
+            "tcp_to_baseline": ratio(rates["tcp_read"], rates["tcp_read_baseline"]),
+            "tcp_write_to_baseline": ratio(rates["tcp_write"], rates["tcp_write_baseline"]),
+            "tcp_write_to_tcp_read": ratio(rates["tcp_write"], rates["tcp_read"]),
             "gateway_to_baseline": ratio(rates["gateway"], rates["gateway_baseline"]),
-            "tcp_to_gateway": ratio(rates["tcp"], rates["gateway"]),
-            "ceiling_tcp_to_baseline": ratio(1e6 / floor_us, rates["baseline"]),
+            "tcp_to_gateway": ratio(rates["tcp_read"], rates["gateway"]),
+            "ceiling_tcp_to_baseline": ratio(1e6 / floor_us, rates["tcp_read_baseline"]),
             "ceiling_definition": "tcp_to_baseline if a TCP read cost only the empty line's "
                                   "round trip plus the gateway's upload",
         },

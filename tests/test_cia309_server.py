@@ -38,9 +38,11 @@ from dpm.layout import DEV_MBX
 from dpm.message import Ext, Message
 from firmware.can.sdo import DEFAULT_SDO_TIMEOUT
 from host_api.cia309.datatypes import Dialect
+from host_api.cia309.framing import LineFramer
 from host_api.cia309.gateway import Gateway
 from host_api.cia309.model import DataType
 from host_api.cia309.server import BackgroundServer, ServerConfig, new_event_loop
+from host_api.cia309.server import Client as CoreClient
 from tests import commands
 from tests.conftest import ended, wait_until, within
 from tests.gateway_cards import EDS, start, wait_operating
@@ -322,10 +324,12 @@ def test_a_read_reads_the_event_loops_clock_once_per_turn(
 
 
 
-def read_profiled(loop: asyncio.AbstractEventLoop, client: Client,
-                  profile: Callable[[FrameType, str, object], None], reads: int) -> None:
-    """``reads`` reads of 1000h through ``client`` with ``profile`` set on the server's loop
-    thread (a profile function is per thread, so it is set and cleared from that thread)."""
+def ask_profiled(loop: asyncio.AbstractEventLoop, client: Client,
+                 profile: Callable[[FrameType, str, object], None], count: int,
+                 request: str = "1 read 0x1000 0 u32", answer: str = "983441") -> None:
+    """``count`` times ``request`` (a read of 1000h unless told) through ``client``, each
+    answered ``answer``, with ``profile`` set on the server's loop thread (a profile
+    function is per thread, so it is set and cleared from that thread)."""
 
     def profiling(on: bool) -> None:
         done = threading.Event()
@@ -339,8 +343,8 @@ def read_profiled(loop: asyncio.AbstractEventLoop, client: Client,
 
     profiling(True)
     try:
-        for n in range(2, reads + 2):
-            assert client.ask(f"[{n}] 1 read 0x1000 0 u32\n") == f"[{n}] 983441\r\n"
+        for n in range(2, count + 2):
+            assert client.ask(f"[{n}] {request}\n") == f"[{n}] {answer}\r\n"
     finally:
         profiling(False)
 
@@ -348,7 +352,10 @@ def read_profiled(loop: asyncio.AbstractEventLoop, client: Client,
 def test_a_read_costs_the_loop_few_calls_of_the_gateways_own_python(
         servers: dict[str, BackgroundServer], connect: Connect) -> None:
     """A read runs at most 41 calls of ``host_api.cia309``'s Python functions on the
-    server's loop thread (39.1 on 2026-12-04 with the loop's time read by C and the
+    server's loop thread (40.1 at branch fastwrite, as 40.2 before it: the dispatch of an
+    SDO request to the gateway's upload or download, ``_send_sdo``, where the fast path
+    made an object per read, and ``DataType.size`` a dict look-up; 39.1 on 2026-12-04
+    with the loop's time read by C and the
     mailbox's flags read from the map; 46.2 on 2026-12-03 with one copy of each function
     on the path; 48.2 with the copies written out at 9aa3708, 64 before that): on this VM the loop
     thread spent 190-220 us of CPU per read, 60 % of it in the interpreter over about 125
@@ -368,7 +375,7 @@ def test_a_read_costs_the_loop_few_calls_of_the_gateways_own_python(
             calls += 1
 
     reads = 200
-    read_profiled(loop, client, counting, reads)
+    ask_profiled(loop, client, counting, reads)
     assert calls <= 41 * reads, f"{calls / reads:.1f} calls of host_api.cia309 per read"
 
 
@@ -403,16 +410,157 @@ def test_a_read_takes_no_thread_lock_of_cpython_and_three_clock_readings_on_the_
             readings += 1
 
     reads = 200
-    read_profiled(loop, client, counting, reads)
+    ask_profiled(loop, client, counting, reads)
     assert locks <= 0.1 * reads, f"{locks / reads:.2f} acquires of CPython thread locks per read"
     assert readings <= 3.1 * reads, f"{readings / reads:.2f} clock readings per read"
 
 
+def test_a_write_that_fits_one_message_takes_no_worker_thread(
+        servers: dict[str, BackgroundServer], connect: Connect) -> None:
+    """A write of a value that fits one mailbox message (an expedited SDO download) of a
+    client that waits for each answer is sent and answered on the server's event loop, as
+    a read is (``Server._fast_line``): no ``run_in_executor``, so no worker thread and its
+    two thread switches, and not the client's task either. It runs at most 72 calls of
+    ``host_api.cia309``'s Python functions on the loop (68.3 at branch fastwrite, most of
+    them the general parser's; before, 95 on the loop, with the line parsed twice, and the
+    worker thread's besides). A longer value (a segmented download: several requests)
+    still goes to a worker thread."""
+    server = servers["canopennode"]
+    client = connect("canopennode")
+    assert client.ask("[1] 2 write 0x2006 0 u16 7\n") == "[1] OK\r\n"  # connected, warm
+    loop = server.server._loop
+    assert loop is not None
+    server_module = sys.modules[BackgroundServer.__module__].__file__
+    counted = {"run_in_executor": 0, "_answer": 0, "cia309": 0}
+
+    def counting(frame: FrameType, event: str, arg: object) -> None:
+        if event != "call":
+            return
+        code = frame.f_code
+        if code.co_name == "run_in_executor" or (code.co_name == "_answer"
+                                                 and code.co_filename == server_module):
+            counted[code.co_name] += 1
+        if "cia309" in code.co_filename:
+            counted["cia309"] += 1
+
+    writes = 200
+    ask_profiled(loop, client, counting, writes, "2 write 0x2006 0 u16 7", "OK")
+    assert counted["run_in_executor"] == 0
+    assert counted["_answer"] == 0  # the fast path's, not the client's task's
+    assert counted["cia309"] <= 72 * writes, (
+        f"{counted['cia309'] / writes:.1f} calls of host_api.cia309 per write")
+    domain = base64.b64encode(bytes(range(256))).decode()
+    ask_profiled(loop, client, counting, 1, f"2 write 0x2000 0 d {domain}", "OK")
+    assert counted["run_in_executor"] == 1
+
+
+WRITES = (
+    "2 write 0x2006 0 u16 4321",  # OK
+    "2 write 0x2345 0 u16 1",  # the node: no such object
+    "2 write 0x1000 0 u32 1",  # the node: read only
+    "2 write 0x2006 0 u32 1",  # the node: the length does not match
+    "9 write 0x1017 0 u16 0",  # OK: node 9 is not in the card's configuration, but on the bus
+    "42 write 0x1017 0 u16 0",  # no node 42 on the bus: the card's SDO time-out
+    "3 2 write 0x2006 0 u16 1",  # no network 3
+    "2 write 0x2006 0 u16 1234",  # OK
+)
+
+
+def answer_lines(client: Client, count: int, end: bytes) -> list[str]:
+    """The next ``count`` answer lines; event lines (Lely's) are kept in ``events``."""
+    lines: list[str] = []
+    while len(lines) < count:
+        line = client.until(end).decode("latin-1")
+        if line.startswith("["):
+            lines.append(line)
+        else:
+            client.events.append(line)
+    return lines
+
+
+@pytest.mark.parametrize("name", ["canopennode", "lely", "read-only"])
+def test_writes_are_answered_alike_on_every_path(
+        servers: dict[str, BackgroundServer], connect: Connect, name: str) -> None:
+    """The answer to a write is the same text whichever way the server serves it: a line
+    alone (the event loop's fast path), lines sent together (the client's task, which
+    sends an expedited download from the loop too), and the blocking service that a worker
+    thread runs for the rest (``Dispatcher.handle``): OK, the node's SDO aborts, the
+    card's SDO time-out, an unserved network, no default node; in each dialect, and
+    ``--read-only``'s refusal. A refused write leaves the object as it was."""
+    server = servers[name].server
+    gateway = server.gateway
+    end = server.dispatcher.dialect.line_end.encode()
+    lines = [f"[{n}] {line}" for n, line in enumerate(("write 0x2006 0 u16 1", *WRITES), 1)]
+    gateway.sdo_download(0x2006, 0, (555).to_bytes(2, "little"), node_id=2)
+    alone = connect(name)
+    fast: list[str] = []
+    for line in lines:
+        alone.send(f"{line}\n")
+        fast += answer_lines(alone, 1, end)
+    together = connect(name)
+    together.send("".join(f"{line}\n" for line in lines))
+    pipelined = answer_lines(together, len(lines), end)
+    session = CoreClient(gateway.session(), LineFramer())
+    blocking = [server.dispatcher.handle(session, line) for line in lines]
+    assert fast == pipelined == blocking
+    if name == "read-only":
+        assert set(fast) == {f"[{n}] ERROR:100 #Request not supported.\r\n"
+                             for n in range(1, len(lines) + 1)}
+        assert gateway.sdo_upload(0x2006, 0, node_id=2) == (555).to_bytes(2, "little")
+        return
+    expected = {
+        "canopennode": ["[1] ERROR:105 #No default node set.\r\n", "[2] OK\r\n",
+                        "[3] ERROR:0x06020000 #Object does not exist in the object "
+                        "dictionary.\r\n",
+                        "[4] ERROR:0x06010002 #Attempt to write a read only object.\r\n"],
+        "lely": ["[1] ERROR: 105 (No default node set)\n", "[2] OK\n",
+                 "[3] ERROR: 06020000 (Object does not exist in the object dictionary)\n",
+                 "[4] ERROR: 06010002 (Attempt to write a read only object)\n"],
+    }[name]
+    assert fast[:4] == expected
+    assert [fast[5], fast[8]] == [expected[1].replace("[2]", f"[{n}]") for n in (6, 9)]
+    assert fast[6].startswith("[7] ERROR") and "103" in fast[6]  # the time-out
+    assert gateway.sdo_upload(0x2006, 0, node_id=2) == (1234).to_bytes(2, "little")
+
+
+def test_a_write_then_a_read_returns_the_value_written(connect: Connect) -> None:
+    c = connect("canopennode")
+    for n, value in enumerate((1, 65535, 0, 4660), 1):
+        assert c.ask(f"[{2 * n}] 2 write 0x2006 0 u16 {value}\n") == f"[{2 * n}] OK\r\n"
+        assert c.ask(f"[{2 * n + 1}] 2 read 0x2006 0 u16\n") == f"[{2 * n + 1}] {value}\r\n"
+
+
+def test_pipelined_writes_keep_their_order(connect: Connect) -> None:
+    """Writes each followed by a read, sent without waiting for the answers: the answers
+    come in order, and each read returns the write before it. Once all in one send (the
+    client's task reads them together), once a line per send (the fast path takes a line
+    while nothing of the client's waits, the task the ones that arrive meanwhile)."""
+    c = connect("canopennode")
+    c.sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+    pairs = 50
+
+    def lines(first: int) -> list[str]:
+        return [line for k in range(first, first + pairs)
+                for line in (f"[{2 * k}] 2 write 0x2006 0 u16 {k}\n",
+                             f"[{2 * k + 1}] 2 read 0x2006 0 u16\n")]
+
+    def answers(first: int) -> str:
+        return "".join(f"[{2 * k}] OK\r\n[{2 * k + 1}] {k}\r\n"
+                       for k in range(first, first + pairs))
+
+    c.send("".join(lines(1)))
+    assert c.until(f"[{2 * pairs + 1}] {pairs}\r\n".encode()).decode() == answers(1)
+    for line in lines(pairs + 1):
+        c.send(line)
+    last = 2 * pairs
+    assert c.until(f"[{2 * last + 1}] {last}\r\n".encode()).decode() == answers(pairs + 1)
+
+
 def test_a_read_the_card_answers_too_late_is_a_time_out_and_the_next_is_served(
         connect: Connect) -> None:
-    """The client's command time-out bounds a read answered without its task (the fast
-    path's timer): 103 when it runs out, long before the card's answer, also when it was
-    made shorter between two reads; then the next read is answered."""
+    """The client's command time-out bounds a read or a write answered without its task
+    (the fast path's timer): 103 when it runs out, long before the card's answer, also
+    when it was made shorter between two reads; then the next one is answered."""
     c = connect("canopennode")
     assert c.ask("[1] set command_timeout 5000\n") == "[1] OK\r\n"
     assert c.ask("[2] 1 read 0x1000 0 u32\n") == "[2] 983441\r\n"
@@ -422,6 +570,10 @@ def test_a_read_the_card_answers_too_late_is_a_time_out_and_the_next_is_served(
         began = time.monotonic()  # node 43 is not on the bus: the card answers in 4 s
         assert c.ask("[5] 43 read 0x1000 0 u32\n") == "[5] ERROR:103 #Time-out.\r\n"
         assert time.monotonic() - began < 3
+        began = time.monotonic()
+        assert c.ask("[51] 44 write 0x1017 0 u16 0\n") == "[51] ERROR:103 #Time-out.\r\n"
+        assert time.monotonic() - began < 3
+        assert c.ask("[52] 1 write 0x1017 0 u16 0\n") == "[52] OK\r\n"
         assert c.ask("[6] set command_timeout 5000\n") == "[6] OK\r\n"
         assert c.ask("[7] 1 read 0x1000 0 u32\n") == "[7] 983441\r\n"
     finally:

@@ -34,6 +34,7 @@ from enum import Enum, StrEnum
 
 from dpm.cia301 import ABORT_TYPE_LENGTH_MISMATCH
 from host_api.cia309.model import (
+    SIZES,
     TIME_MS_MASK,
     Cia309Error,
     DataType,
@@ -198,7 +199,7 @@ def parse_value(dtype: DataType, text: str, dialect: Dialect = Dialect.CANOPENNO
         return data
     if kind is _Kind.REAL:
         return _parse_real(text, single=dtype is DataType.REAL32)
-    size = dtype.size
+    size = SIZES[dtype]
     assert size is not None  # every remaining kind has a fixed size
     if kind is _Kind.BOOLEAN:
         return bytes([parse_integer(text, 0, 1, "BOOLEAN")])
@@ -218,7 +219,7 @@ def format_value(dtype: DataType, data: bytes, dialect: Dialect = Dialect.CANOPE
     to ``hex`` (see ``format_upload`` in the formatters module), Lely's answers with the
     abort code.
     """
-    size = dtype.size
+    size = SIZES[dtype]
     if size is not None and len(data) != size:
         raise DataTypeError(
             f"{len(data)} bytes are no {dtype.value} value ({size} bytes)",

@@ -419,6 +419,24 @@ class Gateway:
                                   multipart=True, e=Ext.FIRST, on_part=progress, sdo_node=node)
         return None if flight is None else SdoUploadInFlight(flight, node, index, subindex)
 
+    def try_sdo_download(self, index: int, subindex: int, data: bytes,
+                         on_done: Callable[[], None], *, network: int | None = None,
+                         node_id: int | None = None) -> SdoDownloadInFlight | None:
+        """``sdo_download`` of ``data`` that fits one message (an expedited download: the
+        request ``_download`` sends for it) for a caller that cannot block, as
+        ``try_sdo_upload``: sent now, ``on_done`` called once the card answered, then
+        ``SdoDownloadInFlight.result``. None, with nothing sent, when it would have to wait
+        or when ``data`` is longer than one message (a segmented download, several
+        requests, is the blocking call's)."""
+        if len(data) > SDO_MAX_DATA:
+            return None
+        link = self._link(network)
+        node = self._node(node_id)
+        head = self._sdo_header(node, index, subindex, len(data), Tfc.WRITE)
+        flight = link.try_request(COM_SDO_UP_DOWNLOAD, head + data, self._timeout(), on_done,
+                                  sdo_node=node)
+        return None if flight is None else SdoDownloadInFlight(flight, node, index, subindex)
+
     def _upload_progress(self, link: Link, node: int, transferred: list[int], msg: Message
                          ) -> None:
         """The SdoProgressEvent of a long upload's part ``msg``; ``transferred``: one item,
@@ -441,7 +459,7 @@ class Gateway:
         return _upload_data(answers, _upload_what(node, index, subindex))
 
     def _download(self, link: Link, node: int, index: int, subindex: int, data: bytes) -> None:
-        what = f"SDO download {index:04X}:{subindex} to node {node}"
+        what = _download_what(node, index, subindex)
         if len(data) > LONG_SDO_LIMIT:
             raise Cia309Error(ErrorCode.OUT_OF_MEMORY,
                               f"{what}: {len(data)} bytes, at most {LONG_SDO_LIMIT}")
@@ -1030,8 +1048,13 @@ def _upload_data(answers: list[Message], what: str) -> bytes:
     return b"".join(answer.data[TelegramHeader.SIZE :] for answer in answers)
 
 
-class SdoUploadInFlight:
-    """An SDO upload sent by ``Gateway.try_sdo_upload``, its answer not waited for yet."""
+def _download_what(node: int, index: int, subindex: int) -> str:
+    return f"SDO download {index:04X}:{subindex} to node {node}"
+
+
+class SdoInFlight:
+    """An SDO request sent by ``Gateway.try_sdo_upload`` or ``try_sdo_download``, its
+    answer not waited for yet; ``result`` once ``on_done`` was called."""
 
     def __init__(self, flight: InFlight, node: int, index: int, subindex: int) -> None:
         self._flight = flight
@@ -1040,16 +1063,31 @@ class SdoUploadInFlight:
         self.timeout = flight.timeout
         """Seconds to wait for the answer: the session's command time-out."""
 
+    def abandon(self) -> Cia309Error:
+        """No answer within ``timeout``: the error the blocking call raises then."""
+        return self._flight.abandon()
+
+
+class SdoUploadInFlight(SdoInFlight):
+    """An upload sent by ``Gateway.try_sdo_upload``."""
+
     def result(self) -> bytes:
-        """The object's data, once ``on_done`` was called; raises as ``sdo_upload`` does."""
+        """The object's data; raises as ``sdo_upload`` does."""
         messages = self._flight.pending.messages  # not ``messages``: a call less per read
         if len(messages) == 1 and not messages[0].f:  # an upload's usual answer
             return messages[0].data[TelegramHeader.SIZE :]
         return _upload_data(messages, _upload_what(*self._object))
 
-    def abandon(self) -> Cia309Error:
-        """No answer within ``timeout``: the error ``sdo_upload`` raises then."""
-        return self._flight.abandon()
+
+class SdoDownloadInFlight(SdoInFlight):
+    """An expedited download sent by ``Gateway.try_sdo_download``."""
+
+    def result(self) -> None:
+        """Returns when the node took the value; raises as ``sdo_download`` does (the
+        node's abort, the card's refusal)."""
+        answer = self._flight.pending.messages[-1]
+        if answer.f:
+            _check_sdo(answer, _download_what(*self._object))
 
 
 def _check_specifier(specifier: int | None) -> None:

@@ -203,7 +203,7 @@ class DataType(StrEnum):
     @property
     def size(self) -> int | None:
         """Bytes on the bus, or None for the variable-length types."""
-        return _SIZES[self]
+        return SIZES[self]
 
     @property
     def cia301_index(self) -> int | None:
@@ -217,7 +217,7 @@ class DataType(StrEnum):
         return self.size is not None
 
 
-_SIZES: dict[DataType, int | None] = {
+SIZES: dict[DataType, int | None] = {
     DataType.BOOLEAN: 1,
     DataType.INTEGER8: 1,
     DataType.INTEGER16: 2,
@@ -249,6 +249,8 @@ _SIZES: dict[DataType, int | None] = {
     DataType.DOMAIN: None,
     DataType.HEX: None,
 }
+"""``DataType.size`` of each type, for a caller on every read's and write's path: a dict
+look-up where the property is a Python call (issue 22)."""
 _INDICES: dict[DataType, int | None] = {
     DataType.BOOLEAN: 0x0001,
     DataType.INTEGER8: 0x0002,

@@ -11,9 +11,9 @@ Layers, as pymodbus splits framer, PDU codec and transport:
   line framer, sequence and gateway session (so its own default network and node-ID,
   command time-out and command size), requests of one client answered in order, clients
   served at once, and events fanned out to every client. A line that arrives alone
-  while its client waits for nothing (the usual read: one line, one answer) is answered
-  without the client's task: an SDO upload from the mailbox reader's callback on the event
-  loop (``Server._fast_line``).
+  while its client waits for nothing (the usual read or write: one line, one answer) is
+  answered without the client's task: an SDO upload or expedited download from the mailbox
+  reader's callback on the event loop (``Server._fast_line``).
 
 Events follow the dialect: Lely's ``coctl`` reads unsolicited lines (``1 5 BOOT_UP``,
 ``1 pdo 1 2 0x1 0x2``) between answers, so in that dialect every client gets them as
@@ -88,7 +88,7 @@ from host_api.cia309.formatters import (
     format_version,
 )
 from host_api.cia309.framing import DEFAULT_MAX_LINE, LineFramer, OverlongLine
-from host_api.cia309.gateway import Gateway, SdoUploadInFlight
+from host_api.cia309.gateway import Gateway, SdoDownloadInFlight, SdoInFlight, SdoUploadInFlight
 from host_api.cia309.model import Cia309Error, ErrorCode, Event
 from host_api.cia309.parser import parse_request
 from host_api.cia309.requests import (
@@ -179,6 +179,11 @@ READ_ONLY_REQUESTS = (
     SetDefaultNetwork, SetDefaultNode, SetCommandTimeout, SetCommandSize,
 )
 """What ``--read-only`` still serves: nothing here changes a node or the card."""
+
+SdoRequest = SdoUpload | SdoDownload
+SDO_REQUESTS = (SdoUpload, SdoDownload)
+"""The requests the server sends from its event loop when the card can take them now
+(``Server._answer``, ``Server._fast_line``)."""
 
 
 LssNumbers = tuple[int, int, int, int]
@@ -570,16 +575,6 @@ class _Protocol(asyncio.StreamReaderProtocol):
 
 
 @dataclass(eq=False)
-class _FastRead:
-    """An SDO upload the fast path sent (``Server._fast_line``): its request, the flight,
-    and when (event-loop time) it is given up."""
-
-    request: SdoUpload
-    flight: SdoUploadInFlight | None = None
-    deadline: float = 0.0
-
-
-@dataclass(eq=False)
 class _Connection:
     """A client's connection as the server keeps it: what slot eviction and the output
     budget look at."""
@@ -602,8 +597,13 @@ class _Connection:
     """It has had an answer."""
     reading: bool = False
     """Its task waits for its next bytes, every line before them served."""
-    fast: _FastRead | None = None
-    """An SDO upload of it that the fast path sent and has not answered yet."""
+    fast: SdoRequest | None = None
+    """An SDO request of it that the fast path sent and has not answered yet."""
+    fast_flight: SdoInFlight | None = None
+    """``fast``'s flight."""
+    fast_deadline: float = 0.0
+    """When (event-loop time) ``fast`` is given up. These three are the connection's, not an
+    object's made per request: a Python call less on every read's path."""
     settled: asyncio.Future[None] | None = None
     """What its task waits on until ``fast`` is answered, made when it has to wait."""
     fast_timer: asyncio.TimerHandle | None = None
@@ -700,10 +700,10 @@ class Server:
     async def close(self) -> None:
         self._subscription.cancel()
         for connection in self._connections:
-            fast = connection.fast
-            if fast is not None and fast.flight is not None:
+            flight = connection.fast_flight
+            if connection.fast is not None and flight is not None:
                 connection.fast = None
-                fast.flight.abandon()
+                flight.abandon()
         self._read_back()
         if self._server is not None:
             self._server.close()
@@ -941,12 +941,12 @@ class Server:
                 writer.transport.abort()
 
     async def _answer(self, client: Client, line: str | OverlongLine) -> str | None:
-        """The answer to one line: an SDO upload from the event loop itself, when the
-        card can take it now; every other request in a worker thread, as the gateway's
-        calls block.
+        """The answer to one line: an SDO upload or expedited download from the event loop
+        itself, when the card can take it now (``_send_sdo``); every other request in a
+        worker thread, as the gateway's calls block.
 
-        Why the upload apart: it is the request a 309-3 client repeats most, and a worker
-        thread costs it two thread switches (to the worker, back to the event loop), each
+        Why those apart: they are the requests a 309-3 client repeats most, and a worker
+        thread costs each two thread switches (to the worker, back to the event loop), each
         of which waits for the interpreter lock. The server reads the mailbox on this loop
         (``Gateway.read_on``), so the card's ring wakes the loop, which resolves the answer
         at once; a gateway read by another loop's or its own thread wakes this loop
@@ -957,13 +957,11 @@ class Server:
             return prepared.text
         loop = self._loop
         assert loop is not None
-        if isinstance(prepared, SdoUpload):
+        if isinstance(prepared, SDO_REQUESTS):
             answered: asyncio.Future[None] = loop.create_future()
             try:
-                flight = client.gateway.try_sdo_upload(
-                    prepared.index, prepared.subindex,
-                    functools.partial(self._on_loop, _resolve, answered), network=prepared.net,
-                    node_id=prepared.node)
+                flight = _send_sdo(client.gateway, prepared,
+                                   functools.partial(self._on_loop, _resolve, answered))
             except Cia309Error as exc:
                 return dispatcher.failure(prepared, exc)
             if flight is not None:
@@ -979,7 +977,7 @@ class Server:
                     raise
                 finally:
                     timer.cancel()
-                return self._upload_answer(prepared, flight)
+                return self._sdo_answer(prepared, flight)
         return await loop.run_in_executor(self._executor, dispatcher.execute, client, prepared)
 
     def _on_loop(self, action: Callable[..., None], *args: Any) -> None:
@@ -994,11 +992,17 @@ class Server:
         with contextlib.suppress(RuntimeError):  # the loop closed: nobody waits
             self._loop.call_soon_threadsafe(action, *args)
 
-    def _upload_answer(self, request: SdoUpload, flight: SdoUploadInFlight) -> str:
-        """The answer line to a finished upload: its value, or the error it ended in."""
+    def _sdo_answer(self, request: SdoRequest, flight: SdoInFlight) -> str:
+        """The answer line to a finished SDO request: an upload's value or a download's
+        ``OK`` (the texts the blocking services give, ``_SERVICES``), or the error it ended
+        in."""
+        dialect = self.dispatcher.dialect
         try:
-            return format_upload(request.sequence, request.dtype, flight.result(),
-                                 self.dispatcher.dialect)
+            if isinstance(flight, SdoUploadInFlight):
+                return format_upload(request.sequence, request.dtype, flight.result(), dialect)
+            assert isinstance(flight, SdoDownloadInFlight)
+            flight.result()
+            return format_ok(request.sequence, dialect)
         except Cia309Error as exc:
             return self.dispatcher.failure(request, exc)
 
@@ -1006,10 +1010,10 @@ class Server:
 
     def _fast_line(self, connection: _Connection, data: bytes) -> bool:
         """Answer ``data`` as it arrives, when it is one whole line that needs no thread:
-        an SDO upload the card takes now (``Gateway.try_sdo_upload``), answered from the
-        mailbox's reader when the card answers, or a line answered without a request (an
-        empty one, one that does not parse). False, with nothing taken, otherwise: the
-        client's task reads it as before.
+        an SDO upload or expedited download the card takes now (``_send_sdo``), answered
+        from the mailbox's reader when the card answers, or a line answered without a
+        request (an empty one, one that does not parse, a write ``--read-only`` refuses).
+        False, with nothing taken, otherwise: the client's task reads it as before.
 
         Only while the task waits for bytes with every earlier line answered and nothing of
         the client's output waiting, so the answers keep their order and back-pressure
@@ -1031,14 +1035,12 @@ class Server:
         if isinstance(prepared, Answered):
             self._fast_answer(connection, prepared.text)
             return True
-        if not isinstance(prepared, SdoUpload):
+        if not isinstance(prepared, SDO_REQUESTS):
             return False
-        fast = _FastRead(prepared)
         try:
-            flight = client.gateway.try_sdo_upload(
-                prepared.index, prepared.subindex,
-                functools.partial(self._on_loop, self._fast_done, connection, fast),
-                network=prepared.net, node_id=prepared.node)
+            flight = _send_sdo(client.gateway, prepared,
+                               functools.partial(self._on_loop, self._fast_done, connection,
+                                                 prepared))
         except Cia309Error as exc:
             self._fast_answer(connection, dispatcher.failure(prepared, exc))
             return True
@@ -1046,41 +1048,42 @@ class Server:
             return False  # it would wait: the task's worker thread makes the call
         loop = self._loop
         assert loop is not None
-        fast.flight = flight
+        connection.fast = prepared
+        connection.fast_flight = flight
         connection.last_active = now = loop.time()
-        fast.deadline = now + flight.timeout
-        connection.fast = fast
+        connection.fast_deadline = deadline = now + flight.timeout
         connection.serving = True
         timer = connection.fast_timer
-        if timer is None or timer.when() > fast.deadline:  # a command time-out made shorter
+        if timer is None or timer.when() > deadline:  # a command time-out made shorter
             if timer is not None:
                 timer.cancel()
-            connection.fast_timer = loop.call_at(fast.deadline, self._fast_due, connection)
+            connection.fast_timer = loop.call_at(deadline, self._fast_due, connection)
         return True
 
-    def _fast_done(self, connection: _Connection, fast: _FastRead) -> None:
-        if connection.fast is not fast:
+    def _fast_done(self, connection: _Connection, request: SdoRequest) -> None:
+        if connection.fast is not request:
             return  # given up (time-out, the server closing)
-        flight = fast.flight
+        flight = connection.fast_flight
         assert flight is not None
-        self._fast_answer(connection, self._upload_answer(fast.request, flight))
+        self._fast_answer(connection, self._sdo_answer(request, flight))
 
     def _fast_due(self, connection: _Connection) -> None:
-        """The fast path's timer: gives up the read out now when its time has run out, else
-        waits on for the one out then; ends when none is out. Under User-Mode Linux each
-        clock read is a system call, and a timer per read took one more."""
+        """The fast path's timer: gives up the request out now when its time has run out,
+        else waits on for the one out then; ends when none is out. Under User-Mode Linux
+        each clock read is a system call, and a timer per read took one more."""
         loop = self._loop
         assert loop is not None
         connection.fast_timer = None
-        fast = connection.fast
-        if fast is None:
+        request = connection.fast
+        if request is None:
             return
-        if loop.time() < fast.deadline:
-            connection.fast_timer = loop.call_at(fast.deadline, self._fast_due, connection)
+        if loop.time() < connection.fast_deadline:
+            connection.fast_timer = loop.call_at(connection.fast_deadline, self._fast_due,
+                                                 connection)
             return
-        assert fast.flight is not None
-        self._fast_answer(connection, self.dispatcher.failure(fast.request,
-                                                              fast.flight.abandon()))
+        flight = connection.fast_flight
+        assert flight is not None
+        self._fast_answer(connection, self.dispatcher.failure(request, flight.abandon()))
 
     def _fast_answer(self, connection: _Connection, text: str | None) -> None:
         """A fast line's answer: written, and the task let go on when it waits for it."""
@@ -1202,6 +1205,18 @@ def new_event_loop() -> asyncio.AbstractEventLoop:
 
 def _nothing() -> None:
     pass
+
+
+def _send_sdo(gateway: Gateway, request: SdoRequest, on_done: Callable[[], None]
+              ) -> SdoInFlight | None:
+    """The request sent without waiting (``Gateway.try_sdo_upload``, ``try_sdo_download``),
+    ``on_done`` called once the card answered; None when it would wait (or is a download
+    longer than one message): a worker thread then makes the blocking call."""
+    if isinstance(request, SdoUpload):
+        return gateway.try_sdo_upload(request.index, request.subindex, on_done,
+                                      network=request.net, node_id=request.node)
+    return gateway.try_sdo_download(request.index, request.subindex, request.data, on_done,
+                                    network=request.net, node_id=request.node)
 
 
 def _resolve(future: asyncio.Future[None]) -> None:
