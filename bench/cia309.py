@@ -24,8 +24,8 @@ the gateway below it.
 
 Each path takes turns with the baseline in batches of ``BATCH`` reads
 (``measure_alternating``), so both see the same machine: measured one after the other,
-canopen's own rate swung 5,800-10,000 reads/s between runs a minute apart on a quiet
-machine, and the ratio with it (0.41-0.71 for the same code).
+canopen's own rate swung 4,400-10,000 reads/s between runs a minute apart on a quiet
+machine, and the ratio with it (0.39-0.73 for the same code).
 
     python -m bench.cia309 [--count N] [--warmup N]
 """
