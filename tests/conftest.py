@@ -8,13 +8,14 @@ import queue
 import signal
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 import weakref
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, TypeVar
+from typing import IO, TYPE_CHECKING, Any, TypeVar
 
 import pytest
 import pytest_timeout
@@ -364,11 +365,22 @@ def pytest_timeout_set_timer(item: pytest.Item, settings: Any) -> bool | None:
 
 @dataclass
 class Card:
-    """A firmware process serving board ``board`` in ``directory``."""
+    """A firmware process serving board ``board`` in ``directory``; its stderr (the log)
+    goes to ``stderr``, an unnamed file (``log``).
+
+    Not a pipe: nobody reads a card's pipe while it runs, and a card that had logged 64 KiB
+    (a pipe's buffer) into one would block in its next log line, whichever of its threads
+    wrote it, and stop serving mid-test."""
 
     directory: Path
     board: int
     proc: subprocess.Popen[bytes]
+    stderr: IO[bytes]
+
+    def log(self) -> str:
+        """What the card has logged so far."""
+        self.stderr.seek(0)
+        return self.stderr.read().decode(errors="replace")
 
     @property
     def path(self) -> Path:
@@ -405,20 +417,20 @@ def start_card(directory: Path, board: int = 0, *extra: str) -> Card:
     this process, for as long as its start advances); a firmware that exits first fails
     with its stderr, one whose start stops advancing is stopped. The bounds scale with
     ``TIME_SCALE``, as every wait of the suite does."""
+    stderr = tempfile.TemporaryFile()  # noqa: SIM115 (read after the card stops: Card.log)
     proc = subprocess.Popen(
         [sys.executable, "-m", "cifemu", "firmware", "--board", str(board),
          "--dpm-dir", str(directory), "--log-level", "WARNING", *extra],
-        stderr=subprocess.PIPE,
+        stderr=stderr,
     )
-    card = Card(directory, board, proc)
+    card = Card(directory, board, proc, stderr)
     try:
         wait_ready(proc, directory, board, START_STALL_S * TIME_SCALE, START_CPU_S * TIME_SCALE)
     except StartError as exc:
         if exc.status is None:
             card.stop()
             raise RuntimeError(str(exc)) from None
-        stderr = proc.stderr.read().decode() if proc.stderr else ""
-        raise RuntimeError(f"{exc}: {stderr}") from None
+        raise RuntimeError(f"{exc}: {card.log()}") from None
     return card
 
 

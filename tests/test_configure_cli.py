@@ -142,8 +142,7 @@ def test_a_card_whose_interface_cannot_open_stays_up_with_fat(tmp_path: Path) ->
                 board.reset()
     finally:
         assert card.stop() == 0
-    assert card.proc.stderr is not None
-    log = card.proc.stderr.read().decode()
+    log = card.log()
     assert "cannot open CAN interface 'no-such-interface'" in log and "FAT" in log
 
 

@@ -369,7 +369,7 @@ def test_a_socket_name_a_host_group_member_took_is_one_line(
                             capture_output=True, text=True, timeout=60, cwd=ROOT)
     finally:
         card.stop()
-    err = card.proc.stderr.read().decode() if card.proc.stderr else ""
+    err = card.log()
     assert "frame tap not offered, monitors see no frames" in err and "Traceback" not in err
     assert done.returncode == 1
     assert done.stderr == (f"cifemu monitor: no card's frame tap at {directory / 'board0.tap'}\n")

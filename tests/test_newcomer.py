@@ -194,8 +194,7 @@ def test_the_firmware_log_gives_the_err_event_text(tmp_path: Path) -> None:
             mm.close()
     finally:
         card.stop()
-    assert card.proc.stderr is not None
-    log = card.proc.stderr.read().decode()
+    log = card.log()
     assert f"node 5: Err_Event 30, {HEARTBEAT_FAILED}" in log, log
 
 

@@ -221,7 +221,7 @@ def bench(tmp_path: Path, request: pytest.FixtureRequest) -> Iterator[Bench]:
 def _fat(card: Card, url: str) -> str:
     """Why a stopped card came up with FAT, from its log: it could not open its link, and
     every CAN-task command would be answered msg.f 200 (``CanTask.fatal``)."""
-    log = card.proc.stderr.read().decode(errors="replace") if card.proc.stderr else ""
+    log = card.log()
     return (f"the card came up with FAT: it could not open its python-can-remote link to "
             f"{url}, so the CAN task would answer every command with msg.f 200; its log: "
             f"{log.strip()}")
