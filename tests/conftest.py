@@ -363,7 +363,11 @@ def pytest_timeout_set_timer(item: pytest.Item, settings: Any) -> bool | None:
     return True
 
 
-@dataclass
+LOG_SHOWN = 4000
+"""The last characters of each live card's log that a failed test's report shows."""
+
+
+@dataclass(eq=False)
 class Card:
     """A firmware process serving board ``board`` in ``directory``; its stderr (the log)
     goes to ``stderr``, an unnamed file (``log``).
@@ -412,6 +416,10 @@ class Card:
         return commands.wait(self.proc, 10)
 
 
+_CARDS: weakref.WeakSet[Card] = weakref.WeakSet()
+"""The cards a test or its fixtures still hold: a failed test's report shows their logs."""
+
+
 def start_card(directory: Path, board: int = 0, *extra: str) -> Card:
     """Start a firmware and wait until it serves (``host_api.ready.wait_ready``: READY from
     this process, for as long as its start advances); a firmware that exits first fails
@@ -424,6 +432,7 @@ def start_card(directory: Path, board: int = 0, *extra: str) -> Card:
         stderr=stderr,
     )
     card = Card(directory, board, proc, stderr)
+    _CARDS.add(card)
     try:
         wait_ready(proc, directory, board, START_STALL_S * TIME_SCALE, START_CPU_S * TIME_SCALE)
     except StartError as exc:
@@ -488,6 +497,10 @@ def pytest_runtest_makereport(item: pytest.Item, call: pytest.CallInfo[None]
     del call
     outcome = yield
     report: pytest.TestReport = outcome.get_result()  # type: ignore[attr-defined]
+    if report.failed:
+        for card in list(_CARDS):
+            report.sections.append((f"log of the card of board {card.board} in "
+                                    f"{card.directory}", card.log()[-LOG_SHOWN:]))
     if (report.skipped and not hasattr(report, "wasxfail")  # an expected failure stays one
             and os.environ.get(REQUIRE_SOCKETCAN) and item.get_closest_marker("vcan") is not None):
         report.outcome = "failed"
