@@ -90,7 +90,7 @@ from dbm_tools.network import parse_network
 from dpm.commands import COM_SDO_UP_DOWNLOAD
 from dpm.message import Message, Task
 from dpm.task2 import ComDiagnostics
-from firmware.shm.bus import channel_path
+from firmware.shm.station import channel_path
 from host_api.board import Board, CifError
 from host_api.driver import DevExchangeIO, DevGetTaskState
 from host_api.ready import wait_ready

@@ -8,15 +8,15 @@
 - ``firmware.sim``: simulated CANopen nodes;
 - ``FirmwareError`` (``firmware.errors``): the root of what the firmware raises.
 
-The names load on first use: python-can's interface registry and the SYNC timer process
-(``python -m firmware.shm.cyclic``, which must start within a fraction of a second)
-import ``firmware.shm.bus`` and must not pay for the device and its tasks.
+The names load on first use, as does ``__version__`` (the package metadata): python-can's
+interface registry imports ``firmware.shm.bus``, and the SYNC timer process (``python -m
+firmware.shm.cyclic``, which must start within a fraction of a second) ``firmware.shm.station``,
+and neither must pay for the device and its tasks.
 """
 
 from __future__ import annotations
 
 from importlib import import_module
-from importlib.metadata import version
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
@@ -24,7 +24,7 @@ if TYPE_CHECKING:
     from firmware.errors import BusSetupError, FirmwareError
     from firmware.flash import FlashStore
 
-__version__ = version("cifemu")
+    __version__: str
 
 _HOMES = {
     "BusSetupError": "firmware.errors",
@@ -38,6 +38,10 @@ __all__ = ["BusSetupError", "Device", "FirmwareError", "FlashStore", "__version_
 
 def __getattr__(name: str) -> Any:
     """``firmware.Device`` and the others, imported from their module when first asked for."""
+    if name == "__version__":
+        from importlib.metadata import version
+
+        return version("cifemu")
     home = _HOMES.get(name)
     if home is None:
         raise AttributeError(f"module 'firmware' has no attribute {name!r}")

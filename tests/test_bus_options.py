@@ -21,7 +21,7 @@ import pytest
 
 from dbm_tools.bus_options import BusOptionError, parse_option, select_bus
 from dbm_tools.network import parse_network
-from firmware.shm.bus import channel_path
+from firmware.shm.station import channel_path
 from tests import commands
 from tests.conftest import TIME_SCALE
 

@@ -50,9 +50,9 @@ COB_ID_BASES = frozenset({cia301.EMCY_BASE, *cia301.TPDO_BASES, *cia301.RPDO_BAS
 SYNC_NAME = re.compile(r"sync", re.IGNORECASE)
 
 NOT_CARD_LAYOUTS: dict[tuple[str, str], str] = {
-    ("firmware/shm/bus.py", "_HEADER"): "the shm bus's file header [ours]",
-    ("firmware/shm/bus.py", "_STATION"): "a station record of the shm bus [ours]",
-    ("firmware/shm/bus.py", "_RECORD"): "a frame record of the shm bus's rings [ours]",
+    ("firmware/shm/station.py", "HEADER"): "the shm bus's file header [ours]",
+    ("firmware/shm/station.py", "ENTRY"): "a station record of the shm bus [ours]",
+    ("firmware/shm/station.py", "RECORD"): "a frame record of the shm bus's rings [ours]",
     ("firmware/shm/bus.py", "_COUNTERS"): "the shm bus's station counters [ours]",
     ("firmware/shm/bus.py", "_COUNTER"): "one station counter of the shm bus [ours]",
     ("host_api/driver.py", "DRIVERINFO"): "the C driver's DRIVERINFO structure",

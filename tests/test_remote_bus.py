@@ -38,7 +38,7 @@ from firmware.can.bus import (
     CanBus,
     stream_of,
 )
-from firmware.shm.bus import channel_path
+from firmware.shm.station import channel_path
 from host_api.board import Board
 from host_api.online import configure_online
 from tests import commands

@@ -34,16 +34,15 @@ from typing import Any
 import can
 import pytest
 
-from firmware.shm.bus import (
+from dpm.start_progress import stat_cpu_ns
+from firmware.shm.bus import ChannelWatch, ShmBus, frames_written
+from firmware.shm.station import (
     CAPACITY,
     FILE_SIZE,
     MAGIC,
     MAX_STATIONS,
     RECORD_SIZE,
-    ChannelWatch,
-    ShmBus,
     channel_path,
-    frames_written,
 )
 from firmware.shm.tasks import ShmCyclicSendTask
 from tests import commands
@@ -58,6 +57,10 @@ MAX_IDLE_WAKEUPS_PER_S = 2
 """An idle reader's wake-ups: one per ``MAX_SLEEP_S`` (1 s) now, 20 a second before."""
 CAN_ERR_CRTL = 0x004
 CAN_ERR_CRTL_RX_OVERFLOW = 0x01
+TIMER_START_IN_BARE_STARTS = 6
+"""What a timer process's start may cost, in bare interpreter starts (``python -c pass``)
+made beside it: 2-3 measured (2026-12-04, load 8-9: 69-106 ms against 33-37 ms at the
+median), 14-16 while it imported python-can and numpy (0.50-0.70 s)."""
 
 Opener = Callable[..., ShmBus]
 
@@ -806,6 +809,37 @@ def test_timer_process_ends_when_its_parent_is_killed(channel: str, open_bus: Op
     assert not alive(timer), "the timer process outlived its parent"
     recv_n(receiver, 10000, timeout=0.1)
     assert recv_n(receiver, 1, timeout=0.1) == []
+
+
+def bare_interpreter_cpu_ns() -> int:
+    """The median CPU of three starts and ends of this interpreter doing nothing."""
+    spent = []
+    for _ in range(3):
+        pid = os.posix_spawn(sys.executable, [sys.executable, "-c", "pass"], os.environ)
+        usage = os.wait4(pid, 0)[2]
+        spent.append(int((usage.ru_utime + usage.ru_stime) * 1e9))
+    return sorted(spent)[1]
+
+
+def test_a_timer_process_starts_on_the_cpu_of_a_few_bare_interpreters(
+        channel: str, open_bus: Opener) -> None:
+    """A card on ``shm`` starts a timer process with its controller and one more each time
+    SYNC starts (the spare, ``SpareTimer``), and a network that boots meanwhile shares the
+    machine with its start (tests/test_first_boot.py). With python-can and numpy imported
+    that start took 0.5-0.7 s of CPU; the process imports neither now. Its CPU when the task
+    has started, against bare interpreter starts made here, so that a slow machine moves
+    both."""
+    bare = bare_interpreter_cpu_ns()
+    sender = open_bus(channel, timer_process=True)
+    task = sender.send_periodic(can.Message(arbitration_id=0x80, is_extended_id=False), 0.01)
+    try:
+        assert isinstance(task, ShmCyclicSendTask) and task.pid is not None
+        spent = stat_cpu_ns(task.pid)
+    finally:
+        task.stop()
+    assert spent <= TIMER_START_IN_BARE_STARTS * bare, (
+        f"the timer process's start took {spent / 1e6:.0f} ms of CPU, a bare interpreter's "
+        f"{bare / 1e6:.0f} ms")
 
 
 def test_send_periodic_stays_a_thread_without_timer_process(channel: str,

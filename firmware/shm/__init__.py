@@ -6,8 +6,10 @@ nodes, the tests and the benchmarks all open it through python-can
 pyproject.toml), so it sits under ``firmware`` (whose ``__init__`` loads nothing on
 import) without depending on the device or the CANopen master. Its timer process
 (``python -m firmware.shm.cyclic``) must start within a fraction of a second, which is
-why nothing here imports more than ``firmware.frames``.
+why nothing here imports more of the project than ``firmware.frames`` and ``dpm.image``,
+and the timer process not even python-can or numpy (``firmware.shm.station``).
 
+- ``firmware.shm.station``: the channel's file and one station's writing side;
 - ``firmware.shm.bus``: ``ShmBus``, the interface itself;
 - ``firmware.shm.tasks``: cyclic sending, the parent's side;
 - ``firmware.shm.cyclic``: the timer process.

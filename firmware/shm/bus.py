@@ -46,85 +46,62 @@ Use it as any python-can interface (the package's entry point registers it)::
 Opening and closing a station take an ``flock`` on the file. The file stays
 while a station is open on it; the last one to shut down removes it. A
 station killed without shutting down is reclaimed by the next one that opens
-the channel once its process is gone.
+the channel once its process is gone. The file's layout, the table and a station's writing
+side are ``firmware.shm.station``'s, which the timer process uses without python-can.
 """
 
 from __future__ import annotations
 
 import contextlib
-import fcntl
-import hashlib
 import heapq
 import mmap
 import os
-import re
 import select
-import socket
 import struct
-import tempfile
 import threading
 import time
 from collections import deque
 from collections.abc import Callable, Sequence
-from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import can
 import numpy as np
 import numpy.typing as npt
 
-from dpm.image import process_exists
 from firmware.frames import CAN_ERR_CRTL, CAN_ERR_CRTL_RX_OVERFLOW
+from firmware.shm.station import (
+    BITRATE_AT,
+    BITRATE_SIZE,
+    CAPACITY,
+    ERROR,
+    EXTENDED,
+    FILE_SIZE,
+    MAX_STATIONS,
+    RECORD,
+    RECORD_SIZE,
+    REMOTE,
+    RING_BYTES,
+    RINGS_AT,
+    SEQS_AT,
+    SEQS_BYTES,
+    WAITING_AT,
+    ChannelError,
+    Station,
+    channel_path,
+)
 
 if TYPE_CHECKING:
     from firmware.shm.tasks import SpareTimer
 
-MAGIC = b"CIFCANS2"
-MAX_STATIONS = 64
-CAPACITY = 1 << 13
-"""Records per station ring: 8,192, almost a second of 1 Mbit/s at full load from one station."""
 MAX_SLEEP_S = 1.0
 """The longest a reader sleeps before it looks again, whatever its time-out: a net for a
 missed ring, which the protocol does not lose. It was 50 ms: 20 wake-ups a second of a reader
 with nothing to read, 0.35-0.45 % of a core of an idle card's receive thread (issue 22)."""
 
-_HEADER = struct.Struct("<8sIII")  # magic, stations, capacity, record size
-_BITRATE_AT = _HEADER.size
-_BITRATE_SIZE = 4
-"""After the header: the channel's bit rate in bit/s, a little-endian u32, 0: none given
-(see ``ShmBus.bitrate``). The spare bytes of a file from before it read 0."""
-_SEQS_AT = 64
-"""Per station: records ever written (u64, written only by the station)."""
-_SEQS_BYTES = 8 * MAX_STATIONS
 _COUNTERS = struct.Struct(f"<{MAX_STATIONS}Q")
 _COUNTER = struct.Struct("<Q")
 _STATION_BITS = (1 << 64) - 1
 """One station's counter among the counters read as one integer (``ShmBus._read``)."""
-_WAITING_AT = _SEQS_AT + _SEQS_BYTES
-"""Per station: 1 while it sleeps on its bell."""
-_STATIONS_AT = _WAITING_AT + MAX_STATIONS
-_STATION = struct.Struct("<IIQ")  # in use, pid, opened (ns; part of the bell's name)
-_RINGS_AT = 4096
-_RECORD = struct.Struct("<dIBBH8s8x")  # time stamp, identifier, flags, dlc, (spare), data
-RECORD_SIZE = _RECORD.size
-_RING_BYTES = CAPACITY * RECORD_SIZE
-FILE_SIZE = _RINGS_AT + MAX_STATIONS * _RING_BYTES
-
-_EXTENDED, _REMOTE, _ERROR = 0x01, 0x02, 0x04
-
-_CLEAN_CHANNEL = re.compile(r"[A-Za-z0-9._-]{1,64}")
-
-
-def channel_path(channel: str) -> Path:
-    """The file behind ``channel``: a path as given, else a name in /dev/shm (or the temp dir)."""
-    if "/" in channel:
-        return Path(channel)
-    name = channel if _CLEAN_CHANNEL.fullmatch(channel) else (
-        hashlib.sha1(channel.encode()).hexdigest()[:24])
-    root = Path("/dev/shm")
-    if not root.is_dir():
-        root = Path(tempfile.gettempdir())
-    return root / f"cifemu-can-{name}"
 
 
 class ShmBus(can.BusABC):
@@ -147,29 +124,18 @@ class ShmBus(can.BusABC):
         self.rx_overflows = 0
         """Frames this station lost because it fell a whole ring behind a sender."""
         self._path = channel_path(self.channel)
-        digest = hashlib.sha1(str(self._path.resolve()).encode()).hexdigest()[:16]
-        self._bell_prefix = f"\0cifemu-can-{digest}-"
-        self._send_lock = threading.Lock()
-        """The threads of one station take turns at its ring."""
         self._read_lock = threading.Lock()
         self._fence = threading.Lock()
         """Taking an uncontended lock is an atomic instruction: a full memory fence."""
         self._pending: deque[can.Message] = deque()
-        self._fd, self._map = self._open(int(kwargs.get("bitrate") or 0))
-        self._seqs: npt.NDArray[np.uint64] = np.ndarray(
-            (MAX_STATIONS,), np.uint64, buffer=self._map, offset=_SEQS_AT)
-        self._closed = False
-        self._bell = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
-        self._bell.setblocking(False)
-        self._ringer = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
-        self._ringer.setblocking(False)
         try:
-            self._index = self._register()
-        except BaseException:
-            self._release()
-            raise
-        self._ring_at = _RINGS_AT + self._index * _RING_BYTES
-        self._written_seen = self._map[_SEQS_AT:_SEQS_AT + _SEQS_BYTES]
+            self._station = Station(self._path, int(kwargs.get("bitrate") or 0))
+        except ChannelError as exc:
+            raise can.CanInitializationError(str(exc)) from exc
+        self._closed = False
+        self._map, self._index = self._station.map, self._station.index
+        self._bell, self._ringer = self._station.bell, self._station.ringer
+        self._written_seen = self._map[SEQS_AT:SEQS_AT + SEQS_BYTES]
         """The stations' counters as ``_read`` last copied them, before it took what they
         announced: while they read the same, there is nothing new; each station's is the
         records this station has taken of it."""
@@ -182,34 +148,7 @@ class ShmBus(can.BusABC):
             self._timers = SpareTimer()
         super().__init__(channel=channel, **kwargs)
 
-    # --- the file and the station table ----------------------------------------------------
-
-    def _open(self, bitrate: int) -> tuple[int, mmap.mmap]:
-        while True:
-            fd = os.open(self._path, os.O_RDWR | os.O_CREAT, 0o660)
-            try:
-                fcntl.flock(fd, fcntl.LOCK_EX)
-                if os.fstat(fd).st_nlink == 0:  # removed by its last station meanwhile
-                    os.close(fd)
-                    continue
-                if os.fstat(fd).st_size == 0:
-                    os.fchmod(fd, 0o660)  # whatever the umask
-                    os.ftruncate(fd, FILE_SIZE)
-                    os.pwrite(fd, _HEADER.pack(MAGIC, MAX_STATIONS, CAPACITY, RECORD_SIZE), 0)
-                header = os.pread(fd, _HEADER.size, 0)
-                if (os.fstat(fd).st_size != FILE_SIZE or len(header) != _HEADER.size
-                        or _HEADER.unpack(header) != (MAGIC, MAX_STATIONS, CAPACITY,
-                                                      RECORD_SIZE)):
-                    raise can.CanInitializationError(
-                        f"{self._path} is not a cifemu shared-memory CAN channel of this version")
-                if bitrate and not any(os.pread(fd, _BITRATE_SIZE, _BITRATE_AT)):
-                    os.pwrite(fd, bitrate.to_bytes(_BITRATE_SIZE, "little"), _BITRATE_AT)
-                mapped = mmap.mmap(fd, FILE_SIZE)
-                fcntl.flock(fd, fcntl.LOCK_UN)
-                return fd, mapped
-            except BaseException:
-                os.close(fd)
-                raise
+    # --- the channel ------------------------------------------------------------------------
 
     @property
     def bitrate(self) -> int | None:
@@ -221,45 +160,8 @@ class ShmBus(can.BusABC):
         socket's. The bus does not model bit timing: the rate is there for a card to
         compare its Baud_rate with (``firmware.can.bus``).
         """
-        rate = int.from_bytes(self._map[_BITRATE_AT:_BITRATE_AT + _BITRATE_SIZE], "little")
+        rate = int.from_bytes(self._map[BITRATE_AT:BITRATE_AT + BITRATE_SIZE], "little")
         return rate or None
-
-    def _station(self, index: int) -> tuple[int, int, int]:
-        return _STATION.unpack_from(self._map, _STATIONS_AT + index * _STATION.size)
-
-    def _bell_name(self, index: int, opened: int) -> bytes:
-        """A station's bell: unique per opening, so a reused entry never gets an old ring."""
-        return f"{self._bell_prefix}{index}-{opened}".encode()
-
-    def _register(self) -> int:
-        fcntl.flock(self._fd, fcntl.LOCK_EX)
-        try:
-            self._reclaim_dead()
-            for index in range(MAX_STATIONS):
-                if not self._station(index)[0]:
-                    break
-            else:
-                raise can.CanInitializationError(
-                    f"{MAX_STATIONS} stations are open on {self._path} already")
-            opened = time.monotonic_ns()
-            self._bell.bind(self._bell_name(index, opened))
-            # The ring's counter runs on from its last owner: readers' positions stay valid.
-            self._set_station(index, 1, os.getpid(), opened)
-            return index
-        finally:
-            fcntl.flock(self._fd, fcntl.LOCK_UN)
-
-    def _reclaim_dead(self) -> None:
-        """Free the entries of stations whose process is gone (under the exclusive lock)."""
-        for index in range(MAX_STATIONS):
-            in_use, pid, _ = self._station(index)
-            if in_use and not process_exists(pid):
-                self._set_station(index, 0, 0, 0)
-
-    def _set_station(self, index: int, in_use: int, pid: int, opened: int) -> None:
-        """Write a station's entry, not waiting (under the exclusive lock)."""
-        _STATION.pack_into(self._map, _STATIONS_AT + index * _STATION.size, in_use, pid, opened)
-        self._map[_WAITING_AT + index] = 0
 
     # --- sending -----------------------------------------------------------------------------
 
@@ -268,28 +170,12 @@ class ShmBus(can.BusABC):
         del timeout
         if msg.is_fd or len(msg.data) > 8:
             raise can.CanOperationError("the shared-memory bus carries classic CAN frames only")
-        flags = ((_EXTENDED if msg.is_extended_id else 0) | (_REMOTE if msg.is_remote_frame else 0)
-                 | (_ERROR if msg.is_error_frame else 0))
+        flags = ((EXTENDED if msg.is_extended_id else 0) | (REMOTE if msg.is_remote_frame else 0)
+                 | (ERROR if msg.is_error_frame else 0))
         stamp = msg.timestamp if self.preserve_timestamps else time.time()
-        record = _RECORD.pack(stamp, msg.arbitration_id, flags, msg.dlc, 0, bytes(msg.data))
-        with self._send_lock:
-            if self._closed:
-                raise can.CanOperationError("the bus is shut down")
-            mapped, seqs, index = self._map, self._seqs, self._index
-            seq = int(seqs[index])
-            at = self._ring_at + (seq % CAPACITY) * RECORD_SIZE
-            mapped[at:at + RECORD_SIZE] = record
-            seqs[index] = seq + 1  # publishes the record (one aligned 8-byte store)
-            with self._fence:
-                pass
-            own = -1 if self.receive_own_messages else _WAITING_AT + index
-            sleeper = mapped.find(b"\x01", _WAITING_AT, _WAITING_AT + MAX_STATIONS)
-            while sleeper >= 0:
-                if sleeper != own:  # its own reader would wake to find nothing (issue 22)
-                    station = sleeper - _WAITING_AT
-                    mapped[sleeper] = 0
-                    self._ring(self._bell_name(station, self._station(station)[2]))
-                sleeper = mapped.find(b"\x01", sleeper + 1, _WAITING_AT + MAX_STATIONS)
+        record = RECORD.pack(stamp, msg.arbitration_id, flags, msg.dlc, 0, bytes(msg.data))
+        if not self._station.write(record, self.receive_own_messages):
+            raise can.CanOperationError("the bus is shut down")
 
     def _send_periodic_internal(
         self, msgs: Sequence[can.Message] | can.Message, period: float,
@@ -307,11 +193,6 @@ class ShmBus(can.BusABC):
         from firmware.shm.tasks import ShmCyclicSendTask
 
         return ShmCyclicSendTask(self._timers, self._path, msgs, period, duration, autostart)
-
-    def _ring(self, bell: bytes) -> None:
-        # OSError: gone (reclaimed when a station opens next), or its queue is full: awake.
-        with contextlib.suppress(OSError):
-            self._ringer.sendto(b"\x01", bell)
 
     # --- receiving ---------------------------------------------------------------------------
 
@@ -355,7 +236,7 @@ class ShmBus(can.BusABC):
     def _mark_waiting(self, waiting: bool) -> None:
         with self._read_lock:
             if not self._closed:
-                self._map[_WAITING_AT + self._index] = waiting
+                self._map[WAITING_AT + self._index] = waiting
                 with self._fence:
                     pass
 
@@ -380,7 +261,7 @@ class ShmBus(can.BusABC):
             # reader takes (before and after it marks itself waiting; issue 22). Each
             # counter copied here is no lower than any read before, and every record it
             # counts was published before it (x86-64 keeps loads in order, see the top).
-            written = self._map[_SEQS_AT:_SEQS_AT + _SEQS_BYTES]
+            written = self._map[SEQS_AT:SEQS_AT + SEQS_BYTES]
             if written == self._written_seen:
                 return bool(self._pending)
             seen, self._written_seen = self._written_seen, written
@@ -399,8 +280,8 @@ class ShmBus(can.BusABC):
                 cursor = _COUNTER.unpack_from(seen, 8 * station)[0]
                 seq = _COUNTER.unpack_from(written, 8 * station)[0]
                 first = max(cursor, seq - CAPACITY)
-                raw = _copy(mapped, _RINGS_AT + station * _RING_BYTES, first, seq)
-                now_at = _COUNTER.unpack_from(mapped, _SEQS_AT + 8 * station)[0]
+                raw = _copy(mapped, RINGS_AT + station * RING_BYTES, first, seq)
+                now_at = _COUNTER.unpack_from(mapped, SEQS_AT + 8 * station)[0]
                 overwritten = now_at - CAPACITY - first  # meanwhile, by the writer
                 if overwritten > 0:
                     raw = raw[overwritten * RECORD_SIZE:]
@@ -414,14 +295,14 @@ class ShmBus(can.BusABC):
                 is_extended_id=False, dlc=8, channel=self.channel,
                 data=bytes([0, CAN_ERR_CRTL_RX_OVERFLOW, 0, 0, 0, 0, 0, 0])))
         # Each station's records stay in their order whatever their time stamps say.
-        records = (_RECORD.iter_unpack(batches[0]) if len(batches) == 1 else
-                   heapq.merge(*(_RECORD.iter_unpack(raw) for raw in batches), key=_stamp))
+        records = (RECORD.iter_unpack(batches[0]) if len(batches) == 1 else
+                   heapq.merge(*(RECORD.iter_unpack(raw) for raw in batches), key=_stamp))
         channel, message, pending = self.channel, can.Message, self._pending
         for stamp, ident, flags, dlc, _, data in records:
-            remote = bool(flags & _REMOTE)
+            remote = bool(flags & REMOTE)
             # positional: binding ten keywords cost 2 us of the 6 a frame's Message took
-            pending.append(message(stamp, ident, bool(flags & _EXTENDED), remote,
-                                   bool(flags & _ERROR), channel, dlc,
+            pending.append(message(stamp, ident, bool(flags & EXTENDED), remote,
+                                   bool(flags & ERROR), channel, dlc,
                                    None if remote else data[:dlc]))
         return bool(self._pending)
 
@@ -430,29 +311,15 @@ class ShmBus(can.BusABC):
     def shutdown(self) -> None:
         if self._closed:
             return
-        with self._send_lock, self._read_lock:
+        with self._read_lock:
             self._closed = True
-            fcntl.flock(self._fd, fcntl.LOCK_EX)
-            try:
-                self._set_station(self._index, 0, 0, 0)
-                self._reclaim_dead()
-                if not any(self._station(index)[0] for index in range(MAX_STATIONS)):
-                    self._path.unlink(missing_ok=True)
-            finally:
-                fcntl.flock(self._fd, fcntl.LOCK_UN)
+            self._station.leave()
         with contextlib.suppress(OSError):  # wake a receive thread of this station
             self._ringer.sendto(b"\x01", self._bell.getsockname())
-        self._release()
+        self._station.release()
         super().shutdown()  # stops the cyclic tasks
         if self._timers is not None:
             self._timers.close()
-
-    def _release(self) -> None:
-        del self._seqs  # a numpy view pins the mapping
-        self._map.close()
-        os.close(self._fd)
-        self._bell.close()
-        self._ringer.close()
 
 
 def _copy(mapped: mmap.mmap, ring_at: int, first: int, end: int) -> bytes:
@@ -461,7 +328,7 @@ def _copy(mapped: mmap.mmap, ring_at: int, first: int, end: int) -> bytes:
     count = end - first
     if start + count <= CAPACITY:
         return mapped[ring_at + start * RECORD_SIZE:ring_at + (start + count) * RECORD_SIZE]
-    return (mapped[ring_at + start * RECORD_SIZE:ring_at + _RING_BYTES]
+    return (mapped[ring_at + start * RECORD_SIZE:ring_at + RING_BYTES]
             + mapped[ring_at:ring_at + (start + count - CAPACITY) * RECORD_SIZE])
 
 
@@ -480,7 +347,7 @@ def frames_written(channel: str) -> int:
     """
     fd = os.open(channel_path(channel), os.O_RDONLY)
     try:
-        raw = os.pread(fd, 8 * MAX_STATIONS, _SEQS_AT)
+        raw = os.pread(fd, 8 * MAX_STATIONS, SEQS_AT)
     finally:
         os.close(fd)
     return sum(_COUNTERS.unpack(raw))
@@ -510,7 +377,7 @@ class ChannelWatch:
         finally:
             os.close(fd)
         self._seqs: npt.NDArray[np.uint64] = np.ndarray(
-            (MAX_STATIONS,), np.uint64, buffer=self._map, offset=_SEQS_AT)
+            (MAX_STATIONS,), np.uint64, buffer=self._map, offset=SEQS_AT)
         self._cursors = self._seqs.copy()
         """Per station: the records copied so far; frames before the watch began are not."""
         self._raw: list[bytes] = []
@@ -524,7 +391,7 @@ class ChannelWatch:
         for station in np.flatnonzero(seqs != cursors).tolist():
             cursor, seq = int(cursors[station]), int(seqs[station])
             first = max(cursor, seq - CAPACITY)
-            raw = _copy(self._map, _RINGS_AT + station * _RING_BYTES, first, seq)
+            raw = _copy(self._map, RINGS_AT + station * RING_BYTES, first, seq)
             overwritten = int(seqs[station]) - CAPACITY - first  # meanwhile, by the writer
             if overwritten > 0:
                 raw = raw[overwritten * RECORD_SIZE:]
