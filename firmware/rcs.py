@@ -101,6 +101,7 @@ class RcsTask(Task):
                 dev.mm[DEV_FLAGS] = fl.NOTREADY
                 self._follow_not_ready(True)
             database.configure(dev)
+            dev.can.before_ready()
         # READY, RUN and COM in one write: a host that saw READY also sees RUN.
         dev.write_host_flags(fl.READY | dev.level_flags())
 

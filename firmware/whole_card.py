@@ -62,6 +62,8 @@ class CanSetup(Configurable, Protocol):
     @property
     def master(self) -> ControllerFacts: ...
 
+    def before_ready(self) -> None: ...
+
 
 class WholeCard(Card, Protocol):
     """What the start sequence and the card's facts use; see the module's docstring."""

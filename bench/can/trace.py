@@ -17,8 +17,8 @@ from types import TracebackType
 import numpy as np
 import numpy.typing as npt
 
-from firmware.shm.bus import ChannelWatch
 from firmware.shm.station import CAPACITY
+from firmware.shm.watch import ChannelWatch
 
 TRACE_RECORD = re.compile(rb"\((\d+\.\d{6})\) \S+ ([0-9A-F]{3,8})#")
 """One candump record's time stamp and identifier, wherever it starts in a line."""

@@ -43,6 +43,7 @@ class _Numpy:
     module: ModuleType | None = None
     _started = False
     _lock = threading.Lock()
+    _thread: threading.Thread | None = None
 
     @classmethod
     def import_ahead(cls) -> None:
@@ -50,7 +51,16 @@ class _Numpy:
             if cls._started:
                 return
             cls._started = True
-        threading.Thread(target=cls._load, name="numpy-import", daemon=True).start()
+            cls._thread = threading.Thread(target=cls._load, name="numpy-import", daemon=True)
+        cls._thread.start()
+
+    @classmethod
+    def wait(cls, timeout: float) -> None:
+        """Until the import ``import_ahead`` began is done, at most ``timeout`` seconds (at
+        once when none began or it is done)."""
+        thread = cls._thread
+        if thread is not None:
+            thread.join(timeout)
 
     @classmethod
     def _load(cls) -> None:
@@ -60,6 +70,7 @@ class _Numpy:
 
 
 import_numpy_ahead = _Numpy.import_ahead
+await_numpy = _Numpy.wait
 
 
 FEW_NODES = 16

@@ -12,5 +12,6 @@ and the timer process not even python-can or numpy (``firmware.shm.station``).
 - ``firmware.shm.station``: the channel's file and one station's writing side;
 - ``firmware.shm.bus``: ``ShmBus``, the interface itself;
 - ``firmware.shm.tasks``: cyclic sending, the parent's side;
-- ``firmware.shm.cyclic``: the timer process.
+- ``firmware.shm.cyclic``: the timer process;
+- ``firmware.shm.watch``: ``ChannelWatch``, a benchmark's copy of every ring, with numpy.
 """

@@ -54,7 +54,6 @@ from __future__ import annotations
 
 import contextlib
 import heapq
-import mmap
 import os
 import select
 import struct
@@ -65,8 +64,6 @@ from collections.abc import Callable, Sequence
 from typing import TYPE_CHECKING, Any
 
 import can
-import numpy as np
-import numpy.typing as npt
 
 from firmware.frames import CAN_ERR_CRTL, CAN_ERR_CRTL_RX_OVERFLOW
 from firmware.shm.station import (
@@ -75,7 +72,6 @@ from firmware.shm.station import (
     CAPACITY,
     ERROR,
     EXTENDED,
-    FILE_SIZE,
     MAX_STATIONS,
     RECORD,
     RECORD_SIZE,
@@ -88,6 +84,7 @@ from firmware.shm.station import (
     ChannelError,
     Station,
     channel_path,
+    copy_records,
 )
 
 if TYPE_CHECKING:
@@ -280,7 +277,7 @@ class ShmBus(can.BusABC):
                 cursor = _COUNTER.unpack_from(seen, 8 * station)[0]
                 seq = _COUNTER.unpack_from(written, 8 * station)[0]
                 first = max(cursor, seq - CAPACITY)
-                raw = _copy(mapped, RINGS_AT + station * RING_BYTES, first, seq)
+                raw = copy_records(mapped, RINGS_AT + station * RING_BYTES, first, seq)
                 now_at = _COUNTER.unpack_from(mapped, SEQS_AT + 8 * station)[0]
                 overwritten = now_at - CAPACITY - first  # meanwhile, by the writer
                 if overwritten > 0:
@@ -322,16 +319,6 @@ class ShmBus(can.BusABC):
             self._timers.close()
 
 
-def _copy(mapped: mmap.mmap, ring_at: int, first: int, end: int) -> bytes:
-    """Records ``first`` to ``end`` (counters) of the ring at ``ring_at``, unwrapped."""
-    start = first % CAPACITY
-    count = end - first
-    if start + count <= CAPACITY:
-        return mapped[ring_at + start * RECORD_SIZE:ring_at + (start + count) * RECORD_SIZE]
-    return (mapped[ring_at + start * RECORD_SIZE:ring_at + RING_BYTES]
-            + mapped[ring_at:ring_at + (start + count - CAPACITY) * RECORD_SIZE])
-
-
 def _stamp(record: tuple[Any, ...]) -> float:
     return float(record[0])
 
@@ -351,62 +338,3 @@ def frames_written(channel: str) -> int:
     finally:
         os.close(fd)
     return sum(_COUNTERS.unpack(raw))
-
-
-FRAME_STAMP_ID = np.dtype({"names": ["stamp", "ident"], "formats": ["<f8", "<u4"],
-                           "offsets": [0, 8], "itemsize": RECORD_SIZE})
-"""The time stamp (s, ``time.time()`` of the sender) and identifier of a ring's record."""
-
-
-class ChannelWatch:
-    """Every frame on a channel, copied from the rings without opening a station [ours].
-
-    Why: a benchmark that must count a card's frames by identifier and time (a loss
-    check) would otherwise trace them in the card, which costs the card CPU per frame,
-    or open a station, which every writer then rings (a system call per frame in the
-    processes being measured). This maps the file read-only and copies what is new
-    when asked; the writers never learn it exists. Each ``poll`` must come before
-    any station wrote a whole ring (``CAPACITY`` records) more: what a ring overwrote
-    first is counted in ``missed``, never returned.
-    """
-
-    def __init__(self, channel: str) -> None:
-        fd = os.open(channel_path(channel), os.O_RDONLY)
-        try:
-            self._map = mmap.mmap(fd, FILE_SIZE, access=mmap.ACCESS_READ)
-        finally:
-            os.close(fd)
-        self._seqs: npt.NDArray[np.uint64] = np.ndarray(
-            (MAX_STATIONS,), np.uint64, buffer=self._map, offset=SEQS_AT)
-        self._cursors = self._seqs.copy()
-        """Per station: the records copied so far; frames before the watch began are not."""
-        self._raw: list[bytes] = []
-        self.missed = 0
-        """Records overwritten before a ``poll`` copied them."""
-
-    def poll(self) -> int:
-        """Copy every record written since the last poll; returns how many."""
-        copied = 0
-        seqs, cursors = self._seqs, self._cursors
-        for station in np.flatnonzero(seqs != cursors).tolist():
-            cursor, seq = int(cursors[station]), int(seqs[station])
-            first = max(cursor, seq - CAPACITY)
-            raw = _copy(self._map, RINGS_AT + station * RING_BYTES, first, seq)
-            overwritten = int(seqs[station]) - CAPACITY - first  # meanwhile, by the writer
-            if overwritten > 0:
-                raw = raw[overwritten * RECORD_SIZE:]
-                first += overwritten
-            self.missed += first - cursor
-            cursors[station] = seq
-            self._raw.append(raw)
-            copied += seq - first
-        return copied
-
-    def frames(self) -> npt.NDArray[Any]:
-        """Every frame copied so far (``FRAME_STAMP_ID`` records), sorted by time stamp."""
-        frames = np.frombuffer(b"".join(self._raw), dtype=FRAME_STAMP_ID)
-        return np.sort(frames, order="stamp")
-
-    def close(self) -> None:
-        del self._seqs  # a numpy view pins the mapping
-        self._map.close()

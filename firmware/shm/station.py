@@ -68,6 +68,17 @@ def channel_path(channel: str) -> Path:
     return root / f"cifemu-can-{name}"
 
 
+def copy_records(mapped: mmap.mmap, ring_at: int, first: int, end: int) -> bytes:
+    """Records ``first`` to ``end`` (counters) of the ring at ``ring_at``, unwrapped: what a
+    reader (``ShmBus``, ``ChannelWatch``) copies of a station's new frames."""
+    start = first % CAPACITY
+    count = end - first
+    if start + count <= CAPACITY:
+        return mapped[ring_at + start * RECORD_SIZE:ring_at + (start + count) * RECORD_SIZE]
+    return (mapped[ring_at + start * RECORD_SIZE:ring_at + RING_BYTES]
+            + mapped[ring_at:ring_at + (start + count - CAPACITY) * RECORD_SIZE])
+
+
 class ChannelError(Exception):
     """The file is no channel of this version, or every station on it is taken
     (``ShmBus`` raises python-can's ``CanInitializationError`` for it)."""
