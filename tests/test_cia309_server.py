@@ -423,7 +423,7 @@ def test_a_write_that_fits_one_message_takes_no_worker_thread(
     two thread switches, and not the client's task either. It runs at most 42 calls of
     ``host_api.cia309``'s Python functions on the loop, as a read (40.1 at branch
     plainwrite, with the plain write of an integer parsed by one regular expression,
-    ``_plain_write``; 68.3 at branch fastwrite, 30 of them the general parser's; before,
+    ``_plain_write``; 68.3 at branch fastwrite, 28 of them the general parser's; before,
     95 on the loop, with the line parsed twice, and the worker thread's besides). A longer
     value (a segmented download: several requests) still goes to a worker thread."""
     server = servers["canopennode"]
