@@ -18,6 +18,7 @@ from hypothesis import strategies as st
 from dpm.cia301 import ABORT_TYPE_LENGTH_MISMATCH
 from dpm.cia305 import LssAddress
 from host_api.cia309.datatypes import (
+    INTEGER_RANGES,
     DataTypeError,
     Dialect,
     format_value,
@@ -57,7 +58,7 @@ from host_api.cia309.model import (
     SdoProgressEvent,
     VersionInfo,
 )
-from host_api.cia309.parser import _parse_stripped, _plain_read, parse_request
+from host_api.cia309.parser import _parse_stripped, _plain_read, _plain_write, parse_request
 from host_api.cia309.requests import (
     ConfigureRpdo,
     ConfigureTpdo,
@@ -746,6 +747,106 @@ def test_plain_reads_take_the_shortcut() -> None:
         plain = _plain_read(line)
         assert plain is not None
         assert plain == _parse_stripped(line, Dialect.CANOPENNODE)
+
+
+def one_of_words(*words: str) -> st.SearchStrategy[list[str]]:
+    return st.sampled_from(words).map(lambda word: [word])
+
+
+WRITE_PARTS: dict[str, tuple[st.SearchStrategy[list[str]], st.SearchStrategy[list[str]]]] = {
+    # each part of a write line: spellings of the plain form (in range or just out), then
+    # near misses
+    "sequence": (one_of_words("[0]", "[1]", "[23]", "[999999999]"),
+                 one_of_words("[01]", "[-1]", "[+1]", "[0x1]", "[1000000000]", "[4294967295]",
+                              "[4294967296]", "[ 1]", "[1 ]", "[x]", "[]")),
+    "address": (st.lists(st.sampled_from(["1", "2", "9", "127", "128", "65535", "65536"]),
+                         min_size=1, max_size=2),
+                st.lists(st.sampled_from(["0", "1", "01", "0x1", "127", "65535", "99999", "-1",
+                                          "+1"]), max_size=3)),
+    "command": (one_of_words("w", "write"),
+                one_of_words("W", "Write", "wr", "writ", "r", "read", "p")),
+    "index": (one_of_words("0", "1", "4119", "0x1017", "0x6200", "65535", "65536", "99999",
+                           "0xffff", "0xFFFF"),
+              one_of_words("0x10000", "0x00001", "0X1", "010", "08", "-1", "+1", "4294967296")),
+    "subindex": (one_of_words("0", "1", "255", "256", "999", "0x1", "0xff", "0xFF"),
+                 one_of_words("0x100", "0x001", "0X1", "00", "01", "-1", "+1", "4294967296")),
+    "type": (one_of_words(*(dtype.value for dtype in INTEGER_RANGES)),
+             one_of_words("U16", "I8", "B", "r32", "r64", "t", "td", "vs", "os", "us", "d",
+                          "hex", "u", "u128", "x24")),
+    "value": (one_of_words(
+        "0", "1", "2", "-0", "-1", "7", "127", "128", "-128", "-129", "255", "256", "32767",
+        "-32768", "32768", "65535", "65536", "8388607", "-8388608", "16777215", "16777216",
+        "2147483647", "-2147483648", "2147483648", "4294967295", "4294967296",
+        "1099511627775", "1099511627776", "9223372036854775807", "-9223372036854775808",
+        "9223372036854775808", "-9223372036854775809", "18446744073709551615",
+        "18446744073709551616", "99999999999999999999", "-99999999999999999999", "0x0", "0x1",
+        "0X1", "0x7f", "0X7F", "0x80", "0xff", "0x100", "0xFFFF", "0x10000", "0xFFFFFF",
+        "0xFFFFFFFF", "0x100000000", "0xFFFFFFFFFFFFFFFF", "0x10000000000000000"),
+              one_of_words("+1", "01", "-01", "010", "08", "00", "-0x1", "0x",
+                           "0x00000000000000001", "1.5", "1e3", "inf", "1_000", "\u0663", "AQ==",
+                           '"1"', "0b1", "0o7", "#", "1#", "0 0")),
+    "ending": (st.just([]), one_of_words("1", "u8", "#", "# a comment", '"x"', "\\x41")),
+}
+"""``test_plain_writes_parse_as_the_general_parser_parses_them``'s lines, part by part."""
+
+
+@st.composite
+def write_lines(draw: st.DrawFn) -> str:
+    """A write line in the plain form with up to two of its parts, or its spacing, near
+    misses (drawn part by part: a line of words drawn all at random is almost never
+    plain), a word missing or not, white space around it."""
+    broken = draw(st.sets(st.sampled_from([*WRITE_PARTS, "spacing", "missing"]), max_size=2))
+    words = [word for name, (plain, near) in WRITE_PARTS.items()
+             for word in draw(near if name in broken else plain)]
+    if "missing" in broken:
+        del words[draw(st.integers(0, len(words) - 1))]
+    space = draw(st.sampled_from(["  ", "\t", "", "\r"])) if "spacing" in broken else " "
+    line = space.join(words) if space else " ".join(words).replace(" ", "", 1)
+    margin = draw(st.sampled_from(["", " ", "\t", "\r"]))
+    return margin + line + margin
+
+
+@settings(max_examples=EXAMPLES * 10, deadline=None)
+@given(write_lines(), st.sampled_from(DIALECTS))
+def test_plain_writes_parse_as_the_general_parser_parses_them(
+        line: str, dialect: Dialect) -> None:
+    """Issue 22: the server's shortcut for the plain write of an integer (``_plain_write``)
+    makes exactly the request, value bytes included, that the general parser makes of the
+    same line, or leaves the line to it; and lines near the plain form: every integer
+    type's limits and one past them, negative values of unsigned types, other spellings
+    of numbers (leading zeros, ``0X``, signs, octal), other types, case, spaces, a word
+    missing or one too many, in either dialect. ``parse_request`` gives the general
+    parser's request, or its error (number, sequence and text)."""
+    try:
+        general: Request | ParseError | None = _parse_stripped(line.strip(), dialect)
+    except ParseError as error:
+        general = error
+    plain = _plain_write(line.strip())
+    if plain is not None:
+        assert plain == general
+    try:
+        assert parse_request(line, dialect) == general
+    except ParseError as error:
+        assert isinstance(general, ParseError)
+        assert (error.error, error.sequence, str(error)) == (
+            general.error, general.sequence, str(general))
+
+
+def test_plain_writes_take_the_shortcut() -> None:
+    """The integer writes 309-3 clients send take the shortcut, and come out as the general
+    parser reads them in both dialects, value bytes included."""
+    for line, data in (("[1] 4 write 0x6200 1 u8 0", b"\0"),
+                       ("[23] 1 2 w 0x2006 0 u16 0x1234", b"\x34\x12"),
+                       ("[0] 127 w 0 255 i8 -128", b"\x80"),
+                       ("[7] 2 w 0x1017 0 u16 1000", b"\xe8\x03"),
+                       ("[8] 2 w 0x2001 0 b 1", b"\x01"),
+                       ("[9] 2 w 0x2003 0 i32 -2", b"\xfe\xff\xff\xff"),
+                       ("[10] 2 w 0x2010 0 x64 0xFFFFFFFFFFFFFFFF", b"\xff" * 8),
+                       ("[999999999] 65535 1 write 65535 0x1 u24 16777215", b"\xff" * 3)):
+        plain = _plain_write(line)
+        assert plain is not None and plain.data == data
+        for dialect in DIALECTS:
+            assert plain == _parse_stripped(line, dialect)
 
 
 # --------------------------------------------------------------------------- answers

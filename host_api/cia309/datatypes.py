@@ -125,6 +125,26 @@ _KINDS: dict[DataType, _Kind] = {
     DataType.HEX: _Kind.HEX_BYTES,
 }
 
+
+def _integer_range(kind: _Kind, size: int | None) -> tuple[int, int]:
+    assert size is not None  # every integer type has a fixed size
+    bits = 8 * size
+    if kind is _Kind.BOOLEAN:
+        return 0, 1
+    if kind is _Kind.SIGNED:
+        return -(1 << (bits - 1)), (1 << (bits - 1)) - 1
+    return 0, (1 << bits) - 1
+
+
+INTEGER_RANGES: dict[DataType, tuple[int, int]] = {
+    dtype: _integer_range(kind, SIZES[dtype])
+    for dtype, kind in _KINDS.items()
+    if kind in (_Kind.BOOLEAN, _Kind.SIGNED, _Kind.UNSIGNED, _Kind.HEX_UNSIGNED)
+}
+"""The lowest and highest value of each integer type (BOOLEAN, INTEGERn, UNSIGNEDn, HEXn),
+which ``parse_value`` checks and the parser's plain write too (issue 22); a signed type is
+one whose lowest value is negative."""
+
 _MAX_NUMBER_TEXT = 128
 """No integer needs more characters; longer text is refused before Python converts it."""
 _C_INTEGER = re.compile(r"([+-]?)(?:0[xX]([0-9a-fA-F]+)|(0[0-7]*)|([1-9][0-9]*))")
@@ -201,14 +221,9 @@ def parse_value(dtype: DataType, text: str, dialect: Dialect = Dialect.CANOPENNO
         return _parse_real(text, single=dtype is DataType.REAL32)
     size = SIZES[dtype]
     assert size is not None  # every remaining kind has a fixed size
-    if kind is _Kind.BOOLEAN:
-        return bytes([parse_integer(text, 0, 1, "BOOLEAN")])
-    if kind is _Kind.SIGNED:
-        bound = 1 << (8 * size - 1)
-        value = parse_integer(text, -bound, bound - 1, dtype.name)
-        return value.to_bytes(size, "little", signed=True)
-    value = parse_integer(text, 0, (1 << (8 * size)) - 1, dtype.name)
-    return value.to_bytes(size, "little")
+    low, high = INTEGER_RANGES[dtype]  # every remaining kind is an integer
+    value = parse_integer(text, low, high, dtype.name)
+    return value.to_bytes(size, "little", signed=low < 0)
 
 
 def format_value(dtype: DataType, data: bytes, dialect: Dialect = Dialect.CANOPENNODE) -> str:
