@@ -437,3 +437,47 @@ def test_while_boot_ups_are_under_way_the_receive_thread_takes_frames_without_sl
     asleep, handled = _sleeps_for_frames(lingering=True)
     assert handled == list(range(LINGER_FRAMES))
     assert asleep <= LINGER_FRAMES // 2, f"{asleep} sleeps for {LINGER_FRAMES} frames"
+
+
+def test_the_controller_shuts_down_only_after_a_frame_handler_a_sender_runs_has_ended(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """A frame that found the receive thread idle is handled by its sender's thread (a
+    simulated node's, with ``--simulate``), no thread of the controller's. The card powered
+    off under such a handler: its next request failed on the closed bus ("frame 0x601 not
+    sent"), and the Msg_Time_Out it counted raised on the unmapped image, "frame handler
+    failed on 0x581" in the card's log (a boot-up's answer, its next step in flight). The
+    shutdown waits for the handler, which ends on an open bus. The bound of that wait is
+    raised so that a loaded machine cannot end it inside the test's window."""
+    monkeypatch.setattr(firmware.can.bus, "RECEIVER_JOIN_S", 60.0)
+    channel = f"test-can-bus-{uuid.uuid4().hex}"
+    node = can.Bus(interface="virtual", channel=channel)
+    bus = CanBus("virtual", channel)
+    entered = threading.Event()
+    release = threading.Event()
+    sent: list[bool] = []
+
+    def answer(msg: can.Message) -> None:  # a boot step's answer: the next request goes out
+        entered.set()
+        assert within(release.wait, 5), "the test never let the handler go"
+        sent.append(bus.send(0x601, bytes(8)))
+
+    bus.subscribe(0x581, answer)
+    sender = threading.Thread(target=node.send, daemon=True, args=(
+        can.Message(arbitration_id=0x581, is_extended_id=False, data=bytes(8)),))
+    power_off = threading.Thread(target=bus.shutdown, daemon=True)
+    try:
+        sender.start()
+        assert within(entered.wait, 5), "the answer was not handled"
+        power_off.start()
+        assert not ended(power_off, 0.5), "the controller shut down under a frame handler"
+        release.set()
+        assert ended(power_off, 5), "the controller did not shut down after the handler"
+        assert ended(sender, 5)
+        assert sent == [True], "the handler's request did not go out"
+        request = node.recv(5)
+        assert request is not None and request.arbitration_id == 0x601
+    finally:
+        release.set()
+        if power_off.ident is None:
+            bus.shutdown()
+        node.shutdown()

@@ -147,8 +147,9 @@ TAKE_RECEIVED_MAX = 4096
 """[ours] The most frames the receive thread takes at once before the master judges a late
 node (``_Receiver.take_then``): a second and more of a busy 1 Mbit/s bus."""
 RECEIVER_JOIN_S = 5.0
-"""How long ``_Receiver.stop`` waits for the thread (python-can's ``Notifier.stop``'s
-default); a frame handler that takes longer is left to end on its own."""
+"""How long ``_Receiver.stop`` waits for the thread and for a frame a sender's thread is
+handling (python-can's ``Notifier.stop``'s default); a frame handler that takes longer is
+left to end on its own."""
 
 
 def bitrate_of_link(details: object) -> int | None:
@@ -534,8 +535,16 @@ class _Receiver:
         return self._bus.recv(0)
 
     def stop(self) -> None:
-        """End the thread: wake it, and wait for it (unless called from it, by a frame
-        handler or ``on_error``)."""
+        """End the thread: wake it, and wait for it and for a frame that a sender's thread is
+        handling (``try_dispatch``), unless called from the thread itself (by a frame handler
+        or ``on_error``). Once this returns no frame handler runs, and none starts.
+
+        A sender's thread is no thread of the controller's, and nothing else waits for it:
+        with ``--simulate`` a simulated node's thread that handled its answer to a boot step
+        went on while the card powered off, and sent the next request on the closed bus and
+        counted its Msg_Time_Out in the unmapped image ("frame handler failed on 0x581",
+        ValueError: mmap closed). Both waits end within ``RECEIVER_JOIN_S`` together: a
+        handler that takes longer is left to end on its own, as before."""
         if self._stopping:
             return
         self._stopping = True
@@ -545,7 +554,12 @@ class _Receiver:
             with contextlib.suppress(queue.Full):  # a full queue wakes the thread anyway
                 self._hand_over(self._wake_frame)
         if threading.current_thread() is not self._thread:
+            deadline = time.monotonic() + RECEIVER_JOIN_S
             self._thread.join(RECEIVER_JOIN_S)
+            # ``try_dispatch`` looks at ``_stopping`` under this lock: a sender that took it
+            # first ends its frame before this returns, one that takes it later handles none
+            if self._dispatching.acquire(timeout=max(0.0, deadline - time.monotonic())):
+                self._dispatching.release()
 
 
 class _IoVec(ctypes.Structure):
