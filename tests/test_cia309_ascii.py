@@ -9,6 +9,7 @@ from __future__ import annotations
 import math
 import os
 import struct
+from collections.abc import Callable
 from datetime import datetime
 
 import pytest
@@ -712,6 +713,26 @@ READ_WORDS = ["r", "read", "R", "Read", "rd", "u32", "U32", "x8", "hex", "i16", 
               "u", "p", "#", '"a"']
 
 
+def assert_as_the_general_parser(line: str, dialect: Dialect,
+                                 shortcut: Callable[[str], Request | None]) -> None:
+    """``shortcut`` (a plain form's parser) gives None for ``line`` or exactly the request
+    the general parser gives; ``parse_request`` gives the general parser's request, or its
+    error (number, sequence and text)."""
+    try:
+        general: Request | ParseError | None = _parse_stripped(line.strip(), dialect)
+    except ParseError as error:
+        general = error
+    plain = shortcut(line.strip())
+    if plain is not None:
+        assert plain == general
+    try:
+        assert parse_request(line, dialect) == general
+    except ParseError as error:
+        assert isinstance(general, ParseError)
+        assert (error.error, error.sequence, str(error)) == (
+            general.error, general.sequence, str(general))
+
+
 @settings(max_examples=EXAMPLES * 10, deadline=None)
 @given(st.lists(st.sampled_from(READ_NUMBERS), min_size=1, max_size=3),
        st.lists(st.sampled_from(READ_NUMBERS + READ_WORDS), max_size=4),
@@ -725,18 +746,7 @@ def test_plain_reads_parse_as_the_general_parser_parses_them(
     near the plain form (other spellings of numbers, ranges, case, spaces, extra words)."""
     words = [f"[{sequence}]", *head[:-1], head[-1], command, *tail]
     line = space.join(words) if space else " ".join(words).replace(" ", "", 1)
-    try:
-        general: Request | ParseError | None = _parse_stripped(line.strip(), dialect)
-    except ParseError as error:
-        general = error
-    plain = _plain_read(line.strip())
-    if plain is not None:
-        assert plain == general
-    try:
-        assert parse_request(line, dialect) == general
-    except ParseError as error:
-        assert isinstance(general, ParseError)
-        assert (error.error, error.sequence) == (general.error, general.sequence)
+    assert_as_the_general_parser(line, dialect, _plain_read)
 
 
 def test_plain_reads_take_the_shortcut() -> None:
@@ -817,19 +827,7 @@ def test_plain_writes_parse_as_the_general_parser_parses_them(
     of numbers (leading zeros, ``0X``, signs, octal), other types, case, spaces, a word
     missing or one too many, in either dialect. ``parse_request`` gives the general
     parser's request, or its error (number, sequence and text)."""
-    try:
-        general: Request | ParseError | None = _parse_stripped(line.strip(), dialect)
-    except ParseError as error:
-        general = error
-    plain = _plain_write(line.strip())
-    if plain is not None:
-        assert plain == general
-    try:
-        assert parse_request(line, dialect) == general
-    except ParseError as error:
-        assert isinstance(general, ParseError)
-        assert (error.error, error.sequence, str(error)) == (
-            general.error, general.sequence, str(general))
+    assert_as_the_general_parser(line, dialect, _plain_write)
 
 
 def test_plain_writes_take_the_shortcut() -> None:

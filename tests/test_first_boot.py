@@ -24,11 +24,11 @@ import uuid
 from pathlib import Path
 
 from bench.can.card import network_toml, wait_operating
-from bench.cpu import descendants
+from bench.cpu import tree_cpu_ns
 from dbm_tools.builder import build_dbm
 from dbm_tools.container import write_dbm
 from dbm_tools.network import parse_network
-from dpm.start_progress import TICK_NS, stat_cpu_ns, stat_fields
+from dpm.start_progress import TICK_NS, stat_fields
 from host_api.board import Board
 from host_api.download import CONFIGURATION_DOWNLOAD, DevDownload
 from host_api.driver import COLDSTART, DevReset
@@ -48,16 +48,12 @@ last two 0.11-0.19 s; before, the first 0.62-0.78 s against 0.10-0.22 s."""
 
 
 def card_cpu_ns(pid: int) -> int:
-    """The card's CPU so far: its process, the children it has waited for (a SYNC timer that
-    ended) and those that run (``bench.cpu.descendants``)."""
+    """The card's CPU so far: its process and those that run under it
+    (``bench.cpu.tree_cpu_ns``), and the children it has waited for (a SYNC timer that
+    ended: cutime and cstime)."""
     fields = stat_fields(pid)
-    total = sum(int(fields[index]) for index in (11, 12, 13, 14)) * TICK_NS  # proc(5) 14-17
-    for child in descendants(pid):
-        try:
-            total += stat_cpu_ns(child)
-        except (OSError, ValueError, IndexError):
-            continue  # ended between the listing and the reading
-    return total
+    waited = (int(fields[13]) + int(fields[14])) * TICK_NS  # proc(5) fields 16 and 17
+    return tree_cpu_ns(pid) + waited
 
 
 def test_a_boot_right_after_the_start_costs_the_card_no_more_than_later_ones(
