@@ -229,9 +229,8 @@ def test_the_database_loaded_from_flash_is_logged_and_shown(tmp_path: Path) -> N
         assert shown["nodes"] == 4 and shown["usable"] is True and "30.11.2026" in shown["date"]
         assert "plant A" in status(tmp_path).stdout
     finally:
-        card.proc.terminate()
-        _, stderr = commands.finish(card.proc, 10)
-    log = stderr.decode()
+        assert card.stop() == 0
+    log = card.log()
     assert "database from flash: 'plant A' of" in log and "4 node(s)" in log
     assert os.path.exists(tmp_path / "board0.card.json")
 
