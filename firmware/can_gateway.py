@@ -92,7 +92,7 @@ class GatewayCommands:
         writes = [(0x100C, struct.pack("<H", guard_time)), (0x100D, bytes([factor]))]
         if on:
             writes.insert(0, (0x1017, b"\0\0"))  # CiA 301: guarding only without heartbeat
-        self.master.executor.submit(self._configure_error_control, msg, handler, writes,
+        self.master.workers.submit(self._configure_error_control, msg, handler, writes,
                                     False, guard_time, factor)
         return None
 
@@ -110,15 +110,20 @@ class GatewayCommands:
                                  writes: list[tuple[int, bytes]], heartbeat: bool,
                                  time_ms: int, factor: int) -> None:
         channel = self.master.sdo.channel(handler.address)
+        if not self.master.sdo.take(channel):
+            return  # the card powers off
         answer = msg.answer()
-        with channel.lock:
-            try:
-                for index, value in writes:
-                    channel.sdo.download(index, 0, value)
-            except SdoAbortedError as exc:
-                answer = msg.answer(f=CanF.SDO_ABORT, data=struct.pack("<I", exc.code))
-            except SdoCommunicationError:
-                answer = msg.answer(f=CanF.NO_RESPONSE)
+        try:
+            for index, value in writes:
+                channel.sdo.download(index, 0, value)
+        except SdoAbortedError as exc:
+            answer = msg.answer(f=CanF.SDO_ABORT, data=struct.pack("<I", exc.code))
+        except SdoCommunicationError:
+            answer = msg.answer(f=CanF.NO_RESPONSE)
+        finally:
+            channel.lock.release()
+        if self.master.closing:
+            return  # cut short by the power-off (``SdoChannels.close``): no answer
         if answer.f == 0:
             handler.set_supervision(heartbeat, time_ms, factor)
         self.card.post(answer)

@@ -1,4 +1,5 @@
-"""The card powers off while its nodes boot: every frame it handled ends cleanly.
+"""The card powers off while its nodes boot, or while a worker thread configures one: every
+frame it handled and every job it began ends cleanly, and promptly.
 
 With ``--simulate`` a simulated node's thread handles the card's frames itself when the card's
 receive thread is idle (``firmware.inline``): a boot step's answer, and the card's next
@@ -8,6 +9,10 @@ power-off after a CiA 309 client had written 1017h = 0 to node 1 until the card 
 on in a card handler while the card closed its bus and unmapped its image, so the next
 request was "not sent" and the Msg_Time_Out it counted raised ValueError (mmap closed).
 ``tests/test_can_bus.py`` holds the controller's side of it; here is what a user saw.
+
+COM_Set_Guarding's SDO writes run in a worker thread of the card (``firmware.can.workers``),
+which the power-off did not wait for, nor end: one that waited for its node's SDO channel
+held the firmware process after SIGTERM for good, one in a transfer until its time-out.
 """
 
 from __future__ import annotations
@@ -15,6 +20,10 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
+from dpm.com import NodeSwitch, SdoTimeoutRequest
+from dpm.commands import COM_SET_GUARDING, COM_SET_SDO_TIMEOUT
+from dpm.message import Message
+from host_api.board import Board
 from host_api.cia309.gateway import Gateway
 from host_api.cia309.model import Cia309Error, DataType
 from tests.conftest import wait_until
@@ -65,5 +74,35 @@ def test_a_card_powered_off_while_its_nodes_boot_logs_no_failed_frame_handler(
         card.stop()
     log = card.log()
     assert "frame handler failed" not in log, log
+    assert "not sent" not in log, log
+    assert "Traceback" not in log, log
+
+
+SILENT = "[[node]]\nid = 1\n[[node]]\nid = 5\n[node.sim]\nsilent = true\n"
+"""Node 5 never answers: the card's boot-ups of it, and a worker's writes to it, wait for
+the SDO time-out."""
+SDO_TIMEOUT_MS = 60_000
+"""Far past ``Card.stop``'s 10 s: a power-off that waits for a transfer's time-out fails."""
+
+
+def test_a_card_powered_off_while_it_writes_guarding_to_a_silent_node_stops_at_once(
+        tmp_path: Path) -> None:
+    card = start(tmp_path, 0, SILENT)
+    try:
+        with Board(0, tmp_path, timeout=5000) as board:
+            wait_operating(0, [1])
+            timeout = SdoTimeoutRequest(0, SDO_TIMEOUT_MS).encode()
+            assert board.transact(Message(rx=3, tx=16, b=COM_SET_SDO_TIMEOUT,
+                                          data=timeout)).f == 0
+            board.put_message(Message(rx=3, tx=16, b=COM_SET_GUARDING,
+                                      data=NodeSwitch(5, True, 100, 3).encode()))
+            # answered after the card handed COM_Set_Guarding to its worker, which waits
+            # for node 5's channel (a boot-up holds it) or for node 5's answer
+            assert board.transact(Message(rx=3, tx=16, b=COM_SET_SDO_TIMEOUT,
+                                          data=timeout)).f == 0
+            assert card.stop() == 0  # within its 10 s: no wait for the 60 s time-out
+    finally:
+        card.stop()
+    log = card.log()
     assert "not sent" not in log, log
     assert "Traceback" not in log, log

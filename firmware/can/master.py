@@ -24,7 +24,6 @@ import math
 import threading
 import time
 from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
 from typing import TYPE_CHECKING
 
 import can
@@ -56,6 +55,7 @@ from firmware.can.pdo import FEW_NODES, OutputWatch, import_numpy_ahead, zero_ou
 from firmware.can.sdo import DEFAULT_SDO_TIMEOUT, SdoChannels
 from firmware.can.supervision import HeartbeatWatch
 from firmware.can.sync import SyncProducer
+from firmware.can.workers import Workers
 from firmware.frames import (
     CAN_ERR_ACK,
     CAN_ERR_BUSOFF,
@@ -90,7 +90,7 @@ class Master:
         """Whether a configured node has a SYNC controlled PDO (see ``sync_period``)."""
         self.bus_params: BusParameterSet | None = None
         self._ext = ExtendedBusParameterSet()
-        self.executor = ThreadPoolExecutor(max_workers=32, thread_name_prefix="node-boot")
+        self.workers = Workers()
         """Threads that wait: the 309 gateway's error-control writes, and a boot-up whose
         node's SDO channel another transfer holds (``NodeHandler.start_boot``)."""
         self.boot_slots = BootSlots()
@@ -162,12 +162,16 @@ class Master:
         return self._stop.is_set()
 
     def close(self) -> None:
+        """Power off: the threads end, the worker jobs under way too (within
+        ``WORKERS_JOIN_S``), before the controller leaves the bus; the card unmaps its image
+        after this returns."""
         self._stop.set()
+        self.sdo.close()
         self._wakeup.set()
         if self._thread is not None:
             self._thread.join(timeout=2)
         self.sync.join(timeout=2)
-        self.executor.shutdown(wait=False, cancel_futures=True)
+        self.workers.shutdown()
         if self.bus is not None:
             self.bus.shutdown()
 

@@ -18,7 +18,6 @@ import enum
 import logging
 import math
 import time
-from concurrent.futures import Executor
 from contextlib import AbstractContextManager
 from typing import Protocol
 
@@ -36,6 +35,7 @@ from firmware.can.emcy import EmcyConsumer
 from firmware.can.pdo import NodePdos, PdoLink
 from firmware.can.sdo import SdoChannel, SdoChannels
 from firmware.can.supervision import ErrorControl, HeartbeatWatch
+from firmware.can.workers import Workers
 
 log = logging.getLogger(__name__)
 
@@ -50,10 +50,6 @@ FOREIGN_CLOCK_S = 60.0
 """[ours] A frame stamped further than this from the wall clock is stamped by the adapter's
 own clock: its stamp says nothing about when it was on the bus relative to the card's
 resets and starts (``wall_stamp``)."""
-
-CHANNEL_WAIT_LOOK_S = 0.5
-"""How often a boot-up waiting for its node's SDO channel looks whether the card powers off
-(it waits on the channel's lock, which a power-off does not release)."""
 
 
 class State(enum.Enum):
@@ -75,7 +71,7 @@ class Network(BootLink, PdoLink, Protocol):
     def bus(self) -> CanBus | None: ...
 
     @property
-    def executor(self) -> Executor: ...
+    def workers(self) -> Workers: ...
 
     @property
     def boot_slots(self) -> BootSlots: ...
@@ -217,7 +213,7 @@ class NodeHandler:
         else:
             # A host transfer, the gateway or a replaced boot-up holds the node's SDO
             # channel: a worker waits for it, as the seed's node handler waits.
-            self.network.executor.submit(self._boot_when_free, generation, channel,
+            self.network.workers.submit(self._boot_when_free, generation, channel,
                                          reset_sent)
         return True
 
@@ -229,10 +225,9 @@ class NodeHandler:
         The wait gives up when the card powers off: the boot-up holding the channel ends at
         its next answer or time-out, which the master's thread no longer times then, and a
         worker blocked for good kept the firmware process from exiting."""
-        while not channel.lock.acquire(timeout=CHANNEL_WAIT_LOOK_S):
-            if self.network.closing:
-                self.network.boot_slots.free()
-                return
+        if not self.network.sdo.take(channel):
+            self.network.boot_slots.free()
+            return
         if generation != self._generation:
             channel.lock.release()
             self.network.boot_slots.free()

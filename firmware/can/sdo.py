@@ -21,6 +21,7 @@ from __future__ import annotations
 import contextlib
 import math
 import struct
+import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -29,6 +30,7 @@ from typing import Protocol
 import can
 from canopen.objectdictionary import ObjectDictionary
 from canopen.sdo.client import SdoClient
+from canopen.sdo.exceptions import SdoCommunicationError
 
 from dpm._quicklock import Lock as QuickLock
 from dpm.cia301 import (
@@ -46,6 +48,13 @@ from firmware.can.bus import CanBus
 DEFAULT_SDO_TIMEOUT = 0.5
 """[ours] seconds an SDO request waits for its answer until COM_Set_SDO_Timeout; canopen's
 0.3 s lets a busy 2-core machine abort boot-ups that would have succeeded."""
+
+CHANNEL_WAIT_LOOK_S = 0.5
+"""How often a worker waiting for a node's SDO channel looks whether the card powers off
+(it waits on the channel's lock, which a power-off does not release)."""
+_POWER_OFF = bytes([0x80, 0, 0, 0]) + struct.pack("<I", ABORT_GENERAL)
+"""What a power-off gives a blocking client waiting for its answer (``close``): an
+abort, which ends the worker's transfer at once rather than after its time-out."""
 
 _NO_CONTEXT = contextlib.nullcontext()
 
@@ -245,6 +254,21 @@ class Deadline(Protocol):
         """Give up when the deadline has come; when to look again (inf: over)."""
 
 
+class _Client(SdoClient):
+    """canopen's blocking client, which sends no request once the card powers off: the bus
+    is about to close under it."""
+
+    def __init__(self, address: int, closed: threading.Event) -> None:
+        super().__init__(SDO_REQUEST_BASE + address, SDO_RESPONSE_BASE + address,
+                         ObjectDictionary())  # type: ignore[no-untyped-call]
+        self._closed = closed
+
+    def send_request(self, request: bytes) -> None:
+        if self._closed.is_set():
+            raise SdoCommunicationError("the card powers off")
+        super().send_request(request)  # type: ignore[no-untyped-call]
+
+
 @dataclass
 class SdoChannel:
     """A node's SDO channel: one client, taken in turn by boot-up and host transfers."""
@@ -275,18 +299,36 @@ class SdoChannels:
         boot of 127 nodes has as many under way, and the master looks at every change)."""
         self.timeout = DEFAULT_SDO_TIMEOUT
         """Seconds a new channel waits for an answer (COM_Set_SDO_Timeout node 0)."""
+        self._closed = threading.Event()
 
     def open(self, bus: CanBus) -> None:
         self._bus = bus
+
+    def close(self) -> None:
+        """The card powers off: a worker's transfer ends now, at its next request or with
+        the abort its wait gets, and a worker waiting for a channel gives up (``take``).
+        A job blocked for the node's SDO time-out (up to 65 s) held the power-off."""
+        self._closed.set()
+        for channel in list(self._channels.values()):
+            channel.sdo.on_response(SDO_RESPONSE_BASE, _POWER_OFF, 0.0)  # type: ignore[no-untyped-call]
+
+    @property
+    def closing(self) -> bool:
+        return self._closed.is_set()
+
+    def take(self, channel: SdoChannel) -> bool:
+        """In a worker: take ``channel``; False when the card powers off meanwhile."""
+        while not channel.lock.acquire(timeout=CHANNEL_WAIT_LOOK_S):
+            if self._closed.is_set():
+                return False
+        return True
 
     def channel(self, address: int) -> SdoChannel:
         """The SDO channel to ``address``."""
         channel = self._channels.get(address)
         if channel is None:
             assert self._bus is not None
-            client = SdoClient(  # type: ignore[no-untyped-call]
-                SDO_REQUEST_BASE + address, SDO_RESPONSE_BASE + address, ObjectDictionary()  # type: ignore[no-untyped-call]
-            )
+            client = _Client(address, self._closed)
             client.network = self._bus.network
             client.RESPONSE_TIMEOUT = self.timeout
             self._bus.network.subscribe(SDO_RESPONSE_BASE + address, client.on_response)
