@@ -287,14 +287,26 @@ def test_a_waiting_call_is_woken_by_the_doorbell(card: Card, board: int, d: Any)
     # The card learns a host's bell from its rings; one round trip makes sure it has
     # (it may handle the first message before the ring that came with it).
     transact(d, board, shm(9, SHM_READ_RECEIVE))
+    native: list[int] = []
+    got: list[tuple[int, Any]] = []
+
+    def wait_for_the_answer() -> None:
+        native.append(threading.get_native_id())
+        got.append(d.DevGetMessage(board, 288, 3000))
+
     card.freeze()
     try:
         assert d.DevPutMessage(board, shm(1, SHM_READ_RECEIVE), 0) == 0
+        waiter = threading.Thread(target=wait_for_the_answer)
+        waiter.start()
+        # the card answers only once the host sleeps on its bell: an answer found before
+        # the wait (a host thread late under load) would take no ring
+        wait_until(lambda: bool(native) and sleeps_in_poll(native[0]),
+                   what="the host waits on its bell")
     finally:
-        thaw = threading.Timer(0.1, card.thaw)
-        thaw.start()
-    rc, answer = d.DevGetMessage(board, 288, 3000)
-    thaw.join()
+        card.thaw()
+    waiter.join()
+    rc, answer = got[0]
     assert rc == 0 and answer is not None and answer.nr == 1
     irq_count = struct.unpack_from("<I", d.DevGetInfo(board, d.GET_DRIVER_INFO, 33)[1], 16)[0]
     assert irq_count >= 1
