@@ -38,6 +38,16 @@ if TYPE_CHECKING:
 
 log = logging.getLogger(__name__)
 
+_REQUEST_MIN = MSG_HEADER_SIZE + TELEGRAM_HEADER.size
+_HEAD = slice(MSG_HEADER_SIZE, _REQUEST_MIN)
+"""A request's telegram header, which a refusal carries back."""
+_PAYLOAD = slice(_REQUEST_MIN, None)
+_READ = int(Tfc.READ)
+_WRITE = int(Tfc.WRITE)
+_FIRST = int(Ext.FIRST)
+_LONG_PARTS = frozenset((Ext.FIRST, Ext.CONT, Ext.LAST))
+_BOOTING = State.BOOTING
+
 
 class HostSdo:
     """COM_SDO_Up_Download over the master's SDO channels; answers go out by ``Card.post``.
@@ -114,47 +124,56 @@ class HostSdo:
 
     def _request(self, raw: bytes, number: int) -> bytes | None:
         """The request ``raw`` (header and msg.ln data bytes) numbered ``number``: its
-        answer now, or None when its transfer answers (``_give``)."""
-        head8 = raw[MSG_HEADER_SIZE : MSG_HEADER_SIZE + TELEGRAM_HEADER.size]
-        if len(raw) < MSG_HEADER_SIZE + TELEGRAM_HEADER.size:
+        answer now, or None when its transfer answers (``_give``).
+
+        The checks in the seed's order, each refusal's telegram header copied only for the
+        refusal, and the numbers compared as module globals (an enum member read through
+        its class costs a look-up more): a host SDO read runs these in the device loop's
+        thread on every transfer (issue 22)."""
+        if len(raw) < _REQUEST_MIN:
             return encode_answer(raw, f=CanF.FAULTY_PARAMETER)
         address, _, index, subindex, count, _, function = TELEGRAM_HEADER.unpack_from(
             raw, MSG_HEADER_SIZE)
         if not 1 <= address <= NODE_ID_MAX:
-            return encode_answer(raw, f=CanF.FAULTY_PARAMETER, data=head8)
-        if function != Tfc.READ and function != Tfc.WRITE:
-            return encode_answer(raw, f=CanF.SDO_FUNCTION, data=head8)
+            return encode_answer(raw, f=CanF.FAULTY_PARAMETER, data=raw[_HEAD])
+        if function != _READ and function != _WRITE:
+            return encode_answer(raw, f=CanF.SDO_FUNCTION, data=raw[_HEAD])
         master = self.master
         if not master.nmt.running or master.bus is None:
-            return encode_answer(raw, f=CanF.NOT_CONFIGURED, data=head8)
-        payload = raw[MSG_HEADER_SIZE + TELEGRAM_HEADER.size :]
-        if function == Tfc.WRITE and len(payload) != count:
-            return encode_answer(raw, f=CanF.SDO_BUFFER, data=head8)
+            return encode_answer(raw, f=CanF.NOT_CONFIGURED, data=raw[_HEAD])
+        payload = None
+        if function == _WRITE:
+            payload = raw[_PAYLOAD]
+            if len(payload) != count:
+                return encode_answer(raw, f=CanF.SDO_BUFFER, data=raw[_HEAD])
         # [ours] Only e 4, 8 and 0x0C mark a long transfer (docs/card-commands.md), and an
         # upload gets several answers only when asked with e 4: a request as the seed writes
         # it (e 0) gets the seed's single answer, and other bits in e change nothing.
         e = raw[7]
-        long_upload = function == Tfc.READ and e == Ext.FIRST
-        if e in (Ext.FIRST, Ext.CONT, Ext.LAST) and not long_upload:
-            if function != Tfc.WRITE:
-                return encode_answer(raw, f=CanF.SEQUENCE, data=head8)
+        long_upload = function == _READ and e == _FIRST
+        if e in _LONG_PARTS and not long_upload:
+            if function != _WRITE:
+                return encode_answer(raw, f=CanF.SEQUENCE, data=raw[_HEAD])
             gathered = self._gather(raw, e, TelegramHeader.decode(raw[MSG_HEADER_SIZE:]))
             if isinstance(gathered, bytes):
                 return gathered
             payload = bytes(gathered)
         handler = master.nodes.get(address)
-        if handler is not None and handler.state is State.BOOTING:
-            return encode_answer(raw, f=CanF.NODE_BUSY, data=head8)
+        if handler is not None and handler.state is _BOOTING:
+            return encode_answer(raw, f=CanF.NODE_BUSY, data=raw[_HEAD])
         client = master.sdo.channel(address)
         if not client.lock.acquire(blocking=False):
-            return encode_answer(raw, f=CanF.SDO_FUNCTION, data=head8)
+            return encode_answer(raw, f=CanF.SDO_FUNCTION, data=raw[_HEAD])
         if handler is not None:
             handler.host_sdo = True  # seed 5.2.8: the node's RX-PDOs wait meanwhile
-        master.sdo.start_host(HostSdoTransfer(
-            master.bus, address, index, subindex,
-            None if function == Tfc.READ else payload, client.sdo.RESPONSE_TIMEOUT,
+        transfer = HostSdoTransfer(
+            master.bus, address, index, subindex, payload, client.sdo.RESPONSE_TIMEOUT,
             partial(self._answer_sdo, number, raw, long_upload, client.lock, handler),
-            answered_here=True))
+            answered_here=True)
+        # ``SdoChannels.start_host`` written out: a Python call less per transfer (issue 22)
+        transfer.start()
+        if not transfer.finished:  # answered in ``start`` (``answered_here``): nothing to watch
+            master.sdo.watch(transfer)
         return None
 
     def _gather(self, raw: bytes, e: int, head: TelegramHeader) -> bytes | bytearray:
@@ -195,13 +214,17 @@ class HostSdo:
         address, _, index, subindex, _, _, function = TELEGRAM_HEADER.unpack_from(
             raw, MSG_HEADER_SIZE)
         data = result.data
-        if (function == Tfc.READ and not result.timed_out and result.abort is None
+        if (function == _READ and not result.timed_out and result.abort is None
                 and len(data) <= SDO_MAX_DATA):
             # the usual answer, an upload's data in one message, packed here: a call of
             # ``encode_answer`` more per transfer otherwise
             body = TELEGRAM_HEADER.pack(address, 0, index, subindex, len(data), 0, function) + data
-            self._give(number, HEADER.pack(raw[1], raw[0], len(body), raw[3], raw[6], 0, 0, 0)
-                       + body)
+            answer = HEADER.pack(raw[1], raw[0], len(body), raw[3], raw[6], 0, 0, 0) + body
+            with self._kept_lock:  # ``_give`` written out: a Python call less (issue 22)
+                if number == self._open:
+                    self._kept.append(answer)
+                else:
+                    self.card.post(answer)
             return
         head = TelegramHeader(address, 0, index, subindex, 0, 0, function)
         if result.timed_out:

@@ -27,7 +27,6 @@ from typing import Protocol
 
 import can
 from can.interfaces.virtual import VirtualBus
-from can.typechecking import Channel
 
 
 class Dispatcher(Protocol):
@@ -81,27 +80,8 @@ class _AnsweredHere:
 answered_here = _AnsweredHere()
 
 
-_new_message = object.__new__
-
-
-def _received_copy(msg: can.Message, timestamp: float, channel: Channel | None,
-                   is_rx: bool) -> can.Message:
-    """A station's copy of ``msg`` as python-can's ``virtual`` makes it (a deep copy with
-    the time stamp, channel and direction of the reception), its slots set one by one."""
-    copy: can.Message = _new_message(can.Message)
-    copy.timestamp = timestamp
-    copy.arbitration_id = msg.arbitration_id
-    copy.is_extended_id = msg.is_extended_id
-    copy.is_remote_frame = msg.is_remote_frame
-    copy.is_error_frame = msg.is_error_frame
-    copy.channel = channel
-    copy.dlc = msg.dlc
-    copy.data = bytearray(msg.data)
-    copy.is_fd = msg.is_fd
-    copy.is_rx = is_rx
-    copy.bitrate_switch = msg.bitrate_switch
-    copy.error_state_indicator = msg.error_state_indicator
-    return copy
+new_message = object.__new__
+"""A ``can.Message`` without its constructor, whose slots the caller sets, every one."""
 
 
 class CopyingVirtualBus(VirtualBus):
@@ -112,7 +92,9 @@ class CopyingVirtualBus(VirtualBus):
     through ``copy``'s machinery and ``can.Message``'s constructor: 4-6 µs and four Python
     calls a frame here, twice per expedited host SDO (the card's request and the
     simulated node's answer) in the card's device loop (issue 22). This one makes the
-    same copy (``_received_copy``) and gives it to the stations as python-can does: the
+    same copy (a deep copy with the time stamp, channel and direction of the reception,
+    its slots set one by one in ``send``, not in a function of its own: a Python call
+    less per frame) and gives it to the stations as python-can does: the
     sender's own station only when it receives its own messages, every station tried,
     ``CanOperationError`` when one was full. Installed on a station by ``install``."""
 
@@ -133,9 +115,21 @@ class CopyingVirtualBus(VirtualBus):
         for station in self.channel:
             if station is own and not self.receive_own_messages:
                 continue
+            copy: can.Message = new_message(can.Message)
+            copy.timestamp = timestamp
+            copy.arbitration_id = msg.arbitration_id
+            copy.is_extended_id = msg.is_extended_id
+            copy.is_remote_frame = msg.is_remote_frame
+            copy.is_error_frame = msg.is_error_frame
+            copy.channel = channel
+            copy.dlc = msg.dlc
+            copy.data = bytearray(msg.data)
+            copy.is_fd = msg.is_fd
+            copy.is_rx = station is not own
+            copy.bitrate_switch = msg.bitrate_switch
+            copy.error_state_indicator = msg.error_state_indicator
             try:
-                station.put(_received_copy(msg, timestamp, channel, station is not own),
-                            True, timeout)
+                station.put(copy, True, timeout)
             except queue.Full:
                 full = True
         if full:

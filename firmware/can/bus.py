@@ -58,7 +58,7 @@ from firmware.frames import (
     CAN_ERR_RESTARTED,
     SDO_FRAME_LENGTH,
 )
-from firmware.inline import CopyingVirtualBus, InlineQueue
+from firmware.inline import CopyingVirtualBus, InlineQueue, new_message
 
 log = logging.getLogger(__name__)
 
@@ -746,8 +746,10 @@ class CanBus(can.Listener):
         """A recording's frame hook (``firmware.recorder``; frame, received), set and
         cleared while the card runs: every frame the trace sees."""
         self._tap = TapPublisher(tap) if tap else None
-        self._lost = threading.Event()
-        """The transport failed; a thread is opening it again (``on_error``)."""
+        self._lost = False
+        """The transport failed; a thread is opening it again (``on_error``). A bool, not a
+        ``threading.Event``: nothing waits for it, and ``send`` reads it for every frame,
+        where ``Event.is_set`` is a Python call (issue 22)."""
         self.off_bus = False
         """[ours] The fault "bus-off" (firmware/faults.py): the controller neither sends
         nor receives (``set_bus_off``)."""
@@ -872,9 +874,9 @@ class CanBus(can.Listener):
         nodes' supervision do the rest. The receive thread ends after it reports a
         failure (``_Receiver``); the reopening thread waits for it."""
         with self._lock:  # the receive thread and every sending thread may get here
-            if self._lost.is_set() or self._closed.is_set():
+            if self._lost or self._closed.is_set():
                 return
-            self._lost.set()
+            self._lost = True
         log.warning("CAN interface %s channel %s failed (%s: %s); opening it again every "
                     "%.0f s", self.interface, self.channel, type(exc).__name__, exc, REOPEN_S)
         self.on_error_frame(can.Message(is_error_frame=True, arbitration_id=CAN_ERR_BUSOFF))
@@ -894,7 +896,7 @@ class CanBus(can.Listener):
     def receiving(self) -> bool:
         """Whether a receive thread runs and keeps ``deadlines`` (not while a lost link is
         opened again, nor after ``shutdown``)."""
-        return not (self._lost.is_set() or self._closed.is_set())
+        return not (self._lost or self._closed.is_set())
 
     @property
     def watches_link(self) -> bool:
@@ -907,7 +909,7 @@ class CanBus(can.Listener):
         ``HIDDEN_CLOSE_INTERFACES``, whose ``recv`` does not tell it; the card calls this
         every ``LINK_CHECK_S``. Elsewhere it does nothing."""
         link = self._link
-        if link is None or self._lost.is_set():
+        if link is None or self._lost:
             return
         failure = stream_failure(link)
         if failure is not None and link is self._link:  # not a socket a reopening replaced
@@ -964,7 +966,7 @@ class CanBus(can.Listener):
             if self._link_rate is not None:
                 self._link_rate = LinkRate(self.channel)  # its rate may have changed meanwhile
             self._receiver = _Receiver(bus, self.interface, self)
-            self._lost.clear()
+            self._lost = False
             log.warning("CAN interface %s channel %s is back", self.interface, self.channel)
             self.on_link_back()
             return
@@ -991,7 +993,7 @@ class CanBus(can.Listener):
         a word (python-can-remote's closed websocket drops it), and the frame is lost."""
         if self.off_bus:
             return False
-        if self._lost.is_set():
+        if self._lost:
             self.on_send_timeout()
             return False
         if remote and self.interface in NO_REMOTE_FRAME_INTERFACES:
@@ -1002,16 +1004,21 @@ class CanBus(can.Listener):
                             self.interface, can_id)
             self.on_send_timeout()
             return False
-        msg = can.Message(
-            timestamp=time.time(),
-            is_rx=False,
-            channel=self.channel,  # the trace labels sent frames as received ones
-            arbitration_id=can_id,
-            is_extended_id=can_id > 0x7FF if extended is None else extended,
-            is_remote_frame=remote,
-            data=b"" if remote else data,
-            dlc=dlc if dlc is not None else len(data),
-        )
+        # python-can's constructor's work, its slots set here: the call with its keywords
+        # costs every frame the card sends a Python call, two per host SDO (issue 22)
+        msg: can.Message = new_message(can.Message)
+        msg.timestamp = time.time()
+        msg.arbitration_id = can_id
+        msg.is_extended_id = can_id > 0x7FF if extended is None else extended
+        msg.is_remote_frame = remote
+        msg.is_error_frame = False
+        msg.channel = self.channel  # the trace labels sent frames as received ones
+        msg.dlc = dlc if dlc is not None else len(data)
+        msg.data = bytearray() if remote else bytearray(data)
+        msg.is_fd = False
+        msg.is_rx = False
+        msg.bitrate_switch = False
+        msg.error_state_indicator = False
         if self._echoes is not None:
             with self._lock:
                 self._echoes.append((can_id, bytes(msg.data), remote))

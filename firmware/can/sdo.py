@@ -72,7 +72,22 @@ class SdoResult:
 
 
 class HostSdoTransfer:
-    """One upload (``data`` None) or download to ``node``; ``done`` gets the result once."""
+    """One upload (``data`` None) or download to ``node``; ``done`` gets the result once.
+
+    The state a transfer starts with is the class's (``_received`` is made when a
+    segmented upload begins), not set per object: a host SDO read makes one of these in
+    the device loop's thread per transfer (issue 22)."""
+
+    _sent = 0
+    _toggle = 0
+    _initiated = False
+    _expedited = False
+    """Up to four bytes go in the initiate request. An empty value cannot (CiA 301's
+    expedited sizes are 1-4), so it goes as a segmented download of size 0 [ours]."""
+    finished = False
+    """Whether ``done`` has had its result: an attribute, not a property, read after
+    every request (``SdoChannels.start_host``) and by each look of the master's thread."""
+    _received: bytearray
 
     def __init__(self, bus: CanBus, node: int, index: int, subindex: int, data: bytes | None,
                  timeout: float, done: Callable[[SdoResult], None], *,
@@ -89,20 +104,12 @@ class HostSdoTransfer:
         self.data = data
         self.timeout = timeout
         self._done = done
-        self._received = bytearray()
-        self._sent = 0
-        self._toggle = 0
-        self._expedited = data is not None and 0 < len(data) <= 4
-        """Up to four bytes go in the initiate request. An empty value cannot (CiA 301's
-        expedited sizes are 1-4), so it goes as a segmented download of size 0 [ours]."""
-        self._initiated = False
+        if data is not None:
+            self._expedited = 0 < len(data) <= 4
         self._deadline = time.monotonic() + timeout
         """Set here for the first request, which ``start`` sends without reading the clock
         again (each reading a system call inside User-Mode Linux, issue 22); refreshed by
         every later request."""
-        self.finished = False
-        """Whether ``done`` has had its result: an attribute, not a property, read after
-        every request (``SdoChannels.start_host``) and by each look of the master's thread."""
         self._head = SDO_INITIATE.pack(0, index, subindex)[1:]
         """The object's index and subindex as a request and its initiate response carry them."""
         self._context = inline.answered_here if answered_here else _NO_CONTEXT
@@ -164,6 +171,16 @@ class HostSdoTransfer:
             return
         frame = bytes(msg.data)
         command = frame[0]
+        if (command & 0xE3 == 0x43 and self.data is None and not self._sent
+                and frame[1:4] == self._head):
+            # the usual answer, an expedited upload's with its size, finished here: the
+            # calls of ``_upload`` and ``_finish`` on the way of every host SDO read
+            # (issue 22); what ``_upload`` does with it, and the other answers, below
+            self._sent = 1
+            self.finished = True
+            self.bus.take_back_sdo_responses(SDO_RESPONSE_BASE + self.node, self._on_frame)
+            self._done(SdoResult(data=frame[4 : 8 - ((command >> 2) & 0x03)]))
+            return
         if command == 0x80:
             self._finish(SdoResult(abort=struct.unpack_from("<I", frame, 4)[0]))
             return
@@ -192,6 +209,7 @@ class HostSdoTransfer:
                 size = 4 - ((command >> 2) & 0x03) if command & 0x01 else 4
                 self._finish(SdoResult(data=frame[4 : 4 + size]))
                 return
+            self._received = bytearray()
             self._send(bytes([0x60 | self._toggle << 4]) + bytes(7))
             return
         if self._sent and command & 0xE0 == 0x00:  # upload segment response
