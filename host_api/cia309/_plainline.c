@@ -8,7 +8,7 @@
  * format_value and the answer's f-string), 1-2 us each on the loop's thread, which runs on
  * cold caches after its sleep (issue 22, docs/benchmarks.md note 3). These two functions
  * accept a subset of what the Python path accepts and give exactly its result there
- * (tests/test_cia309_plainline.py checks both against it with hypothesis); for anything
+ * (tests/test_cia309_ascii.py checks both against it with hypothesis); for anything
  * else they return None, and the caller takes the Python path, which stays the general
  * one.
  */

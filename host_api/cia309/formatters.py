@@ -218,7 +218,7 @@ answer (``lely``: the dialect is Lely's, ``line_end`` its ``LINE_ENDS``; bind th
 ``functools.partial``) when ``dtype`` is
 None, HEX or an integer type whose size is ``data``'s, else None (then ``format_upload``).
 In C (``_plainline.c``): a 309-3 read's answer without the three Python calls of
-``format_upload`` on the server's loop (issue 22); tests/test_cia309_plainline.py checks
+``format_upload`` on the server's loop (issue 22); tests/test_cia309_ascii.py checks
 it against ``format_upload``."""
 
 

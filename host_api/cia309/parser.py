@@ -119,7 +119,7 @@ line (ended by LF or CR LF, at most ``max_line`` bytes without it) in ``_plain_r
 form with no white space around it: the request ``parse_request`` makes of that line. None
 otherwise (then frame and parse it as any line). In C (``_plainline.c``), bound here by
 ``functools.partial``, so a 309-3 read's line costs the server's loop no Python call
-(issue 22); tests/test_cia309_plainline.py checks it against ``_plain_read``."""
+(issue 22); tests/test_cia309_ascii.py checks it against ``_plain_read``."""
 
 class _Token(NamedTuple):
     """A word of the request and where it stands in the line (for ``rest``). A named tuple:
