@@ -10,7 +10,8 @@ STAMP := $(VENV)/.installed
 # upgraded first, a download and an install fewer on every fresh clone. --no-compile: Python
 # compiles a module when it is first imported, so the thousands nobody imports (mypy's,
 # hypothesis's, pygments' lexers) are not compiled at all: 8 s of CPU less (docs/testing.md).
-$(STAMP): pyproject.toml host_api/_devflags.c firmware/_mailbox.c dpm/_quicklock.c
+$(STAMP): pyproject.toml host_api/_devflags.c firmware/_mailbox.c dpm/_quicklock.c \
+		host_api/cia309/_plainline.c
 	test -x $(BIN)/python || $(PY) -m venv $(VENV)
 	$(BIN)/python -c 'import pip, sys; sys.exit([int(n) for n in pip.__version__.split(".")[:2]] < [21, 3])' \
 		|| $(BIN)/python -m pip install --quiet --upgrade pip

@@ -41,6 +41,7 @@ from host_api.cia309.formatters import (
     format_lss_number,
     format_ok,
     format_pdo_read,
+    format_plain_upload,
     format_upload,
     format_value_response,
     format_version,
@@ -59,7 +60,13 @@ from host_api.cia309.model import (
     SdoProgressEvent,
     VersionInfo,
 )
-from host_api.cia309.parser import _parse_stripped, _plain_read, _plain_write, parse_request
+from host_api.cia309.parser import (
+    _parse_stripped,
+    _plain_read,
+    _plain_write,
+    parse_request,
+    plain_read_line,
+)
 from host_api.cia309.requests import (
     ConfigureRpdo,
     ConfigureTpdo,
@@ -757,6 +764,87 @@ def test_plain_reads_take_the_shortcut() -> None:
         plain = _plain_read(line)
         assert plain is not None
         assert plain == _parse_stripped(line, Dialect.CANOPENNODE)
+
+
+LINE_ENDS_SENT = [b"\n", b"\r\n", b"", b"\r", b"\n\n", b"\r\n\n", b" \n"]
+"""How a client may end what it sends: one line end (LF, CR LF), none, another line after."""
+
+
+def assert_as_the_plain_read(line: str, end: bytes, max_line: int) -> None:
+    """``plain_read_line`` (C) of ``line`` sent with ``end`` gives ``_plain_read``'s request
+    (the general parser's) or None, and gives it whenever the line is one whole line in the
+    plain form with no white space around it."""
+    data = line.encode("latin-1") + end
+    fast = plain_read_line(data, max_line)
+    whole = end in (b"\n", b"\r\n") and len(line.encode("latin-1")) <= max_line
+    if fast is not None:
+        assert whole
+        assert fast == _plain_read(line.strip())
+        assert fast == parse_request(line)
+    if whole and line == line.strip() and "\r" not in line and "\n" not in line:
+        assert fast == _plain_read(line)
+
+
+@settings(max_examples=EXAMPLES * 10, deadline=None)
+@given(st.lists(st.sampled_from(READ_NUMBERS), min_size=1, max_size=3),
+       st.lists(st.sampled_from(READ_NUMBERS + READ_WORDS), max_size=4),
+       st.sampled_from(READ_NUMBERS), st.sampled_from(["r", "read", "R", "w"]),
+       st.sampled_from([" ", "  ", "\t", ""]), st.sampled_from(["", " ", "\t"]),
+       st.sampled_from(LINE_ENDS_SENT), st.sampled_from([DEFAULT_MAX_LINE, 30, 20, 0]))
+def test_the_plain_read_in_c_is_the_plain_read(
+        head: list[str], tail: list[str], sequence: str, command: str, space: str,
+        around: str, end: bytes, max_line: int) -> None:
+    """Issue 22: the server's plain read in C (``plain_read_line``, the line's end and the
+    command size included) makes exactly ``_plain_read``'s request of a line, or leaves
+    the line to the Python path; lines near the plain form, as ``_plain_read``'s test's."""
+    words = [f"[{sequence}]", *head[:-1], head[-1], command, *tail]
+    line = space.join(words) if space else " ".join(words).replace(" ", "", 1)
+    assert_as_the_plain_read(around + line + around, end, max_line)
+
+
+@settings(max_examples=EXAMPLES * 5, deadline=None)
+@given(st.text(alphabet=st.characters(max_codepoint=0xFF), max_size=60),
+       st.sampled_from(LINE_ENDS_SENT))
+def test_the_plain_read_in_c_on_any_text(line: str, end: bytes) -> None:
+    """Any Latin-1 text: the plain read in C gives None or the parser's request."""
+    assert_as_the_plain_read(line, end, DEFAULT_MAX_LINE)
+    assert_as_the_plain_read("[1] 1 r " + line, end, DEFAULT_MAX_LINE)
+
+
+def test_the_reads_clients_send_take_the_plain_read_in_c() -> None:
+    """The reads 309-3 clients send are parsed in C, as the parser reads them; with white
+    space around them or over the command size, they are left to the Python path."""
+    for line in ("[1] 4 read 0x1000 0 u32", "[23] 2 5 r 0x1017 0 u16", "[0] 127 r 0 255",
+                 "[999999999] 1 read 65535 0x1 hex", "[7] 65535 1 r 0xFFFF 0xff x64"):
+        for end in (b"\n", b"\r\n"):
+            fast = plain_read_line(line.encode() + end, DEFAULT_MAX_LINE)
+            assert fast is not None
+            assert fast == _parse_stripped(line, Dialect.CANOPENNODE)
+        assert plain_read_line(f" {line}\n".encode(), DEFAULT_MAX_LINE) is None
+        assert plain_read_line(f"{line}\n".encode(), len(line) - 1) is None
+    for line in ("[1] 128 r 0 0", "[1] 0 r 0 0", "[1] 65536 1 r 0 0", "[1] 1 r 0x10000 0",
+                 "[1] 1 r 65536 0", "[1] 1 r 0 256", "[1] 1 r 0 0x100", "[1000000000] 1 r 0 0",
+                 "[1] 1 r 0 0 u128", "[1] 1 r 0 0 U32", "[1] 1 r 010 0", "[1] 1 r 0X1 0"):
+        assert _plain_read(line) is None
+        assert plain_read_line(f"{line}\n".encode(), DEFAULT_MAX_LINE) is None, line
+
+
+@settings(max_examples=EXAMPLES * 5, deadline=None)
+@given(st.sampled_from([None, *DataType]), st.sampled_from(DIALECTS),
+       st.integers(0, (1 << 64) + 1), st.data())
+def test_the_upload_answer_in_c_is_format_upload(
+        dtype: DataType | None, dialect: Dialect, sequence: int, data: st.DataObject) -> None:
+    """Issue 22: the upload's answer in C (``format_plain_upload``) is ``format_upload``'s
+    text, or None; never None for no type, HEX, or an integer type of the data's size."""
+    size = None if dtype is None else dtype.size
+    value = data.draw(st.binary(min_size=size or 0, max_size=size or 0) if size is not None
+                      and data.draw(st.booleans()) else st.binary(max_size=12))
+    fast = format_plain_upload(dialect is LELY, dialect.line_end, sequence, dtype, value)
+    if fast is not None:
+        assert fast == format_upload(sequence, dtype, value, dialect)
+    integer = dtype in INTEGER_RANGES and len(value) == size
+    if sequence < 1 << 64 and (dtype in (None, DataType.HEX) or integer):
+        assert fast is not None
 
 
 def one_of_words(*words: str) -> st.SearchStrategy[list[str]]:

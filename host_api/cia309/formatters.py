@@ -51,6 +51,7 @@ from dpm.cia301 import (
     ABORT_WRITE_ONLY,
 )
 from dpm.cia305 import LssAddress
+from host_api.cia309._plainline import format_upload as _format_plain_upload
 from host_api.cia309.datatypes import LINE_ENDS, DataTypeError, Dialect, format_value
 from host_api.cia309.model import (
     BootUpEvent,
@@ -209,6 +210,16 @@ def format_upload(
         if dialect is Dialect.LELY and exc.abort_code is not None:
             return format_abort(sequence, exc.abort_code, dialect)
         return _answer(sequence, format_value(DataType.HEX, data, dialect), dialect)
+
+
+format_plain_upload = _format_plain_upload
+"""``format_plain_upload(lely, line_end, sequence, dtype, data)``: ``format_upload``'s
+answer (``lely``: the dialect is Lely's, ``line_end`` its ``LINE_ENDS``; bind them with
+``functools.partial``) when ``dtype`` is
+None, HEX or an integer type whose size is ``data``'s, else None (then ``format_upload``).
+In C (``_plainline.c``): a 309-3 read's answer without the three Python calls of
+``format_upload`` on the server's loop (issue 22); tests/test_cia309_ascii.py checks
+it against ``format_upload``."""
 
 
 def format_version(

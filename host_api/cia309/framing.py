@@ -67,6 +67,10 @@ class LineFramer:
         self._buffer = bytearray()
         self._discarding = False
         self._after_cr = False
+        self.between_lines = True
+        """Nothing of a line is held or dropped, and no CR waits for its LF: the next bytes
+        begin a line. An attribute, not a property: the server's fast path looks at it on
+        every read without a Python call (issue 22)."""
 
     @property
     def pending(self) -> int:
@@ -84,7 +88,7 @@ class LineFramer:
         nothing taken (``feed`` it then). What ``feed`` would return for it, without its
         search: a client that waits for each answer sends one line at a time, and the
         server's fast path (``Server``) answers such a line without its client's task."""
-        if self._buffer or self._discarding or self._after_cr:
+        if not self.between_lines:
             return None
         if data.endswith(b"\r\n"):
             body = data[:-2]
@@ -115,6 +119,7 @@ class LineFramer:
                 elif data[position] == 0x0A:
                     position += 1
         self._append(data[position:], out)
+        self.between_lines = not (self._buffer or self._discarding or self._after_cr)
         return out
 
     def _append(self, chunk: bytes, out: list[str | OverlongLine]) -> None:

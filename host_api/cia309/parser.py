@@ -9,12 +9,14 @@ out of range). No socket, no clock, no card.
 
 from __future__ import annotations
 
+import functools
 import re
 from collections.abc import Callable
 from typing import NamedTuple
 
 from dpm.cia301 import ASYNC_RTR, EVENT_PROFILE
 from dpm.cia305 import UNCONFIGURED, LssAddress
+from host_api.cia309._plainline import read_line as _read_plain_line
 from host_api.cia309.datatypes import (
     INTEGER_RANGES,
     DataTypeError,
@@ -109,6 +111,15 @@ _INTEGER_TYPES_BY_NAME = {
     dtype.value: (dtype, low, high) for dtype, (low, high) in INTEGER_RANGES.items()
 }
 """``_plain_write``'s types: the integer ones, whose values both dialects read alike."""
+
+plain_read_line: Callable[[bytes, int], SdoUpload | None] = functools.partial(
+    _read_plain_line, SdoUpload, _TYPES_BY_NAME, MAX_NODE_ID)
+"""``plain_read_line(data, max_line)``: the SDO upload ``data`` makes when it is one whole
+line (ended by LF or CR LF, at most ``max_line`` bytes without it) in ``_plain_read``'s
+form with no white space around it: the request ``parse_request`` makes of that line. None
+otherwise (then frame and parse it as any line). In C (``_plainline.c``), bound here by
+``functools.partial``, so a 309-3 read's line costs the server's loop no Python call
+(issue 22); tests/test_cia309_ascii.py checks it against ``_plain_read``."""
 
 class _Token(NamedTuple):
     """A word of the request and where it stands in the line (for ``rest``). A named tuple:

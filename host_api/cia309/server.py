@@ -58,6 +58,8 @@ import contextlib
 import fcntl
 import functools
 import logging
+import math
+import select
 import selectors
 import socket
 import sys
@@ -72,7 +74,7 @@ from datetime import datetime
 from typing import Any, Protocol
 
 from dpm.cia305 import LssAddress
-from host_api.cia309.datatypes import Dialect
+from host_api.cia309.datatypes import LINE_ENDS, Dialect
 from host_api.cia309.formatters import (
     format_abort,
     format_empty,
@@ -84,13 +86,14 @@ from host_api.cia309.formatters import (
     format_lss_number,
     format_ok,
     format_pdo_read,
+    format_plain_upload,
     format_upload,
     format_version,
 )
 from host_api.cia309.framing import DEFAULT_MAX_LINE, LineFramer, OverlongLine
 from host_api.cia309.gateway import Gateway, SdoDownloadInFlight, SdoInFlight, SdoUploadInFlight
 from host_api.cia309.model import Cia309Error, ErrorCode, Event
-from host_api.cia309.parser import parse_request
+from host_api.cia309.parser import parse_request, plain_read_line
 from host_api.cia309.requests import (
     ConfigureRpdo,
     ConfigureTpdo,
@@ -560,18 +563,19 @@ class _Protocol(asyncio.StreamReaderProtocol):
     """asyncio's stream protocol, counting the bytes received: a client whose request has
     arrived but has not been read yet is not idle, and must not lose its slot.
 
-    ``fast`` (``Server._fast_line``) may take the bytes first: a line it answers never
-    reaches the stream, nor the client's task."""
+    While the server serves the client, ``data_received`` is the server's fast path
+    (``Server._fast_line``, bound to the connection by ``functools.partial`` on the
+    instance, so the transport calls it with no frame of this class's between): a line it
+    answers never reaches the stream, nor the client's task; what it does not take it hands
+    to ``stream_received``, this class's ``data_received``."""
 
     received = 0
-    fast: Callable[[bytes], bool] | None = None
 
     def data_received(self, data: bytes) -> None:
-        fast = self.fast
-        if fast is not None and fast(data):
-            return
         self.received += len(data)
         super().data_received(data)
+
+    stream_received = data_received
 
 
 @dataclass(eq=False)
@@ -609,6 +613,8 @@ class _Connection:
     fast_timer: asyncio.TimerHandle | None = None
     """Gives up ``fast`` at its deadline: one timer for the reads that follow, moved on
     when it runs (``Server._fast_due``), not one scheduled and cancelled per read."""
+    fast_timer_due: float = 0.0
+    """When ``fast_timer`` runs (its ``when()``, a Python call on every read's path)."""
 
     def waiting_input(self) -> bool:
         """Bytes of it have arrived that the server has not read: in the stream, or still
@@ -650,6 +656,9 @@ class Server:
         self.gateway = gateway
         self.config = config
         self.dispatcher = Dispatcher(config.dialect, read_only=config.read_only, lss=lss)
+        self._format_plain_upload = functools.partial(
+            format_plain_upload, config.dialect is Dialect.LELY, LINE_ENDS[config.dialect])
+        """``format_upload`` of an integer or hex value in C, else None (``_sdo_answer``)."""
         self._connections: list[_Connection] = []
         self._ending: set[asyncio.WriteTransport] = set()
         """Connections ended after their last answers, until those have left."""
@@ -887,7 +896,8 @@ class Server:
         client = Client(self.gateway.session(), LineFramer(self.config.max_line))
         connection = _Connection(client, writer, writer.transport, protocol, loop.time())
         self._connections.append(connection)
-        protocol.fast = functools.partial(self._fast_line, connection)  # no frame of its own
+        protocol.data_received = functools.partial(  # type: ignore[method-assign]
+            self._fast_line, connection)
         try:
             while connection in self._connections:
                 connection.reading = True
@@ -934,7 +944,8 @@ class Server:
         except ConnectionError:
             log.debug("a client went away")
         finally:
-            protocol.fast = None
+            with contextlib.suppress(AttributeError):
+                del protocol.data_received  # the class's again
             with contextlib.suppress(ValueError):
                 self._connections.remove(connection)
             if not writer.transport.is_closing():
@@ -999,7 +1010,9 @@ class Server:
         dialect = self.dispatcher.dialect
         try:
             if isinstance(flight, SdoUploadInFlight):
-                return format_upload(request.sequence, request.dtype, flight.result(), dialect)
+                data = flight.result()
+                return (self._format_plain_upload(request.sequence, request.dtype, data)
+                        or format_upload(request.sequence, request.dtype, data, dialect))
             assert isinstance(flight, SdoDownloadInFlight)
             flight.result()
             return format_ok(request.sequence, dialect)
@@ -1008,12 +1021,14 @@ class Server:
 
     # --- the fast path: a line answered without its client's task --------------------------
 
-    def _fast_line(self, connection: _Connection, data: bytes) -> bool:
-        """Answer ``data`` as it arrives, when it is one whole line that needs no thread:
-        an SDO upload or expedited download the card takes now (``_send_sdo``), answered
-        from the mailbox's reader when the card answers, or a line answered without a
-        request (an empty one, one that does not parse, a write ``--read-only`` refuses).
-        False, with nothing taken, otherwise: the client's task reads it as before.
+    def _fast_line(self, connection: _Connection, data: bytes) -> None:
+        """The client's protocol's ``data_received`` while it is served: answer ``data`` as
+        it arrives, when it is one whole line that needs no thread: an SDO upload or
+        expedited download the card takes now (``_send_sdo``), answered from the mailbox's
+        reader when the card answers, or a line answered without a request (an empty one,
+        one that does not parse, a write ``--read-only`` refuses). Otherwise, with nothing
+        taken, to the stream (``_Protocol.stream_received``): the client's task reads it
+        as before.
 
         Only while the task waits for bytes with every earlier line answered and nothing of
         the client's output waiting, so the answers keep their order and back-pressure
@@ -1021,31 +1036,50 @@ class Server:
         benchmarks) cost the task two wake-ups per read (the bytes, then the answer), each
         an extra turn of the event loop, a poll and asyncio's timers and futures around the
         read; under User-Mode Linux each system call is a ptrace round trip of the host
-        (docs/benchmarks.md, issue 22)."""
+        (docs/benchmarks.md, issue 22).
+
+        A plain read (``plain_read_line``) is parsed in C and sent to the gateway's upload
+        at once: the framer's, the dispatcher's and the parser's five Python calls per read
+        (issue 22); every other line takes ``prepare``."""
         if (not connection.reading or connection.fast is not None
                 or connection.protocol.received != connection.consumed
                 or connection.transport.get_write_buffer_size()):
-            return False
+            connection.protocol.stream_received(data)
+            return
         client = connection.client
-        line = client.framer.whole_line(data)
-        if line is None:
-            return False
+        framer = client.framer
         dispatcher = self.dispatcher
-        prepared = dispatcher.prepare(client, line)  # again by the task if it is not taken
-        if isinstance(prepared, Answered):
-            self._fast_answer(connection, prepared.text)
-            return True
-        if not isinstance(prepared, SDO_REQUESTS):
-            return False
+        upload = plain_read_line(data, framer.max_line) if framer.between_lines else None
+        flight: SdoInFlight | None
         try:
-            flight = _send_sdo(client.gateway, prepared,
-                               functools.partial(self._on_loop, self._fast_done, connection,
-                                                 prepared))
+            if upload is not None:
+                client.last_sequence = upload.sequence  # as ``prepare``
+                prepared: SdoRequest = upload
+                flight = client.gateway.try_sdo_upload(
+                    upload.index, upload.subindex,
+                    functools.partial(self._fast_done, connection, upload),
+                    network=upload.net, node_id=upload.node)
+            else:
+                line = framer.whole_line(data)
+                if line is None:
+                    connection.protocol.stream_received(data)
+                    return
+                request = dispatcher.prepare(client, line)  # again by the task if not taken
+                if isinstance(request, Answered):
+                    self._fast_answer(connection, request.text)
+                    return
+                if not isinstance(request, SDO_REQUESTS):
+                    connection.protocol.stream_received(data)
+                    return
+                prepared = request
+                flight = _send_sdo(client.gateway, prepared,
+                                   functools.partial(self._fast_done, connection, prepared))
         except Cia309Error as exc:
             self._fast_answer(connection, dispatcher.failure(prepared, exc))
-            return True
-        if flight is None:
-            return False  # it would wait: the task's worker thread makes the call
+            return
+        if flight is None:  # it would wait: the task's worker thread makes the call
+            connection.protocol.stream_received(data)
+            return
         loop = self._loop
         assert loop is not None
         connection.fast = prepared
@@ -1054,13 +1088,19 @@ class Server:
         connection.fast_deadline = deadline = now + flight.timeout
         connection.serving = True
         timer = connection.fast_timer
-        if timer is None or timer.when() > deadline:  # a command time-out made shorter
+        if timer is None or connection.fast_timer_due > deadline:  # a time-out made shorter
             if timer is not None:
                 timer.cancel()
             connection.fast_timer = loop.call_at(deadline, self._fast_due, connection)
-        return True
+            connection.fast_timer_due = deadline
 
     def _fast_done(self, connection: _Connection, request: SdoRequest) -> None:
+        """A fast request's flight's ``on_done``: its answer written, on this server's loop
+        (``_on_loop`` when another thread read the mailbox: one Python call less per read
+        when the loop read it, ``Gateway.read_on``)."""
+        if threading.get_ident() != self._loop_thread:
+            self._on_loop(self._fast_done, connection, request)
+            return
         if connection.fast is not request:
             return  # given up (time-out, the server closing)
         flight = connection.fast_flight
@@ -1078,6 +1118,7 @@ class Server:
         if request is None:
             return
         if loop.time() < connection.fast_deadline:
+            connection.fast_timer_due = connection.fast_deadline
             connection.fast_timer = loop.call_at(connection.fast_deadline, self._fast_due,
                                                  connection)
             return
@@ -1131,9 +1172,14 @@ class Server:
         await connection.settled
 
 
-class _WakeSelector(selectors.DefaultSelector):
-    """The platform's selector, reading the clock once on each return from its wait
-    (``wake_time``, ``WakeClockLoop``'s time), and calling ``before_wait`` before it."""
+class _WakeSelector(selectors.EpollSelector):
+    """Linux's selector, reading the clock once on each return from its wait
+    (``wake_time``, ``WakeClockLoop``'s time), and calling ``before_wait`` before it.
+
+    Its ``select`` is ``EpollSelector.select`` written out (CPython 3.11-3.13: its epoll
+    object ``_selector`` and its map ``_fd_to_key``), not called: the base's ``select`` and
+    its ``_key_from_fd`` per ready file were two of the loop's Python calls per turn, four
+    per 309-3 read (issue 22)."""
 
     def __init__(self) -> None:
         super().__init__()
@@ -1150,8 +1196,25 @@ class _WakeSelector(selectors.DefaultSelector):
                     callback()
                 except Exception:  # the loop's wait must go on, as asyncio's callbacks do
                     log.exception("a callback before the event loop's wait failed")
-        ready = super().select(timeout)
+        if timeout is None:
+            timeout = -1
+        elif timeout <= 0:
+            timeout = 0
+        else:  # epoll has a resolution of 1 ms: round up, to wait at least ``timeout``
+            timeout = math.ceil(timeout * 1e3) * 1e-3
+        keys = self._fd_to_key  # type: ignore[attr-defined]
+        ready = []
+        try:
+            events = self._selector.poll(timeout, max(len(keys), 1))  # type: ignore[attr-defined]
+        except InterruptedError:
+            events = []
         self.wake_time = time.monotonic()
+        for fd, event in events:
+            key = keys.get(fd)
+            if key is not None:
+                mask = ((selectors.EVENT_WRITE if event & ~select.EPOLLIN else 0)
+                        | (selectors.EVENT_READ if event & ~select.EPOLLOUT else 0))
+                ready.append((key, mask & key.events))
         return ready
 
 
