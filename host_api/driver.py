@@ -331,29 +331,32 @@ def put_inside(board: _Board, message: Message, raw: bytes, timeout: int,
         return Drv.DRV_CMD_ACTIVE
     try:
         mm = board.mm
-        bell = board.bell
-        if native_transaction and _put_request(board.transaction, mm, message, raw,
-                                               bell.sock.fileno(), bell.device_path):
-            counters = board.counters
-            counters.write += 1
-            counters.last_function = FKT_WRITE
-            return _NO_ERROR
         # The card rings for a message it took only when asked (dpm/doorbell.py).
         if (mm[HOST_FLAGS] ^ mm[DEV_FLAGS]) & fl.DEV_MBX and not board.wait_for(
                 lambda: not (mm[HOST_FLAGS] ^ mm[DEV_FLAGS]) & fl.DEV_MBX,
                 _left_ms(deadline), lambda: board.bell.ring_device(want_mailbox=True)):
             return (Drv.DRV_DEV_MAILBOX_FULL if timeout <= 0
                     else board.timed_out(Drv.DRV_DEV_PUT_TIMEOUT))
-        mm[DEV_MBX : DEV_MBX + len(raw)] = raw
-        # recorded before the card can see it: a host killed now leaves it in the ledger
-        board.transaction.sent(message)
-        board.change_dev_flags(toggle=fl.DEVCOM)
+        bell = board.bell
+        if not (native_transaction and _put_request(board.transaction, mm, message, raw,
+                                                    bell.sock.fileno(), bell.device_path)):
+            _put_steps(board, message, raw)
         counters = board.counters
         counters.write += 1
         counters.last_function = FKT_WRITE
         return _NO_ERROR
     finally:
         put_lock.release()
+
+
+def _put_steps(board: _Board, message: Message, raw: bytes) -> None:
+    """``put_inside``'s work once the device mailbox is free, step by step in Python: what
+    ``_devflags.put_request`` does in one call, and the cases it leaves to these steps."""
+    mm = board.mm
+    mm[DEV_MBX : DEV_MBX + len(raw)] = raw
+    # recorded before the card can see it: a host killed now leaves it in the ledger
+    board.transaction.sent(message)
+    board.change_dev_flags(toggle=fl.DEVCOM)
 
 
 def call_deadline(timeout: int) -> float:
@@ -419,15 +422,6 @@ def get_inside(board: _Board, size: int, timeout: int,
     try:
         mm = board.mm
         transaction = board.transaction
-        if native_transaction:
-            bell = board.bell
-            msg = _take_answer(transaction, mm, size, bell.sock.fileno(), bell.device_path,
-                               bell.device_wants_ack)
-            if msg is not None:
-                counters = board.counters
-                counters.read += 1
-                counters.last_function = FKT_READ
-                return _NO_ERROR, msg
         while True:
             if not (mm[HOST_FLAGS] ^ mm[DEV_FLAGS]) & fl.HOST_MBX and not board.wait_for(
                     lambda: bool((mm[HOST_FLAGS] ^ mm[DEV_FLAGS]) & fl.HOST_MBX),
@@ -438,6 +432,12 @@ def get_inside(board: _Board, size: int, timeout: int,
                 # hosts, and is discarded by whichever host reads it later
                 transaction.give_up()
                 return board.timed_out(Drv.DRV_DEV_GET_TIMEOUT), None
+            if native_transaction:  # the usual case in one call: none to discard, it fits
+                bell = board.bell
+                msg = _take_answer(transaction, mm, size, bell.sock.fileno(),
+                                   bell.device_path, bell.device_wants_ack)
+                if msg is not None:
+                    break
             msg = Message.decode_at(mm, PC_MBX)
             stale = transaction.is_stale(msg)
             if not stale and 8 + len(msg.data) > size:
@@ -447,12 +447,12 @@ def get_inside(board: _Board, size: int, timeout: int,
                                    ring=stale or board.bell.device_wants_ack)
             # after the handshake: a host killed in between leaves a discarded answer's
             # request in the ledger, never an answer nobody discards
-            if transaction.answered(msg) is _STALE:
-                continue
-            counters = board.counters
-            counters.read += 1
-            counters.last_function = FKT_READ
-            return _NO_ERROR, msg
+            if transaction.answered(msg) is not _STALE:
+                break
+        counters = board.counters
+        counters.read += 1
+        counters.last_function = FKT_READ
+        return _NO_ERROR, msg
     finally:
         get_lock.release()
 
