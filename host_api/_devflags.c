@@ -212,7 +212,12 @@ static struct {
   PyObject *unanswered, *request_type, *message_type;
   PyObject *s_state, *s_own, *s_stale, *s_length, *s_ledger, *s_prefix, *s_pid, *s_owner,
       *s_fd, *s_acquire, *s_release;
+  PyObject *s_field[8]; /* Message's fields in MSG_STRUC's header order, then its data */
 } L;
+
+/* Message's fields by their place in MSG_STRUC's header (rx tx ln nr a f b e: ln is the
+ * data's length, so its place names the data) */
+static const char *const FIELDS[8] = {"rx", "tx", "data", "nr", "a", "f", "b", "e"};
 
 PyDoc_STRVAR(setup_doc,
              "setup(host_flags, dev_flags, dev_mbx, pc_mbx, devcom, hostack, dev_pending,\n"
@@ -244,6 +249,8 @@ static PyObject *setup(PyObject *self, PyObject *args) {
     INTERN(s_pid, "_pid") INTERN(s_owner, "_owner") INTERN(s_fd, "_fd")
     INTERN(s_acquire, "acquire") INTERN(s_release, "release")
 #undef INTERN
+    for (int i = 0; i < 8; i++)
+      if ((L.s_field[i] = PyUnicode_InternFromString(FIELDS[i])) == NULL) return NULL;
   }
   Py_XSETREF(L.unanswered, Py_NewRef(unanswered));
   Py_XSETREF(L.request_type, Py_NewRef(request_type));
@@ -294,15 +301,15 @@ static int int_attr(PyObject *object, PyObject *name, long long *value) {
   return *value == -1 && PyErr_Occurred() ? -1 : 0;
 }
 
-static int byte_attr(PyObject *object, const char *name, unsigned char *value) {
+static int byte_attr(PyObject *object, int field, unsigned char *value) {
   long long v;
-  PyObject *attr = PyObject_GetAttrString(object, name);
+  PyObject *attr = PyObject_GetAttr(object, L.s_field[field]);
   if (attr == NULL) return -1;
   v = PyLong_AsLongLong(attr);
   Py_DECREF(attr);
   if (v == -1 && PyErr_Occurred()) return -1;
   if (v < 0 || v > 255) {
-    PyErr_Format(PyExc_ValueError, "msg.%s = %lld is not a byte", name, v);
+    PyErr_Format(PyExc_ValueError, "msg.%s = %lld is not a byte", FIELDS[field], v);
     return -1;
   }
   *value = (unsigned char)v;
@@ -395,9 +402,8 @@ static PyObject *put_request(PyObject *self, PyObject *args) {
     result = Py_NewRef(Py_False); /* the card has not taken the last one: put_inside waits */
     goto done;
   }
-  if (byte_attr(message, "nr", &nr) || byte_attr(message, "b", &b) ||
-      byte_attr(message, "rx", &rx) || byte_attr(message, "tx", &tx) ||
-      byte_attr(message, "e", &e))
+  if (byte_attr(message, 3, &nr) || byte_attr(message, 6, &b) || byte_attr(message, 0, &rx) ||
+      byte_attr(message, 1, &tx) || byte_attr(message, 7, &e))
     goto done;
   sequence = e & L.seq_mask;
   if (e & L.nak) {
@@ -524,6 +530,31 @@ static int store_own(PyObject *transaction, PyObject *own, Py_buffer *map) {
   return n;
 }
 
+/* Message.decode_at's message from the header and data at head: made as its dataclass'
+ * __init__ would (Message has slots and no __post_init__), without running that Python
+ * function, a frame on every answer. */
+static PyObject *new_message(const unsigned char *head) {
+  PyTypeObject *type = (PyTypeObject *)L.message_type;
+  PyObject *msg = type->tp_alloc(type, 0), *value;
+  int i, failed;
+  if (msg == NULL) return NULL;
+  for (i = 0; i < 8; i++) {
+    value = i == 2 ? PyBytes_FromStringAndSize((const char *)head + 8, head[2])
+                   : PyLong_FromLong(head[i]);
+    if (value == NULL) {
+      Py_DECREF(msg);
+      return NULL;
+    }
+    failed = PyObject_SetAttr(msg, L.s_field[i], value);
+    Py_DECREF(value);
+    if (failed) {
+      Py_DECREF(msg);
+      return NULL;
+    }
+  }
+  return msg;
+}
+
 PyDoc_STRVAR(take_answer_doc,
              "take_answer(transaction, image, size, fd, address, ring) -> Message | None\n\n"
              "get_inside's work when nothing waits: the message in the host mailbox taken,\n"
@@ -534,7 +565,7 @@ PyDoc_STRVAR(take_answer_doc,
 
 static PyObject *take_answer(PyObject *self, PyObject *args) {
   PyObject *transaction, *address, *state = NULL, *own = NULL, *stale = NULL, *ledger = NULL;
-  PyObject *msg = NULL, *data, *result = NULL, *request, *rest;
+  PyObject *msg = NULL, *result = NULL, *request, *rest;
   Py_buffer image, map = {0};
   Py_ssize_t size, i;
   int fd, ring, multi;
@@ -568,10 +599,7 @@ static PyObject *take_answer(PyObject *self, PyObject *args) {
     result = Py_NewRef(Py_None); /* maybe one to discard: get_inside's loop */
     goto unlock;
   }
-  if ((data = PyBytes_FromStringAndSize((const char *)head + 8, head[2])) == NULL) goto unlock;
-  msg = PyObject_CallFunction(L.message_type, "iiiNiiii", head[0], head[1], head[6], data,
-                              head[3], head[4], head[5], head[7]);
-  if (msg == NULL) goto unlock;
+  if ((msg = new_message(head)) == NULL) goto unlock;
   /* copied before the handshake gives the mailbox back */
   change_byte(p + L.dev_flags, 0, 0, L.hostack);
   if (ring) ring_device(fd, address);
