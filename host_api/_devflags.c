@@ -398,7 +398,8 @@ static PyObject *put_request(PyObject *self, PyObject *args) {
     goto done;
   }
   flags = (unsigned char *)image.buf;
-  if ((flags[L.host_flags] ^ flags[L.dev_flags]) & L.dev_pending) {
+  if ((__atomic_load_n(flags + L.host_flags, __ATOMIC_ACQUIRE) ^ flags[L.dev_flags]) &
+      L.dev_pending) {
     result = Py_NewRef(Py_False); /* the card has not taken the last one: put_inside waits */
     goto done;
   }
@@ -530,16 +531,16 @@ static int store_own(PyObject *transaction, PyObject *own, Py_buffer *map) {
   return n;
 }
 
-/* Message.decode_at's message from the header and data at head: made as its dataclass'
+/* Message.decode_at's message of the header head and its data: made as its dataclass'
  * __init__ would (Message has slots and no __post_init__), without running that Python
  * function, a frame on every answer. */
-static PyObject *new_message(const unsigned char *head) {
+static PyObject *new_message(const unsigned char *head, const unsigned char *data) {
   PyTypeObject *type = (PyTypeObject *)L.message_type;
   PyObject *msg = type->tp_alloc(type, 0), *value;
   int i, failed;
   if (msg == NULL) return NULL;
   for (i = 0; i < 8; i++) {
-    value = i == 2 ? PyBytes_FromStringAndSize((const char *)head + 8, head[2])
+    value = i == 2 ? PyBytes_FromStringAndSize((const char *)data, head[2])
                    : PyLong_FromLong(head[i]);
     if (value == NULL) {
       Py_DECREF(msg);
@@ -569,7 +570,7 @@ static PyObject *take_answer(PyObject *self, PyObject *args) {
   Py_buffer image, map = {0};
   Py_ssize_t size, i;
   int fd, ring, multi;
-  unsigned char *p, *head;
+  unsigned char *p, head[8];
   (void)self;
   if (!L.ready) {
     PyErr_SetString(PyExc_RuntimeError, "setup() first");
@@ -582,8 +583,16 @@ static PyObject *take_answer(PyObject *self, PyObject *args) {
     goto done;
   }
   p = (unsigned char *)image.buf;
-  head = p + L.pc_mbx; /* rx tx ln nr a f b e, then ln bytes */
-  if (!((p[L.host_flags] ^ p[L.dev_flags]) & L.host_pending) || 8 + head[2] > size) {
+  if (!((__atomic_load_n(p + L.host_flags, __ATOMIC_ACQUIRE) ^ p[L.dev_flags]) &
+        L.host_pending)) {
+    result = Py_NewRef(Py_None);
+    goto done;
+  }
+  /* rx tx ln nr a f b e, then ln bytes, read after the flag that says they are there; the
+   * header copied, as the card may write the next message over it once HOSTACK has given
+   * the mailbox back */
+  memcpy(head, p + L.pc_mbx, sizeof(head));
+  if (8 + head[2] > size) {
     result = Py_NewRef(Py_None);
     goto done;
   }
@@ -599,7 +608,7 @@ static PyObject *take_answer(PyObject *self, PyObject *args) {
     result = Py_NewRef(Py_None); /* maybe one to discard: get_inside's loop */
     goto unlock;
   }
-  if ((msg = new_message(head)) == NULL) goto unlock;
+  if ((msg = new_message(head, p + L.pc_mbx + 8)) == NULL) goto unlock;
   /* copied before the handshake gives the mailbox back */
   change_byte(p + L.dev_flags, 0, 0, L.hostack);
   if (ring) ring_device(fd, address);

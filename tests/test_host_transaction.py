@@ -31,6 +31,7 @@ from dpm.message import Ext, Message, Task
 from host_api import driver as d
 from host_api.locks import ChannelLock, Transaction
 from host_api.registry import Counters, MappedBoard
+from tests.conftest import Card
 
 Step = Callable[["FakeCard"], Any]
 
@@ -224,3 +225,29 @@ def test_the_c_calls_do_the_usual_round_trip_themselves(tmp_path: Path,
         assert card.board.counters.write == 1 and card.board.counters.read == 1
     finally:
         card.close()
+
+
+@pytest.mark.parametrize("native", [True, False], ids=["native", "python"])
+def test_a_queue_of_answers_read_from_a_card_settles_each_request(
+        card: Card, monkeypatch: pytest.MonkeyPatch, native: bool) -> None:
+    """Requests put until the card's queue is full, then their answers read: a real card
+    writes the next answer as soon as HOSTACK gives the mailbox back, so a get that looked at
+    the mailbox's header after its handshake matched the next answer's and left its own
+    request in the ledger, which made a later host discard an answer of its own as stale."""
+    monkeypatch.setattr(d, "native_transaction", native)
+    assert d.DevOpenDriver(card.directory) == 0 and d.DevInitBoard(0) == 0
+    try:
+        sent = 0
+        while d.DevPutMessage(0, request(nr=sent & 0xFF), 200) == Drv.DRV_NO_ERROR:
+            sent += 1
+            assert sent < 200
+        read = []
+        while (got := d.DevGetMessage(0, d.MSG_BUFFER_SIZE, 200))[0] == Drv.DRV_NO_ERROR:
+            assert got[1] is not None
+            read.append(got[1].nr)
+        assert sent > 8 and read == list(range(sent))
+        ledger = ledger_text((card.directory / "board0.transaction.lock").read_bytes())
+        assert ledger == b""
+    finally:
+        while d.DevCloseDriver() == 0:
+            pass
