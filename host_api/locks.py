@@ -222,6 +222,13 @@ class Transaction:
     ``ChannelLock`` face that ``Board.transact``, DevDownload's session and the CiA 309
     gateway use) make a session: one thread of the process at a time, and the flock held
     from acquire to release.
+
+    [ours] The driver's put and get that need not wait keep this ledger in C
+    (``host_api._devflags.put_request``, ``take_answer``; issue 22): they read and change
+    ``_own``, ``_stale``, ``_length``, the map ``_ledger`` and the file ``_fd`` by these
+    names, under ``_state``, as ``sent`` and ``answered`` do, with ``_prefix``, ``_pid``
+    and ``_owner`` for a new line. Renaming one of them means changing them there too;
+    tests/test_host_transaction.py compares both ways.
     """
 
     def __init__(self, path: Path) -> None:

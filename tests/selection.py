@@ -37,6 +37,7 @@ PROCESS_MODULES = frozenset({
     "test_record_attach", "test_tap", "test_bench_canopennode", "test_lock_table",
     "test_mailbox_rings", "test_mailbox_spin", "test_mailbox_calls", "test_recorder_cost",
     "test_boot_work", "test_first_boot", "test_host_sdo_path", "test_load_clock", "test_host_bell",
+    "test_host_transaction",
     "test_card_power_off",
 })
 """Modules whose tests start a process (a firmware, ``cifemu sim``, a command, a compiler),

@@ -104,9 +104,16 @@ def python_pairs(tags: range, wrong: list[str]) -> None:
             wrong.append(f"tag {tag}: rc {rc}, read {tag_of(answer)} ({answer})")
 
 
-@pytest.fixture
-def python_host(card: Card) -> Iterator[None]:
-    """This test process as a Python host of the card."""
+TRANSACTION_PATHS = ["native", "python"]
+"""The Python host's mailbox transaction in C where nothing waits, or in its Python steps
+alone (``driver.native_transaction``): both keep the ledger's promises."""
+
+
+@pytest.fixture(params=TRANSACTION_PATHS)
+def python_host(card: Card, request: pytest.FixtureRequest,
+                monkeypatch: pytest.MonkeyPatch) -> Iterator[None]:
+    """This test process as a Python host of the card, by either transaction path."""
+    monkeypatch.setattr(d, "native_transaction", request.param == "native")
     assert d.DevOpenDriver(card.directory) == 0 and d.DevInitBoard(0) == 0
     yield None
     while d.DevCloseDriver() == 0:
@@ -252,6 +259,7 @@ import signal, sys
 from host_api import driver as d
 from tests.test_libcif_hosts import tagged
 
+d.native_transaction = sys.argv[2] == "native"
 assert d.DevOpenDriver(sys.argv[1]) == 0 and d.DevInitBoard(0) == 0
 assert d.DevPutMessage(0, tagged(7), 5000) == 0
 print("sent", flush=True)
@@ -259,11 +267,12 @@ signal.pause()  # until killed
 """
 
 
+@pytest.mark.parametrize("path", TRANSACTION_PATHS)
 def test_a_killed_python_hosts_answer_never_reaches_the_next_c_host(
-        built: None, card: Card, tmp_path: Path) -> None:
+        built: None, card: Card, tmp_path: Path, path: str) -> None:
     program = build(tmp_path, "plain")
     host = subprocess.Popen([sys.executable, "-c", PYTHON_HOST_KILLED_AFTER_PUT,
-                             str(card.directory)], stdout=subprocess.PIPE, cwd=ROOT)
+                             str(card.directory), path], stdout=subprocess.PIPE, cwd=ROOT)
     assert host.stdout is not None
     try:
         assert host.stdout.readline() == b"sent\n"
@@ -366,6 +375,7 @@ import os, sys
 from host_api import driver as d
 from tests.test_libcif_hosts import python_pairs
 
+d.native_transaction = sys.argv[2] == "native"
 assert d.DevOpenDriver(sys.argv[1]) == 0 and d.DevInitBoard(0) == 0
 child = os.fork()
 wrong = []
@@ -380,9 +390,10 @@ sys.exit(1 if wrong or os.waitstatus_to_exitcode(status) else 0)
 """
 
 
+@pytest.mark.parametrize("path", TRANSACTION_PATHS)
 def test_a_python_host_forked_after_DevInitBoard_and_its_child_each_read_their_own_answers(
-        card: Card) -> None:
-    done = commands.run([sys.executable, "-c", FORKED_PYTHON_HOST, str(card.directory)],
+        card: Card, path: str) -> None:
+    done = commands.run([sys.executable, "-c", FORKED_PYTHON_HOST, str(card.directory), path],
                         capture_output=True, text=True, timeout=120, cwd=ROOT, check=False)
     assert done.returncode == 0, done.stderr
 
