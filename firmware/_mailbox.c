@@ -598,10 +598,190 @@ static int record_commit(recording *r) {
   return 0;
 }
 
+/* --- The process-data exchange in C [ours] (issue 25) ------------------------------------
+ *
+ * A host in the buffered host-controlled mode (exchange mode 4) toggles PDCOM and rings for every
+ * DevExchangeIO; the Python turn answered each (PlcTask.service: ProcessImage.cycle, the
+ * PDACK toggle) with its recorder's three hooks on a recording card (``dev_flags``,
+ * ``host_flags``, ``settle``), which cost that card 8-11 us more CPU per exchange than a
+ * plain one, and the exchange loop's p50 more than issue 25's 10 % in two of five runs
+ * (docs/benchmarks.md, note 8). Here the turn serves such an exchange when it changes
+ * nothing the CAN master follows: the host's SndPd as the last exchange took it (the
+ * process image's ``outputs``; a new output is the Python turn's, whose ``notice_host``
+ * sends it), no input bit flipped (the fault "flip"), no message pending beside it, READY
+ * and the special-control bits as the Python turn would leave them. It copies the inputs
+ * into RcvPd when they changed (as ``cycle``, under the process image's lock, and tells
+ * ``exchanged_changes``), toggles PDACK, rings, and for a recording card appends the events
+ * the hooks would have queued (after the ring, as ``settle``): the host's PD toggle with
+ * the turn's clock, then the exchange with its PDACK toggle, both areas when
+ * ``exchanged_changes`` says they may have changed since the recording last took them, and
+ * Task2State. Kept apart from the mailbox's turn above: serve() asks these functions. */
+
+/* What configure_exchange() took from dpm/. */
+static struct {
+  int ready;
+  unsigned char pd, pdack, ready_bit, spc;
+  Py_ssize_t rcv_pd;
+  spool_head head;        /* the exchange's spool head (dpm.session.SPOOL_EXCHANGE) */
+  unsigned char *scratch; /* one exchange's events, packed before they are appended */
+} xcfg;
+
+/* serve()'s exchange argument: None, or (process image, its outputs bytearray). */
+typedef struct {
+  PyObject *image;   /* NULL: no exchange served here */
+  PyObject *outputs; /* ProcessImage.outputs: SndPd as the last exchange took it */
+} exchange;
+
+PyDoc_STRVAR(configure_exchange_doc,
+             "configure_exchange(numbers: dict[str, object])\n\n"
+             "The exchange's flag bits (PD, PDACK, READY, SPC), RcvPd's offset and the spool\n"
+             "head of an exchange (EXCHANGE: code, struct format, size), by name; after\n"
+             "configure() and configure_record().");
+
+static PyObject *configure_exchange(PyObject *self, PyObject *args) {
+  PyObject *numbers;
+  (void)self;
+  if (!PyArg_ParseTuple(args, "O!", &PyDict_Type, &numbers)) return NULL;
+  if (!cfg.ready || !rec.ready) {
+    PyErr_SetString(PyExc_RuntimeError, "configure() and configure_record() first");
+    return NULL;
+  }
+  xcfg.ready = 0;
+  TAKE_INTO(numbers, xcfg.pd, "PD");
+  TAKE_INTO(numbers, xcfg.pdack, "PDACK");
+  TAKE_INTO(numbers, xcfg.ready_bit, "READY");
+  TAKE_INTO(numbers, xcfg.spc, "SPC");
+  TAKE_INTO(numbers, xcfg.rcv_pd, "RCV_PD");
+  if (take_head(numbers, "EXCHANGE", 5, &xcfg.head) < 0) return NULL;
+  if (xcfg.rcv_pd < 0) {
+    PyErr_SetString(PyExc_ValueError, "configure_exchange: inconsistent sizes");
+    return NULL;
+  }
+  PyMem_Free(xcfg.scratch);
+  xcfg.scratch = PyMem_Malloc((size_t)(rec.dev_flags.size + xcfg.head.size + 2 * cfg.io_size +
+                                       cfg.task2_size));
+  if (xcfg.scratch == NULL) return PyErr_NoMemory();
+  xcfg.ready = 1;
+  Py_RETURN_NONE;
+}
+
+/* serve()'s exchange argument into x. 0 done, -1 error. */
+static int exchange_open(PyObject *arg, exchange *x, Py_ssize_t image_len) {
+  x->image = NULL;
+  x->outputs = NULL;
+  if (arg == NULL || arg == Py_None) return 0;
+  if (!xcfg.ready) {
+    PyErr_SetString(PyExc_RuntimeError, "configure_exchange() first");
+    return -1;
+  }
+  if (!PyArg_ParseTuple(arg, "OO!", &x->image, &PyByteArray_Type, &x->outputs)) return -1;
+  if (PyByteArray_GET_SIZE(x->outputs) != cfg.io_size || image_len < xcfg.rcv_pd + cfg.io_size) {
+    PyErr_SetString(PyExc_ValueError, "serve: the exchange's areas do not fit the layout");
+    return -1;
+  }
+  return 0;
+}
+
+/* The DevFlags bits a served exchange may have changed since serve() began: PDCOM. */
+static unsigned char exchange_toggles(const exchange *x) {
+  return x->image != NULL ? xcfg.pd : 0;
+}
+
+enum { EXCHANGE_NONE, EXCHANGE_HERE, EXCHANGE_PYTHON };
+
+/* Whether the host asks for an exchange at these flags (host-controlled: its PD toggle),
+ * and whether this file may serve it: no message pending beside it (the Python turn takes
+ * the message first), READY up, SPCACK as the Python turn leaves it. */
+static int exchange_state(const exchange *x, unsigned char dev, unsigned char host) {
+  if (x->image == NULL || !((host ^ dev) & xcfg.pd)) return EXCHANGE_NONE;
+  if (((host ^ dev) & cfg.dev_mbx_bit) || !(host & xcfg.ready_bit) || ((host ^ dev) & xcfg.spc))
+    return EXCHANGE_PYTHON;
+  return EXCHANGE_HERE;
+}
+
+/* A Python attribute's truth: 1, 0, -1 error. */
+static int attribute_true(PyObject *object, const char *name) {
+  PyObject *value = PyObject_GetAttrString(object, name);
+  int truth;
+  if (value == NULL) return -1;
+  truth = PyObject_IsTrue(value);
+  Py_DECREF(value);
+  return truth;
+}
+
+/* The exchange's events onto the recorder's queue (``Recorder.dev_flags`` and ``settle``):
+ * DevFlags when they changed since the recorder saw them (the turn's clock), the exchange
+ * with its PDACK toggle from host, the areas when ``exchanged_changes`` says so, Task2State.
+ * 0 done, -1 error. */
+static int exchange_record(const exchange *x, recording *r, const unsigned char *mm,
+                           unsigned char dev, unsigned char host) {
+  double values[5];
+  unsigned char *out = xcfg.scratch;
+  Py_ssize_t used = 0, had;
+  int changed;
+  if (r->recorder == Py_None) return 0;
+  changed = attribute_true(x->image, "exchanged_changes");
+  if (changed < 0) return -1;
+  if (dev != r->dev) {
+    values[0] = rec.dev_flags.code;
+    values[1] = r->t_turn;
+    values[2] = r->dev;
+    values[3] = dev;
+    values[4] = 0; /* no Task2Parameter: a start is the Python turn's (record_allows) */
+    pack_head(&rec.dev_flags, values, out);
+    used = rec.dev_flags.size;
+  }
+  values[0] = xcfg.head.code;
+  values[1] = record_clock();
+  values[2] = host;
+  values[3] = host ^ xcfg.pdack;
+  values[4] = changed;
+  pack_head(&xcfg.head, values, out + used);
+  used += xcfg.head.size;
+  if (changed) {
+    memcpy(out + used, PyByteArray_AS_STRING(x->outputs), (size_t)cfg.io_size);
+    memcpy(out + used + cfg.io_size, mm + xcfg.rcv_pd, (size_t)cfg.io_size);
+    used += 2 * cfg.io_size;
+    if (PyObject_SetAttrString(x->image, "exchanged_changes", Py_False) < 0) return -1;
+  }
+  memcpy(out + used, mm + cfg.task2_state, (size_t)cfg.task2_size);
+  used += cfg.task2_size;
+  had = PyByteArray_GET_SIZE(r->queue);
+  if (PyByteArray_Resize(r->queue, had + used) < 0) return -1;
+  memcpy(PyByteArray_AS_STRING(r->queue) + had, out, (size_t)used);
+  r->dev = dev;
+  return 0;
+}
+
+/* Serve the exchange the host asks for (exchange_state said EXCHANGE_HERE), holding the turn
+ * lock: 1 served (rung, recorded), 0 left to the Python turn (nothing changed), -1 error. */
+static int exchange_turn(const exchange *x, recording *r, unsigned char *mm, unsigned char dev,
+                         unsigned char host, PyObject *inputs, PyObject *image_lock, int fd,
+                         PyObject *hosts, PyObject *dead) {
+  int locked = try_lock(image_lock), flipped, copied = 0;
+  if (locked <= 0) return locked;
+  flipped = attribute_true(x->image, "_flips");
+  if (flipped != 0 ||
+      memcmp(mm + cfg.snd_pd, PyByteArray_AS_STRING(x->outputs), (size_t)cfg.io_size) != 0) {
+    if (unlock(image_lock) < 0 || flipped < 0) return -1;
+    return 0; /* a flipped bit or new outputs: the Python turn */
+  }
+  if (memcmp(mm + xcfg.rcv_pd, PyByteArray_AS_STRING(inputs), (size_t)cfg.io_size) != 0) {
+    memcpy(mm + xcfg.rcv_pd, PyByteArray_AS_STRING(inputs), (size_t)cfg.io_size);
+    copied = 1;
+  }
+  if (unlock(image_lock) < 0) return -1;
+  if (copied && PyObject_SetAttrString(x->image, "exchanged_changes", Py_True) < 0) return -1;
+  __atomic_store_n(mm + cfg.host_flags, (unsigned char)(host ^ xcfg.pdack), __ATOMIC_SEQ_CST);
+  if (ring_hosts(fd, hosts, dead) < 0) return -1;
+  if (exchange_record(x, r, mm, dev, host) < 0) return -1; /* after the ring, as settle */
+  return 1;
+}
+
 PyDoc_STRVAR(serve_doc,
              "serve(image, fd, hosts, interval, due, device, calls, outbox, indications,\n"
-             "      turn, image_lock, inputs, outputs, conn, record, sdo) -> (rings, dead,\n"
-             "      turns, dev_seen, watchdog_seen, host_seen, recorded_dev)\n\n"
+             "      turn, image_lock, inputs, outputs, conn, record, sdo[, exchange]) -> (rings,\n"
+             "      dead, turns, dev_seen, watchdog_seen, host_seen, recorded_dev)\n\n"
              "Answer the last of hosts' COM_Shared_Memory reads, and hand its\n"
              "COM_SDO_Up_Download requests (msg.e 0, 4) to sdo (None: not now), until a turn\n"
              "needs Python.\n"
@@ -617,28 +797,31 @@ PyDoc_STRVAR(serve_doc,
              "taken while recording). Returns the rings taken that need the Python turn,\n"
              "the hosts that are gone, the turns served, DevFlags, the watchdog trigger and\n"
              "HostFlags as the last served turn left them, and the DevFlags the recording\n"
-             "saw last (-1: none).");
+             "saw last (-1: none). exchange: None (the default), or (the process image,\n"
+             "its outputs bytearray) in a host-controlled mode: the host's exchanges that\n"
+             "change no output are served here too, and recorded (configure_exchange).");
 
 static PyObject *serve(PyObject *self, PyObject *args) {
   Py_buffer image, outputs, conn;
   int fd, turns = 0, failed = 0;
   double interval, due;
   PyObject *hosts, *device, *calls, *outbox, *indications, *turn, *image_lock, *inputs, *sdo;
-  PyObject *rings = NULL, *dead = NULL, *expected, *result = NULL, *record;
+  PyObject *rings = NULL, *dead = NULL, *expected, *result = NULL, *record, *exchange_arg = NULL;
   recording r;
+  exchange x;
   unsigned char *mm, dev_base, watchdog, dev_seen = 0, watchdog_seen = 0, host_seen = 0;
   (void)self;
   if (!cfg.ready) {
     PyErr_SetString(PyExc_RuntimeError, "configure() first");
     return NULL;
   }
-  if (!PyArg_ParseTuple(args, "w*iO!ddOOOOOOO!y*y*OO", &image, &fd, &PyList_Type, &hosts,
+  if (!PyArg_ParseTuple(args, "w*iO!ddOOOOOOO!y*y*OO|O", &image, &fd, &PyList_Type, &hosts,
                         &interval, &due, &device, &calls, &outbox, &indications, &turn,
                         &image_lock, &PyByteArray_Type, &inputs, &outputs, &conn, &record,
-                        &sdo))
+                        &sdo, &exchange_arg))
     return NULL;
   mm = (unsigned char *)image.buf;
-  if (record_open(record, &r) < 0) goto done;
+  if (record_open(record, &r) < 0 || exchange_open(exchange_arg, &x, image.len) < 0) goto done;
   if (image.len < cfg.snd_pd + cfg.io_size || image.len < cfg.dev_mbx + cfg.msg_max ||
       image.len < cfg.pc_mbx + cfg.msg_max || image.len < cfg.conn_status + cfg.conn_size ||
       image.len < cfg.task2_state + cfg.task2_size || (sdo != Py_None && !PyCallable_Check(sdo)) ||
@@ -669,7 +852,7 @@ static PyObject *serve(PyObject *self, PyObject *args) {
     ssize_t got;
     Py_ssize_t len;
     double wait = interval;
-    int ready, taken, quiet, sdo_kind = 0, changed = 0;
+    int ready, taken, quiet, sdo_kind = 0, changed = 0, exchanged = 0, pending;
     /* the clock only for a watchdog's deadline: each reading is a system call inside
      * User-Mode Linux (no vDSO), issue 22 */
     if (due >= 0) {
@@ -734,12 +917,28 @@ static PyObject *serve(PyObject *self, PyObject *args) {
     if (quiet) {
       dev = __atomic_load_n(mm + cfg.dev_flags, __ATOMIC_ACQUIRE);
       host = mm[cfg.host_flags];
-      quiet = ((dev ^ dev_base) & ~(cfg.devcom | cfg.hostack)) == 0 &&
-              mm[cfg.dev_watchdog] == watchdog && ((host ^ dev) & cfg.host_mbx) == 0 &&
-              ((host ^ dev) & cfg.dev_mbx_bit) != 0 &&
+      pending = exchange_state(&x, dev, host);
+      quiet = ((dev ^ dev_base) & ~(cfg.devcom | cfg.hostack | exchange_toggles(&x))) == 0 &&
+              mm[cfg.dev_watchdog] == watchdog && pending != EXCHANGE_PYTHON &&
+              (pending == EXCHANGE_HERE ||
+               (((host ^ dev) & cfg.host_mbx) == 0 && ((host ^ dev) & cfg.dev_mbx_bit) != 0)) &&
               memcmp(mm + cfg.snd_pd, outputs.buf, (size_t)cfg.io_size) == 0 &&
               memcmp(mm + cfg.conn_status, conn.buf, (size_t)cfg.conn_size) == 0 &&
               record_allows(&r, dev) && (due < 0 || monotonic() <= due);
+      if (quiet && pending == EXCHANGE_HERE) { /* the process-data exchange (above) */
+        quiet = 0;
+        exchanged = exchange_turn(&x, &r, mm, dev, host, inputs, image_lock, fd, hosts, dead);
+        if (exchanged < 0) {
+          failed = 1;
+          exchanged = 0;
+        }
+        if (exchanged) {
+          turns++;
+          dev_seen = __atomic_load_n(mm + cfg.dev_flags, __ATOMIC_ACQUIRE);
+          watchdog_seen = mm[cfg.dev_watchdog];
+          host_seen = mm[cfg.host_flags];
+        }
+      }
       if (quiet) {
         int locked;
         memcpy(raw, mm + cfg.dev_mbx, (size_t)cfg.msg_max); /* one copy, as _receive */
@@ -791,10 +990,10 @@ static PyObject *serve(PyObject *self, PyObject *args) {
     if (failed || PyErr_CheckSignals() < 0) goto done;
     /* A request sdo_turn took whose answer comes later is served: the answer is posted
      * (Device.hand_over) by the thread that ends the transfer, as after a Python turn. */
-    if ((len == 0 && sdo_kind != 2) || changed || PyList_GET_SIZE(dead) > 0) {
+    if ((len == 0 && sdo_kind != 2 && !exchanged) || changed || PyList_GET_SIZE(dead) > 0) {
       /* the ring goes to the Python turn, which serves the message (not one sdo_turn took;
        * after one that changed Task2State the Python turn shows the change) */
-      if (len == 0 && !sdo_kind) {
+      if (len == 0 && !sdo_kind && !exchanged) {
         PyObject *ring = Py_BuildValue("(y#O)", (const char *)payload, (Py_ssize_t)got, expected);
         if (ring == NULL || PyList_Append(rings, ring) < 0) {
           Py_XDECREF(ring);
@@ -819,6 +1018,7 @@ done:
 static PyMethodDef methods[] = {
     {"configure", configure, METH_VARARGS, configure_doc},
     {"configure_record", configure_record, METH_VARARGS, configure_record_doc},
+    {"configure_exchange", configure_exchange, METH_VARARGS, configure_exchange_doc},
     {"serve", serve, METH_VARARGS, serve_doc},
     {NULL, NULL, 0, NULL},
 };

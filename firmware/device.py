@@ -67,7 +67,7 @@ from firmware.can_task import CanTask
 from firmware.card import Answer
 from firmware.faults import CardFaults
 from firmware.flash import FlashStore, StoredDatabase, default_flash_dir
-from firmware.plc import PlcTask
+from firmware.plc import HOST_CONTROLLED, PlcTask
 from firmware.process_image import UNCONTROLLED
 from firmware.rcs import RcsTask, Start
 from firmware.record_socket import RecordSocket
@@ -276,10 +276,15 @@ class Device:
         due, the poll settled, no hop trace). A recording card's turns too: C appends the
         events the recorder's hooks would have to its queue (``Recorder.native_record``;
         until 2026-12-03 a recording card took this Python turn for every message, and
-        recording cost a mailbox round trip +64..104 %). None: not now, wait in Python;
-        () when C served no turn; else what the last turn C served left for the fallback
-        poll's comparison (``_host_bytes`` and HostFlags). The rings C took and left are
-        this loop's, as if ``bell.wait`` had taken them; it returns without waiting."""
+        recording cost a mailbox round trip +64..104 %). In the host-controlled modes also
+        the exchanges a host rings for while C waits, as long as they bring no new output
+        (the CAN master's ``notice_host`` follows those, after this loop's Python turn) and
+        flip no input bit (until 2026-12-04 each exchange took this Python turn, and on a
+        recording card its recorder's three hooks: docs/benchmarks.md, note 8). None: not
+        now, wait in Python; () when C served no turn; else what the last turn C served left
+        for the fallback poll's comparison (``_host_bytes`` and HostFlags). The rings C took
+        and left are this loop's, as if ``bell.wait`` had taken them; it returns without
+        waiting."""
         mm = self.mm
         if (self._calls or self.outbox or self._ring or self._hop_trace is not None
                 or not self.faults.idle or self.bell.mailbox_wanted or self.bell.host_rang
@@ -306,7 +311,8 @@ class Device:
             mm, self.bell.fileno(), hosts, poll.interval, -1.0 if due is None else due, self,
             self._calls, self.outbox, master.layer2.indications, self._turn, image.lock,
             image.inputs, outputs, conn, record,
-            self.can.host_sdo.native_request if self.can.fatal is None else None)
+            self.can.host_sdo.native_request if self.can.fatal is None else None,
+            (image, image.outputs) if image.mode in HOST_CONTROLLED else None)
         if recorder is not None:
             recorder.native_recorded(recorded)
         self.native_turns += turns

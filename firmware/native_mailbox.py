@@ -1,16 +1,17 @@
 """The device loop's mailbox turn in C for a plain COM_Shared_Memory read and a host SDO
-request [ours] (issue 22).
+request, and its process-data exchange in the host-controlled modes [ours] (issues 22, 25).
 
 ``firmware/_mailbox.c`` answers, with the interpreter lock released while it waits, the
 COM_Shared_Memory reads (and malformed COM_Shared_Memory requests) a host rings for while
 nothing else needs the device loop's Python turn, and hands a host's COM_SDO_Up_Download
 (msg.e 0, or 4: a long upload's request) to the CAN task's one callable for it
-(``HostSdo.native_request``) when the card does not record; it returns to that turn for
-everything else. This module hands it the numbers it works with, from ``dpm/`` and the PLC
-task's limits, so the C file holds no number of the protocol; and, for a recording card, the
-spool's heads (``dpm.session``) and the recorder's ledger reads, so that a turn served in C
-appends to the recorder's queue the events its hooks would have (``firmware.recorder``)
-[ours].
+(``HostSdo.native_request``) when the card does not record, and serves a host's
+DevExchangeIO in the buffered host-controlled modes while it changes no output the CAN
+master follows; it returns to that turn for everything else. This module hands it the
+numbers it works with, from ``dpm/`` and the PLC task's limits, so the C file holds no
+number of the protocol; and, for a recording card, the spool's heads (``dpm.session``) and
+the recorder's ledger reads, so that a turn served in C appends to the recorder's queue the
+events its hooks would have (``firmware.recorder``) [ours].
 """
 
 from __future__ import annotations
@@ -40,6 +41,7 @@ from dpm.layout import (
     IO_AREA_SIZE,
     MSG_HEADER_SIZE,
     PC_MBX,
+    RCV_PD,
     SND_PD,
     TASK2_STATE,
     TASK_STATE_SIZE,
@@ -84,11 +86,20 @@ it checks), and what ``Recorder.put`` reads beside it; Task2State, the mailbox's
 DEVACK and HOSTCOM bits it takes from ``LAYOUT``."""
 
 
+EXCHANGE = {
+    "PD": fl.PD, "PDACK": fl.PDACK, "READY": fl.READY, "SPC": fl.SPC, "RCV_PD": RCV_PD,
+    "EXCHANGE": (s.SPOOL_CODES[s.EXCHANGE], s.SPOOL_EXCHANGE.format, s.SPOOL_EXCHANGE.size),
+}
+"""What ``configure_exchange`` hands the C file, by name: the host-controlled exchange's
+flag bits, RcvPd's offset and the spool head of a recorded exchange."""
+
+
 def configure(module: ModuleType) -> Callable[..., Any]:
     """Hand ``module`` (``firmware._mailbox``, or a build of it with the sanitizers) its
     numbers; its ``serve``."""
     module.configure(LAYOUT, data_type_limits())
     module.configure_record(SPOOL)
+    module.configure_exchange(EXCHANGE)
     serve: Callable[..., Any] = module.serve
     return serve
 

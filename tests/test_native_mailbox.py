@@ -29,15 +29,18 @@ from dpm import flags as fl
 from dpm import session as s
 from dpm.commands import COM_SDO_UP_DOWNLOAD, COM_SHARED_MEMORY
 from dpm.doorbell import HostBell
+from dpm.errors import Drv
 from dpm.image import lock_path
 from dpm.layout import DEV_FLAGS, DEV_MBX, HOST_FLAGS, IO_AREA_SIZE, PC_MBX, SND_PD
 from dpm.message import MSG_MAX_SIZE, Message, Task, TelegramHeader, Tfc
 from firmware import native_mailbox
 from firmware.device import Device
+from firmware.plc import HOST_CONTROLLED
 from firmware.recorder import Recorder
 from host_api.driver import (
     MSG_BUFFER_SIZE,
     DevCloseDriver,
+    DevExchangeIO,
     DevExitBoard,
     DevGetMessage,
     DevInitBoard,
@@ -180,7 +183,8 @@ def fuzz(directory: str, module: str) -> None:
     (msg.ln any) and the ledger (empty, its line, garbage, longer than the card's first
     read and than all it reads) itself, all of which the session holds; and host SDO
     requests of such bytes, compared with the CAN task's (taken in C once the recording
-    ended: a recording card hands them to the Python turn)."""
+    ended: a recording card hands them to the Python turn); and between them the host's
+    exchanges (served in C, recorded in the first half), the bus's inputs new at times."""
     import importlib.util
 
     spec = importlib.util.spec_from_file_location("firmware._mailbox", module)
@@ -199,6 +203,7 @@ def fuzz(directory: str, module: str) -> None:
     recorder = _attach(device, session)
     host = BellHost(device)
     raw_puts = 0
+    outputs = rng.randbytes(32)
     edges = [0, 1, 7, 8, 15, 16, 119, 120, 239, 240, 255, 1791, 1792, 3583, 3584, 0xFFFF]
     for nr in range(FUZZ_REQUESTS):
         if nr % 3:
@@ -213,6 +218,10 @@ def fuzz(directory: str, module: str) -> None:
             records = _detach(device, recorder, session)  # the driver's: the firmware's pid,
             assert [r.kind for r in records].count(s.PUT) == raw_puts  # left out
             assert [r.kind for r in records].count(s.ANSWER) == raw_puts
+        if nr % 8 == 1:  # an exchange (bMode 3's host-controlled mode), new inputs at times
+            if nr % 24 == 1:
+                device.plc.image.write_inputs(rng.randrange(IO_AREA_SIZE - 8), rng.randbytes(8))
+            assert DevExchangeIO(0, 0, outputs, 0, 16, 1000)[0] == int(Drv.DRV_DEV_NO_COM_FLAG)
         if nr % 4 == 2:  # a host SDO request: the CAN task's, by sdo_turn in C (msg.e 0, 4)
             request = Message(rx=Task.CAN, tx=Task.USER, b=COM_SDO_UP_DOWNLOAD, nr=nr & 0xFF,
                               e=rng.choice([0, 0, 4]), data=data)
@@ -488,3 +497,79 @@ def test_the_turn_in_c_records_as_the_python_turn(
         native, python = (_detach(device, recorder, session) for device, recorder, session
                           in zip(devices, recorders, sessions, strict=True))
     assert _folded(native) == _folded(python)
+
+
+# --- the process-data exchange in C (issue 25) -----------------------------------------------
+
+
+EXCHANGES = 300
+"""Host-controlled exchanges in the exchange test: a few with new outputs, new inputs, a
+flipped input bit; the rest as a PDO loop in a steady state makes them."""
+
+
+def _step_kinds(rng: random.Random) -> list[str]:
+    kinds = ["same"] * EXCHANGES
+    for n in rng.sample(range(EXCHANGES), 60):
+        kinds[n] = rng.choice(["outputs", "inputs", "inputs", "flip"])
+    return kinds
+
+
+def _answered(device: Device) -> None:
+    """Until ``device`` answered the host's exchange (PDACK) and ended the turn that did."""
+    mm = device.mm
+    wait_until(lambda: not (mm[HOST_FLAGS] ^ mm[DEV_FLAGS]) & fl.PD, what="PDACK")
+    with device._turn:  # the turn that answered records after its ring, holding this
+        pass
+
+
+def test_the_exchange_in_c_answers_and_records_as_the_python_turn(
+        cards: Cards, tmp_path: Path) -> None:
+    """DevExchangeIO in the buffered host-controlled mode against a recording card with the
+    turn in C and one without: every exchange gives both hosts the same inputs (new inputs
+    of the bus, an input bit the fault "flip" inverts once), both cards take the same
+    outputs (the CAN master's copy), and both sessions are the same, field by field but the
+    time stamps. The card with the turn in C serves the exchanges that bring no new output
+    there: its Python turns stay far below one per exchange (on the old code every exchange
+    took one, 300 of 300)."""
+    devices = (cards.native, cards.python)
+    assert all(device.plc.image.mode in HOST_CONTROLLED for device in devices)
+    sessions = [tmp_path / f"session{device.board}" for device in devices]
+    recorders = [_attach(device, session)
+                 for device, session in zip(devices, sessions, strict=True)]
+    rng = random.Random(25)
+    outputs = rng.randbytes(IO_AREA_SIZE)
+    _python_turn(cards, devices)
+    before, served = cards.turns[0], cards.native.native_turns
+    try:
+        for kind in _step_kinds(rng):
+            if kind == "outputs":
+                outputs = outputs[:8] + rng.randbytes(8) + outputs[16:]
+            elif kind == "inputs":
+                offset, data = rng.randrange(IO_AREA_SIZE - 8), rng.randbytes(8)
+                for device in devices:  # as the bus delivers them
+                    device.plc.image.write_inputs(offset, data)
+            elif kind == "flip":
+                offset, bit = rng.randrange(64), rng.randrange(8)
+                for device in devices:  # the fault "flip", once (firmware/faults.py)
+                    with device.between_turns():
+                        device.plc.image.flip_inputs(offset, 1 << bit, once=True)
+            # The driver hands over the outputs and takes the inputs of the exchange before
+            # (the image's RcvPd), then toggles PDCOM and returns: each card's answer is
+            # awaited here, so that the next step's inputs come after it on both cards.
+            got = [DevExchangeIO(device.board, 0, outputs, 0, 64, 1000) for device in devices]
+            assert got[0] == got[1]
+            assert got[0][0] == int(Drv.DRV_DEV_NO_COM_FLAG)  # no bus configured: no COM
+            for device in devices:
+                _answered(device)
+                assert bytes(device.plc.image.outputs) == outputs
+    finally:
+        python_turns = cards.turns[0] - before
+        _python_turn(cards, devices)  # the turn in C returns, its turns counted
+        records = [_detach(device, recorder, session) for device, recorder, session
+                   in zip(devices, recorders, sessions, strict=True)]
+    assert python_turns <= EXCHANGES // 3, f"{python_turns} Python turns for {EXCHANGES}"
+    assert cards.native.native_turns - served >= EXCHANGES - python_turns
+    assert _folded(records[0]) == _folded(records[1])
+    exchanges = [r for r in records[0] if r.kind == s.EXCHANGE]
+    assert len(exchanges) == EXCHANGES
+    assert sum(1 for r in exchanges if r.changes) >= 40  # the outputs', inputs', flips'
