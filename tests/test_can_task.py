@@ -16,6 +16,7 @@ import itertools
 import os
 import signal
 import struct
+import threading
 import time
 import uuid
 from collections.abc import Callable
@@ -33,6 +34,7 @@ from dpm.task2 import ComDiagnostics
 from host_api import driver as d
 from host_api.board import Board
 from host_api.online import configure_online
+from tests import commands
 from tests.can_net import (
     GENERIC,
     Net,
@@ -41,6 +43,7 @@ from tests.can_net import (
     exchange,
     frame,
     node_set,
+    start_sim,
     window,
 )
 from tests.conftest import Card, LoadDeadline, start_card, wait_until
@@ -275,6 +278,91 @@ def test_short_sdo_responses_fail_only_their_node(make_net: Callable[..., Net]) 
     assert node_diag[6] == 38  # Actual_Error
     assert not node_diag[0] & 0x01  # No_Response: the node did answer
     assert net.sdo(1, 0x1000, 0).f == 0  # the card's SDO side lives on
+
+
+NO_RESPONSE = 0x01
+"""Nodestatus_1's No_Response, "node not responding" (seed 5.2.7)."""
+
+
+def node_status(net: Net, node: int) -> tuple[int, int]:
+    """Nodestatus_1 and Actual_Error of the node's COM_Node_Diag answer (seed 5.2.7)."""
+    raw = net.send(66, bytes([node, 0, 0, 0, 0, 0, 5, 1])).data[8:]
+    return raw[0], raw[6]
+
+
+@pytest.mark.parametrize(("sim", "event"), [('sdo_response = "short"', 38),
+                                             ('sdo_response = "unknown"', 37)])
+def test_a_node_without_a_boot_up_message_that_answers_wrongly(
+        make_net: Callable[..., Net], sim: str, event: int) -> None:
+    """A node whose boot-up message did not come (none at all here; a late one on a busy
+    machine) is identified by reading 1000h: one that answers that read wrongly did answer.
+    Fails without the fix: its answers' time-outs were tried again for 3 s and reported as
+    34 with No_Response (and the unknown answers asked again and again meanwhile)."""
+    net = make_net(f"[[node]]\nid = 6\n[node.sim]\nno_bootup = true\n{sim}\n")
+    net.configure()
+    wait_until(lambda: net.diag().bErr_event == event, 10, f"Err_Event {event}")
+    assert net.diag().bErr_rem_adr == 6
+    status, error = node_status(net, 6)
+    assert error == event and not status & NO_RESPONSE
+
+
+@pytest.mark.parametrize("interface", ["shm"], indirect=True)
+def test_an_answer_for_another_object_is_an_unknown_sdo_response(
+        make_net: Callable[..., Net]) -> None:
+    """Node 6 is a bare station here: it sends its boot-up message when reset and answers
+    every upload as if 1001h had been asked. It answered, with a response the card cannot
+    take: 37 without No_Response (docs/decisions.md). Fails without the fix: 34 with
+    No_Response, "no response of the node", as for a silent one."""
+    net = make_net("[[node]]\nid = 6\n[node.sim]\nsilent = true\n")
+    stop = threading.Event()
+    with can.Bus(interface="shm", channel=net.channel) as station:
+
+        def answer() -> None:
+            while not stop.is_set():
+                msg = station.recv(0.05)
+                if msg is None:
+                    continue
+                if msg.arbitration_id == 0 and bytes(msg.data) == bytes([0x81, 6]):
+                    station.send(can.Message(arbitration_id=0x706, data=b"\x00",
+                                             is_extended_id=False))
+                elif msg.arbitration_id == 0x606 and msg.data[0] == 0x40:
+                    station.send(can.Message(arbitration_id=0x586, is_extended_id=False,
+                                             data=bytes([0x43, 0x01, 0x10, 0, 0, 0, 0, 0])))
+
+        node = threading.Thread(target=answer)
+        node.start()
+        try:
+            net.configure()
+            wait_until(lambda: net.diag().bErr_event == 37, 10, "Err_Event 37")
+            status, error = node_status(net, 6)
+            assert error == 37 and not status & NO_RESPONSE
+        finally:
+            stop.set()
+            node.join()
+
+
+@pytest.mark.parametrize("interface", ["shm"], indirect=True)
+def test_no_response_follows_the_latest_boot_up(make_net: Callable[..., Net],
+                                                tmp_path: Path) -> None:
+    """No_Response says how the node's latest boot-up found it: set while node 6 is silent
+    (34), cleared once a node 6 on the bus answers, if wrongly (38). Fails without the fix:
+    the silent attempts' bit stayed beside Actual_Error 38, and Nodestatus_1 said "not
+    responding" of a node that answered."""
+    net = make_net("[[node]]\nid = 6\n[node.sim]\nsilent = true\n")
+    net.configure()
+    wait_until(lambda: net.diag().bErr_event == 34, 10, "Err_Event 34 of the silent node")
+    status, error = node_status(net, 6)
+    assert error == 34 and status & NO_RESPONSE
+    answering = tmp_path / "answering.toml"
+    answering.write_text('[[node]]\nid = 6\n[node.sim]\nsdo_response = "short"\n')
+    sim = start_sim(answering, "shm", net.channel)  # node 6 comes onto the bus
+    try:
+        wait_until(lambda: net.diag().bErr_event == 38, 10, "Err_Event 38 of the node now")
+        status, error = node_status(net, 6)
+        assert error == 38 and not status & NO_RESPONSE
+    finally:
+        sim.terminate()
+        commands.wait(sim, 10)
 
 
 def test_guarding_sequence_error(make_net: Callable[..., Net]) -> None:

@@ -122,6 +122,12 @@ class BootFailure(Exception):
         self.event = event
 
 
+class UnknownSdoResponse(SdoCommunicationError):
+    """An answer the SDO client could not take (``SdoResult.failed``): an unknown command
+    specifier, a toggle bit not alternated, another object's answer. The node did answer,
+    not as CiA 301 has it: 37, never a time-out to wait out or call silence."""
+
+
 @dataclass(frozen=True)
 class Sdo:
     """A step: read (``value`` None) or write one object; the sequence gets the value read,
@@ -331,7 +337,7 @@ class BootSequence:
                 return
             self._pending = None
         if result.failed:
-            self._advance(None, SdoCommunicationError(result.failed))
+            self._advance(None, UnknownSdoResponse(result.failed))
         elif result.timed_out:
             self._advance(None, SdoCommunicationError("No SDO response received"))
         elif result.abort is not None:
@@ -344,15 +350,29 @@ class BootSequence:
         if isinstance(exc, SdoAbortedError):
             log.info("node %d: configuration aborted 0x%08X", self.address, exc.code)
             self.diag.status |= NodeStatus.PRM_FAULT
-            return NodeEvent.NO_RESPONSE
-        message = str(exc)
-        log.info("node %d: no configuration answer: %s", self.address, message)
-        unknown = "unexpected" in message.lower()
-        if self._sdo_length_error and not unknown:
+            return self._responded(NodeEvent.NO_RESPONSE)
+        if isinstance(exc, UnknownSdoResponse):
+            log.info("node %d: unknown configuration answer: %s", self.address, exc)
+            return self._responded(NodeEvent.UNKNOWN_SDO_RESPONSE)
+        if self._sdo_length_error:
             # The node did answer, with a frame the controller kept from the client.
-            return NodeEvent.SDO_LENGTH
-        self.diag.status |= 0 if unknown else NodeStatus.NO_RESPONSE
-        return NodeEvent.UNKNOWN_SDO_RESPONSE if unknown else NodeEvent.NO_RESPONSE
+            log.info("node %d: configuration answers of a length other than 8", self.address)
+            return self._responded(NodeEvent.SDO_LENGTH)
+        log.info("node %d: no configuration answer: %s", self.address, exc)
+        return self._responded(NodeEvent.NO_RESPONSE, answered=False)
+
+    def _responded(self, event: int, answered: bool = True) -> int:
+        """No_Response ("node not responding", seed 5.2.7 Nodestatus_1) as this boot-up's
+        failure ``event`` found the node: set when it failed for the node's silence, cleared
+        when the node answered, however wrongly (an abort, 35, 36, 37, 38). [ours] The seed
+        does not say when the bit clears; it says whether the node responds, so the latest
+        attempt decides. Before, a silent attempt's bit stayed through a later one the node
+        answered wrongly, and Nd_diag said both "did not answer" and "answered wrongly"."""
+        if answered:
+            self.diag.status &= ~NodeStatus.NO_RESPONSE
+        else:
+            self.diag.status |= NodeStatus.NO_RESPONSE
+        return event
 
     def _steps(self, skip: int, reset_sent: bool) -> Steps:
         # ``.value``: an IntFlag operand makes each test build a flag object (3 us each,
@@ -373,17 +393,17 @@ class BootSequence:
             raw = yield Sdo(0x1000, 0)
             assert isinstance(raw, bytes)
             if len(raw) < 4:
-                raise BootFailure(NodeEvent.UNKNOWN_SDO_RESPONSE)
+                raise BootFailure(self._responded(NodeEvent.UNKNOWN_SDO_RESPONSE))
             device_type = int.from_bytes(raw[:4], "little")
             self.diag.profile = device_type & 0xFFFF
             self.diag.add_info = device_type >> 16
             # [ours] a configured 0 means "any": a host may not know one of the two.
             if params.usDevProfNum and params.usDevProfNum != self.diag.profile:
                 self.diag.status |= NodeStatus.PRM_FAULT
-                raise BootFailure(NodeEvent.PROFILE_MISMATCH)
+                raise BootFailure(self._responded(NodeEvent.PROFILE_MISMATCH))
             if params.usAddTypeInfo and params.usAddTypeInfo != self.diag.add_info:
                 self.diag.status |= NodeStatus.PRM_FAULT
-                raise BootFailure(NodeEvent.DEVICE_TYPE_MISMATCH)
+                raise BootFailure(self._responded(NodeEvent.DEVICE_TYPE_MISMATCH))
         control = self._control
         if not skip & ConfigNdState.GUARD.value:
             if control.heartbeat:
@@ -429,7 +449,11 @@ class BootSequence:
         The seed's card does not react to boot-up events (appendix: "Bootup Protocol, no
         reaction on Bootup Events of a Node"); its boot-up is "simple, reading object 1000H".
         So a node of CiA 301 before 4.0, which sends none, boots as well; a boot-up message
-        only spares the wait. No answer within ``BOOTUP_TIMEOUT`` of the reset: 34.
+        only spares the wait. Only a time-out is tried again: no answer within
+        ``BOOTUP_TIMEOUT`` of the reset is 34 with No_Response. A node that answered, in a
+        frame of the wrong length (38) or one the client cannot take (37), is judged at once
+        as in any other step (``_failure``); before, it too was 34 with No_Response after
+        3 s, and a node answering 37 at once was asked again and again for those 3 s.
         """
         while True:
             if self.link.closing:
@@ -437,10 +461,11 @@ class BootSequence:
             try:
                 yield Sdo(0x1000, 0)
                 return
+            except UnknownSdoResponse:
+                raise
             except SdoCommunicationError:
-                if time.monotonic() >= deadline:
-                    self.diag.status |= NodeStatus.NO_RESPONSE
-                    raise BootFailure(NodeEvent.NO_RESPONSE) from None
+                if self._sdo_length_error or time.monotonic() >= deadline:
+                    raise
 
     def _write_producer_time(self, value: bytes) -> Steps:
         """1017h, the node's producer heartbeat time: from the GUARD step or the SDO list.
