@@ -279,6 +279,8 @@ def DevExitBoard(number: int) -> int:
 
 _NO_ERROR = Drv.DRV_NO_ERROR
 _STALE = Answer.STALE
+"""Read from the module, not from their enum classes, on every mailbox call: an enum
+member's look-up through its class is ten times a global's (issue 22)."""
 
 _setup_transaction(HOST_FLAGS, DEV_FLAGS, DEV_MBX, PC_MBX, fl.DEVCOM, fl.HOSTACK, fl.DEV_MBX,
                    fl.HOST_MBX, Ext.NAK, Ext.SEQ_MASK, Ext.FIRST, Ext.CONT, Ext.LAST, RING[0],
@@ -290,8 +292,6 @@ flags and the ring, as the Python steps below do them, in their order): about 30
 309-3 server's CPU per read were those steps (issue 22). False: the Python steps alone, which
 also do every case the C calls hand back (a wait, a stale answer, a sequence continued); the
 tests run both."""
-"""Read from the module, not from their enum classes, on every mailbox call: an enum
-member's look-up through its class is ten times a global's (issue 22)."""
 _boards = _driver.boards
 """The registry's table, which is never replaced (only changed in place): a mailbox call
 looks its board up and tests READY inline, and asks ``ready_board`` only for the code of a
